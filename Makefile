@@ -1,0 +1,41 @@
+# Two commands do all set-up on a fresh machine: `make demo` and `make test`.
+# Every target is idempotent; `setup` re-runs pip only when pyproject.toml changes.
+
+PYTHON ?= $(shell command -v python3.11 || command -v python3)
+VENV   := .venv
+PY     := $(VENV)/bin/python
+PIP    := $(PY) -m pip
+STAMP  := $(VENV)/.installed
+TORCH  := torch==2.13.0
+# Dr.Jit's LLVM backend aborts on libLLVM 15; any libLLVM >= 17 works (DESIGN section 7).
+LLVM_GLOB := /usr/lib/*/libLLVM-1[7-9]*.so* /usr/lib/*/libLLVM-[2-9][0-9]*.so* /usr/lib/llvm-1[7-9]/lib/libLLVM*.so* /usr/lib/llvm-[2-9][0-9]/lib/libLLVM*.so*
+
+.PHONY: setup llvm test lint bench clean
+
+setup: llvm $(STAMP)
+
+llvm:
+	@if ls $(LLVM_GLOB) >/dev/null 2>&1; then :; else \
+	  echo "libLLVM >= 17 not found: installing Debian's libllvm19"; \
+	  if [ "$$(id -u)" = 0 ]; then SUDO=; else SUDO=sudo; fi; \
+	  $$SUDO apt-get update -qq && $$SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libllvm19; \
+	fi
+
+$(STAMP): pyproject.toml
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	# CPU torch first, from the pinned file, so that nothing pulls CUDA wheels.
+	$(PIP) install -q $(TORCH)
+	$(PIP) install -q -e '.[dev]'
+	touch $(STAMP)
+
+test: setup
+	$(PY) -m pytest -q
+
+lint: setup
+	$(VENV)/bin/ruff check sq_mitsuba tests
+
+bench: setup
+	$(VENV)/bin/sq-mitsuba bench all
+
+clean:
+	rm -rf $(VENV) .pytest_cache .ruff_cache *.egg-info

@@ -1,0 +1,5 @@
+import sys
+
+from sq_mitsuba.cli import main
+
+sys.exit(main())
