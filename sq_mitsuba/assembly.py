@@ -1,0 +1,472 @@
+"""Batched assemblies of superquadric primitives: occupancy, surface samples, meshes, files.
+
+Convention:
+    A batch of B assemblies of M primitives is a tensor ``params`` of shape (B, M, 16); per
+    primitive, in this order (DESIGN section 4):
+
+    ====================  =======  ================================================
+    field                 columns  meaning
+    ====================  =======  ================================================
+    ``size``              0:3      semi-axes (a1, a2, a3) > 0
+    ``shape``             3:5      (e1, e2) in [0, 1] (dual superquadric exponents)
+    ``translation``       5:8      primitive origin in the assembly frame
+    ``rotation_6d``       8:14     first two rows of R (see :mod:`sq_mitsuba.rotation`)
+    ``taper``             14:16    (k1, k2), |k| < 1
+    ====================  =======  ================================================
+
+    A primitive point maps to the assembly frame as ``x = R @ taper(x_primitive) + t``; query
+    points go the other way (``untaper(R^T (x - t))``) before the inside-outside function.
+    The assembly is the union of its primitives: its occupancy is the max over primitives.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor
+from torch.autograd.function import once_differentiable
+
+from sq_mitsuba.checks import check_tensor
+from sq_mitsuba.icosphere import icosphere_angles, icosphere_faces
+from sq_mitsuba.io import atomic_path, atomic_write_text
+from sq_mitsuba.rotation import matrix_to_rotation_6d, rotation_6d_to_matrix
+from sq_mitsuba.superquadric import (
+    dual_field,
+    dual_scales,
+    inside_outside_dual,
+    surface_points_dual,
+    taper,
+    untaper,
+)
+
+__all__ = ["FIELDS", "NUM_PARAMS", "Assembly", "ParameterRanges", "overlap"]
+
+NUM_PARAMS = 16
+#: Column slices of the 16 numbers per primitive, in order.
+FIELDS: dict[str, slice] = {
+    "size": slice(0, 3),
+    "shape": slice(3, 5),
+    "translation": slice(5, 8),
+    "rotation_6d": slice(8, 14),
+    "taper": slice(14, 16),
+}
+JSON_FORMAT = "sq_mitsuba.assembly"
+JSON_VERSION = 1
+MESH_SUFFIXES = (".obj", ".ply", ".glb", ".gltf", ".stl")
+_DTYPES = {"float32": torch.float32, "float64": torch.float64}
+
+
+@dataclass(frozen=True)
+class ParameterRanges:
+    """How raw network outputs are squashed into valid parameters (authors' implementation).
+
+    size = size_min + size_span * sigmoid, shape = sigmoid, translation = translation_scale *
+    tanh, taper = taper_scale * tanh (0.9 rather than the paper's 1 keeps the cross-section
+    from collapsing to a point), rotation = the raw 6D vector.
+    """
+
+    size_min: float = 0.01
+    size_span: float = 0.49
+    translation_scale: float = 0.5
+    taper_scale: float = 0.9
+
+
+class Assembly:
+    """A batch of B superquadric assemblies with M primitives each.
+
+    Build one with :meth:`from_raw` (network outputs), :meth:`from_values` (explicit fields) or
+    the constructor (a ready (B, M, 16) tensor). Gradients flow from every output back to
+    ``params``.
+    """
+
+    def __init__(self, params: Tensor):
+        check_tensor("params", params, (None, NUM_PARAMS), min_dims=3)
+        if params.dim() != 3:
+            raise ValueError(f"params: expected shape (B, M, 16), got {tuple(params.shape)}")
+        self.params = params
+        with torch.no_grad():
+            if bool((self.size <= 0).any()):
+                raise ValueError("params: size must be positive")
+            if bool(((self.shape < 0) | (self.shape > 1)).any()):
+                raise ValueError("params: shape must lie in [0, 1]")
+            if bool((self.taper.abs() >= 1).any()):
+                raise ValueError("params: taper must satisfy |k| < 1")
+            d6 = self.rotation_6d
+            first, second = d6[..., :3], d6[..., 3:]
+            cross = torch.linalg.vector_norm(torch.linalg.cross(first, second, dim=-1), dim=-1)
+            if bool((cross <= 1e-8 * (first.norm(dim=-1) * second.norm(dim=-1) + 1e-30)).any()):
+                raise ValueError("params: degenerate 6D rotation (zero or parallel rows)")
+
+    # ---------------------------------------------------------------- construction
+
+    @classmethod
+    def from_raw(cls, raw: Tensor, ranges: ParameterRanges | None = None) -> Assembly:
+        """Squash unconstrained outputs (B, M, 16) into valid parameters (see ParameterRanges)."""
+        ranges = ranges or ParameterRanges()
+        check_tensor("raw", raw, (None, NUM_PARAMS), min_dims=3)
+        size = ranges.size_min + ranges.size_span * torch.sigmoid(raw[..., FIELDS["size"]])
+        shape = torch.sigmoid(raw[..., FIELDS["shape"]])
+        translation = ranges.translation_scale * torch.tanh(raw[..., FIELDS["translation"]])
+        taper_ = ranges.taper_scale * torch.tanh(raw[..., FIELDS["taper"]])
+        return cls(torch.cat([size, shape, translation, raw[..., FIELDS["rotation_6d"]], taper_],
+                             dim=-1))
+
+    @classmethod
+    def from_values(
+        cls,
+        size: Tensor,
+        shape: Tensor,
+        translation: Tensor | None = None,
+        rotation: Tensor | None = None,
+        taper: Tensor | None = None,
+    ) -> Assembly:
+        """Assemble explicit fields (leading dims (B, M)); missing ones default to identity.
+
+        Args:
+            size: (B, M, 3).
+            shape: (B, M, 2).
+            translation: (B, M, 3), default 0.
+            rotation: (B, M, 3, 3) matrices or (B, M, 6) 6D vectors, default identity.
+            taper: (B, M, 2), default 0.
+        """
+        check_tensor("size", size, (None, 3), min_dims=3)
+        check_tensor("shape", shape, (None, 2), min_dims=3)
+        batch = size.shape[:-1]
+        zeros = size.new_zeros
+        if translation is None:
+            translation = zeros(*batch, 3)
+        if taper is None:
+            taper = zeros(*batch, 2)
+        if rotation is None:
+            rotation = torch.eye(3, dtype=size.dtype, device=size.device).expand(*batch, 3, 3)
+        check_tensor("rotation", rotation, (None,), min_dims=3)
+        if rotation.shape[-2:] == (3, 3):
+            rotation = matrix_to_rotation_6d(rotation)
+        fields = {"size": size, "shape": shape, "translation": translation,
+                  "rotation": rotation, "taper": taper}
+        for name, value in fields.items():
+            check_tensor(name, value)
+            if value.shape[:-1] != batch:
+                raise ValueError(f"{name}: expected leading dims {tuple(batch)}, "
+                                 f"got {tuple(value.shape)}")
+        if rotation.shape[-1] != 6:
+            raise ValueError(f"rotation: expected (B, M, 3, 3) or (B, M, 6), "
+                             f"got {tuple(rotation.shape)}")
+        return cls(torch.cat([size, shape, translation, rotation, taper], dim=-1))
+
+    # ---------------------------------------------------------------- named views
+
+    @property
+    def batch_size(self) -> int:
+        return self.params.shape[0]
+
+    @property
+    def num_primitives(self) -> int:
+        return self.params.shape[1]
+
+    @property
+    def size(self) -> Tensor:
+        """(B, M, 3)."""
+        return self.params[..., FIELDS["size"]]
+
+    @property
+    def shape(self) -> Tensor:
+        """(B, M, 2)."""
+        return self.params[..., FIELDS["shape"]]
+
+    @property
+    def translation(self) -> Tensor:
+        """(B, M, 3)."""
+        return self.params[..., FIELDS["translation"]]
+
+    @property
+    def rotation_6d(self) -> Tensor:
+        """(B, M, 6)."""
+        return self.params[..., FIELDS["rotation_6d"]]
+
+    @property
+    def rotation(self) -> Tensor:
+        """Rotation matrices (B, M, 3, 3), primitive frame -> assembly frame."""
+        return rotation_6d_to_matrix(self.rotation_6d)
+
+    @property
+    def taper(self) -> Tensor:
+        """(B, M, 2)."""
+        return self.params[..., FIELDS["taper"]]
+
+    def __getitem__(self, index: int | slice) -> Assembly:
+        """The sub-batch ``params[index]`` (an int keeps the batch dim)."""
+        if isinstance(index, int):
+            index = slice(index, index + 1 if index != -1 else None)
+        return Assembly(self.params[index])
+
+    def __repr__(self) -> str:
+        return (f"Assembly(batch_size={self.batch_size}, num_primitives={self.num_primitives}, "
+                f"dtype={self.params.dtype}, device={self.params.device})")
+
+    # ---------------------------------------------------------------- occupancy
+
+    def to_primitive_frames(self, points: Tensor) -> Tensor:
+        """Query points (B, N, 3) in the assembly frame -> (B, M, N, 3) untapered primitive frames."""
+        check_tensor("points", points, (None, 3), min_dims=3)
+        if points.shape[0] != self.batch_size or points.dim() != 3:
+            raise ValueError(f"points: expected shape ({self.batch_size}, N, 3), "
+                             f"got {tuple(points.shape)}")
+        # Row-vector form of R^T (x - t).
+        local = (points[:, None] - self.translation[:, :, None]) @ self.rotation
+        return untaper(local, self.taper, self.size)
+
+    def inside_outside(self, points: Tensor) -> Tensor:
+        """Dual inside-outside value of each primitive at each point: (B, N, 3) -> (B, M, N).
+
+        Equal to ``inside_outside_dual(self.to_primitive_frames(points), size, shape)``, fused:
+        rotation, scaling and the taper's inverse run as one batched matrix product and a few
+        elementwise passes, and the backward reuses the forward's powers.
+        """
+        check_tensor("points", points, (None, 3), min_dims=3)
+        if points.shape[0] != self.batch_size or points.dim() != 3:
+            raise ValueError(f"points: expected shape ({self.batch_size}, N, 3), "
+                             f"got {tuple(points.shape)}")
+        if points.dtype != self.params.dtype:
+            raise ValueError(f"points: dtype {points.dtype} differs from the assembly's "
+                             f"{self.params.dtype}")
+        g, alpha = dual_scales(self.shape)
+        g1 = g[..., 0]
+        g12 = g1 * g[..., 1]
+        # Scaled primitive coordinates (xb, yb, zb before untapering) = linear @ x - offset.
+        scale = self.size * torch.stack([g12, g12, g1], dim=-1)
+        linear = self.rotation.transpose(-1, -2) / scale[..., None]
+        offset = (linear @ self.translation[..., None]).squeeze(-1)
+        return _AssemblyInsideOutside.apply(points, linear, offset, self.taper, g1, alpha)
+
+    def occupancy(self, points: Tensor, sharpness: float = 10.0) -> Tensor:
+        """Per-primitive soft occupancy g = sigmoid(s (1 - f)) (paper Eq. 14): (B, M, N)."""
+        return torch.sigmoid(sharpness * (1.0 - self.inside_outside(points)))
+
+    def union_occupancy(self, points: Tensor, sharpness: float = 10.0) -> Tensor:
+        """Occupancy of the union: max over primitives of :meth:`occupancy`, (B, N)."""
+        return self.occupancy(points, sharpness).amax(dim=1)
+
+    # ---------------------------------------------------------------- surface samples
+
+    def surface_points(self, level: int = 3) -> Tensor:
+        """Dual-sampled surface points on icosphere angles in the assembly frame, (B, M, V, 3).
+
+        V = 642 at level 3.
+        """
+        eta, omega = icosphere_angles(level, self.params.dtype, self.params.device)
+        local = surface_points_dual(eta, omega, self.size, self.shape)
+        local = taper(local, self.taper, self.size)
+        return local @ self.rotation.transpose(-1, -2) + self.translation[:, :, None]
+
+    def inside_other_mask(self, points: Tensor) -> Tensor:
+        """Which of each primitive's surface points lie strictly inside another primitive.
+
+        Args:
+            points: (B, M, V, 3), e.g. from :meth:`surface_points`.
+
+        Returns:
+            (B, M, V) bool, computed without gradient.
+        """
+        batch, count, per, _ = points.shape
+        with torch.no_grad():
+            values = self.inside_outside(points.reshape(batch, count * per, 3))
+            values = values.reshape(batch, count, count, per)  # (B, other, owner, V)
+            own = torch.eye(count, dtype=torch.bool, device=points.device)[None, :, :, None]
+            return ((values < 1.0) & ~own).any(dim=1)
+
+    def surface_points_with_mask(self, level: int = 3) -> tuple[Tensor, Tensor]:
+        """:meth:`surface_points` and :meth:`inside_other_mask` of them: (B, M, V, 3), (B, M, V)."""
+        points = self.surface_points(level)
+        return points, self.inside_other_mask(points)
+
+    # ---------------------------------------------------------------- meshes and files
+
+    def meshes(self, level: int = 3) -> tuple[Tensor, Tensor]:
+        """One closed triangle mesh per primitive: vertices (B, M, V, 3), faces (F, 3) int64."""
+        return self.surface_points(level), icosphere_faces(level, self.params.device)
+
+    def merged_mesh(self, level: int = 3) -> tuple[Tensor, Tensor]:
+        """All primitives as one mesh: vertices (B, M * V, 3), faces (M * F, 3) int64."""
+        vertices, faces = self.meshes(level)
+        batch, count, per, _ = vertices.shape
+        offsets = torch.arange(count, device=faces.device)[:, None, None] * per
+        return vertices.reshape(batch, count * per, 3), (faces[None] + offsets).reshape(-1, 3)
+
+    def to_trimesh_scene(self, item: int = 0, level: int = 3) -> Any:
+        """A ``trimesh.Scene`` with one watertight mesh per primitive of batch item ``item``."""
+        import trimesh
+
+        vertices, faces = self.meshes(level)
+        vertices = vertices[item].detach().cpu().double().numpy()
+        faces = faces.cpu().numpy()
+        scene = trimesh.Scene()
+        for index, primitive_vertices in enumerate(vertices):
+            mesh = trimesh.Trimesh(primitive_vertices, faces, process=False)
+            scene.add_geometry(mesh, node_name=f"primitive_{index}",
+                               geom_name=f"primitive_{index}")
+        return scene
+
+    def export(self, path: str | Path, item: int = 0, level: int = 3) -> Path:
+        """Write batch item ``item`` as a mesh file (.obj, .ply, .stl, .glb, .gltf), atomically.
+
+        GLB/glTF keep one mesh per primitive; OBJ, PLY and STL hold the merged mesh.
+        """
+        path = Path(path)
+        suffix = path.suffix.lower()
+        if suffix not in MESH_SUFFIXES:
+            raise ValueError(f"path: unsupported mesh format {suffix!r} "
+                             f"(choose one of {', '.join(MESH_SUFFIXES)})")
+        if not -self.batch_size <= item < self.batch_size:
+            raise ValueError(f"item: {item} out of range for batch size {self.batch_size}")
+        scene = self.to_trimesh_scene(item, level)
+        target = scene if suffix in (".glb", ".gltf") else scene.to_geometry()
+        with atomic_path(path) as tmp:
+            target.export(tmp, file_type=suffix[1:])
+        return path
+
+    def to_dict(self, item: int = 0) -> dict[str, Any]:
+        """Human-readable form of batch item ``item``: named fields per primitive.
+
+        Values are stored as exact decimal forms of the tensor's floats, so
+        :meth:`from_dict` rebuilds the identical tensor.
+        """
+        values = self.params[item].detach().cpu()
+        primitives = [
+            {name: [float(v) for v in row[columns]] for name, columns in FIELDS.items()}
+            for row in values
+        ]
+        return {
+            "format": JSON_FORMAT,
+            "version": JSON_VERSION,
+            "dtype": str(self.params.dtype).removeprefix("torch."),
+            "conventions": {
+                "rotation_6d": "first two rows of the primitive-to-assembly rotation matrix",
+                "transform": "x_assembly = R @ taper(x_primitive) + translation",
+                "shape": "dual superquadric exponents (e1, e2) in [0, 1]",
+            },
+            "primitives": primitives,
+        }
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any], device: str | torch.device = "cpu") -> Assembly:
+        """Inverse of :meth:`to_dict`: an assembly with batch size 1."""
+        if not isinstance(data, dict) or data.get("format") != JSON_FORMAT:
+            raise ValueError(f"not an assembly description (format != {JSON_FORMAT!r})")
+        dtype = _DTYPES.get(data.get("dtype", "float32"))
+        if dtype is None:
+            raise ValueError(f"dtype: unsupported {data.get('dtype')!r}")
+        primitives = data.get("primitives")
+        if not isinstance(primitives, list) or not primitives:
+            raise ValueError("primitives: expected a non-empty list")
+        rows = []
+        for index, primitive in enumerate(primitives):
+            row = []
+            for name, columns in FIELDS.items():
+                value = primitive.get(name) if isinstance(primitive, dict) else None
+                width = columns.stop - columns.start
+                if (not isinstance(value, list) or len(value) != width
+                        or not all(isinstance(v, int | float) and math.isfinite(v)
+                                   for v in value)):
+                    raise ValueError(f"primitives[{index}].{name}: expected {width} finite numbers")
+                row += value
+            rows.append(row)
+        return cls(torch.tensor([rows], dtype=torch.float64).to(dtype=dtype, device=device))
+
+    def save(self, path: str | Path, item: int = 0) -> Path:
+        """Write :meth:`to_dict` as JSON, atomically."""
+        atomic_write_text(path, json.dumps(self.to_dict(item), indent=2) + "\n")
+        return Path(path)
+
+    @classmethod
+    def load(cls, path: str | Path, device: str | torch.device = "cpu") -> Assembly:
+        """Read an assembly JSON written by :meth:`save`."""
+        path = Path(path)
+        try:
+            data = json.loads(path.read_text(encoding="utf-8"))
+        except json.JSONDecodeError as error:
+            raise ValueError(f"{path}: not valid JSON ({error.msg}, line {error.lineno})") from None
+        try:
+            return cls.from_dict(data, device)
+        except ValueError as error:
+            raise ValueError(f"{path}: {error}") from None
+
+
+class _AssemblyInsideOutside(torch.autograd.Function):
+    """Dual inside-outside values of M primitives at N shared query points, fused.
+
+    Inputs: points (B, N, 3); linear (B, M, 3, 3) = diag(1 / scale) R^T; offset (B, M, 3) =
+    linear @ t; taper (B, M, 2); g1 (B, M); alpha (B, M, 2). Output f (B, M, N).
+    Coordinates are laid out (B, M, 3, N) so every elementwise pass runs over contiguous rows.
+    """
+
+    @staticmethod
+    def forward(ctx, points: Tensor, linear: Tensor, offset: Tensor, taper_: Tensor,
+                g1: Tensor, alpha: Tensor) -> Tensor:
+        batch, count = linear.shape[:2]
+        num_points = points.shape[1]
+        with_grad = any(ctx.needs_input_grad)
+        rotated = torch.baddbmm(-offset.reshape(batch, 3 * count, 1),
+                                linear.reshape(batch, 3 * count, 3), points.transpose(1, 2))
+        x_rot, y_rot, zb = rotated.view(batch, count, 3, num_points).unbind(2)
+        # z / a3 = zb g1, frozen beyond the slab |z| <= a3 (see superquadric.untaper).
+        z_rel = (zb * g1[..., None]).clamp_(-1.0, 1.0)
+        factor_x = (z_rel * -taper_[..., 0, None]).add_(1.0)
+        factor_y = (z_rel * -taper_[..., 1, None]).add_(1.0)
+        xb, yb = x_rot / factor_x, y_rot / factor_y
+        f, grads = dual_field(xb, yb, zb, alpha[..., 0, None], alpha[..., 1, None], with_grad)
+        if with_grad:
+            ctx.save_for_backward(points, linear, taper_, g1, z_rel, factor_x, factor_y,
+                                  xb, yb, zb, *grads)
+        return f
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad_f: Tensor):
+        (points, linear, taper_, g1, z_rel, factor_x, factor_y, xb, yb, zb,
+         d_x, d_y, d_z, d_alpha1, d_alpha2) = ctx.saved_tensors
+        batch, count = linear.shape[:2]
+        grad_x_rot = (grad_f * d_x).div_(factor_x)
+        grad_y_rot = (grad_f * d_y).div_(factor_y)
+        # xb = x_rot / factor with factor = 1 - k z_rel: d xb/d k = xb z_rel / factor.
+        weighted_x, weighted_y = grad_x_rot * xb, grad_y_rot * yb
+        grad_taper = torch.stack([(weighted_x * z_rel).sum(-1), (weighted_y * z_rel).sum(-1)],
+                                 dim=-1)
+        grad_z_rel = (weighted_x.mul_(taper_[..., 0, None])
+                      .add_(weighted_y.mul_(taper_[..., 1, None])))
+        grad_z_rel.mul_(z_rel.abs() < 1.0)  # the clamp passes no gradient outside the slab
+        grad_g1 = (grad_z_rel * zb).sum(-1)
+        grad_zb = (grad_f * d_z).addcmul_(grad_z_rel, g1[..., None])
+        grad_rotated = torch.stack([grad_x_rot, grad_y_rot, grad_zb], dim=2)
+        grad_rotated = grad_rotated.view(batch, 3 * count, -1)
+        grad_points = grad_linear = grad_offset = grad_alpha = None
+        if ctx.needs_input_grad[0]:
+            grad_points = torch.bmm(linear.reshape(batch, 3 * count, 3).transpose(1, 2),
+                                    grad_rotated).transpose(1, 2)
+        if ctx.needs_input_grad[1]:
+            grad_linear = torch.bmm(grad_rotated, points).view(batch, count, 3, 3)
+        if ctx.needs_input_grad[2]:
+            grad_offset = -grad_rotated.sum(-1).view(batch, count, 3)
+        if ctx.needs_input_grad[5]:
+            grad_alpha = torch.stack([(grad_f * d_alpha1).sum(-1), (grad_f * d_alpha2).sum(-1)],
+                                     dim=-1)
+        return grad_points, grad_linear, grad_offset, grad_taper, grad_g1, grad_alpha
+
+
+def overlap(occupancy: Tensor, beta: float = 1.25) -> Tensor:
+    """Overlap penalty (paper Eq. 18): mean over points of relu(sum_m g_m - beta).
+
+    Args:
+        occupancy: per-primitive occupancy (B, M, N).
+        beta: how much summed occupancy is tolerated (1.25 in the published configuration).
+
+    Returns:
+        Scalar tensor.
+    """
+    check_tensor("occupancy", occupancy, (None, None), min_dims=3)
+    return torch.relu(occupancy.sum(dim=1) - beta).mean()

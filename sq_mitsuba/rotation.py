@@ -1,0 +1,222 @@
+"""Rotation representations and rotation metrics, as pure functions on batched tensors.
+
+Convention:
+    - Rotation matrices act on column vectors: ``x_out = R @ x``; shape (..., 3, 3).
+    - Quaternions are scalar-first (w, x, y, z), Hamilton product, shape (..., 4); ``q`` and
+      ``-q`` are the same rotation. :func:`matrix_to_quaternion` returns the one with w >= 0.
+      SPE3R's ``q_vbs2tango_true`` is such a quaternion, with R = quaternion_to_matrix(q) mapping
+      body to camera.
+    - The 6D representation (Zhou et al. 2019) is the first two *rows* of R, flattened (the
+      PyTorch3D convention); Gram-Schmidt maps any non-degenerate 6 numbers back to a rotation.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+from torch.nn import functional as F
+
+from sq_mitsuba.checks import check_tensor
+
+__all__ = [
+    "SpeedScore",
+    "matrix_to_quaternion",
+    "matrix_to_rotation_6d",
+    "quaternion_angle",
+    "quaternion_to_matrix",
+    "random_quaternions",
+    "random_rotations",
+    "rotation_6d_to_matrix",
+    "rotation_angle",
+    "rotation_angle_deg",
+    "speed_score",
+]
+
+
+def _check_matrix(name: str, matrix: Tensor) -> None:
+    check_tensor(name, matrix, (3, 3))
+
+
+def rotation_6d_to_matrix(d6: Tensor) -> Tensor:
+    """6D representation -> rotation matrix by Gram-Schmidt.
+
+    Args:
+        d6: (..., 6), the (unnormalised) first two rows of the matrix.
+
+    Returns:
+        (..., 3, 3) rotation matrices (rows b1, b2, b1 x b2).
+    """
+    check_tensor("d6", d6, (6,))
+    a1, a2 = d6[..., :3], d6[..., 3:]
+    b1 = F.normalize(a1, dim=-1)
+    b2 = F.normalize(a2 - (b1 * a2).sum(-1, keepdim=True) * b1, dim=-1)
+    b3 = torch.linalg.cross(b1, b2, dim=-1)
+    return torch.stack([b1, b2, b3], dim=-2)
+
+
+def matrix_to_rotation_6d(matrix: Tensor) -> Tensor:
+    """Rotation matrix (..., 3, 3) -> 6D representation (..., 6): its first two rows."""
+    _check_matrix("matrix", matrix)
+    return matrix[..., :2, :].reshape(*matrix.shape[:-2], 6)
+
+
+def quaternion_to_matrix(quaternion: Tensor) -> Tensor:
+    """Quaternion (w, x, y, z) -> rotation matrix (Hamilton convention).
+
+    Args:
+        quaternion: (..., 4), any non-zero norm (it is normalised implicitly).
+
+    Returns:
+        (..., 3, 3).
+    """
+    check_tensor("quaternion", quaternion, (4,))
+    w, x, y, z = quaternion.unbind(-1)
+    two_s = 2.0 / (quaternion * quaternion).sum(-1)
+    rows = (
+        1 - two_s * (y * y + z * z), two_s * (x * y - z * w), two_s * (x * z + y * w),
+        two_s * (x * y + z * w), 1 - two_s * (x * x + z * z), two_s * (y * z - x * w),
+        two_s * (x * z - y * w), two_s * (y * z + x * w), 1 - two_s * (x * x + y * y),
+    )
+    return torch.stack(rows, dim=-1).reshape(*quaternion.shape[:-1], 3, 3)
+
+
+def matrix_to_quaternion(matrix: Tensor) -> Tensor:
+    """Rotation matrix -> unit quaternion (w, x, y, z) with w >= 0.
+
+    Each of the four components can be read off the diagonal; the one of largest magnitude is
+    used to recover the others from the off-diagonal terms (Shepperd's method), which stays
+    accurate near 180 degree rotations where w -> 0.
+
+    Args:
+        matrix: (..., 3, 3) rotation matrices.
+
+    Returns:
+        (..., 4).
+    """
+    _check_matrix("matrix", matrix)
+    m = matrix
+    m00, m11, m22 = m[..., 0, 0], m[..., 1, 1], m[..., 2, 2]
+    # 4 q_i^2 for i = w, x, y, z.
+    four_sq = torch.stack([
+        1 + m00 + m11 + m22, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22,
+    ], dim=-1)
+    sum_w_x = m[..., 2, 1] - m[..., 1, 2]  # 4 w x
+    sum_w_y = m[..., 0, 2] - m[..., 2, 0]  # 4 w y
+    sum_w_z = m[..., 1, 0] - m[..., 0, 1]  # 4 w z
+    sum_x_y = m[..., 1, 0] + m[..., 0, 1]  # 4 x y
+    sum_x_z = m[..., 0, 2] + m[..., 2, 0]  # 4 x z
+    sum_y_z = m[..., 2, 1] + m[..., 1, 2]  # 4 y z
+    # Row i is 4 q_i * q; dividing by 4 |q_i| gives +-q.
+    candidates = torch.stack([
+        torch.stack([four_sq[..., 0], sum_w_x, sum_w_y, sum_w_z], dim=-1),
+        torch.stack([sum_w_x, four_sq[..., 1], sum_x_y, sum_x_z], dim=-1),
+        torch.stack([sum_w_y, sum_x_y, four_sq[..., 2], sum_y_z], dim=-1),
+        torch.stack([sum_w_z, sum_x_z, sum_y_z, four_sq[..., 3]], dim=-1),
+    ], dim=-2)
+    four_abs = 2.0 * torch.sqrt(four_sq.clamp_min(0.1))  # clamp only guards unused rows
+    candidates = candidates / four_abs[..., None]
+    best = four_sq.argmax(dim=-1)
+    index = best[..., None, None].expand(*best.shape, 1, 4)
+    quaternion = candidates.gather(-2, index).squeeze(-2)
+    quaternion = F.normalize(quaternion, dim=-1)
+    return torch.where(quaternion[..., :1] < 0, -quaternion, quaternion)
+
+
+def random_quaternions(
+    n: int,
+    generator: torch.Generator | None = None,
+    dtype: torch.dtype = torch.float32,
+    device: torch.device | str = "cpu",
+) -> Tensor:
+    """Unit quaternions (n, 4), uniform on SO(3) (Shoemake's subgroup algorithm), w >= 0."""
+    if n < 0:
+        raise ValueError(f"n: expected a non-negative count, got {n}")
+    u = torch.rand(n, 3, generator=generator, dtype=torch.float64,
+                   device=generator.device if generator is not None else device)
+    r1, r2 = torch.sqrt(1.0 - u[:, 0]), torch.sqrt(u[:, 0])
+    theta1, theta2 = 2.0 * math.pi * u[:, 1], 2.0 * math.pi * u[:, 2]
+    q = torch.stack([r2 * torch.cos(theta2), r1 * torch.sin(theta1),
+                     r1 * torch.cos(theta1), r2 * torch.sin(theta2)], dim=-1)
+    q = torch.where(q[:, :1] < 0, -q, q)
+    return q.to(dtype=dtype, device=device)
+
+
+def random_rotations(
+    n: int,
+    generator: torch.Generator | None = None,
+    dtype: torch.dtype = torch.float32,
+    device: torch.device | str = "cpu",
+) -> Tensor:
+    """Rotation matrices (n, 3, 3), uniform on SO(3) (Shoemake's subgroup algorithm)."""
+    return quaternion_to_matrix(random_quaternions(n, generator, torch.float64, device)).to(
+        dtype)
+
+
+def rotation_angle(rotation_a: Tensor, rotation_b: Tensor) -> Tensor:
+    """Angle in radians of the relative rotation ``rotation_a^T @ rotation_b``.
+
+    Uses atan2(sin, cos) of the axis-angle form, accurate near 0 and 180 degrees where
+    arccos((trace - 1) / 2) loses precision.
+
+    Args:
+        rotation_a, rotation_b: (..., 3, 3), broadcastable.
+
+    Returns:
+        (...) in [0, pi].
+    """
+    _check_matrix("rotation_a", rotation_a)
+    _check_matrix("rotation_b", rotation_b)
+    relative = rotation_a.transpose(-1, -2) @ rotation_b
+    cos = 0.5 * (relative.diagonal(dim1=-2, dim2=-1).sum(-1) - 1.0)
+    skew = torch.stack([relative[..., 2, 1] - relative[..., 1, 2],
+                        relative[..., 0, 2] - relative[..., 2, 0],
+                        relative[..., 1, 0] - relative[..., 0, 1]], dim=-1)
+    sin = 0.5 * torch.sqrt((skew * skew).sum(-1) + torch.finfo(skew.dtype).tiny)
+    return torch.atan2(sin, cos)
+
+
+def rotation_angle_deg(rotation_a: Tensor, rotation_b: Tensor) -> Tensor:
+    """:func:`rotation_angle` in degrees, the paper's rotation error E_R; shape (...)."""
+    return torch.rad2deg(rotation_angle(rotation_a, rotation_b))
+
+
+def quaternion_angle(quaternion_a: Tensor, quaternion_b: Tensor) -> Tensor:
+    """SPEED rotation error 2 arccos(min(1, |<q_a, q_b>|)) in radians, (..., 4) -> (...)."""
+    check_tensor("quaternion_a", quaternion_a, (4,))
+    check_tensor("quaternion_b", quaternion_b, (4,))
+    dot = (F.normalize(quaternion_a, dim=-1) * F.normalize(quaternion_b, dim=-1)).sum(-1)
+    return 2.0 * torch.arccos(dot.abs().clamp_max(1.0))
+
+
+class SpeedScore(NamedTuple):
+    """SPEED score terms: rotation error (rad), relative translation error, their sum."""
+
+    rotation: Tensor
+    translation: Tensor
+    total: Tensor
+
+
+def speed_score(
+    quaternion_pred: Tensor,
+    quaternion_true: Tensor,
+    translation_pred: Tensor,
+    translation_true: Tensor,
+) -> SpeedScore:
+    """The SPEED pose score: e_q = 2 arccos(|<q_hat, q>|), e_t = |t - t_hat| / |t|.
+
+    Args:
+        quaternion_pred, quaternion_true: (..., 4).
+        translation_pred, translation_true: (..., 3).
+
+    Returns:
+        :class:`SpeedScore` of tensors of shape (...).
+    """
+    check_tensor("translation_pred", translation_pred, (3,))
+    check_tensor("translation_true", translation_true, (3,))
+    e_q = quaternion_angle(quaternion_pred, quaternion_true)
+    e_t = torch.linalg.vector_norm(translation_true - translation_pred, dim=-1) / \
+        torch.linalg.vector_norm(translation_true, dim=-1)
+    return SpeedScore(e_q, e_t, e_q + e_t)
