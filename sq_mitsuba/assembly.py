@@ -38,7 +38,6 @@ from sq_mitsuba.rotation import matrix_to_rotation_6d, rotation_6d_to_matrix
 from sq_mitsuba.superquadric import (
     dual_field,
     dual_scales,
-    inside_outside_dual,
     surface_points_dual,
     taper,
     untaper,
@@ -212,7 +211,7 @@ class Assembly:
     # ---------------------------------------------------------------- occupancy
 
     def to_primitive_frames(self, points: Tensor) -> Tensor:
-        """Query points (B, N, 3) in the assembly frame -> (B, M, N, 3) untapered primitive frames."""
+        """Query points (B, N, 3), assembly frame -> (B, M, N, 3) in untapered primitive frames."""
         check_tensor("points", points, (None, 3), min_dims=3)
         if points.shape[0] != self.batch_size or points.dim() != 3:
             raise ValueError(f"points: expected shape ({self.batch_size}, N, 3), "

@@ -102,4 +102,4 @@ def icosphere_angles(
 @functools.cache
 def icosphere_faces(level: int = 3, device: str | torch.device = "cpu") -> torch.Tensor:
     """Faces (F, 3) int64 of the icosphere as a tensor, cached per device."""
-    return torch.as_tensor(icosphere(level)[1], device=device)
+    return torch.tensor(icosphere(level)[1], device=device)

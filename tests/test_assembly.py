@@ -1,0 +1,210 @@
+"""Assemblies: fused occupancy against the unfused formula, surface masks, meshes, JSON, files."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+import trimesh
+
+from sq_mitsuba.assembly import Assembly, ParameterRanges, overlap
+from sq_mitsuba.icosphere import icosphere_angles
+from sq_mitsuba.rotation import random_rotations
+from sq_mitsuba.superquadric import inside_outside_dual, surface_points_dual, taper, untaper
+
+F64 = torch.float64
+
+
+def random_assembly(batch: int = 2, count: int = 4, dtype=F64, seed: int = 0) -> Assembly:
+    raw = torch.randn(batch, count, 16, generator=torch.Generator().manual_seed(seed),
+                      dtype=dtype)
+    return Assembly.from_raw(raw)
+
+
+def two_boxes() -> Assembly:
+    """Two overlapping axis-aligned boxes (shape 0): [-0.3, 0.3]x[-0.1, 0.1]^2 and a cube."""
+    return Assembly.from_values(
+        size=torch.tensor([[[0.3, 0.1, 0.1], [0.15, 0.15, 0.15]]], dtype=F64),
+        shape=torch.zeros(1, 2, 2, dtype=F64),
+        translation=torch.tensor([[[0.0, 0.0, 0.0], [0.25, 0.0, 0.0]]], dtype=F64),
+    )
+
+
+def test_from_raw_squashes_into_the_published_ranges():
+    raw = 50 * torch.randn(3, 5, 16, generator=torch.Generator().manual_seed(1), dtype=F64)
+    assembly = Assembly.from_raw(raw)
+    assert ((assembly.size >= 0.01) & (assembly.size <= 0.5)).all()
+    assert ((assembly.shape >= 0) & (assembly.shape <= 1)).all()
+    assert (assembly.translation.abs() <= 0.5).all()
+    assert (assembly.taper.abs() <= 0.9).all()
+    torch.testing.assert_close(assembly.rotation_6d, raw[..., 8:14])
+    half = Assembly.from_raw(raw, ParameterRanges(translation_scale=0.25))
+    assert (half.translation.abs() <= 0.25).all()
+
+
+def test_fused_inside_outside_matches_the_unfused_formula_and_gradients():
+    assembly = random_assembly()
+    points = 0.5 * torch.randn(2, 300, 3, generator=torch.Generator().manual_seed(2), dtype=F64)
+    # Unfused reference: rotate, translate, untaper, then the public dual function.
+    local = (points[:, None] - assembly.translation[:, :, None]) @ assembly.rotation
+    reference = inside_outside_dual(untaper(local, assembly.taper, assembly.size),
+                                    assembly.size, assembly.shape)
+    torch.testing.assert_close(assembly.inside_outside(points), reference)
+
+
+def test_fused_inside_outside_gradcheck():
+    raw = torch.randn(2, 3, 16, generator=torch.Generator().manual_seed(3), dtype=F64,
+                      requires_grad=True)
+    points = (0.3 * torch.randn(2, 9, 3, generator=torch.Generator().manual_seed(4),
+                                dtype=F64)).requires_grad_()
+    assert torch.autograd.gradcheck(lambda r, p: Assembly.from_raw(r).inside_outside(p),
+                                    (raw, points))
+
+
+def test_union_occupancy_inside_and_far_away():
+    assembly = random_assembly(seed=5)
+    # Points with f = 0.5 in each primitive (homogeneity), mapped into the assembly frame.
+    eta, omega = icosphere_angles(2, F64)
+    local = 0.5 * surface_points_dual(eta, omega, assembly.size, assembly.shape)
+    inside = (taper(local, assembly.taper, assembly.size) @ assembly.rotation.transpose(-1, -2)
+              + assembly.translation[:, :, None])
+    occupancy = assembly.union_occupancy(inside.reshape(2, -1, 3))
+    # sigmoid(10 (1 - 0.5)) = 0.9933: "about 1" at sharpness 10.
+    assert occupancy.min().item() >= torch.sigmoid(torch.tensor(5.0, dtype=F64)).item() - 1e-9
+    far = 10 + torch.rand(2, 500, 3, dtype=F64)
+    assert assembly.union_occupancy(far).max().item() < 1e-6
+
+
+def test_surface_points_lie_on_their_primitive():
+    assembly = random_assembly(seed=6)
+    points = assembly.surface_points()  # (2, 4, 642, 3)
+    assert points.shape == (2, 4, 642, 3)
+    f = assembly.inside_outside(points.reshape(2, -1, 3)).reshape(2, 4, 4, 642)
+    own = torch.diagonal(f, dim1=1, dim2=2)  # (2, 642, 4)
+    torch.testing.assert_close(own, torch.ones_like(own))
+
+
+def test_no_retained_surface_point_lies_inside_the_other_box():
+    assembly = two_boxes()
+    points, inside_other = assembly.surface_points_with_mask()
+    retained = points[~inside_other]
+    assert 0 < inside_other.sum() < inside_other.numel()
+    # Brute-force reference: the boxes' closed forms.
+    in_first = ((retained.abs() < torch.tensor([0.3, 0.1, 0.1], dtype=F64)).all(-1))
+    in_cube = (((retained - torch.tensor([0.25, 0, 0], dtype=F64)).abs() < 0.15).all(-1))
+    owner = torch.arange(2)[None, :, None].expand_as(inside_other)[~inside_other]
+    assert not (in_cube & (owner == 0)).any()
+    assert not (in_first & (owner == 1)).any()
+    # And points dropped do lie inside the other box.
+    dropped_owner = torch.arange(2)[None, :, None].expand_as(inside_other)[inside_other]
+    dropped = points[inside_other]
+    in_other = torch.where(
+        dropped_owner == 0,
+        ((dropped - torch.tensor([0.25, 0, 0], dtype=F64)).abs() < 0.15).all(-1),
+        (dropped.abs() < torch.tensor([0.3, 0.1, 0.1], dtype=F64)).all(-1))
+    assert in_other.all()
+
+
+def test_overlap_term():
+    occupancy = torch.tensor([[[1.0, 0.0, 0.9], [1.0, 0.0, 0.2]]], dtype=F64)
+    # Sums 2.0, 0.0, 1.1 -> relu(sum - 1.25) = 0.75, 0, 0 -> mean 0.25.
+    torch.testing.assert_close(overlap(occupancy), torch.tensor(0.25, dtype=F64))
+    assert two_boxes().occupancy(torch.tensor([[[0.2, 0.0, 0.0]]], dtype=F64)).sum() > 1.9
+
+
+def test_primitive_meshes_are_watertight_with_642_vertices():
+    assembly = random_assembly(batch=1, count=3, seed=7)
+    vertices, faces = assembly.meshes()
+    assert vertices.shape == (1, 3, 642, 3) and faces.shape == (1280, 3)
+    for primitive in vertices[0]:
+        mesh = trimesh.Trimesh(primitive.numpy(), faces.numpy(), process=False)
+        assert mesh.is_watertight and mesh.is_winding_consistent and mesh.volume > 0
+    merged_vertices, merged_faces = assembly.merged_mesh()
+    assert merged_vertices.shape == (1, 3 * 642, 3) and merged_faces.shape == (3 * 1280, 3)
+    torch.testing.assert_close(merged_vertices[0, 642 + faces], vertices[0, 1, faces])
+    torch.testing.assert_close(merged_vertices[0][merged_faces[1280:2560]],
+                               vertices[0, 1][faces])
+
+
+def test_box_mesh_volume_matches_the_box():
+    box = Assembly.from_values(size=torch.tensor([[[0.4, 0.2, 0.1]]], dtype=F64),
+                               shape=torch.zeros(1, 1, 2, dtype=F64))
+    vertices, faces = box.meshes(level=4)
+    mesh = trimesh.Trimesh(vertices[0, 0].numpy(), faces.numpy(), process=False)
+    assert mesh.volume == pytest.approx(0.8 * 0.4 * 0.2, rel=0.02)
+
+
+def test_rotation_and_translation_move_the_primitive():
+    rotation = random_rotations(1, torch.Generator().manual_seed(8), dtype=F64)[None]
+    size = torch.tensor([[[0.3, 0.2, 0.1]]], dtype=F64)
+    shape = torch.tensor([[[0.4, 0.7]]], dtype=F64)
+    translation = torch.tensor([[[0.1, -0.2, 0.05]]], dtype=F64)
+    moved = Assembly.from_values(size, shape, translation, rotation)
+    local = surface_points_dual(*[torch.linspace(-1.5, 1.5, 20, dtype=F64)] * 2,
+                                size[0], shape[0])
+    world = local @ rotation[0, 0].T + translation[0]
+    torch.testing.assert_close(moved.inside_outside(world), torch.ones(1, 1, 20, dtype=F64))
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_json_round_trip_is_exact(tmp_path, dtype):
+    assembly = random_assembly(batch=2, count=5, dtype=dtype, seed=9)
+    path = assembly.save(tmp_path / "assembly.json", item=1)
+    loaded = Assembly.load(path)
+    assert loaded.params.dtype == dtype
+    assert torch.equal(loaded.params[0], assembly.params[1])
+    data = json.loads(path.read_text())
+    assert set(data["primitives"][0]) == {"size", "shape", "translation", "rotation_6d",
+                                          "taper"}
+
+
+def test_json_errors_name_the_problem(tmp_path):
+    broken = tmp_path / "broken.json"
+    broken.write_text("{not json")
+    with pytest.raises(ValueError, match=r"broken\.json"):
+        Assembly.load(broken)
+    data = random_assembly(batch=1, count=1).to_dict()
+    data["primitives"][0]["shape"] = [0.5]
+    with pytest.raises(ValueError, match=r"primitives\[0\]\.shape"):
+        Assembly.from_dict(data)
+    data["primitives"][0]["shape"] = [0.5, float("nan")]
+    with pytest.raises(ValueError, match="shape"):
+        Assembly.from_dict(data)
+    with pytest.raises(FileNotFoundError):
+        Assembly.load(tmp_path / "missing.json")
+
+
+@pytest.mark.parametrize("suffix", [".obj", ".ply", ".glb", ".stl"])
+def test_export_writes_loadable_meshes(tmp_path, suffix):
+    assembly = random_assembly(batch=1, count=2, seed=10)
+    path = assembly.export(tmp_path / f"assembly{suffix}")
+    loaded = trimesh.load(path, force="mesh", process=False)
+    assert len(loaded.faces) == 2 * 1280
+    # Only the final file is left: no temporary files.
+    assert [p.name for p in tmp_path.iterdir()] == [path.name]
+    assert loaded.bounds[1].max() < 1.0
+
+
+def test_export_rejects_unknown_format(tmp_path):
+    with pytest.raises(ValueError, match="format"):
+        random_assembly(batch=1).export(tmp_path / "assembly.xyz")
+
+
+@pytest.mark.parametrize(("build", "name"), [
+    (lambda: Assembly(torch.zeros(2, 16)), "params"),
+    (lambda: Assembly(torch.zeros(1, 2, 15)), "params"),
+    (lambda: Assembly(torch.zeros(1, 2, 16, dtype=torch.int64)), "params"),
+    (lambda: Assembly(torch.full((1, 2, 16), float("nan"))), "params"),
+    (lambda: Assembly.from_raw(torch.zeros(2, 16)), "raw"),
+    (lambda: Assembly.from_values(torch.ones(1, 2, 3), torch.ones(1, 3, 2)), "shape"),
+    (lambda: Assembly.from_values(-torch.ones(1, 2, 3), torch.ones(1, 2, 2)), "size"),
+    (lambda: Assembly.from_values(torch.ones(1, 2, 3), torch.ones(1, 2, 2),
+                                  rotation=torch.zeros(1, 2, 6)), "rotation"),
+    (lambda: random_assembly().inside_outside(torch.zeros(3, 5, 3, dtype=F64)), "points"),
+    (lambda: random_assembly().inside_outside(torch.zeros(2, 5, 3)), "points"),
+    (lambda: random_assembly().union_occupancy(torch.zeros(2, 5, 2, dtype=F64)), "points"),
+])
+def test_bad_input_names_the_argument(build, name):
+    with pytest.raises(ValueError, match=name):
+        build()
