@@ -8,7 +8,9 @@ choice. Dr.Jit's kernel cache goes to the project-local ``.drjit-cache`` unless 
 
 from __future__ import annotations
 
+import contextlib
 import os
+from collections.abc import Iterator
 from pathlib import Path
 from types import ModuleType
 
@@ -78,3 +80,74 @@ def active_variant() -> str | None:
 
     mi = sys.modules.get("mitsuba")
     return None if mi is None else mi.variant()
+
+
+class KernelCounter:
+    """Kernels Dr.Jit launched inside a :func:`count_kernels` block.
+
+    ``compiled`` counts kernels that were neither in the in-memory nor on the on-disk cache
+    (fresh LLVM/CUDA compilations: the costly re-tracing the renderer must avoid once warm);
+    ``loaded`` those found in the on-disk cache; ``launched`` all launches.
+    """
+
+    def __init__(self) -> None:
+        self.launched = 0
+        self.compiled = 0
+        self.loaded = 0
+
+    def __repr__(self) -> str:
+        return (f"KernelCounter(launched={self.launched}, compiled={self.compiled}, "
+                f"loaded={self.loaded})")
+
+
+@contextlib.contextmanager
+def count_kernels() -> Iterator[KernelCounter]:
+    """Count Dr.Jit kernel launches and compilations in a ``with`` block (Dr.Jit's kernel
+    history, switched on only for the block so that it does not grow without bound)."""
+    mitsuba()
+    import drjit as dr
+
+    counter = KernelCounter()
+    previous = dr.flag(dr.JitFlag.KernelHistory)
+    dr.eval()
+    dr.kernel_history()  # drop entries recorded before the block
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        yield counter
+    finally:
+        dr.eval()
+        for entry in dr.kernel_history():
+            counter.launched += 1
+            if entry.get("type") != dr.KernelType.JIT:
+                continue  # memcpy, reductions...: no code generated
+            if entry.get("cache_disk", False):
+                counter.loaded += 1
+            elif not entry.get("cache_hit", False):
+                counter.compiled += 1
+        dr.set_flag(dr.JitFlag.KernelHistory, previous)
+
+
+def describe() -> dict[str, str]:
+    """Versions, variant, LLVM and device of the active backend (for ``sq-mitsuba doctor``)."""
+    mi = mitsuba()
+    import drjit as dr
+
+    info = {
+        "mitsuba": mi.__version__,
+        "drjit": dr.__version__,
+        "variant": mi.variant(),
+        "kernel cache": os.environ.get(CACHE_ENV, "~/.drjit"),
+    }
+    if mi.variant().startswith("llvm"):
+        version = dr.detail.llvm_version()
+        info["llvm"] = ".".join(str(v) for v in version) if version else "unknown"
+        info["libllvm"] = os.environ.get("DRJIT_LIBLLVM_PATH", "(Dr.Jit default search)")
+        info["device"] = f"CPU, {dr.thread_count()} Dr.Jit threads"
+    else:
+        info["device"] = "CUDA GPU"
+        with contextlib.suppress(Exception):
+            import torch
+
+            if torch.cuda.is_available():
+                info["device"] = f"CUDA GPU {torch.cuda.get_device_name()}"
+    return info

@@ -1,0 +1,172 @@
+"""Pinhole camera intrinsics in the OpenCV frame (x right, y down, z forward): pure torch.
+
+Convention: pixel coordinates are continuous; pixel (i, j) covers [i, i + 1) x [j, j + 1), so
+its centre is (i + 0.5, j + 0.5) and the centre of a W x H image is (W / 2, H / 2), as in
+Mitsuba's film and SPEED's ``camera.json`` (``ccx = Nu / 2``). ``u`` runs right along x, ``v``
+down along y: ``u = fx x / z + cx``, ``v = fy y / z + cy``.
+
+The conversion to a Mitsuba sensor lives in the rendering layer
+(:mod:`sq_mitsuba.render.silhouette`); nothing here imports Mitsuba.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from sq_mitsuba.checks import check_tensor
+
+# SPEED camera (Sharma et al.): focal length 17.6 mm, pixel pitch 5.86 um, 1920 x 1200 px.
+SPEED_FOCAL_LENGTH_M = 0.0176
+SPEED_PIXEL_PITCH_M = 5.86e-6
+SPEED_WIDTH_PX = 1920
+DEFAULT_RESOLUTION = 256
+
+
+@dataclass(frozen=True)
+class Camera:
+    """Pinhole intrinsics of a ``width`` x ``height`` image, focal lengths and principal point
+    in pixels. Immutable; :meth:`rescaled` returns a new camera."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+
+    def __post_init__(self) -> None:
+        for name in ("fx", "fy", "cx", "cy"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(
+                    value):
+                raise ValueError(f"{name}: expected a finite number, got {value!r}")
+            object.__setattr__(self, name, float(value))
+        if self.fx <= 0 or self.fy <= 0:
+            raise ValueError(f"fx, fy: focal lengths must be > 0, got {self.fx}, {self.fy}")
+        for name in ("width", "height"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name}: expected a positive integer, got {value!r}")
+
+    # ------------------------------------------------------------------ construction
+
+    @classmethod
+    def default(cls, resolution: int = DEFAULT_RESOLUTION) -> Camera:
+        """The project's default camera: square image with the SPEED camera's horizontal field
+        of view (35.45 deg), principal point at the image centre; fx = fy = 400.45 at 256 px."""
+        focal = SPEED_FOCAL_LENGTH_M / SPEED_PIXEL_PITCH_M * resolution / SPEED_WIDTH_PX
+        return cls(focal, focal, resolution / 2, resolution / 2, resolution, resolution)
+
+    @classmethod
+    def from_fov(cls, fov_x_deg: float, width: int, height: int) -> Camera:
+        """Square pixels, horizontal field of view ``fov_x_deg``, centred principal point."""
+        if not 0 < fov_x_deg < 180:
+            raise ValueError(f"fov_x_deg: expected a value in (0, 180), got {fov_x_deg}")
+        focal = width / (2 * math.tan(math.radians(fov_x_deg) / 2))
+        return cls(focal, focal, width / 2, height / 2, width, height)
+
+    @classmethod
+    def from_speed_dict(cls, data: dict[str, Any]) -> Camera:
+        """From a SPEED-style camera dictionary: ``Nu``, ``Nv`` and ``cameraMatrix`` (pixels),
+        or, without a matrix, ``fx``, ``fy`` in metres with the pixel pitch ``ppx``, ``ppy``
+        and principal point ``ccx``, ``ccy``."""
+        try:
+            width, height = int(data["Nu"]), int(data["Nv"])
+            if "cameraMatrix" in data:
+                matrix = data["cameraMatrix"]
+                fx, fy = float(matrix[0][0]), float(matrix[1][1])
+                cx, cy = float(matrix[0][2]), float(matrix[1][2])
+            else:
+                fx = float(data["fx"]) / float(data["ppx"])
+                fy = float(data["fy"]) / float(data["ppy"])
+                cx = float(data.get("ccx", width / 2))
+                cy = float(data.get("ccy", height / 2))
+        except (KeyError, TypeError, IndexError) as error:
+            raise ValueError(f"camera: not a SPEED-style camera description ({error!r})") from None
+        return cls(fx, fy, cx, cy, width, height)
+
+    @classmethod
+    def load(cls, path: str | Path) -> Camera:
+        """From a SPEED-style ``camera.json``."""
+        path = Path(path)
+        try:
+            data = json.loads(path.read_text(encoding="utf-8"))
+        except json.JSONDecodeError as error:
+            raise ValueError(f"camera: {path} is not valid JSON ({error})") from None
+        if not isinstance(data, dict):
+            raise ValueError(f"camera: {path} must hold a JSON object")
+        return cls.from_speed_dict(data)
+
+    def to_speed_dict(self) -> dict[str, Any]:
+        """SPEED-style dictionary: ``cameraMatrix`` in pixels; focal lengths in metres with the
+        SPEED sensor's physical width spread over ``width`` pixels (so ``fx / ppx`` is pixels)."""
+        pitch_x = SPEED_PIXEL_PITCH_M * SPEED_WIDTH_PX / self.width
+        return {
+            "Nu": self.width, "Nv": self.height,
+            "ppx": pitch_x, "ppy": pitch_x,
+            "fx": self.fx * pitch_x, "fy": self.fy * pitch_x,
+            "ccx": self.cx, "ccy": self.cy,
+            "cameraMatrix": [[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]],
+            "distCoeffs": [0.0, 0.0, 0.0, 0.0, 0.0],
+        }
+
+    def rescaled(self, width: int, height: int | None = None) -> Camera:
+        """The same camera imaging onto ``width`` x ``height`` pixels (default: keep the aspect
+        ratio). Pixel edges scale, so the principal point scales with them."""
+        if height is None:
+            height = max(1, round(self.height * width / self.width))
+        if isinstance(width, bool) or not isinstance(width, int) or width < 1:
+            raise ValueError(f"width: expected a positive integer, got {width!r}")
+        if isinstance(height, bool) or not isinstance(height, int) or height < 1:
+            raise ValueError(f"height: expected a positive integer, got {height!r}")
+        sx, sy = width / self.width, height / self.height
+        return Camera(self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy, width, height)
+
+    # ------------------------------------------------------------------ geometry
+
+    @property
+    def fov_x_deg(self) -> float:
+        """Horizontal field of view in degrees (of a centred principal point)."""
+        return math.degrees(2 * math.atan(self.width / (2 * self.fx)))
+
+    def matrix(self, dtype: torch.dtype = torch.float32,
+               device: str | torch.device = "cpu") -> Tensor:
+        """Intrinsic matrix K (3, 3)."""
+        return torch.tensor([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]],
+                            dtype=dtype, device=device)
+
+    def project(self, points: Tensor) -> Tensor:
+        """Pixel coordinates (..., 2) of camera-frame points (..., 3).
+
+        Points at or behind the camera (z <= 0) give non-finite or mirrored pixels, as the
+        pinhole model does; callers decide what to do with them.
+        """
+        check_tensor("points", points, (3,), finite=False)
+        x, y, z = points.unbind(-1)
+        return torch.stack((self.fx * x / z + self.cx, self.fy * y / z + self.cy), dim=-1)
+
+    def unproject(self, pixels: Tensor, depth: Tensor | float) -> Tensor:
+        """Camera-frame points (..., 3) at depth ``z = depth`` (broadcast to (...)) seen at
+        ``pixels`` (..., 2)."""
+        check_tensor("pixels", pixels, (2,))
+        depth = torch.as_tensor(depth, dtype=pixels.dtype, device=pixels.device)
+        if not bool(torch.isfinite(depth).all()):
+            raise ValueError("depth: contains NaN or infinite values")
+        u, v = pixels.unbind(-1)
+        z = torch.broadcast_to(depth, u.shape) if depth.dim() <= u.dim() else depth
+        return torch.stack(((u - self.cx) / self.fx * z, (v - self.cy) / self.fy * z, z), dim=-1)
+
+    def pixel_centers(self, dtype: torch.dtype = torch.float32,
+                      device: str | torch.device = "cpu") -> Tensor:
+        """Pixel centres (H, W, 2) as (u, v) = (j + 0.5, i + 0.5)."""
+        v, u = torch.meshgrid(torch.arange(self.height, dtype=dtype, device=device) + 0.5,
+                              torch.arange(self.width, dtype=dtype, device=device) + 0.5,
+                              indexing="ij")
+        return torch.stack((u, v), dim=-1)

@@ -1,0 +1,254 @@
+"""Test-time fitting: an assembly of superquadrics fitted to binary masks seen from known poses.
+
+Analysis by synthesis: Adam moves the raw (unconstrained) parameters of M primitives, squashed
+by :meth:`Assembly.from_raw`, so that their Mitsuba silhouettes at the given poses match the
+masks; the losses of all views are summed into one backward pass per step.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from sq_mitsuba.assembly import NUM_PARAMS, Assembly
+from sq_mitsuba.camera import Camera
+from sq_mitsuba.checks import check_tensor
+
+LOSSES = ("mse", "iou")
+# Raw 6D rotation of the identity (first two rows of I); Assembly.from_raw keeps 6D as is.
+_IDENTITY_6D = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0)
+
+
+@dataclass
+class FitResult:
+    """What :func:`fit_assembly` found.
+
+    Attributes:
+        assembly: the fitted assembly, batch size 1, detached.
+        raw: its raw parameters (1, M, 16).
+        targets: the masks at the fitting resolution (V, h, w) in [0, 1].
+        losses: total loss per step (steps,).
+        ious: IoU per step and view (steps, V), of the silhouettes the step rendered.
+        snapshots: (step, silhouettes (V, h, w)) at the start, middle and end; the last one
+            renders the final parameters.
+        final_iou: IoU per view (V,) of the final parameters (both images thresholded at 0.5).
+    """
+
+    assembly: Assembly
+    raw: Tensor
+    targets: Tensor
+    losses: list[float] = field(default_factory=list)
+    ious: list[list[float]] = field(default_factory=list)
+    snapshots: list[tuple[int, Tensor]] = field(default_factory=list)
+    final_iou: Tensor | None = None
+
+    @property
+    def mean_iou(self) -> float:
+        return float(self.final_iou.mean()) if self.final_iou is not None else float("nan")
+
+
+def mask_iou(prediction: Tensor, target: Tensor, threshold: float = 0.5) -> Tensor:
+    """IoU (...,) of images (..., H, W) thresholded at ``threshold`` (empty union gives 1)."""
+    a, b = prediction > threshold, target > threshold
+    inter = (a & b).flatten(-2).sum(-1).double()
+    union = (a | b).flatten(-2).sum(-1).double()
+    return torch.where(union > 0, inter / union.clamp_min(1), torch.ones_like(union))
+
+
+def silhouette_loss(coverage: Tensor, target: Tensor, kind: str = "mse") -> Tensor:
+    """Per-view loss summed over views: ``mse`` (the paper's reprojection loss, mean over
+    pixels) or ``iou`` (1 - soft IoU). coverage, target: (V, H, W)."""
+    if kind == "mse":
+        return ((coverage - target) ** 2).flatten(1).mean(1).sum()
+    if kind == "iou":
+        inter = (coverage * target).flatten(1).sum(1)
+        union = (coverage + target - coverage * target).flatten(1).sum(1).clamp_min(1e-6)
+        return (1 - inter / union).sum()
+    raise ValueError(f"loss: expected one of {LOSSES}, got {kind!r}")
+
+
+def default_raw(num_primitives: int, generator: torch.Generator | None = None,
+                spread: float = 0.3) -> Tensor:
+    """Raw parameters (1, M, 16) of the default start: identical blobs (size 0.255, shape
+    0.5, no taper, identity rotation), centred for M = 1 and otherwise spread by normal raw
+    translations of std ``spread`` so that the primitives do not receive identical
+    gradients."""
+    raw = torch.zeros(1, num_primitives, NUM_PARAMS, dtype=torch.float64)
+    raw[..., 8:14] = torch.tensor(_IDENTITY_6D, dtype=torch.float64)
+    if num_primitives > 1:
+        raw[..., 5:8] = spread * torch.randn(1, num_primitives, 3, generator=generator,
+                                             dtype=torch.float64)
+    return raw
+
+
+def resize_masks(masks: Tensor, height: int, width: int) -> Tensor:
+    """Masks (V, H, W) averaged down (area) or up (nearest) to (V, height, width) in [0, 1]."""
+    masks = masks.to(torch.float64)[:, None]
+    if masks.shape[-2:] == (height, width):
+        return masks[:, 0]
+    mode = "area" if height <= masks.shape[-2] else "nearest"
+    return F.interpolate(masks, size=(height, width), mode=mode)[:, 0].clamp(0, 1)
+
+
+def fit_assembly(
+    masks: Tensor,
+    camera: Camera,
+    rotations: Tensor,
+    translations: Tensor,
+    num_primitives: int = 1,
+    steps: int = 150,
+    *,
+    resolution: int = 64,
+    lr: float = 0.05,
+    loss: str = "mse",
+    spp: int = 16,
+    sppp: int = 4,
+    seed: int = 0,
+    init_raw: Tensor | None = None,
+    level: int = 3,
+    progress: bool = False,
+    callback: Callable[[int, float, Tensor], None] | None = None,
+) -> FitResult:
+    """Fit an assembly of ``num_primitives`` superquadrics to binary masks with known poses.
+
+    Args:
+        masks: (V, H, W) masks of V views (bool or float in [0, 1]) at ``camera``'s resolution.
+        camera: intrinsics of the masks (rescaled internally to ``resolution`` pixels wide).
+        rotations: (V, 3, 3) body-to-camera rotations; translations: (V, 3), OpenCV frame:
+            ``x_cam = R x_body + t``.
+        num_primitives: M.
+        steps: Adam steps.
+        resolution: width in pixels of the silhouettes fitted (height keeps the aspect).
+        lr: Adam learning rate on the raw parameters.
+        loss: ``"mse"`` or ``"iou"`` (see :func:`silhouette_loss`), summed over views.
+        spp, sppp: renderer sample counts (forward, backward silhouette).
+        seed: seeds the start spread (M > 1) and the renderer's samples.
+        init_raw: (1, M, 16) raw start instead of :func:`default_raw`.
+        level: icosphere level of the primitive meshes (3: 642 vertices each).
+        progress: show a tqdm progress bar.
+        callback: called as ``callback(step, loss, coverage)`` after each step.
+
+    Returns:
+        A :class:`FitResult`.
+    """
+    from sq_mitsuba.render.silhouette import SilhouetteRenderer, render_assembly
+
+    check_tensor("masks", masks, (None, None), min_dims=3, floating=False)
+    if masks.dim() != 3 or masks.shape[0] < 1:
+        raise ValueError(f"masks: expected shape (V, H, W), got {tuple(masks.shape)}")
+    if tuple(masks.shape[1:]) != (camera.height, camera.width):
+        raise ValueError(f"masks: size {tuple(masks.shape[1:])} differs from the camera's "
+                         f"{(camera.height, camera.width)} (height, width)")
+    views = masks.shape[0]
+    check_tensor("rotations", rotations, (3, 3), min_dims=3)
+    check_tensor("translations", translations, (3,), min_dims=2)
+    if rotations.shape != (views, 3, 3) or translations.shape != (views, 3):
+        raise ValueError(f"rotations, translations: expected ({views}, 3, 3) and ({views}, 3) "
+                         f"for {views} masks, got {tuple(rotations.shape)} and "
+                         f"{tuple(translations.shape)}")
+    if bool((translations[:, 2] <= 0).any()):
+        raise ValueError("translations: the object must lie in front of the camera (t_z > 0)")
+    for name, value in (("num_primitives", num_primitives), ("steps", steps),
+                        ("resolution", resolution)):
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise ValueError(f"{name}: expected a positive integer, got {value!r}")
+    if not (isinstance(lr, int | float) and math.isfinite(lr) and lr > 0):
+        raise ValueError(f"lr: expected a positive number, got {lr!r}")
+    if loss not in LOSSES:
+        raise ValueError(f"loss: expected one of {LOSSES}, got {loss!r}")
+
+    fit_camera = camera.rescaled(resolution)
+    targets = resize_masks(masks, fit_camera.height, fit_camera.width)
+    rotations = rotations.to(torch.float64)
+    translations = translations.to(torch.float64)
+    generator = torch.Generator().manual_seed(seed)
+    if init_raw is None:
+        raw = default_raw(num_primitives, generator)
+    else:
+        check_tensor("init_raw", init_raw, (num_primitives, NUM_PARAMS), min_dims=3)
+        raw = init_raw.detach().to(torch.float64).clone()
+    raw.requires_grad_(True)
+    renderer = SilhouetteRenderer(fit_camera, spp=spp, sppp=sppp, seed=seed)
+    optimizer = torch.optim.Adam([raw], lr=lr)
+    result = FitResult(assembly=Assembly.from_raw(raw.detach()), raw=raw.detach(),
+                       targets=targets)
+    middle = steps // 2
+
+    iterator: Sequence[int] | object = range(steps)
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(range(steps), desc="fit", unit="step", leave=True)
+        iterator = bar
+    for step in iterator:  # type: ignore[union-attr]
+        optimizer.zero_grad(set_to_none=True)
+        coverage = render_assembly(Assembly.from_raw(raw), rotations, translations, renderer,
+                                   level)
+        total = silhouette_loss(coverage, targets, loss)
+        total.backward()
+        optimizer.step()
+        with torch.no_grad():
+            ious = mask_iou(coverage, targets)
+        result.losses.append(float(total.detach()))
+        result.ious.append([float(v) for v in ious])
+        if step in (0, middle):
+            result.snapshots.append((step, coverage.detach().clone()))
+        if bar is not None:
+            bar.set_postfix(loss=f"{float(total.detach()):.4f}", iou=f"{float(ious.mean()):.3f}")
+        if callback is not None:
+            callback(step, float(total.detach()), coverage.detach())
+
+    final = Assembly.from_raw(raw.detach())
+    with torch.no_grad():
+        coverage = render_assembly(final, rotations, translations, renderer, level)
+    result.snapshots.append((steps, coverage))
+    result.assembly, result.raw = final, raw.detach().clone()
+    result.final_iou = mask_iou(coverage, targets)
+    return result
+
+
+def plot_fit(result: FitResult, path: str | Path, title: str | None = None) -> Path:
+    """PNG of the target masks against the fitted silhouettes at start, middle and end.
+
+    One row per view; each snapshot overlays the silhouette (red) on the target (green):
+    yellow where they agree. Written atomically.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from sq_mitsuba.io import atomic_path
+
+    views = result.targets.shape[0]
+    columns = 1 + len(result.snapshots)
+    figure, axes = plt.subplots(views, columns, figsize=(2.1 * columns, 2.1 * views + 0.4),
+                                squeeze=False)
+    for view in range(views):
+        target = result.targets[view].float()
+        axes[view, 0].imshow(target.numpy(), cmap="gray", vmin=0, vmax=1)
+        axes[view, 0].set_title(f"view {view}: mask", fontsize=8)
+        for column, (step, coverage) in enumerate(result.snapshots, start=1):
+            silhouette = coverage[view].float()
+            overlay = torch.stack([silhouette, target, torch.zeros_like(target)], dim=-1)
+            iou = float(mask_iou(silhouette, target))
+            axes[view, column].imshow(overlay.clamp(0, 1).numpy())
+            axes[view, column].set_title(f"step {step}: IoU {iou:.3f}", fontsize=8)
+    for axis in axes.flat:
+        axis.set_xticks([])
+        axis.set_yticks([])
+    figure.suptitle(title or f"fit: mean IoU {result.mean_iou:.3f} (red fit, green mask)",
+                    fontsize=9)
+    figure.tight_layout()
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        figure.savefig(tmp, dpi=110, format="png")
+    plt.close(figure)
+    return path

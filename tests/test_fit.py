@@ -1,0 +1,104 @@
+"""Test-time fitting through the silhouette renderer."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from sq_mitsuba.assembly import Assembly
+from sq_mitsuba.camera import Camera
+from sq_mitsuba.fit import (
+    default_raw,
+    fit_assembly,
+    mask_iou,
+    plot_fit,
+    resize_masks,
+    silhouette_loss,
+)
+from sq_mitsuba.render.silhouette import SilhouetteRenderer, render_assembly
+from sq_mitsuba.rotation import random_rotations
+
+
+def _target_views(views: int = 3, resolution: int = 64, seed: int = 3):
+    """Masks of a tapered, rotated, off-centre superquadric from ``views`` random poses."""
+    generator = torch.Generator().manual_seed(seed)
+    target = Assembly.from_values(
+        torch.tensor([[[0.38, 0.22, 0.14]]], dtype=torch.float64),
+        torch.tensor([[[0.15, 0.8]]], dtype=torch.float64),
+        translation=torch.tensor([[[0.04, -0.03, 0.02]]], dtype=torch.float64),
+        rotation=random_rotations(1, generator=generator, dtype=torch.float64)[None],
+        taper=torch.tensor([[[0.35, -0.25]]], dtype=torch.float64))
+    rotations = random_rotations(views, generator=generator, dtype=torch.float64)
+    translations = torch.tensor([[0.0, 0.0, 2.0]], dtype=torch.float64).repeat(views, 1)
+    camera = Camera.default(resolution)
+    with torch.no_grad():
+        masks = render_assembly(target, rotations, translations,
+                                SilhouetteRenderer(camera, spp=64, seed=5)) > 0.5
+    return masks, camera, rotations, translations
+
+
+@pytest.mark.slow
+def test_fit_one_superquadric_reaches_acceptance_iou():
+    masks, camera, rotations, translations = _target_views()
+    result = fit_assembly(masks, camera, rotations, translations, num_primitives=1, steps=150)
+    assert result.mean_iou >= 0.95, result.final_iou
+    assert float(result.final_iou.min()) >= 0.9, result.final_iou
+    assert result.ious[0][0] < 0.8  # the default start is far from the target
+    assert len(result.losses) == 150 and result.losses[-1] < result.losses[0]
+    assert [step for step, _ in result.snapshots] == [0, 75, 150]
+    assert result.assembly.params.shape == (1, 1, 16)
+
+
+def test_short_fit_and_figure(tmp_path):
+    masks, camera, rotations, translations = _target_views(views=2, resolution=128)
+    seen = []
+    result = fit_assembly(masks, camera, rotations, translations, num_primitives=2, steps=3,
+                          resolution=32, loss="iou",
+                          callback=lambda step, loss, coverage: seen.append(coverage.shape))
+    assert seen == [(2, 32, 32)] * 3
+    assert result.targets.shape == (2, 32, 32)
+    assert result.final_iou.shape == (2,) and torch.isfinite(result.final_iou).all()
+    path = plot_fit(result, tmp_path / "figures" / "fit.png")
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_mask_iou_and_losses():
+    a = torch.zeros(2, 4, 4)
+    b = torch.zeros(2, 4, 4)
+    a[0, :2] = 1
+    b[0, :1] = 1
+    assert torch.allclose(mask_iou(a, b), torch.tensor([0.5, 1.0], dtype=torch.float64))
+    assert float(silhouette_loss(a, a)) == 0.0
+    assert float(silhouette_loss(a, b)) == pytest.approx(4 / 16)
+    assert float(silhouette_loss(a, b, "iou")) == pytest.approx(0.5 + 1.0, abs=1e-5)
+    with pytest.raises(ValueError, match="loss"):
+        silhouette_loss(a, b, "l1")
+
+
+def test_default_raw_and_resize():
+    raw = default_raw(3, torch.Generator().manual_seed(0))
+    assembly = Assembly.from_raw(raw)
+    assert torch.allclose(assembly.size, torch.full((1, 3, 3), 0.255, dtype=torch.float64))
+    assert torch.allclose(assembly.rotation, torch.eye(3, dtype=torch.float64).expand(1, 3, 3, 3))
+    assert not torch.allclose(assembly.translation[0, 0], assembly.translation[0, 1])
+    masks = torch.zeros(1, 8, 8, dtype=torch.bool)
+    masks[0, :4, :4] = True
+    assert torch.allclose(resize_masks(masks, 2, 2)[0],
+                          torch.tensor([[1.0, 0.0], [0.0, 0.0]], dtype=torch.float64))
+
+
+def test_fit_bad_input():
+    camera = Camera.default(16)
+    masks = torch.ones(2, 16, 16, dtype=torch.bool)
+    rotations = torch.eye(3).expand(2, 3, 3)
+    translations = torch.tensor([[0.0, 0.0, 2.0]]).repeat(2, 1)
+    with pytest.raises(ValueError, match="masks"):
+        fit_assembly(torch.ones(2, 8, 8), camera, rotations, translations)
+    with pytest.raises(ValueError, match="rotations, translations"):
+        fit_assembly(masks, camera, rotations[:1], translations)
+    with pytest.raises(ValueError, match="translations"):
+        fit_assembly(masks, camera, rotations, -translations)
+    with pytest.raises(ValueError, match="steps"):
+        fit_assembly(masks, camera, rotations, translations, steps=0)
+    with pytest.raises(ValueError, match="loss"):
+        fit_assembly(masks, camera, rotations, translations, loss="l2")

@@ -1,0 +1,262 @@
+"""Differentiable silhouettes: pixels against Camera.project and the analytic projected area
+of a sphere, gradients against finite differences and the analytic derivative, degenerate
+and bad input, kernel re-use."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from sq_mitsuba.assembly import Assembly
+from sq_mitsuba.render.backend import count_kernels
+from sq_mitsuba.render.silhouette import SilhouetteRenderer, render_assembly
+from sq_mitsuba.rotation import random_rotations
+
+
+def sphere_area(centre: torch.Tensor, radius: torch.Tensor, focal: float) -> torch.Tensor:
+    """Analytic area in px^2 of a sphere's perspective image (an ellipse): the cone of half
+    angle a (sin a = R / L) cut by the image plane at angle t to its axis (cos t = c_z / L)
+    has area pi f^2 sin^2 a cos a / (cos^2 t - sin^2 a)^(3/2)."""
+    distance2 = (centre ** 2).sum(-1)
+    return (math.pi * focal ** 2 * radius ** 2 * torch.sqrt(distance2 - radius ** 2)
+            / (centre[..., 2] ** 2 - radius ** 2) ** 1.5)
+
+
+def sphere_vertices(unit_sphere, centre, radius) -> torch.Tensor:
+    vertices, _ = unit_sphere
+    return (vertices * radius + torch.as_tensor(centre, dtype=torch.float64))[None]
+
+
+def centroid(image: torch.Tensor) -> torch.Tensor:
+    """Coverage-weighted centroid (u, v) of an (H, W) image, continuous pixel coordinates."""
+    height, width = image.shape
+    v, u = torch.meshgrid(torch.arange(height, dtype=image.dtype) + 0.5,
+                          torch.arange(width, dtype=image.dtype) + 0.5, indexing="ij")
+    mass = image.sum()
+    return torch.stack(((image * u).sum() / mass, (image * v).sum() / mass))
+
+
+# ---------------------------------------------------------------------------- pixels
+
+
+@pytest.mark.parametrize("pixel", [(64.0, 64.0), (14.0, 14.0), (114.0, 14.0), (14.0, 114.0),
+                                   (114.0, 114.0), (70.0, 57.0)])
+def test_centroid_where_camera_projects_centre(precise_renderer, off_centre_camera,
+                                               unit_sphere, pixel):
+    centre = off_centre_camera.unproject(torch.tensor(pixel, dtype=torch.float64), 3.0)
+    image = precise_renderer.render(sphere_vertices(unit_sphere, centre, 0.08),
+                                    unit_sphere[1])[0]
+    expected = off_centre_camera.project(centre)
+    assert image.sum() > 10
+    assert torch.allclose(centroid(image), expected, atol=0.5), (centroid(image), expected)
+
+
+def test_non_square_focal_lengths(unit_sphere):
+    from sq_mitsuba.camera import Camera
+
+    camera = Camera(60.0, 90.0, 30.0, 36.0, 64, 64)
+    renderer = SilhouetteRenderer(camera, spp=64)
+    centre = camera.unproject(torch.tensor([44.0, 20.0], dtype=torch.float64), 3.0)
+    image = renderer.render(sphere_vertices(unit_sphere, centre, 0.25), unit_sphere[1])[0]
+    assert torch.allclose(centroid(image), camera.project(centre), atol=0.5)
+    # The ellipse is stretched by fy / fx along v: second moments ratio (fy / fx)^2.
+    v, u = torch.meshgrid(torch.arange(64.0) + 0.5, torch.arange(64.0) + 0.5, indexing="ij")
+    c = centroid(image.float())
+    var_u = (image * (u - c[0]) ** 2).sum() / image.sum()
+    var_v = (image * (v - c[1]) ** 2).sum() / image.sum()
+    assert float(var_v / var_u) == pytest.approx(1.5 ** 2, rel=0.1)
+
+
+@pytest.mark.parametrize("centre", [(0.0, 0.0, 3.0), (0.5, -0.4, 3.0), (-0.6, 0.3, 2.5)])
+def test_area_matches_analytic_projection(precise_renderer, off_centre_camera, unit_sphere,
+                                          centre):
+    centre = torch.tensor(centre, dtype=torch.float64)
+    image = precise_renderer.render(sphere_vertices(unit_sphere, centre, 0.3), unit_sphere[1])
+    expected = sphere_area(centre, torch.tensor(0.3, dtype=torch.float64),
+                           off_centre_camera.fx)
+    assert float(image.sum()) == pytest.approx(float(expected), rel=0.02)
+    assert image.shape == (1, 128, 128) and image.dtype == torch.float64
+    assert float(image.min()) >= 0 and float(image.max()) <= 1
+
+
+# ---------------------------------------------------------------------------- gradients
+
+
+def _area(renderer, unit_sphere, radius, shift_x, centre):
+    vertices, faces = unit_sphere
+    offset = torch.stack([centre[0] + shift_x, centre[1] + 0 * shift_x, centre[2] + 0 * shift_x])
+    return renderer.render((vertices * radius + offset)[None], faces).sum()
+
+
+@pytest.mark.parametrize("which", ["radius", "shift_x"])
+def test_gradient_matches_finite_differences(precise_renderer, off_centre_camera, unit_sphere,
+                                             which):
+    centre = torch.tensor([0.6, -0.3, 2.6], dtype=torch.float64)
+    radius = torch.tensor(0.25, dtype=torch.float64, requires_grad=True)
+    shift = torch.tensor(0.0, dtype=torch.float64, requires_grad=True)
+    grads = []
+    for _ in range(2):  # average two independent backward passes (sppp 16 each)
+        radius.grad = shift.grad = None
+        _area(precise_renderer, unit_sphere, radius, shift, centre).backward()
+        grads.append(float((radius if which == "radius" else shift).grad))
+    gradient = sum(grads) / len(grads)
+    step = 0.02
+    with torch.no_grad():
+        if which == "radius":
+            plus = _area(precise_renderer, unit_sphere, radius + step, shift, centre)
+            minus = _area(precise_renderer, unit_sphere, radius - step, shift, centre)
+        else:
+            plus = _area(precise_renderer, unit_sphere, radius, shift + step, centre)
+            minus = _area(precise_renderer, unit_sphere, radius, shift - step, centre)
+    finite_difference = float(plus - minus) / (2 * step)
+    assert gradient == pytest.approx(finite_difference, rel=0.10)
+    # And the analytic derivative of the projected area.
+    r0 = radius.detach().clone().requires_grad_(True)
+    s0 = torch.zeros((), dtype=torch.float64, requires_grad=True)
+    sphere_area(centre + torch.stack([s0, 0 * s0, 0 * s0]), r0, off_centre_camera.fx).backward()
+    analytic = float(r0.grad if which == "radius" else s0.grad)
+    assert gradient == pytest.approx(analytic, rel=0.10)
+
+
+def test_gradient_zero_away_from_silhouette(precise_renderer, unit_sphere):
+    vertices, faces = unit_sphere
+    centre = torch.tensor([0.0, 0.0, 3.0], dtype=torch.float64)
+    points = (vertices * 0.4 + centre)[None].requires_grad_(True)
+    precise_renderer.render(points, faces).sum().backward()
+    grad = points.grad[0].norm(dim=-1)
+    # Cosine between the outward normal and the line of sight: +-1 faces the camera or away.
+    view = torch.nn.functional.normalize(points.detach()[0], dim=-1)
+    facing = (vertices * view).sum(-1).abs()
+    assert float(grad[facing > 0.5].abs().max()) == 0.0
+    assert float(grad[facing < 0.05].sum()) > 0
+
+
+def test_batch_items_are_independent(renderer64, unit_sphere):
+    vertices, faces = unit_sphere
+    small = vertices * 0.2 + torch.tensor([0.2, 0.0, 2.0], dtype=torch.float64)
+    large = vertices * 0.4 + torch.tensor([-0.1, 0.1, 2.0], dtype=torch.float64)
+    points = torch.stack([small, large]).requires_grad_(True)
+    images = renderer64.render(points, faces)
+    single = renderer64.render(large[None], faces)
+    areas = images.detach().sum((1, 2))
+    assert float(areas[1]) == pytest.approx(float(single.sum()), rel=0.02)
+    assert float(areas[0]) < float(areas[1])
+    images[1].sum().backward()
+    assert float(points.grad[0].abs().max()) == 0.0
+    assert float(points.grad[1].abs().sum()) > 0
+
+
+def test_no_kernel_compilation_once_warm(renderer64, unit_sphere):
+    vertices, faces = unit_sphere
+    generator = torch.Generator().manual_seed(0)
+
+    def step() -> None:
+        scale = 0.3 * (1 + 0.1 * torch.rand(1, generator=generator, dtype=torch.float64))
+        points = vertices * scale + torch.tensor([0.0, 0.0, 2.0], dtype=torch.float64)
+        points = points.expand(3, -1, -1).clone().requires_grad_(True)
+        renderer64.render(points, faces).square().sum().backward()
+
+    step()
+    with count_kernels() as counter:
+        step()
+        step()
+    assert counter.launched > 0
+    assert counter.compiled == 0
+
+
+# ---------------------------------------------------------------------------- assemblies
+
+
+def test_render_assembly_sphere_area(renderer64):
+    # Shape 1 is an ellipsoid; equal sizes make a sphere of radius 0.3.
+    assembly = Assembly.from_values(torch.full((1, 1, 3), 0.3, dtype=torch.float64),
+                                    torch.ones(1, 1, 2, dtype=torch.float64))
+    rotation = random_rotations(2, generator=torch.Generator().manual_seed(1)).double()
+    translation = torch.tensor([[0.1, -0.2, 2.0], [-0.3, 0.1, 2.4]], dtype=torch.float64)
+    images = render_assembly(assembly, rotation, translation, renderer64)
+    expected = sphere_area(translation, torch.tensor(0.3, dtype=torch.float64),
+                           renderer64.camera.fx)
+    # Level-3 icosphere: the inscribed polyhedron covers about 1 % less than the sphere.
+    assert torch.allclose(images.sum((1, 2)), expected, rtol=0.03)
+
+
+def test_render_assembly_gradients_reach_parameters(renderer64):
+    raw = torch.zeros(1, 2, 16, dtype=torch.float64)
+    raw[..., 8:14] = torch.tensor([1.0, 0, 0, 0, 1, 0], dtype=torch.float64)
+    raw[0, 1, 5] = 0.6
+    raw.requires_grad_(True)
+    rotation = torch.eye(3, dtype=torch.float64)[None]
+    translation = torch.tensor([[0.0, 0.0, 2.0]], dtype=torch.float64)
+    images = render_assembly(Assembly.from_raw(raw), rotation, translation, renderer64)
+    images.sum().backward()
+    assert torch.isfinite(raw.grad).all()
+    assert float(raw.grad[..., 0:3].sum()) > 0  # bigger primitives cover more pixels
+
+
+# ---------------------------------------------------------------------------- degenerate
+
+
+def _finite_render(renderer, assembly_params, rotation, translation):
+    params = assembly_params.clone().requires_grad_(True)
+    images = render_assembly(Assembly(params), rotation, translation, renderer)
+    images.square().sum().backward()
+    assert torch.isfinite(images).all() and torch.isfinite(params.grad).all()
+    return images.detach(), params.grad
+
+
+def test_degenerate_inputs_stay_finite(renderer64):
+    identity = torch.eye(3, dtype=torch.float64)[None]
+    boxes = Assembly.from_values(torch.tensor([[[0.3, 0.2, 0.1], [0.01, 0.01, 0.01]]],
+                                              dtype=torch.float64),
+                                 torch.zeros(1, 2, 2, dtype=torch.float64),
+                                 translation=torch.tensor([[[0.0, 0, 0], [0.3, 0, 0]]],
+                                                          dtype=torch.float64)).params
+    # Shape exactly 0 (boxes) and a primitive of size 0.01.
+    images, _ = _finite_render(renderer64, boxes, identity,
+                               torch.tensor([[0.0, 0.0, 2.0]], dtype=torch.float64))
+    assert float(images.sum()) > 10
+    # Partly outside the frame.
+    images, grad = _finite_render(renderer64, boxes, identity,
+                                  torch.tensor([[0.55, 0.0, 2.0]], dtype=torch.float64))
+    assert 0 < float(images.sum())
+    # All vertices behind the camera: nothing visible, zero gradient.
+    images, grad = _finite_render(renderer64, boxes, identity,
+                                  torch.tensor([[0.0, 0.0, -2.0]], dtype=torch.float64))
+    assert float(images.sum()) == 0.0 and float(grad.abs().sum()) == 0.0
+    # Straddling the camera plane, and the camera inside the object.
+    _finite_render(renderer64, boxes, identity, torch.tensor([[0.0, 0.0, 0.05]],
+                                                             dtype=torch.float64))
+    images, _ = _finite_render(renderer64, boxes, identity,
+                               torch.tensor([[0.0, 0.0, 0.0]], dtype=torch.float64))
+    assert float(images.mean()) > 0.99  # inside a box, every pixel is covered
+
+
+# ---------------------------------------------------------------------------- bad input
+
+
+@pytest.mark.parametrize(("vertices", "faces", "message"), [
+    (torch.zeros(4, 3), torch.tensor([[0, 1, 2]]), "vertices"),
+    (torch.zeros(1, 4, 2), torch.tensor([[0, 1, 2]]), "vertices"),
+    (torch.zeros(1, 4, 3, dtype=torch.int64), torch.tensor([[0, 1, 2]]), "vertices"),
+    (torch.full((1, 4, 3), float("nan")), torch.tensor([[0, 1, 2]]), "vertices"),
+    (torch.zeros(1, 4, 3), torch.tensor([[0, 1, 4]]), "faces"),
+    (torch.zeros(1, 4, 3), torch.tensor([[0, 1, -1]]), "faces"),
+    (torch.zeros(1, 4, 3), torch.tensor([[0.0, 1.0, 2.0]]), "faces"),
+    (torch.zeros(1, 4, 3), torch.tensor([0, 1, 2]), "faces"),
+    (torch.zeros(1, 4, 3), [[0, 1, 2]], "faces"),
+])
+def test_bad_input_raises_value_error(renderer64, vertices, faces, message):
+    with pytest.raises(ValueError, match=message):
+        renderer64.render(vertices, faces)
+
+
+def test_bad_renderer_arguments(off_centre_camera):
+    with pytest.raises(ValueError, match="camera"):
+        SilhouetteRenderer("camera.json")
+    with pytest.raises(ValueError, match="sppp"):
+        SilhouetteRenderer(off_centre_camera, sppp=0)
+    with pytest.raises(ValueError, match="rotation"):
+        render_assembly(Assembly.from_values(torch.ones(1, 1, 3) * 0.2, torch.ones(1, 1, 2)),
+                        torch.eye(3), torch.zeros(1, 3), None)
