@@ -1,0 +1,1 @@
+"""Data layer: spacecraft mesh processing, dataset writer and reader."""
