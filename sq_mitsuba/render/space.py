@@ -1,0 +1,328 @@
+"""Physically based space scene: a spacecraft lit by the sun, the Earth and stars behind it.
+
+One :class:`SpaceScene` per model: the target is one Mitsuba mesh per material tag (from the
+per-face tags of the processed model), with the BSDFs of ``scenes/materials.json`` (thin parts
+two-sided). The sun is a ``directional`` emitter with the solar irradiance; the Earth a sphere
+with a procedural albedo texture, drawn at ``render_distance`` and scaled to keep its true
+angular size; the stars an environment map. The camera is the dataset camera at the origin
+(OpenCV frame, :func:`sq_mitsuba.render.silhouette.sensor_dict`); poses move the vertices.
+
+A second, tiny scene renders the mask of the target alone: black meshes before a constant
+white environment with ``max_depth=1`` (the camera sees emitters only), so the image is
+1 - coverage; the mask is coverage >= 0.5, estimated with stratified samples. With
+``with_depth`` the same pass also gives the target's depth (for EXR output).
+
+Eclipses (the sun behind the Earth's disk, seen from the target) switch the sun off
+analytically; everything else, earthshine included, is path traced.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from functools import cache
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sq_mitsuba.camera import Camera
+from sq_mitsuba.data.frames import SCENES_DIR, Frame, SceneConfig
+from sq_mitsuba.render.backend import mitsuba
+from sq_mitsuba.render.silhouette import sensor_dict
+
+MATERIALS_JSON = SCENES_DIR / "materials.json"
+# Stratified samples estimate edge coverage with far less noise than independent ones.
+MASK_SAMPLER = "stratified"
+# Materials of parts thin enough to be seen from both sides (foils, panels, dishes).
+TWO_SIDED = {"gold_mli", "silver_mli", "solar_cell", "dark_composite", "antenna_white",
+             "white_paint", "aluminium", "default"}
+
+
+@dataclass
+class RenderedFrame:
+    """Linear radiance (H, W) in W/(m^2 sr), coverage of the target (H, W) in [0, 1], depth
+    of the target (H, W) in metres (0 where it is absent; None unless the scene renders
+    depth), and the exposure to tonemap with."""
+
+    radiance: np.ndarray
+    coverage: np.ndarray
+    depth: np.ndarray | None
+    exposure: float
+
+    @property
+    def mask(self) -> np.ndarray:
+        """Binary mask (H, W) uint8 in {0, 255}: coverage >= 0.5."""
+        return np.where(self.coverage >= 0.5, 255, 0).astype(np.uint8)
+
+    def image_8bit(self) -> np.ndarray:
+        """Tonemapped (H, W) uint8: linear radiance times exposure, clipped, sRGB encoded."""
+        return tonemap(self.radiance, self.exposure)
+
+
+def tonemap(radiance: np.ndarray, exposure: float) -> np.ndarray:
+    """Linear radiance -> 8-bit sRGB grey levels with a fixed exposure (no auto-gain)."""
+    x = np.clip(radiance * exposure, 0.0, 1.0)
+    srgb = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+    return np.round(srgb * 255.0).astype(np.uint8)
+
+
+def mask_samples(spp_at_256: int, camera: Camera) -> int:
+    """Mask samples per pixel: ``spp_at_256`` at 256 px, more for smaller images.
+
+    A pixel of a smaller image covers more of the target's outline, so it gets proportionally
+    more samples; the boundary noise per unit of image size then stays the same.
+    """
+    scale = (256.0 / min(camera.width, camera.height)) ** 2
+    return max(spp_at_256, math.ceil(spp_at_256 * scale))
+
+
+def load_materials(path: str | Path = MATERIALS_JSON) -> dict[str, dict[str, Any]]:
+    """BSDF dictionaries per material tag (comments, keys starting with ``_``, dropped)."""
+    data = json.loads(Path(path).read_text(encoding="utf-8"))
+    if "default" not in data:
+        raise ValueError(f"{path}: needs a 'default' material")
+    return {k: v for k, v in data.items() if not k.startswith("_")}
+
+
+def _bsdf_dict(spec: dict[str, Any], two_sided: bool) -> dict[str, Any]:
+    spec = dict(spec)
+    for key in ("reflectance", "diffuse_reflectance"):
+        if isinstance(spec.get(key), int | float):
+            spec[key] = {"type": "rgb", "value": float(spec[key])}
+    return {"type": "twosided", "bsdf": spec} if two_sided else spec
+
+
+def _value_noise(rng: np.random.Generator, height: int, width: int, octaves: int) -> np.ndarray:
+    """Fractal value noise in [0, 1], periodic in longitude (for an equirectangular map)."""
+    from scipy.ndimage import zoom
+
+    total = np.zeros((height, width))
+    amplitude, weight = 1.0, 0.0
+    for octave in range(octaves):
+        cells = 4 * 2**octave
+        grid = rng.random((max(2, cells // 2), cells))
+        grid = np.concatenate([grid, grid[:, :1]], axis=1)  # wrap longitude
+        layer = zoom(grid, ((height) / grid.shape[0], (width + width / cells) / grid.shape[1]),
+                     order=3, mode="grid-wrap")[:height, :width]
+        total += amplitude * layer
+        weight += amplitude
+        amplitude *= 0.5
+    total /= weight
+    return (total - total.min()) / (np.ptp(total) + 1e-12)
+
+
+@cache
+def earth_texture(seed: int, width: int, height: int, ocean: float, land: tuple[float, float],
+                  cloud: float, land_fraction: float, cloud_cover: float) -> np.ndarray:
+    """Procedural Earth albedo (height, width): oceans, land and clouds, seeded."""
+    rng = np.random.default_rng(seed)
+    relief = _value_noise(rng, height, width, 6)
+    clouds = _value_noise(rng, height, width, 6)
+    is_land = relief > np.quantile(relief, 1 - land_fraction)
+    albedo = np.where(is_land, land[0] + (land[1] - land[0]) * relief, ocean)
+    cloudiness = np.clip((clouds - (1 - cloud_cover)) / 0.15, 0.0, 1.0)
+    return (albedo * (1 - cloudiness) + cloud * cloudiness).astype(np.float32)
+
+
+@cache
+def star_envmap(seed: int, count: int, radiance: tuple[float, float], width: int) -> np.ndarray:
+    """Equirectangular star field (width / 2, width): black with point stars, log-uniform."""
+    rng = np.random.default_rng(seed)
+    height = width // 2
+    env = np.zeros((height, width), dtype=np.float32)
+    # Uniform on the sphere: uniform longitude, latitude by arcsine.
+    lon = rng.integers(0, width, count)
+    lat = np.arcsin(rng.uniform(-1, 1, count))
+    row = np.clip(((0.5 - lat / math.pi) * height).astype(int), 0, height - 1)
+    env[row, lon] = np.exp(rng.uniform(np.log(radiance[0]), np.log(radiance[1]), count))
+    return env
+
+
+def _frame_to(direction: np.ndarray) -> np.ndarray:
+    """Rotation (3, 3) whose third column is ``direction`` (unit)."""
+    z = direction / np.linalg.norm(direction)
+    helper = np.array([1.0, 0, 0]) if abs(z[0]) < 0.9 else np.array([0, 1.0, 0])
+    x = np.cross(helper, z)
+    x /= np.linalg.norm(x)
+    return np.stack([x, np.cross(z, x), z], axis=1)
+
+
+def _transform(mi: Any, linear: np.ndarray, offset: np.ndarray | None = None) -> Any:
+    matrix = np.eye(4)
+    matrix[:3, :3] = linear
+    if offset is not None:
+        matrix[:3, 3] = offset
+    return mi.ScalarTransform4f(matrix.tolist())
+
+
+def _warm_up_frame() -> Frame:
+    """A fixed frame: target 2 m ahead, sun behind the camera, Earth to the side."""
+    identity = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
+    return Frame(index=-1, seed=0, quaternion=(1.0, 0.0, 0.0, 0.0),
+                 translation=(0.0, 0.0, 2.0), sun_direction=(0.0, 0.0, -1.0),
+                 phase_angle_deg=0.0, earth_direction=(1.0, 0.0, 0.0),
+                 earth_angular_radius_deg=65.0, earth_altitude_km=700.0, earth_in_view=False,
+                 earth_rotation=identity, star_rotation=identity, eclipse=False)
+
+
+class SpaceScene:
+    """Renders one model in the space scene, frame after frame (see the module docstring).
+
+    Args:
+        vertices: (V, 3) model vertices, body frame.
+        faces: (F, 3) triangle indices.
+        face_material: (F,) material tag per face (strings), or None for the default.
+        camera: dataset camera (fx must equal fy: Mitsuba has one field of view).
+        config: scene configuration.
+        spp: path-tracing samples per pixel.
+        dataset_seed: seeds the Earth texture and star field (shared by all images).
+        materials: BSDFs per tag, default ``scenes/materials.json``.
+        with_depth: also render the target's depth (an ``aov`` pass, twice the mask's cost).
+    """
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, face_material: np.ndarray | None,
+                 camera: Camera, config: SceneConfig, spp: int = 64, dataset_seed: int = 0,
+                 materials: dict[str, dict[str, Any]] | None = None, with_depth: bool = False):
+        if abs(camera.fx - camera.fy) > 1e-6 * camera.fx:
+            raise ValueError(f"camera: the dataset renderer needs fx == fy, got {camera.fx}, "
+                             f"{camera.fy}")
+        if spp < 1:
+            raise ValueError(f"spp: expected >= 1, got {spp}")
+        vertices = np.asarray(vertices, dtype=np.float64)
+        faces = np.asarray(faces, dtype=np.int64)
+        if vertices.ndim != 2 or vertices.shape[1] != 3 or len(vertices) < 3 or \
+                not np.isfinite(vertices).all():
+            raise ValueError("vertices: expected finite (V, 3) with V >= 3")
+        if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0 or faces.min() < 0 or \
+                faces.max() >= len(vertices):
+            raise ValueError("faces: expected (F, 3) indices into vertices")
+        self.mi = mi = mitsuba()
+        self.camera, self.config, self.spp = camera, config, spp
+        self.vertices = vertices
+        materials = materials or load_materials()
+        tags = (np.full(len(faces), "default") if face_material is None
+                else np.asarray(face_material).astype(str))
+        if len(tags) != len(faces):
+            raise ValueError("face_material: expected one tag per face")
+        self.parts: list[tuple[str, np.ndarray, np.ndarray]] = []  # (key, vertex ids, faces)
+        for tag in sorted(set(tags.tolist())):
+            part_faces = faces[tags == tag]
+            used, local = np.unique(part_faces, return_inverse=True)
+            self.parts.append((tag, used, local.reshape(-1, 3)))
+        self.exposure = math.pi / (config.sun.irradiance * config.exposure.reference_albedo)
+
+        sensor = sensor_dict(camera)
+        sensor["sampler"] = {"type": "independent", "sample_count": spp}
+        sensor["film"]["rfilter"] = {"type": config.integrator.reconstruction_filter}
+        texture_cfg = config.earth.texture
+        albedo = earth_texture(dataset_seed, texture_cfg.width, texture_cfg.height,
+                               texture_cfg.ocean_albedo, tuple(texture_cfg.land_albedo),
+                               texture_cfg.cloud_albedo, texture_cfg.land_fraction,
+                               texture_cfg.cloud_cover)
+        stars = star_envmap(dataset_seed, config.stars.count, tuple(config.stars.radiance),
+                            config.stars.envmap_width)
+        scene: dict[str, Any] = {
+            "type": "scene",
+            "integrator": {"type": "path", "max_depth": config.integrator.max_depth},
+            "sensor": sensor,
+            "sun": {"type": "directional", "direction": [0.0, 0.0, 1.0],
+                    "irradiance": config.sun.irradiance},
+            "stars": {"type": "envmap", "bitmap": mi.Bitmap(stars[..., None])},
+            "earth": {"type": "sphere", "bsdf": {"type": "diffuse", "reflectance": {
+                "type": "bitmap", "bitmap": mi.Bitmap(albedo[..., None]), "raw": True}}},
+        }
+        for tag, used, local in self.parts:
+            spec = materials.get(tag, materials["default"])
+            scene[f"part_{tag}"] = self._mesh(f"part_{tag}", used, local,
+                                              _bsdf_dict(spec, tag in TWO_SIDED))
+        self.scene = mi.load_dict(scene)
+        self.params = mi.traverse(self.scene)
+
+        mask_sensor = sensor_dict(camera)
+        mask_sensor["sampler"] = {"type": MASK_SAMPLER,
+                                  "sample_count": mask_samples(config.mask.spp, camera)}
+        self.with_depth = with_depth
+        coverage_integrator = {"type": "path", "max_depth": 1}
+        mask_scene: dict[str, Any] = {
+            "type": "scene", "sensor": mask_sensor,
+            "integrator": ({"type": "aov", "aovs": "depth:depth",
+                            "integrator": coverage_integrator}
+                           if with_depth else coverage_integrator),
+            "background": {"type": "constant", "radiance": 1.0},
+        }
+        for tag, used, local in self.parts:
+            mask_scene[f"part_{tag}"] = self._mesh(f"part_{tag}", used, local, None)
+        self.mask_scene = mi.load_dict(mask_scene)
+        self.mask_params = mi.traverse(self.mask_scene)
+        # The first render after the scene's initial parameters change differs in the last
+        # bits from every later one (measured; later renders are identical whatever came
+        # before). One discarded frame makes each image independent of whether it was the
+        # first of its process, so a resumed run writes the same bytes as an uninterrupted one.
+        self.render(_warm_up_frame())
+
+    def _mesh(self, name: str, used: np.ndarray, local: np.ndarray,
+              bsdf: dict[str, Any] | None) -> Any:
+        mi = self.mi
+        props = mi.Properties()
+        if bsdf is not None:
+            props["bsdf"] = mi.load_dict(bsdf)
+        mesh = mi.Mesh(name, len(used), len(local), props=props, has_vertex_normals=False,
+                       has_vertex_texcoords=False)
+        params = mi.traverse(mesh)
+        params["vertex_positions"] = mi.Float(self.vertices[used].astype(np.float32).ravel())
+        params["faces"] = mi.UInt32(local.astype(np.uint32).ravel())
+        params.update()
+        return mesh
+
+    def _set_pose(self, params: Any, rotation: np.ndarray, translation: np.ndarray) -> None:
+        posed = (self.vertices @ rotation.T + translation).astype(np.float32)
+        for tag, used, _ in self.parts:
+            params[f"part_{tag}.vertex_positions"] = self.mi.Float(posed[used].ravel())
+
+    def render(self, frame: Frame, radiance: bool = True) -> RenderedFrame:
+        """Path-trace ``frame`` (and its mask). ``radiance=False`` renders the mask only."""
+        mi = self.mi
+        rotation, translation = frame.rotation, np.asarray(frame.translation)
+        seed = frame.seed % (1 << 31)
+        self._set_pose(self.mask_params, rotation, translation)
+        self.mask_params.update()
+        channels = np.array(mi.render(self.mask_scene, seed=seed), dtype=np.float64)
+        coverage = np.clip(1.0 - channels[..., 0], 0.0, 1.0)
+        depth = None
+        if self.with_depth:
+            # Missed samples add depth 0 to the pixel average: divide by the coverage.
+            depth = np.where(coverage > 1e-6, channels[..., 1] / np.maximum(coverage, 1e-6),
+                             0.0)
+        if not radiance:
+            return RenderedFrame(np.zeros_like(coverage), coverage, depth, self.exposure)
+
+        self._set_pose(self.params, rotation, translation)
+        sun = np.asarray(frame.sun_direction)
+        # The directional emitter shines along its local +z: from the sun towards the target.
+        self.params["sun.to_world"] = _transform(mi, _frame_to(-sun))
+        # Eclipses are applied analytically: the directional emitter sizes its shadow rays
+        # from the scene's bounds at load time, so the moving Earth cannot be relied on to
+        # block it. A point sun is either wholly hidden or not (no penumbra).
+        self.params["sun.irradiance.value"] = 0.0 if frame.eclipse else \
+            self.config.sun.irradiance
+        earth = self.config.earth
+        distance = earth.render_distance
+        radius = distance * math.sin(math.radians(frame.earth_angular_radius_deg))
+        spin = np.asarray(frame.earth_rotation).reshape(3, 3)
+        self.params["earth.to_world"] = _transform(
+            mi, spin * radius, distance * np.asarray(frame.earth_direction))
+        self.params["stars.to_world"] = _transform(mi, np.asarray(frame.star_rotation)
+                                                   .reshape(3, 3))
+        # The sphere checks its rotated, scaled transform in float32 and reports rounding
+        # as shear; the transform is a similarity, so that one warning is muted here.
+        logger = mi.logger()
+        level = logger.log_level()
+        logger.set_log_level(mi.LogLevel.Error)
+        try:
+            self.params.update()
+        finally:
+            logger.set_log_level(level)
+        image = np.array(mi.render(self.scene, seed=seed), dtype=np.float64)[..., 0]
+        return RenderedFrame(image, coverage, depth, self.exposure)

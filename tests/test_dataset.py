@@ -1,0 +1,366 @@
+"""Dataset rendering in the SPE3R layout: labels vs masks, determinism, resume, reader, light."""
+
+from __future__ import annotations
+
+import dataclasses
+import errno
+import json
+import math
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from sq_mitsuba.camera import Camera
+from sq_mitsuba.cli import main
+from sq_mitsuba.data import spe3r
+from sq_mitsuba.data.frames import SceneConfig, sample_frame
+from sq_mitsuba.data.library import generate_model
+from sq_mitsuba.data.spe3r import (
+    DatasetError,
+    RenderOptions,
+    Spe3rDataset,
+    check_dataset,
+    load_model,
+    render_dataset,
+)
+from sq_mitsuba.io import atomic_path
+from sq_mitsuba.render.silhouette import SilhouetteRenderer
+from sq_mitsuba.render.space import SpaceScene
+from sq_mitsuba.rotation import quaternion_to_matrix, rotation_angle
+from sq_mitsuba.spacecraft import catalogue
+
+RESOLUTION, SPP, IMAGES = 128, 4, 3
+OPTIONS = {"images_per_model": IMAGES, "seed": 7, "resolution": RESOLUTION, "spp": SPP}
+
+
+@pytest.fixture(scope="session")
+def model_library(tmp_path_factory) -> Path:
+    """Two generated spacecraft (small point sets) with a train/test split."""
+    root = tmp_path_factory.mktemp("models")
+    entries = catalogue(2, 3)
+    for entry in entries:
+        generate_model(entry, root, points=3000)
+    (root / "splits.csv").write_text(f"{entries[0].name},train\n{entries[1].name},test\n")
+    return root
+
+
+@pytest.fixture(scope="session")
+def dataset(model_library, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("dataset") / "data"
+    summary = render_dataset(model_library, out, RenderOptions(**OPTIONS), progress=False)
+    assert not summary.failures and summary.rendered == 2 * IMAGES
+    return out
+
+
+def read_bytes_tree(root: Path, patterns: tuple[str, ...]) -> dict[str, bytes]:
+    return {str(p.relative_to(root)): p.read_bytes()
+            for pattern in patterns for p in sorted(root.glob(pattern))}
+
+
+# ------------------------------------------------------------------------ layout and labels
+
+
+def test_layout_and_labels(dataset, model_library):
+    assert (dataset / "camera.json").is_file()
+    camera = Camera.load(dataset / "camera.json")
+    assert (camera.width, camera.height) == (RESOLUTION, RESOLUTION)
+    assert (dataset / "splits.csv").read_text() == (model_library / "splits.csv").read_text()
+    for model in spe3r.dataset_models(dataset):
+        labels = json.loads((dataset / model / "labels.json").read_text())
+        assert len(labels) == IMAGES
+        for label in labels:
+            assert set(label) >= {"filename", "q_vbs2tango_true", "r_Vo2To_vbs_true",
+                                  "sun_direction_cam", "phase_angle_deg", "earth_in_view",
+                                  "eclipse", "exposure", "seed"}
+            image = np.asarray(Image.open(dataset / model / "images" / label["filename"]))
+            mask = np.asarray(Image.open(dataset / model / "masks" / label["filename"]))
+            assert image.dtype == np.uint8 and image.shape == (RESOLUTION, RESOLUTION)
+            assert set(np.unique(mask)) <= {0, 255} and mask.any()
+            assert abs(np.linalg.norm(label["q_vbs2tango_true"]) - 1) < 1e-9
+        assert (dataset / model / "models" / "model_normalized.obj").is_file()
+        assert not (dataset / model / ".progress").exists()
+
+
+def test_labels_agree_with_masks(dataset):
+    """The mesh rendered at each label pose (another renderer) reproduces the mask."""
+    report = check_dataset(dataset, per_model=None, min_iou=0.99, progress=False)
+    assert report.ok, report.summary()
+    assert len(report.iou) == 2 * IMAGES and min(report.iou) >= 0.99
+
+
+def test_projected_origin_is_where_the_label_translation_says(dataset):
+    """A small sphere at the body origin, posed by the label, lands on K t within 1 px."""
+    camera = Camera.load(dataset / "camera.json")
+    sphere_vertices, sphere_faces = (np.asarray(a) for a in _sphere(0.03))
+    renderer = SilhouetteRenderer(camera, spp=64)
+    for model in spe3r.dataset_models(dataset):
+        for label in json.loads((dataset / model / "labels.json").read_text()):
+            rotation = quaternion_to_matrix(torch.tensor(label["q_vbs2tango_true"]))
+            translation = torch.tensor(label["r_Vo2To_vbs_true"])
+            posed = torch.tensor(sphere_vertices, dtype=torch.float32) @ rotation.T + translation
+            coverage = renderer.render(posed[None], torch.tensor(sphere_faces))[0]
+            rows, cols = torch.meshgrid(torch.arange(RESOLUTION) + 0.5,
+                                        torch.arange(RESOLUTION) + 0.5, indexing="ij")
+            centroid = torch.stack([(coverage * cols).sum(), (coverage * rows).sum()]) / \
+                coverage.sum()
+            expected = camera.project(translation[None])[0]
+            assert (centroid - expected).norm() < 1.0
+
+
+def _sphere(radius: float):
+    from sq_mitsuba.icosphere import icosphere
+
+    vertices, faces = icosphere(3)
+    return vertices * radius, faces
+
+
+def test_frame_rotations_are_uniform_and_targets_in_view():
+    config = SceneConfig.load()
+    camera = Camera.default(256)
+    box = np.array([[x, y, z] for x in (-0.5, 0.5) for y in (-0.2, 0.2) for z in (-0.15, 0.15)])
+    frames = [sample_frame(box, camera, config, 1, "box", i) for i in range(3000)]
+    rotations = torch.tensor(np.stack([f.rotation for f in frames]))
+    assert rotations.mean(0).abs().max() < 0.05  # Haar: E[R] = 0; std of the mean ~0.011
+    angles = rotation_angle(torch.eye(3, dtype=torch.float64), rotations)
+    observed = torch.histc(angles, bins=6, min=0, max=math.pi) / len(frames)
+    edges = torch.linspace(0, math.pi, 7, dtype=torch.float64)
+    cdf = (edges - torch.sin(edges)) / math.pi
+    assert (observed - (cdf[1:] - cdf[:-1])).abs().max() < 0.03
+    for frame in frames[:300]:
+        posed = box @ frame.rotation.T + np.asarray(frame.translation)
+        pixels = camera.project(torch.tensor(posed)).numpy()
+        assert (pixels >= 0).all() and (pixels <= 256).all()
+        assert 1.4 < frame.translation[2] < 3.0
+    eclipses = np.mean([f.eclipse for f in frames])
+    earth = np.mean([f.earth_in_view for f in frames])
+    assert abs(eclipses - config.eclipse.probability) < 0.02
+    assert abs(earth - config.earth.probability_in_view) < 0.04
+    # Same seed, same frame; another index, another frame.
+    assert sample_frame(box, camera, config, 1, "box", 5) == frames[5]
+    assert sample_frame(box, camera, config, 1, "box", 6) != frames[5]
+
+
+# ------------------------------------------------------------------------ determinism
+
+
+def test_same_seed_gives_identical_labels_and_masks(dataset, model_library, tmp_path):
+    again = tmp_path / "again"
+    render_dataset(model_library, again, RenderOptions(**OPTIONS), progress=False)
+    patterns = ("*/labels.json", "*/masks/*.png", "*/images/*.png")
+    assert read_bytes_tree(again, patterns) == read_bytes_tree(dataset, patterns)
+
+
+@pytest.mark.slow
+def test_kill_and_resume_gives_identical_output(dataset, model_library, tmp_path):
+    out = tmp_path / "resumed"
+    command = [sys.executable, "-m", "sq_mitsuba", "dataset", "render", "--models",
+               str(model_library), "--out", str(out), "--quiet",
+               "--images-per-model", str(IMAGES), "--seed", str(OPTIONS["seed"]),
+               "--resolution", str(RESOLUTION), "--spp", str(SPP)]
+    process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and process.poll() is None:
+        if len(list(out.glob("*/.progress/*.json"))) >= 2:
+            break
+        time.sleep(0.02)
+    assert process.poll() is None, "render finished before it could be killed"
+    os.kill(process.pid, signal.SIGKILL)
+    process.wait()
+    assert not (out / spe3r.dataset_models(model_library)[-1] / "labels.json").exists()
+    subprocess.run(command, check=True, capture_output=True)
+    patterns = ("*/labels.json", "*/masks/*.png", "*/images/*.png")
+    assert read_bytes_tree(out, patterns) == read_bytes_tree(dataset, patterns)
+    assert not list(out.rglob("*.tmp*"))
+
+
+# ------------------------------------------------------------------------ reader
+
+
+def test_reader_reads_what_the_writer_wrote(dataset):
+    train, val, test = (Spe3rDataset(dataset, split, image_size=64, num_surface=500,
+                                     num_occupancy=1000) for split in ("train", "val", "test"))
+    assert (len(train), len(val), len(test)) == (IMAGES, 0, IMAGES)
+    item = train[1]
+    model = train.models[0]
+    label = json.loads((dataset / model / "labels.json").read_text())[1]
+    assert item["model"] == model and item["index"] == 1
+    assert item["image"].shape == (1, 64, 64) and item["mask"].shape == (1, 64, 64)
+    torch.testing.assert_close(item["quaternion"],
+                               torch.tensor(label["q_vbs2tango_true"], dtype=torch.float32))
+    torch.testing.assert_close(item["translation"],
+                               torch.tensor(label["r_Vo2To_vbs_true"], dtype=torch.float32))
+    full = np.asarray(Image.open(dataset / model / "masks" / label["filename"])) >= 128
+    assert abs(item["mask"].mean().item() - full.mean()) < 0.01
+    torch.testing.assert_close(item["camera"], Camera.load(dataset / "camera.json")
+                               .rescaled(64).matrix())
+    assert item["surface_points"].shape == (500, 3)
+    assert item["occupancy_points"].shape == (1000, 3)
+    assert item["occupancy_labels"].mean().item() == pytest.approx(0.5)
+    assert item["surface_points"].abs().max() <= 0.51
+
+
+def test_reader_reads_an_spe3r_shaped_fixture_with_jpg_images(tmp_path):
+    """SPE3R release shape: .jpg images, SPEED camera.json in metres, no samples.npz."""
+    import trimesh
+
+    root = tmp_path / "spe3r"
+    speed_camera = {"Nu": 1920, "Nv": 1200, "ppx": 5.86e-6, "ppy": 5.86e-6, "fx": 0.0176,
+                    "fy": 0.0176, "ccx": 960, "ccy": 600}
+    root.mkdir()
+    (root / "camera.json").write_text(json.dumps(speed_camera))
+    (root / "splits.csv").write_text("sat_a,train\nsat_b,test\n")
+    for model in ("sat_a", "sat_b"):
+        (root / model / "models").mkdir(parents=True)
+        (root / model / "images").mkdir()
+        (root / model / "masks").mkdir()
+        trimesh.creation.box((1.0, 0.5, 0.3)).export(root / model / "models" /
+                                                    "model_normalized.obj")
+        labels = [{"filename": f"img{i:06d}.jpg", "q_vbs2tango_true": [1.0, 0.0, 0.0, 0.0],
+                   "r_Vo2To_vbs_true": [0.0, 0.0, 2.0 + i / 1000]} for i in range(1000)]
+        (root / model / "labels.json").write_text(json.dumps(labels))
+        for i in (0, 450, 999):
+            Image.fromarray(np.full((120, 192), i % 250, np.uint8)).save(
+                root / model / "images" / f"img{i:06d}.jpg")
+            Image.fromarray(np.full((120, 192), 255, np.uint8)).save(
+                root / model / "masks" / f"img{i:06d}.png")
+    train = Spe3rDataset(root, "train", image_size=32, num_surface=100, num_occupancy=200)
+    val = Spe3rDataset(root, "val", image_size=32, num_surface=100, num_occupancy=200)
+    test = Spe3rDataset(root, "test", image_size=32, num_surface=100, num_occupancy=200)
+    assert (len(train), len(val), len(test)) == (800, 200, 1000)
+    item = val[50]  # image 450 of sat_a
+    assert item["index"] == 450 and item["model"] == "sat_a"
+    assert item["translation"][2].item() == pytest.approx(2.45)
+    assert item["image"].shape == (1, 32, 32)
+    assert abs(item["image"].mean().item() - 450 % 250 / 255) < 0.02
+    # SPEED intrinsics rescaled to 32 px: fx = 0.0176 / 5.86e-6 * 32 / 1920.
+    assert item["camera"][0, 0].item() == pytest.approx(0.0176 / 5.86e-6 / 60, rel=1e-6)
+    # Occupancy labels from the mesh itself: inside means inside the 1 x 0.5 x 0.3 box.
+    points, labels = item["occupancy_points"], item["occupancy_labels"].bool()
+    in_box = (points.abs() < torch.tensor([0.5, 0.25, 0.15])).all(-1)
+    assert (in_box == labels).float().mean() > 0.99
+
+
+def test_reader_errors_name_the_file(dataset, tmp_path):
+    with pytest.raises(DatasetError, match=r"camera\.json"):
+        Spe3rDataset(tmp_path)
+    broken = tmp_path / "broken"
+    shutil.copytree(dataset, broken)
+    model = spe3r.dataset_models(broken)[0]
+    (broken / model / "labels.json").write_text("[{not json")
+    with pytest.raises(DatasetError, match=r"labels\.json"):
+        Spe3rDataset(broken, "train")
+    with pytest.raises(ValueError, match="split"):
+        Spe3rDataset(dataset, "validation")
+
+
+# ------------------------------------------------------------------------ light
+
+
+@pytest.fixture(scope="session")
+def lit_scene(model_library):
+    model = spe3r.find_models(model_library)[0]
+    vertices, faces, tags = load_model(model_library / model)
+    camera = Camera.default(RESOLUTION)
+    config = SceneConfig.load()
+    scene = SpaceScene(vertices, faces, tags, camera, config, spp=16, dataset_seed=7)
+    frame = sample_frame(vertices, camera, config, 7, model, 0)
+    return scene, frame
+
+
+def _with_light(frame, sun: np.ndarray, earth: np.ndarray):
+    """The same pose with the sun along ``sun`` and the Earth's centre along ``earth``."""
+    return dataclasses.replace(
+        frame, sun_direction=tuple(float(v) for v in sun / np.linalg.norm(sun)),
+        earth_direction=tuple(float(v) for v in earth / np.linalg.norm(earth)),
+        earth_in_view=False)
+
+
+def test_phase_angle_changes_the_image_and_eclipse_darkens_it(lit_scene):
+    scene, frame = lit_scene
+    to_camera = -np.asarray(frame.translation) / np.linalg.norm(frame.translation)
+    side = np.cross(to_camera, [0.0, 1.0, 0.0])
+    side /= np.linalg.norm(side)
+    # The Earth off to the side (not behind the camera, where a full, sunlit Earth would
+    # light the target's visible side when the sun is behind it).
+    earth = np.cross(to_camera, side)
+    front = scene.render(_with_light(frame, to_camera + 0.15 * side, earth))  # phase ~9 deg
+    back = scene.render(_with_light(frame, -to_camera + 0.15 * side, earth))  # phase ~171 deg
+    # Sun behind the Earth, whose night side faces the target: an eclipse.
+    eclipse = scene.render(dataclasses.replace(_with_light(frame, earth, earth), eclipse=True))
+    inside = front.mask > 0
+    assert np.array_equal(front.mask, back.mask) and np.array_equal(front.mask, eclipse.mask)
+    lit, backlit, dark = (r.image_8bit()[inside].astype(float) for r in (front, back, eclipse))
+    assert lit.mean() > 3 * backlit.mean() and lit.mean() - backlit.mean() > 10
+    assert dark.mean() < 2.0 and lit.mean() > 10 * max(dark.mean(), 0.1)
+
+
+# ------------------------------------------------------------------------ bad input
+
+
+def test_bad_models_fail_alone_and_leave_nothing_partial(model_library, tmp_path, monkeypatch):
+    library = tmp_path / "library"
+    shutil.copytree(model_library, library)
+    good, other = spe3r.find_models(library)
+    broken = tmp_path / "library" / "broken_model" / "models"
+    broken.mkdir(parents=True)
+    (broken / "model_normalized.obj").write_text("this is not a mesh\n")
+    with open(library / "splits.csv", "a") as handle:
+        handle.write("broken_model,train\nmissing_model,train\n")
+    real_write_png = spe3r.write_png
+
+    def disk_full_for_other(path: Path, array: np.ndarray) -> None:
+        if other in str(path) and path.name == "000001.png":
+            with atomic_path(path) as tmp:
+                tmp.write_bytes(b"partial")
+                raise OSError(errno.ENOSPC, "No space left on device")
+        real_write_png(path, array)
+
+    monkeypatch.setattr(spe3r, "write_png", disk_full_for_other)
+    out = tmp_path / "out"
+    summary = render_dataset(library, out, RenderOptions(**OPTIONS), progress=False)
+    assert summary.models_done == [good]
+    assert set(summary.failures) == {"broken_model", "missing_model", other}
+    assert "model_normalized.obj" in summary.failures["broken_model"]
+    assert "No space left" in summary.failures[other]
+    # The failed model keeps only complete images (each with its label); nothing partial.
+    assert sorted(p.name for p in (out / other / "images").iterdir()) == ["000000.png"]
+    assert sorted(p.name for p in (out / other / ".progress").iterdir()) == ["000000.json"]
+    assert not (out / other / "labels.json").exists()
+    assert not list(out.rglob("*.tmp*"))
+    assert not (out / "broken_model" / "images").exists()
+
+
+def test_cli_reports_failures_and_unwritable_output(model_library, tmp_path, capsys):
+    blocker = tmp_path / "a_file"
+    blocker.write_text("not a folder")
+    code = main(["dataset", "render", "--models", str(model_library), "--out",
+                 str(blocker / "out"), "--images-per-model", "1", "--quiet"])
+    assert code == 2 and "not writable" in capsys.readouterr().err
+    assert main(["dataset", "render", "--models", str(tmp_path / "nowhere"), "--out",
+                 str(tmp_path / "o"), "--quiet"]) == 2
+    assert main(["dataset", "render", "--models", str(model_library), "--out",
+                 str(tmp_path / "o"), "--spp", "0"]) == 2
+
+
+def test_check_finds_a_wrong_mask_and_preview_draws(dataset, tmp_path, capsys):
+    damaged = tmp_path / "damaged"
+    shutil.copytree(dataset, damaged)
+    model = spe3r.dataset_models(damaged)[0]
+    mask_path = damaged / model / "masks" / "000001.png"
+    mask = np.asarray(Image.open(mask_path))
+    Image.fromarray(np.roll(mask, 6, axis=1)).save(mask_path)  # a 6 px shift
+    assert main(["dataset", "check", str(damaged), "--per-model", "0", "--quiet"]) == 1
+    assert f"{model}/000001.png" in capsys.readouterr().out
+    assert main(["dataset", "check", str(dataset), "--quiet"]) == 0
+    out = tmp_path / "sheet.png"
+    assert main(["dataset", "preview", str(dataset), "--out", str(out), "--count", "4"]) == 0
+    assert Image.open(out).size[0] > 300
