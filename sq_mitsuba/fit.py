@@ -137,7 +137,11 @@ def fit_assembly(
     Returns:
         A :class:`FitResult`.
     """
-    from sq_mitsuba.render.silhouette import SilhouetteRenderer, render_assembly
+    from sq_mitsuba.render.silhouette import (
+        SilhouetteRenderer,
+        render_assembly,
+        render_assembly_loss,
+    )
 
     check_tensor("masks", masks, (None, None), min_dims=3, floating=False)
     if masks.dim() != 3 or masks.shape[0] < 1:
@@ -189,9 +193,11 @@ def fit_assembly(
         iterator = bar
     for step in iterator:  # type: ignore[union-attr]
         optimizer.zero_grad(set_to_none=True)
-        coverage = render_assembly(Assembly.from_raw(raw), rotations, translations, renderer,
-                                   level)
-        total = silhouette_loss(coverage, targets, loss)
+        # One BVH rebuild per view: each view's loss is back-propagated right after its render.
+        total, coverage = render_assembly_loss(
+            Assembly.from_raw(raw), rotations, translations, renderer,
+            lambda view, i: silhouette_loss(view[None], targets[i, None].to(view.dtype), loss),
+            level)
         total.backward()
         optimizer.step()
         with torch.no_grad():

@@ -21,13 +21,12 @@ from PIL import Image
 
 from sq_mitsuba.camera import Camera
 from sq_mitsuba.cli import main
-from sq_mitsuba.data import spe3r
+from sq_mitsuba.data import Spe3rDataset, spe3r
 from sq_mitsuba.data.frames import SceneConfig, sample_frame
 from sq_mitsuba.data.library import generate_model
 from sq_mitsuba.data.spe3r import (
     DatasetError,
     RenderOptions,
-    Spe3rDataset,
     check_dataset,
     load_model,
     render_dataset,
@@ -364,3 +363,32 @@ def test_check_finds_a_wrong_mask_and_preview_draws(dataset, tmp_path, capsys):
     out = tmp_path / "sheet.png"
     assert main(["dataset", "preview", str(dataset), "--out", str(out), "--count", "4"]) == 0
     assert Image.open(out).size[0] > 300
+
+
+def test_exr_holds_linear_radiance_depth_and_coverage(model_library, tmp_path):
+    import OpenEXR
+
+    library = tmp_path / "one"
+    library.mkdir()
+    model = spe3r.find_models(model_library)[0]
+    shutil.copytree(model_library / model, library / model)
+    out = tmp_path / "exr"
+    options = RenderOptions(**{**OPTIONS, "images_per_model": 1, "exr": True})
+    assert not render_dataset(library, out, options, progress=False).failures
+    label = json.loads((out / model / "labels.json").read_text())[0]
+    with OpenEXR.File(str(out / model / "exr" / "000000.exr")) as exr:
+        channels = {name: np.asarray(c.pixels) for name, c in exr.channels().items()}
+    assert set(channels) == {"Y", "Z", "A"}
+    mask = np.asarray(Image.open(out / model / "masks" / "000000.png")) > 0
+    np.testing.assert_array_equal(channels["A"] >= 0.5, mask)
+    # Depth of the unit-size target lies within its half-extent of the label distance.
+    depth = channels["Z"][mask]
+    distance = np.linalg.norm(label["r_Vo2To_vbs_true"])
+    assert np.all(np.abs(depth - distance) < 0.9) and np.all(channels["Z"][~mask & (
+        channels["A"] == 0)] == 0)
+    # The PNG is the EXR radiance tonemapped with the recorded exposure.
+    from sq_mitsuba.render.space import tonemap
+
+    image = np.asarray(Image.open(out / model / "images" / "000000.png"))
+    np.testing.assert_array_equal(tonemap(channels["Y"].astype(np.float64), label["exposure"]),
+                                  image)

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -232,21 +233,13 @@ class SilhouetteRenderer:
     # ------------------------------------------------------------------ passes
 
     def _forward(self, vertices: Tensor, call: int, requires_grad: bool) -> Tensor:
-        import drjit as dr
-
         images = []
         for item in range(vertices.shape[0]):
             self._load(vertices[item], (call, item), requires_grad)
-            with dr.suspend_grad():
-                image = self._integrator.render(self._scene, sensor=0,
-                                                seed=self._seed(call, item, False),
-                                                spp=self.spp, develop=True)
-            images.append(torch.from_numpy(np.array(image, dtype=np.float32)[..., 0]))
-        coverage = 1.0 - torch.stack(images)
-        return coverage.clamp_(0.0, 1.0).to(dtype=vertices.dtype, device=vertices.device)
+            images.append(self._render_item(call, item))
+        return torch.stack(images).to(dtype=vertices.dtype, device=vertices.device)
 
     def _backward(self, vertices: Tensor, grad_coverage: Tensor, call: int) -> Tensor:
-        mi = self._mi
         import drjit as dr
 
         grad_vertices = torch.zeros(vertices.shape, dtype=torch.float32)
@@ -259,18 +252,65 @@ class SilhouetteRenderer:
                 values = self._loaded_vertices
             else:
                 values = self._load(vertices[item], (call, item), requires_grad=True)
-            grad_in = mi.TensorXf(np.ascontiguousarray(grad_images[item].numpy()[..., None]))
-            self._integrator.render_backward(self._scene, self._params, grad_in, sensor=0,
-                                             seed=self._seed(call, item, True), spp=0)
-            grad = np.array(dr.grad(values), dtype=np.float32).reshape(-1, 3)
-            dr.clear_grad(values)
-            # A rare silhouette sample with a degenerate Jacobian can give NaN; it carries
-            # no information, so it counts as zero.
-            grad_vertices[item] = torch.from_numpy(np.nan_to_num(grad, nan=0.0, posinf=0.0,
-                                                                 neginf=0.0))
+            grad_vertices[item] = self._vertex_gradient(values, grad_images[item], call, item)
+        return grad_vertices.to(dtype=vertices.dtype, device=vertices.device)
+
+    def _vertex_gradient(self, values: Any, grad_image: Tensor, call: int, item: int) -> Tensor:
+        """d(loss)/d(vertices) (V, 3) of the loaded item, given d(loss)/d(image) (H, W)."""
+        mi = self._mi
+        import drjit as dr
+
+        grad_in = mi.TensorXf(np.ascontiguousarray(grad_image.numpy()[..., None]))
+        self._integrator.render_backward(self._scene, self._params, grad_in, sensor=0,
+                                         seed=self._seed(call, item, True), spp=0)
+        grad = np.array(dr.grad(values), dtype=np.float32).reshape(-1, 3)
+        dr.clear_grad(values)
+        # A rare silhouette sample with a degenerate Jacobian can give NaN; it carries no
+        # information, so it counts as zero.
+        grad_vertices = torch.from_numpy(np.nan_to_num(grad, nan=0.0, posinf=0.0, neginf=0.0))
         if self._y_stretch != 1.0:
             grad_vertices[..., 1] *= self._y_stretch
-        return grad_vertices.to(dtype=vertices.dtype, device=vertices.device)
+        return grad_vertices
+
+    def _render_item(self, call: int, item: int) -> Tensor:
+        """Coverage (H, W) float32 of the item whose vertices are loaded."""
+        import drjit as dr
+
+        with dr.suspend_grad():
+            image = self._integrator.render(self._scene, sensor=0,
+                                            seed=self._seed(call, item, False), spp=self.spp,
+                                            develop=True)
+        coverage = 1.0 - torch.from_numpy(np.array(image, dtype=np.float32)[..., 0])
+        return coverage.clamp_(0.0, 1.0)
+
+    def render_loss(self, vertices: Tensor, faces: Tensor,
+                    loss_fn: Callable[[Tensor, int], Tensor]) -> tuple[Tensor, Tensor]:
+        """Sum over items of ``loss_fn(coverage[i], i)``, differentiable w.r.t. ``vertices``.
+
+        Equivalent to ``sum(loss_fn(c, i) for i, c in enumerate(render(vertices, faces)))``,
+        but each item's vertices are loaded once (one BVH rebuild instead of two): the
+        backward pass of an item runs right after its forward pass, with the gradient of its
+        loss, so a loss must be a sum of per-item terms (a reprojection loss is).
+
+        Args:
+            vertices: (B, V, 3) camera-frame vertices (see :meth:`render`).
+            faces: (F, 3) shared faces.
+            loss_fn: maps one coverage image (H, W) (float32, CPU) and its item index to a
+                scalar; only its gradient w.r.t. the image is used.
+
+        Returns:
+            (loss, coverage): the summed loss (scalar, vertices' dtype) and the coverage
+            images (B, H, W), detached.
+        """
+        check_tensor("vertices", vertices, (None, 3), min_dims=3)
+        if vertices.dim() != 3 or vertices.shape[0] < 1 or vertices.shape[1] < 3:
+            raise ValueError(f"vertices: expected shape (B, V, 3) with B >= 1 and V >= 3, got "
+                             f"{tuple(vertices.shape)}")
+        if not callable(loss_fn):
+            raise ValueError("loss_fn: expected a callable (coverage (H, W), item) -> scalar")
+        faces_np = _check_faces(faces, vertices.shape[1])
+        self._ensure_scene(vertices.shape[1], faces_np)
+        return _RenderedLoss.apply(vertices, self, loss_fn)
 
 
 class _RenderSilhouettes(torch.autograd.Function):
@@ -293,19 +333,52 @@ class _RenderSilhouettes(torch.autograd.Function):
         return renderer._backward(vertices.detach(), grad_coverage, ctx.call), None, None
 
 
-def render_assembly(assembly: Any, rotation: Tensor, translation: Tensor,
-                    renderer: SilhouetteRenderer, level: int = 3) -> Tensor:
-    """Silhouettes (B, H, W) of superquadric assemblies at camera poses.
+class _RenderedLoss(torch.autograd.Function):
+    """Autograd bridge of :meth:`SilhouetteRenderer.render_loss`: the vertex gradients are
+    computed item by item during the forward pass and returned, scaled, by the backward."""
+
+    @staticmethod
+    def forward(ctx: Any, vertices: Tensor, renderer: SilhouetteRenderer,
+                loss_fn: Callable[[Tensor, int], Tensor]) -> tuple[Tensor, Tensor]:
+        call = renderer._next_call()
+        detached = vertices.detach()
+        grad_vertices = torch.zeros(detached.shape, dtype=torch.float32)
+        images, total = [], 0.0
+        for item in range(detached.shape[0]):
+            values = renderer._load(detached[item], (call, item), requires_grad=True)
+            coverage = renderer._render_item(call, item).requires_grad_()
+            with torch.enable_grad():
+                loss = loss_fn(coverage, item)
+                if not isinstance(loss, Tensor) or loss.numel() != 1:
+                    raise ValueError("loss_fn: must return a scalar tensor")
+                (grad_coverage,) = torch.autograd.grad(loss, coverage, allow_unused=True)
+            total += float(loss)
+            images.append(coverage.detach())
+            if grad_coverage is not None and bool(grad_coverage.any()):
+                # coverage = 1 - image, so the image receives the negated gradient.
+                grad_vertices[item] = renderer._vertex_gradient(
+                    values, (-grad_coverage).contiguous(), call, item)
+        ctx.save_for_backward(grad_vertices.to(dtype=vertices.dtype, device=vertices.device))
+        coverage_all = torch.stack(images).to(dtype=vertices.dtype, device=vertices.device)
+        ctx.mark_non_differentiable(coverage_all)
+        return vertices.new_tensor(total), coverage_all
+
+    @staticmethod
+    def backward(ctx: Any, grad_loss: Tensor, grad_coverage: Tensor | None
+                 ) -> tuple[Tensor, None, None]:
+        (grad_vertices,) = ctx.saved_tensors
+        return grad_vertices * grad_loss, None, None
+
+
+def assembly_camera_vertices(assembly: Any, rotation: Tensor, translation: Tensor,
+                             level: int = 3) -> tuple[Tensor, Tensor]:
+    """Merged assembly meshes moved to the camera frame: vertices (B, N, 3), faces (F, 3).
 
     Args:
         assembly: :class:`sq_mitsuba.assembly.Assembly` of batch size B or 1 (broadcast).
         rotation: (B, 3, 3) body-to-camera rotations R.
         translation: (B, 3) body-to-camera translations t: ``x_cam = R x_body + t``.
-        renderer: the :class:`SilhouetteRenderer` to draw with.
         level: icosphere subdivision level of each primitive's mesh (3: 642 vertices).
-
-    Returns:
-        (B, H, W) coverage, differentiable w.r.t. the assembly parameters and the pose.
     """
     check_tensor("rotation", rotation, (3, 3), min_dims=3)
     check_tensor("translation", translation, (3,), min_dims=2)
@@ -319,4 +392,26 @@ def render_assembly(assembly: Any, rotation: Tensor, translation: Tensor,
                          f"{count} poses")
     vertices = vertices.to(rotation.dtype).expand(count, -1, -1)
     camera_vertices = torch.einsum("bij,bnj->bni", rotation, vertices) + translation[:, None, :]
-    return renderer.render(camera_vertices, faces)
+    return camera_vertices, faces
+
+
+def render_assembly(assembly: Any, rotation: Tensor, translation: Tensor,
+                    renderer: SilhouetteRenderer, level: int = 3) -> Tensor:
+    """Silhouettes (B, H, W) of superquadric assemblies at camera poses.
+
+    Args: see :func:`assembly_camera_vertices`; ``renderer`` draws them.
+
+    Returns:
+        (B, H, W) coverage, differentiable w.r.t. the assembly parameters and the pose.
+    """
+    vertices, faces = assembly_camera_vertices(assembly, rotation, translation, level)
+    return renderer.render(vertices, faces)
+
+
+def render_assembly_loss(assembly: Any, rotation: Tensor, translation: Tensor,
+                         renderer: SilhouetteRenderer, loss_fn: Callable[[Tensor, int], Tensor],
+                         level: int = 3) -> tuple[Tensor, Tensor]:
+    """``sum_i loss_fn(silhouette_i, i)`` with one BVH rebuild per item (see
+    :meth:`SilhouetteRenderer.render_loss`); returns (loss, coverage (B, H, W) detached)."""
+    vertices, faces = assembly_camera_vertices(assembly, rotation, translation, level)
+    return renderer.render_loss(vertices, faces, loss_fn)
