@@ -33,7 +33,7 @@ from torch.autograd.function import once_differentiable
 
 from sq_mitsuba.checks import check_tensor
 from sq_mitsuba.icosphere import icosphere_angles, icosphere_faces
-from sq_mitsuba.io import atomic_path, atomic_write_text
+from sq_mitsuba.io import atomic_path, atomic_write_text, read_json
 from sq_mitsuba.rotation import matrix_to_rotation_6d, rotation_6d_to_matrix
 from sq_mitsuba.superquadric import (
     dual_field,
@@ -386,10 +386,7 @@ class Assembly:
     def load(cls, path: str | Path, device: str | torch.device = "cpu") -> Assembly:
         """Read an assembly JSON written by :meth:`save`."""
         path = Path(path)
-        try:
-            data = json.loads(path.read_text(encoding="utf-8"))
-        except json.JSONDecodeError as error:
-            raise ValueError(f"{path}: not valid JSON ({error.msg}, line {error.lineno})") from None
+        data = read_json(path)
         try:
             return cls.from_dict(data, device)
         except ValueError as error:

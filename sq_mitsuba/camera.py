@@ -11,7 +11,6 @@ The conversion to a Mitsuba sensor lives in the rendering layer
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,6 +20,7 @@ import torch
 from torch import Tensor
 
 from sq_mitsuba.checks import check_tensor
+from sq_mitsuba.io import read_json
 
 # SPEED camera (Sharma et al.): focal length 17.6 mm, pixel pitch 5.86 um, 1920 x 1200 px.
 SPEED_FOCAL_LENGTH_M = 0.0176
@@ -96,10 +96,7 @@ class Camera:
     def load(cls, path: str | Path) -> Camera:
         """From a SPEED-style ``camera.json``."""
         path = Path(path)
-        try:
-            data = json.loads(path.read_text(encoding="utf-8"))
-        except json.JSONDecodeError as error:
-            raise ValueError(f"camera: {path} is not valid JSON ({error})") from None
+        data = read_json(path)
         if not isinstance(data, dict):
             raise ValueError(f"camera: {path} must hold a JSON object")
         return cls.from_speed_dict(data)

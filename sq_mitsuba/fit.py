@@ -231,7 +231,7 @@ def plot_fit(result: FitResult, path: str | Path, title: str | None = None) -> P
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from sq_mitsuba.io import atomic_path
+    from sq_mitsuba.io import save_figure
 
     views = result.targets.shape[0]
     columns = 1 + len(result.snapshots)
@@ -253,8 +253,4 @@ def plot_fit(result: FitResult, path: str | Path, title: str | None = None) -> P
     figure.suptitle(title or f"fit: mean IoU {result.mean_iou:.3f} (red fit, green mask)",
                     fontsize=9)
     figure.tight_layout()
-    path = Path(path)
-    with atomic_path(path) as tmp:
-        figure.savefig(tmp, dpi=110, format="png")
-    plt.close(figure)
-    return path
+    return save_figure(figure, path)

@@ -392,3 +392,15 @@ def test_exr_holds_linear_radiance_depth_and_coverage(model_library, tmp_path):
     image = np.asarray(Image.open(out / model / "images" / "000000.png"))
     np.testing.assert_array_equal(tonemap(channels["Y"].astype(np.float64), label["exposure"]),
                                   image)
+
+
+@pytest.mark.slow
+def test_parallel_workers_write_the_same_dataset(dataset, model_library, tmp_path):
+    out = tmp_path / "parallel"
+    summary = render_dataset(model_library, out, RenderOptions(**OPTIONS), progress=False,
+                             workers=2)
+    assert not summary.failures and summary.rendered == 2 * IMAGES
+    patterns = ("*/labels.json", "*/masks/*.png", "*/images/*.png")
+    assert read_bytes_tree(out, patterns) == read_bytes_tree(dataset, patterns)
+    with pytest.raises(ValueError, match="workers"):
+        render_dataset(model_library, out, RenderOptions(**OPTIONS), workers=0)

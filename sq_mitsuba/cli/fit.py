@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 from typing import Any
+
+from sq_mitsuba.io import read_json
 
 DESCRIPTION = """\
 Fit an assembly of M superquadrics to one or more binary masks with a known camera and known
@@ -74,9 +75,9 @@ def _read_poses(path: Path, masks: list[Path]) -> tuple[Any, Any]:
     if not path.is_file():
         raise FileNotFoundError(f"--poses: no such file: {path}")
     try:
-        labels = json.loads(path.read_text(encoding="utf-8"))
-    except json.JSONDecodeError as error:
-        raise ValueError(f"--poses: {path} is not valid JSON ({error.msg})") from None
+        labels = read_json(path)
+    except ValueError as error:
+        raise ValueError(f"--poses: {error}") from None
     if not isinstance(labels, list):
         raise ValueError(f"--poses: {path} must hold a list of labels")
     by_stem = {}

@@ -15,7 +15,6 @@ the visible side fully, 180 deg back-lights it.
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import zlib
 from dataclasses import dataclass, field
@@ -26,6 +25,7 @@ import numpy as np
 import torch
 
 from sq_mitsuba.camera import Camera
+from sq_mitsuba.io import read_json
 from sq_mitsuba.rotation import quaternion_to_matrix, random_quaternions
 
 SCENES_DIR = Path(__file__).resolve().parents[2] / "scenes"
@@ -111,10 +111,7 @@ class SceneConfig:
     def load(cls, path: str | Path | None = None) -> SceneConfig:
         """``scenes/space.json`` (or ``path``); keys starting with ``_`` are comments."""
         path = Path(path) if path is not None else SCENES_DIR / "space.json"
-        try:
-            data = json.loads(path.read_text(encoding="utf-8"))
-        except json.JSONDecodeError as error:
-            raise ValueError(f"{path}: not valid JSON ({error.msg}, line {error.lineno})") from None
+        data = read_json(path)
         return _from_dict(cls, data, str(path))
 
     def to_dict(self) -> dict[str, Any]:

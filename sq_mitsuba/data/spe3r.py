@@ -32,7 +32,13 @@ from PIL import Image
 
 from sq_mitsuba.camera import Camera
 from sq_mitsuba.data.frames import SceneConfig, sample_frame
-from sq_mitsuba.io import atomic_path, atomic_write_json, atomic_write_text
+from sq_mitsuba.io import (
+    atomic_path,
+    atomic_write_json,
+    atomic_write_text,
+    read_json,
+    save_figure,
+)
 from sq_mitsuba.rotation import quaternion_to_matrix
 
 IMAGES, MASKS, MODELS, PROGRESS = "images", "masks", "models", ".progress"
@@ -373,11 +379,7 @@ def preview_dataset(root: str | Path, out: str | Path, count: int = 16,
         axis.set_xlim(0, camera.width)
         axis.set_ylim(camera.height, 0)
     figure.tight_layout()
-    out = Path(out)
-    with atomic_path(out) as tmp:
-        figure.savefig(tmp, dpi=110, format="png")
-    plt.close(figure)
-    return out
+    return save_figure(figure, out)
 
 
 # ------------------------------------------------------------------------ reader
@@ -433,11 +435,11 @@ class Spe3rDataset(torch.utils.data.Dataset):
         for model_index, model in enumerate(self.models):
             labels_path = self.root / model / "labels.json"
             try:
-                labels = json.loads(labels_path.read_text(encoding="utf-8"))
+                labels = read_json(labels_path)
             except FileNotFoundError:
                 raise DatasetError(f"{labels_path}: missing") from None
-            except json.JSONDecodeError as error:
-                raise DatasetError(f"{labels_path}: not valid JSON ({error.msg})") from None
+            except ValueError as error:
+                raise DatasetError(str(error)) from None
             for index, label in enumerate(labels):
                 in_val = index in VALIDATION_INDICES
                 if split == "test" or (split == "val") == in_val:
