@@ -404,3 +404,24 @@ def test_parallel_workers_write_the_same_dataset(dataset, model_library, tmp_pat
     assert read_bytes_tree(out, patterns) == read_bytes_tree(dataset, patterns)
     with pytest.raises(ValueError, match="workers"):
         render_dataset(model_library, out, RenderOptions(**OPTIONS), workers=0)
+
+
+def test_render_with_a_speed_camera_json(model_library, tmp_path):
+    """--camera: SPEED intrinsics (1920 x 1200) rescaled to 96 px wide keep their aspect."""
+    speed = {"Nu": 1920, "Nv": 1200, "ppx": 5.86e-6, "ppy": 5.86e-6, "fx": 0.0176,
+             "fy": 0.0176, "ccx": 960, "ccy": 600}
+    (tmp_path / "speed.json").write_text(json.dumps(speed))
+    library = tmp_path / "one"
+    model = spe3r.find_models(model_library)[0]
+    shutil.copytree(model_library / model, library / model)
+    out = tmp_path / "speed"
+    assert main(["dataset", "render", "--models", str(library), "--out", str(out),
+                 "--camera", str(tmp_path / "speed.json"), "--resolution", "96",
+                 "--images-per-model", "1", "--spp", "2", "--quiet"]) == 0
+    camera = Camera.load(out / "camera.json")
+    assert (camera.width, camera.height) == (96, 60)
+    assert camera.fx == pytest.approx(0.0176 / 5.86e-6 / 20)
+    mask = np.asarray(Image.open(out / model / "masks" / "000000.png"))
+    assert mask.shape == (60, 96) and mask.any()
+    # At this size a 1 px misalignment would drop the IoU far below 0.95; the rest is noise.
+    assert check_dataset(out, per_model=None, min_iou=0.95, progress=False).ok

@@ -24,6 +24,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     render.add_argument("--spp", type=int, default=64, help="path-tracing samples per pixel")
     render.add_argument("--exr", action="store_true",
                         help="also write linear radiance, depth and coverage (OpenEXR)")
+    render.add_argument("--camera", type=Path, default=None,
+                        help="SPEED-style camera.json to render with, rescaled to --resolution "
+                             "pixels wide (default: 35.45 deg field of view, square)")
     render.add_argument("--scene", type=Path, default=None,
                         help="scene configuration JSON (default scenes/space.json)")
     render.add_argument("--workers", type=int, default=1,
@@ -52,12 +55,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _render(args: argparse.Namespace) -> int:
+    from sq_mitsuba.camera import Camera
     from sq_mitsuba.data.frames import SceneConfig
     from sq_mitsuba.data.spe3r import RenderOptions, render_dataset
 
+    camera = Camera.load(args.camera) if args.camera is not None else None
     options = RenderOptions(images_per_model=args.images_per_model, seed=args.seed,
                             resolution=args.resolution, spp=args.spp, exr=args.exr,
-                            scene=SceneConfig.load(args.scene))
+                            scene=SceneConfig.load(args.scene), camera=camera)
     summary = render_dataset(args.models, args.out, options, progress=not args.quiet,
                              workers=args.workers)
     print(f"{len(summary.models_done)} models done ({summary.rendered} images rendered, "

@@ -138,6 +138,16 @@ class RenderOptions:
     spp: int = 64
     exr: bool = False
     scene: SceneConfig = field(default_factory=SceneConfig.load)
+    #: Intrinsics to render with (e.g. a SPEED camera.json), rescaled to ``resolution`` pixels
+    #: wide; default: the project's default camera (DESIGN section 3).
+    camera: Camera | None = None
+
+    def dataset_camera(self) -> Camera:
+        if self.camera is None:
+            return Camera.default(self.resolution)
+        if self.camera.width == self.resolution:
+            return self.camera
+        return self.camera.rescaled(self.resolution)
 
     def validate(self) -> None:
         if self.images_per_model < 1:
@@ -276,7 +286,7 @@ def render_dataset(models_dir: str | Path, out_dir: str | Path, options: RenderO
     models_dir, out_dir = Path(models_dir), Path(out_dir)
     models = find_models(models_dir)
     check_writable(out_dir)
-    camera = Camera.default(options.resolution)
+    camera = options.dataset_camera()
     atomic_write_json(out_dir / "camera.json", camera.to_speed_dict())
     splits_path = models_dir / "splits.csv"
     splits = read_splits(splits_path) if splits_path.is_file() else {m: "train" for m in models}
