@@ -30,7 +30,12 @@ def test_generate_writes_layout_splits_and_cards(tmp_path) -> None:
     assert main(["models", "preview", str(out), "--out", str(sheet), "--size", "32",
                  "--spp", "2"]) == 0
     with Image.open(sheet) as image:
-        assert image.size[0] == 2 * 32 and np.asarray(image).max() > 0
+        assert image.size[0] == 2 * 32
+        tile = np.asarray(image)[:32, :32]
+    # Black background (the ambient light is hidden from the camera), a lit model in the middle.
+    border = np.concatenate([tile[0], tile[-1], tile[:, 0], tile[:, -1]])
+    assert border.max() == 0
+    assert tile[8:24, 8:24].max() > 100
 
 
 def test_import_batch_continues_past_bad_files(tmp_path, capsys) -> None:

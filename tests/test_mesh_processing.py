@@ -12,6 +12,7 @@ from sq_mitsuba.data.library import import_model
 from sq_mitsuba.data.mesh_processing import (
     MeshError,
     center_of_mass,
+    connected_pieces,
     edge_manifold,
     invariant_checks,
     load_mesh,
@@ -168,6 +169,20 @@ def test_bad_mesh_comes_out_watertight_outward_without_internal_faces() -> None:
     assert signed_volume(src, mesh.faces) == pytest.approx(union_volume, rel=0.03)
     com = center_of_mass(mesh.vertices, mesh.faces)
     np.testing.assert_allclose(com, 0.0, atol=1e-3)
+
+
+def test_connected_pieces_of_exact_unions() -> None:
+    """Overlapping parts merge into one piece; parts with a gap stay two; none: zero."""
+    from sq_mitsuba.spacecraft import union_parts
+    from sq_mitsuba.spacecraft.parts import Part, box
+
+    bus = Part("bus_box", "gold_mli", box((1.0, 1.0, 1.0)))
+    attached = Part("boom", "aluminium", box((1.0, 0.1, 0.1), (0.95, 0, 0)))  # 0.05 inside
+    floating = Part("boom", "aluminium", box((1.0, 0.1, 0.1), (1.1, 0, 0)))  # 0.1 gap
+    assert connected_pieces(union_parts([bus, attached])) == 1
+    assert connected_pieces(union_parts([bus, floating])) == 2
+    empty = TaggedMesh(np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros(0, np.int16))
+    assert connected_pieces(empty) == 0
 
 
 @pytest.mark.parametrize("name, content", [

@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 from sq_mitsuba.cli import CLIError
+from sq_mitsuba.spacecraft.generator import DEFAULT_CATALOGUE_COUNT, DEFAULT_CATALOGUE_SEED
 
 EXIT_BATCH_FAILED = 1
 
@@ -19,8 +20,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     sub = parser.add_subparsers(dest="models_command", metavar="ACTION", required=True)
 
     gen = sub.add_parser("generate", help="generate seeded procedural spacecraft")
-    gen.add_argument("--count", type=int, default=64, help="number of models (default 64)")
-    gen.add_argument("--seed", type=int, default=0, help="catalogue seed (default 0)")
+    gen.add_argument("--count", type=int, default=DEFAULT_CATALOGUE_COUNT,
+                     help=f"number of models (default {DEFAULT_CATALOGUE_COUNT})")
+    gen.add_argument("--seed", type=int, default=DEFAULT_CATALOGUE_SEED,
+                     help=f"catalogue seed (default {DEFAULT_CATALOGUE_SEED})")
     gen.add_argument("--out", type=Path, default=Path("data/spacecraft"),
                      help="output root (default data/spacecraft)")
     gen.add_argument("--points", type=int, default=100_000,
@@ -46,7 +49,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     pre.add_argument("--out", type=Path, default=None,
                      help="PNG path (default ROOT/contact_sheet.png)")
     pre.add_argument("--size", type=int, default=160, help="tile size in pixels (default 160)")
-    pre.add_argument("--spp", type=int, default=16, help="samples per pixel (default 16)")
+    pre.add_argument("--spp", type=int, default=64, help="samples per pixel (default 64)")
+    pre.add_argument("--columns", type=int, default=None,
+                     help="tiles per row (default: a square-ish grid)")
+    pre.add_argument("--limit", type=int, default=None,
+                     help="render only the first N models by name (default all)")
     pre.set_defaults(func=_preview)
 
 
@@ -114,7 +121,12 @@ def _preview(args: argparse.Namespace) -> int:
 
     if args.size < 16 or args.spp < 1:
         raise CLIError("--size must be >= 16 and --spp >= 1")
+    if args.columns is not None and args.columns < 1:
+        raise CLIError(f"--columns: expected >= 1, got {args.columns}")
+    if args.limit is not None and args.limit < 1:
+        raise CLIError(f"--limit: expected >= 1, got {args.limit}")
     out = args.out or args.root / "contact_sheet.png"
-    count = contact_sheet(args.root, out, tile=args.size, spp=args.spp)
+    count = contact_sheet(args.root, out, tile=args.size, spp=args.spp, columns=args.columns,
+                          limit=args.limit)
     print(f"contact sheet of {count} model(s) written to {out}")
     return 0

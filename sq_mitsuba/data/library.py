@@ -16,6 +16,7 @@ import numpy as np
 from sq_mitsuba.data.mesh_processing import (
     FUSION_RESOLUTION,
     MeshError,
+    connected_pieces,
     load_mesh,
     model_card,
     process_mesh,
@@ -27,10 +28,18 @@ from sq_mitsuba.spacecraft import THIN_FRACTION, CatalogueEntry, generate_spacec
 
 
 def generate_model(entry: CatalogueEntry, out_root: str | Path, points: int = 100_000) -> Path:
-    """Generate, process, sample and write one catalogue entry; return its models folder."""
+    """Generate, process, sample and write one catalogue entry; return its models folder.
+
+    Raises :class:`MeshError` (nothing written) when the spacecraft is not one connected body.
+    """
     spacecraft = generate_spacecraft(entry.seed, entry.archetype, entry.name)
     raw = spacecraft.union()
     model = process_mesh(raw, method="solid")
+    pieces = connected_pieces(model.mesh)
+    if pieces != 1:
+        raise MeshError(f"{entry.name}: the union of its parts has {pieces} disconnected "
+                        "pieces; every appendage must overlap the part it is mounted on")
+    model.checks["one_piece"] = True
     samples = sample_model(model.mesh, points, points, points, seed=entry.seed)
     card = model_card(entry.name, model, samples, source="procedural",
                       archetype=entry.archetype, seed=entry.seed, split=entry.split,

@@ -151,6 +151,13 @@ def _components(faces: np.ndarray, n_vertices: int) -> list[np.ndarray]:
     return np.split(order, splits)
 
 
+def connected_pieces(mesh: TaggedMesh) -> int:
+    """How many vertex-connected pieces the mesh has (1 for a single connected body)."""
+    if len(mesh.faces) == 0:
+        return 0
+    return len(_components(mesh.faces, len(mesh.vertices)))
+
+
 def transfer_face_material(source: TaggedMesh, vertices: np.ndarray, faces: np.ndarray
                            ) -> np.ndarray:
     """Material of each new face = material of the nearest source face (by face centre)."""

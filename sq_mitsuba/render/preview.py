@@ -1,4 +1,9 @@
-"""Contact sheets of a model library, path traced with Mitsuba (grey levels per material)."""
+"""Contact sheets of a model library, rendered with Mitsuba (grey levels per material).
+
+Lighting: a sun (directional), a weaker fill light from the opposite side and a uniform
+ambient sky. The ambient emitter is hidden from camera rays (``hide_emitters``), so it lights
+the models but the background stays black (alpha 0 there).
+"""
 
 from __future__ import annotations
 
@@ -13,6 +18,8 @@ from sq_mitsuba.spacecraft.materials import MATERIALS, PREVIEW_ALBEDO
 PREVIEW_FOV_DEG = 35.45  # the project's default camera (SPEED's horizontal field of view)
 VIEW_DIRECTION = np.array([1.0, -1.4, 0.9])  # camera position direction: an oblique 3/4 view
 SUN_DIRECTION = np.array([-0.5, 0.8, -0.6])  # direction the light travels
+FILL_DIRECTION = np.array([0.6, 0.3, 0.5])  # a weak fill from below the far side
+SUN_IRRADIANCE, FILL_IRRADIANCE, AMBIENT_RADIANCE = 2.4, 0.35, 0.18
 
 
 def read_obj(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -47,8 +54,11 @@ def read_obj(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def render_model(vertices: np.ndarray, faces: np.ndarray, face_material: np.ndarray,
-                 size: int = 160, spp: int = 16) -> np.ndarray:
-    """A (size, size) grey image in [0, 1] (sRGB-like gamma) of a unit-size model."""
+                 size: int = 160, spp: int = 64) -> np.ndarray:
+    """A (size, size) grey image in [0, 1] (sRGB-like gamma) of a unit-size model.
+
+    The background is black: the ambient light is hidden from the camera.
+    """
     from sq_mitsuba.render.backend import mitsuba
 
     mi = mitsuba()
@@ -56,19 +66,24 @@ def render_model(vertices: np.ndarray, faces: np.ndarray, face_material: np.ndar
     radius = float(np.linalg.norm(np.ptp(vertices, axis=0))) / 2
     distance = 1.05 * radius / math.sin(math.radians(PREVIEW_FOV_DEG / 2))
     eye = centre + distance * VIEW_DIRECTION / np.linalg.norm(VIEW_DIRECTION)
+    # Stratified samples converge faster; multijitter needs a square count.
+    sampler = "multijitter" if math.isqrt(spp) ** 2 == spp else "independent"
     scene: dict = {
         "type": "scene",
-        "integrator": {"type": "path", "max_depth": 3},
+        "integrator": {"type": "path", "max_depth": 3, "hide_emitters": True},
         "sensor": {
             "type": "perspective", "fov": PREVIEW_FOV_DEG, "fov_axis": "x",
             "to_world": mi.ScalarTransform4f().look_at(origin=eye.tolist(),
                                                        target=centre.tolist(), up=[0, 0, 1]),
             "film": {"type": "hdrfilm", "width": size, "height": size,
                      "pixel_format": "luminance_alpha", "rfilter": {"type": "gaussian"}},
-            "sampler": {"type": "independent", "sample_count": spp},
+            "sampler": {"type": sampler, "sample_count": spp},
         },
-        "sun": {"type": "directional", "direction": SUN_DIRECTION.tolist(), "irradiance": 2.6},
-        "ambient": {"type": "constant", "radiance": 0.12},
+        "sun": {"type": "directional", "direction": SUN_DIRECTION.tolist(),
+                "irradiance": SUN_IRRADIANCE},
+        "fill": {"type": "directional", "direction": FILL_DIRECTION.tolist(),
+                 "irradiance": FILL_IRRADIANCE},
+        "ambient": {"type": "constant", "radiance": AMBIENT_RADIANCE},
     }
     for tag in np.unique(face_material):
         sub = faces[face_material == tag]
@@ -84,9 +99,9 @@ def render_model(vertices: np.ndarray, faces: np.ndarray, face_material: np.ndar
         params.update()
         scene[f"part_{int(tag)}"] = mesh
     rendered = np.asarray(mi.render(mi.load_dict(scene), spp=spp))
-    # The ambient light lights the model but the background shows black (alpha-weighted).
-    image = rendered[..., 0] * rendered[..., 1]
-    return np.clip(image, 0.0, 1.0) ** (1 / 2.2)
+    # Hidden emitters: background pixels carry zero radiance, and edge pixels already hold
+    # the film's coverage-weighted average, so the luminance channel is the final image.
+    return np.clip(rendered[..., 0], 0.0, 1.0) ** (1 / 2.2)
 
 
 def library_models(root: str | Path) -> list[Path]:
@@ -94,12 +109,23 @@ def library_models(root: str | Path) -> list[Path]:
     return sorted(Path(root).glob("*/models/model_normalized.obj"))
 
 
-def contact_sheet(root: str | Path, out: str | Path, tile: int = 160, spp: int = 16,
-                  columns: int | None = None) -> int:
-    """Render every model of a library into one labelled PNG grid; return the model count."""
+def contact_sheet(root: str | Path, out: str | Path, tile: int = 160, spp: int = 64,
+                  columns: int | None = None, limit: int | None = None) -> int:
+    """Render the models of a library into one labelled PNG grid; return the model count.
+
+    Args:
+        root: library root holding ``<model>/models/model_normalized.obj``.
+        out: PNG path (written atomically).
+        tile: tile side in pixels.
+        spp: samples per pixel.
+        columns: tiles per row (default: a square-ish grid).
+        limit: render only the first ``limit`` models by name (default all).
+    """
     from PIL import Image, ImageDraw
 
-    files = library_models(root)
+    if limit is not None and limit < 1:
+        raise ValueError(f"limit: expected >= 1, got {limit}")
+    files = library_models(root)[:limit]
     if not files:
         raise ValueError(f"{root}: no <model>/models/model_normalized.obj found")
     columns = columns or math.ceil(math.sqrt(len(files)))

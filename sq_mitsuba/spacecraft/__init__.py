@@ -2,6 +2,8 @@
 
 from sq_mitsuba.spacecraft.archetypes import ARCHETYPES
 from sq_mitsuba.spacecraft.generator import (
+    DEFAULT_CATALOGUE_COUNT,
+    DEFAULT_CATALOGUE_SEED,
     THIN_FRACTION,
     CatalogueEntry,
     Spacecraft,
@@ -15,6 +17,8 @@ from sq_mitsuba.spacecraft.parts import Part
 
 __all__ = [
     "ARCHETYPES",
+    "DEFAULT_CATALOGUE_COUNT",
+    "DEFAULT_CATALOGUE_SEED",
     "MATERIALS",
     "THIN_FRACTION",
     "CatalogueEntry",

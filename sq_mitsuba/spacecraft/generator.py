@@ -21,6 +21,8 @@ from sq_mitsuba.spacecraft.materials import MATERIALS, material_index
 from sq_mitsuba.spacecraft.parts import Part
 
 THIN_FRACTION = 0.01
+DEFAULT_CATALOGUE_COUNT = 64  # the paper's dataset size (57 train / 7 test)
+DEFAULT_CATALOGUE_SEED = 0  # ``sq-mitsuba models generate`` without --seed
 
 
 @dataclass(frozen=True)

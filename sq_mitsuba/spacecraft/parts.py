@@ -8,6 +8,13 @@ Convention: builders put their part's main axis along +z (buses, tubes, dishes o
 towards +z, nozzles pointing their exhaust towards -z), and wings extend along +x with the
 cell side facing +z. Every solid is closed and outward oriented, so the union of a
 spacecraft's parts is exact (:mod:`sq_mitsuba.spacecraft.generator`).
+
+Attachment convention: a real spacecraft is one connected body, so every appendage builder
+that mounts on a surface at its origin (wings, booms, masts, horns, nozzles, star trackers)
+reaches ``embed`` (or a fixed fraction of its own size) *behind* the origin, into the
+mounting surface. Placed with its origin on a bus face, the part then overlaps the bus by a
+positive volume and the exact union merges the two into one piece (parts that merely touch
+along a face, an edge or a point do not reliably merge).
 """
 
 from __future__ import annotations
@@ -126,20 +133,33 @@ CUBESAT_UNITS: dict[int, tuple[int, int, int]] = {
 CUBESAT_UNIT_M = 0.1
 
 
-def cubesat_bus(units: int, thin: float, cells_on: Sequence[str] = ("+x", "-x", "+y", "-y"),
-                ) -> list[Part]:
-    """A CubeSat of ``units`` U (1, 2, 3, 6, 12) along z, with body-mounted cells and rails."""
+CUBESAT_RAIL_M = 0.0085  # side of the four corner rails of the CubeSat standard
+
+
+def cubesat_body_size(units: int) -> np.ndarray:
+    """Side lengths (3,) of a CubeSat's body between its rails (rails reach ``size / 2``)."""
     if units not in CUBESAT_UNITS:
         raise ValueError(f"units: expected one of {sorted(CUBESAT_UNITS)}, got {units}")
     size = np.array(CUBESAT_UNITS[units], float) * CUBESAT_UNIT_M
-    rail = 0.0085
-    parts = [Part("cubesat_body", "aluminium", box(size - 2 * rail * np.array([1, 1, 0])))]
+    return size - 1.6 * CUBESAT_RAIL_M * np.array([1.0, 1.0, 0.0])
+
+
+def cubesat_bus(units: int, thin: float, cells_on: Sequence[str] = ("+x", "-x", "+y", "-y"),
+                ) -> list[Part]:
+    """A CubeSat of ``units`` U (1, 2, 3, 6, 12) along z, with body-mounted cells and rails.
+
+    The rails stand 0.2 of their width into the body, so body and rails are one piece.
+    """
+    body = cubesat_body_size(units)
+    size = np.array(CUBESAT_UNITS[units], float) * CUBESAT_UNIT_M
+    rail = CUBESAT_RAIL_M
+    parts = [Part("cubesat_body", "aluminium", box(body))]
     for sx in (-1, 1):  # the four corner rails of the CubeSat standard
         for sy in (-1, 1):
             center = (sx * (size[0] / 2 - rail / 2), sy * (size[1] / 2 - rail / 2), 0.0)
             parts.append(Part("cubesat_rail", "aluminium",
                               box((rail, rail, size[2] + 0.014), center)))
-    parts += body_cells(size - 2 * rail * np.array([1, 1, 0]), thin, cells_on, margin=0.005)
+    parts += body_cells(body, thin, cells_on, margin=0.005)
     return parts
 
 
@@ -163,14 +183,16 @@ def body_cells(bus_size: Sequence[float], thin: float, faces: Sequence[str],
 
 def solar_wing(span: float, chord: float, panels: int, thin: float, yoke: float = 0.3,
                gap: float = 0.02, cant_deg: float = 0.0, yoke_radius: float = 0.03,
-               ) -> list[Part]:
+               embed: float | None = None) -> list[Part]:
     """One deployed wing along +x from the origin: a yoke, then ``panels`` segments.
 
     ``span`` is the length of the cells, ``chord`` their width (along y); ``cant_deg`` turns
     the panels about the wing axis (x). Consecutive panels are joined by short hinges so
-    the wing is one connected solid.
+    the wing is one connected solid. The yoke starts ``embed`` (default 3 yoke radii) behind
+    the origin, inside the surface the wing is mounted on.
     """
-    parts = [Part("yoke", "aluminium", rod((0, 0, 0), (yoke + 0.01, 0, 0), yoke_radius)),
+    embed = 3 * yoke_radius if embed is None else embed
+    parts = [Part("yoke", "aluminium", rod((-embed, 0, 0), (yoke + 0.01, 0, 0), yoke_radius)),
              Part("yoke", "aluminium",
                   box((2 * yoke_radius, chord * 0.6, 2 * yoke_radius), (yoke, 0, 0)))]
     length = (span - gap * (panels - 1)) / panels
@@ -187,9 +209,11 @@ def solar_wing(span: float, chord: float, panels: int, thin: float, yoke: float 
 
 
 def wing_pair(span: float, chord: float, panels: int, thin: float, offset: float,
-              yoke: float = 0.3, cant_deg: float = 0.0) -> list[Part]:
+              yoke: float = 0.3, cant_deg: float = 0.0, yoke_radius: float = 0.03,
+              ) -> list[Part]:
     """Two symmetric wings along +x and -x, their roots at x = +-``offset``."""
-    wing = solar_wing(span, chord, panels, thin, yoke=yoke, cant_deg=cant_deg)
+    wing = solar_wing(span, chord, panels, thin, yoke=yoke, cant_deg=cant_deg,
+                      yoke_radius=yoke_radius)
     return (place(wing, None, (offset, 0, 0))
             + place(wing, rotation_about((0, 0, 1), 180), (-offset, 0, 0)))
 
@@ -221,28 +245,37 @@ def parabolic_dish(diameter: float, depth: float, thin: float, feed: bool = True
 
 
 def horn_antenna(length: float, aperture: float, pyramidal: bool = True) -> list[Part]:
-    """A horn antenna along +z from the origin (throat) to its aperture."""
+    """A horn antenna along +z from the origin (throat) to its aperture.
+
+    A waveguide stub of a fifth of the length reaches behind the origin (the mounting).
+    """
     throat = aperture * 0.25
+    stub = 0.2 * length
     if pyramidal:
         solid = Solid.batch_hull([box((throat, throat, 1e-3), (0, 0, 0)),
                                   box((aperture, aperture * 0.75, 1e-3), (0, 0, length))])
+        waveguide = box((throat, throat, stub + 0.01 * length), (0, 0, -stub / 2))
     else:
         solid = transform_solid(prism(16, throat / 2, length, aperture / 2), None,
                                 (0, 0, length / 2))
-    return [Part("horn_antenna", "aluminium", solid)]
+        waveguide = transform_solid(prism(16, throat / 2, stub + 0.01 * length), None,
+                                    (0, 0, -stub / 2))
+    return [Part("horn_antenna", "aluminium", solid + waveguide)]
 
 
 # ------------------------------------------------------------------------- booms and masts
 
-def boom(length: float, radius: float, material: str = "aluminium") -> list[Part]:
-    """A boom along +x from the origin."""
-    return [Part("boom", material, rod((0, 0, 0), (length, 0, 0), radius))]
+def boom(length: float, radius: float, material: str = "aluminium", embed: float = 0.1,
+         ) -> list[Part]:
+    """A boom along +x from the origin, its root ``embed`` behind the origin."""
+    return [Part("boom", material, rod((-embed, 0, 0), (length, 0, 0), radius))]
 
 
-def magnetometer_mast(length: float, radius: float) -> list[Part]:
-    """A mast along +x with a sensor at the tip and one half way."""
+def magnetometer_mast(length: float, radius: float, embed: float = 0.1) -> list[Part]:
+    """A mast along +x with a sensor at the tip and one half way; root ``embed`` behind."""
     s = radius * 4
-    return [Part("magnetometer_mast", "dark_composite", rod((0, 0, 0), (length, 0, 0), radius)),
+    return [Part("magnetometer_mast", "dark_composite",
+                 rod((-embed, 0, 0), (length, 0, 0), radius)),
             Part("magnetometer", "white_paint", box((s * 1.5, s, s), (length, 0, 0))),
             Part("magnetometer", "white_paint", box((s, s, s), (length * 0.55, 0, 0)))]
 
@@ -290,24 +323,28 @@ def telescope_tube(radius: float, length: float, thin: float, door: bool = True,
         plate = transform_solid(prism(CIRCLE_SEGMENTS, radius * 1.02, thin), None,
                                 (radius * 1.02, 0, 0))
         opened = transform_solid(plate, rotation_about((0, 1, 0), -100),
-                                 (radius * 1.0, 0, length))
+                                 (radius * 1.0, 0, length * 0.99))  # hinge inside the ring
         parts.append(Part("aperture_door", "silver_mli", opened))
     return parts
 
 
 def star_tracker(size: float) -> list[Part]:
-    """A star tracker: electronics box and a conical baffle along +z."""
-    return [Part("star_tracker", "aluminium", box((size, size, size * 0.7))),
+    """A star tracker mounted at the origin, looking along +z: an electronics box (its base
+    a fifth of ``size`` behind the origin, in the mounting surface) and a conical baffle."""
+    return [Part("star_tracker", "aluminium", box((size, size, size * 0.7), (0, 0, size * 0.15))),
             Part("star_tracker_baffle", "dark_composite",
                  transform_solid(prism(16, size * 0.3, size * 1.2, size * 0.45), None,
-                                 (0, 0, size * 0.95)))]
+                                 (0, 0, size * 1.0)))]
 
 
 def thruster_nozzle(length: float, exit_radius: float) -> list[Part]:
-    """A thruster nozzle: throat at the origin, bell opening towards -z."""
-    return [Part("thruster_nozzle", "aluminium",
-                 transform_solid(prism(16, exit_radius, length, exit_radius * 0.35), None,
-                                 (0, 0, -length / 2)))]
+    """A thruster nozzle: throat at the origin, bell opening towards -z, and a combustion
+    chamber reaching ``0.4 * length`` behind the origin (into the mounting surface)."""
+    throat = exit_radius * 0.35
+    bell = transform_solid(prism(16, exit_radius, length, throat), None, (0, 0, -length / 2))
+    chamber = transform_solid(prism(16, throat * 1.3, 0.45 * length), None,
+                              (0, 0, 0.175 * length))
+    return [Part("thruster_nozzle", "aluminium", bell + chamber)]
 
 
 # ------------------------------------------------------------------------------- shielding
