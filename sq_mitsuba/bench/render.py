@@ -114,7 +114,8 @@ def run(options: BenchOptions) -> Report:
                 f"({few} items)")
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     report.notes.append(f"1-minute load average at the end: {load:.2f} on {os.cpu_count()} cores "
-                        "(other processes inflate these timings)")
+                        "(the benchmark's own threads count; above ~2, other processes "
+                        "inflate these timings)")
     report.notes.append(
         "render + backward: one vertex update (BVH rebuild, ~12-16 ms for 6,400 faces) forward "
         "and one backward per item (the last item of a batch reuses its scene); render_loss "
