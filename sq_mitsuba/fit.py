@@ -108,7 +108,7 @@ def fit_assembly(
     lr: float = 0.05,
     loss: str = "mse",
     spp: int = 16,
-    sppp: int = 4,
+    sppp: int | None = None,
     seed: int = 0,
     init_raw: Tensor | None = None,
     level: int = 3,
@@ -127,7 +127,8 @@ def fit_assembly(
         resolution: width in pixels of the silhouettes fitted (height keeps the aspect).
         lr: Adam learning rate on the raw parameters.
         loss: ``"mse"`` or ``"iou"`` (see :func:`silhouette_loss`), summed over views.
-        spp, sppp: renderer sample counts (forward, backward silhouette).
+        spp, sppp: renderer sample counts (forward, backward silhouette; sppp default: see
+            :func:`sq_mitsuba.render.silhouette.default_sppp`).
         seed: seeds the start spread (M > 1) and the renderer's samples.
         init_raw: (1, M, 16) raw start instead of :func:`default_raw`.
         level: icosphere level of the primitive meshes (3: 642 vertices each).

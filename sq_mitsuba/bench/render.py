@@ -66,7 +66,7 @@ def _relative_noise(renderer, reference, vertices, faces, target, repeats: int) 
 def run(options: BenchOptions) -> Report:
     from sq_mitsuba.camera import Camera
     from sq_mitsuba.render.backend import count_kernels
-    from sq_mitsuba.render.silhouette import DEFAULT_SPP, DEFAULT_SPPP, SilhouetteRenderer
+    from sq_mitsuba.render.silhouette import DEFAULT_SPP, SilhouetteRenderer
 
     torch.set_num_threads(options.threads)
     generator = torch.Generator().manual_seed(0)
@@ -87,7 +87,7 @@ def run(options: BenchOptions) -> Report:
         report.timings.append(Timing(
             f"forward + backward (render, then backward), {resolution} x {resolution}, "
             "per image", [s / BATCH for s in samples], TARGETS_S[resolution],
-            note=f"batch {BATCH}, M = {PRIMITIVES}, spp {DEFAULT_SPP}, sppp {DEFAULT_SPPP}"))
+            note=f"batch {BATCH}, M = {PRIMITIVES}, spp {DEFAULT_SPP}, sppp {renderer.sppp}"))
         fused = time_callable(lambda r=renderer, t=target: _fused_step(r, vertices, faces, t),
                               repeats=repeats, warmup=1)
         report.timings.append(Timing(
@@ -104,14 +104,14 @@ def run(options: BenchOptions) -> Report:
             f"{resolution} x {resolution}: first batch {first_s:.2f} s; after it, "
             f"{counter.compiled} kernel compilations and {counter.loaded} disk-cache loads "
             f"in {counter.launched} kernel launches (target 0 compilations)")
-        if resolution == 64:
-            few = 8
-            reference = SilhouetteRenderer(camera, spp=DEFAULT_SPP, sppp=64, seed=1)
-            noise = _relative_noise(renderer, reference, vertices[:few], faces, target[:few], 4)
-            report.notes.append(
-                f"gradient noise at 64 x 64, defaults (sppp {DEFAULT_SPPP}) against a reference "
-                f"of sppp 256 (4 x 64): mean relative L2 error {100 * noise:.1f} % "
-                f"({few} items)")
+        few = 8
+        reference = SilhouetteRenderer(camera, spp=DEFAULT_SPP, sppp=64, seed=1)
+        noise = _relative_noise(renderer, reference, vertices[:few], faces, target[:few], 4)
+        report.notes.append(
+            f"gradient noise at {resolution} x {resolution}, defaults (sppp {renderer.sppp}, "
+            f"{renderer.sppp * resolution**2} silhouette samples per image) against a "
+            f"reference of sppp 256 (4 x 64): mean relative L2 error {100 * noise:.1f} % "
+            f"({few} items)")
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     report.notes.append(f"1-minute load average at the end: {load:.2f} on {os.cpu_count()} cores "
                         "(the benchmark's own threads count; above ~2, other processes "
