@@ -19,9 +19,8 @@ uninterrupted one.
 from __future__ import annotations
 
 import csv
-import json
 import shutil
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -218,15 +217,14 @@ def render_model(models_dir: Path, out_dir: Path, model: str, camera: Camera,
     """Render (or finish) one model's images, masks and labels; return (rendered, skipped)."""
     from sq_mitsuba.render.space import SpaceScene
 
-    vertices, faces, tags = load_model(models_dir / model)
     model_out = out_dir / model
     progress = model_out / PROGRESS
     labels_path = model_out / "labels.json"
-    if labels_path.is_file() and not progress.exists():
-        existing = json.loads(labels_path.read_text(encoding="utf-8"))
-        if len(existing) == options.images_per_model:
-            tick(options.images_per_model)
-            return 0, options.images_per_model
+    if labels_path.is_file() and not progress.exists() and \
+            len(read_json(labels_path)) == options.images_per_model:
+        tick(options.images_per_model)
+        return 0, options.images_per_model
+    vertices, faces, tags = load_model(models_dir / model)
     _copy_model_files(models_dir / model / MODELS, model_out / MODELS)
     progress.mkdir(parents=True, exist_ok=True)
     scene = None
@@ -253,8 +251,7 @@ def render_model(models_dir: Path, out_dir: Path, model: str, camera: Camera,
         atomic_write_json(label_path, label_entry(f"{name}.png", frame, result.exposure))
         rendered += 1
         tick(1)
-    labels = [json.loads((progress / f"{i:06d}.json").read_text(encoding="utf-8"))
-              for i in range(options.images_per_model)]
+    labels = [read_json(progress / f"{i:06d}.json") for i in range(options.images_per_model)]
     atomic_write_json(labels_path, labels)
     shutil.rmtree(progress)
     return rendered, skipped
@@ -288,10 +285,11 @@ def render_dataset(models_dir: str | Path, out_dir: str | Path, options: RenderO
     check_writable(out_dir)
     camera = options.dataset_camera()
     atomic_write_json(out_dir / "camera.json", camera.to_speed_dict())
+    from sq_mitsuba.data.library import write_splits
+
     splits_path = models_dir / "splits.csv"
-    splits = read_splits(splits_path) if splits_path.is_file() else {m: "train" for m in models}
-    atomic_write_text(out_dir / "splits.csv",
-                      "".join(f"{m},{splits.get(m, 'train')}\n" for m in models))
+    splits = read_splits(splits_path) if splits_path.is_file() else {}
+    write_splits(out_dir, ((m, splits.get(m, "train")) for m in models))
     summary = RenderSummary()
     total = len(models) * options.images_per_model
     with tqdm(total=total, unit="img", disable=not progress, dynamic_ncols=True) as bar:
@@ -351,13 +349,12 @@ def preview_dataset(root: str | Path, out: str | Path, count: int = 16,
     if count < 1:
         raise ValueError(f"count: expected >= 1, got {count}")
     camera = Camera.load(root / "camera.json")
-    models = sorted(read_splits(root / "splits.csv"))
     chosen: list[tuple[str, dict[str, Any]]] = []
     labels = {}
-    for model in models:
+    for model in dataset_models(root):
         path = root / model / "labels.json"
         if path.is_file():
-            labels[model] = json.loads(path.read_text(encoding="utf-8"))
+            labels[model] = read_json(path)
     if not labels:
         raise DatasetError(f"{root}: no labelled models to preview")
     depth = 0
@@ -586,16 +583,16 @@ def check_dataset(root: str | Path, per_model: int | None = 20, min_iou: float =
     report = CheckReport()
     try:
         camera = Camera.load(root / "camera.json")
-        splits = read_splits(root / "splits.csv")
+        models = dataset_models(root)
     except (OSError, ValueError) as error:
         report.problems.append(str(error))
         return report
     renderer = SilhouetteRenderer(camera, spp=spp)
-    for model in tqdm(sorted(splits), disable=not progress, desc="check"):
+    for model in tqdm(models, disable=not progress, desc="check"):
         report.models += 1
         labels_path = root / model / "labels.json"
         try:
-            labels = json.loads(labels_path.read_text(encoding="utf-8"))
+            labels = read_json(labels_path)
             vertices, faces, _ = load_model(root / model)
         except (OSError, ValueError) as error:
             report.problems.append(f"{model}: {error}")
@@ -630,5 +627,6 @@ def check_dataset(root: str | Path, per_model: int | None = 20, min_iou: float =
     return report
 
 
-def dataset_models(root: Path) -> Sequence[str]:
+def dataset_models(root: Path) -> list[str]:
+    """The models named in ``root/splits.csv``, sorted."""
     return sorted(read_splits(root / "splits.csv"))
