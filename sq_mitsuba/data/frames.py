@@ -195,14 +195,20 @@ def _unit(v: np.ndarray) -> np.ndarray:
     return v / np.linalg.norm(v)
 
 
+def orthonormal_basis(direction: np.ndarray) -> np.ndarray:
+    """Rotation (3, 3) with columns (e1, e2, d): d = unit ``direction``, right-handed."""
+    axis = _unit(np.asarray(direction, dtype=np.float64))
+    helper = np.array([1.0, 0, 0]) if abs(axis[0]) < 0.9 else np.array([0, 1.0, 0])
+    e1 = _unit(np.cross(axis, helper))
+    return np.stack([e1, np.cross(axis, e1), axis], axis=1)
+
+
 def _direction_at_angle(rng: np.random.Generator, axis: np.ndarray, cos_low: float,
                         cos_high: float) -> np.ndarray:
     """Unit vector uniform on the zone cos(angle to ``axis``) in [cos_low, cos_high]."""
     cos_theta = rng.uniform(cos_low, cos_high)
     sin_theta = math.sqrt(max(0.0, 1 - cos_theta**2))
-    helper = np.array([1.0, 0, 0]) if abs(axis[0]) < 0.9 else np.array([0, 1.0, 0])
-    e1 = _unit(np.cross(axis, helper))
-    e2 = np.cross(axis, e1)
+    e1, e2, _ = orthonormal_basis(axis).T
     phi = rng.uniform(0, 2 * math.pi)
     return cos_theta * axis + sin_theta * (math.cos(phi) * e1 + math.sin(phi) * e2)
 

@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from sq_mitsuba.camera import Camera
-from sq_mitsuba.data.frames import SCENES_DIR, Frame, SceneConfig
+from sq_mitsuba.data.frames import SCENES_DIR, Frame, SceneConfig, orthonormal_basis
 from sq_mitsuba.render.backend import mitsuba
 from sq_mitsuba.render.silhouette import sensor_dict
 
@@ -138,15 +138,6 @@ def star_envmap(seed: int, count: int, radiance: tuple[float, float], width: int
     row = np.clip(((0.5 - lat / math.pi) * height).astype(int), 0, height - 1)
     env[row, lon] = np.exp(rng.uniform(np.log(radiance[0]), np.log(radiance[1]), count))
     return env
-
-
-def _frame_to(direction: np.ndarray) -> np.ndarray:
-    """Rotation (3, 3) whose third column is ``direction`` (unit)."""
-    z = direction / np.linalg.norm(direction)
-    helper = np.array([1.0, 0, 0]) if abs(z[0]) < 0.9 else np.array([0, 1.0, 0])
-    x = np.cross(helper, z)
-    x /= np.linalg.norm(x)
-    return np.stack([x, np.cross(z, x), z], axis=1)
 
 
 def _transform(mi: Any, linear: np.ndarray, offset: np.ndarray | None = None) -> Any:
@@ -276,17 +267,18 @@ class SpaceScene:
         params.update()
         return mesh
 
-    def _set_pose(self, params: Any, rotation: np.ndarray, translation: np.ndarray) -> None:
-        posed = (self.vertices @ rotation.T + translation).astype(np.float32)
+    def _set_pose(self, params: Any, posed: np.ndarray) -> None:
+        """Load the posed vertices (V, 3) float32 into the parts of one scene."""
         for tag, used, _ in self.parts:
             params[f"part_{tag}.vertex_positions"] = self.mi.Float(posed[used].ravel())
 
     def render(self, frame: Frame, radiance: bool = True) -> RenderedFrame:
         """Path-trace ``frame`` (and its mask). ``radiance=False`` renders the mask only."""
         mi = self.mi
-        rotation, translation = frame.rotation, np.asarray(frame.translation)
+        posed = (self.vertices @ frame.rotation.T + np.asarray(frame.translation)).astype(
+            np.float32)
         seed = frame.seed % (1 << 31)
-        self._set_pose(self.mask_params, rotation, translation)
+        self._set_pose(self.mask_params, posed)
         self.mask_params.update()
         channels = np.array(mi.render(self.mask_scene, seed=seed), dtype=np.float64)
         coverage = np.clip(1.0 - channels[..., 0], 0.0, 1.0)
@@ -298,10 +290,10 @@ class SpaceScene:
         if not radiance:
             return RenderedFrame(np.zeros_like(coverage), coverage, depth, self.exposure)
 
-        self._set_pose(self.params, rotation, translation)
+        self._set_pose(self.params, posed)
         sun = np.asarray(frame.sun_direction)
         # The directional emitter shines along its local +z: from the sun towards the target.
-        self.params["sun.to_world"] = _transform(mi, _frame_to(-sun))
+        self.params["sun.to_world"] = _transform(mi, orthonormal_basis(-sun))
         # Eclipses are applied analytically: the directional emitter sizes its shadow rays
         # from the scene's bounds at load time, so the moving Earth cannot be relied on to
         # block it. A point sun is either wholly hidden or not (no penumbra).
