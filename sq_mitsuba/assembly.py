@@ -210,12 +210,19 @@ class Assembly:
 
     # ---------------------------------------------------------------- occupancy
 
-    def to_primitive_frames(self, points: Tensor) -> Tensor:
-        """Query points (B, N, 3), assembly frame -> (B, M, N, 3) in untapered primitive frames."""
+    def _check_query_points(self, points: Tensor) -> None:
+        """Query points must be (B, N, 3) of the assembly's batch size and dtype."""
         check_tensor("points", points, (None, 3), min_dims=3)
         if points.shape[0] != self.batch_size or points.dim() != 3:
             raise ValueError(f"points: expected shape ({self.batch_size}, N, 3), "
                              f"got {tuple(points.shape)}")
+        if points.dtype != self.params.dtype:
+            raise ValueError(f"points: dtype {points.dtype} differs from the assembly's "
+                             f"{self.params.dtype}")
+
+    def to_primitive_frames(self, points: Tensor) -> Tensor:
+        """Query points (B, N, 3), assembly frame -> (B, M, N, 3) in untapered primitive frames."""
+        self._check_query_points(points)
         # Row-vector form of R^T (x - t).
         local = (points[:, None] - self.translation[:, :, None]) @ self.rotation
         return untaper(local, self.taper, self.size)
@@ -227,13 +234,7 @@ class Assembly:
         rotation, scaling and the taper's inverse run as one batched matrix product and a few
         elementwise passes, and the backward reuses the forward's powers.
         """
-        check_tensor("points", points, (None, 3), min_dims=3)
-        if points.shape[0] != self.batch_size or points.dim() != 3:
-            raise ValueError(f"points: expected shape ({self.batch_size}, N, 3), "
-                             f"got {tuple(points.shape)}")
-        if points.dtype != self.params.dtype:
-            raise ValueError(f"points: dtype {points.dtype} differs from the assembly's "
-                             f"{self.params.dtype}")
+        self._check_query_points(points)
         g, alpha = dual_scales(self.shape)
         g1 = g[..., 0]
         g12 = g1 * g[..., 1]

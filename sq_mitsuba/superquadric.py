@@ -48,13 +48,11 @@ def fexp(x: Tensor, p: Tensor | float) -> Tensor:
     return torch.sign(x) * torch.abs(x) ** p
 
 
-def _check_params(size: Tensor, shape: Tensor, taper_: Tensor | None = None) -> None:
+def _check_params(size: Tensor, shape: Tensor) -> None:
     check_tensor("size", size, (3,))
     check_tensor("shape", shape, (2,))
     if bool((size <= 0).any()):
         raise ValueError("size: semi-axes must be positive")
-    if taper_ is not None:
-        check_tensor("taper", taper_, (2,))
 
 
 def _check_dual_shape(shape: Tensor) -> None:
