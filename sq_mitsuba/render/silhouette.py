@@ -171,17 +171,22 @@ class SilhouetteRenderer:
             (B, H, W) tensor of ``vertices``' dtype and device; pixel (i, j) is the fraction of
             its area covered by the mesh. Geometry behind the camera is invisible.
         """
+        faces_np = self._prepare(vertices, faces)
+        if torch.is_grad_enabled() and vertices.requires_grad:
+            return _RenderSilhouettes.apply(vertices, self, faces_np)
+        return self._forward(vertices.detach(), self._next_call(), requires_grad=False)
+
+    # ------------------------------------------------------------------ scene
+
+    def _prepare(self, vertices: Tensor, faces: Tensor) -> np.ndarray:
+        """Check the inputs of a render, make the scene fit their topology; faces as numpy."""
         check_tensor("vertices", vertices, (None, 3), min_dims=3)
         if vertices.dim() != 3 or vertices.shape[0] < 1 or vertices.shape[1] < 3:
             raise ValueError(f"vertices: expected shape (B, V, 3) with B >= 1 and V >= 3, got "
                              f"{tuple(vertices.shape)}")
         faces_np = _check_faces(faces, vertices.shape[1])
         self._ensure_scene(vertices.shape[1], faces_np)
-        if torch.is_grad_enabled() and vertices.requires_grad:
-            return _RenderSilhouettes.apply(vertices, self, faces_np)
-        return self._forward(vertices.detach(), self._next_call(), requires_grad=False)
-
-    # ------------------------------------------------------------------ scene
+        return faces_np
 
     def _ensure_scene(self, num_vertices: int, faces: np.ndarray) -> None:
         topology = _Topology(num_vertices, faces.shape[0],
@@ -315,14 +320,9 @@ class SilhouetteRenderer:
             (loss, coverage): the summed loss (scalar, vertices' dtype) and the coverage
             images (B, H, W), detached.
         """
-        check_tensor("vertices", vertices, (None, 3), min_dims=3)
-        if vertices.dim() != 3 or vertices.shape[0] < 1 or vertices.shape[1] < 3:
-            raise ValueError(f"vertices: expected shape (B, V, 3) with B >= 1 and V >= 3, got "
-                             f"{tuple(vertices.shape)}")
         if not callable(loss_fn):
             raise ValueError("loss_fn: expected a callable (coverage (H, W), item) -> scalar")
-        faces_np = _check_faces(faces, vertices.shape[1])
-        self._ensure_scene(vertices.shape[1], faces_np)
+        self._prepare(vertices, faces)
         return _RenderedLoss.apply(vertices, self, loss_fn)
 
 
