@@ -39,6 +39,7 @@ from sq_mitsuba.spacecraft import catalogue
 
 RESOLUTION, SPP, IMAGES = 128, 4, 3
 OPTIONS = {"images_per_model": IMAGES, "seed": 7, "resolution": RESOLUTION, "spp": SPP}
+OUTPUTS = ("*/labels.json", "*/masks/*.png", "*/images/*.png")
 
 
 @pytest.fixture(scope="session")
@@ -154,8 +155,7 @@ def test_frame_rotations_are_uniform_and_targets_in_view():
 def test_same_seed_gives_identical_labels_and_masks(dataset, model_library, tmp_path):
     again = tmp_path / "again"
     render_dataset(model_library, again, RenderOptions(**OPTIONS), progress=False)
-    patterns = ("*/labels.json", "*/masks/*.png", "*/images/*.png")
-    assert read_bytes_tree(again, patterns) == read_bytes_tree(dataset, patterns)
+    assert read_bytes_tree(again, OUTPUTS) == read_bytes_tree(dataset, OUTPUTS)
 
 
 @pytest.mark.slow
@@ -176,8 +176,7 @@ def test_kill_and_resume_gives_identical_output(dataset, model_library, tmp_path
     process.wait()
     assert not (out / spe3r.dataset_models(model_library)[-1] / "labels.json").exists()
     subprocess.run(command, check=True, capture_output=True)
-    patterns = ("*/labels.json", "*/masks/*.png", "*/images/*.png")
-    assert read_bytes_tree(out, patterns) == read_bytes_tree(dataset, patterns)
+    assert read_bytes_tree(out, OUTPUTS) == read_bytes_tree(dataset, OUTPUTS)
     assert not list(out.rglob("*.tmp*"))
 
 
@@ -400,8 +399,7 @@ def test_parallel_workers_write_the_same_dataset(dataset, model_library, tmp_pat
     summary = render_dataset(model_library, out, RenderOptions(**OPTIONS), progress=False,
                              workers=2)
     assert not summary.failures and summary.rendered == 2 * IMAGES
-    patterns = ("*/labels.json", "*/masks/*.png", "*/images/*.png")
-    assert read_bytes_tree(out, patterns) == read_bytes_tree(dataset, patterns)
+    assert read_bytes_tree(out, OUTPUTS) == read_bytes_tree(dataset, OUTPUTS)
     with pytest.raises(ValueError, match="workers"):
         render_dataset(model_library, out, RenderOptions(**OPTIONS), workers=0)
 
@@ -425,3 +423,25 @@ def test_render_with_a_speed_camera_json(model_library, tmp_path):
     assert mask.shape == (60, 96) and mask.any()
     # At this size a 1 px misalignment would drop the IoU far below 0.95; the rest is noise.
     assert check_dataset(out, per_model=None, min_iou=0.95, progress=False).ok
+
+
+def test_scene_configuration_overrides_and_errors(tmp_path, capsys):
+    path = tmp_path / "scene.json"
+    path.write_text(json.dumps({"_note": "comments are skipped", "sun": {"irradiance": 1000},
+                                "earth": {"altitude_km": [500, 600]}}))
+    config = SceneConfig.load(path)
+    assert config.sun.irradiance == 1000.0 and config.earth.altitude_km == (500.0, 600.0)
+    assert config.stars == SceneConfig().stars  # untouched sections keep their defaults
+    for bad, message in [({"sun": {"power": 1}}, r"sun: unknown key 'power'"),
+                         ({"earth": {"altitude_km": [1]}}, r"earth\.altitude_km"),
+                         ({"integrator": {"max_depth": "deep"}}, r"integrator\.max_depth"),
+                         ({"pose": 3}, r"pose: expected an object")]:
+        path.write_text(json.dumps(bad))
+        with pytest.raises(ValueError, match=message):
+            SceneConfig.load(path)
+    path.write_text("{broken")
+    with pytest.raises(ValueError, match=r"scene\.json: not valid JSON"):
+        SceneConfig.load(path)
+    assert main(["dataset", "render", "--models", str(tmp_path), "--out", str(tmp_path / "o"),
+                 "--scene", str(path)]) == 2
+    assert "not valid JSON" in capsys.readouterr().err

@@ -121,14 +121,15 @@ class SceneConfig:
 def _from_dict(kind: type, data: Any, where: str) -> Any:
     if not isinstance(data, dict):
         raise ValueError(f"{where}: expected an object")
-    fields = {f.name: f for f in dataclasses.fields(kind)}
+    names = sorted(f.name for f in dataclasses.fields(kind))
+    defaults = kind()
     values = {}
     for key, value in data.items():
         if key.startswith("_"):
             continue
-        if key not in fields:
-            raise ValueError(f"{where}: unknown key {key!r} (expected one of {sorted(fields)})")
-        default = getattr(kind(), key)
+        if key not in names:
+            raise ValueError(f"{where}: unknown key {key!r} (expected one of {names})")
+        default = getattr(defaults, key)
         if dataclasses.is_dataclass(default):
             values[key] = _from_dict(type(default), value, f"{where}.{key}")
         elif isinstance(default, tuple):
