@@ -16,11 +16,8 @@ RESOLUTION, SPP = 256, 64
 
 
 def run(options: BenchOptions) -> Report:
-    from sq_mitsuba.camera import Camera
-    from sq_mitsuba.data.frames import SceneConfig, sample_frame
     from sq_mitsuba.data.library import generate_model
-    from sq_mitsuba.data.spe3r import label_entry, load_model, write_png
-    from sq_mitsuba.io import atomic_write_json
+    from sq_mitsuba.data.spe3r import RenderOptions, load_model, render_image
     from sq_mitsuba.render.backend import mitsuba
     from sq_mitsuba.render.space import SpaceScene
     from sq_mitsuba.spacecraft import catalogue
@@ -32,19 +29,15 @@ def run(options: BenchOptions) -> Report:
         entry = catalogue(1, 0)[0]
         generate_model(entry, root / "models", points=2000)
         vertices, faces, tags = load_model(root / "models" / entry.name)
-        camera, config = Camera.default(RESOLUTION), SceneConfig.load()
-        scene = SpaceScene(vertices, faces, tags, camera, config, spp=SPP)
+        render_options = RenderOptions(resolution=RESOLUTION, spp=SPP)
+        scene = SpaceScene(vertices, faces, tags, render_options.dataset_camera(),
+                           render_options.scene, spp=SPP)
         counter = iter(range(10**6))
-        out = root / "out"
+        out = root / "out" / entry.name
 
         def one_image() -> None:
-            index = next(counter)
-            frame = sample_frame(vertices, camera, config, 0, entry.name, index)
-            result = scene.render(frame)
-            write_png(out / "images" / f"{index:06d}.png", result.image_8bit())
-            write_png(out / "masks" / f"{index:06d}.png", result.mask)
-            atomic_write_json(out / "labels" / f"{index:06d}.json",
-                              label_entry(f"{index:06d}.png", frame, result.exposure))
+            # The per-image step of `dataset render`: frame, render, PNGs, label.
+            render_image(scene, vertices, render_options, entry.name, next(counter), out)
 
         samples = time_callable(one_image, options.repeats, options.warmup)
     timing = Timing(f"image + mask + label, {RESOLUTION} px, {SPP} spp", samples,

@@ -211,6 +211,23 @@ def _copy_model_files(source: Path, target: Path) -> None:
                 shutil.copyfile(item, tmp)
 
 
+def render_image(scene: Any, vertices: np.ndarray, options: RenderOptions, model: str,
+                 index: int, model_out: Path) -> None:
+    """Render image ``index`` of ``model`` with ``scene`` (a :class:`SpaceScene`) and write its
+    image, mask (and EXR), then its progress label, all atomically."""
+    name = f"{index:06d}"
+    frame = sample_frame(vertices, scene.camera, options.scene, options.seed, model, index)
+    result = scene.render(frame)
+    write_png(model_out / IMAGES / f"{name}.png", result.image_8bit())
+    write_png(model_out / MASKS / f"{name}.png", result.mask)
+    if options.exr:
+        write_exr(model_out / "exr" / f"{name}.exr",
+                  {"Y": result.radiance, "Z": result.depth, "A": result.coverage})
+    # The label is the commit marker: written last, it says the image is complete.
+    atomic_write_json(model_out / PROGRESS / f"{name}.json",
+                      label_entry(f"{name}.png", frame, result.exposure))
+
+
 def render_model(models_dir: Path, out_dir: Path, model: str, camera: Camera,
                  options: RenderOptions, tick: Callable[[int], None] = lambda n: None,
                  ) -> tuple[int, int]:
@@ -240,15 +257,7 @@ def render_model(models_dir: Path, out_dir: Path, model: str, camera: Camera,
         if scene is None:
             scene = SpaceScene(vertices, faces, tags, camera, options.scene, spp=options.spp,
                                dataset_seed=options.seed, with_depth=options.exr)
-        frame = sample_frame(vertices, camera, options.scene, options.seed, model, index)
-        result = scene.render(frame)
-        write_png(model_out / IMAGES / f"{name}.png", result.image_8bit())
-        write_png(model_out / MASKS / f"{name}.png", result.mask)
-        if options.exr:
-            write_exr(model_out / "exr" / f"{name}.exr",
-                      {"Y": result.radiance, "Z": result.depth, "A": result.coverage})
-        # The label is the commit marker: written last, it says the image is complete.
-        atomic_write_json(label_path, label_entry(f"{name}.png", frame, result.exposure))
+        render_image(scene, vertices, options, model, index, model_out)
         rendered += 1
         tick(1)
     labels = [read_json(progress / f"{i:06d}.json") for i in range(options.images_per_model)]
