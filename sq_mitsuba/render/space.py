@@ -1,11 +1,12 @@
 """Physically based space scene: a spacecraft lit by the sun, the Earth and stars behind it.
 
 One :class:`SpaceScene` per model: the target is one Mitsuba mesh per material tag (from the
-per-face tags of the processed model), with the BSDFs of ``scenes/materials.json`` (thin parts
-two-sided). The sun is a ``directional`` emitter with the solar irradiance; the Earth a sphere
-with a procedural albedo texture, drawn at ``render_distance`` and scaled to keep its true
-angular size; the stars an environment map. The camera is the dataset camera at the origin
-(OpenCV frame, :func:`sq_mitsuba.render.silhouette.sensor_dict`); poses move the vertices.
+per-face tags of the processed model), with the BSDFs of ``scenes/materials.json``, all
+two-sided (any tag can belong to a thin part). The sun is a ``directional`` emitter with the
+solar irradiance; the Earth a sphere with a procedural albedo texture, drawn at
+``render_distance`` and scaled to keep its true angular size; the stars an environment map.
+The camera is the dataset camera at the origin (OpenCV frame,
+:func:`sq_mitsuba.render.silhouette.sensor_dict`); poses move the vertices.
 
 A second, tiny scene renders the mask of the target alone: black meshes before a constant
 white environment with ``max_depth=1`` (the camera sees emitters only), so the image is
@@ -35,9 +36,6 @@ from sq_mitsuba.render.silhouette import sensor_dict
 MATERIALS_JSON = SCENES_DIR / "materials.json"
 # Stratified samples estimate edge coverage with far less noise than independent ones.
 MASK_SAMPLER = "stratified"
-# Materials of parts thin enough to be seen from both sides (foils, panels, dishes).
-TWO_SIDED = {"gold_mli", "silver_mli", "solar_cell", "dark_composite", "antenna_white",
-             "white_paint", "aluminium", "default"}
 
 
 @dataclass
@@ -86,12 +84,14 @@ def load_materials(path: str | Path = MATERIALS_JSON) -> dict[str, dict[str, Any
     return {k: v for k, v in data.items() if not k.startswith("_")}
 
 
-def _bsdf_dict(spec: dict[str, Any], two_sided: bool) -> dict[str, Any]:
+def _bsdf_dict(spec: dict[str, Any]) -> dict[str, Any]:
+    """A material of ``materials.json`` as a two-sided Mitsuba BSDF: every tag can belong to a
+    thin part (panels, foils, dishes) seen from either side."""
     spec = dict(spec)
     for key in ("reflectance", "diffuse_reflectance"):
         if isinstance(spec.get(key), int | float):
             spec[key] = {"type": "rgb", "value": float(spec[key])}
-    return {"type": "twosided", "bsdf": spec} if two_sided else spec
+    return {"type": "twosided", "bsdf": spec}
 
 
 def _value_noise(rng: np.random.Generator, height: int, width: int, octaves: int) -> np.ndarray:
@@ -226,8 +226,7 @@ class SpaceScene:
         }
         for tag, used, local in self.parts:
             spec = materials.get(tag, materials["default"])
-            scene[f"part_{tag}"] = self._mesh(f"part_{tag}", used, local,
-                                              _bsdf_dict(spec, tag in TWO_SIDED))
+            scene[f"part_{tag}"] = self._mesh(f"part_{tag}", used, local, _bsdf_dict(spec))
         self.scene = mi.load_dict(scene)
         self.params = mi.traverse(self.scene)
 
