@@ -7,7 +7,7 @@ PY     := $(VENV)/bin/python
 PIP    := $(PY) -m pip
 STAMP  := $(VENV)/.installed
 TORCH  := torch==2.13.0
-# Dr.Jit's LLVM backend aborts on libLLVM 15; any libLLVM >= 17 works (DESIGN section 7).
+# Dr.Jit's LLVM backend aborts on libLLVM 15; any libLLVM >= 17 works.
 LLVM_GLOB := /usr/lib/*/libLLVM-1[7-9]*.so* /usr/lib/*/libLLVM-[2-9][0-9]*.so* /usr/lib/llvm-1[7-9]/lib/libLLVM*.so* /usr/lib/llvm-[2-9][0-9]/lib/libLLVM*.so*
 
 .PHONY: setup llvm test lint bench clean

@@ -1,11 +1,9 @@
 """sq_mitsuba: single-image abstraction of spacecraft into superquadric assemblies.
 
-Layers (dependencies point down only; see ``README.md``):
-
-- geometry: :mod:`sq_mitsuba.superquadric`, :mod:`sq_mitsuba.rotation`,
-  :mod:`sq_mitsuba.icosphere`, :mod:`sq_mitsuba.assembly` (pure torch / numpy)
-- rendering: Mitsuba 3 and Dr.Jit, imported lazily
-- data, learning, evaluation, cli
+Layers, one folder each, lowest first (a module imports only its own layer and those below;
+``tests/test_layers.py`` enforces it): the shared utilities at the top level (``checks``,
+``config``, ``io``, ``llvm``), then ``geometry``, ``render``, ``data``, ``learning``,
+``evaluation`` and ``cli``.
 
 Importing this package never imports Mitsuba or Dr.Jit. It only points Dr.Jit at a usable
 libLLVM (if one exists and the user has not chosen one), because Dr.Jit reads

@@ -8,10 +8,16 @@ import pytest
 import torch
 import trimesh
 
-from sq_mitsuba.assembly import Assembly, ParameterRanges, overlap
-from sq_mitsuba.icosphere import icosphere_angles
-from sq_mitsuba.rotation import random_rotations
-from sq_mitsuba.superquadric import inside_outside_dual, surface_points_dual, taper, untaper
+from sq_mitsuba.geometry.assembly import Assembly, ParameterRanges
+from sq_mitsuba.geometry.icosphere import icosphere_angles
+from sq_mitsuba.geometry.rotation import random_rotations
+from sq_mitsuba.geometry.superquadric import (
+    inside_outside_dual,
+    surface_points_dual,
+    taper,
+    untaper,
+)
+from sq_mitsuba.learning.losses import overlap
 
 F64 = torch.float64
 

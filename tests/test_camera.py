@@ -8,7 +8,7 @@ import math
 import pytest
 import torch
 
-from sq_mitsuba.camera import Camera
+from sq_mitsuba.geometry.camera import Camera
 
 
 def test_default_camera_matches_speed_field_of_view():

@@ -9,11 +9,11 @@ import pytest
 import torch
 from PIL import Image
 
-from sq_mitsuba.assembly import Assembly
-from sq_mitsuba.camera import Camera
 from sq_mitsuba.cli import main
+from sq_mitsuba.geometry.assembly import Assembly
+from sq_mitsuba.geometry.camera import Camera
+from sq_mitsuba.geometry.rotation import matrix_to_quaternion, random_rotations
 from sq_mitsuba.render.silhouette import SilhouetteRenderer, render_assembly
-from sq_mitsuba.rotation import matrix_to_quaternion, random_rotations
 
 
 @pytest.fixture(scope="module")

@@ -19,11 +19,11 @@ import pytest
 import torch
 from PIL import Image
 
-from sq_mitsuba.camera import Camera
 from sq_mitsuba.cli import main
 from sq_mitsuba.data import Spe3rDataset, spe3r
-from sq_mitsuba.data.frames import SceneConfig, sample_frame
+from sq_mitsuba.data.frames import sample_frame
 from sq_mitsuba.data.library import generate_model
+from sq_mitsuba.data.spacecraft import catalogue
 from sq_mitsuba.data.spe3r import (
     DatasetError,
     RenderOptions,
@@ -31,11 +31,13 @@ from sq_mitsuba.data.spe3r import (
     load_model,
     render_dataset,
 )
+from sq_mitsuba.data.spe3r import writer as spe3r_writer
+from sq_mitsuba.geometry.camera import Camera
+from sq_mitsuba.geometry.rotation import quaternion_to_matrix, rotation_angle
 from sq_mitsuba.io import atomic_path
+from sq_mitsuba.render.scene_config import SceneConfig
 from sq_mitsuba.render.silhouette import SilhouetteRenderer
 from sq_mitsuba.render.space import SpaceScene
-from sq_mitsuba.rotation import quaternion_to_matrix, rotation_angle
-from sq_mitsuba.spacecraft import catalogue
 
 RESOLUTION, SPP, IMAGES = 128, 4, 3
 OPTIONS = {"images_per_model": IMAGES, "seed": 7, "resolution": RESOLUTION, "spp": SPP}
@@ -117,7 +119,7 @@ def test_projected_origin_is_where_the_label_translation_says(dataset):
 
 
 def _sphere(radius: float):
-    from sq_mitsuba.icosphere import icosphere
+    from sq_mitsuba.geometry.icosphere import icosphere
 
     vertices, faces = icosphere(3)
     return vertices * radius, faces
@@ -265,7 +267,7 @@ def test_reader_errors_name_the_file(dataset, tmp_path):
 
 @pytest.fixture(scope="session")
 def lit_scene(model_library):
-    model = spe3r.find_models(model_library)[0]
+    model = spe3r_writer.find_models(model_library)[0]
     vertices, faces, tags = load_model(model_library / model)
     camera = Camera.default(RESOLUTION)
     config = SceneConfig.load()
@@ -307,13 +309,13 @@ def test_phase_angle_changes_the_image_and_eclipse_darkens_it(lit_scene):
 def test_bad_models_fail_alone_and_leave_nothing_partial(model_library, tmp_path, monkeypatch):
     library = tmp_path / "library"
     shutil.copytree(model_library, library)
-    good, other = spe3r.find_models(library)
+    good, other = spe3r_writer.find_models(library)
     broken = tmp_path / "library" / "broken_model" / "models"
     broken.mkdir(parents=True)
     (broken / "model_normalized.obj").write_text("this is not a mesh\n")
     with open(library / "splits.csv", "a") as handle:
         handle.write("broken_model,train\nmissing_model,train\n")
-    real_write_png = spe3r.write_png
+    real_write_png = spe3r_writer.write_png
 
     def disk_full_for_other(path: Path, array: np.ndarray) -> None:
         if other in str(path) and path.name == "000001.png":
@@ -322,7 +324,7 @@ def test_bad_models_fail_alone_and_leave_nothing_partial(model_library, tmp_path
                 raise OSError(errno.ENOSPC, "No space left on device")
         real_write_png(path, array)
 
-    monkeypatch.setattr(spe3r, "write_png", disk_full_for_other)
+    monkeypatch.setattr(spe3r_writer, "write_png", disk_full_for_other)
     out = tmp_path / "out"
     summary = render_dataset(library, out, RenderOptions(**OPTIONS), progress=False)
     assert summary.models_done == [good]
@@ -369,7 +371,7 @@ def test_exr_holds_linear_radiance_depth_and_coverage(model_library, tmp_path):
 
     library = tmp_path / "one"
     library.mkdir()
-    model = spe3r.find_models(model_library)[0]
+    model = spe3r_writer.find_models(model_library)[0]
     shutil.copytree(model_library / model, library / model)
     out = tmp_path / "exr"
     options = RenderOptions(**{**OPTIONS, "images_per_model": 1, "exr": True})
@@ -410,7 +412,7 @@ def test_render_with_a_speed_camera_json(model_library, tmp_path):
              "fy": 0.0176, "ccx": 960, "ccy": 600}
     (tmp_path / "speed.json").write_text(json.dumps(speed))
     library = tmp_path / "one"
-    model = spe3r.find_models(model_library)[0]
+    model = spe3r_writer.find_models(model_library)[0]
     shutil.copytree(model_library / model, library / model)
     out = tmp_path / "speed"
     assert main(["dataset", "render", "--models", str(library), "--out", str(out),

@@ -5,18 +5,13 @@ from __future__ import annotations
 import pytest
 import torch
 
-from sq_mitsuba.assembly import Assembly
-from sq_mitsuba.camera import Camera
-from sq_mitsuba.fit import (
-    default_raw,
-    fit_assembly,
-    mask_iou,
-    plot_fit,
-    resize_masks,
-    silhouette_loss,
-)
-from sq_mitsuba.render.silhouette import SilhouetteRenderer, render_assembly
-from sq_mitsuba.rotation import random_rotations
+from sq_mitsuba.evaluation.figures import plot_fit
+from sq_mitsuba.geometry.assembly import Assembly
+from sq_mitsuba.geometry.camera import Camera
+from sq_mitsuba.geometry.rotation import random_rotations
+from sq_mitsuba.learning.fit import default_raw, fit_assembly, resize_masks
+from sq_mitsuba.learning.losses import silhouette_loss
+from sq_mitsuba.render.silhouette import SilhouetteRenderer, mask_iou, render_assembly
 
 
 def _target_views(views: int = 3, resolution: int = 64, seed: int = 3):

@@ -7,7 +7,7 @@ import pytest
 import torch
 import trimesh
 
-from sq_mitsuba.icosphere import icosphere, icosphere_angles, icosphere_faces
+from sq_mitsuba.geometry.icosphere import icosphere, icosphere_angles, icosphere_faces
 
 
 @pytest.mark.parametrize("level", [0, 1, 2, 3])

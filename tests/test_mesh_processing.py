@@ -9,6 +9,7 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from sq_mitsuba.data.library import import_model
+from sq_mitsuba.data.mesh_io import TaggedMesh, read_obj
 from sq_mitsuba.data.mesh_processing import (
     MeshError,
     center_of_mass,
@@ -22,8 +23,6 @@ from sq_mitsuba.data.mesh_processing import (
     signed_volume,
 )
 from sq_mitsuba.render.depth import RayCaster
-from sq_mitsuba.render.preview import read_obj
-from sq_mitsuba.spacecraft import TaggedMesh
 
 
 def _tagged(mesh: trimesh.Trimesh) -> TaggedMesh:
@@ -173,8 +172,8 @@ def test_bad_mesh_comes_out_watertight_outward_without_internal_faces() -> None:
 
 def test_connected_pieces_of_exact_unions() -> None:
     """Overlapping parts merge into one piece; parts with a gap stay two; none: zero."""
-    from sq_mitsuba.spacecraft import union_parts
-    from sq_mitsuba.spacecraft.parts import Part, box
+    from sq_mitsuba.data.spacecraft import union_parts
+    from sq_mitsuba.data.spacecraft.parts import Part, box
 
     bus = Part("bus_box", "gold_mli", box((1.0, 1.0, 1.0)))
     attached = Part("boom", "aluminium", box((1.0, 0.1, 0.1), (0.95, 0, 0)))  # 0.05 inside

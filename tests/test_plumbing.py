@@ -10,8 +10,8 @@ from pathlib import Path
 import pytest
 
 from sq_mitsuba import llvm
-from sq_mitsuba.bench import BenchOptions, Report, Timing, write_report
 from sq_mitsuba.cli import main
+from sq_mitsuba.evaluation.bench import BenchOptions, Report, Timing, write_report
 from sq_mitsuba.io import atomic_path, atomic_write_json
 
 
@@ -53,8 +53,9 @@ def test_user_choice_of_libllvm_is_kept(monkeypatch):
 
 
 def test_importing_the_package_and_geometry_does_not_import_mitsuba():
-    code = ("import sys, sq_mitsuba, sq_mitsuba.assembly, sq_mitsuba.superquadric, "
-            "sq_mitsuba.rotation, sq_mitsuba.icosphere; "
+    code = ("import sys, sq_mitsuba, sq_mitsuba.geometry.assembly, "
+            "sq_mitsuba.geometry.superquadric, sq_mitsuba.geometry.rotation, "
+            "sq_mitsuba.geometry.icosphere, sq_mitsuba.geometry.camera; "
             "assert 'mitsuba' not in sys.modules and 'drjit' not in sys.modules")
     subprocess.run([sys.executable, "-c", code], check=True)
 

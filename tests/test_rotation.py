@@ -7,7 +7,8 @@ import math
 import pytest
 import torch
 
-from sq_mitsuba.rotation import (
+from sq_mitsuba.evaluation.metrics import rotation_angle_deg, speed_score
+from sq_mitsuba.geometry.rotation import (
     matrix_to_quaternion,
     matrix_to_rotation_6d,
     quaternion_angle,
@@ -16,8 +17,6 @@ from sq_mitsuba.rotation import (
     random_rotations,
     rotation_6d_to_matrix,
     rotation_angle,
-    rotation_angle_deg,
-    speed_score,
 )
 
 F64 = torch.float64

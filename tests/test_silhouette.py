@@ -9,11 +9,11 @@ import math
 import pytest
 import torch
 
-from sq_mitsuba.assembly import Assembly
-from sq_mitsuba.camera import Camera
+from sq_mitsuba.geometry.assembly import Assembly
+from sq_mitsuba.geometry.camera import Camera
+from sq_mitsuba.geometry.rotation import random_rotations
 from sq_mitsuba.render.backend import count_kernels
 from sq_mitsuba.render.silhouette import SilhouetteRenderer, render_assembly
-from sq_mitsuba.rotation import random_rotations
 
 
 def sphere_area(centre: torch.Tensor, radius: torch.Tensor, focal: float) -> torch.Tensor:
@@ -55,7 +55,7 @@ def test_centroid_where_camera_projects_centre(precise_renderer, off_centre_came
 
 
 def test_non_square_focal_lengths(unit_sphere):
-    from sq_mitsuba.camera import Camera
+    from sq_mitsuba.geometry.camera import Camera
 
     camera = Camera(60.0, 90.0, 30.0, 36.0, 64, 64)
     renderer = SilhouetteRenderer(camera, spp=64)

@@ -10,8 +10,7 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from sq_mitsuba.data.mesh_processing import normalise, process_mesh, sample_triangles
-from sq_mitsuba.render.depth import RayCaster
-from sq_mitsuba.spacecraft import (
+from sq_mitsuba.data.spacecraft import (
     ARCHETYPES,
     DEFAULT_CATALOGUE_COUNT,
     DEFAULT_CATALOGUE_SEED,
@@ -19,6 +18,7 @@ from sq_mitsuba.spacecraft import (
     catalogue,
     generate_spacecraft,
 )
+from sq_mitsuba.render.depth import RayCaster
 
 # Distinctness threshold: occnet Chamfer-L1 between two unit-size models at 20,000 surface
 # points each. Two draws of the same model differ by up to about 0.0025 there (sampling noise), so

@@ -8,8 +8,8 @@ import pytest
 import torch
 from scipy.spatial import cKDTree
 
-from sq_mitsuba.icosphere import icosphere_angles
-from sq_mitsuba.superquadric import (
+from sq_mitsuba.geometry.icosphere import icosphere_angles
+from sq_mitsuba.geometry.superquadric import (
     fexp,
     inside_outside,
     inside_outside_dual,

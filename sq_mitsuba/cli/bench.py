@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from sq_mitsuba import bench
+from sq_mitsuba.evaluation import bench
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

@@ -55,9 +55,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _render(args: argparse.Namespace) -> int:
-    from sq_mitsuba.camera import Camera
-    from sq_mitsuba.data.frames import SceneConfig
     from sq_mitsuba.data.spe3r import RenderOptions, render_dataset
+    from sq_mitsuba.geometry.camera import Camera
+    from sq_mitsuba.render.scene_config import SceneConfig
 
     camera = Camera.load(args.camera) if args.camera is not None else None
     options = RenderOptions(images_per_model=args.images_per_model, seed=args.seed,

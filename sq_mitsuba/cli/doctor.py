@@ -42,8 +42,8 @@ def _render_check() -> str:
 
     import torch
 
-    from sq_mitsuba.camera import Camera
-    from sq_mitsuba.icosphere import icosphere
+    from sq_mitsuba.geometry.camera import Camera
+    from sq_mitsuba.geometry.icosphere import icosphere
     from sq_mitsuba.render.silhouette import SilhouetteRenderer
 
     vertices, faces = icosphere(3)

@@ -109,10 +109,11 @@ def _run(args: argparse.Namespace) -> int:
     import numpy as np
     import torch
 
-    from sq_mitsuba.camera import Camera
-    from sq_mitsuba.fit import fit_assembly, plot_fit
+    from sq_mitsuba.evaluation.figures import plot_fit
+    from sq_mitsuba.geometry.camera import Camera
+    from sq_mitsuba.geometry.rotation import quaternion_to_matrix
     from sq_mitsuba.io import atomic_write_json
-    from sq_mitsuba.rotation import quaternion_to_matrix
+    from sq_mitsuba.learning.fit import fit_assembly
 
     masks = torch.from_numpy(np.stack([_read_mask(p) for p in args.masks]))
     height, width = masks.shape[1:]

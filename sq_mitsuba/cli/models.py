@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 from sq_mitsuba.cli import CLIError
-from sq_mitsuba.spacecraft.generator import DEFAULT_CATALOGUE_COUNT, DEFAULT_CATALOGUE_SEED
+from sq_mitsuba.data.spacecraft.generator import DEFAULT_CATALOGUE_COUNT, DEFAULT_CATALOGUE_SEED
 
 EXIT_BATCH_FAILED = 1
 
@@ -75,8 +75,9 @@ def _report(failures: list[tuple[str, str]], done: int, out: Path) -> int:
 def _generate(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from sq_mitsuba.data.library import generate_model, write_splits
-    from sq_mitsuba.spacecraft import catalogue
+    from sq_mitsuba.data.library import generate_model
+    from sq_mitsuba.data.spacecraft import catalogue
+    from sq_mitsuba.data.spe3r.layout import write_splits
 
     if args.count < 1:
         raise CLIError(f"--count: expected >= 1, got {args.count}")
@@ -117,7 +118,7 @@ def _import(args: argparse.Namespace) -> int:
 
 
 def _preview(args: argparse.Namespace) -> int:
-    from sq_mitsuba.render.preview import contact_sheet
+    from sq_mitsuba.data.contact_sheet import contact_sheet
 
     if args.size < 16 or args.spp < 1:
         raise CLIError("--size must be >= 16 and --spp >= 1")

@@ -1,4 +1,5 @@
-"""Data layer: spacecraft mesh processing, dataset writer and reader.
+"""Data layer: mesh I/O and processing, procedural spacecraft, model libraries, frame
+sampling and datasets in the SPE3R layout. Imports the geometry and render layers.
 
 ``Spe3rDataset`` (the torch Dataset over the SPE3R layout) is importable from here; it is
 loaded on first use so that mesh processing does not pay for the dataset's imports.

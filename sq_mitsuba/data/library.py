@@ -8,7 +8,6 @@ models as ``model,train`` / ``model,test`` rows without a header.
 from __future__ import annotations
 
 import re
-from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
@@ -23,8 +22,7 @@ from sq_mitsuba.data.mesh_processing import (
     sample_model,
     write_model,
 )
-from sq_mitsuba.io import atomic_write_text
-from sq_mitsuba.spacecraft import THIN_FRACTION, CatalogueEntry, generate_spacecraft
+from sq_mitsuba.data.spacecraft import THIN_FRACTION, CatalogueEntry, generate_spacecraft
 
 
 def generate_model(entry: CatalogueEntry, out_root: str | Path, points: int = 100_000) -> Path:
@@ -71,10 +69,3 @@ def import_model(path: str | Path, out_root: str | Path, method: str = "auto",
     card = model_card(name, model, samples, source=str(path), archetype="imported",
                       seed=None, parts={"imported_mesh": 1})
     return write_model(out_root, name, model, samples, card)
-
-
-def write_splits(out_root: str | Path, rows: Iterable[tuple[str, str]]) -> Path:
-    """Write ``splits.csv`` (``model,train|test`` rows, no header) atomically."""
-    path = Path(out_root) / "splits.csv"
-    atomic_write_text(path, "".join(f"{name},{split}\n" for name, split in rows))
-    return path

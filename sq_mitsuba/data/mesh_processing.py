@@ -29,14 +29,15 @@ import contextlib
 import os
 import shutil
 import tempfile
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from sq_mitsuba.data.mesh_io import TaggedMesh, mtl_text, obj_text
 from sq_mitsuba.io import atomic_path, atomic_write_json, atomic_write_text
-from sq_mitsuba.spacecraft.generator import TaggedMesh
-from sq_mitsuba.spacecraft.materials import MATERIALS, MTL_COLOUR, material_index
+from sq_mitsuba.render.materials import MATERIALS, material_index
 
 MESH_SUFFIXES = (".obj", ".ply", ".stl", ".glb", ".gltf", ".off")
 IMPORT_MATERIAL = "aluminium"  # imported meshes carry no tags we can trust
@@ -183,10 +184,7 @@ def _to_manifold(vertices: np.ndarray, faces: np.ndarray):
 
 def solid_by_boolean(mesh: TaggedMesh) -> TaggedMesh | None:
     """Exact union of the input's pieces, or None when a piece is not a closed 2-manifold."""
-    from sq_mitsuba.spacecraft.generator import union_parts
-    from sq_mitsuba.spacecraft.parts import Part
-
-    pieces = []
+    pieces, tags = [], []
     for face_ids in _components(mesh.faces, len(mesh.vertices)):
         faces = mesh.faces[face_ids]
         closed, oriented = edge_manifold(faces)
@@ -201,14 +199,45 @@ def solid_by_boolean(mesh: TaggedMesh) -> TaggedMesh | None:
         solid = _to_manifold(vertices, local)
         if solid is None:
             return None
-        tags = mesh.face_material[face_ids]
-        tag = MATERIALS[int(np.bincount(tags).argmax())]
-        pieces.append(Part("imported_piece", tag, solid))
-    result = union_parts(pieces)
+        pieces.append(solid)
+        tags.append(int(np.bincount(mesh.face_material[face_ids]).argmax()))
+    result = union_solids(pieces, tags)
     if len(np.unique(mesh.face_material)) > 1:
         result = TaggedMesh(result.vertices, result.faces,
                             transfer_face_material(mesh, result.vertices, result.faces))
     return result
+
+
+def union_solids(solids: Sequence, materials: Sequence[int]) -> TaggedMesh:
+    """Exact union (manifold3d) of closed solids, face ``i`` of solid ``k`` tagged
+    ``materials[k]``; internal faces and overlaps disappear.
+
+    Per-face materials follow manifold3d's provenance runs: each solid gets its own original
+    ID, and every output triangle records which input it came from.
+    """
+    import manifold3d
+
+    if not solids:
+        raise ValueError("solids: empty list, nothing to union")
+    tagged_solids, id_to_material = [], {}
+    for solid, material in zip(solids, materials, strict=True):
+        tagged = solid.as_original()
+        id_to_material[tagged.original_id()] = int(material)
+        tagged_solids.append(tagged)
+    result = manifold3d.Manifold.batch_boolean(tagged_solids, manifold3d.OpType.Add)
+    if result.status() != manifold3d.Error.NoError or result.is_empty():
+        raise ValueError(f"union of parts failed: {result.status()}")
+    mesh = result.to_mesh64()
+    vertices = np.asarray(mesh.vert_properties, dtype=np.float64)[:, :3]
+    faces = np.asarray(mesh.tri_verts, dtype=np.int64).reshape(-1, 3)
+    run_index = np.asarray(mesh.run_index, dtype=np.int64) // 3
+    run_ids = np.asarray(mesh.run_original_id, dtype=np.int64)
+    face_material = np.zeros(len(faces), dtype=np.int16)
+    for start, stop, original in zip(run_index[:-1], run_index[1:], run_ids, strict=True):
+        face_material[start:stop] = id_to_material[int(original)]
+    # Drop unreferenced vertices so the OBJ holds only what the faces use.
+    used, inverse = np.unique(faces, return_inverse=True)
+    return TaggedMesh(vertices[used], inverse.reshape(-1, 3).astype(np.int64), face_material)
 
 
 # -------------------------------------------------------------------------- fusion route
@@ -606,30 +635,6 @@ def process_mesh(mesh: TaggedMesh, method: str = "auto", align: str = "axes",
 
 
 # ------------------------------------------------------------------------------- writing
-
-def obj_text(mesh: TaggedMesh, mtl_name: str | None = "model_normalized.mtl") -> str:
-    """Wavefront OBJ: shared vertices, faces grouped by material with ``usemtl``."""
-    lines = ["# sq_mitsuba processed model: unit size, centre of mass at origin"]
-    if mtl_name:
-        lines.append(f"mtllib {mtl_name}")
-    lines += [f"v {x:.7f} {y:.7f} {z:.7f}" for x, y, z in mesh.vertices]
-    current = -1
-    for (a, b, c), tag in zip(mesh.faces + 1, mesh.face_material, strict=True):
-        if tag != current:
-            lines.append(f"usemtl {MATERIALS[tag]}")
-            current = tag
-        lines.append(f"f {a} {b} {c}")
-    return "\n".join(lines) + "\n"
-
-
-def mtl_text() -> str:
-    """Viewer colours of all material tags."""
-    out = []
-    for name in MATERIALS:
-        r, g, b = MTL_COLOUR[name]
-        out += [f"newmtl {name}", f"Kd {r:.3f} {g:.3f} {b:.3f}", ""]
-    return "\n".join(out)
-
 
 def write_model(out_root: str | Path, name: str, model: ProcessedModel,
                 samples: dict[str, np.ndarray], card: dict) -> Path:

@@ -18,6 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from sq_mitsuba.geometry.frames import orthonormal_basis
+
 # Generic (irrational-looking) unit directions: no axis-aligned ray runs along a face or edge
 # of the boxes and prisms the models are built from.
 VOTE_DIRECTIONS = np.array([
@@ -126,12 +128,10 @@ class DepthMap:
 
 
 def view_basis(direction: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Two unit vectors completing ``direction`` to a right-handed orthonormal frame."""
-    d = np.asarray(direction, float) / np.linalg.norm(direction)
-    helper = np.array([1.0, 0, 0]) if abs(d[0]) < 0.9 else np.array([0, 1.0, 0])
-    right = np.cross(helper, d)
-    right /= np.linalg.norm(right)
-    return right, np.cross(d, right)
+    """Two unit vectors (right, up) completing ``direction`` to a right-handed orthonormal
+    frame: the negated first two columns of :func:`orthonormal_basis`."""
+    e1, e2, _ = orthonormal_basis(direction).T
+    return -e1, -e2
 
 
 def fibonacci_directions(count: int) -> np.ndarray:

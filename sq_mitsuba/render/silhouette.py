@@ -7,7 +7,7 @@ environment, so every pixel reads the fraction of its area *not* covered by the 
 ``coverage = 1 - image``. Gradients with respect to the vertices come from ``prb_projective``'s
 primarily visible silhouette sampling (``sppp`` samples per pixel); interior (``sppc``) and
 indirect (``sppi``) terms are zero for a mask and are switched off (``sppi > 0`` alone costs
-seconds per backward pass, DESIGN section 7).
+seconds per backward pass: it builds an indirect-silhouette guide every time).
 
 Convention: the batch is a loop over items inside one ``torch.autograd.Function``: Mitsuba's
 ``batch`` sensor fails in the backward pass and ``dr.freeze`` refuses projective integrators.
@@ -28,8 +28,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from sq_mitsuba.camera import Camera
 from sq_mitsuba.checks import check_tensor
+from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.render.backend import mitsuba
 
 MESH_ID = "silhouette_mesh"
@@ -388,7 +388,7 @@ def assembly_camera_vertices(assembly: Any, rotation: Tensor, translation: Tenso
     """Merged assembly meshes moved to the camera frame: vertices (B, N, 3), faces (F, 3).
 
     Args:
-        assembly: :class:`sq_mitsuba.assembly.Assembly` of batch size B or 1 (broadcast).
+        assembly: :class:`sq_mitsuba.geometry.assembly.Assembly` of batch size B or 1 (broadcast).
         rotation: (B, 3, 3) body-to-camera rotations R.
         translation: (B, 3) body-to-camera translations t: ``x_cam = R x_body + t``.
         level: icosphere subdivision level of each primitive's mesh (3: 642 vertices).
@@ -428,3 +428,11 @@ def render_assembly_loss(assembly: Any, rotation: Tensor, translation: Tensor,
     :meth:`SilhouetteRenderer.render_loss`); returns (loss, coverage (B, H, W) detached)."""
     vertices, faces = assembly_camera_vertices(assembly, rotation, translation, level)
     return renderer.render_loss(vertices, faces, loss_fn)
+
+
+def mask_iou(prediction: Tensor, target: Tensor, threshold: float = 0.5) -> Tensor:
+    """IoU (...,) of images (..., H, W) thresholded at ``threshold`` (empty union gives 1)."""
+    a, b = prediction > threshold, target > threshold
+    inter = (a & b).flatten(-2).sum(-1).double()
+    union = (a | b).flatten(-2).sum(-1).double()
+    return torch.where(union > 0, inter / union.clamp_min(1), torch.ones_like(union))

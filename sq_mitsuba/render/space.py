@@ -28,12 +28,12 @@ from typing import Any
 
 import numpy as np
 
-from sq_mitsuba.camera import Camera
-from sq_mitsuba.data.frames import SCENES_DIR, Frame, SceneConfig, orthonormal_basis
+from sq_mitsuba.geometry.camera import Camera
+from sq_mitsuba.geometry.frames import orthonormal_basis
 from sq_mitsuba.render.backend import mitsuba
+from sq_mitsuba.render.scene_config import Frame, SceneConfig, scenes_dir
 from sq_mitsuba.render.silhouette import sensor_dict
 
-MATERIALS_JSON = SCENES_DIR / "materials.json"
 # Stratified samples estimate edge coverage with far less noise than independent ones.
 MASK_SAMPLER = "stratified"
 
@@ -76,8 +76,10 @@ def mask_samples(spp_at_256: int, camera: Camera) -> int:
     return max(spp_at_256, math.ceil(spp_at_256 * scale))
 
 
-def load_materials(path: str | Path = MATERIALS_JSON) -> dict[str, dict[str, Any]]:
-    """BSDF dictionaries per material tag (comments, keys starting with ``_``, dropped)."""
+def load_materials(path: str | Path | None = None) -> dict[str, dict[str, Any]]:
+    """BSDF dictionaries per material tag (comments, keys starting with ``_``, dropped), from
+    ``path`` or the shipped ``scenes/materials.json``."""
+    path = Path(path) if path is not None else scenes_dir() / "materials.json"
     data = json.loads(Path(path).read_text(encoding="utf-8"))
     if "default" not in data:
         raise ValueError(f"{path}: needs a 'default' material")

@@ -12,15 +12,16 @@ from __future__ import annotations
 
 import torch
 
-from sq_mitsuba.assembly import Assembly, overlap
-from sq_mitsuba.bench import BenchOptions, Report, Timing, time_callable
-from sq_mitsuba.icosphere import icosphere_angles
-from sq_mitsuba.superquadric import (
+from sq_mitsuba.evaluation.bench import BenchOptions, Report, Timing, time_callable
+from sq_mitsuba.geometry.assembly import Assembly
+from sq_mitsuba.geometry.icosphere import icosphere_angles
+from sq_mitsuba.geometry.superquadric import (
     inside_outside,
     inside_outside_dual,
     surface_points,
     surface_points_dual,
 )
+from sq_mitsuba.learning.losses import overlap
 
 BATCH, PRIMITIVES, QUERY_POINTS = 32, 5, 10_000
 SHARPNESS, BETA = 10.0, 1.25

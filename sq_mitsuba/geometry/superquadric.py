@@ -12,7 +12,8 @@ Convention:
 
 The *primal* forms are the classic superquadric (paper Eq. 1, 2). Their exponents 2/e blow up as
 e -> 0, so they are kept for comparison and tests only. The *dual* forms (paper Eq. 6-9, with the
-slips listed in DESIGN section 4 corrected) use e' = 2 - e in [1, 2]; every power stays tame, e = 0
+paper's slips corrected: the dual superellipse turns by theta + 45 deg, not - 45 deg, and the
+last exponent of Eq. 9 is e'/2, not 2/e1) use e' = 2 - e in [1, 2]; every power stays tame, e = 0
 included, and dual samples satisfy the dual inside-outside function exactly (f = 1). The dual
 family is a close relative of the superquadric: identical at e in {0, 1}, slightly different in
 between.
@@ -300,7 +301,8 @@ def _shape_grad(sum_g1: Tensor, sum_g2: Tensor, grad_alpha1: Tensor, grad_alpha2
 
 
 def inside_outside_dual(points: Tensor, size: Tensor, shape: Tensor) -> Tensor:
-    """Dual inside-outside function (paper Eq. 8-9, last exponent e'/2 as in DESIGN section 4).
+    """Dual inside-outside function (paper Eq. 8-9; the appendix's last exponent 2/e1 is a
+    slip for e'/2).
 
     xb = x / (a1 g1 g2), yb = y / (a2 g1 g2), zb = z / (a3 g1), g_i = 2 ** (e_i'/2 - 1),
     phi(u, v, e') = (|(u+v)/2| ** (2/e') + |(u-v)/2| ** (2/e')) ** (e'/2),

@@ -7,7 +7,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from sq_mitsuba.bench import BenchOptions, Report, Timing, time_callable
+from sq_mitsuba.evaluation.bench import BenchOptions, Report, Timing, time_callable
 
 TARGET_END_TO_END_S = 10.0
 
@@ -17,7 +17,7 @@ def run(options: BenchOptions) -> Report:
     points) and the whole write per model, over the archetypes of the default catalogue."""
     from sq_mitsuba.data.library import generate_model
     from sq_mitsuba.data.mesh_processing import process_mesh, sample_model
-    from sq_mitsuba.spacecraft import catalogue, generate_spacecraft
+    from sq_mitsuba.data.spacecraft import catalogue, generate_spacecraft
 
     entries = catalogue(max(14, min(options.repeats, 64)), seed=0)
     generate_s, process_s, sample_s, total_s = [], [], [], []

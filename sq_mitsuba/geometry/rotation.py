@@ -1,4 +1,4 @@
-"""Rotation representations and rotation metrics, as pure functions on batched tensors.
+"""Rotation representations and rotation distances, as pure functions on batched tensors.
 
 Convention:
     - Rotation matrices act on column vectors: ``x_out = R @ x``; shape (..., 3, 3).
@@ -13,7 +13,6 @@ Convention:
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
 
 import torch
 from torch import Tensor
@@ -22,7 +21,6 @@ from torch.nn import functional as F
 from sq_mitsuba.checks import check_tensor
 
 __all__ = [
-    "SpeedScore",
     "matrix_to_quaternion",
     "matrix_to_rotation_6d",
     "quaternion_angle",
@@ -31,8 +29,6 @@ __all__ = [
     "random_rotations",
     "rotation_6d_to_matrix",
     "rotation_angle",
-    "rotation_angle_deg",
-    "speed_score",
 ]
 
 
@@ -178,45 +174,9 @@ def rotation_angle(rotation_a: Tensor, rotation_b: Tensor) -> Tensor:
     return torch.atan2(sin, cos)
 
 
-def rotation_angle_deg(rotation_a: Tensor, rotation_b: Tensor) -> Tensor:
-    """:func:`rotation_angle` in degrees, the paper's rotation error E_R; shape (...)."""
-    return torch.rad2deg(rotation_angle(rotation_a, rotation_b))
-
-
 def quaternion_angle(quaternion_a: Tensor, quaternion_b: Tensor) -> Tensor:
     """SPEED rotation error 2 arccos(min(1, |<q_a, q_b>|)) in radians, (..., 4) -> (...)."""
     check_tensor("quaternion_a", quaternion_a, (4,))
     check_tensor("quaternion_b", quaternion_b, (4,))
     dot = (F.normalize(quaternion_a, dim=-1) * F.normalize(quaternion_b, dim=-1)).sum(-1)
     return 2.0 * torch.arccos(dot.abs().clamp_max(1.0))
-
-
-class SpeedScore(NamedTuple):
-    """SPEED score terms: rotation error (rad), relative translation error, their sum."""
-
-    rotation: Tensor
-    translation: Tensor
-    total: Tensor
-
-
-def speed_score(
-    quaternion_pred: Tensor,
-    quaternion_true: Tensor,
-    translation_pred: Tensor,
-    translation_true: Tensor,
-) -> SpeedScore:
-    """The SPEED pose score: e_q = 2 arccos(|<q_hat, q>|), e_t = |t - t_hat| / |t|.
-
-    Args:
-        quaternion_pred, quaternion_true: (..., 4).
-        translation_pred, translation_true: (..., 3).
-
-    Returns:
-        :class:`SpeedScore` of tensors of shape (...).
-    """
-    check_tensor("translation_pred", translation_pred, (3,))
-    check_tensor("translation_true", translation_true, (3,))
-    e_q = quaternion_angle(quaternion_pred, quaternion_true)
-    e_t = torch.linalg.vector_norm(translation_true - translation_pred, dim=-1) / \
-        torch.linalg.vector_norm(translation_true, dim=-1)
-    return SpeedScore(e_q, e_t, e_q + e_t)

@@ -10,17 +10,17 @@ from __future__ import annotations
 import tempfile
 from pathlib import Path
 
-from sq_mitsuba.bench import BenchOptions, Report, Timing, time_callable
+from sq_mitsuba.evaluation.bench import BenchOptions, Report, Timing, time_callable
 
 RESOLUTION, SPP = 256, 64
 
 
 def run(options: BenchOptions) -> Report:
     from sq_mitsuba.data.library import generate_model
+    from sq_mitsuba.data.spacecraft import catalogue
     from sq_mitsuba.data.spe3r import RenderOptions, load_model, render_image
     from sq_mitsuba.render.backend import mitsuba
     from sq_mitsuba.render.space import SpaceScene
-    from sq_mitsuba.spacecraft import catalogue
 
     mi = mitsuba()
     report = Report("dataset", options=options)

@@ -10,17 +10,16 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from sq_mitsuba.assembly import NUM_PARAMS, Assembly
-from sq_mitsuba.camera import Camera
 from sq_mitsuba.checks import check_tensor
+from sq_mitsuba.geometry.assembly import NUM_PARAMS, Assembly
+from sq_mitsuba.geometry.camera import Camera
+from sq_mitsuba.learning.losses import SILHOUETTE_LOSSES, silhouette_loss
 
-LOSSES = ("mse", "iou")
 # Raw 6D rotation of the identity (first two rows of I); Assembly.from_raw keeps 6D as is.
 _IDENTITY_6D = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0)
 
@@ -51,26 +50,6 @@ class FitResult:
     @property
     def mean_iou(self) -> float:
         return float(self.final_iou.mean()) if self.final_iou is not None else float("nan")
-
-
-def mask_iou(prediction: Tensor, target: Tensor, threshold: float = 0.5) -> Tensor:
-    """IoU (...,) of images (..., H, W) thresholded at ``threshold`` (empty union gives 1)."""
-    a, b = prediction > threshold, target > threshold
-    inter = (a & b).flatten(-2).sum(-1).double()
-    union = (a | b).flatten(-2).sum(-1).double()
-    return torch.where(union > 0, inter / union.clamp_min(1), torch.ones_like(union))
-
-
-def silhouette_loss(coverage: Tensor, target: Tensor, kind: str = "mse") -> Tensor:
-    """Per-view loss summed over views: ``mse`` (the paper's reprojection loss, mean over
-    pixels) or ``iou`` (1 - soft IoU). coverage, target: (V, H, W)."""
-    if kind == "mse":
-        return ((coverage - target) ** 2).flatten(1).mean(1).sum()
-    if kind == "iou":
-        inter = (coverage * target).flatten(1).sum(1)
-        union = (coverage + target - coverage * target).flatten(1).sum(1).clamp_min(1e-6)
-        return (1 - inter / union).sum()
-    raise ValueError(f"loss: expected one of {LOSSES}, got {kind!r}")
 
 
 def default_raw(num_primitives: int, generator: torch.Generator | None = None,
@@ -140,6 +119,7 @@ def fit_assembly(
     """
     from sq_mitsuba.render.silhouette import (
         SilhouetteRenderer,
+        mask_iou,
         render_assembly,
         render_assembly_loss,
     )
@@ -165,8 +145,8 @@ def fit_assembly(
             raise ValueError(f"{name}: expected a positive integer, got {value!r}")
     if not (isinstance(lr, int | float) and math.isfinite(lr) and lr > 0):
         raise ValueError(f"lr: expected a positive number, got {lr!r}")
-    if loss not in LOSSES:
-        raise ValueError(f"loss: expected one of {LOSSES}, got {loss!r}")
+    if loss not in SILHOUETTE_LOSSES:
+        raise ValueError(f"loss: expected one of {SILHOUETTE_LOSSES}, got {loss!r}")
 
     fit_camera = camera.rescaled(resolution)
     targets = resize_masks(masks, fit_camera.height, fit_camera.width)
@@ -219,39 +199,3 @@ def fit_assembly(
     result.assembly, result.raw = final, raw.detach().clone()
     result.final_iou = mask_iou(coverage, targets)
     return result
-
-
-def plot_fit(result: FitResult, path: str | Path, title: str | None = None) -> Path:
-    """PNG of the target masks against the fitted silhouettes at start, middle and end.
-
-    One row per view; each snapshot overlays the silhouette (red) on the target (green):
-    yellow where they agree. Written atomically.
-    """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from sq_mitsuba.io import save_figure
-
-    views = result.targets.shape[0]
-    columns = 1 + len(result.snapshots)
-    figure, axes = plt.subplots(views, columns, figsize=(2.1 * columns, 2.1 * views + 0.4),
-                                squeeze=False)
-    for view in range(views):
-        target = result.targets[view].float()
-        axes[view, 0].imshow(target.numpy(), cmap="gray", vmin=0, vmax=1)
-        axes[view, 0].set_title(f"view {view}: mask", fontsize=8)
-        for column, (step, coverage) in enumerate(result.snapshots, start=1):
-            silhouette = coverage[view].float()
-            overlay = torch.stack([silhouette, target, torch.zeros_like(target)], dim=-1)
-            iou = float(mask_iou(silhouette, target))
-            axes[view, column].imshow(overlay.clamp(0, 1).numpy())
-            axes[view, column].set_title(f"step {step}: IoU {iou:.3f}", fontsize=8)
-    for axis in axes.flat:
-        axis.set_xticks([])
-        axis.set_yticks([])
-    figure.suptitle(title or f"fit: mean IoU {result.mean_iou:.3f} (red fit, green mask)",
-                    fontsize=9)
-    figure.tight_layout()
-    return save_figure(figure, path)

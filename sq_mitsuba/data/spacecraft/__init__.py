@@ -1,7 +1,7 @@
 """Procedural spacecraft: parts library, archetype families, seeded generator, materials."""
 
-from sq_mitsuba.spacecraft.archetypes import ARCHETYPES
-from sq_mitsuba.spacecraft.generator import (
+from sq_mitsuba.data.spacecraft.archetypes import ARCHETYPES
+from sq_mitsuba.data.spacecraft.generator import (
     DEFAULT_CATALOGUE_COUNT,
     DEFAULT_CATALOGUE_SEED,
     THIN_FRACTION,
@@ -12,8 +12,8 @@ from sq_mitsuba.spacecraft.generator import (
     generate_spacecraft,
     union_parts,
 )
-from sq_mitsuba.spacecraft.materials import MATERIALS, material_index
-from sq_mitsuba.spacecraft.parts import Part
+from sq_mitsuba.data.spacecraft.parts import Part
+from sq_mitsuba.render.materials import MATERIALS, material_index
 
 __all__ = [
     "ARCHETYPES",

@@ -2,7 +2,7 @@
 
 Convention:
     A batch of B assemblies of M primitives is a tensor ``params`` of shape (B, M, 16); per
-    primitive, in this order (DESIGN section 4):
+    primitive, in this order:
 
     ====================  =======  ================================================
     field                 columns  meaning
@@ -10,7 +10,7 @@ Convention:
     ``size``              0:3      semi-axes (a1, a2, a3) > 0
     ``shape``             3:5      (e1, e2) in [0, 1] (dual superquadric exponents)
     ``translation``       5:8      primitive origin in the assembly frame
-    ``rotation_6d``       8:14     first two rows of R (see :mod:`sq_mitsuba.rotation`)
+    ``rotation_6d``       8:14     first two rows of R (see :mod:`sq_mitsuba.geometry.rotation`)
     ``taper``             14:16    (k1, k2), |k| < 1
     ====================  =======  ================================================
 
@@ -32,18 +32,18 @@ from torch import Tensor
 from torch.autograd.function import once_differentiable
 
 from sq_mitsuba.checks import check_tensor
-from sq_mitsuba.icosphere import icosphere_angles, icosphere_faces
-from sq_mitsuba.io import atomic_path, atomic_write_text, read_json
-from sq_mitsuba.rotation import matrix_to_rotation_6d, rotation_6d_to_matrix
-from sq_mitsuba.superquadric import (
+from sq_mitsuba.geometry.icosphere import icosphere_angles, icosphere_faces
+from sq_mitsuba.geometry.rotation import matrix_to_rotation_6d, rotation_6d_to_matrix
+from sq_mitsuba.geometry.superquadric import (
     dual_field,
     dual_scales,
     surface_points_dual,
     taper,
     untaper,
 )
+from sq_mitsuba.io import atomic_path, atomic_write_text, read_json
 
-__all__ = ["FIELDS", "NUM_PARAMS", "Assembly", "ParameterRanges", "overlap"]
+__all__ = ["FIELDS", "NUM_PARAMS", "Assembly", "ParameterRanges"]
 
 NUM_PARAMS = 16
 #: Column slices of the 16 numbers per primitive, in order.
@@ -54,7 +54,7 @@ FIELDS: dict[str, slice] = {
     "rotation_6d": slice(8, 14),
     "taper": slice(14, 16),
 }
-JSON_FORMAT = "sq_mitsuba.assembly"
+JSON_FORMAT = "sq_mitsuba.geometry.assembly"
 JSON_VERSION = 1
 MESH_SUFFIXES = (".obj", ".ply", ".glb", ".gltf", ".stl")
 _DTYPES = {"float32": torch.float32, "float64": torch.float64}
@@ -453,17 +453,3 @@ class _AssemblyInsideOutside(torch.autograd.Function):
             grad_alpha = torch.stack([(grad_f * d_alpha1).sum(-1), (grad_f * d_alpha2).sum(-1)],
                                      dim=-1)
         return grad_points, grad_linear, grad_offset, grad_taper, grad_g1, grad_alpha
-
-
-def overlap(occupancy: Tensor, beta: float = 1.25) -> Tensor:
-    """Overlap penalty (paper Eq. 18): mean over points of relu(sum_m g_m - beta).
-
-    Args:
-        occupancy: per-primitive occupancy (B, M, N).
-        beta: how much summed occupancy is tolerated (1.25 in the published configuration).
-
-    Returns:
-        Scalar tensor.
-    """
-    check_tensor("occupancy", occupancy, (None, None), min_dims=3)
-    return torch.relu(occupancy.sum(dim=1) - beta).mean()

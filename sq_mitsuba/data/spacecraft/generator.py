@@ -9,43 +9,21 @@ the layout is identical).
 
 from __future__ import annotations
 
-import hashlib
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import manifold3d
 import numpy as np
 
-from sq_mitsuba.spacecraft.archetypes import ARCHETYPES
-from sq_mitsuba.spacecraft.materials import MATERIALS, material_index
-from sq_mitsuba.spacecraft.parts import Part
+from sq_mitsuba.data.mesh_io import TaggedMesh
+from sq_mitsuba.data.mesh_processing import union_solids
+from sq_mitsuba.data.spacecraft.archetypes import ARCHETYPES
+from sq_mitsuba.data.spacecraft.parts import Part
+from sq_mitsuba.render.materials import MATERIALS, material_index
 
 THIN_FRACTION = 0.01
 DEFAULT_CATALOGUE_COUNT = 64  # the paper's dataset size (57 train / 7 test)
 DEFAULT_CATALOGUE_SEED = 0  # ``sq-mitsuba models generate`` without --seed
-
-
-@dataclass(frozen=True)
-class TaggedMesh:
-    """A triangle mesh with one material index per face (into ``MATERIALS``).
-
-    Attributes:
-        vertices: (V, 3) float64.
-        faces: (F, 3) int64, counter-clockwise seen from outside.
-        face_material: (F,) int16 indices into :data:`MATERIALS`.
-    """
-
-    vertices: np.ndarray
-    faces: np.ndarray
-    face_material: np.ndarray
-
-    def digest(self) -> str:
-        """SHA-256 of the geometry and materials (vertices rounded to 1e-9)."""
-        h = hashlib.sha256()
-        h.update(np.ascontiguousarray(np.round(self.vertices, 9), dtype="<f8").tobytes())
-        h.update(np.ascontiguousarray(self.faces, dtype="<i8").tobytes())
-        h.update(np.ascontiguousarray(self.face_material, dtype="<i2").tobytes())
-        return h.hexdigest()
 
 
 @dataclass
@@ -76,34 +54,11 @@ class Spacecraft:
 
 
 def union_parts(parts: Sequence[Part]) -> TaggedMesh:
-    """Exact union (manifold3d) of closed parts; internal faces and overlaps disappear.
-
-    Per-face materials follow manifold3d's provenance runs: each part gets its own original
-    ID, and every output triangle records which input it came from.
-    """
-    if not parts:
-        raise ValueError("parts: empty list, nothing to union")
-    solids, id_to_material = [], {}
+    """Exact union (manifold3d) of closed parts; per-face materials follow each part's tag."""
     for part in parts:
         if part.solid.is_empty() or part.solid.status() != manifold3d.Error.NoError:
             raise ValueError(f"part {part.kind!r}: not a valid closed solid")
-        tagged = part.solid.as_original()
-        id_to_material[tagged.original_id()] = material_index(part.material)
-        solids.append(tagged)
-    result = manifold3d.Manifold.batch_boolean(solids, manifold3d.OpType.Add)
-    if result.status() != manifold3d.Error.NoError or result.is_empty():
-        raise ValueError(f"union of parts failed: {result.status()}")
-    mesh = result.to_mesh64()
-    vertices = np.asarray(mesh.vert_properties, dtype=np.float64)[:, :3]
-    faces = np.asarray(mesh.tri_verts, dtype=np.int64).reshape(-1, 3)
-    run_index = np.asarray(mesh.run_index, dtype=np.int64) // 3
-    run_ids = np.asarray(mesh.run_original_id, dtype=np.int64)
-    face_material = np.zeros(len(faces), dtype=np.int16)
-    for start, stop, original in zip(run_index[:-1], run_index[1:], run_ids, strict=True):
-        face_material[start:stop] = id_to_material[int(original)]
-    # Drop unreferenced vertices so the OBJ holds only what the faces use.
-    used, inverse = np.unique(faces, return_inverse=True)
-    return TaggedMesh(vertices[used], inverse.reshape(-1, 3).astype(np.int64), face_material)
+    return union_solids([p.solid for p in parts], [material_index(p.material) for p in parts])
 
 
 def parts_extent(parts: Sequence[Part]) -> np.ndarray:

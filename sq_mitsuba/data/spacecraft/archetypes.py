@@ -7,7 +7,7 @@ generator state gives the same spacecraft.
 
 Convention: every spacecraft is one connected body. Each appendage overlaps the part it is
 mounted on by a positive volume (see the attachment convention of
-:mod:`sq_mitsuba.spacecraft.parts`), so the exact union of a recipe's parts is a single
+:mod:`sq_mitsuba.data.spacecraft.parts`), so the exact union of a recipe's parts is a single
 watertight piece; ``tests/test_spacecraft.py`` checks this for every family.
 """
 
@@ -17,8 +17,8 @@ from collections.abc import Callable
 
 import numpy as np
 
-from sq_mitsuba.spacecraft import parts as P
-from sq_mitsuba.spacecraft.parts import Part, place, rotation_about
+from sq_mitsuba.data.spacecraft import parts as P
+from sq_mitsuba.data.spacecraft.parts import Part, place, rotation_about
 
 Recipe = Callable[[np.random.Generator, float], list[Part]]
 

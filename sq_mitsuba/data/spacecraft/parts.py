@@ -7,7 +7,7 @@ everything to unit size later.
 Convention: builders put their part's main axis along +z (buses, tubes, dishes opening
 towards +z, nozzles pointing their exhaust towards -z), and wings extend along +x with the
 cell side facing +z. Every solid is closed and outward oriented, so the union of a
-spacecraft's parts is exact (:mod:`sq_mitsuba.spacecraft.generator`).
+spacecraft's parts is exact (:mod:`sq_mitsuba.data.spacecraft.generator`).
 
 Attachment convention: a real spacecraft is one connected body, so every appendage builder
 that mounts on a surface at its origin (wings, booms, masts, horns, nozzles, star trackers)
@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import manifold3d
 import numpy as np
 
-from sq_mitsuba.spacecraft.materials import material_index
+from sq_mitsuba.render.materials import material_index
 
 Solid = manifold3d.Manifold
 
@@ -38,7 +38,7 @@ class Part:
 
     Attributes:
         kind: what the part is (``"bus_box"``, ``"solar_panel"``, ``"dish"``...).
-        material: one of :data:`sq_mitsuba.spacecraft.materials.MATERIALS`.
+        material: one of :data:`sq_mitsuba.render.materials.MATERIALS`.
         solid: the closed solid.
     """
 

@@ -14,7 +14,7 @@ import time
 
 import torch
 
-from sq_mitsuba.bench import BenchOptions, Report, Timing, time_callable
+from sq_mitsuba.evaluation.bench import BenchOptions, Report, Timing, time_callable
 
 BATCH = 32
 PRIMITIVES = 5
@@ -23,8 +23,8 @@ TARGETS_S = {64: 0.030, 128: 0.050}
 
 def _inputs(batch: int, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
     """Camera-frame vertices (batch, 3210, 3) of random assemblies, and faces (6400, 3)."""
-    from sq_mitsuba.assembly import Assembly
-    from sq_mitsuba.rotation import random_rotations
+    from sq_mitsuba.geometry.assembly import Assembly
+    from sq_mitsuba.geometry.rotation import random_rotations
 
     raw = torch.randn(batch, PRIMITIVES, 16, generator=generator) * 0.7
     vertices, faces = Assembly.from_raw(raw).merged_mesh(3)
@@ -64,7 +64,7 @@ def _relative_noise(renderer, reference, vertices, faces, target, repeats: int) 
 
 
 def run(options: BenchOptions) -> Report:
-    from sq_mitsuba.camera import Camera
+    from sq_mitsuba.geometry.camera import Camera
     from sq_mitsuba.render.backend import count_kernels
     from sq_mitsuba.render.silhouette import DEFAULT_SPP, SilhouetteRenderer
 

@@ -1,0 +1,70 @@
+"""Contact sheet of a dataset: images with the mask outline and the label's body axes."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from sq_mitsuba.data.spe3r.layout import IMAGES, MASKS, DatasetError, dataset_models, read_gray
+from sq_mitsuba.geometry.camera import Camera
+from sq_mitsuba.geometry.rotation import quaternion_to_matrix
+from sq_mitsuba.io import read_json, save_figure
+
+
+def preview_dataset(root: str | Path, out: str | Path, count: int = 16,
+                    axis_length: float = 0.3) -> Path:
+    """Contact sheet PNG: images with the mask outline and the pose's body axes drawn.
+
+    The body axes x, y, z (red, green, blue, ``axis_length`` metres) are projected with the
+    label pose and ``camera.json``; they start at the model origin (its centre of mass).
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    root = Path(root)
+    if count < 1:
+        raise ValueError(f"count: expected >= 1, got {count}")
+    camera = Camera.load(root / "camera.json")
+    chosen: list[tuple[str, dict[str, Any]]] = []
+    labels = {}
+    for model in dataset_models(root):
+        path = root / model / "labels.json"
+        if path.is_file():
+            labels[model] = read_json(path)
+    if not labels:
+        raise DatasetError(f"{root}: no labelled models to preview")
+    depth = 0
+    while len(chosen) < count and any(depth < len(v) for v in labels.values()):
+        for model, entries in labels.items():
+            if depth < len(entries) and len(chosen) < count:
+                chosen.append((model, entries[depth]))
+        depth += 1
+    columns = min(4, len(chosen))
+    rows = -(-len(chosen) // columns)
+    figure, axes = plt.subplots(rows, columns, figsize=(3 * columns, 3.2 * rows), squeeze=False)
+    for axis in axes.flat:
+        axis.axis("off")
+    for axis, (model, label) in zip(axes.flat, chosen, strict=False):
+        image = read_gray(root / model / IMAGES / label["filename"])
+        mask = read_gray(root / model / MASKS / label["filename"]) >= 128
+        axis.imshow(image, cmap="gray", vmin=0, vmax=255)
+        axis.contour(mask, levels=[0.5], colors=["#ffcc00"], linewidths=0.6)
+        rotation = quaternion_to_matrix(torch.tensor(label["q_vbs2tango_true"],
+                                                     dtype=torch.float64))
+        origin = torch.tensor(label["r_Vo2To_vbs_true"], dtype=torch.float64)
+        ends = origin + axis_length * rotation.T  # rows: camera-frame tips of body x, y, z
+        pixels = camera.project(torch.cat([origin[None], ends]).float()).numpy()
+        for tip, colour in zip(pixels[1:], ("r", "g", "b"), strict=True):
+            axis.plot([pixels[0, 0], tip[0]], [pixels[0, 1], tip[1]], colour, linewidth=1.2)
+        phase = label.get("phase_angle_deg")
+        subtitle = f"phase {phase:.0f} deg" if phase is not None else ""
+        axis.set_title(f"{model} {label['filename']}\n{subtitle}", fontsize=7)
+        axis.set_xlim(0, camera.width)
+        axis.set_ylim(camera.height, 0)
+    figure.tight_layout()
+    return save_figure(figure, out)
+

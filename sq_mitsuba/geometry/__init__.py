@@ -1,0 +1,6 @@
+"""Geometry layer: pure torch and numpy, no renderer.
+
+Superquadrics (primal and dual), rotations (6D, quaternion, matrix), icospheres, assemblies of
+primitives (16 numbers each), the pinhole camera, and orthonormal frames. Imports only the
+shared utilities (``checks``, ``io``).
+"""

@@ -1,0 +1,117 @@
+"""The folder tree is the architecture: every import points down the layer order.
+
+Order, lowest first: the shared utilities at the top level (``checks``, ``config``, ``io``,
+``llvm``), then ``geometry``, ``render``, ``data``, ``learning``, ``evaluation``, ``cli``. A
+module may import its own layer and the layers below it, never one above. Imports inside
+functions count too (the project defers heavy imports into functions).
+"""
+
+from __future__ import annotations
+
+import ast
+import shutil
+from pathlib import Path
+
+import sq_mitsuba
+
+PACKAGE = Path(sq_mitsuba.__file__).resolve().parent
+UTILITIES = ("checks", "config", "io", "llvm")
+LAYERS = ("utilities", "geometry", "render", "data", "learning", "evaluation", "cli")
+# The package root re-exports the inference API and runs the CLI: it sits on top.
+TOP = ("__init__", "__main__")
+
+
+def layer_of(module: str) -> int | None:
+    """Rank in :data:`LAYERS` of a dotted ``sq_mitsuba...`` module name (None: not ours)."""
+    parts = module.split(".")
+    if parts[0] != "sq_mitsuba":
+        return None
+    if len(parts) == 1 or parts[1] in TOP:
+        return len(LAYERS)
+    if parts[1] in UTILITIES:
+        return 0
+    if parts[1] == "scenes":  # package data, imports nothing
+        return 0
+    if parts[1] not in LAYERS:
+        raise AssertionError(f"{module}: not in a layer folder; layers are {LAYERS}")
+    return LAYERS.index(parts[1])
+
+
+def module_name(path: Path, root: Path) -> str:
+    relative = path.relative_to(root.parent).with_suffix("")
+    parts = list(relative.parts)
+    if parts[-1] == "__init__" and len(parts) > 1:
+        parts = parts[:-1]
+    return ".".join(parts)
+
+
+def imported_modules(tree: ast.AST, module: str, is_package: bool) -> list[tuple[int, str]]:
+    """(line, absolute module name) of every import in ``tree``, relative ones resolved."""
+    package = module if is_package else module.rpartition(".")[0]
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            found += [(node.lineno, alias.name) for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")
+                base = base[: len(base) - node.level + 1]
+                name = ".".join(base + ([node.module] if node.module else []))
+            else:
+                name = node.module or ""
+            found.append((node.lineno, name))
+            # ``from sq_mitsuba import bench`` imports the submodule sq_mitsuba.bench.
+            found += [(node.lineno, f"{name}.{alias.name}") for alias in node.names
+                      if name == "sq_mitsuba"]
+    return found
+
+
+def layer_violations(root: Path) -> list[str]:
+    """One line per import in the package at ``root`` that points to a higher layer."""
+    problems = []
+    for path in sorted(root.rglob("*.py")):
+        module = module_name(path, root)
+        own = layer_of(module)
+        tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
+        for line, target in imported_modules(tree, module, path.name == "__init__.py"):
+            rank = layer_of(target)
+            if rank is not None and own is not None and rank > own:
+                problems.append(f"{path.relative_to(root.parent)}:{line}: {module} "
+                                f"({_name(own)}) imports {target} ({_name(rank)})")
+    return problems
+
+
+def _name(rank: int) -> str:
+    return LAYERS[rank] if rank < len(LAYERS) else "package root"
+
+
+def test_every_import_points_down():
+    assert layer_violations(PACKAGE) == []
+
+
+def test_every_module_sits_in_a_layer_folder():
+    for path in PACKAGE.rglob("*.py"):
+        layer_of(module_name(path, PACKAGE))  # raises for a module outside the layers
+
+
+def test_a_planted_upward_import_is_caught(tmp_path):
+    copy = tmp_path / "sq_mitsuba"
+    shutil.copytree(PACKAGE, copy, ignore=shutil.ignore_patterns("__pycache__"))
+    planted = copy / "geometry" / "planted.py"
+    planted.write_text("def late():\n    from sq_mitsuba.render.backend import mitsuba\n"
+                       "    return mitsuba\n")
+    relative = copy / "render" / "planted_relative.py"
+    relative.write_text("from ..learning import fit\n")
+    problems = layer_violations(copy)
+    assert len(problems) == 2, problems
+    assert "geometry/planted.py:2" in problems[0] and "(render)" in problems[0]
+    assert "render/planted_relative.py:1" in problems[1] and "(learning)" in problems[1]
+
+
+def test_shared_utilities_import_nothing_of_the_project():
+    for name in UTILITIES:
+        path = PACKAGE / f"{name}.py"
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+        ours = [t for _, t in imported_modules(tree, f"sq_mitsuba.{name}", False)
+                if t.startswith("sq_mitsuba")]
+        assert ours == [], f"{path.name} imports {ours}"
