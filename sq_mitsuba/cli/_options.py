@@ -1,0 +1,117 @@
+"""Command-line options whose defaults and help come from the library's config dataclasses.
+
+Every default lives in one place, the config dataclass (see :mod:`sq_mitsuba.config`); a
+command declares which fields it exposes, and this module builds the argparse options (type,
+choices, default, help = the field's docstring plus "(default: ...)") and turns the parsed
+arguments back into a validated config. A bad value is a one-line error naming the option.
+
+    parser.add_argument(...)                       # positional / command-only arguments
+    add_config_options(parser, FitOptions, {"steps": "--steps", "lr": "--lr"})
+    ...
+    options = config_from_args(FitOptions, args)   # ConfigError -> "--steps: expected ..."
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import typing
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any, Literal
+
+from sq_mitsuba.cli import CLIError
+from sq_mitsuba.config import ConfigError, apply_overrides, field_docs, from_dict, to_dict
+
+_FLAGS = "_config_flags"
+
+
+def _option_kwargs(annotation: Any, default: Any) -> dict[str, Any]:
+    """argparse keyword arguments (type, choices, nargs, action) for one field type."""
+    origin = typing.get_origin(annotation)
+    args = typing.get_args(annotation)
+    if origin is Literal:
+        return {"choices": list(args), "type": type(args[0])}
+    if annotation is bool:
+        return {"action": argparse.BooleanOptionalAction}
+    if origin is tuple:
+        kind = args[0]
+        return {"type": kind, "nargs": "+" if len(args) == 2 and args[1] is Ellipsis
+                else len(args)}
+    if origin in (typing.Union, getattr(__import__("types"), "UnionType", None)):
+        members = [a for a in args if a is not type(None)]
+        return _option_kwargs(members[0], default) if len(members) == 1 else {"type": str}
+    if annotation in (int, float, str, Path):
+        return {"type": annotation}
+    raise TypeError(f"no command-line option for a field of type {annotation!r}")
+
+
+def add_config_options(parser: argparse.ArgumentParser, config_class: type,
+                       flags: Mapping[str, str], metavars: Mapping[str, str] | None = None,
+                       ) -> None:
+    """Add one option per ``field: flag`` of ``flags``; default and help come from
+    ``config_class`` (its default instance and its field docstrings)."""
+    defaults = config_class()
+    hints = typing.get_type_hints(config_class)
+    docs = field_docs(config_class)
+    for name, flag in flags.items():
+        default = getattr(defaults, name)
+        shown = list(default) if isinstance(default, tuple) else default
+        help_text = docs.get(name, "").rstrip(".")
+        kwargs = _option_kwargs(hints[name], default)
+        if metavars and name in metavars:
+            kwargs["metavar"] = metavars[name]
+        parser.add_argument(flag, dest=name, default=argparse.SUPPRESS,
+                            help=f"{help_text} (default: {shown})", **kwargs)
+    known = dict(parser.get_default(_FLAGS) or {})
+    known.update({name: flag for name, flag in flags.items()})
+    parser.set_defaults(**{_FLAGS: known})
+
+
+def add_set_option(parser: argparse.ArgumentParser, what: str) -> None:
+    """``--set key=value`` (repeatable): dotted overrides of any field of ``what``'s config."""
+    parser.add_argument("--set", dest="overrides", action="append", default=[],
+                        metavar="KEY=VALUE",
+                        help=f"override a field of the {what} (dotted, e.g. "
+                             "pose.distance_scale=[1.0,1.2]); repeatable")
+
+
+def config_from_args(config_class: type, args: argparse.Namespace, base: Any = None,
+                     **extra: Any) -> Any:
+    """The validated ``config_class`` instance: ``base`` (default: the class defaults), then
+    the options given on the command line, then ``extra`` fields, then ``--set`` overrides.
+
+    A ``ConfigError`` becomes a :class:`CLIError` naming the option (``--steps: ...``).
+    """
+    flags: dict[str, str] = getattr(args, _FLAGS, None) or {}
+    base = base if base is not None else config_class()
+    values = to_dict(base)
+    given = {name: getattr(args, name) for name in flags if hasattr(args, name)}
+    given.update(extra)
+    for name, value in given.items():
+        values[name] = list(value) if isinstance(value, tuple) else (
+            str(value) if isinstance(value, Path) else value)
+    try:
+        config = from_dict(config_class, values)
+    except ConfigError as error:
+        message = str(error)
+        for name, flag in flags.items():
+            if message.startswith(f"{name}:") or message.startswith(f"{name}["):
+                message = flag + message[len(name):]
+                break
+        raise CLIError(message) from None
+    overrides = getattr(args, "overrides", None) or []
+    if overrides:
+        try:
+            config = apply_overrides(config, overrides)
+        except ConfigError as error:
+            raise CLIError(f"--set {error}") from None
+    return config
+
+
+def field_default(config_class: type, name: str) -> Any:
+    """The default of field ``name`` of ``config_class`` (for help texts of positional args)."""
+    for item in dataclasses.fields(config_class):
+        if item.name == name:
+            return getattr(config_class(), name)
+    raise KeyError(name)
