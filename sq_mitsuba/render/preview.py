@@ -11,6 +11,7 @@ import math
 
 import numpy as np
 
+from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.render.materials import MATERIALS, PREVIEW_ALBEDO
 
 PREVIEW_FOV_DEG = 35.45  # the project's default camera (SPEED's horizontal field of view)
@@ -69,3 +70,41 @@ def render_model(vertices: np.ndarray, faces: np.ndarray, face_material: np.ndar
     # Hidden emitters: background pixels carry zero radiance, and edge pixels already hold
     # the film's coverage-weighted average, so the luminance channel is the final image.
     return np.clip(rendered[..., 0], 0.0, 1.0) ** (1 / 2.2)
+
+
+def render_face_ids(vertices: np.ndarray, faces: np.ndarray, camera: Camera,
+                    light: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """First-hit face index and Lambert shading per pixel of camera-frame meshes.
+
+    Mitsuba casts one ray through each pixel centre of ``camera`` (a
+    :class:`~sq_mitsuba.geometry.camera.Camera`, OpenCV frame at the origin); the shading is
+    ``0.25 + 0.75 |n . l|`` with ``l`` the unit direction to the light (default: from the camera,
+    up and to the left). The variant is mono, so callers colour the face indices themselves
+    (one colour per primitive, say).
+
+    Args:
+        vertices: (V, 3) camera-frame vertices; faces: (F, 3).
+
+    Returns:
+        face index (H, W) int64 (-1 on background) and shading (H, W) float in [0, 1].
+    """
+    from sq_mitsuba.render.depth import RayCaster
+
+    vertices = np.asarray(vertices, dtype=np.float64)
+    faces = np.asarray(faces, dtype=np.int64)
+    u, v = np.meshgrid(np.arange(camera.width) + 0.5, np.arange(camera.height) + 0.5)
+    directions = np.stack([(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy,
+                           np.ones_like(u)], axis=-1).reshape(-1, 3)
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    caster = RayCaster(vertices, faces)
+    _, face = caster.first_hit(np.zeros_like(directions), directions)
+    light = np.array([-0.4, -0.5, -1.0]) if light is None else np.asarray(light, float)
+    light = light / np.linalg.norm(light)
+    normals = np.cross(vertices[faces[:, 1]] - vertices[faces[:, 0]],
+                       vertices[faces[:, 2]] - vertices[faces[:, 0]])
+    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-30)
+    shade = np.zeros(len(face))
+    hit = face >= 0
+    shade[hit] = 0.25 + 0.75 * np.abs(normals[face[hit]] @ light)
+    shape = (camera.height, camera.width)
+    return face.reshape(shape), shade.reshape(shape)
