@@ -1,0 +1,81 @@
+"""Tables from evaluation rows, and the paper-style report collated from them."""
+
+from __future__ import annotations
+
+import csv
+
+import numpy as np
+import pytest
+
+from sq_mitsuba.evaluation.evaluate import METRICS, mean_rotation, summarise, write_tables
+from sq_mitsuba.evaluation.report import PAPER_TABLES, read_eval_folder, write_report
+from sq_mitsuba.geometry.rotation import random_rotations
+from sq_mitsuba.io import atomic_write_json
+
+
+def _rows(seed: int, offset: float) -> list[dict]:
+    rng = np.random.default_rng(seed)
+    rows = []
+    for method in ("network", "baseline"):
+        for model in ("sat_a", "sat_b"):
+            for index in range(5):
+                row = {"model": model, "index": index, "method": method, "filename": ""}
+                row.update({m: float(rng.uniform(0, 1) + offset) for m in METRICS})
+                rows.append(row)
+    return rows
+
+
+def _eval_folder(path, split: str, label: str, offset: float):
+    rows = _rows(hash((split, label)) % 1000, offset)
+    write_tables(rows, path)
+    atomic_write_json(path / "eval.json", {"split": split, "label": label,
+                                           "num_primitives": 5})
+    return rows
+
+
+def test_summary_matches_numpy(tmp_path):
+    rows = _eval_folder(tmp_path, "val", "run", 0.0)
+    stats = summarise(rows)[("network",)]["iou_2d"]
+    values = np.array([r["iou_2d"] for r in rows if r["method"] == "network"])
+    assert stats == pytest.approx((values.mean(), values.std(), np.median(values)))
+    with open(tmp_path / "per_image.csv", newline="") as handle:
+        assert len(list(csv.DictReader(handle))) == len(rows)
+    folder = read_eval_folder(tmp_path)
+    assert folder["summary"]["network"]["iou_2d"] == pytest.approx(stats[:2])
+    for name in ("summary.md", "per_model.csv", "per_model.md"):
+        assert (tmp_path / name).stat().st_size > 0
+
+
+def test_report_holds_ours_and_the_papers_numbers_with_the_best_in_bold(tmp_path):
+    for split in ("val", "test"):
+        _eval_folder(tmp_path / "good" / split, split, "good", 0.0)
+        _eval_folder(tmp_path / "bad" / split, split, "bad", 5.0)
+    folders = [tmp_path / run / split for run in ("good", "bad") for split in ("val", "test")]
+    report = write_report(folders, tmp_path / "report").read_text()
+    assert PAPER_TABLES.is_file()
+    assert "0.054 ± 0.026" in report  # paper Table 1 (a), validation Chamfer-L1
+    assert "0.137 ± 0.081" in report  # paper Table 2, M = 8, test Chamfer-L1
+    good = read_eval_folder(tmp_path / "good" / "val")["summary"]["network"]["chamfer_l1_paper"]
+    assert f"{good[0]:.3f} ± {good[1]:.3f}" in report
+    # The "bad" run is 5 worse everywhere: the paper's value is the best Chamfer in Table 1.
+    assert "**0.054 ± 0.026**" in report
+    assert "Not directly comparable" in report
+    assert (tmp_path / "report" / "report.csv").stat().st_size > 0
+
+
+def test_report_refuses_a_folder_that_is_not_an_evaluation(tmp_path):
+    with pytest.raises(FileNotFoundError, match=r"eval\.json: missing"):
+        write_report([tmp_path], tmp_path / "out")
+    with pytest.raises(ValueError, match="at least one"):
+        write_report([], tmp_path / "out")
+
+
+def test_mean_rotation_is_a_rotation_and_the_mean_of_equal_rotations():
+    import torch
+
+    rotation = random_rotations(1, torch.Generator().manual_seed(0), torch.float64)
+    assert torch.allclose(mean_rotation(rotation.expand(5, 3, 3)), rotation[0], atol=1e-12)
+    spread = mean_rotation(random_rotations(50, torch.Generator().manual_seed(1),
+                                            torch.float64))
+    assert torch.allclose(spread @ spread.T, torch.eye(3, dtype=torch.float64), atol=1e-10)
+    assert float(torch.linalg.det(spread)) == pytest.approx(1.0)
