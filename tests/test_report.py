@@ -79,3 +79,13 @@ def test_mean_rotation_is_a_rotation_and_the_mean_of_equal_rotations():
                                             torch.float64))
     assert torch.allclose(spread @ spread.T, torch.eye(3, dtype=torch.float64), atol=1e-10)
     assert float(torch.linalg.det(spread)) == pytest.approx(1.0)
+
+
+def test_report_command(tmp_path, capsys):
+    from sq_mitsuba.cli import main
+
+    _eval_folder(tmp_path / "run" / "val", "val", "run", 0.0)
+    assert main(["report", str(tmp_path / "run" / "val"), "--out", str(tmp_path / "r")]) == 0
+    assert "0.594 ± 0.183" in (tmp_path / "r" / "report.md").read_text()
+    assert main(["report", str(tmp_path / "nothing"), "--out", str(tmp_path / "r2")]) == 2
+    assert "eval.json: missing" in capsys.readouterr().err

@@ -1,0 +1,31 @@
+"""``sq-mitsuba report EVAL_DIR...``: evaluation folders in the layout of the paper's tables."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    from sq_mitsuba.evaluation.report import PAPER_TABLES
+
+    parser = subparsers.add_parser(
+        "report", help="collate evaluations into the paper's Tables 1 and 2",
+        description="Collate folders written by `sq-mitsuba eval` (one split of one run each) "
+                    "into report.md and report.csv in the layout of the paper's Tables 1 and "
+                    "2, with the paper's published numbers beside ours and the best in bold.")
+    parser.add_argument("folders", nargs="+", type=Path, metavar="EVAL_DIR",
+                        help="evaluation folders (holding eval.json and summary.csv)")
+    parser.add_argument("--out", type=Path, required=True, metavar="DIR",
+                        help="output folder for report.md and report.csv")
+    parser.add_argument("--paper", type=Path, default=PAPER_TABLES, metavar="TOML",
+                        help=f"the paper's published tables (default: {PAPER_TABLES})")
+    parser.set_defaults(func=_run)
+
+
+def _run(args: argparse.Namespace) -> int:
+    from sq_mitsuba.evaluation.report import write_report
+
+    path = write_report(args.folders, args.out, args.paper)
+    print(f"wrote {path} and {path.with_suffix('.csv')}")
+    return 0
