@@ -18,6 +18,7 @@ from sq_mitsuba.data.spacecraft import (
     catalogue,
     generate_spacecraft,
 )
+from sq_mitsuba.data.spacecraft.generator import MAX_CATALOGUE_COUNT, TEST_STRATA, catalogue_split
 from sq_mitsuba.render.depth import RayCaster
 
 # Distinctness threshold: occnet Chamfer-L1 between two unit-size models at 20,000 surface
@@ -154,3 +155,41 @@ def test_thin_panels_survive_processing() -> None:
         measured = 0.2 - t_top[0] - t_bottom[0]
         assert measured == pytest.approx(thickness, abs=2e-4)
     assert model.checks["watertight"] and model.checks["outward"]
+
+
+def test_catalogue_splits_do_not_move_with_count() -> None:
+    """A model's split is a function of its name and the catalogue seed: the first models of a
+    small catalogue are those of a large one, splits included (the old rule drew the test
+    models among ``count``, so ``--count 3`` and ``--count 64`` disagreed)."""
+    for seed in (0, 5, 7, 123_456, 2**32 - 1):
+        big = catalogue(200, seed)
+        for count in (1, 2, 3, 6, 64, 65):
+            assert catalogue(count, seed) == big[:count], (seed, count)
+        by_name = {e.name: e.split for e in big}
+        assert all(by_name[e.name] == e.split for e in catalogue(6, seed))
+        assert all(e.split == catalogue_split(seed, i) for i, e in enumerate(big))
+        assert all(e.catalogue_seed == seed for e in big)
+
+
+def test_every_block_of_64_has_7_test_models_and_small_catalogues_one() -> None:
+    for seed in range(40):
+        entries = catalogue(192, seed)
+        for block in range(3):
+            assert sum(e.split == "test" for e in entries[64 * block:64 * block + 64]) == 7
+        assert sum(e.split == "test" for e in entries[:2]) == 1, seed
+        # The test models are spread: none of the 7 strata of a block goes without one.
+        tests = [i for i, e in enumerate(entries[:64]) if e.split == "test"]
+        assert len({next(k for k in range(7) if i < TEST_STRATA[k + 1]) for i in tests}) == 7
+    assert catalogue(1, 0)[0].split == catalogue(64, 0)[0].split
+
+
+def test_catalogue_seed_and_count_ranges() -> None:
+    with pytest.raises(ValueError, match=r"seed: expected an integer in \[0, 4294967295\]"):
+        catalogue(3, -1)
+    with pytest.raises(ValueError, match="seed"):
+        catalogue(3, 2**32)
+    with pytest.raises(ValueError, match="count"):
+        catalogue(0, 0)
+    with pytest.raises(ValueError, match="count"):
+        catalogue(MAX_CATALOGUE_COUNT + 1, 0)
+    assert len(catalogue(3, 2**32 - 1)) == 3

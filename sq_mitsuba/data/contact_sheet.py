@@ -3,13 +3,45 @@
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from sq_mitsuba.data.mesh_io import read_obj
+from sq_mitsuba.config import in_range, validate
+from sq_mitsuba.data.mesh_io import read_tagged_obj
 from sq_mitsuba.io import atomic_path
-from sq_mitsuba.render.preview import render_model
+
+LABEL_HEIGHT = 14
+"""Pixels under each tile for the model's name."""
+MAX_SHEET_PIXELS = 2**28
+"""Largest sheet (268 megapixels, as many bytes in 8-bit grey): PIL's safe size and memory."""
+
+
+@dataclass(frozen=True)
+class ContactSheetOptions:
+    """How ``sq-mitsuba models preview`` renders a library."""
+
+    out: Path | None = None
+    "PNG path; None means ROOT/contact_sheet.png."
+    size: int = in_range(16, 1024, default=160)
+    "Tile side in pixels."
+    spp: int = in_range(1, 4096, default=64)
+    "Samples per pixel."
+    columns: int | None = in_range(1, 256, default=None)
+    "Tiles per row; None means a square-ish grid."
+    limit: int | None = in_range(1, 100_000, default=None)
+    "Render only the first LIMIT models by name; None means all."
+
+
+@dataclass(frozen=True)
+class ContactSheet:
+    """A written contact sheet."""
+
+    path: Path
+    """The PNG."""
+    models: int
+    """How many models it shows."""
 
 
 def library_models(root: str | Path) -> list[Path]:
@@ -17,36 +49,45 @@ def library_models(root: str | Path) -> list[Path]:
     return sorted(Path(root).glob("*/models/model_normalized.obj"))
 
 
-def contact_sheet(root: str | Path, out: str | Path, tile: int = 160, spp: int = 64,
-                  columns: int | None = None, limit: int | None = None) -> int:
-    """Render the models of a library into one labelled PNG grid; return the model count.
+def contact_sheet(root: str | Path, options: ContactSheetOptions | None = None) -> ContactSheet:
+    """Render the models of a library into one labelled PNG grid (written atomically).
+
+    Each model is drawn with its per-face materials (from ``samples.npz`` beside the OBJ, see
+    :func:`sq_mitsuba.data.mesh_io.read_tagged_obj`). Options and the sheet's size are checked
+    before anything is rendered.
 
     Args:
         root: library root holding ``<model>/models/model_normalized.obj``.
-        out: PNG path (written atomically).
-        tile: tile side in pixels.
-        spp: samples per pixel.
-        columns: tiles per row (default: a square-ish grid).
-        limit: render only the first ``limit`` models by name (default all).
+        options: tile size, samples per pixel, grid and output path.
     """
     from PIL import Image, ImageDraw
 
-    if limit is not None and limit < 1:
-        raise ValueError(f"limit: expected >= 1, got {limit}")
-    files = library_models(root)[:limit]
+    # Deferred: the renderer pulls in Mitsuba and torch, which option parsing does not need.
+    from sq_mitsuba.render.preview import render_model
+
+    options = options or ContactSheetOptions()
+    validate(options)
+    root = Path(root)
+    out = options.out or root / "contact_sheet.png"
+    files = library_models(root)[:options.limit]
     if not files:
         raise ValueError(f"{root}: no <model>/models/model_normalized.obj found")
-    columns = columns or math.ceil(math.sqrt(len(files)))
+    tile = options.size
+    columns = options.columns or math.ceil(math.sqrt(len(files)))
     rows = math.ceil(len(files) / columns)
-    label_h = 14
-    sheet = Image.new("L", (columns * tile, rows * (tile + label_h)), color=0)
+    width, height = columns * tile, rows * (tile + LABEL_HEIGHT)
+    if width * height > MAX_SHEET_PIXELS:
+        raise ValueError(f"size: {len(files)} models of {tile} px in {columns} columns make a "
+                         f"{width} x {height} sheet, over {MAX_SHEET_PIXELS // 2**20} "
+                         "megapixels; lower the size or set a limit")
+    sheet = Image.new("L", (width, height), color=0)
     draw = ImageDraw.Draw(sheet)
     for k, obj in enumerate(files):
-        vertices, faces, tags = read_obj(obj)
-        image = render_model(vertices, faces, tags, tile, spp)
-        x, y = (k % columns) * tile, (k // columns) * (tile + label_h)
+        mesh = read_tagged_obj(obj)
+        image = render_model(mesh.vertices, mesh.faces, mesh.face_material, tile, options.spp)
+        x, y = (k % columns) * tile, (k // columns) * (tile + LABEL_HEIGHT)
         sheet.paste(Image.fromarray((image * 255 + 0.5).astype(np.uint8), "L"), (x, y))
         draw.text((x + 3, y + tile + 1), obj.parent.parent.name[:28], fill=220)
     with atomic_path(out) as tmp:
-        sheet.save(tmp)
-    return len(files)
+        sheet.save(tmp, format="PNG")
+    return ContactSheet(Path(out), len(files))

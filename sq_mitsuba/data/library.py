@@ -1,31 +1,222 @@
 """A model library on disk in the SPE3R layout: generate or import, process, write.
 
 Each model lands in ``<root>/<model>/models/`` (see
-:func:`sq_mitsuba.data.mesh_processing.write_model`); ``<root>/splits.csv`` lists generated
-models as ``model,train`` / ``model,test`` rows without a header.
+:func:`sq_mitsuba.data.mesh_processing.write_model`). Two files at the root keep account:
+
+* ``splits.csv``: ``model,train`` / ``model,test`` rows without a header, one per generated
+  model, sorted by name. :func:`generate_library` merges into it: rows of models it does not
+  generate stay, a model generated again keeps one row. A model's split is a function of its
+  name and the catalogue seed (:func:`sq_mitsuba.data.spacecraft.generator.catalogue_split`).
+* ``failures.json``: ``{model: reason}`` of the generated models whose last attempt failed;
+  a later successful attempt removes the entry, and the file goes when empty. A failed
+  model gets no row in ``splits.csv`` (a row from an earlier success stays, because
+  that earlier model's files are still there).
+
+Both files are rewritten atomically after every model, so an interrupted batch leaves them
+consistent with the model folders on disk.
+
+Imported models are named after their file (:func:`model_name_for`). Convention: the name is
+the file's stem, or ``<stem>_2``, ``<stem>_3``, ... when the stem is already an entry of the
+output folder or was given to an earlier file of the same batch; nothing is overwritten.
 """
 
 from __future__ import annotations
 
+import os
 import re
+from collections.abc import Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
+from sq_mitsuba.config import bounds, in_range, validate
 from sq_mitsuba.data.mesh_processing import (
     FUSION_RESOLUTION,
+    MESH_SUFFIXES,
+    MIN_FUSION_RESOLUTION,
     MeshError,
     connected_pieces,
+    fusion_memory_bytes,
     load_mesh,
+    max_fusion_resolution,
     model_card,
     process_mesh,
     sample_model,
     write_model,
 )
 from sq_mitsuba.data.spacecraft import THIN_FRACTION, CatalogueEntry, generate_spacecraft
+from sq_mitsuba.data.spacecraft.generator import (
+    DEFAULT_CATALOGUE_COUNT,
+    DEFAULT_CATALOGUE_SEED,
+    MAX_CATALOGUE_COUNT,
+    MAX_CATALOGUE_SEED,
+    catalogue,
+)
+from sq_mitsuba.io import atomic_write_json, read_json
+
+SPLITS_FILE = "splits.csv"
+FAILURES_FILE = "failures.json"
+DEFAULT_POINTS = 100_000
+MAX_POINTS = 2_000_000
+"""Most points per sample set: three sets of 2,000,000 points are about 110 MB per model
+(54 bytes per point across the sets, before compression)."""
 
 
-def generate_model(entry: CatalogueEntry, out_root: str | Path, points: int = 100_000) -> Path:
+# --------------------------------------------------------------------------------- options
+
+@dataclass(frozen=True)
+class GenerateOptions:
+    """What ``sq-mitsuba models generate`` builds: the first ``count`` models of a catalogue."""
+
+    out: Path = Path("data/spacecraft")
+    "Library root: models go to OUT/<model>/models/, splits to OUT/splits.csv."
+    count: int = in_range(1, MAX_CATALOGUE_COUNT, default=DEFAULT_CATALOGUE_COUNT)
+    "Number of models: the first COUNT of the catalogue (64 is the paper's 57 train / 7 test)."
+    seed: int = in_range(0, MAX_CATALOGUE_SEED, default=DEFAULT_CATALOGUE_SEED)
+    "Catalogue seed, 0 <= SEED < 2**32; it fixes every model's name, shape and split."
+    points: int = in_range(1, MAX_POINTS, default=DEFAULT_POINTS)
+    "Points per sample set: surface, uniform, near."
+
+
+def machine_memory_bytes() -> int:
+    """Memory this process may use: physical memory, or a lower cgroup (container) limit."""
+    total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    try:
+        limit = Path("/sys/fs/cgroup/memory.max").read_text().strip()
+    except OSError:
+        return total
+    return min(total, int(limit)) if limit.isdigit() else total
+
+
+def check_fusion_resolution(resolution: int) -> None:
+    """``ValueError`` naming ``resolution`` when depth fusion at it would not fit in memory.
+
+    The bound is :func:`~sq_mitsuba.data.mesh_processing.fusion_memory_bytes` against
+    :func:`machine_memory_bytes`, so an absurd value fails at once instead of being killed
+    for memory after minutes.
+    """
+    if resolution < MIN_FUSION_RESOLUTION:
+        raise ValueError(f"resolution: expected >= {MIN_FUSION_RESOLUTION}, got {resolution}")
+    memory = machine_memory_bytes()
+    need = fusion_memory_bytes(resolution)
+    if need > memory:
+        raise ValueError(
+            f"resolution: {resolution} needs about {need / 2**30:.3g} GiB for depth fusion, "
+            f"more than this machine's {memory / 2**30:.3g} GiB; expected a value in "
+            f"[{MIN_FUSION_RESOLUTION}, {max_fusion_resolution(memory)}]")
+
+
+@dataclass(frozen=True)
+class ImportOptions:
+    """How ``sq-mitsuba models import`` processes mesh files."""
+
+    out: Path = Path("data/imported")
+    "Library root: models go to OUT/<model>/models/."
+    method: Literal["auto", "boolean", "fusion"] = "auto"
+    "Watertight route: auto (exact union when every piece is closed, else depth-map fusion)."
+    align: Literal["axes", "obb"] = "axes"
+    "Alignment: axes (permute the file's axes) or obb (minimum-volume box axes)."
+    resolution: int = field(default=FUSION_RESOLUTION, metadata=bounds(MIN_FUSION_RESOLUTION))
+    """Fusion voxels along the longest side; at most what fits in this machine's memory
+    (depth fusion needs up to about 2 GiB plus 128 bytes per voxel)."""
+    points: int = in_range(1, MAX_POINTS, default=DEFAULT_POINTS)
+    "Points per sample set: surface, uniform, near."
+
+    def __post_init__(self) -> None:
+        # Checked for every method: with "auto" fusion may run, and an absurd value is an
+        # error whatever the route.
+        check_fusion_resolution(self.resolution)
+
+
+@dataclass
+class LibrarySummary:
+    """What a batch did: models written, failures, and the name each input got."""
+
+    out: Path
+    """The library root."""
+    written: list[str] = field(default_factory=list)
+    """Names of the models written, in batch order."""
+    failures: dict[str, str] = field(default_factory=dict)
+    """``{model: reason}`` of this batch's failed models."""
+    names: list[tuple[str, str]] = field(default_factory=list)
+    """Imports: ``(input path, model name)`` of every input in order, failed ones included."""
+
+    @property
+    def ok(self) -> bool:
+        return not self.failures
+
+    def text(self) -> str:
+        """The report: each import's name, then how many models were written where."""
+        lines = [f"{path} -> {name}" for path, name in self.names]
+        lines.append(f"{len(self.written)} model(s) written to {self.out}")
+        return "\n".join(lines)
+
+    def failure_text(self) -> str:
+        """The failures, one per line under a count ("" when none)."""
+        if not self.failures:
+            return ""
+        lines = [f"{len(self.failures)} failed:"]
+        lines += [f"  {name}: {reason}" for name, reason in self.failures.items()]
+        return "\n".join(lines)
+
+
+# ------------------------------------------------------------------------- bookkeeping
+
+def read_library_splits(root: Path) -> dict[str, str]:
+    """``<root>/splits.csv`` as ``{model: split}`` (empty when absent)."""
+    from sq_mitsuba.data.spe3r.layout import read_splits
+
+    path = root / SPLITS_FILE
+    return read_splits(path) if path.is_file() else {}
+
+
+def read_failures(root: Path) -> dict[str, str]:
+    """``<root>/failures.json`` as ``{model: reason}`` (empty when absent)."""
+    path = root / FAILURES_FILE
+    if not path.is_file():
+        return {}
+    data = read_json(path)
+    if not isinstance(data, dict) or not all(
+            isinstance(k, str) and isinstance(v, str) for k, v in data.items()):
+        raise ValueError(f"{path}: expected a JSON object of model name -> reason")
+    return data
+
+
+def _write_failures(root: Path, failures: dict[str, str]) -> None:
+    path = root / FAILURES_FILE
+    if failures:
+        atomic_write_json(path, dict(sorted(failures.items())))
+    elif path.exists():
+        path.unlink()
+
+
+def _write_splits(root: Path, splits: dict[str, str]) -> None:
+    from sq_mitsuba.data.spe3r.layout import write_splits
+
+    write_splits(root, sorted(splits.items()))
+
+
+def _check_root(root: Path) -> None:
+    if root.exists() and not root.is_dir():
+        raise ValueError(f"out: {root} exists and is not a folder")
+
+
+def _reason(error: Exception) -> str:
+    return f"{type(error).__name__}: {error}"
+
+
+def _progress(items: Sequence, desc: str, unit: str, show: bool):
+    from tqdm import tqdm
+
+    return tqdm(items, desc=desc, unit=unit, disable=not show)
+
+
+# --------------------------------------------------------------------------- generate
+
+def generate_model(entry: CatalogueEntry, out_root: str | Path,
+                   points: int = DEFAULT_POINTS) -> Path:
     """Generate, process, sample and write one catalogue entry; return its models folder.
 
     Raises :class:`MeshError` (nothing written) when the spacecraft is not one connected body.
@@ -41,6 +232,7 @@ def generate_model(entry: CatalogueEntry, out_root: str | Path, points: int = 10
     samples = sample_model(model.mesh, points, points, points, seed=entry.seed)
     card = model_card(entry.name, model, samples, source="procedural",
                       archetype=entry.archetype, seed=entry.seed, split=entry.split,
+                      catalogue_seed=entry.catalogue_seed,
                       generator_mesh_sha256=raw.digest(),
                       thin_part_thickness=round(spacecraft.thin * model.normalisation.scale, 6),
                       thin_fraction=THIN_FRACTION, parts=spacecraft.part_summary(),
@@ -48,16 +240,74 @@ def generate_model(entry: CatalogueEntry, out_root: str | Path, points: int = 10
     return write_model(out_root, entry.name, model, samples, card)
 
 
+def generate_library(options: GenerateOptions | None = None,
+                     progress: bool = True) -> LibrarySummary:
+    """Generate the first ``options.count`` catalogue models into ``options.out``.
+
+    One failing model does not stop the batch: it is recorded in the summary and in
+    ``failures.json`` and left out of ``splits.csv`` (see the module docstring for how both
+    files merge with an existing library). Options, ``splits.csv`` and ``failures.json`` are
+    checked before any model is built.
+    """
+    options = options or GenerateOptions()
+    validate(options)
+    root = Path(options.out)
+    _check_root(root)
+    splits = read_library_splits(root)
+    failures = read_failures(root)
+    summary = LibrarySummary(root)
+    for entry in _progress(catalogue(options.count, options.seed), "models", "model", progress):
+        try:
+            generate_model(entry, root, points=options.points)
+        except Exception as error:  # one bad model must not stop the batch
+            reason = _reason(error)
+            if entry.name in splits:
+                reason += " (the earlier model in this folder is kept)"
+            summary.failures[entry.name] = failures[entry.name] = reason
+        else:
+            summary.written.append(entry.name)
+            splits[entry.name] = entry.split
+            failures.pop(entry.name, None)
+            _write_splits(root, splits)
+        _write_failures(root, failures)
+    return summary
+
+
+# ----------------------------------------------------------------------------- import
+
 def model_name_for(path: Path) -> str:
     """A folder-safe model name from a file name."""
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", path.stem).strip("._") or "model"
 
 
+def import_names(paths: Sequence[str | Path], out_root: str | Path) -> list[str]:
+    """The model name each file gets (see the module docstring): its stem, or the first free
+    ``<stem>_<k>`` (k = 2, 3, ...) when the stem is taken in ``out_root`` or by an earlier
+    file of ``paths``."""
+    root = Path(out_root)
+    taken = {p.name for p in root.iterdir()} if root.is_dir() else set()
+    names = []
+    for path in paths:
+        base = model_name_for(Path(path))
+        name, k = base, 1
+        while name in taken:
+            k += 1
+            name = f"{base}_{k}"
+        taken.add(name)
+        names.append(name)
+    return names
+
+
 def import_model(path: str | Path, out_root: str | Path, method: str = "auto",
                  align: str = "axes", resolution: int = FUSION_RESOLUTION,
-                 points: int = 100_000, name: str | None = None) -> Path:
-    """Load, process, sample and write one mesh file; errors name the file."""
+                 points: int = DEFAULT_POINTS, name: str | None = None) -> Path:
+    """Load, process, sample and write one mesh file; errors name the file.
+
+    ``name`` defaults to :func:`model_name_for` the file; an existing model of that name is
+    replaced (:func:`import_models` picks names that never replace anything).
+    """
     path = Path(path)
+    check_fusion_resolution(resolution)
     mesh = load_mesh(path)
     try:
         model = process_mesh(mesh, method=method, align=align, resolution=resolution)
@@ -69,3 +319,41 @@ def import_model(path: str | Path, out_root: str | Path, method: str = "auto",
     card = model_card(name, model, samples, source=str(path), archetype="imported",
                       seed=None, parts={"imported_mesh": 1})
     return write_model(out_root, name, model, samples, card)
+
+
+def import_models(paths: Sequence[str | Path], options: ImportOptions | None = None,
+                  progress: bool = True) -> LibrarySummary:
+    """Import mesh files into ``options.out``, each into its own new model folder.
+
+    Every path must exist and have a supported suffix (checked before any work); a file that
+    cannot be read or processed is a failure of the batch, reported in the summary (imports
+    keep no ``failures.json``: the files named on the command line are the record), not an
+    error. ``summary.names`` tells which model name each file got.
+    """
+    options = options or ImportOptions()
+    validate(options)
+    if not paths:
+        raise ValueError("meshes: no files given")
+    for path in map(Path, paths):
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: no such file")
+        if path.suffix.lower() not in MESH_SUFFIXES:
+            raise ValueError(f"{path}: unsupported format {path.suffix!r}; "
+                             f"expected one of {', '.join(MESH_SUFFIXES)}")
+    root = Path(options.out)
+    _check_root(root)
+    names = import_names(paths, root)
+    summary = LibrarySummary(root, names=[(str(p), n) for p, n in zip(paths, names, strict=True)])
+    for path, name in _progress(list(zip(map(Path, paths), names, strict=True)), "import",
+                                "mesh", progress):
+        try:
+            import_model(path, root, method=options.method, align=options.align,
+                         resolution=options.resolution, points=options.points, name=name)
+        except Exception as error:  # one bad file must not stop the batch
+            message = str(error)
+            if str(path) not in message:
+                message = f"{path}: {message}"
+            summary.failures[name] = message
+        else:
+            summary.written.append(name)
+    return summary

@@ -1,19 +1,28 @@
-"""The project's one mesh type and its one OBJ reader and writer.
+"""The project's one mesh type, its OBJ reader and writer, and a glTF writer for viewers.
 
 Convention: a :class:`TaggedMesh` carries one material index per face (into
-:data:`sq_mitsuba.render.materials.MATERIALS`); OBJ files keep shared vertices and group faces
-by material with ``usemtl``, in face order, so per-face arrays stay aligned with the file.
+:data:`sq_mitsuba.render.materials.MATERIALS`). A processed model's OBJ is one object with
+shared vertices and no ``usemtl`` groups, so any reader (``trimesh.load(path,
+force="mesh")`` included) gets the one closed surface; its per-face tags live beside it, as
+``face_material`` in ``samples.npz`` (in OBJ face order), and ``model_normalized.glb`` carries
+them as glTF materials for viewers and Blender. :func:`read_obj` still reads the ``usemtl``
+groups of older files and of other tools.
 """
 
 from __future__ import annotations
 
 import hashlib
+import json
+import struct
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from sq_mitsuba.render.materials import MATERIALS, MTL_COLOUR
+
+SAMPLES_FILE = "samples.npz"
+"""File beside a processed model's OBJ holding its samples and ``face_material`` tags."""
 
 
 @dataclass(frozen=True)
@@ -70,25 +79,91 @@ def read_obj(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
             np.asarray(tags, np.int16))
 
 
-def obj_text(mesh: TaggedMesh, mtl_name: str | None = "model_normalized.mtl") -> str:
-    """Wavefront OBJ: shared vertices, faces grouped by material with ``usemtl``."""
-    lines = ["# sq_mitsuba processed model: unit size, centre of mass at origin"]
-    if mtl_name:
-        lines.append(f"mtllib {mtl_name}")
+def read_tagged_obj(path: str | Path) -> TaggedMesh:
+    """A processed model's OBJ with its per-face material tags.
+
+    Tags come from ``face_material`` in the ``samples.npz`` beside the OBJ (how processed
+    models store them); without that file (or that array) they are the OBJ's own ``usemtl``
+    tags, as :func:`read_obj` reads them. Raises ``ValueError`` naming the file when the tag
+    count does not match the face count.
+    """
+    path = Path(path)
+    vertices, faces, tags = read_obj(path)
+    samples = path.parent / SAMPLES_FILE
+    if samples.is_file():
+        with np.load(samples) as archive:
+            if "face_material" in archive:
+                tags = np.asarray(archive["face_material"], dtype=np.int16)
+                if len(tags) != len(faces):
+                    raise ValueError(f"{samples}: face_material has {len(tags)} entries for "
+                                     f"{len(faces)} faces of {path.name}")
+    return TaggedMesh(vertices, faces, tags)
+
+
+def obj_text(mesh: TaggedMesh) -> str:
+    """Wavefront OBJ: one object, shared vertices, faces in the mesh's order, no materials.
+
+    Convention: no ``usemtl`` groups, because readers split an OBJ at them (duplicating the
+    seam vertices, so the surface is no longer closed); the tags are stored elsewhere (see the
+    module docstring).
+    """
+    lines = ["# sq_mitsuba processed model: unit size, centre of mass at origin",
+             f"# per-face material tags: face_material in {SAMPLES_FILE}; "
+             "colours: model_normalized.glb"]
     lines += [f"v {x:.7f} {y:.7f} {z:.7f}" for x, y, z in mesh.vertices]
-    current = -1
-    for (a, b, c), tag in zip(mesh.faces + 1, mesh.face_material, strict=True):
-        if tag != current:
-            lines.append(f"usemtl {MATERIALS[tag]}")
-            current = tag
-        lines.append(f"f {a} {b} {c}")
+    lines += [f"f {a} {b} {c}" for a, b, c in mesh.faces + 1]
     return "\n".join(lines) + "\n"
 
 
-def mtl_text() -> str:
-    """Viewer colours of all material tags."""
-    out = []
-    for name in MATERIALS:
-        r, g, b = MTL_COLOUR[name]
-        out += [f"newmtl {name}", f"Kd {r:.3f} {g:.3f} {b:.3f}", ""]
-    return "\n".join(out)
+def _srgb_to_linear(c: float) -> float:
+    """glTF colour factors are linear; the viewer colours of MTL_COLOUR are sRGB."""
+    return c / 12.92 if c <= 0.04045 else ((c + 0.055) / 1.055) ** 2.4
+
+
+def glb_bytes(mesh: TaggedMesh, name: str = "model") -> bytes:
+    """Binary glTF 2.0 of a tagged mesh: one node, one mesh, one primitive per material.
+
+    All primitives index the same vertex array, so the surface stays connected; each gets a
+    material named after its tag, coloured with :data:`MTL_COLOUR` (viewer colours only).
+    No normals are stored: glTF viewers then shade each triangle flat, as the model is.
+    Coordinates are the model frame as is (the OBJ's), not re-oriented to glTF's +Y up.
+    """
+    positions = np.ascontiguousarray(mesh.vertices, dtype="<f4")
+    tags = np.asarray(mesh.face_material)
+    used = [int(t) for t in np.unique(tags)]
+    blobs = [positions.tobytes()]
+    offset = len(blobs[0])
+    accessors: list[dict] = [{
+        "bufferView": 0, "componentType": 5126, "count": len(positions), "type": "VEC3",
+        "min": positions.min(axis=0).tolist(), "max": positions.max(axis=0).tolist()}]
+    buffer_views: list[dict] = [{"buffer": 0, "byteOffset": 0, "byteLength": offset,
+                                 "target": 34962}]
+    primitives, materials = [], []
+    for k, tag in enumerate(used):
+        indices = np.ascontiguousarray(mesh.faces[tags == tag].reshape(-1), dtype="<u4")
+        blob = indices.tobytes()
+        buffer_views.append({"buffer": 0, "byteOffset": offset, "byteLength": len(blob),
+                             "target": 34963})
+        accessors.append({"bufferView": k + 1, "componentType": 5125, "count": len(indices),
+                          "type": "SCALAR"})
+        primitives.append({"attributes": {"POSITION": 0}, "indices": k + 1, "material": k,
+                           "mode": 4})
+        colour = [round(_srgb_to_linear(c), 6) for c in MTL_COLOUR[MATERIALS[tag]]]
+        materials.append({"name": MATERIALS[tag], "pbrMetallicRoughness": {
+            "baseColorFactor": [*colour, 1.0], "metallicFactor": 0.0, "roughnessFactor": 0.8}})
+        blobs.append(blob)
+        offset += len(blob)
+    document = {
+        "asset": {"version": "2.0", "generator": "sq_mitsuba"},
+        "scene": 0, "scenes": [{"nodes": [0]}], "nodes": [{"mesh": 0, "name": name}],
+        "meshes": [{"name": name, "primitives": primitives}], "materials": materials,
+        "accessors": accessors, "bufferViews": buffer_views, "buffers": [{"byteLength": offset}],
+    }
+    # Chunks are padded to 4 bytes: JSON with spaces, binary with zeros (glTF 2.0 rule).
+    text = json.dumps(document, separators=(",", ":")).encode("utf-8")
+    text += b" " * (-len(text) % 4)
+    binary = b"".join(blobs)  # every blob is a multiple of 4 bytes long
+    total = 12 + 8 + len(text) + 8 + len(binary)
+    return b"".join([struct.pack("<4sII", b"glTF", 2, total),
+                     struct.pack("<I4s", len(text), b"JSON"), text,
+                     struct.pack("<I4s", len(binary), b"BIN\x00"), binary])

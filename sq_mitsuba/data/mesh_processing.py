@@ -35,13 +35,21 @@ from pathlib import Path
 
 import numpy as np
 
-from sq_mitsuba.data.mesh_io import TaggedMesh, mtl_text, obj_text
-from sq_mitsuba.io import atomic_path, atomic_write_json, atomic_write_text
+from sq_mitsuba.data.mesh_io import SAMPLES_FILE, TaggedMesh, glb_bytes, obj_text
+from sq_mitsuba.io import atomic_path, atomic_write_bytes, atomic_write_json, atomic_write_text
 from sq_mitsuba.render.materials import MATERIALS, material_index
 
 MESH_SUFFIXES = (".obj", ".ply", ".stl", ".glb", ".gltf", ".off")
 IMPORT_MATERIAL = "aluminium"  # imported meshes carry no tags we can trust
 FUSION_RESOLUTION = 128  # voxels along the longest side
+MIN_FUSION_RESOLUTION = 16
+FUSION_PAD = 3  # voxels of free space around the model
+FUSION_BASE_BYTES = 2 * 2**30
+"""Memory of depth fusion beyond its voxel arrays (Mitsuba, surface samples, distance
+queries), an upper bound from measurements (about 1.3 GiB with Mitsuba loaded)."""
+FUSION_BYTES_PER_VOXEL = 128
+"""Memory per voxel of the fusion grid, an upper bound: the voxel-testing step holds about a
+hundred bytes per voxel (coordinates, indices, projections) when most voxels are tested."""
 FUSION_VIEWS = 64
 FUSION_VOTES = 2
 SHEET_HALF_THICKNESS = 0.75  # voxels
@@ -337,7 +345,7 @@ def solid_by_fusion(mesh: TaggedMesh, resolution: int = FUSION_RESOLUTION,
     vertices = (mesh.vertices - centre) / scale
     faces = mesh.faces
     h = 1.0 / resolution
-    pad = 3
+    pad = FUSION_PAD
     box_min = vertices.min(axis=0) - pad * h
     dims = np.ceil((vertices.max(axis=0) + pad * h - box_min) / h).astype(int) + 1
     axes = [box_min[k] + h * np.arange(dims[k]) for k in range(3)]
@@ -432,6 +440,27 @@ def solid_by_fusion(mesh: TaggedMesh, resolution: int = FUSION_RESOLUTION,
     out_faces = np.asarray(out.tri_verts, np.int64).reshape(-1, 3)
     return TaggedMesh(out_vertices, out_faces,
                       transfer_face_material(mesh, out_vertices, out_faces))
+
+
+def fusion_memory_bytes(resolution: int) -> int:
+    """Estimated peak memory (bytes) of :func:`solid_by_fusion` at ``resolution``.
+
+    Convention: the worst case, a model as deep as it is long (a cube's grid of
+    ``(resolution + 2 * FUSION_PAD + 2) ** 3`` voxels), at :data:`FUSION_BYTES_PER_VOXEL`,
+    plus :data:`FUSION_BASE_BYTES`.
+    """
+    side = int(resolution) + 2 * FUSION_PAD + 2
+    return FUSION_BASE_BYTES + FUSION_BYTES_PER_VOXEL * side**3
+
+
+def max_fusion_resolution(memory_bytes: int) -> int:
+    """The largest resolution whose :func:`fusion_memory_bytes` fits in ``memory_bytes``
+    (``MIN_FUSION_RESOLUTION - 1`` when none does)."""
+    voxels = max(memory_bytes - FUSION_BASE_BYTES, 0) / FUSION_BYTES_PER_VOXEL
+    side = round(voxels ** (1 / 3)) + 1
+    while side > 0 and FUSION_BYTES_PER_VOXEL * side**3 > memory_bytes - FUSION_BASE_BYTES:
+        side -= 1
+    return max(side - 2 * FUSION_PAD - 2, MIN_FUSION_RESOLUTION - 1)
 
 
 def make_solid(mesh: TaggedMesh, method: str = "auto",
@@ -622,8 +651,8 @@ def process_mesh(mesh: TaggedMesh, method: str = "auto", align: str = "axes",
     if signed_volume(solid.vertices, solid.faces) <= 0:
         raise MeshError("processed solid has zero volume")
     normalised, norm = normalise(solid, align)
-    # Faces sorted by material: the OBJ's usemtl groups are contiguous and the per-face
-    # material array keeps the OBJ's face order.
+    # Faces sorted by material: each material is one contiguous run of faces (one glTF
+    # primitive); the per-face material array keeps the OBJ's face order.
     order = np.argsort(normalised.face_material, kind="stable")
     normalised = TaggedMesh(normalised.vertices, normalised.faces[order],
                             normalised.face_material[order])
@@ -640,9 +669,11 @@ def write_model(out_root: str | Path, name: str, model: ProcessedModel,
                 samples: dict[str, np.ndarray], card: dict) -> Path:
     """Write ``<out_root>/<name>/models/`` atomically; return that folder.
 
-    Files: ``model_normalized.obj`` (+ ``.mtl``), ``samples.npz`` (points, labels and the
-    per-face material index array ``face_material`` in OBJ face order), ``model_card.json``.
-    The folder is built beside its final place and renamed; a failure leaves nothing new.
+    Files: ``model_normalized.obj`` (one closed surface, no material groups: see
+    :mod:`sq_mitsuba.data.mesh_io`), ``samples.npz`` (points, labels and the per-face material
+    index array ``face_material`` in OBJ face order), ``model_normalized.glb`` (the same mesh
+    with its materials, for viewers), ``model_card.json``. The folder is built beside its
+    final place and renamed; a failure leaves nothing new.
     """
     model_dir = Path(out_root) / name
     created = not model_dir.exists()
@@ -651,8 +682,8 @@ def write_model(out_root: str | Path, name: str, model: ProcessedModel,
     tmp = Path(tempfile.mkdtemp(prefix=".models.", dir=model_dir))
     try:
         atomic_write_text(tmp / "model_normalized.obj", obj_text(model.mesh))
-        atomic_write_text(tmp / "model_normalized.mtl", mtl_text())
-        with atomic_path(tmp / "samples.npz") as path:
+        atomic_write_bytes(tmp / "model_normalized.glb", glb_bytes(model.mesh, name))
+        with atomic_path(tmp / SAMPLES_FILE) as path:
             np.savez_compressed(path, **samples)
         atomic_write_json(tmp / "model_card.json", card)
         old = None

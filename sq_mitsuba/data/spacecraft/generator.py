@@ -5,10 +5,15 @@ Convention: thin parts (solar panels, sunshields, dish shells, body cells) are
 scaled to unit size. The recipe runs twice from the same seed: once to measure the longest
 side, once with the thickness set from it (the second run draws the same random numbers, so
 the layout is identical).
+
+Catalogue splits are stable: a model's train/test split is a function of its number (in its
+name) and the catalogue seed only, so ``--count 6`` and ``--count 64`` agree on the first six
+models (see :func:`catalogue_split` for the rule).
 """
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -24,6 +29,14 @@ from sq_mitsuba.render.materials import MATERIALS, material_index
 THIN_FRACTION = 0.01
 DEFAULT_CATALOGUE_COUNT = 64  # the paper's dataset size (57 train / 7 test)
 DEFAULT_CATALOGUE_SEED = 0  # ``sq-mitsuba models generate`` without --seed
+MAX_CATALOGUE_COUNT = 10_000
+"""Most models one catalogue holds (a generous ceiling: 64 is the paper's library)."""
+MAX_CATALOGUE_SEED = 2**32 - 1
+"""Largest catalogue seed (seeds are 32-bit unsigned integers, 0 included)."""
+SPLIT_BLOCK = 64
+"""Model numbers are split in blocks of this many; each holds 7 test models."""
+TEST_STRATA = (0, 2, 12, 23, 33, 43, 54, 64)
+"""Stratum boundaries within a block: one test model in each of the 7 strata."""
 
 
 @dataclass
@@ -94,25 +107,66 @@ class CatalogueEntry:
     archetype: str
     seed: int
     split: str
+    catalogue_seed: int | None = None
+    """The seed of the catalogue the entry belongs to (it fixes name, seed and split)."""
 
 
-def catalogue(count: int, seed: int, test_fraction: float = 7 / 64) -> list[CatalogueEntry]:
+def _check_catalogue_seed(seed: int) -> int:
+    if isinstance(seed, bool) or int(seed) != seed or not 0 <= int(seed) <= MAX_CATALOGUE_SEED:
+        raise ValueError(f"seed: expected an integer in [0, {MAX_CATALOGUE_SEED}], got {seed}")
+    return int(seed)
+
+
+def _stratum_of(position: int) -> int:
+    """Index into :data:`TEST_STRATA` of the stratum holding ``position`` (0 <= p < 64)."""
+    return next(k for k in range(len(TEST_STRATA) - 1) if position < TEST_STRATA[k + 1])
+
+
+def catalogue_split(seed: int, number: int) -> str:
+    """``"test"`` or ``"train"``: the split of catalogue model ``number`` of catalogue ``seed``.
+
+    Convention (the catalogue's split rule): model numbers are cut into blocks of
+    :data:`SPLIT_BLOCK` = 64, each block into the :data:`TEST_STRATA` (numbers 0-1, 2-11,
+    12-22, 23-32, 33-42, 43-53, 54-63 of the block); in every stratum exactly one model is a
+    test model, the one at the position given by the SHA-256 of ``(seed, block, stratum)``.
+    So a model's split depends only on its number (part of its name) and the catalogue seed,
+    never on ``--count``, on other models or on earlier runs; every block of 64 holds 7 test
+    models (the paper's 57/7 split of its 64 models), and any catalogue of two or more models
+    holds at least one (the first stratum is models 0 and 1).
+    """
+    seed = _check_catalogue_seed(seed)
+    if isinstance(number, bool) or int(number) != number or number < 0:
+        raise ValueError(f"number: expected a non-negative integer, got {number}")
+    block, position = divmod(int(number), SPLIT_BLOCK)
+    k = _stratum_of(position)
+    low, high = TEST_STRATA[k], TEST_STRATA[k + 1]
+    digest = hashlib.sha256(f"sq_mitsuba catalogue split {seed} {block} {k}".encode()).digest()
+    chosen = low + int.from_bytes(digest[:8], "little") % (high - low)
+    return "test" if position == chosen else "train"
+
+
+def catalogue(count: int, seed: int) -> list[CatalogueEntry]:
     """Names, archetypes, per-model seeds and train/test split of ``count`` models.
 
     Archetypes cycle through seeded permutations of all families, so every family appears once
-    ``count >= len(ARCHETYPES)``. Convention: the test split has ``round(count *
-    test_fraction)`` models (7 of the default 64, as in the paper), at least one when
-    ``count >= 2``.
+    ``count >= len(ARCHETYPES)``. Model ``i`` is named ``sc<i:03d>_<archetype>``. Every entry
+    is a function of ``(seed, i)`` alone: ``catalogue(n, seed)`` is the first ``n`` entries of
+    ``catalogue(m, seed)`` for any ``m >= n``, splits included (see :func:`catalogue_split`).
+
+    Args:
+        count: number of models, ``1 <= count <= MAX_CATALOGUE_COUNT``.
+        seed: catalogue seed, ``0 <= seed <= MAX_CATALOGUE_SEED`` (``2**32 - 1``).
     """
-    if count < 1:
-        raise ValueError(f"count: expected >= 1, got {count}")
-    rng = np.random.default_rng([int(seed), 0x5C])
+    if isinstance(count, bool) or int(count) != count or not 1 <= count <= MAX_CATALOGUE_COUNT:
+        raise ValueError(f"count: expected an integer in [1, {MAX_CATALOGUE_COUNT}], got {count}")
+    seed = _check_catalogue_seed(seed)
+    rng = np.random.default_rng([seed, 0x5C])
     names = sorted(ARCHETYPES)
     order: list[str] = []
+    # Permutations are drawn one after the other, so the first ``count`` archetypes do not
+    # depend on ``count``; SeedSequence.generate_state is prefix-stable the same way.
     while len(order) < count:
         order += [names[i] for i in rng.permutation(len(names))]
-    model_seeds = np.random.SeedSequence(int(seed)).generate_state(count, dtype=np.uint32)
-    n_test = max(1 if count >= 2 else 0, round(count * test_fraction))
-    test = set(rng.choice(count, size=n_test, replace=False).tolist()) if n_test else set()
+    model_seeds = np.random.SeedSequence(seed).generate_state(count, dtype=np.uint32)
     return [CatalogueEntry(f"sc{i:03d}_{order[i]}", order[i], int(model_seeds[i]),
-                           "test" if i in test else "train") for i in range(count)]
+                           catalogue_split(seed, i), seed) for i in range(count)]

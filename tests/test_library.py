@@ -1,0 +1,267 @@
+"""Model library: whole processed models, stable merged splits, failures, import names,
+option ranges."""
+
+from __future__ import annotations
+
+import json
+import struct
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+from sq_mitsuba.cli import main
+from sq_mitsuba.config import ConfigError
+from sq_mitsuba.data.contact_sheet import ContactSheetOptions, contact_sheet
+from sq_mitsuba.data.library import (
+    FAILURES_FILE,
+    GenerateOptions,
+    ImportOptions,
+    generate_library,
+    import_names,
+    machine_memory_bytes,
+)
+from sq_mitsuba.data.mesh_io import read_obj, read_tagged_obj
+from sq_mitsuba.data.mesh_processing import fusion_memory_bytes, max_fusion_resolution
+from sq_mitsuba.data.spacecraft import catalogue
+from sq_mitsuba.data.spe3r.layout import load_model, read_splits
+from sq_mitsuba.render.materials import MATERIALS, MTL_COLOUR
+
+SEED = 5
+
+
+@pytest.fixture(scope="module")
+def library(tmp_path_factory) -> Path:
+    """Three generated models (small point sets), written by :func:`generate_library`."""
+    root = tmp_path_factory.mktemp("library")
+    summary = generate_library(GenerateOptions(out=root, count=3, seed=SEED, points=300),
+                               progress=False)
+    assert summary.ok and len(summary.written) == 3
+    return root
+
+
+def _models(root: Path) -> list[Path]:
+    return sorted(root.glob("*/models"))
+
+
+def _old_style_obj(path: Path, vertices: np.ndarray, faces: np.ndarray, tags: np.ndarray) -> None:
+    """The OBJ the library wrote before: faces grouped by material with ``usemtl``."""
+    lines = ["mtllib model_normalized.mtl"] + [f"v {x:.7f} {y:.7f} {z:.7f}" for x, y, z in vertices]
+    current = -1
+    for (a, b, c), tag in zip(faces + 1, tags, strict=True):
+        if tag != current:
+            lines.append(f"usemtl {MATERIALS[tag]}")
+            current = tag
+        lines.append(f"f {a} {b} {c}")
+    path.write_text("\n".join(lines) + "\n")
+
+
+def test_processed_models_load_as_one_watertight_mesh(library) -> None:
+    """``trimesh.load(obj, force="mesh")`` with default arguments: one closed body whose
+    volume is the card's, the faces those of ``face_material``."""
+    for folder in _models(library):
+        obj = folder / "model_normalized.obj"
+        mesh = trimesh.load(obj, force="mesh")
+        assert mesh.is_watertight and mesh.is_winding_consistent, folder
+        assert mesh.body_count == 1
+        card = json.loads((folder / "model_card.json").read_text())
+        assert mesh.volume == pytest.approx(card["volume"], rel=1e-5)
+        with np.load(folder / "samples.npz") as samples:
+            assert len(samples["face_material"]) == len(mesh.faces) == card["faces"]
+        assert "usemtl" not in obj.read_text()
+
+
+def test_old_usemtl_objs_split_in_trimesh_and_still_read(library, tmp_path) -> None:
+    """The problem the new format fixes: usemtl groups split trimesh's mesh at the seams. Old
+    files still read, with their tags, and agree with the new files plus samples.npz."""
+    folder = _models(library)[0]
+    new = read_tagged_obj(folder / "model_normalized.obj")
+    assert len(np.unique(new.face_material)) > 1
+    old = tmp_path / "old.obj"
+    _old_style_obj(old, new.vertices, new.faces, new.face_material)
+    assert not trimesh.load(old, force="mesh").is_watertight
+    vertices, faces, tags = read_obj(old)
+    np.testing.assert_allclose(vertices, new.vertices, atol=1e-7)
+    np.testing.assert_array_equal(faces, new.faces)
+    np.testing.assert_array_equal(tags, new.face_material)
+    # Without samples.npz beside it, the old file's own tags are used.
+    assert np.array_equal(read_tagged_obj(old).face_material, new.face_material)
+
+
+def test_dataset_loader_gets_per_face_tags(library) -> None:
+    for folder in _models(library):
+        _, faces, tags = load_model(folder.parent)
+        with np.load(folder / "samples.npz") as samples:
+            expected = np.asarray(MATERIALS)[samples["face_material"]]
+        assert tags is not None and len(tags) == len(faces)
+        np.testing.assert_array_equal(tags, expected)
+
+
+def _linear(c: float) -> float:
+    return c / 12.92 if c <= 0.04045 else ((c + 0.055) / 1.055) ** 2.4
+
+
+def test_glb_carries_the_materials(library) -> None:
+    folder = _models(library)[0]
+    data = (folder / "model_normalized.glb").read_bytes()
+    magic, version, length = struct.unpack("<4sII", data[:12])
+    assert (magic, version, length) == (b"glTF", 2, len(data))
+    mesh = read_tagged_obj(folder / "model_normalized.obj")
+    counts = np.bincount(mesh.face_material, minlength=len(MATERIALS))
+    scene = trimesh.load(folder / "model_normalized.glb")
+    by_material = {g.visual.material.name: g for g in scene.geometry.values()}
+    assert {name: len(g.faces) for name, g in by_material.items()} == {
+        MATERIALS[i]: int(c) for i, c in enumerate(counts) if c}
+    for name, geometry in by_material.items():
+        colour = np.asarray(geometry.visual.material.baseColorFactor[:3], float) / 255
+        np.testing.assert_allclose(colour, [_linear(c) for c in MTL_COLOUR[name]], atol=0.01)
+        # Each material's triangles are the OBJ's triangles of that tag.
+        tag = MATERIALS.index(name)
+        expected = np.sort(mesh.vertices[mesh.faces[mesh.face_material == tag]].reshape(-1, 3),
+                           axis=0)
+        got = np.sort(geometry.vertices[geometry.faces].reshape(-1, 3), axis=0)
+        np.testing.assert_allclose(got, expected, atol=1e-6)
+
+
+def test_generate_merges_splits_and_records_failures(tmp_path) -> None:
+    out = tmp_path / "lib"
+    out.mkdir()
+    (out / "splits.csv").write_text("imported_thing,train\n")
+    reference = {e.name: e.split for e in catalogue(64, SEED)}
+    names = [e.name for e in catalogue(3, SEED)]
+
+    generate_library(GenerateOptions(out=out, count=2, seed=SEED, points=200), progress=False)
+    assert read_splits(out / "splits.csv") == {"imported_thing": "train",
+                                               **{n: reference[n] for n in names[:2]}}
+
+    # A real failure: a file where the third model's folder must go.
+    (out / names[2]).write_text("in the way\n")
+    summary = generate_library(GenerateOptions(out=out, count=3, seed=SEED, points=200),
+                               progress=False)
+    assert summary.written == names[:2] and list(summary.failures) == [names[2]]
+    assert json.loads((out / FAILURES_FILE).read_text()).keys() == {names[2]}
+    rows = (out / "splits.csv").read_text().splitlines()
+    assert sorted(rows) == sorted(["imported_thing,train"] +
+                                  [f"{n},{reference[n]}" for n in names[:2]])
+
+    (out / names[2]).unlink()
+    summary = generate_library(GenerateOptions(out=out, count=3, seed=SEED, points=200),
+                               progress=False)
+    assert summary.ok
+    assert not (out / FAILURES_FILE).exists()
+    rows = (out / "splits.csv").read_text().splitlines()
+    assert len(rows) == len(set(rows)) == 4  # same name, same row
+    assert read_splits(out / "splits.csv") == {"imported_thing": "train",
+                                               **{n: reference[n] for n in names}}
+
+
+def test_cli_count_6_splits_are_those_of_count_64(tmp_path) -> None:
+    out = tmp_path / "lib"
+    assert main(["models", "generate", "--count", "6", "--seed", "0", "--out", str(out),
+                 "--points", "200"]) == 0
+    reference = {e.name: e.split for e in catalogue(64, 0)}
+    splits = read_splits(out / "splits.csv")
+    assert len(splits) == 6 and all(reference[name] == s for name, s in splits.items())
+    card = json.loads((out / next(iter(splits)) / "models" / "model_card.json").read_text())
+    assert card["catalogue_seed"] == 0
+
+
+def test_import_gives_every_file_its_own_folder(tmp_path, capsys) -> None:
+    box, sphere = tmp_path / "a.obj", tmp_path / "a.glb"
+    trimesh.creation.box([1.0, 0.5, 0.25]).export(box)
+    trimesh.Scene({"s": trimesh.creation.icosphere(subdivisions=2)}).export(sphere)
+    out = tmp_path / "lib"
+    assert main(["models", "import", str(box), str(sphere), "--out", str(out),
+                 "--points", "200"]) == 0
+    printed = capsys.readouterr().out
+    assert f"{box} -> a\n" in printed and f"{sphere} -> a_2\n" in printed
+    cards = {n: json.loads((out / n / "models" / "model_card.json").read_text())
+             for n in ("a", "a_2")}
+    assert cards["a"]["source"] == str(box) and cards["a_2"]["source"] == str(sphere)
+    before = (out / "a" / "models" / "model_normalized.obj").read_bytes()
+    # Importing again never overwrites: the next free number.
+    assert main(["models", "import", str(box), "--out", str(out), "--points", "200"]) == 0
+    assert f"{box} -> a_3\n" in capsys.readouterr().out
+    assert (out / "a" / "models" / "model_normalized.obj").read_bytes() == before
+    assert sorted(p.name for p in out.iterdir()) == ["a", "a_2", "a_3"]
+    assert import_names([box, sphere, tmp_path / "b.stl"], out) == ["a_4", "a_5", "b"]
+
+
+def test_import_missing_file_is_an_error_before_any_work(tmp_path, capsys) -> None:
+    good = tmp_path / "good.stl"
+    trimesh.creation.box([1.0, 2.0, 3.0]).export(good)
+    out = tmp_path / "lib"
+    assert main(["models", "import", str(good), str(tmp_path / "nope.obj"),
+                 "--out", str(out)]) == 2
+    assert "nope.obj: no such file" in capsys.readouterr().err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("argv, flag", [
+    (["generate", "--seed", "-1"], "--seed"),
+    (["generate", "--seed", str(2**32)], "--seed"),
+    (["generate", "--count", "0"], "--count"),
+    (["generate", "--count", "10001"], "--count"),
+    (["generate", "--points", "0"], "--points"),
+    (["generate", "--points", "2000001"], "--points"),
+    (["import", "MESH", "--resolution", "100000"], "--resolution"),
+    (["import", "MESH", "--resolution", "8"], "--resolution"),
+    (["import", "MESH", "--points", "-5"], "--points"),
+    (["preview", "ROOT", "--size", "8"], "--size"),
+    (["preview", "ROOT", "--size", "5000"], "--size"),
+    (["preview", "ROOT", "--spp", "0"], "--spp"),
+    (["preview", "ROOT", "--spp", "100000"], "--spp"),
+    (["preview", "ROOT", "--columns", "0"], "--columns"),
+    (["preview", "ROOT", "--columns", "1000"], "--columns"),
+    (["preview", "ROOT", "--limit", "0"], "--limit"),
+])
+def test_numeric_options_are_range_checked_before_any_work(tmp_path, capsys, argv,
+                                                            flag) -> None:
+    mesh = tmp_path / "box.stl"
+    trimesh.creation.box([1.0, 2.0, 3.0]).export(mesh)
+    out = tmp_path / "out"
+    argv = [str(mesh) if a == "MESH" else str(tmp_path) if a == "ROOT" else a for a in argv]
+    if argv[0] != "preview":
+        argv += ["--out", str(out)]
+    else:
+        argv += ["--out", str(out / "sheet.png")]
+    start = time.perf_counter()
+    assert main(["models", *argv]) == 2
+    assert time.perf_counter() - start < 20  # refused at once, not after the work
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and f"error: {flag}:" in err, err
+    if flag == "--resolution" and argv[2] == "100000":
+        assert "GiB for depth fusion" in err
+    assert not out.exists()
+
+
+def test_resolution_bound_is_the_memory_estimate() -> None:
+    for memory in (4 * 2**30, 16 * 2**30, 64 * 2**30):
+        r = max_fusion_resolution(memory)
+        assert fusion_memory_bytes(r) <= memory < fusion_memory_bytes(r + 1)
+    limit = max_fusion_resolution(machine_memory_bytes())
+    assert ImportOptions(resolution=min(limit, 128)).resolution == min(limit, 128)
+    with pytest.raises(ValueError, match=rf"resolution: {limit + 1} needs about .* GiB"):
+        ImportOptions(resolution=limit + 1)
+
+
+def test_help_shows_the_library_defaults(capsys) -> None:
+    for action, config, fields in (("generate", GenerateOptions(), ("count", "seed", "points")),
+                                   ("import", ImportOptions(), ("resolution", "method")),
+                                   ("preview", ContactSheetOptions(), ("size", "spp"))):
+        with pytest.raises(SystemExit):
+            main(["models", action, "--help"])
+        text = " ".join(capsys.readouterr().out.split())
+        for name in fields:
+            assert f"(default: {getattr(config, name)})" in text, (action, name)
+
+
+def test_contact_sheet_size_checked_before_rendering(library, tmp_path) -> None:
+    options = ContactSheetOptions(out=tmp_path / "sheet.png", size=1024, columns=256)
+    with pytest.raises(ValueError, match="size: 3 models of 1024 px in 256 columns"):
+        contact_sheet(library, options)
+    with pytest.raises(ConfigError, match="spp"):
+        contact_sheet(library, ContactSheetOptions(spp=0))
+    assert not (tmp_path / "sheet.png").exists()
