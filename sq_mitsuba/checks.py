@@ -1,10 +1,62 @@
-"""Input checks shared by the public functions: one-line ``ValueError`` naming the argument."""
+"""Input checks shared by the public functions: one-line ``ValueError`` naming the argument.
+
+Shape and dtype checks always run. Value checks (the NaN / infinity scan of
+:func:`check_tensor`) read the whole tensor and, on a GPU, force a synchronisation, so hot
+loops can switch them off: for the whole process with the environment variable
+``SQ_MITSUBA_CHECKS=0`` (read once, when this module is imported; ``0``, ``false``, ``no`` and
+``off`` switch them off), or for a block with ``with value_checks(False): ...``.
+"""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import contextlib
+import contextvars
+import os
+import warnings
+from collections.abc import Iterator, Sequence
 
 import torch
+
+CHECKS_ENV = "SQ_MITSUBA_CHECKS"
+"""Environment variable that switches value checks off (``0``) or on (``1``, the default)."""
+_OFF_WORDS = frozenset({"0", "false", "no", "off"})
+_ON_WORDS = frozenset({"", "1", "true", "yes", "on"})
+
+
+def _checks_from_environment() -> bool:
+    """Whether value checks are on, from :data:`CHECKS_ENV` (unset: on)."""
+    word = os.environ.get(CHECKS_ENV, "1").strip().lower()
+    if word in _OFF_WORDS:
+        return False
+    if word not in _ON_WORDS:
+        warnings.warn(f"{CHECKS_ENV}={word!r} is not one of 0/1/false/true/no/yes/off/on; "
+                      "value checks stay on", stacklevel=2)
+    return True
+
+
+_CHECKS_AT_IMPORT = _checks_from_environment()
+# Convention: a context variable, not a plain global, so that value_checks(False) in one
+# thread (or asyncio task) does not switch the checks off in another.
+_VALUE_CHECKS: contextvars.ContextVar[bool] = contextvars.ContextVar(
+    "sq_mitsuba_value_checks", default=_CHECKS_AT_IMPORT)
+
+
+def value_checks_enabled() -> bool:
+    """Whether :func:`check_tensor` scans values for NaN and infinities here and now."""
+    return _VALUE_CHECKS.get()
+
+
+@contextlib.contextmanager
+def value_checks(enabled: bool) -> Iterator[None]:
+    """Switch value checks on or off inside a ``with`` block (restored on exit, nestable).
+
+    Shape and dtype checks are unaffected.
+    """
+    token = _VALUE_CHECKS.set(bool(enabled))
+    try:
+        yield
+    finally:
+        _VALUE_CHECKS.reset(token)
 
 
 def check_tensor(
@@ -24,7 +76,8 @@ def check_tensor(
         trailing: required sizes of the last ``len(trailing)`` dims.
         min_dims: minimum number of dims (default ``len(trailing)``).
         floating: require a floating-point dtype.
-        finite: require no NaN or infinity.
+        finite: require no NaN or infinity (a value check: skipped while
+            :func:`value_checks_enabled` is false).
 
     Returns:
         ``value``, unchanged.
@@ -43,7 +96,8 @@ def check_tensor(
         raise ValueError(f"{name}: expected shape {want}, got {tuple(value.shape)}")
     if floating and not value.is_floating_point():
         raise ValueError(f"{name}: expected a floating-point dtype, got {value.dtype}")
-    if finite and value.is_floating_point() and not bool(torch.isfinite(value).all()):
+    if (finite and value.is_floating_point() and _VALUE_CHECKS.get()
+            and not bool(torch.isfinite(value).all())):
         raise ValueError(f"{name}: contains NaN or infinite values")
     return value
 

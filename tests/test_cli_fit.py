@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -56,6 +57,12 @@ def test_fit_command_writes_assembly_mesh_and_figure(fit_inputs, tmp_path, capsy
     assert (out / "fit.png").read_bytes()[:4] == b"\x89PNG"
     log = json.loads((out / "fit_log.json").read_text())
     assert len(log["final_iou"]) == 2 and len(log["loss_per_step"]) == 4
+    from sq_mitsuba.config import from_dict
+    from sq_mitsuba.learning.fit import FitOptions
+
+    assert from_dict(FitOptions, log["options"]) == FitOptions(steps=4, resolution=32)
+    assert log["masks"] == [str(p) for p in masks] and len(log["iou_per_step"][0]) == 2
+    assert Camera.from_speed_dict(log["camera"]) == Camera.load(root / "camera.json")
     assert not list(out.glob(".*tmp*"))  # atomic writes leave no temporary files
 
 
@@ -83,3 +90,122 @@ def test_fit_command_input_errors(fit_inputs, tmp_path, capsys):
     assert "quaternion" in capsys.readouterr().err
     assert main([*base, "--masks", str(masks[0]), "--primitives", "0"]) == 2
     assert not (tmp_path / "o").exists()
+
+
+# ------------------------------------------------------------------ input checks
+
+
+def test_mask_formats_are_converted_then_thresholded_at_half_range(tmp_path):
+    from sq_mitsuba.data.masks import read_mask
+
+    rows, cols = np.mgrid[:20, :30]
+    truth = (rows - 9.5) ** 2 / 64 + (cols - 14.5) ** 2 / 144 < 1  # an ellipse
+    rgb_object, rgb_background = (200, 100, 250), (100, 120, 90)
+    # ITU-R 601 luminance, by hand: 147.0 (object) and 110.6 (background) around 127.5.
+    assert 0.299 * 200 + 0.587 * 100 + 0.114 * 250 > 127.5 > 0.299 * 100 + 0.587 * 120 + 0.114 * 90
+    rgba = np.full((20, 30, 4), 255, np.uint8)
+    rgba[..., 3] = np.where(truth, 255, 0)  # white everywhere; the background is transparent
+    images = {
+        "binary.png": Image.fromarray(np.where(truth, 255, 0).astype(np.uint8)),
+        "edge.png": Image.fromarray(np.where(truth, 128, 127).astype(np.uint8)),
+        "bilevel.png": Image.fromarray(truth),
+        "rgb.png": Image.fromarray(np.where(truth[..., None], rgb_object,
+                                            rgb_background).astype(np.uint8)),
+        "rgba.png": Image.fromarray(rgba),
+        "deep.png": Image.fromarray(np.where(truth, 32768, 32767).astype(np.uint16)),
+        "palette.png": Image.fromarray(np.where(truth, 255, 0).astype(np.uint8)).convert("P"),
+    }
+    for name, image in images.items():
+        image.save(tmp_path / name)
+    assert Image.open(tmp_path / "deep.png").mode.startswith("I")  # really 16-bit on disk
+    assert Image.open(tmp_path / "rgba.png").mode == "RGBA"
+    for name in images:
+        mask = read_mask(tmp_path / name)
+        assert mask.dtype == np.bool_ and np.array_equal(mask, truth), name
+
+
+def _refused(capsys, argv, out, *needles):
+    """The command exits 2 with one line on stderr holding ``needles``, writing nothing."""
+    assert main([*argv, "--out", str(out), "--quiet"]) == 2
+    captured = capsys.readouterr()
+    assert captured.err.count("\n") == 1, captured.err
+    assert captured.err.startswith("sq-mitsuba fit: error: ")
+    for needle in needles:
+        assert needle in captured.err, (needle, captured.err)
+    assert captured.out == ""
+    assert not out.exists()
+    return captured.err
+
+
+def test_bad_masks_are_refused_naming_the_file(fit_inputs, tmp_path, capsys):
+    root, masks = fit_inputs
+    poses = ["--poses", str(root / "labels.json")]
+    out = tmp_path / "out"
+    work = tmp_path / "masks"
+    work.mkdir()
+    empty = work / "img000000.png"
+    Image.fromarray(np.zeros((48, 48), np.uint8)).save(empty)
+    _refused(capsys, ["fit", "--masks", str(masks[1]), str(empty), *poses], out,
+             str(empty), "empty")
+
+    small = work / "img000001.png"
+    Image.fromarray(np.full((40, 48), 255, np.uint8)).save(small)
+    _refused(capsys, ["fit", "--masks", str(masks[0]), str(small), *poses], out,
+             str(masks[0]), "48 x 48", str(small), "48 x 40")
+
+    corrupt = work / "img000000.png"
+    corrupt.write_bytes(masks[0].read_bytes()[:-40])  # cut inside the image data
+    err = _refused(capsys, ["fit", "--masks", str(corrupt), *poses], out, str(corrupt),
+                   "corrupt")
+    assert "truncated" in err or "broken" in err
+
+    corrupt.write_text("not a PNG at all")
+    _refused(capsys, ["fit", "--masks", str(corrupt), *poses], out, str(corrupt),
+             "not an image")
+
+
+def test_bad_labels_are_refused_naming_file_and_entry(fit_inputs, tmp_path, capsys):
+    root, masks = fit_inputs
+    out = tmp_path / "out"
+    labels = json.loads((root / "labels.json").read_text())
+    assert labels[1]["filename"] == "img000000.jpg"
+    bad = tmp_path / "labels.json"
+    for key, value, needle in (("q_vbs2tango_true", [float("nan"), 0, 0, 1], "NaN"),
+                               ("r_Vo2To_vbs_true", [0.0, 2.0], "3 numbers"),
+                               ("q_vbs2tango_true", [0, 0, 0, 0], "zero norm")):
+        entries = json.loads(json.dumps(labels))
+        entries[1][key] = value
+        bad.write_text(json.dumps(entries))  # NaN is written as the bare word NaN
+        _refused(capsys, ["fit", "--masks", *map(str, masks), "--poses", str(bad)], out,
+                 str(bad), "entry 1 ('img000000.jpg')", key, needle)
+
+
+def test_bad_output_folder_is_refused_before_the_fit(fit_inputs, tmp_path, capsys):
+    import time
+
+    root, masks = fit_inputs
+    # A fit this long would run for hours: the refusal must come before it.
+    argv = ["fit", "--masks", *map(str, masks), "--poses", str(root / "labels.json"),
+            "--steps", "1000000"]
+    a_file = tmp_path / "taken"
+    a_file.write_text("keep me")
+    start = time.perf_counter()
+    assert main([*argv, "--out", str(a_file), "--quiet"]) == 2
+    assert "not a folder" in capsys.readouterr().err and a_file.read_text() == "keep me"
+    _refused(capsys, argv, a_file / "sub", str(a_file), "is a file")
+    if Path("/proc/self").is_dir():  # not writable, even by root
+        _refused(capsys, argv, Path("/proc/sq_mitsuba_fit/out"), "cannot write")
+    assert time.perf_counter() - start < 60
+
+
+def test_absurd_resolution_and_seed_are_refused(fit_inputs, tmp_path, capsys):
+    root, masks = fit_inputs
+    argv = ["fit", "--masks", *map(str, masks), "--poses", str(root / "labels.json")]
+    out = tmp_path / "out"
+    _refused(capsys, [*argv, "--resolution", "100000"], out,
+             "resolution: 100000 (100000 x 100000 px, 2 view(s)) needs about", "TB",
+             "more than this machine's")
+    _refused(capsys, [*argv, "--seed", "-1"], out,
+             "--seed: expected a value in [0, 2147483647], got -1")
+    _refused(capsys, [*argv, "--seed", str(2**31)], out, "--seed", str(2**31))
+    _refused(capsys, [*argv, "--set", "sppp=0"], out, "--set", "sppp")

@@ -97,3 +97,66 @@ def test_fit_bad_input():
         fit_assembly(masks, camera, rotations, translations, steps=0)
     with pytest.raises(ValueError, match="loss"):
         fit_assembly(masks, camera, rotations, translations, loss="l2")
+
+
+def test_fit_options_defaults_bounds_and_keyword_overrides():
+    from sq_mitsuba.config import ConfigError, field_docs, from_dict
+    from sq_mitsuba.learning.fit import FitOptions
+
+    options = FitOptions()
+    assert (options.num_primitives, options.steps, options.resolution, options.lr,
+            options.loss, options.seed) == (1, 150, 64, 0.05, "mse", 0)
+    assert set(field_docs(FitOptions)) == {f for f in FitOptions.__dataclass_fields__}
+    for field, value in (("steps", 0), ("seed", -1), ("seed", 2**31), ("resolution", 4),
+                         ("lr", 0.0), ("loss", "l1"), ("num_primitives", 0), ("sppp", 0)):
+        with pytest.raises(ConfigError, match=f"^{field}: "):
+            from_dict(FitOptions, {field: value})
+    masks = torch.ones(1, 16, 16, dtype=torch.bool)
+    with pytest.raises(ValueError, match=r"^seed: "):
+        fit_assembly(masks, Camera.default(16), torch.eye(3)[None],
+                     torch.tensor([[0.0, 0.0, 2.0]]), FitOptions(), seed=-5)
+    with pytest.raises(TypeError, match="stpes"):
+        fit_assembly(masks, Camera.default(16), torch.eye(3)[None],
+                     torch.tensor([[0.0, 0.0, 2.0]]), stpes=3)
+
+
+def test_options_object_and_keywords_fit_identically():
+    from sq_mitsuba.learning.fit import FitOptions
+
+    masks, camera, rotations, translations = _target_views(views=1, resolution=32)
+    by_keywords = fit_assembly(masks, camera, rotations, translations, num_primitives=1,
+                               steps=2, resolution=16, seed=4)
+    options = FitOptions(steps=2, resolution=16, seed=4)
+    by_options = fit_assembly(masks, camera, rotations, translations, options)
+    assert by_options.options == options == by_keywords.options
+    assert by_keywords.losses[0] == by_options.losses[0]  # same start, same samples
+    # Equal up to the order of Dr.Jit's float32 atomic gradient sums.
+    assert torch.allclose(by_keywords.raw, by_options.raw, rtol=0, atol=1e-5)
+
+
+def test_resolution_beyond_the_machine_memory_is_refused_with_the_estimate():
+    from sq_mitsuba.learning.fit import (
+        RENDER_BYTES_PER_PIXEL,
+        VIEW_BYTES_PER_PIXEL,
+        _physical_memory,
+        check_fit_memory,
+        fit_memory_bytes,
+    )
+
+    assert fit_memory_bytes(2, 100, 50) == 100 * 50 * (RENDER_BYTES_PER_PIXEL
+                                                       + 2 * VIEW_BYTES_PER_PIXEL)
+    camera = Camera.default(48).rescaled(48, 24)  # 2:1: the fit keeps the aspect
+    check_fit_memory(3, camera, 512)  # about 50 MB
+    if _physical_memory() is None:
+        pytest.skip("the OS does not report its memory")
+    need = 100_000 * 50_000 * (80 + 3 * 48)  # bytes, written out independently
+    with pytest.raises(ValueError, match=r"^resolution: 100000 \(100000 x 50000 px, 3 view"
+                                         r"\(s\)\) needs about (\d+(\.\d+)?) TB") as error:
+        check_fit_memory(3, camera, 100_000)
+    shown = float(str(error.value).split("about ")[1].split(" TB")[0])
+    assert shown == pytest.approx(need / 1e12, rel=0.01)
+    # fit_assembly refuses before rendering anything.
+    masks = torch.ones(3, 24, 48, dtype=torch.bool)
+    with pytest.raises(ValueError, match="needs about"):
+        fit_assembly(masks, camera, torch.eye(3).expand(3, 3, 3),
+                     torch.tensor([[0.0, 0.0, 2.0]]).repeat(3, 1), resolution=100_000)

@@ -119,8 +119,8 @@ def test_camera_frame_chamfer_sees_pose_errors_and_is_blind_to_symmetries():
     same = camera_frame_chamfer(box, rotation @ half_turn_z, translation, box, rotation,
                                 translation)
     assert float(same) == pytest.approx(0.0, abs=1e-12)
-    shifted = camera_frame_chamfer(box, rotation, translation + torch.tensor([0.2, 0, 0], dtype=torch.float64),
-                                   box, rotation, translation)
+    moved = translation + torch.tensor([0.2, 0, 0], dtype=torch.float64)
+    shifted = camera_frame_chamfer(box, rotation, moved, box, rotation, translation)
     # Every point moves by 0.2 m: occnet Chamfer 0.2 at most, divided by the 2 m distance.
     assert 0.0 < float(shifted) <= 0.1 + 1e-12
 

@@ -97,3 +97,82 @@ def test_cli_rejects_bad_options(capsys):
     assert "error" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["bench", "no-such-suite"])
+
+
+def test_value_checks_switch_off_in_a_block_shape_and_dtype_checks_stay():
+    import torch
+
+    from sq_mitsuba.checks import check_tensor, value_checks, value_checks_enabled
+
+    bad = torch.tensor([[0.0, float("nan"), 1.0]])
+    assert value_checks_enabled()
+    with pytest.raises(ValueError, match="x: contains NaN"):
+        check_tensor("x", bad, (3,))
+    with value_checks(False):
+        assert not value_checks_enabled()
+        assert check_tensor("x", bad, (3,)) is bad
+        with pytest.raises(ValueError, match=r"x: expected shape \(\.\.\., 4\)"):
+            check_tensor("x", bad, (4,))
+        with pytest.raises(ValueError, match="x: expected a floating-point dtype"):
+            check_tensor("x", torch.zeros(2, 3, dtype=torch.int64), (3,))
+        with value_checks(True):  # nested blocks restore the outer setting
+            with pytest.raises(ValueError, match="NaN"):
+                check_tensor("x", bad, (3,))
+        assert check_tensor("x", bad, (3,)) is bad
+    with pytest.raises(ValueError, match="NaN"):  # back on after the block
+        check_tensor("x", bad, (3,))
+
+
+@pytest.mark.parametrize(("value", "checked"), [("0", False), ("OFF", False), ("no", False),
+                                                 ("1", True), ("", True), ("yes", True)])
+def test_value_checks_environment_words(monkeypatch, value, checked):
+    from sq_mitsuba import checks
+
+    monkeypatch.setenv(checks.CHECKS_ENV, value)
+    assert checks._checks_from_environment() is checked
+    monkeypatch.setenv(checks.CHECKS_ENV, "maybe")
+    with pytest.warns(UserWarning, match="maybe"):
+        assert checks._checks_from_environment() is True
+
+
+def test_value_checks_environment_variable_is_read_once():
+    code = ("import os, torch\n"
+            "from sq_mitsuba import checks\n"
+            "os.environ['SQ_MITSUBA_CHECKS'] = '1'  # after the import: must not matter\n"
+            "bad = torch.tensor([float('nan'), 0.0, 0.0])\n"
+            "checks.check_tensor('x', bad, (3,))\n"
+            "try:\n    checks.check_tensor('x', bad, (4,))\nexcept ValueError as e:\n"
+            "    print(e)\n")
+    env = {**os.environ, "SQ_MITSUBA_CHECKS": "0"}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                         check=True).stdout
+    assert out == "x: expected shape (..., 4), got (3,)\n"
+
+
+def test_doctor_render_self_test(capsys):
+    assert main(["doctor", "--render"]) == 0
+    out = capsys.readouterr().out
+    line = next(row for row in out.splitlines() if "silhouette:" in row)
+    covered = float(line.split("sphere: ")[1].split(" px")[0])
+    exact = float(line.split("(exact ")[1].split(")")[0])
+    # The sphere (radius 0.3 at 2 m) seen by the default 64 px camera: a disc of radius
+    # f r / sqrt(d^2 - r^2) pixels, computed here independently of the library.
+    import math
+
+    from sq_mitsuba.geometry.camera import Camera
+
+    focal = Camera.default(64).fx
+    assert exact == pytest.approx(math.pi * (focal * 0.3 / math.sqrt(2**2 - 0.3**2)) ** 2,
+                                  abs=0.06)
+    assert abs(covered - exact) < 0.03 * exact and "gradient finite" in line
+    assert out.rstrip().endswith("ok: the renderer can run")
+
+
+def test_cli_errors_are_one_line(capsys):
+    from sq_mitsuba.cli import CLIError, _one_line
+
+    assert _one_line(CLIError("first\n  second\n")) == "first; second"
+    assert _one_line(ValueError()) == "ValueError"
+    assert main(["bench", "geometry", "--threads", "0"]) == 2
+    err = capsys.readouterr().err
+    assert err == "sq-mitsuba bench: error: --threads: expected a value in [1, 1024], got 0\n"

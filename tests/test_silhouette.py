@@ -294,3 +294,71 @@ def test_render_loss_matches_render_then_backward():
     assert cosine > 0.98
     with pytest.raises(ValueError, match="loss_fn"):
         renderer.render_loss(vertices, faces, "not callable")
+
+
+# ---------------------------------------------------------------------------- topology cache
+
+
+def _two_spheres(unit_sphere):
+    """One vertex buffer holding a sphere left and one right of the optical axis; faces of
+    the left one and of the right one (same shape, different content)."""
+    vertices, faces = unit_sphere
+    left = vertices * 0.2 + torch.tensor([-0.35, 0.0, 2.0], dtype=torch.float64)
+    right = vertices * 0.2 + torch.tensor([0.35, 0.0, 2.0], dtype=torch.float64)
+    return torch.cat([left, right])[None], faces.clone(), faces + vertices.shape[0]
+
+
+def test_topology_cache_picks_up_new_and_modified_faces(unit_sphere):
+    points, faces_left, faces_right = _two_spheres(unit_sphere)
+    renderer = SilhouetteRenderer(Camera.default(48), spp=16, seed=1)
+    half = 24.0
+
+    def side(image: torch.Tensor) -> float:
+        return float(centroid(image[0])[0]) - half
+
+    faces = faces_left.clone()
+    assert side(renderer.render(points, faces)) < -5
+    assert renderer.scenes_built == 1
+    assert side(renderer.render(points, faces)) < -5  # same tensor, unchanged: no rebuild
+    assert renderer.scenes_built == 1
+    faces += unit_sphere[0].shape[0]  # in place: same tensor object, new topology
+    modified = renderer.render(points, faces)
+    assert side(modified) > 5 and renderer.scenes_built == 2
+    assert side(renderer.render(points, faces_right.clone())) > 5  # equal copy: no rebuild
+    assert renderer.scenes_built == 2
+    assert side(renderer.render(points, faces_left.to(torch.int32))) < -5  # other content
+    assert renderer.scenes_built == 3
+    # Same faces, fewer vertices: another topology too.
+    count = unit_sphere[0].shape[0]
+    renderer.render(points[:, :count].contiguous(), faces_left)
+    assert renderer.scenes_built == 4
+    with torch.inference_mode():  # tensors without a version counter are compared instead
+        inferred = faces_right.clone()
+        assert side(renderer.render(points, inferred)) > 5
+        assert side(renderer.render(points, inferred)) > 5
+    assert renderer.scenes_built == 5
+
+    # Results are those of a renderer that saw only fresh tensors (same seed, same calls).
+    reference = SilhouetteRenderer(Camera.default(48), spp=16, seed=1)
+    reference.render(points, faces_left.clone())
+    reference.render(points, faces_left.clone())
+    assert torch.equal(reference.render(points, faces_right.clone()), modified)
+
+
+def test_backward_restores_the_topology_of_its_forward_pass(unit_sphere):
+    points, faces_left, faces_right = _two_spheres(unit_sphere)
+    gradients = []
+    for interleave in (faces_right, faces_left):
+        renderer = SilhouetteRenderer(Camera.default(48), spp=16, sppp=4, seed=2)
+        leaf = points.clone().requires_grad_(True)
+        image = renderer.render(leaf, faces_left)
+        with torch.no_grad():
+            renderer.render(points, interleave)  # the other topology (or the same) meanwhile
+        image.sum().backward()
+        gradients.append(leaf.grad)
+    assert float(gradients[0].abs().sum()) > 0
+    count = unit_sphere[0].shape[0]
+    assert float(gradients[0][:, count:].abs().max()) == 0.0  # right sphere: not rendered
+    # Equal up to the order of Dr.Jit's float32 atomic additions (not bit-reproducible).
+    scale = float(gradients[1].abs().max())
+    assert torch.allclose(gradients[0], gradients[1], rtol=0, atol=1e-5 * scale)

@@ -1,9 +1,13 @@
 """The ``sq-mitsuba`` command line: one parser, one subcommand per module in this package.
 
 Each module ``sq_mitsuba/cli/<name>.py`` defines ``register(subparsers)``, which adds its
-subcommand and sets ``func`` (taking the parsed ``argparse.Namespace``, returning an exit
-code). Commands stay thin: they parse, call the library, and report. Heavy imports (Mitsuba)
-happen inside the command, so ``sq-mitsuba --help`` stays fast.
+subcommand, named like the module, and sets ``func`` (taking the parsed
+``argparse.Namespace``, returning an exit code). Commands stay thin: they parse, call the
+library, and report. Heavy imports (Mitsuba) happen inside the command. Options whose defaults
+come from a library config class import that class's module (often torch) when the parser is
+built, so :func:`main` builds only the parser of the command it runs; for the command list of
+``sq-mitsuba --help`` a module may define ``HELP`` (its one-line help) and import its config
+classes inside ``register``, and is then listed without being registered.
 """
 
 from __future__ import annotations
@@ -21,27 +25,52 @@ class CLIError(Exception):
     """A user-facing failure: printed as one line, exit code 2."""
 
 
-def build_parser() -> argparse.ArgumentParser:
+def command_names() -> list[str]:
+    """The subcommands: one per module of this package (``_``-prefixed ones excluded)."""
+    return sorted(m.name for m in pkgutil.iter_modules(__path__) if not m.name.startswith("_"))
+
+
+def build_parser(command: str | None = None, listing: bool = False) -> argparse.ArgumentParser:
+    """The ``sq-mitsuba`` parser with every subcommand registered in full.
+
+    Args:
+        command: register only this subcommand in full; the others by name only, without
+            importing their modules.
+        listing: list the subcommands whose module has ``HELP`` by name and help only (enough
+            for ``sq-mitsuba --help``); the others are registered in full.
+    """
     parser = argparse.ArgumentParser(
         prog="sq-mitsuba",
         description="Superquadric abstraction of spacecraft from single images, with Mitsuba 3.",
     )
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for info in sorted(pkgutil.iter_modules(__path__), key=lambda m: m.name):
-        if info.name.startswith("_"):
+    for name in command_names():
+        if command is not None and name != command:
+            subparsers.add_parser(name)
             continue
-        module = importlib.import_module(f"{__name__}.{info.name}")
+        module = importlib.import_module(f"{__name__}.{name}")
+        if listing and command is None and hasattr(module, "HELP"):
+            subparsers.add_parser(name, help=module.HELP)
+            continue
         module.register(subparsers)
     return parser
 
 
+def _one_line(error: BaseException) -> str:
+    lines = [line.strip() for line in str(error).splitlines() if line.strip()]
+    return "; ".join(lines) or type(error).__name__
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    command = argv[0] if argv and argv[0] in command_names() else None
+    args = build_parser(command, listing=True).parse_args(argv)
+    if not hasattr(args, "func"):  # a listed-only command was reached some other way
+        args = build_parser(args.command).parse_args(argv)
     try:
         return int(args.func(args) or 0)
     except (CLIError, ValueError, FileNotFoundError, PermissionError, OSError) as error:
-        print(f"sq-mitsuba {args.command}: error: {error}", file=sys.stderr)
+        print(f"sq-mitsuba {args.command}: error: {_one_line(error)}", file=sys.stderr)
         return EXIT_ERROR
     except KeyboardInterrupt:
         print(f"sq-mitsuba {args.command}: interrupted", file=sys.stderr)

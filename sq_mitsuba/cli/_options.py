@@ -24,6 +24,8 @@ from sq_mitsuba.cli import CLIError
 from sq_mitsuba.config import ConfigError, apply_overrides, field_docs, from_dict, to_dict
 
 _FLAGS = "_config_flags"
+# Parser default {field: config class}, beside _FLAGS: lets tests find each option's class.
+_CLASSES = "_config_classes"
 
 
 def _option_kwargs(annotation: Any, default: Any) -> dict[str, Any]:
@@ -65,7 +67,9 @@ def add_config_options(parser: argparse.ArgumentParser, config_class: type,
                             help=f"{help_text} (default: {shown})", **kwargs)
     known = dict(parser.get_default(_FLAGS) or {})
     known.update({name: flag for name, flag in flags.items()})
-    parser.set_defaults(**{_FLAGS: known})
+    classes = dict(parser.get_default(_CLASSES) or {})
+    classes.update({name: config_class for name in flags})
+    parser.set_defaults(**{_FLAGS: known, _CLASSES: classes})
 
 
 def add_set_option(parser: argparse.ArgumentParser, what: str) -> None:

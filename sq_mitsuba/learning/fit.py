@@ -2,26 +2,102 @@
 
 Analysis by synthesis: Adam moves the raw (unconstrained) parameters of M primitives, squashed
 by :meth:`Assembly.from_raw`, so that their Mitsuba silhouettes at the given poses match the
-masks; the losses of all views are summed into one backward pass per step.
+masks; the losses of all views are summed into one backward pass per step. The settings are
+a :class:`FitOptions` (the ``sq-mitsuba fit`` options and their defaults come from it).
 """
 
 from __future__ import annotations
 
-import math
+import dataclasses
+import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import Any, Literal
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
 from sq_mitsuba.checks import check_tensor
+from sq_mitsuba.config import bounds, in_range, positive, validate
 from sq_mitsuba.geometry.assembly import NUM_PARAMS, Assembly
 from sq_mitsuba.geometry.camera import Camera
-from sq_mitsuba.learning.losses import SILHOUETTE_LOSSES, silhouette_loss
+from sq_mitsuba.learning.losses import silhouette_loss
+from sq_mitsuba.render.silhouette import (
+    DEFAULT_SPP,
+    SilhouetteRenderer,
+    mask_iou,
+    render_assembly,
+    render_assembly_loss,
+)
 
 # Raw 6D rotation of the identity (first two rows of I); Assembly.from_raw keeps 6D as is.
 _IDENTITY_6D = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0)
+
+#: Bytes per pixel of one silhouette render and its backward pass (Dr.Jit LLVM on the CPU;
+#: measured growth 60-75 B/px from 512 x 512 to 2048 x 2048 at spp 16, independent of spp,
+#: because the renderer runs one view at a time and does not store samples).
+RENDER_BYTES_PER_PIXEL = 80
+#: Bytes per pixel and view that a fit keeps at its resolution: float64 targets, the step's
+#: coverage and three snapshots, and the figure's overlays.
+VIEW_BYTES_PER_PIXEL = 6 * 8
+
+
+@dataclass(frozen=True)
+class FitOptions:
+    """Settings of :func:`fit_assembly` (test-time fitting of M superquadrics to masks)."""
+
+    num_primitives: int = in_range(1, 64, default=1)
+    "Number of superquadrics M."
+    steps: int = in_range(1, 1_000_000, default=150)
+    "Adam steps."
+    resolution: int = in_range(8, None, default=64)
+    "Width in pixels of the fitted silhouettes (the height keeps the masks' aspect)."
+    lr: float = positive(0.05)
+    "Adam learning rate on the raw parameters."
+    loss: Literal["mse", "iou"] = "mse"
+    "Per-view loss, summed over views: 'mse' (the paper's) or 'iou' (1 - soft IoU)."
+    spp: int = in_range(1, 4096, default=DEFAULT_SPP)
+    "Samples per pixel of the rendered silhouettes (forward pass)."
+    sppp: int | None = field(default=None, metadata=bounds(1, 4096))
+    "Silhouette samples per pixel of the backward pass (None: a fixed budget per image)."
+    seed: int = in_range(0, 2**31 - 1, default=0)
+    "Seed of the start spread (M > 1) and of the renderer's samples."
+    level: int = in_range(0, 5, default=3)
+    "Icosphere level of each primitive's mesh (3: 642 vertices)."
+
+
+def fit_memory_bytes(views: int, width: int, height: int) -> int:
+    """Rough memory (bytes) a fit of ``views`` masks at ``width`` x ``height`` pixels needs."""
+    return width * height * (RENDER_BYTES_PER_PIXEL + views * VIEW_BYTES_PER_PIXEL)
+
+
+def _physical_memory() -> int | None:
+    """Bytes of RAM of this machine, or None where the OS does not say."""
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (AttributeError, ValueError, OSError):
+        return None
+
+
+def _bytes_text(count: float) -> str:
+    for unit in ("B", "KB", "MB", "GB", "TB"):
+        if count < 1000 or unit == "TB":
+            return f"{count:.3g} {unit}" if unit != "B" else f"{count:.0f} B"
+        count /= 1000
+    raise AssertionError("unreachable")
+
+
+def check_fit_memory(views: int, camera: Camera, resolution: int) -> None:
+    """``ValueError`` (with the estimate) when fitting at ``resolution`` needs more memory
+    than this machine has (see :func:`fit_memory_bytes`)."""
+    height = max(1, round(camera.height * resolution / camera.width))
+    need = fit_memory_bytes(views, resolution, height)
+    have = _physical_memory()
+    if have is not None and need > have:
+        raise ValueError(f"resolution: {resolution} ({resolution} x {height} px, {views} "
+                         f"view(s)) needs about {_bytes_text(need)} of memory, more than this "
+                         f"machine's {_bytes_text(have)}")
 
 
 @dataclass
@@ -37,6 +113,7 @@ class FitResult:
         snapshots: (step, silhouettes (V, h, w)) at the start, middle and end; the last one
             renders the final parameters.
         final_iou: IoU per view (V,) of the final parameters (both images thresholded at 0.5).
+        options: the settings of the fit.
     """
 
     assembly: Assembly
@@ -46,6 +123,7 @@ class FitResult:
     ious: list[list[float]] = field(default_factory=list)
     snapshots: list[tuple[int, Tensor]] = field(default_factory=list)
     final_iou: Tensor | None = None
+    options: FitOptions = field(default_factory=FitOptions)
 
     @property
     def mean_iou(self) -> float:
@@ -80,50 +158,45 @@ def fit_assembly(
     camera: Camera,
     rotations: Tensor,
     translations: Tensor,
-    num_primitives: int = 1,
-    steps: int = 150,
+    options: FitOptions | None = None,
     *,
-    resolution: int = 64,
-    lr: float = 0.05,
-    loss: str = "mse",
-    spp: int = 16,
-    sppp: int | None = None,
-    seed: int = 0,
     init_raw: Tensor | None = None,
-    level: int = 3,
     progress: bool = False,
     callback: Callable[[int, float, Tensor], None] | None = None,
+    **overrides: Any,
 ) -> FitResult:
-    """Fit an assembly of ``num_primitives`` superquadrics to binary masks with known poses.
+    """Fit an assembly of ``options.num_primitives`` superquadrics to binary masks with known
+    poses.
 
     Args:
         masks: (V, H, W) masks of V views (bool or float in [0, 1]) at ``camera``'s resolution.
-        camera: intrinsics of the masks (rescaled internally to ``resolution`` pixels wide).
+        camera: intrinsics of the masks (rescaled internally to ``options.resolution`` pixels
+            wide).
         rotations: (V, 3, 3) body-to-camera rotations; translations: (V, 3), OpenCV frame:
             ``x_cam = R x_body + t``.
-        num_primitives: M.
-        steps: Adam steps.
-        resolution: width in pixels of the silhouettes fitted (height keeps the aspect).
-        lr: Adam learning rate on the raw parameters.
-        loss: ``"mse"`` or ``"iou"`` (see :func:`silhouette_loss`), summed over views.
-        spp, sppp: renderer sample counts (forward, backward silhouette; sppp default: see
-            :func:`sq_mitsuba.render.silhouette.default_sppp`).
-        seed: seeds the start spread (M > 1) and the renderer's samples.
+        options: a :class:`FitOptions` (default settings when None).
         init_raw: (1, M, 16) raw start instead of :func:`default_raw`.
-        level: icosphere level of the primitive meshes (3: 642 vertices each).
         progress: show a tqdm progress bar.
         callback: called as ``callback(step, loss, coverage)`` after each step.
+        overrides: fields of :class:`FitOptions` replacing those of ``options``
+            (``fit_assembly(..., num_primitives=2, steps=50)``).
 
     Returns:
         A :class:`FitResult`.
-    """
-    from sq_mitsuba.render.silhouette import (
-        SilhouetteRenderer,
-        mask_iou,
-        render_assembly,
-        render_assembly_loss,
-    )
 
+    Raises:
+        ValueError: bad tensors, a bad option (a ``ConfigError`` naming the field), or a
+            resolution that needs more memory than the machine has (see
+            :func:`check_fit_memory`); all before any rendering.
+    """
+    options = options if options is not None else FitOptions()
+    if not isinstance(options, FitOptions):
+        raise ValueError(f"options: expected FitOptions, got {type(options).__name__}")
+    unknown = sorted(set(overrides) - {f.name for f in dataclasses.fields(FitOptions)})
+    if unknown:
+        raise TypeError(f"fit_assembly: unknown option(s) {', '.join(unknown)}")
+    options = dataclasses.replace(options, **overrides)
+    validate(options)
     check_tensor("masks", masks, (None, None), min_dims=3, floating=False)
     if masks.dim() != 3 or masks.shape[0] < 1:
         raise ValueError(f"masks: expected shape (V, H, W), got {tuple(masks.shape)}")
@@ -139,30 +212,26 @@ def fit_assembly(
                          f"{tuple(translations.shape)}")
     if bool((translations[:, 2] <= 0).any()):
         raise ValueError("translations: the object must lie in front of the camera (t_z > 0)")
-    for name, value in (("num_primitives", num_primitives), ("steps", steps),
-                        ("resolution", resolution)):
-        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-            raise ValueError(f"{name}: expected a positive integer, got {value!r}")
-    if not (isinstance(lr, int | float) and math.isfinite(lr) and lr > 0):
-        raise ValueError(f"lr: expected a positive number, got {lr!r}")
-    if loss not in SILHOUETTE_LOSSES:
-        raise ValueError(f"loss: expected one of {SILHOUETTE_LOSSES}, got {loss!r}")
+    check_fit_memory(views, camera, options.resolution)
+    num_primitives, steps, loss, level = (options.num_primitives, options.steps, options.loss,
+                                          options.level)
 
-    fit_camera = camera.rescaled(resolution)
+    fit_camera = camera.rescaled(options.resolution)
     targets = resize_masks(masks, fit_camera.height, fit_camera.width)
     rotations = rotations.to(torch.float64)
     translations = translations.to(torch.float64)
-    generator = torch.Generator().manual_seed(seed)
+    generator = torch.Generator().manual_seed(options.seed)
     if init_raw is None:
         raw = default_raw(num_primitives, generator)
     else:
         check_tensor("init_raw", init_raw, (num_primitives, NUM_PARAMS), min_dims=3)
         raw = init_raw.detach().to(torch.float64).clone()
     raw.requires_grad_(True)
-    renderer = SilhouetteRenderer(fit_camera, spp=spp, sppp=sppp, seed=seed)
-    optimizer = torch.optim.Adam([raw], lr=lr)
+    renderer = SilhouetteRenderer(fit_camera, spp=options.spp, sppp=options.sppp,
+                                  seed=options.seed)
+    optimizer = torch.optim.Adam([raw], lr=options.lr)
     result = FitResult(assembly=Assembly.from_raw(raw.detach()), raw=raw.detach(),
-                       targets=targets)
+                       targets=targets, options=options)
     middle = steps // 2
 
     iterator: Sequence[int] | object = range(steps)

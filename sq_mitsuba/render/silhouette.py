@@ -18,8 +18,8 @@ needs none.
 
 from __future__ import annotations
 
-import hashlib
 import math
+import weakref
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -84,11 +84,49 @@ def sensor_dict(camera: Camera) -> dict[str, Any]:
     }
 
 
-@dataclass(frozen=True)
+@dataclass
 class _Topology:
+    """The mesh topology the scene was built for, and how to recognise it cheaply.
+
+    Convention: a render with the very faces tensor of the last one, unmodified since
+    (``torch`` bumps a tensor's ``_version`` on every in-place change), is a hit at no cost;
+    another tensor is compared element by element with ``key`` (a memory compare, several
+    times cheaper than hashing the faces, which every call did before).
+    """
+
+    ident: int
+    "Increases with every scene built: a backward pass checks that its forward's scene is live."
     num_vertices: int
-    num_faces: int
-    digest: str
+    faces: np.ndarray
+    "(F, 3) uint32, as given to Mitsuba."
+    key: Tensor
+    "(F, 3) int64 CPU copy of the faces, for the element-wise comparison."
+    last: weakref.ref[Tensor] | None = None
+    "The faces tensor last seen with this topology."
+    last_version: int = -1
+    "Its ``_version`` then."
+
+    def matches(self, faces: Tensor, num_vertices: int) -> bool:
+        """Whether ``faces`` with ``num_vertices`` vertices is this topology (remembers it)."""
+        if num_vertices != self.num_vertices:
+            return False
+        if self.last is not None and self.last() is faces and faces._version == self.last_version:
+            return True
+        if (faces.shape != self.key.shape or faces.is_floating_point()
+                or faces.is_complex() or faces.dtype == torch.bool):
+            return False
+        if not torch.equal(faces.detach().to("cpu", torch.int64), self.key):
+            return False
+        self.remember(faces)
+        return True
+
+    def remember(self, faces: Tensor) -> None:
+        try:
+            version = faces._version
+        except RuntimeError:  # inference-mode tensors have no version counter
+            self.last = None
+            return
+        self.last, self.last_version = weakref.ref(faces), version
 
 
 def _check_faces(faces: Tensor, num_vertices: int) -> np.ndarray:
@@ -118,8 +156,10 @@ class SilhouetteRenderer:
         seed: base seed; every call draws fresh samples, reproducibly from this seed.
 
     One Mitsuba scene is built on the first call and reused while the mesh topology (vertex
-    count and faces) stays the same; a new topology rebuilds it. Kernels are compiled once and
-    come from Dr.Jit's cache afterwards.
+    count and faces) stays the same; a new topology rebuilds it. Recognising the topology costs
+    nothing when the same faces tensor comes back unmodified, and one element-wise comparison
+    otherwise (see :class:`_Topology`). Kernels are compiled once and come from Dr.Jit's cache
+    afterwards.
     """
 
     def __init__(self, camera: Camera, spp: int = DEFAULT_SPP, sppp: int | None = None,
@@ -140,6 +180,7 @@ class SilhouetteRenderer:
         self._params: Any = None
         self._integrator: Any = None
         self._topology: _Topology | None = None
+        self._scenes_built = 0
         self._loaded: tuple[int, int] | None = None  # (call, item) whose vertices the scene holds
         self._loaded_vertices: Any = None
         self._calls = 0
@@ -150,6 +191,11 @@ class SilhouetteRenderer:
         c = self.camera
         return (f"SilhouetteRenderer({c.width}x{c.height}, fx={c.fx:.2f}, spp={self.spp}, "
                 f"sppp={self.sppp}, variant={self._mi.variant()})")
+
+    @property
+    def scenes_built(self) -> int:
+        """Mitsuba scenes built so far: one per change of topology (see :class:`_Topology`)."""
+        return self._scenes_built
 
     @property
     def resolution(self) -> tuple[int, int]:
@@ -184,15 +230,21 @@ class SilhouetteRenderer:
         if vertices.dim() != 3 or vertices.shape[0] < 1 or vertices.shape[1] < 3:
             raise ValueError(f"vertices: expected shape (B, V, 3) with B >= 1 and V >= 3, got "
                              f"{tuple(vertices.shape)}")
-        faces_np = _check_faces(faces, vertices.shape[1])
-        self._ensure_scene(vertices.shape[1], faces_np)
+        num_vertices = vertices.shape[1]
+        if (self._topology is not None and isinstance(faces, Tensor)
+                and self._topology.matches(faces, num_vertices)):
+            return self._topology.faces
+        faces_np = _check_faces(faces, num_vertices)
+        self._build_scene(num_vertices, faces_np)
+        self._topology.remember(faces)
         return faces_np
 
-    def _ensure_scene(self, num_vertices: int, faces: np.ndarray) -> None:
-        topology = _Topology(num_vertices, faces.shape[0],
-                             hashlib.blake2b(faces.tobytes(), digest_size=16).hexdigest())
-        if topology == self._topology:
-            return
+    def _restore_topology(self, ident: int, num_vertices: int, faces: np.ndarray) -> None:
+        """Rebuild the scene of topology ``ident`` (faces as numpy) unless it is still live."""
+        if self._topology is None or self._topology.ident != ident:
+            self._build_scene(num_vertices, faces)
+
+    def _build_scene(self, num_vertices: int, faces: np.ndarray) -> None:
         mi = self._mi
         # Drop the old scene first: Dr.Jit traces virtual calls over every live instance.
         self._scene = self._params = self._integrator = self._loaded_vertices = None
@@ -223,7 +275,9 @@ class SilhouetteRenderer:
         self._params = mi.traverse(self._scene)
         self._params.keep([VERTEX_KEY])
         self._integrator = self._scene.integrator()
-        self._topology = topology
+        self._scenes_built += 1
+        self._topology = _Topology(self._scenes_built, num_vertices, faces,
+                                   torch.from_numpy(faces.astype(np.int64)))
 
     def _next_call(self) -> int:
         self._calls += 1
@@ -335,6 +389,7 @@ class _RenderSilhouettes(torch.autograd.Function):
                 faces: np.ndarray) -> Tensor:
         call = renderer._next_call()
         ctx.renderer, ctx.faces, ctx.call = renderer, faces, call
+        ctx.topology = renderer._topology.ident
         ctx.save_for_backward(vertices)
         return renderer._forward(vertices.detach(), call, requires_grad=True)
 
@@ -342,7 +397,7 @@ class _RenderSilhouettes(torch.autograd.Function):
     def backward(ctx: Any, grad_coverage: Tensor) -> tuple[Tensor | None, None, None]:
         (vertices,) = ctx.saved_tensors
         renderer: SilhouetteRenderer = ctx.renderer
-        renderer._ensure_scene(vertices.shape[1], ctx.faces)
+        renderer._restore_topology(ctx.topology, vertices.shape[1], ctx.faces)
         return renderer._backward(vertices.detach(), grad_coverage, ctx.call), None, None
 
 

@@ -16,10 +16,11 @@ import platform
 import re
 import statistics
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from sq_mitsuba.config import in_range, validate
 from sq_mitsuba.io import atomic_write_text
 
 BENCHMARKS_MD = Path(__file__).resolve().parents[2] / "eval" / "BENCHMARKS.md"
@@ -29,10 +30,14 @@ BENCHMARKS_MD = Path(__file__).resolve().parents[2] / "eval" / "BENCHMARKS.md"
 class BenchOptions:
     """Options common to all suites."""
 
-    repeats: int = 20
-    warmup: int = 3
-    threads: int = 2
+    repeats: int = in_range(1, 100_000, default=20)
+    "Timed runs of each operation."
+    warmup: int = in_range(0, 10_000, default=3)
+    "Untimed runs before the timed ones."
+    threads: int = in_range(1, 1024, default=2)
+    "Torch CPU threads (2: the reference machine)."
     device: str = "cpu"
+    "Torch device of the suites that use one (cpu or cuda)."
 
 
 @dataclass
@@ -136,6 +141,26 @@ def run_suite(name: str, options: BenchOptions) -> Report:
         raise ValueError(f"unknown benchmark suite {name!r}; choose from {available_suites()}")
     module = importlib.import_module(f"{__name__}.{name}")
     return module.run(options)
+
+
+def run_suites(names: Sequence[str], options: BenchOptions, write: bool = False,
+               path: Path = BENCHMARKS_MD) -> Iterator[Report]:
+    """Run the suites ``names`` (``["all"]``: every suite) with ``options.threads`` torch
+    threads, yielding each report when done; ``write`` records each in ``path`` first."""
+    import torch
+
+    validate(options)
+    names = available_suites() if list(names) == ["all"] else list(names)
+    for name in names:
+        if name not in available_suites():
+            raise ValueError(f"unknown benchmark suite {name!r}; choose from "
+                             f"{available_suites()}")
+    torch.set_num_threads(options.threads)
+    for name in names:
+        report = run_suite(name, options)
+        if write:
+            write_report(report, path)
+        yield report
 
 
 def write_report(report: Report, path: Path = BENCHMARKS_MD) -> None:

@@ -1,0 +1,185 @@
+"""Binary masks and SPE3R-style pose labels read from files, checked before any work starts.
+
+Masks: one image per view, the object bright on a dark background. Binary single-channel
+images (8-bit gray, 1-bit) are read as they are; anything else is converted first, then
+thresholded at half its range (see :func:`read_mask`). Every error is one line naming the file
+(and the entry, for labels).
+
+Labels: an SPE3R ``labels.json``, a list of ``{"filename": ..., "q_vbs2tango_true": [w, x, y,
+z], "r_Vo2To_vbs_true": [x, y, z]}``; the pose maps body to camera (OpenCV frame):
+``x_cam = R(q) x_body + r``. A mask takes the entry whose filename has the same stem
+(``img000001.png`` <- ``img000001.jpg``).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from sq_mitsuba.io import read_json
+
+QUATERNION_KEY = "q_vbs2tango_true"
+TRANSLATION_KEY = "r_Vo2To_vbs_true"
+
+#: Largest value of each PIL mode read as one gray channel (the threshold is half of it).
+_GRAY_RANGE = {"1": 1.0, "L": 255.0, "I;16": 65535.0, "I;16B": 65535.0, "I;16L": 65535.0,
+               "I;16N": 65535.0, "I": 65535.0, "F": 1.0}
+
+
+def _gray(image: Any, path: Path) -> tuple[np.ndarray, float]:
+    """One gray channel (H, W) float64 of a PIL image and the largest value of its range.
+
+    Convention: colour images become luminance (ITU-R 601, PIL's ``convert("L")``); alpha, where
+    present, multiplies it (composited on black: transparent pixels are background); 16-bit
+    and 32-bit integer images are taken as 16-bit (range 0..65535), float images as 0..1.
+    """
+    mode = image.mode
+    if mode in _GRAY_RANGE:
+        return np.asarray(image, dtype=np.float64), _GRAY_RANGE[mode]
+    if mode in ("LA", "La", "RGBA", "RGBa", "PA") or (mode == "P" and "transparency" in image.info):
+        rgba = image.convert("RGBA")
+        gray = np.asarray(rgba.convert("L"), dtype=np.float64)
+        alpha = np.asarray(rgba.getchannel("A"), dtype=np.float64) / 255.0
+        return gray * alpha, 255.0
+    try:
+        return np.asarray(image.convert("L"), dtype=np.float64), 255.0
+    except (ValueError, OSError) as error:
+        raise ValueError(f"mask {path}: cannot convert PIL mode {mode!r} to gray "
+                         f"({_one_line(error)})") from None
+
+
+def _one_line(error: BaseException) -> str:
+    return " ".join(str(error).split()) or type(error).__name__
+
+
+def read_mask(path: str | Path) -> np.ndarray:
+    """One mask (H, W) bool: object where the gray value exceeds half the format's range.
+
+    Conversion: RGB and palette images become gray (luminance); RGBA/LA are composited on
+    black first; 16-bit images keep their range. Object = gray > 127.5 for 8-bit images (> 127),
+    > 32767.5 for 16-bit, > 0.5 for float images.
+
+    Raises:
+        FileNotFoundError: ``path`` does not exist.
+        ValueError: not an image, a corrupt or truncated one, or an empty (all background)
+            mask; one line naming ``path``.
+    """
+    from PIL import Image, UnidentifiedImageError
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"mask {path}: no such file")
+    try:
+        with Image.open(path) as image:
+            image.load()
+            gray, top = _gray(image, path)
+    except UnidentifiedImageError:
+        raise ValueError(f"mask {path}: not an image PIL can read") from None
+    except (OSError, SyntaxError, Image.DecompressionBombError) as error:
+        # Pillow reports damaged files as OSError ("image file is truncated", "broken data
+        # stream") or SyntaxError (bad chunk headers).
+        raise ValueError(f"mask {path}: corrupt image ({_one_line(error)})") from None
+    if gray.ndim != 2:
+        raise ValueError(f"mask {path}: expected one image channel, got shape {gray.shape}")
+    mask = gray > top / 2
+    if not mask.any():
+        raise ValueError(f"mask {path}: empty (no pixel above half range: all background)")
+    return mask
+
+
+def read_masks(paths: Sequence[str | Path]) -> Tensor:
+    """Masks (V, H, W) bool of ``paths``, all of one size (see :func:`read_mask`).
+
+    Raises:
+        ValueError: no paths, a bad mask (see :func:`read_mask`), or two sizes (naming both
+            files and their sizes, width x height).
+    """
+    if len(paths) == 0:
+        raise ValueError("masks: no mask files given")
+    masks = []
+    first: tuple[Path, tuple[int, ...]] | None = None
+    for path in paths:
+        mask = read_mask(path)
+        if first is None:
+            first = (Path(path), mask.shape)
+        elif mask.shape != first[1]:
+            raise ValueError(f"masks: {first[0]} is {first[1][1]} x {first[1][0]} pixels but "
+                             f"{path} is {mask.shape[1]} x {mask.shape[0]} (width x height); "
+                             "all masks must have one size")
+        masks.append(mask)
+    return torch.from_numpy(np.stack(masks))
+
+
+def _numbers(entry: dict[str, Any], key: str, count: int, where: str) -> list[float]:
+    """``entry[key]`` as ``count`` finite floats, or a one-line ``ValueError`` at ``where``."""
+    if key not in entry:
+        raise ValueError(f"{where}: no {key!r}")
+    value = entry[key]
+    if (not isinstance(value, list | tuple) or len(value) != count
+            or not all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)):
+        shown = repr(value) if len(repr(value)) <= 60 else repr(value)[:57] + "..."
+        noun = "quaternion" if count == 4 else "translation"
+        raise ValueError(f"{where}: {key} must be a list of {count} numbers (the {noun}), "
+                         f"got {shown}")
+    numbers = [float(v) for v in value]
+    if not all(math.isfinite(v) for v in numbers):
+        raise ValueError(f"{where}: {key} holds NaN or infinity: {numbers}")
+    return numbers
+
+
+def read_label_poses(labels_path: str | Path, names: Sequence[str | Path]
+                     ) -> tuple[Tensor, Tensor]:
+    """Poses of the images ``names`` from an SPE3R-style ``labels.json``, matched by file stem.
+
+    Args:
+        labels_path: the labels file (a JSON list of entries, see the module docstring).
+        names: image file names or paths (only their stems matter), one per view.
+
+    Returns:
+        (quaternions (V, 4), translations (V, 3)) float64, body to camera; quaternions are
+        scalar-first and returned as stored (not normalised).
+
+    Raises:
+        FileNotFoundError: no ``labels_path``.
+        ValueError: malformed JSON, an entry without ``filename``, two entries with one stem,
+            no entry for a name, or an entry whose quaternion is not 4 finite numbers with a
+            non-zero norm or whose translation is not 3 finite numbers; one line naming the
+            file and the entry (index and filename).
+    """
+    labels_path = Path(labels_path)
+    if not labels_path.is_file():
+        raise FileNotFoundError(f"labels {labels_path}: no such file")
+    labels = read_json(labels_path)
+    if not isinstance(labels, list):
+        raise ValueError(f"labels {labels_path}: expected a JSON list of entries, got "
+                         f"{type(labels).__name__}")
+    by_stem: dict[str, tuple[int, dict[str, Any]]] = {}
+    for index, entry in enumerate(labels):
+        if not isinstance(entry, dict) or not isinstance(entry.get("filename"), str):
+            raise ValueError(f"labels {labels_path}: entry {index} has no 'filename' string")
+        stem = Path(entry["filename"]).stem
+        if stem in by_stem:
+            raise ValueError(f"labels {labels_path}: entries {by_stem[stem][0]} and {index} "
+                             f"both have the stem {stem!r}")
+        by_stem[stem] = (index, entry)
+    quaternions, translations = [], []
+    for name in names:
+        stem = Path(name).stem
+        if stem not in by_stem:
+            raise ValueError(f"labels {labels_path}: no label with the stem of "
+                             f"{Path(name).name!r}")
+        index, entry = by_stem[stem]
+        where = f"labels {labels_path}: entry {index} ({entry['filename']!r})"
+        q = _numbers(entry, QUATERNION_KEY, 4, where)
+        if math.hypot(*q) < 1e-8:
+            raise ValueError(f"{where}: {QUATERNION_KEY} has zero norm")
+        quaternions.append(q)
+        translations.append(_numbers(entry, TRANSLATION_KEY, 3, where))
+    return (torch.tensor(quaternions, dtype=torch.float64),
+            torch.tensor(translations, dtype=torch.float64))
