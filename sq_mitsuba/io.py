@@ -91,3 +91,32 @@ def save_figure(figure: Any, path: str | Path, dpi: int = 110) -> Path:
     finally:
         plt.close(figure)
     return path
+
+
+def check_output_folder(out: str | Path) -> Path:
+    """``out`` as a Path, if it is (or can be created as) a writable folder.
+
+    Probes by creating and removing a temporary file in ``out`` or its nearest existing
+    ancestor: permission bits alone do not tell (root ignores them; read-only mounts).
+    Creates nothing that stays.
+
+    Raises:
+        ValueError: ``out`` or an ancestor is a file, or the folder is not writable.
+    """
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"out {out}: exists and is not a folder")
+    existing = out
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        raise ValueError(f"out {out}: {existing} is a file, not a folder")
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".sq-mitsuba-probe.", dir=existing)
+    except OSError as error:
+        raise ValueError(f"out {out}: cannot write in {existing} "
+                         f"({error.strerror or type(error).__name__})") from None
+    os.close(fd)
+    with contextlib.suppress(FileNotFoundError):
+        os.unlink(probe)
+    return out

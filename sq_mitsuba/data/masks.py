@@ -58,6 +58,35 @@ def _one_line(error: BaseException) -> str:
     return " ".join(str(error).split()) or type(error).__name__
 
 
+def read_gray_image(path: str | Path, what: str = "image") -> np.ndarray:
+    """One image (H, W) as float64 in [0, 1], converted as the module docstring says: colour
+    images become luminance, alpha composites on black, 16-bit images keep their range.
+
+    Raises:
+        FileNotFoundError: ``path`` does not exist.
+        ValueError: not an image, or a corrupt or truncated one; one line naming ``what`` and
+            ``path``.
+    """
+    from PIL import Image, UnidentifiedImageError
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{what} {path}: no such file")
+    try:
+        with Image.open(path) as image:
+            image.load()
+            gray, top = _gray(image, path)
+    except UnidentifiedImageError:
+        raise ValueError(f"{what} {path}: not an image PIL can read") from None
+    except (OSError, SyntaxError, Image.DecompressionBombError) as error:
+        # Pillow reports damaged files as OSError ("image file is truncated", "broken data
+        # stream") or SyntaxError (bad chunk headers).
+        raise ValueError(f"{what} {path}: corrupt image ({_one_line(error)})") from None
+    if gray.ndim != 2:
+        raise ValueError(f"{what} {path}: expected one image channel, got shape {gray.shape}")
+    return np.clip(gray / top, 0.0, 1.0)
+
+
 def read_mask(path: str | Path) -> np.ndarray:
     """One mask (H, W) bool: object where the gray value exceeds half the format's range.
 
@@ -70,24 +99,7 @@ def read_mask(path: str | Path) -> np.ndarray:
         ValueError: not an image, a corrupt or truncated one, or an empty (all background)
             mask; one line naming ``path``.
     """
-    from PIL import Image, UnidentifiedImageError
-
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"mask {path}: no such file")
-    try:
-        with Image.open(path) as image:
-            image.load()
-            gray, top = _gray(image, path)
-    except UnidentifiedImageError:
-        raise ValueError(f"mask {path}: not an image PIL can read") from None
-    except (OSError, SyntaxError, Image.DecompressionBombError) as error:
-        # Pillow reports damaged files as OSError ("image file is truncated", "broken data
-        # stream") or SyntaxError (bad chunk headers).
-        raise ValueError(f"mask {path}: corrupt image ({_one_line(error)})") from None
-    if gray.ndim != 2:
-        raise ValueError(f"mask {path}: expected one image channel, got shape {gray.shape}")
-    mask = gray > top / 2
+    mask = read_gray_image(path, "mask") > 0.5
     if not mask.any():
         raise ValueError(f"mask {path}: empty (no pixel above half range: all background)")
     return mask

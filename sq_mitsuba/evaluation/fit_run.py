@@ -15,9 +15,6 @@ each file atomically, into the output folder:
 
 from __future__ import annotations
 
-import contextlib
-import os
-import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,7 +25,7 @@ from sq_mitsuba.data.masks import read_label_poses, read_masks
 from sq_mitsuba.evaluation.figures import plot_fit
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.rotation import quaternion_to_matrix
-from sq_mitsuba.io import atomic_write_json
+from sq_mitsuba.io import atomic_write_json, check_output_folder
 from sq_mitsuba.learning.fit import FitOptions, FitResult, fit_assembly
 
 OUTPUT_FILES = ("assembly.json", "assembly.glb", "fit.png", "fit_log.json")
@@ -61,35 +58,6 @@ class FitRun:
         return (f"fitted {result.options.num_primitives} primitive(s) to {len(self.masks)} "
                 f"mask(s): mean IoU {result.mean_iou:.3f} ({ious}); wrote "
                 f"{self.out}/{', '.join(OUTPUT_FILES)}")
-
-
-def check_output_folder(out: str | Path) -> Path:
-    """``out`` as a Path, if it is (or can be created as) a writable folder.
-
-    Probes by creating and removing a temporary file in ``out`` or its nearest existing
-    ancestor: permission bits alone do not tell (root ignores them; read-only mounts).
-    Creates nothing that stays.
-
-    Raises:
-        ValueError: ``out`` or an ancestor is a file, or the folder is not writable.
-    """
-    out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"out {out}: exists and is not a folder")
-    existing = out
-    while not existing.exists() and existing != existing.parent:
-        existing = existing.parent
-    if not existing.is_dir():
-        raise ValueError(f"out {out}: {existing} is a file, not a folder")
-    try:
-        fd, probe = tempfile.mkstemp(prefix=".sq-mitsuba-probe.", dir=existing)
-    except OSError as error:
-        raise ValueError(f"out {out}: cannot write in {existing} "
-                         f"({error.strerror or type(error).__name__})") from None
-    os.close(fd)
-    with contextlib.suppress(FileNotFoundError):
-        os.unlink(probe)
-    return out
 
 
 def fit_log(run_masks: Sequence[Path], poses: Path, camera: Camera, camera_path: Path | None,
@@ -185,4 +153,4 @@ def run_fit(masks: Sequence[str | Path], poses: str | Path, out: str | Path,
     return FitRun(result=result, out=out, masks=mask_paths)
 
 
-__all__ = ["OUTPUT_FILES", "FitRun", "check_output_folder", "fit_log", "run_fit"]
+__all__ = ["OUTPUT_FILES", "FitRun", "fit_log", "run_fit"]
