@@ -48,3 +48,32 @@ def unit_sphere():
 
     vertices, faces = icosphere(4)
     return torch.tensor(vertices, dtype=torch.float64), torch.tensor(faces, dtype=torch.int64)
+
+
+# --- training fixture (learning issue: tests/test_train.py, test_cache.py) ------------------
+
+
+TRAIN_FIXTURE_IMAGES = 10
+"""Images per model of :func:`train_dataset`: the val split takes images 4 and 9 (the SPE3R
+rule, [0.4 n, 0.5 n) and [0.9 n, n)), the train split the other 8."""
+
+
+@pytest.fixture(scope="session")
+def train_dataset(tmp_path_factory):
+    """A tiny SPE3R-layout dataset for training tests, built once per session: three generated
+    spacecraft (two train, one test), 10 path-traced 64 px images each (spp 4)."""
+    from sq_mitsuba.data.library import generate_model
+    from sq_mitsuba.data.spacecraft import catalogue
+    from sq_mitsuba.data.spe3r import RenderOptions, render_dataset
+
+    models = tmp_path_factory.mktemp("train_models")
+    entries = catalogue(3, 5)
+    for entry in entries:
+        generate_model(entry, models, points=3000)
+    splits = [(entries[0].name, "train"), (entries[1].name, "train"), (entries[2].name, "test")]
+    (models / "splits.csv").write_text("".join(f"{m},{s}\n" for m, s in splits))
+    out = tmp_path_factory.mktemp("train_data") / "data"
+    options = RenderOptions(images_per_model=TRAIN_FIXTURE_IMAGES, seed=5, resolution=64, spp=4)
+    summary = render_dataset(models, out, options, progress=False)
+    assert not summary.failures
+    return out

@@ -5,85 +5,113 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from sq_mitsuba.cli._options import add_config_options, add_set_option, config_from_args
+
+HELP = "render, check and preview datasets in the SPE3R layout"
+RENDER_DESCRIPTION = """\
+Render every model of --models (a `sq-mitsuba models generate` folder) in the space scene.
+
+OUT/dataset.json records the settings (seed, resolution, spp, exr, camera, scene) before the
+first image. Running again with the same settings resumes an interrupted run; with a larger
+--images-per-model it adds exactly the images a larger run would have written. Other settings
+stop with an error naming them and touch nothing, unless --overwrite: that first deletes
+OUT's dataset.json, camera.json, splits.csv, failures.json, preview.png, .failures/ and model
+folders (nothing else). --shard I/N renders block I of N of the work (0 <= I < N): N shards
+into the same OUT, on as many machines, in any order, equal one unsharded run byte for byte;
+the last to finish writes splits.csv. Failed models are left out of splits.csv and listed
+with their reason in OUT/failures.json. Exit code 1 when a model failed, 2 on bad options
+(nothing written)."""
+
+#: RenderOptions fields exposed as options.
+RENDER_FLAGS = {"images_per_model": "--images-per-model", "seed": "--seed",
+                "resolution": "--resolution", "spp": "--spp", "exr": "--exr",
+                "camera": "--camera", "workers": "--workers", "shard": "--shard",
+                "overwrite": "--overwrite"}
+CHECK_FLAGS = {"per_model": "--per-model", "min_iou": "--min-iou", "spp": "--spp"}
+PREVIEW_FLAGS = {"count": "--count", "axis_length": "--axis-length"}
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
+    # Imported here: these import torch, which `sq-mitsuba --help` does without.
+    from sq_mitsuba.data.spe3r.check import CheckOptions
+    from sq_mitsuba.data.spe3r.preview import PreviewOptions
+    from sq_mitsuba.data.spe3r.writer import RenderOptions
+
     parser = subparsers.add_parser(
-        "dataset", help="render, check and preview datasets in the SPE3R layout",
+        "dataset", help=HELP,
         description="Physically based datasets (images, masks, pose labels) in the SPE3R layout.")
     commands = parser.add_subparsers(dest="dataset_command", metavar="ACTION", required=True)
 
     render = commands.add_parser(
         "render", help="path-trace images, masks and labels of every model",
-        description="Render every model of --models (a `sq-mitsuba models generate` folder) in "
-                    "the space scene. Re-running the same command resumes an interrupted run.")
+        description=RENDER_DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
     render.add_argument("--models", type=Path, required=True, help="model library folder")
     render.add_argument("--out", type=Path, required=True, help="dataset folder to write")
-    render.add_argument("--images-per-model", type=int, default=1000)
-    render.add_argument("--seed", type=int, default=0)
-    render.add_argument("--resolution", type=int, default=256, help="square image side (px)")
-    render.add_argument("--spp", type=int, default=64, help="path-tracing samples per pixel")
-    render.add_argument("--exr", action="store_true",
-                        help="also write linear radiance, depth and coverage (OpenEXR)")
-    render.add_argument("--camera", type=Path, default=None,
-                        help="SPEED-style camera.json to render with, rescaled to --resolution "
-                             "pixels wide (default: 35.45 deg field of view, square)")
-    render.add_argument("--scene", type=Path, default=None,
-                        help="scene configuration JSON (default scenes/space.json)")
-    render.add_argument("--workers", type=int, default=1,
-                        help="processes rendering models in parallel (default 1)")
+    add_config_options(render, RenderOptions, RENDER_FLAGS,
+                       metavars={"camera": "JSON", "shard": "I/N"})
+    render.add_argument("--scene", type=Path, default=None, metavar="FILE",
+                        help="scene configuration, JSON or TOML (default scenes/space.json); "
+                             "fields it leaves out keep their defaults")
+    add_set_option(render, "scene configuration")
     render.add_argument("--quiet", action="store_true", help="no progress bar")
     render.set_defaults(func=_render)
 
     check = commands.add_parser(
-        "check", help="validate a dataset: files, labels, label/mask agreement",
-        description="Re-render each model's mesh at its label poses and compare with the "
-                    "stored masks (exit 1 when a problem is found).")
-    check.add_argument("root", type=Path)
-    check.add_argument("--per-model", type=int, default=20,
-                       help="images checked per model (0: all)")
-    check.add_argument("--min-iou", type=float, default=0.99)
-    check.add_argument("--quiet", action="store_true")
+        "check", help="validate a dataset: bookkeeping, files, labels, label/mask agreement",
+        description="Check the manifest and splits, look for stray files, decode every image "
+                    "and mask, check every label, and re-render each model's mesh at label "
+                    "poses to compare with the stored masks (pixels an edge leaves ambiguous "
+                    "are left out, so the threshold holds at any resolution). Exit code 1 "
+                    "when a problem is found, 2 on bad options.")
+    check.add_argument("root", type=Path, help="dataset folder")
+    add_config_options(check, CheckOptions, CHECK_FLAGS)
+    check.add_argument("--quiet", action="store_true", help="no progress bar")
     check.set_defaults(func=_check)
 
     preview = commands.add_parser(
         "preview", help="contact sheet of images with mask outlines and pose axes")
-    preview.add_argument("root", type=Path)
-    preview.add_argument("--out", type=Path, default=None,
+    preview.add_argument("root", type=Path, help="dataset folder")
+    preview.add_argument("--out", type=Path, default=None, metavar="PNG",
                          help="PNG to write (default ROOT/preview.png)")
-    preview.add_argument("--count", type=int, default=16, help="images on the sheet")
+    add_config_options(preview, PreviewOptions, PREVIEW_FLAGS)
     preview.set_defaults(func=_preview)
 
 
 def _render(args: argparse.Namespace) -> int:
-    from sq_mitsuba.data.spe3r import RenderOptions, render_dataset
-    from sq_mitsuba.geometry.camera import Camera
+    from sq_mitsuba.data.spe3r.writer import RenderOptions, render_dataset
     from sq_mitsuba.render.scene_config import SceneConfig
 
-    camera = Camera.load(args.camera) if args.camera is not None else None
-    options = RenderOptions(images_per_model=args.images_per_model, seed=args.seed,
-                            resolution=args.resolution, spp=args.spp, exr=args.exr,
-                            scene=SceneConfig.load(args.scene), camera=camera)
-    summary = render_dataset(args.models, args.out, options, progress=not args.quiet,
-                             workers=args.workers)
-    print(f"{len(summary.models_done)} models done ({summary.rendered} images rendered, "
+    # --scene, then --set: the scene configuration (the --set keys are the scene's fields);
+    # then the render options from their flags, with that scene.
+    scene = config_from_args(SceneConfig, argparse.Namespace(overrides=args.overrides),
+                             base=SceneConfig.load(args.scene))
+    options = config_from_args(RenderOptions, argparse.Namespace(**{**vars(args),
+                                                                   "overrides": []}),
+                               scene=scene)
+    summary = render_dataset(args.models, args.out, options, progress=not args.quiet)
+    shard = "" if options.shard_count == 1 else f"shard {options.shard}: "
+    print(f"{shard}{len(summary.models_done)} models done ({summary.rendered} images rendered, "
           f"{summary.skipped} already there) in {args.out}")
     for model, reason in summary.failures.items():
         print(f"FAILED {model}: {reason}")
+    if not summary.complete:
+        print("the dataset is not complete yet: other shards still have work (the last to "
+              "finish writes splits.csv), or failed shards must be run again")
     return 1 if summary.failures else 0
 
 
 def _check(args: argparse.Namespace) -> int:
-    from sq_mitsuba.data.spe3r import check_dataset
+    from sq_mitsuba.data.spe3r.check import CheckOptions, check_dataset
 
-    report = check_dataset(args.root, per_model=args.per_model or None, min_iou=args.min_iou,
+    report = check_dataset(args.root, config_from_args(CheckOptions, args),
                            progress=not args.quiet)
     print(report.summary())
     return 0 if report.ok else 1
 
 
 def _preview(args: argparse.Namespace) -> int:
-    from sq_mitsuba.data.spe3r import preview_dataset
+    from sq_mitsuba.data.spe3r.preview import PreviewOptions, preview_dataset
 
-    out = preview_dataset(args.root, args.out or args.root / "preview.png", count=args.count)
+    out = preview_dataset(args.root, args.out, config_from_args(PreviewOptions, args))
     print(f"wrote {out}")
     return 0

@@ -8,8 +8,13 @@ exactly what an uninterrupted one draws.
 Convention: camera frame OpenCV (x right, y down, z forward); a pose maps body to camera,
 ``x_cam = R x_body + t``, with R = quaternion_to_matrix(q), q = (w, x, y, z). Directions
 (sun, Earth) are unit vectors in the camera frame pointing *from the target towards* the
-body. The phase angle is the angle at the target between the sun and the camera: 0 deg lights
-the visible side fully, 180 deg back-lights it.
+body. The phase angle is the angle at the target between the directions to the sun and to the
+camera: 0 deg lights the visible side fully, 180 deg back-lights it.
+
+Lighting: the sun is placed by its phase angle, drawn from ``sun.phase_deg`` with
+``sun.phase_distribution`` (default uniform in [0, 120] deg), then the Earth where it does not
+hide that sun, in view of the camera with probability ``earth.probability_in_view``. With
+probability ``eclipse.probability`` (default 0) the sun is put behind the Earth instead.
 """
 
 from __future__ import annotations
@@ -23,7 +28,12 @@ import torch
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.frames import orthonormal_basis
 from sq_mitsuba.geometry.rotation import quaternion_to_matrix, random_quaternions
-from sq_mitsuba.render.scene_config import Frame, PoseConfig, SceneConfig
+from sq_mitsuba.render.scene_config import Frame, PoseConfig, SceneConfig, SunConfig
+
+_SUN_TRIES, _EARTH_TRIES = 5, 100
+"""Draws of the sun, and of the Earth per sun, before a frame is kept in the Earth's shadow.
+For the default camera and scene one draw of the Earth clears the sun with probability about
+0.2 at worst (sun behind the camera, Earth out of view, lowest altitude)."""
 
 
 def frame_seed(dataset_seed: int, model: str, index: int) -> int:
@@ -32,14 +42,32 @@ def frame_seed(dataset_seed: int, model: str, index: int) -> int:
     return int(sequence.generate_state(1, dtype=np.uint64)[0] >> 1)
 
 
-def _direction_at_angle(rng: np.random.Generator, axis: np.ndarray, cos_low: float,
-                        cos_high: float) -> np.ndarray:
-    """Unit vector uniform on the zone cos(angle to ``axis``) in [cos_low, cos_high]."""
-    cos_theta = rng.uniform(cos_low, cos_high)
+def _direction_around(rng: np.random.Generator, axis: np.ndarray,
+                      cos_theta: float) -> np.ndarray:
+    """Unit vector at angle acos(``cos_theta``) from ``axis``, azimuth uniform about it."""
     sin_theta = math.sqrt(max(0.0, 1 - cos_theta**2))
     e1, e2, _ = orthonormal_basis(axis).T
     phi = rng.uniform(0, 2 * math.pi)
     return cos_theta * axis + sin_theta * (math.cos(phi) * e1 + math.sin(phi) * e2)
+
+
+def _direction_at_angle(rng: np.random.Generator, axis: np.ndarray, cos_low: float,
+                        cos_high: float) -> np.ndarray:
+    """Unit vector uniform on the zone cos(angle to ``axis``) in [cos_low, cos_high]."""
+    return _direction_around(rng, axis, rng.uniform(cos_low, cos_high))
+
+
+def sun_at_phase(rng: np.random.Generator, to_camera: np.ndarray, config: SunConfig,
+                 ) -> np.ndarray:
+    """A sun direction (3,) whose phase angle (to ``to_camera``, a unit vector) is drawn from
+    ``config.phase_deg`` with ``config.phase_distribution``; its azimuth about ``to_camera``
+    is uniform."""
+    low, high = (math.radians(a) for a in config.phase_deg)
+    if config.phase_distribution == "uniform_angle":
+        cos_phase = math.cos(rng.uniform(low, high))
+    else:  # uniform_sphere: the cosine is uniform on a zone of the sphere
+        cos_phase = rng.uniform(math.cos(high), math.cos(low))
+    return _direction_around(rng, to_camera, cos_phase)
 
 
 def _random_rotation(rng: np.random.Generator) -> np.ndarray:
@@ -116,25 +144,41 @@ def sample_frame(vertices: np.ndarray, camera: Camera, config: SceneConfig, data
     angular_radius = math.asin(earth.radius_km / (earth.radius_km + altitude))
     half_diagonal = math.atan(math.hypot(camera.width, camera.height) / 2 / camera.fx)
     axis = np.array([0.0, 0.0, 1.0])
-    if rng.random() < earth.probability_in_view:
-        # Centre angle such that the limb crosses the field of view.
-        low = max(0.0, angular_radius - 0.6 * half_diagonal)
-        high = angular_radius + 0.6 * half_diagonal
-        earth_direction = _direction_at_angle(rng, axis, math.cos(high), math.cos(low))
-    else:
-        clear = min(math.pi, angular_radius + half_diagonal + math.radians(5))
-        earth_direction = _direction_at_angle(rng, axis, -1.0, math.cos(clear))
-    angle_to_axis = math.acos(float(np.clip(earth_direction @ axis, -1, 1)))
-    earth_in_view = angle_to_axis < angular_radius + half_diagonal
+    wants_earth_in_view = rng.random() < earth.probability_in_view
+    wants_eclipse = rng.random() < config.eclipse.probability
+    to_camera = -translation / np.linalg.norm(translation)
 
-    if rng.random() < config.eclipse.probability:
-        # Sun behind the Earth's disk as seen from the target.
+    def draw_earth() -> np.ndarray:
+        if wants_earth_in_view:
+            # Centre angle such that the limb crosses the field of view.
+            low = max(0.0, angular_radius - 0.6 * half_diagonal)
+            high = angular_radius + 0.6 * half_diagonal
+            return _direction_at_angle(rng, axis, math.cos(high), math.cos(low))
+        clear = min(math.pi, angular_radius + half_diagonal + math.radians(5))
+        return _direction_at_angle(rng, axis, -1.0, math.cos(clear))
+
+    def hidden(sun: np.ndarray, earth_direction: np.ndarray) -> bool:
+        return float(sun @ earth_direction) > math.cos(angular_radius)
+
+    if wants_eclipse:
+        # Sun behind the Earth's disk as seen from the target (the phase follows from it).
+        earth_direction = draw_earth()
         sun = _direction_at_angle(rng, earth_direction, math.cos(0.9 * angular_radius), 1.0)
     else:
-        # Uniform over the sky not hidden by the Earth (its disk spans ~30 % of it in LEO).
-        sun = _direction_at_angle(rng, earth_direction, -1.0, math.cos(angular_radius))
-    eclipse = math.acos(float(np.clip(sun @ earth_direction, -1, 1))) < angular_radius
-    to_camera = -translation / np.linalg.norm(translation)
+        # The phase angle is drawn first, so that it follows the configured distribution
+        # exactly; then the Earth is placed (in view or not, as drawn above) where it does not
+        # hide that sun. When no such place turns up (possible only for wide fields of view
+        # with the sun near the camera and the Earth out of view), another sun is drawn, and
+        # after that the frame is kept as an eclipse, recorded so in its label.
+        for attempt in range(_SUN_TRIES * _EARTH_TRIES):
+            if attempt % _EARTH_TRIES == 0:
+                sun = sun_at_phase(rng, to_camera, config.sun)
+            earth_direction = draw_earth()
+            if not hidden(sun, earth_direction):
+                break
+    angle_to_axis = math.acos(float(np.clip(earth_direction @ axis, -1, 1)))
+    earth_in_view = angle_to_axis < angular_radius + half_diagonal
+    eclipse = hidden(sun, earth_direction)
     phase = math.degrees(math.acos(float(np.clip(sun @ to_camera, -1, 1))))
 
     return Frame(

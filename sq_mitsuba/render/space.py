@@ -31,18 +31,24 @@ import numpy as np
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.frames import orthonormal_basis
 from sq_mitsuba.render.backend import mitsuba
-from sq_mitsuba.render.scene_config import Frame, SceneConfig, scenes_dir
+from sq_mitsuba.render.scene_config import ExposureConfig, Frame, SceneConfig, scenes_dir
 from sq_mitsuba.render.silhouette import sensor_dict
 
 # Stratified samples estimate edge coverage with far less noise than independent ones.
 MASK_SAMPLER = "stratified"
 
 
+LIT_FLOOR = 10
+"""8-bit grey level from which a pixel of the target counts as lit (clear of the dark noise of
+shadowed parts) in :meth:`RenderedFrame.visibility`; a target whose mean grey is below it is
+what the dataset statistics call a dark image."""
+
+
 @dataclass
 class RenderedFrame:
     """Linear radiance (H, W) in W/(m^2 sr), coverage of the target (H, W) in [0, 1], depth
     of the target (H, W) in metres (0 where it is absent; None unless the scene renders
-    depth), and the exposure to tonemap with."""
+    depth), and the exposure to tonemap with (fixed, or this image's auto exposure)."""
 
     radiance: np.ndarray
     coverage: np.ndarray
@@ -58,12 +64,57 @@ class RenderedFrame:
         """Tonemapped (H, W) uint8: linear radiance times exposure, clipped, sRGB encoded."""
         return tonemap(self.radiance, self.exposure)
 
+    def visibility(self) -> tuple[float, float]:
+        """How well the target shows in the 8-bit image, over the pixels of its mask:
+
+        - mean: the mean grey level / 255, in [0, 1] (``target_visibility`` in the labels);
+        - lit fraction: the share of pixels at or above :data:`LIT_FLOOR` / 255
+          (``target_lit_fraction``), i.e. how much of the silhouette has visible texture.
+
+        Both are 0 for an empty mask.
+        """
+        inside = self.coverage >= 0.5
+        if not inside.any():
+            return 0.0, 0.0
+        grey = self.image_8bit()[inside]
+        return float(grey.mean() / 255.0), float(np.mean(grey >= LIT_FLOOR))
+
+    def label_extras(self) -> dict[str, float]:
+        """The exposure and visibility record stored in the image's label."""
+        mean, lit = self.visibility()
+        return {"exposure": self.exposure, "target_visibility": round(mean, 6),
+                "target_lit_fraction": round(lit, 6)}
+
 
 def tonemap(radiance: np.ndarray, exposure: float) -> np.ndarray:
-    """Linear radiance -> 8-bit sRGB grey levels with a fixed exposure (no auto-gain)."""
+    """Linear radiance -> 8-bit sRGB grey levels: ``srgb(clip(radiance * exposure, 0, 1))``."""
     x = np.clip(radiance * exposure, 0.0, 1.0)
     srgb = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
     return np.round(srgb * 255.0).astype(np.uint8)
+
+
+def fixed_exposure(config: SceneConfig) -> float:
+    """The fixed exposure: a Lambertian surface of albedo ``exposure.reference_albedo`` facing
+    the sun (radiance albedo * E / pi) maps to 1, i.e. white."""
+    return math.pi / (config.sun.irradiance * config.exposure.reference_albedo)
+
+
+def auto_exposure(radiance: np.ndarray, inside: np.ndarray, fixed: float,
+                  config: ExposureConfig) -> float:
+    """Per-image exposure from the radiance already rendered (no second pass).
+
+    The ``config.percentile`` percentile of ``radiance`` (H, W) over the pixels where ``inside``
+    (H, W) bool is set maps to ``config.auto_white``, within ``config.auto_gain`` times
+    ``fixed``. A target with no light on it gets the highest gain; an empty mask the fixed
+    exposure (kept within the gain range).
+    """
+    low, high = (fixed * gain for gain in config.auto_gain)
+    if not inside.any():
+        return float(min(max(fixed, low), high))
+    level = float(np.percentile(radiance[inside], config.percentile))
+    if level <= 0.0:
+        return float(high)
+    return float(min(max(config.auto_white / level, low), high))
 
 
 def mask_samples(spp_at_256: int, camera: Camera) -> int:
@@ -168,7 +219,8 @@ class SpaceScene:
         faces: (F, 3) triangle indices.
         face_material: (F,) material tag per face (strings), or None for the default.
         camera: dataset camera (fx must equal fy: Mitsuba has one field of view).
-        config: scene configuration.
+        config: scene configuration (``exposure.mode = "auto"`` sets each frame's exposure
+            from its own radiance, see :func:`auto_exposure`).
         spp: path-tracing samples per pixel.
         dataset_seed: seeds the Earth texture and star field (shared by all images).
         materials: BSDFs per tag, default ``scenes/materials.json``.
@@ -204,7 +256,7 @@ class SpaceScene:
             part_faces = faces[tags == tag]
             used, local = np.unique(part_faces, return_inverse=True)
             self.parts.append((tag, used, local.reshape(-1, 3)))
-        self.exposure = math.pi / (config.sun.irradiance * config.exposure.reference_albedo)
+        self.exposure = fixed_exposure(config)  # auto exposure starts from it, per frame
 
         sensor = sensor_dict(camera)
         sensor["sampler"] = {"type": "independent", "sample_count": spp}
@@ -318,4 +370,8 @@ class SpaceScene:
         finally:
             logger.set_log_level(level)
         image = np.array(mi.render(self.scene, seed=seed), dtype=np.float64)[..., 0]
-        return RenderedFrame(image, coverage, depth, self.exposure)
+        exposure = self.exposure
+        if self.config.exposure.mode == "auto":
+            exposure = auto_exposure(image, coverage >= 0.5, self.exposure,
+                                     self.config.exposure)
+        return RenderedFrame(image, coverage, depth, exposure)

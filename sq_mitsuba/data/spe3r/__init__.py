@@ -1,16 +1,18 @@
 """Datasets in the SPE3R layout, one module per role.
 
-- :mod:`.layout`: paths, splits, labels and model files (what every role shares);
-- :mod:`.writer`: render a dataset with Mitsuba's path tracer;
+- :mod:`.layout`: paths, splits, labels, manifest and model files (what every role shares);
+- :mod:`.writer`: render a dataset with Mitsuba's path tracer (manifest, resume, grow, shards);
 - :mod:`.dataset`: :class:`Spe3rDataset`, a torch Dataset over ours or the SPE3R release;
-- :mod:`.check`: re-render masks at label poses and compare;
+- :mod:`.check`: bookkeeping, every file, and masks re-rendered at label poses;
 - :mod:`.preview`: a contact sheet with mask outlines and body axes.
 """
 
-from sq_mitsuba.data.spe3r.check import CheckReport, check_dataset
-from sq_mitsuba.data.spe3r.dataset import Spe3rDataset
+from sq_mitsuba.data.spe3r.check import CheckOptions, CheckReport, check_dataset
+from sq_mitsuba.data.spe3r.dataset import MissingModelWarning, Spe3rDataset
 from sq_mitsuba.data.spe3r.layout import (
+    FAILURES,
     IMAGES,
+    MANIFEST,
     MASKS,
     MESH_FILE,
     MODELS,
@@ -18,21 +20,28 @@ from sq_mitsuba.data.spe3r.layout import (
     VALIDATION_INDICES,
     DatasetError,
     dataset_models,
+    is_validation,
+    label_problem,
     load_model,
+    read_manifest,
     read_splits,
+    validation_indices,
 )
-from sq_mitsuba.data.spe3r.preview import preview_dataset
+from sq_mitsuba.data.spe3r.preview import PreviewOptions, preview_dataset
 from sq_mitsuba.data.spe3r.writer import (
     RenderOptions,
     RenderSummary,
+    estimate_render_memory,
     render_dataset,
     render_image,
     render_model,
 )
 
 __all__ = [
-    "IMAGES", "MASKS", "MESH_FILE", "MODELS", "SAMPLES_FILE", "VALIDATION_INDICES",
-    "CheckReport", "DatasetError", "RenderOptions", "RenderSummary", "Spe3rDataset",
-    "check_dataset", "dataset_models", "load_model", "preview_dataset", "read_splits",
-    "render_dataset", "render_image", "render_model",
+    "FAILURES", "IMAGES", "MANIFEST", "MASKS", "MESH_FILE", "MODELS", "SAMPLES_FILE",
+    "VALIDATION_INDICES", "CheckOptions", "CheckReport", "DatasetError", "MissingModelWarning",
+    "PreviewOptions", "RenderOptions", "RenderSummary", "Spe3rDataset", "check_dataset",
+    "dataset_models", "estimate_render_memory", "is_validation", "label_problem", "load_model",
+    "preview_dataset", "read_manifest", "read_splits", "render_dataset", "render_image",
+    "render_model", "validation_indices",
 ]

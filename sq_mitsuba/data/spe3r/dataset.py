@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -12,22 +13,24 @@ from PIL import Image
 from sq_mitsuba.data.spe3r.layout import (
     IMAGES,
     MASKS,
-    VALIDATION_INDICES,
     DatasetError,
     balanced_occupancy,
+    is_validation,
+    label_problem,
     model_points,
     read_gray,
+    read_labels,
     read_splits,
+    resize,
 )
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.rotation import quaternion_to_matrix
-from sq_mitsuba.io import read_json
+
+SPLITS = ("train", "val", "test")
 
 
-def _resize(array: np.ndarray, size: int, resample: int) -> np.ndarray:
-    if array.shape == (size, size):
-        return array
-    return np.asarray(Image.fromarray(array).resize((size, size), resample))
+class MissingModelWarning(UserWarning):
+    """A model listed in ``splits.csv`` has no ``labels.json``: it is left out."""
 
 
 class Spe3rDataset(torch.utils.data.Dataset):
@@ -40,9 +43,18 @@ class Spe3rDataset(torch.utils.data.Dataset):
     ``occupancy_labels`` (num_occupancy,), half inside and half outside where the model has
     enough of each; ``index`` of the image within its model.
 
+    Convention: a model listed in ``splits.csv`` whose folder or ``labels.json`` is missing is
+    skipped with a :class:`MissingModelWarning` naming it (a dataset with one model gone stays
+    usable, and says so); a ``labels.json`` that exists but cannot be read, or holds a bad
+    entry (NaN, wrong length, not a unit quaternion), is a one-line :class:`DatasetError` naming
+    the file and the entry. Images and masks are decoded completely when an item is read: a
+    corrupt or truncated file, or a mask of another size than its image, is a
+    :class:`DatasetError` naming the file.
+
     Args:
         root: dataset folder.
-        split: "train", "val" (images 400-499 and 900-999 of the train models) or "test".
+        split: "train", "val" (images [0.4 n, 0.5 n) and [0.9 n, n) of each train model with n
+            its image count: SPE3R's 400-499 and 900-999 at n = 1000) or "test".
         image_size: S, the side images and masks are resized to (default 128).
         num_surface, num_occupancy: points per item (2,500 and 10,000 by default).
         seed: makes the point subsets reproducible (item i uses seed + i).
@@ -50,30 +62,47 @@ class Spe3rDataset(torch.utils.data.Dataset):
 
     def __init__(self, root: str | Path, split: str = "train", image_size: int = 128,
                  num_surface: int = 2500, num_occupancy: int = 10_000, seed: int = 0):
-        if split not in ("train", "val", "test"):
+        if split not in SPLITS:
             raise ValueError(f"split: expected 'train', 'val' or 'test', got {split!r}")
+        for name, value in (("image_size", image_size), ("num_surface", num_surface),
+                            ("num_occupancy", num_occupancy)):
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name}: expected a positive integer, got {value!r}")
         self.root = Path(root)
         for required in ("camera.json", "splits.csv"):
             if not (self.root / required).is_file():
                 raise DatasetError(f"{self.root / required}: missing")
-        self.camera = Camera.load(self.root / "camera.json")
+        try:
+            self.camera = Camera.load(self.root / "camera.json")
+        except ValueError as error:
+            path = self.root / "camera.json"
+            raise DatasetError(str(error) if str(path) in str(error) else f"{path}: {error}") \
+                from None
         self.image_size, self.seed = image_size, seed
         self.num_surface, self.num_occupancy = num_surface, num_occupancy
         splits = read_splits(self.root / "splits.csv")
         wanted = "test" if split == "test" else "train"
-        self.models = sorted(m for m, s in splits.items() if s == wanted)
+        self.models: list[str] = []
+        self.skipped: list[str] = []
         self.items: list[tuple[int, int, dict[str, Any]]] = []
-        for model_index, model in enumerate(self.models):
+        for model in sorted(m for m, s in splits.items() if s == wanted):
             labels_path = self.root / model / "labels.json"
-            try:
-                labels = read_json(labels_path)
-            except FileNotFoundError:
-                raise DatasetError(f"{labels_path}: missing") from None
-            except ValueError as error:
-                raise DatasetError(str(error)) from None
+            if not labels_path.is_file():
+                warnings.warn(f"{labels_path}: missing; model {model} left out of the "
+                              f"{split} split", MissingModelWarning, stacklevel=2)
+                self.skipped.append(model)
+                continue
+            labels = read_labels(labels_path)
             for index, label in enumerate(labels):
-                in_val = index in VALIDATION_INDICES
-                if split == "test" or (split == "val") == in_val:
+                problem = label_problem(label)
+                if problem is not None:
+                    name = label.get("filename") if isinstance(label, dict) else None
+                    entry = f"entry {index}" + (f" ({name})" if isinstance(name, str) else "")
+                    raise DatasetError(f"{labels_path}: {entry}: {problem}")
+            model_index = len(self.models)
+            self.models.append(model)
+            for index, label in enumerate(labels):
+                if split == "test" or (split == "val") == is_validation(index, len(labels)):
                     self.items.append((model_index, index, label))
         self._points: dict[int, dict[str, np.ndarray]] = {}
 
@@ -96,14 +125,27 @@ class Spe3rDataset(torch.utils.data.Dataset):
             self._points[model_index] = model_points(self.root / self.models[model_index])
         return self._points[model_index]
 
+    def read_pair(self, item: int) -> tuple[np.ndarray, np.ndarray]:
+        """Image and mask (H, W) uint8 of ``item`` at their stored size, decoded completely;
+        a mask of another size than its image is a DatasetError naming the mask."""
+        model_index, _, label = self.items[item]
+        model = self.models[model_index]
+        image_path = self._image_path(model, IMAGES, label["filename"])
+        mask_path = self._image_path(model, MASKS, label["filename"])
+        image, mask = read_gray(image_path), read_gray(mask_path)
+        if mask.shape != image.shape:
+            raise DatasetError(f"{mask_path}: mask is {mask.shape[1]} x {mask.shape[0]} px, "
+                               f"its image {image_path.name} is {image.shape[1]} x "
+                               f"{image.shape[0]} px")
+        return image, mask
+
     def __getitem__(self, item: int) -> dict[str, Any]:
         model_index, index, label = self.items[item]
         model = self.models[model_index]
         size = self.image_size
-        image = _resize(read_gray(self._image_path(model, IMAGES, label["filename"])), size,
-                        Image.BILINEAR)
-        mask = _resize(read_gray(self._image_path(model, MASKS, label["filename"])), size,
-                       Image.NEAREST)
+        image, mask = self.read_pair(item)
+        image = resize(image, size, Image.BILINEAR)
+        mask = resize(mask, size, Image.NEAREST)
         quaternion = torch.tensor(label["q_vbs2tango_true"], dtype=torch.float32)
         camera = self.camera.rescaled(size, size)
         points = self.model_points(model_index)
@@ -126,4 +168,3 @@ class Spe3rDataset(torch.utils.data.Dataset):
             "occupancy_points": torch.from_numpy(occupancy.astype(np.float32)),
             "occupancy_labels": torch.from_numpy(labels.astype(np.float32)),
         }
-

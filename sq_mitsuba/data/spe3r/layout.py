@@ -9,6 +9,17 @@ Layout (our datasets and the SPE3R release alike)::
     <root>/<model>/masks/<index>.png      binary mask of the target alone
     <root>/<model>/models/                model_normalized.obj (+ samples.npz, model_card.json)
 
+Our datasets add their bookkeeping (see :mod:`.writer`)::
+
+    <root>/dataset.json                   manifest: how the dataset was made, image counts
+    <root>/failures.json                  {model: reason} of models left out of splits.csv
+    <root>/.failures/<model>/<I>-of-<N>.json   why shard I of N failed a model (until it works)
+    <root>/<model>/.progress/<index>.json      labels of finished images of an unfinished model
+
+Splits: ``splits.csv`` names the train and test models; ``val`` holds images
+[0.4 n, 0.5 n) and [0.9 n, n) of each training model with n its image count, exactly SPE3R's
+400-499 and 900-999 at n = 1000 (:func:`is_validation`), ``train`` the rest of them.
+
 Convention: a label's pose maps body to camera (OpenCV frame: x right, y down, z forward),
 ``x_cam = R x_body + t`` with R the Hamilton matrix of the scalar-first quaternion
 ``q_vbs2tango_true`` and t = ``r_Vo2To_vbs_true`` in metres. Extra keys (lighting record, seed)
@@ -18,23 +29,51 @@ are ignored by SPE3R readers.
 from __future__ import annotations
 
 import csv
+import math
 from collections.abc import Iterable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from PIL import Image
 
-from sq_mitsuba.io import atomic_path, atomic_write_text
+from sq_mitsuba.io import atomic_path, atomic_write_text, read_json
 
 IMAGES, MASKS, MODELS, PROGRESS = "images", "masks", "models", ".progress"
+EXR = "exr"
 MESH_FILE = "model_normalized.obj"
 SAMPLES_FILE = "samples.npz"
-#: SPE3R v1.1 validation images of each training model.
-VALIDATION_INDICES = frozenset(range(400, 500)) | frozenset(range(900, 1000))
+MANIFEST = "dataset.json"
+FAILURES = "failures.json"
+FAILURE_MARKS = ".failures"
+MANIFEST_FORMAT = "sq-mitsuba-dataset/1"
+"""``format`` of the manifest; a reader refuses another one."""
+#: Largest deviation of a label quaternion's norm from 1 that readers accept.
+QUATERNION_NORM_TOLERANCE = 1e-3
 
 
 class DatasetError(ValueError):
     """A dataset or model folder that cannot be used; the message names the file."""
+
+
+def is_validation(index: int, count: int) -> bool:
+    """Whether image ``index`` of a training model with ``count`` images is in ``val``.
+
+    ``val`` = [0.4 n, 0.5 n) and [0.9 n, n) with n = ``count``, as real intervals (compared in
+    integers, so there is no rounding): SPE3R's 400-499 and 900-999 at n = 1000, images 4 and 9
+    at n = 10, 16-19 and 36-39 at n = 40. Every n >= 10 has at least two; smaller datasets may
+    have none (n = 3 or 8: none).
+    """
+    return (4 * count <= 10 * index and 2 * index < count) or 9 * count <= 10 * index < 10 * count
+
+
+def validation_indices(count: int) -> list[int]:
+    """The ``val`` image indices of a training model with ``count`` images, sorted."""
+    return [i for i in range(count) if is_validation(i, count)]
+
+
+#: SPE3R v1.1 validation images of each training model (1000 images each).
+VALIDATION_INDICES = frozenset(validation_indices(1000))
 
 
 # ------------------------------------------------------------------------ small helpers
@@ -118,18 +157,114 @@ def load_model(model_dir: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | No
 
 
 
-def read_gray(path: Path) -> np.ndarray:
+def read_image(path: Path, verify: bool = False) -> Image.Image:
+    """The image at ``path`` decoded completely (a truncated file is an error, not a grey
+    tail); ``verify`` also checks every chunk's checksum (PNG). One-line DatasetError naming
+    the file otherwise."""
     try:
+        if verify:
+            with Image.open(path) as image:
+                image.verify()
         with Image.open(path) as image:
-            return np.asarray(image.convert("L"))
-    except (OSError, ValueError) as error:
+            image.load()
+            return image.copy()
+    except FileNotFoundError:
+        raise DatasetError(f"{path}: missing") from None
+    except (OSError, ValueError, SyntaxError, EOFError) as error:
+        # PIL reports corrupt data as OSError, SyntaxError (bad chunk), EOFError or ValueError.
         raise DatasetError(f"{path}: cannot read image ({error})") from None
 
 
-def _resize(array: np.ndarray, size: int, resample: int) -> np.ndarray:
+def read_gray(path: Path) -> np.ndarray:
+    """An 8-bit grayscale image (H, W) uint8, decoded completely (see :func:`read_image`)."""
+    image = read_image(path)
+    return np.asarray(image if image.mode == "L" else image.convert("L"))
+
+
+def resize(array: np.ndarray, size: int, resample: int) -> np.ndarray:
+    """``array`` (H, W) resized to (size, size) with PIL's ``resample`` filter."""
     if array.shape == (size, size):
         return array
     return np.asarray(Image.fromarray(array).resize((size, size), resample))
+
+
+_resize = resize  # former private name
+
+
+def _short(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def label_problem(label: Any) -> str | None:
+    """What is wrong with one ``labels.json`` entry (None: usable).
+
+    Checks the keys every reader needs: ``filename`` (a plain file name),
+    ``q_vbs2tango_true`` (4 finite numbers of norm 1 within
+    :data:`QUATERNION_NORM_TOLERANCE`) and ``r_Vo2To_vbs_true`` (3 finite numbers, z > 0: the
+    target in front of the camera).
+    """
+    if not isinstance(label, dict):
+        return f"expected an object, got {_short(label)}"
+    filename = label.get("filename")
+    if not isinstance(filename, str) or not filename or "/" in filename or \
+            "\\" in filename or filename in (".", ".."):
+        return f"filename: expected a file name, got {_short(filename)}"
+    for key, length in (("q_vbs2tango_true", 4), ("r_Vo2To_vbs_true", 3)):
+        value = label.get(key)
+        if not isinstance(value, list) or len(value) != length or not all(
+                isinstance(v, int | float) and not isinstance(v, bool) for v in value):
+            return f"{key}: expected a list of {length} numbers, got {_short(value)}"
+        if not all(math.isfinite(v) for v in value):
+            return f"{key}: not finite ({_short(value)})"
+    norm = math.sqrt(sum(v * v for v in label["q_vbs2tango_true"]))
+    if abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE:
+        return f"q_vbs2tango_true: not a unit quaternion (norm {norm:.6g})"
+    if label["r_Vo2To_vbs_true"][2] <= 0:
+        return (f"r_Vo2To_vbs_true: the target is not in front of the camera "
+                f"(z = {label['r_Vo2To_vbs_true'][2]:g})")
+    return None
+
+
+def read_labels(path: Path) -> list[Any]:
+    """A ``labels.json`` as a list (entries unchecked: see :func:`label_problem`); a missing,
+    malformed or non-list file is a one-line DatasetError naming it."""
+    try:
+        labels = read_json(path)
+    except FileNotFoundError:
+        raise DatasetError(f"{path}: missing") from None
+    except (OSError, ValueError) as error:
+        raise DatasetError(str(error) if str(path) in str(error) else f"{path}: {error}") \
+            from None
+    if not isinstance(labels, list):
+        raise DatasetError(f"{path}: expected a list of labels, got {type(labels).__name__}")
+    return labels
+
+
+def read_manifest(root: Path) -> dict[str, Any] | None:
+    """``root/dataset.json`` (None where there is none: the SPE3R release, or a dataset of an
+    older version). A malformed one is a one-line DatasetError naming it."""
+    path = Path(root) / MANIFEST
+    try:
+        manifest = read_json(path)
+    except FileNotFoundError:
+        return None
+    except (OSError, ValueError) as error:
+        raise DatasetError(str(error) if str(path) in str(error) else f"{path}: {error}") \
+            from None
+    if not isinstance(manifest, dict) or manifest.get("format") != MANIFEST_FORMAT:
+        found = manifest.get("format") if isinstance(manifest, dict) else type(manifest).__name__
+        raise DatasetError(f"{path}: not a dataset manifest of this version (format "
+                           f"{_short(found)}, expected {MANIFEST_FORMAT!r})")
+    for key, kind in (("settings", dict), ("images_per_model", int), ("models", dict)):
+        if not isinstance(manifest.get(key), kind):
+            raise DatasetError(f"{path}: {key}: expected {kind.__name__}, got "
+                               f"{_short(manifest.get(key))}")
+    for model, entry in manifest["models"].items():
+        if not isinstance(entry, dict):
+            raise DatasetError(f"{path}: models.{model}: expected an object, got "
+                               f"{_short(entry)}")
+    return manifest
 
 
 def balanced_occupancy(points: np.ndarray, inside: np.ndarray, count: int,

@@ -2,39 +2,72 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import torch
 
-from sq_mitsuba.data.spe3r.layout import IMAGES, MASKS, DatasetError, dataset_models, read_gray
+from sq_mitsuba.config import in_range, validate
+from sq_mitsuba.data.spe3r.layout import (
+    IMAGES,
+    MASKS,
+    DatasetError,
+    dataset_models,
+    label_problem,
+    read_gray,
+    read_labels,
+)
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.rotation import quaternion_to_matrix
-from sq_mitsuba.io import read_json, save_figure
+from sq_mitsuba.io import save_figure
 
 
-def preview_dataset(root: str | Path, out: str | Path, count: int = 16,
-                    axis_length: float = 0.3) -> Path:
-    """Contact sheet PNG: images with the mask outline and the pose's body axes drawn.
+@dataclass(frozen=True)
+class PreviewOptions:
+    """Options of ``sq-mitsuba dataset preview`` (checked when built)."""
+
+    count: int = in_range(1, 1024, default=16)
+    """Images on the sheet (spread over the models, first images first)."""
+    axis_length: float = in_range(0, 100, default=0.3, low_inclusive=False)
+    """Length in metres of the drawn body axes (models are 1 m long)."""
+
+    def __post_init__(self) -> None:
+        validate(self)
+
+
+def preview_dataset(root: str | Path, out: str | Path | None = None,
+                    options: PreviewOptions | None = None, *, count: int | None = None,
+                    axis_length: float | None = None) -> Path:
+    """Contact sheet PNG (default ``root/preview.png``): images with the mask outline and the
+    pose's body axes drawn. ``count`` and ``axis_length`` override ``options``' fields.
 
     The body axes x, y, z (red, green, blue, ``axis_length`` metres) are projected with the
     label pose and ``camera.json``; they start at the model origin (its centre of mass).
     """
+    options = options or PreviewOptions()
+    overrides = {k: v for k, v in (("count", count), ("axis_length", axis_length))
+                 if v is not None}
+    options = PreviewOptions(**{"count": options.count, "axis_length": options.axis_length,
+                                **overrides})
+    count, axis_length = options.count, options.axis_length
+    root = Path(root)
+    out = Path(out) if out is not None else root / "preview.png"
+    for required in ("camera.json", "splits.csv"):
+        if not (root / required).is_file():
+            raise DatasetError(f"{root / required}: missing")
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    root = Path(root)
-    if count < 1:
-        raise ValueError(f"count: expected >= 1, got {count}")
     camera = Camera.load(root / "camera.json")
     chosen: list[tuple[str, dict[str, Any]]] = []
     labels = {}
     for model in dataset_models(root):
         path = root / model / "labels.json"
-        if path.is_file():
-            labels[model] = read_json(path)
+        if path.is_file():  # entries `dataset check` would report are left out
+            labels[model] = [e for e in read_labels(path) if label_problem(e) is None]
     if not labels:
         raise DatasetError(f"{root}: no labelled models to preview")
     depth = 0

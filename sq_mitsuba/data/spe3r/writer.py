@@ -1,78 +1,261 @@
 """Render a dataset in the SPE3R layout (see :mod:`.layout`) with Mitsuba's path tracer.
 
+Manifest: ``dataset.json`` records how the dataset was made: the settings that decide its
+pixels (seed, resolution, spp, exr, camera, the scene configuration with its
+:func:`~sq_mitsuba.config.config_hash`), the tool version, ``images_per_model``, each model's
+split and image count, and ``state`` ("rendering", or "complete" once every model is finished
+or failed). It is written atomically before the first image. A run into a folder whose
+manifest has other settings stops with a one-line :class:`DatasetError` naming them, before
+touching any file; ``overwrite=True`` starts clean instead, deleting what
+:data:`OVERWRITE_DELETES` names. A larger ``images_per_model`` grows a dataset: the new images
+are exactly those an uninterrupted larger run writes (every image has its own seed); a
+smaller one is an error.
+
 Resuming: each image's label is first written to ``<model>/.progress/<index>.json``, after its
 image and mask, so a label there means the image is complete. ``labels.json`` is assembled from
-them once a model is done. Every file is written atomically, and every image has its own seed,
-so a run killed at any point and restarted with the same command ends byte-identical to an
-uninterrupted one.
+them once a model is done. Every file is written atomically, so a run killed at any point and
+restarted with the same command ends byte-identical to an uninterrupted one; stray temporary
+files of an image are deleted before it is rendered again.
+
+Shards: ``shard="I/N"`` renders block I of N of the work, every (model, image index) pair of
+the plan (models sorted by name, indices ascending) cut into N contiguous blocks of equal size
+(within one image): a model is shared by at most a few shards, so few scenes are built twice.
+Shards may run at the same time into one folder on a shared file system, and finish in any
+order: a model's ``labels.json`` is assembled by whichever process finishes its last image, and
+``splits.csv``, ``failures.json`` and the final manifest by whichever process, its own work
+done, finds every model settled (complete or failed). The manifest holds no shard count, so N
+shards leave exactly the files, byte for byte, of one unsharded run.
+
+Failures: a model that fails (missing or corrupt files, a full disk) is recorded in
+``.failures/<model>/<I>-of-<N>.json`` and skipped; the others go on. Once every model is
+settled, failed models are listed with their reason in ``failures.json`` and left out of
+``splits.csv``. Running the same command (or shard) again retries them.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import hashlib
+import json
+import os
+import re
 import shutil
-from collections.abc import Callable
+import tempfile
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from sq_mitsuba.config import config_hash, in_range, to_dict, validate
 from sq_mitsuba.data.frames import sample_frame
 from sq_mitsuba.data.spe3r.layout import (
+    EXR,
+    FAILURE_MARKS,
+    FAILURES,
     IMAGES,
+    MANIFEST,
+    MANIFEST_FORMAT,
     MASKS,
     MESH_FILE,
     MODELS,
     PROGRESS,
+    SAMPLES_FILE,
     DatasetError,
     load_model,
+    read_labels,
+    read_manifest,
     read_splits,
     write_exr,
     write_png,
+    write_splits,
 )
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.io import atomic_path, atomic_write_json, atomic_write_text, read_json
 from sq_mitsuba.render.scene_config import SceneConfig
 
+SEED_LIMIT = 2**32
+"""Dataset seeds are 0 <= seed < SEED_LIMIT."""
+MAX_RESOLUTION = 65536
+"""Largest ``resolution`` accepted at all; :func:`check_render_resources` bounds it further by
+the memory of the machine."""
+MAX_SHARDS = 100_000
+_SHARD = re.compile(r"(\d+)/(\d+)")
+
+#: Memory of one rendering process: measured peaks (Mitsuba LLVM on 2 threads) 0.50 GiB at
+#: 256 px, 0.54 at 512, 0.58 at 1024 and 0.78 GiB at 2048 px, independent of spp (Mitsuba
+#: renders in one recorded kernel); the estimate leaves about 1.5 times that.
+BASE_MEMORY_BYTES = 3 * 2**28  # 0.75 GiB
+BYTES_PER_PIXEL = 160
+EXR_BYTES_PER_PIXEL = 48
+#: Mitsuba renders all samples of an image in one wavefront of at most 2^32 lanes.
+MAX_SAMPLES_PER_RENDER = 2**32 - 1
+
+#: What ``overwrite`` deletes from the output folder before rendering (nothing else there is
+#: touched): these files, the ``.failures`` folder, temporary files of atomic writes at the top
+#: level, and every model folder (a sub-folder holding ``labels.json``, ``images/``,
+#: ``masks/``, ``exr/`` or ``.progress/``, or named in the old manifest).
+OVERWRITE_DELETES = (MANIFEST, "camera.json", "splits.csv", FAILURES, "preview.png")
+_MODEL_FOLDER_SIGNS = ("labels.json", IMAGES, MASKS, EXR, PROGRESS)
+#: Settings compared between a run and the manifest of its output folder, in message order.
+IDENTITY = ("seed", "resolution", "spp", "exr", "camera", "scene_hash")
+
 # ------------------------------------------------------------------------ writer
 
 
-@dataclass
-class RenderOptions:
-    """Options of ``sq-mitsuba dataset render``."""
+def parse_shard(text: str) -> tuple[int, int]:
+    """``"I/N"`` as (I, N), with 0 <= I < N <= :data:`MAX_SHARDS`."""
+    match = _SHARD.fullmatch(text.strip()) if isinstance(text, str) else None
+    if match is None or not int(match[1]) < int(match[2]) <= MAX_SHARDS:
+        raise ValueError(f"shard: expected I/N with 0 <= I < N <= {MAX_SHARDS} (e.g. 0/4 for "
+                         f"the first of 4), got {text!r}")
+    return int(match[1]), int(match[2])
 
-    images_per_model: int = 1000
-    seed: int = 0
-    resolution: int = 256
-    spp: int = 64
+
+@dataclass(frozen=True)
+class RenderOptions:
+    """How ``sq-mitsuba dataset render`` renders a dataset (checked when built)."""
+
+    images_per_model: int = in_range(1, 10_000_000, default=1000)
+    """Images per model. Raising it on an existing dataset adds exactly the images an
+    uninterrupted larger run writes; lowering it is an error."""
+    seed: int = in_range(0, SEED_LIMIT - 1, default=0)
+    """Dataset seed, 0 <= seed < 2^32; with the model name and image index it seeds each
+    image."""
+    resolution: int = in_range(8, MAX_RESOLUTION, default=256)
+    """Image width in pixels (square, or the camera's aspect ratio). Checked before any work
+    against this machine's memory (estimate: 0.75 GiB + 160 bytes per pixel per worker)."""
+    spp: int = in_range(1, 1 << 20, default=64)
+    """Path-tracing samples per pixel."""
     exr: bool = False
+    """Also write linear radiance, depth and coverage (OpenEXR)."""
+    camera: Path | None = None
+    """SPEED-style camera.json to render with, rescaled to resolution pixels wide (none: the
+    SPEED camera's 35.45 deg field of view, square)."""
+    workers: int = in_range(1, 256, default=1)
+    """Processes rendering models in parallel on this machine (they share its cores)."""
+    shard: str = "0/1"
+    """This run's share of the work, I/N with 0 <= I < N: block I of N of all (model, image)
+    pairs. N shards into one folder, in any order, equal one unsharded run."""
+    overwrite: bool = False
+    """Start clean: first delete the output folder's dataset (dataset.json, camera.json,
+    splits.csv, failures.json, preview.png, .failures/ and the model folders; nothing else)."""
     scene: SceneConfig = field(default_factory=SceneConfig.load)
-    #: Intrinsics to render with (e.g. a SPEED camera.json), rescaled to ``resolution`` pixels
-    #: wide; default: :meth:`Camera.default` (SPEED's 35.45 deg horizontal field of view).
-    camera: Camera | None = None
+    """The space scene (default: scenes/space.json)."""
+
+    def __post_init__(self) -> None:
+        validate(self)
+        _, count = parse_shard(self.shard)
+        if self.overwrite and count > 1:
+            raise ValueError("overwrite: not with shard N > 1 (each shard would delete the "
+                             "others' images); delete the old dataset first, or render into "
+                             "a new folder")
+
+    @property
+    def shard_index(self) -> int:
+        return parse_shard(self.shard)[0]
+
+    @property
+    def shard_count(self) -> int:
+        return parse_shard(self.shard)[1]
 
     def dataset_camera(self) -> Camera:
+        """The camera images are rendered with: ``camera`` (loaded, rescaled to ``resolution``
+        pixels wide) or the default one. Errors name the file."""
         if self.camera is None:
             return Camera.default(self.resolution)
-        if self.camera.width == self.resolution:
-            return self.camera
-        return self.camera.rescaled(self.resolution)
-
-    def validate(self) -> None:
-        if self.images_per_model < 1:
-            raise ValueError(f"images_per_model: expected >= 1, got {self.images_per_model}")
-        if self.resolution < 8:
-            raise ValueError(f"resolution: expected >= 8, got {self.resolution}")
-        if self.spp < 1:
-            raise ValueError(f"spp: expected >= 1, got {self.spp}")
+        path = Path(self.camera)
+        try:
+            camera = Camera.load(path)
+        except FileNotFoundError:
+            raise DatasetError(f"camera: {path}: no such file") from None
+        except (OSError, ValueError) as error:
+            message = str(error)
+            raise DatasetError(message if str(path) in message else f"{path}: {message}") \
+                from None
+        if camera.width != self.resolution:
+            camera = camera.rescaled(self.resolution)
+        if abs(camera.fx - camera.fy) > 1e-6 * camera.fx:
+            raise DatasetError(f"{path}: the dataset renderer needs square pixels (fx == fy), "
+                               f"got fx {camera.fx:g}, fy {camera.fy:g}")
+        return camera
 
 
 @dataclass
 class RenderSummary:
+    """What one :func:`render_dataset` call did."""
+
     rendered: int = 0
     skipped: int = 0
     models_done: list[str] = field(default_factory=list)
     failures: dict[str, str] = field(default_factory=dict)
+    #: Every model of the dataset is settled and splits.csv, failures.json and the manifest
+    #: are final (False: other shards, or a rerun after a kill, still have work to do).
+    complete: bool = False
+    shard: str = "0/1"
+
+
+def estimate_render_memory(width: int, height: int, exr: bool = False) -> int:
+    """Bytes one rendering process needs for ``width`` x ``height`` images (an estimate with
+    about 1.5x margin over measured peaks, see :data:`BASE_MEMORY_BYTES`)."""
+    per_pixel = BYTES_PER_PIXEL + (EXR_BYTES_PER_PIXEL if exr else 0)
+    return BASE_MEMORY_BYTES + per_pixel * width * height
+
+
+def available_memory() -> int | None:
+    """Bytes of memory this process may use: physical memory, or the cgroup limit (a SLURM
+    job's allocation) where lower; None where unknown."""
+    limits = []
+    try:
+        limits.append(os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
+    except (ValueError, OSError, AttributeError):
+        pass
+    candidates = ["/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory/memory.limit_in_bytes"]
+    try:  # this process's own group (e.g. a SLURM job's): "0::/path" (v2), "N:memory:/path"
+        for line in Path("/proc/self/cgroup").read_text().splitlines():
+            _, controllers, group = line.split(":", 2)
+            group = group.rstrip("/")
+            if controllers == "":
+                candidates.append(f"/sys/fs/cgroup{group}/memory.max")
+            elif "memory" in controllers.split(","):
+                candidates.append(f"/sys/fs/cgroup/memory{group}/memory.limit_in_bytes")
+    except (OSError, ValueError):
+        pass
+    for path in candidates:
+        try:
+            text = Path(path).read_text().strip()
+        except OSError:
+            continue
+        if text.isdigit():
+            limits.append(int(text))
+    return min(limits) if limits else None
+
+
+def check_render_resources(camera: Camera, options: RenderOptions,
+                           memory: int | None = None) -> None:
+    """Refuse a render this machine cannot do, before any work: more samples per image than
+    Mitsuba takes in one render, or more memory (estimated, times ``workers``) than
+    ``memory`` (default :func:`available_memory`). ``DatasetError`` naming the resolution."""
+    from sq_mitsuba.render.space import mask_samples
+
+    width, height = camera.width, camera.height
+    memory = available_memory() if memory is None else memory
+    need = estimate_render_memory(width, height, options.exr)
+    if memory is not None and need * options.workers > memory:
+        raise DatasetError(
+            f"resolution: {width} x {height} px needs about {need / 2**30:.1f} GiB of memory "
+            f"per rendering process (estimate: {BASE_MEMORY_BYTES / 2**30:.2f} GiB + "
+            f"{BYTES_PER_PIXEL + (EXR_BYTES_PER_PIXEL if options.exr else 0)} bytes per "
+            f"pixel), {need * options.workers / 2**30:.1f} GiB for {options.workers} "
+            f"worker(s), more than the {memory / 2**30:.1f} GiB of this machine; lower "
+            f"--resolution or --workers")
+    mask_spp = mask_samples(options.scene.mask.spp, camera)
+    samples = width * height * max(options.spp, mask_spp)
+    if samples > MAX_SAMPLES_PER_RENDER:
+        raise DatasetError(f"resolution: {width} x {height} px at {options.spp} spp (masks: "
+                           f"{mask_spp}) is {samples:,} samples per render, more than "
+                           f"Mitsuba's 2^32; lower --resolution or --spp")
 
 
 def find_models(models_dir: Path) -> list[str]:
@@ -90,26 +273,39 @@ def find_models(models_dir: Path) -> list[str]:
 
 
 def check_writable(out_dir: Path) -> None:
+    """Create ``out_dir`` and write a file there (a unique name: shards may check at once)."""
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
-        atomic_write_text(out_dir / ".write-test", "ok\n")
-        (out_dir / ".write-test").unlink()
+        fd, name = tempfile.mkstemp(prefix=".write-test.", dir=out_dir)
+        os.close(fd)
+        os.unlink(name)
     except OSError as error:
         raise DatasetError(f"{out_dir}: output folder is not writable ({error.strerror})") \
             from None
 
 
-def label_entry(filename: str, frame: Any, exposure: float) -> dict[str, Any]:
+def label_entry(filename: str, frame: Any, result: Any) -> dict[str, Any]:
+    """One image's label: the SPE3R pose keys, then the render record of ``result`` (a
+    :class:`~sq_mitsuba.render.space.RenderedFrame`: ``exposure``, ``target_visibility`` = mean
+    grey inside the mask in [0, 1], ``target_lit_fraction`` = share of mask pixels at or above
+    10/255), then the lighting of ``frame`` (a :class:`~sq_mitsuba.render.scene_config.Frame`)."""
     return {
         "filename": filename,
         "q_vbs2tango_true": [round(v, 12) for v in frame.quaternion],
         "r_Vo2To_vbs_true": [round(v, 12) for v in frame.translation],
-        "exposure": exposure,
+        **result.label_extras(),
         **frame.label_extras(),
     }
 
 
-def _copy_model_files(source: Path, target: Path) -> None:
+#: Model files that decide the pixels; an existing dataset's copy must match the library's.
+_PIXEL_FILES = (MESH_FILE, SAMPLES_FILE)
+
+
+def _copy_model_files(source: Path, target: Path, has_images: bool = False) -> None:
+    """Copy a model's files into the dataset; where the dataset already has images of the
+    model, a mesh or samples file that differs from the library's is an error (those images
+    were rendered from another model)."""
     target.mkdir(parents=True, exist_ok=True)
     for item in sorted(source.iterdir()):
         if item.is_file() and not item.name.startswith("."):
@@ -117,6 +313,10 @@ def _copy_model_files(source: Path, target: Path) -> None:
             if destination.exists() and destination.stat().st_size == item.stat().st_size \
                     and destination.read_bytes() == item.read_bytes():
                 continue
+            if has_images and destination.exists() and item.name in _PIXEL_FILES:
+                raise DatasetError(f"{destination}: differs from {item}, the model the "
+                                   f"dataset's images of {target.parent.name} were rendered "
+                                   f"from; render into another folder, or use --overwrite")
             with atomic_path(destination) as tmp:
                 shutil.copyfile(item, tmp)
 
@@ -124,7 +324,8 @@ def _copy_model_files(source: Path, target: Path) -> None:
 def render_image(scene: Any, vertices: np.ndarray, options: RenderOptions, model: str,
                  index: int, model_out: Path) -> None:
     """Render image ``index`` of ``model`` with ``scene`` (a :class:`SpaceScene`) and write its
-    image, mask (and EXR), then its progress label, all atomically."""
+    image, mask (and EXR), then its progress label (with the image's exposure and the target's
+    visibility, see :func:`label_entry`), all atomically."""
     name = f"{index:06d}"
     frame = sample_frame(vertices, scene.camera, options.scene, options.seed, model, index)
     result = scene.render(frame)
@@ -135,45 +336,334 @@ def render_image(scene: Any, vertices: np.ndarray, options: RenderOptions, model
                   {"Y": result.radiance, "Z": result.depth, "A": result.coverage})
     # The label is the commit marker: written last, it says the image is complete.
     atomic_write_json(model_out / PROGRESS / f"{name}.json",
-                      label_entry(f"{name}.png", frame, result.exposure))
+                      label_entry(f"{name}.png", frame, result))
+
+
+# ------------------------------------------------------------------------ per model
+
+
+def _name(index: int) -> str:
+    return f"{index:06d}"
+
+
+def _assembled(model_out: Path) -> list[Any]:
+    """The model's ``labels.json`` entries ([] where there is none yet)."""
+    path = model_out / "labels.json"
+    if not path.is_file():
+        return []
+    return read_labels(path)
+
+
+def _image_done(model_out: Path, index: int, assembled: list[Any], exr: bool) -> bool:
+    """Image ``index`` is complete: its label (progress file, or assembled) and its files."""
+    name = _name(index)
+    if index >= len(assembled) and not (model_out / PROGRESS / f"{name}.json").is_file():
+        return False
+    files = [model_out / IMAGES / f"{name}.png", model_out / MASKS / f"{name}.png"]
+    if exr:
+        files.append(model_out / EXR / f"{name}.exr")
+    return all(path.is_file() for path in files)
+
+
+def _remove_stray_temps(model_out: Path, index: int) -> None:
+    """Delete temporary files of image ``index`` that a killed run left behind (atomic writes
+    name them ``.<name>.<random>.tmp<suffix>``); the image is about to be rendered again."""
+    for folder in (IMAGES, MASKS, EXR, PROGRESS):
+        for stray in (model_out / folder).glob(f".{_name(index)}.*.tmp*"):
+            stray.unlink(missing_ok=True)
+
+
+def _remove_tree(path: Path) -> None:
+    """Delete a folder that another process may be deleting at the same time."""
+    shutil.rmtree(path, ignore_errors=True)
+    if path.exists():
+        shutil.rmtree(path)  # still there: a real problem, raise it
+
+
+def _assemble(model_out: Path, count: int) -> bool:
+    """Write ``labels.json`` once all ``count`` images of a model are done; True when it is
+    complete. Safe against another process assembling the same model at the same time."""
+    progress = model_out / PROGRESS
+    assembled = _assembled(model_out)
+    if len(assembled) == count:
+        if progress.exists():
+            _remove_tree(progress)
+        return True
+    labels = []
+    for index in range(count):
+        try:
+            labels.append(read_json(progress / f"{_name(index)}.json"))
+            continue
+        except FileNotFoundError:
+            pass
+        if index < len(assembled):  # grown dataset: the first images are assembled already
+            labels.append(assembled[index])
+        else:  # not done yet, or another process assembled it and removed .progress
+            return len(_assembled(model_out)) == count
+    atomic_write_json(model_out / "labels.json", labels)
+    _remove_tree(progress)
+    return True
 
 
 def render_model(models_dir: Path, out_dir: Path, model: str, camera: Camera,
                  options: RenderOptions, tick: Callable[[int], None] = lambda n: None,
-                 ) -> tuple[int, int]:
-    """Render (or finish) one model's images, masks and labels; return (rendered, skipped)."""
+                 indices: Sequence[int] | None = None) -> tuple[int, int]:
+    """Render (or finish) images ``indices`` (default: all) of one model, then assemble its
+    ``labels.json`` if every image of it is done; return (rendered, skipped)."""
     from sq_mitsuba.render.space import SpaceScene
 
+    count = options.images_per_model
+    indices = range(count) if indices is None else indices
     model_out = out_dir / model
-    progress = model_out / PROGRESS
-    labels_path = model_out / "labels.json"
-    if labels_path.is_file() and not progress.exists() and \
-            len(read_json(labels_path)) == options.images_per_model:
-        tick(options.images_per_model)
-        return 0, options.images_per_model
-    vertices, faces, tags = load_model(models_dir / model)
-    _copy_model_files(models_dir / model / MODELS, model_out / MODELS)
-    progress.mkdir(parents=True, exist_ok=True)
-    scene = None
-    rendered = skipped = 0
-    for index in range(options.images_per_model):
-        name = f"{index:06d}"
-        label_path = progress / f"{name}.json"
-        if label_path.is_file() and (model_out / IMAGES / f"{name}.png").is_file() and \
-                (model_out / MASKS / f"{name}.png").is_file():
-            skipped += 1
+    _clear_failure(out_dir, model, options.shard)
+    assembled = _assembled(model_out)
+    if len(assembled) > count:
+        raise DatasetError(f"{model_out / 'labels.json'}: {len(assembled)} labels, more than "
+                           f"images_per_model {count}")
+    if len(assembled) == count:
+        tick(len(indices))
+        _assemble(model_out, count)  # removes a .progress left by a concurrent assembly
+        _clear_failures(out_dir, model)
+        return 0, len(indices)
+    todo = [i for i in indices if not _image_done(model_out, i, assembled, options.exr)]
+    skipped = len(indices) - len(todo)
+    tick(skipped)
+    if todo:
+        vertices, faces, tags = load_model(models_dir / model)
+        has_images = bool(assembled) or any((model_out / PROGRESS).glob("*.json"))
+        _copy_model_files(models_dir / model / MODELS, model_out / MODELS, has_images)
+        (model_out / PROGRESS).mkdir(parents=True, exist_ok=True)
+        scene = SpaceScene(vertices, faces, tags, camera, options.scene, spp=options.spp,
+                           dataset_seed=options.seed, with_depth=options.exr)
+        for index in todo:
+            _remove_stray_temps(model_out, index)
+            render_image(scene, vertices, options, model, index, model_out)
             tick(1)
+    if _assemble(model_out, count):
+        _clear_failures(out_dir, model)
+    return len(todo), skipped
+
+
+# ------------------------------------------------------------------------ failures
+
+
+def _failure_path(out_dir: Path, model: str, shard: str) -> Path:
+    index, count = parse_shard(shard)
+    return out_dir / FAILURE_MARKS / model / f"{index}-of-{count}.json"
+
+
+def _record_failure(out_dir: Path, model: str, shard: str, reason: str) -> None:
+    atomic_write_json(_failure_path(out_dir, model, shard),
+                      {"model": model, "shard": shard, "reason": reason})
+
+
+def _clear_failure(out_dir: Path, model: str, shard: str) -> None:
+    """This shard retries ``model``: its own record of an earlier failure goes."""
+    _failure_path(out_dir, model, shard).unlink(missing_ok=True)
+
+
+def _clear_failures(out_dir: Path, model: str) -> None:
+    """``model`` is complete: every shard's failure record of it goes."""
+    folder = out_dir / FAILURE_MARKS / model
+    if folder.exists():
+        _remove_tree(folder)
+    try:
+        (out_dir / FAILURE_MARKS).rmdir()  # only when empty
+    except OSError:
+        pass
+
+
+def recorded_failures(out_dir: Path) -> dict[str, str]:
+    """{model: reason} of every failure record (the lowest-numbered shard's reason)."""
+    failures: dict[str, str] = {}
+    root = Path(out_dir) / FAILURE_MARKS
+    if not root.is_dir():
+        return failures
+    for folder in sorted(root.iterdir()):
+        for path in sorted(folder.glob("*.json")) if folder.is_dir() else []:
+            try:
+                record = read_json(path)
+                failures[folder.name] = str(record["reason"])
+                break
+            except (OSError, ValueError, KeyError, TypeError):
+                continue  # vanished or half-read: another process is clearing it
+    return failures
+
+
+# ------------------------------------------------------------------------ manifest
+
+
+def _tool_version() -> str:
+    from importlib import metadata
+
+    try:
+        return metadata.version("sq_mitsuba")
+    except metadata.PackageNotFoundError:
+        return "unknown"
+
+
+def dataset_settings(options: RenderOptions, camera: Camera) -> dict[str, Any]:
+    """The settings that decide a dataset's pixels, as the manifest records them."""
+    settings = {"seed": options.seed, "resolution": options.resolution, "spp": options.spp,
+                "exr": options.exr, "camera": camera.to_speed_dict(),
+                "scene_hash": config_hash(options.scene)}
+    return json.loads(json.dumps(settings))  # as read back from the file
+
+
+def _manifest(options: RenderOptions, camera: Camera, plan: dict[str, str],
+              counts: dict[str, int], state: str,
+              hashes: dict[str, str] | None = None) -> dict[str, Any]:
+    models = {}
+    for model in sorted(plan):
+        entry: dict[str, Any] = {"split": plan[model], "images": counts.get(model, 0)}
+        if hashes and model in hashes:
+            entry["labels_sha256"] = hashes[model]
+        models[model] = entry
+    return {
+        "format": MANIFEST_FORMAT,
+        "tool": {"name": "sq-mitsuba", "version": _tool_version()},
+        "settings": dataset_settings(options, camera),
+        "images_per_model": options.images_per_model,
+        "state": state,
+        "models": models,
+        "scene": to_dict(options.scene),
+    }
+
+
+def _plan_of(manifest: dict[str, Any]) -> tuple[Any, ...]:
+    """What a manifest promises (not its progress): settings, image count, models, splits."""
+    return (manifest["settings"], manifest["images_per_model"],
+            {m: e.get("split") for m, e in manifest["models"].items()})
+
+
+def _describe_camera(camera: Any) -> str:
+    try:
+        matrix = camera["cameraMatrix"]
+        return (f"{camera['Nu']} x {camera['Nv']} px, fx {matrix[0][0]:.6g}, "
+                f"cx {matrix[0][2]:.6g}, cy {matrix[1][2]:.6g}")
+    except (KeyError, IndexError, TypeError):
+        return "unreadable"
+
+
+def _first_difference(old: Any, new: Any, where: str = "") -> str | None:
+    """Dotted path and values of the first difference of two JSON-like trees."""
+    if isinstance(old, dict) and isinstance(new, dict):
+        for key in sorted(set(old) | set(new)):
+            found = _first_difference(old.get(key), new.get(key), f"{where}.{key}".lstrip("."))
+            if found:
+                return found
+        return None
+    return None if old == new else f"{where} {json.dumps(old)}, now {json.dumps(new)}"
+
+
+def _settings_differences(manifest: dict[str, Any], settings: dict[str, Any],
+                          scene: SceneConfig) -> list[str]:
+    stored = manifest["settings"]
+    differences = []
+    for key in IDENTITY:
+        if stored.get(key) == settings[key]:
             continue
-        if scene is None:
-            scene = SpaceScene(vertices, faces, tags, camera, options.scene, spp=options.spp,
-                               dataset_seed=options.seed, with_depth=options.exr)
-        render_image(scene, vertices, options, model, index, model_out)
-        rendered += 1
-        tick(1)
-    labels = [read_json(progress / f"{i:06d}.json") for i in range(options.images_per_model)]
-    atomic_write_json(labels_path, labels)
-    shutil.rmtree(progress)
-    return rendered, skipped
+        if key == "camera":
+            differences.append(f"camera {_describe_camera(stored.get(key))} (this run: "
+                               f"{_describe_camera(settings[key])})")
+        elif key == "scene_hash":
+            detail = _first_difference(manifest.get("scene"), to_dict(scene))
+            differences.append(f"scene config {stored.get(key)} (this run: {settings[key]}"
+                               + (f"; {detail}" if detail else "") + ")")
+        else:
+            differences.append(f"{key} {json.dumps(stored.get(key))} (this run: "
+                               f"{json.dumps(settings[key])})")
+    return differences
+
+
+def _model_folders(out_dir: Path, named: Sequence[str] = ()) -> list[Path]:
+    """Sub-folders of ``out_dir`` that are model folders of a dataset."""
+    if not out_dir.is_dir():
+        return []
+    return sorted(child for child in out_dir.iterdir() if child.is_dir() and (
+        child.name in named or any((child / sign).exists() for sign in _MODEL_FOLDER_SIGNS)))
+
+
+def _clear_dataset(out_dir: Path, named: Sequence[str]) -> None:
+    """Delete what :data:`OVERWRITE_DELETES` says (``--overwrite``)."""
+    for name in OVERWRITE_DELETES:
+        (out_dir / name).unlink(missing_ok=True)
+    for folder in [out_dir / FAILURE_MARKS, *_model_folders(out_dir, named)]:
+        if folder.exists():
+            _remove_tree(folder)
+    for stray in out_dir.glob(".*.tmp*"):
+        if stray.is_file():
+            stray.unlink(missing_ok=True)
+
+
+def _write_json_if_changed(path: Path, obj: Any) -> None:
+    """:func:`atomic_write_json`, skipped where the file already holds these bytes."""
+    text = json.dumps(obj, indent=2) + "\n"
+    try:
+        if path.read_text(encoding="utf-8") == text:
+            return
+    except (OSError, UnicodeDecodeError):
+        pass
+    atomic_write_text(path, text)
+
+
+def _file_sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def finalize_dataset(out_dir: Path, options: RenderOptions, camera: Camera,
+                     plan: dict[str, str]) -> tuple[bool, dict[str, str]]:
+    """Once every model of ``plan`` is settled (complete, or failed in some shard), write
+    ``splits.csv`` (complete models only), ``failures.json`` (or remove a stale one) and the
+    final manifest. Returns (complete, failures). Its files are a function of the folder's
+    content alone, so processes finishing at once write the same bytes."""
+    count = options.images_per_model
+    marks = recorded_failures(out_dir)
+    counts: dict[str, int] = {}
+    hashes: dict[str, str] = {}
+    settled = True
+    for model in sorted(plan):
+        try:
+            labels = _assembled(out_dir / model)
+        except DatasetError as error:
+            marks.setdefault(model, str(error))
+            labels = []
+        counts[model] = len(labels)
+        if len(labels) == count:
+            hashes[model] = _file_sha256(out_dir / model / "labels.json")
+        elif model not in marks:
+            settled = False
+    failures = {m: marks[m] for m in sorted(plan) if counts[m] != count and m in marks}
+    if not settled:
+        return False, failures
+    rows = [(m, plan[m]) for m in sorted(plan) if counts[m] == count]
+    splits_text = "".join(f"{m},{s}\n" for m, s in rows)
+    splits_path = out_dir / "splits.csv"
+    if not splits_path.is_file() or splits_path.read_text(encoding="utf-8") != splits_text:
+        write_splits(out_dir, rows)
+    if failures:
+        _write_json_if_changed(out_dir / FAILURES, failures)
+    else:
+        (out_dir / FAILURES).unlink(missing_ok=True)
+    _write_json_if_changed(out_dir / MANIFEST,
+                           _manifest(options, camera, plan, counts, "complete", hashes))
+    return True, failures
+
+
+def _shard_work(models: Sequence[str], count: int, shard: str) -> dict[str, range]:
+    """Image indices per model of block I of N of all (model, index) pairs, in order."""
+    index, shards = parse_shard(shard)
+    total = len(models) * count
+    start, stop = index * total // shards, (index + 1) * total // shards
+    work = {}
+    for position, model in enumerate(models):
+        low, high = max(start, position * count), min(stop, (position + 1) * count)
+        if low < high:
+            work[model] = range(low - position * count, high - position * count)
+    return work
+
+
+# ------------------------------------------------------------------------ dataset
 
 
 def _start_worker(threads: int) -> None:
@@ -185,69 +675,142 @@ def _start_worker(threads: int) -> None:
     dr.set_thread_count(threads)
 
 
-def render_dataset(models_dir: str | Path, out_dir: str | Path, options: RenderOptions,
-                   progress: bool = True, workers: int = 1) -> RenderSummary:
+def _existing_manifest(out_dir: Path, overwrite: bool) -> dict[str, Any] | None:
+    """The output folder's manifest; a malformed one is an error unless it is to be deleted."""
+    if not out_dir.is_dir():
+        return None
+    try:
+        return read_manifest(out_dir)
+    except DatasetError:
+        if overwrite:
+            return None
+        raise
+
+
+def prepare_dataset(models_dir: Path, out_dir: Path, options: RenderOptions
+                    ) -> tuple[Camera, dict[str, str]]:
+    """Every check before work, then the manifest and ``camera.json``: returns the camera and
+    the plan {model: split}. Raises ``DatasetError`` having touched no file where the folder
+    holds a dataset of other settings (unless ``options.overwrite``)."""
+    camera = options.dataset_camera()
+    check_render_resources(camera, options)
+    found = find_models(models_dir)
+    if out_dir.resolve() == models_dir.resolve():
+        raise DatasetError(f"{out_dir}: the output folder is the model library; render into "
+                           f"another folder")
+    library_splits = read_splits(models_dir / "splits.csv") \
+        if (models_dir / "splits.csv").is_file() else {}
+    manifest = _existing_manifest(out_dir, options.overwrite)
+    if manifest is None and not options.overwrite:
+        unmanaged = [p for p in ("camera.json", "splits.csv") if (out_dir / p).exists()] + \
+            [f"{p.name}/" for p in _model_folders(out_dir)]
+        # Another shard may have started this dataset since: its manifest comes first.
+        manifest = _existing_manifest(out_dir, False) if unmanaged else None
+        if unmanaged and manifest is None:
+            shown = ", ".join(unmanaged[:3]) + (", ..." if len(unmanaged) > 3 else "")
+            raise DatasetError(f"{out_dir}: holds a dataset without {MANIFEST} ({shown}), so "
+                               f"its settings cannot be checked; use --overwrite to start "
+                               f"over, or another --out")
+    settings = dataset_settings(options, camera)
+    if manifest is not None and not options.overwrite:
+        differences = _settings_differences(manifest, settings, options.scene)
+        if differences:
+            raise DatasetError(f"{out_dir / MANIFEST}: this dataset was rendered with other "
+                               f"settings: {'; '.join(differences)}; nothing was changed "
+                               f"(use --overwrite to start over, or another --out)")
+        if options.images_per_model < manifest["images_per_model"]:
+            raise DatasetError(f"{out_dir / MANIFEST}: images_per_model "
+                               f"{options.images_per_model} is below the dataset's "
+                               f"{manifest['images_per_model']}; a dataset grows but does not "
+                               f"shrink (use --overwrite to start over, or another --out)")
+    old_models = sorted(manifest["models"]) if manifest is not None else []
+    check_writable(out_dir)
+    if options.overwrite:
+        _clear_dataset(out_dir, old_models)
+        manifest, old_models = None, []
+    plan = {}
+    for model in sorted(set(found) | set(old_models)):
+        old_split = manifest["models"][model].get("split") if manifest is not None and \
+            model in manifest["models"] else None
+        plan[model] = library_splits.get(model) or old_split or "train"
+    fresh = _manifest(options, camera, plan, {}, "rendering")
+    if manifest is None or _plan_of(manifest) != _plan_of(fresh):
+        counts = {}
+        for model in plan:
+            try:
+                counts[model] = len(_assembled(out_dir / model))
+            except DatasetError:
+                counts[model] = 0
+        atomic_write_json(out_dir / MANIFEST,
+                          _manifest(options, camera, plan, counts, "rendering"))
+    _write_json_if_changed(out_dir / "camera.json", camera.to_speed_dict())
+    return camera, plan
+
+
+def render_dataset(models_dir: str | Path, out_dir: str | Path,
+                   options: RenderOptions | None = None, progress: bool = True,
+                   workers: int | None = None) -> RenderSummary:
     """Render every model of ``models_dir`` into ``out_dir`` in the SPE3R layout.
 
-    A model that fails (missing or corrupt files, a full disk) is reported and skipped; the
-    others go on. Calling again with the same arguments resumes where a run stopped. With
-    ``workers > 1`` models render in parallel processes sharing the cores (each worker's
-    images are identical to a single-process run: every image has its own seed).
+    See the module docstring for the manifest, resuming, growing, shards and failures. A
+    model that fails is reported and skipped; the others go on. ``workers`` (default
+    ``options.workers``) processes render models in parallel, sharing the cores (each
+    worker's images are identical to a single-process run: every image has its own seed).
+    Bad options and folders are ``ValueError`` s raised before any file is written.
     """
     from tqdm import tqdm
 
-    options.validate()
-    if workers < 1:
-        raise ValueError(f"workers: expected >= 1, got {workers}")
+    options = options if options is not None else RenderOptions()
+    if workers is not None:
+        options = dataclasses.replace(options, workers=workers)
+    validate(options)
     models_dir, out_dir = Path(models_dir), Path(out_dir)
-    models = find_models(models_dir)
-    check_writable(out_dir)
-    camera = options.dataset_camera()
-    atomic_write_json(out_dir / "camera.json", camera.to_speed_dict())
-    from sq_mitsuba.data.spe3r.layout import write_splits
-
-    splits_path = models_dir / "splits.csv"
-    splits = read_splits(splits_path) if splits_path.is_file() else {}
-    write_splits(out_dir, ((m, splits.get(m, "train")) for m in models))
-    summary = RenderSummary()
-    total = len(models) * options.images_per_model
+    camera, plan = prepare_dataset(models_dir, out_dir, options)
+    work = _shard_work(sorted(plan), options.images_per_model, options.shard)
+    summary = RenderSummary(shard=options.shard)
+    total = sum(len(indices) for indices in work.values())
     with tqdm(total=total, unit="img", disable=not progress, dynamic_ncols=True) as bar:
 
         def record(model: str, outcome: tuple[int, int] | BaseException) -> None:
             if isinstance(outcome, BaseException):
-                summary.failures[model] = str(outcome)
-                bar.write(f"failed: {model}: {outcome}")
+                reason = str(outcome) or type(outcome).__name__
+                summary.failures[model] = reason
+                _record_failure(out_dir, model, options.shard, reason)
+                bar.write(f"failed: {model}: {reason}")
                 return
             summary.rendered += outcome[0]
             summary.skipped += outcome[1]
             summary.models_done.append(model)
 
-        if workers == 1:
-            for model in models:
+        if options.workers == 1 or len(work) <= 1:
+            for model, indices in work.items():
                 bar.set_description(model)
                 try:
                     outcome = render_model(models_dir, out_dir, model, camera, options,
-                                           tick=bar.update)
+                                           tick=bar.update, indices=indices)
                 except (DatasetError, OSError, ValueError) as error:
                     outcome = error
                 record(model, outcome)
         else:
             import multiprocessing
-            import os
             from concurrent.futures import ProcessPoolExecutor, as_completed
 
-            threads = max(1, (os.cpu_count() or 1) // workers)
-            with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
+            threads = max(1, (os.cpu_count() or 1) // options.workers)
+            with ProcessPoolExecutor(options.workers,
+                                     mp_context=multiprocessing.get_context("spawn"),
                                      initializer=_start_worker, initargs=(threads,)) as pool:
-                jobs = {pool.submit(render_model, models_dir, out_dir, m, camera, options): m
-                        for m in models}
+                jobs = {pool.submit(render_model, models_dir, out_dir, model, camera, options,
+                                    indices=indices): model
+                        for model, indices in work.items()}
                 for job in as_completed(jobs):
                     try:
                         outcome = job.result()
                     except (DatasetError, OSError, ValueError) as error:
                         outcome = error
                     record(jobs[job], outcome)
-                    bar.update(options.images_per_model)
+                    bar.update(len(work[jobs[job]]))
     summary.models_done.sort()
+    summary.complete, failures = finalize_dataset(out_dir, options, camera, plan)
+    # Failures of other shards (and of earlier runs not retried here) count too.
+    summary.failures = dict(sorted({**failures, **summary.failures}.items()))
     return summary
-

@@ -1,0 +1,388 @@
+"""Dataset bookkeeping: the manifest, refusing other settings, overwrite, growth, shards,
+failures, splits and bounded options.
+
+Datasets here are tiny (2 models x 4 images, 32 px, 1 spp, a lighter mask pass) and built once
+per session where they can be shared; every comparison is against an unsharded, uninterrupted
+render of the same settings.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import subprocess
+import sys
+import warnings
+from pathlib import Path
+
+import pytest
+
+from sq_mitsuba.cli import main
+from sq_mitsuba.config import apply_overrides, config_hash
+from sq_mitsuba.data.library import generate_model
+from sq_mitsuba.data.spacecraft import catalogue
+from sq_mitsuba.data.spe3r import (
+    DatasetError,
+    MissingModelWarning,
+    RenderOptions,
+    Spe3rDataset,
+    check_dataset,
+    is_validation,
+    render_dataset,
+)
+from sq_mitsuba.data.spe3r import writer as spe3r_writer
+from sq_mitsuba.geometry.camera import Camera
+from sq_mitsuba.render.scene_config import SceneConfig
+
+IMAGES = 4
+#: A lighter mask pass (4 samples per pixel at 256 px: 256 at 32 px) keeps renders fast.
+SCENE_SET = ["mask.spp=4"]
+SCENE = apply_overrides(SceneConfig.load(), SCENE_SET)
+TINY = {"images_per_model": IMAGES, "seed": 11, "resolution": 32, "spp": 1, "exr": True,
+        "scene": SCENE}
+CLI_TINY = ["--images-per-model", str(IMAGES), "--seed", "11", "--resolution", "32", "--spp",
+            "1", "--exr", "--quiet", *[a for s in SCENE_SET for a in ("--set", s)]]
+
+
+@pytest.fixture(scope="session")
+def library(tmp_path_factory) -> Path:
+    """Two generated spacecraft (small point sets), one train and one test."""
+    root = tmp_path_factory.mktemp("bookkeeping_models")
+    entries = catalogue(2, 9)
+    for entry in entries:
+        generate_model(entry, root, points=2000)
+    (root / "splits.csv").write_text(f"{entries[0].name},train\n{entries[1].name},test\n")
+    return root
+
+
+@pytest.fixture(scope="session")
+def reference(library, tmp_path_factory) -> Path:
+    """The unsharded, uninterrupted render every other run is compared with."""
+    out = tmp_path_factory.mktemp("bookkeeping_reference") / "data"
+    summary = render_dataset(library, out, RenderOptions(**TINY), progress=False)
+    assert summary.complete and not summary.failures and summary.rendered == 2 * IMAGES
+    return out
+
+
+def tree(root: Path) -> dict[str, bytes | None]:
+    """Every file (bytes) and folder (None) under ``root``, by relative path."""
+    return {str(p.relative_to(root)): (p.read_bytes() if p.is_file() else None)
+            for p in sorted(root.rglob("*"))}
+
+
+def digests(root: Path) -> dict[str, str | None]:
+    return {name: (hashlib.sha256(data).hexdigest() if data is not None else None)
+            for name, data in tree(root).items()}
+
+
+def render_cli(library: Path, out: Path, *extra: str) -> int:
+    return main(["dataset", "render", "--models", str(library), "--out", str(out), *CLI_TINY,
+                 *extra])
+
+
+# ------------------------------------------------------------------------ manifest
+
+
+def test_manifest_records_how_the_dataset_was_made(reference, library):
+    manifest = json.loads((reference / "dataset.json").read_text())
+    camera = Camera.default(32)
+    assert manifest["format"] == "sq-mitsuba-dataset/1"
+    assert manifest["settings"] == {
+        "seed": 11, "resolution": 32, "spp": 1, "exr": True,
+        "camera": json.loads(json.dumps(camera.to_speed_dict())),
+        "scene_hash": config_hash(SCENE)}
+    assert manifest["tool"]["name"] == "sq-mitsuba" and manifest["tool"]["version"]
+    assert manifest["images_per_model"] == IMAGES and manifest["state"] == "complete"
+    assert SceneConfig.load() != SCENE and manifest["scene"]["mask"]["spp"] == 4
+    splits = dict(line.split(",") for line in (library / "splits.csv").read_text().split())
+    assert {m: e["split"] for m, e in manifest["models"].items()} == splits
+    for model, entry in manifest["models"].items():
+        labels = (reference / model / "labels.json").read_bytes()
+        assert entry["images"] == len(json.loads(labels)) == IMAGES
+        assert entry["labels_sha256"] == hashlib.sha256(labels).hexdigest()
+    assert json.loads((reference / "camera.json").read_text()) == camera.to_speed_dict()
+    assert not (reference / "failures.json").exists()
+    assert not (reference / ".failures").exists()
+
+
+@pytest.mark.parametrize("extra, named", [
+    (["--resolution", "40"], "resolution 32 (this run: 40)"),
+    (["--seed", "12"], "seed 11 (this run: 12)"),
+    (["--spp", "2"], "spp 1 (this run: 2)"),
+    (["--no-exr"], "exr true (this run: false)"),
+    (["--set", "sun.irradiance=1000"], "sun.irradiance 1361.0, now 1000.0"),
+    (["--camera", "CAMERA"], "camera 32 x 32 px"),
+    (["--images-per-model", "2"], "grows but does not shrink"),
+])
+def test_other_settings_stop_before_touching_any_file(reference, library, tmp_path, capsys,
+                                                      extra, named):
+    out = tmp_path / "data"
+    shutil.copytree(reference, out)
+    before = digests(out)
+    if "CAMERA" in extra:
+        camera = Camera.from_fov(50.0, 32, 32)
+        (tmp_path / "camera.json").write_text(json.dumps(camera.to_speed_dict()))
+        extra = [tmp_path / "camera.json" if a == "CAMERA" else a for a in extra]
+    code = render_cli(library, out, *map(str, extra))
+    err = capsys.readouterr().err
+    assert code == 2 and named in err and "dataset.json" in err
+    assert len(err.strip().splitlines()) == 1
+    assert digests(out) == before
+
+
+def test_a_dataset_without_manifest_is_not_rendered_into(reference, library, tmp_path,
+                                                         capsys):
+    out = tmp_path / "data"
+    shutil.copytree(reference, out)
+    (out / "dataset.json").unlink()
+    before = digests(out)
+    assert render_cli(library, out) == 2
+    assert "without dataset.json" in capsys.readouterr().err
+    assert digests(out) == before
+
+
+def test_overwrite_starts_clean_and_keeps_other_files(reference, library, tmp_path):
+    out = tmp_path / "data"
+    shutil.copytree(reference, out)
+    (out / "notes.txt").write_text("mine")
+    (out / "preview.png").write_bytes(b"old preview")
+    (out / "stray_model" / "images").mkdir(parents=True)
+    # A folder that is not a dataset model folder stays.
+    (out / "other" / "models").mkdir(parents=True)
+    assert render_cli(library, out, "--overwrite", "--images-per-model", "1",
+                      "--seed", "12") == 0
+    manifest = json.loads((out / "dataset.json").read_text())
+    assert manifest["settings"]["seed"] == 12 and manifest["images_per_model"] == 1
+    assert (out / "notes.txt").read_text() == "mine"
+    assert not (out / "preview.png").exists() and not (out / "stray_model").exists()
+    assert (out / "other" / "models").is_dir()
+    for model in manifest["models"]:
+        assert sorted(p.name for p in (out / model / "images").iterdir()) == ["000000.png"]
+        assert len(json.loads((out / model / "labels.json").read_text())) == 1
+
+
+# ------------------------------------------------------------------------ growth
+
+
+def test_growing_gives_exactly_the_larger_run(reference, library, tmp_path, monkeypatch):
+    out = tmp_path / "data"
+    small = RenderOptions(**{**TINY, "images_per_model": 2})
+    assert render_dataset(library, out, small, progress=False).complete
+    first_camera = (out / "camera.json").read_bytes()
+    seen = []
+    real_render_image = spe3r_writer.render_image
+
+    def watching(scene, vertices, options, model, index, model_out):
+        # What the folder says when the first new image is rendered.
+        if not seen:
+            seen.append(json.loads((out / "dataset.json").read_text()))
+        real_render_image(scene, vertices, options, model, index, model_out)
+
+    monkeypatch.setattr(spe3r_writer, "render_image", watching)
+    summary = render_dataset(library, out, RenderOptions(**TINY), progress=False)
+    assert summary.complete and (summary.rendered, summary.skipped) == (4, 4)
+    assert seen[0]["images_per_model"] == IMAGES and seen[0]["state"] == "rendering"
+    assert {e["images"] for e in seen[0]["models"].values()} == {2}
+    assert (out / "camera.json").read_bytes() == first_camera
+    assert tree(out) == tree(reference)
+
+
+# ------------------------------------------------------------------------ shards
+
+
+def test_shards_in_any_order_equal_one_unsharded_run(reference, library, tmp_path):
+    """3 shards of 8 images: blocks [0, 2), [2, 5), [5, 8), so both models are split
+    between two shards; finished last to first."""
+    out = tmp_path / "data"
+    for shard, last in (("2/3", False), ("0/3", False), ("1/3", True)):
+        summary = render_dataset(library, out, RenderOptions(**TINY, shard=shard),
+                                 progress=False)
+        assert summary.complete is last and not summary.failures
+        assert (out / "splits.csv").exists() is last
+    assert tree(out) == tree(reference)
+    # A shard run again later finds its work done and changes nothing.
+    summary = render_dataset(library, out, RenderOptions(**TINY, shard="1/3"), progress=False)
+    assert summary.rendered == 0 and summary.complete
+    assert tree(out) == tree(reference)
+
+
+@pytest.mark.slow
+def test_two_shards_at_once_into_one_folder(reference, library, tmp_path):
+    """Two processes at the same time, as a job array would run them."""
+    out = tmp_path / "data"
+    command = [sys.executable, "-m", "sq_mitsuba", "dataset", "render", "--models",
+               str(library), "--out", str(out), *CLI_TINY]
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    processes = [subprocess.Popen([*command, "--shard", f"{i}/2"], env=env,
+                                  stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+                 for i in range(2)]
+    for process in processes:
+        _, err = process.communicate(timeout=300)
+        assert process.returncode == 0, err.decode()
+    assert tree(out) == tree(reference)
+
+
+def test_shard_work_is_a_partition():
+    models = ["a", "b", "c"]
+    for shards in (1, 2, 5, 7, 40):
+        pairs = [(m, i) for s in range(shards)
+                 for m, r in spe3r_writer._shard_work(models, 10, f"{s}/{shards}").items()
+                 for i in r]
+        assert sorted(pairs) == [(m, i) for m in models for i in range(10)]
+        assert len(pairs) == len(set(pairs))
+
+
+# ------------------------------------------------------------------------ kills and strays
+
+
+def test_rerun_after_a_kill_cleans_stray_temporary_files(reference, library, tmp_path):
+    """The state a kill leaves while image 1 of a model is being written: its image written,
+    its EXR a 0-byte temporary file, no label; image 0 finished (its label in .progress)."""
+    out = tmp_path / "data"
+    shutil.copytree(reference, out)
+    model = json.loads((out / "dataset.json").read_text())["models"].popitem()[0]
+    labels = json.loads((out / model / "labels.json").read_text())
+    (out / model / "labels.json").unlink()
+    (out / model / ".progress").mkdir()
+    (out / model / ".progress" / "000000.json").write_text(json.dumps(labels[0]))
+    for index in (2, 3):
+        for folder, suffix in (("images", "png"), ("masks", "png"), ("exr", "exr")):
+            (out / model / folder / f"00000{index}.{suffix}").unlink()
+    (out / model / "exr" / "000001.exr").unlink()
+    (out / model / "exr" / ".000001.k2j4x9.tmp.exr").write_bytes(b"")
+    (out / model / "masks" / ".000001.q8w1e3.tmp.png").write_bytes(b"\x89PNG")
+    report = check_dataset(out, per_model=1, progress=False)
+    problems = "\n".join(report.problems)
+    assert f"{model}/exr/.000001.k2j4x9.tmp.exr: stray temporary file" in problems
+    assert f"{model}/masks/.000001.q8w1e3.tmp.png: stray temporary file" in problems
+    assert f"{model}/.progress/: unfinished model" in problems
+    summary = render_dataset(library, out, RenderOptions(**TINY), progress=False)
+    assert summary.rendered == 3 and summary.complete
+    assert tree(out) == tree(reference)
+
+
+# ------------------------------------------------------------------------ failures, splits
+
+
+def test_failed_models_are_left_out_of_the_splits(reference, library, tmp_path):
+    models = tmp_path / "models"
+    shutil.copytree(library, models)
+    broken = models / "broken_model" / "models"
+    broken.mkdir(parents=True)
+    (broken / "model_normalized.obj").write_text("v 0 0 0\n")
+    with open(models / "splits.csv", "a") as handle:
+        handle.write("broken_model,train\nmissing_model,test\n")
+    out = tmp_path / "data"
+    summary = render_dataset(models, out, RenderOptions(**TINY), progress=False)
+    assert summary.complete and set(summary.failures) == {"broken_model", "missing_model"}
+    failures = json.loads((out / "failures.json").read_text())
+    assert set(failures) == {"broken_model", "missing_model"}
+    assert "model_normalized.obj" in failures["broken_model"]
+    assert "missing" in failures["missing_model"]
+    assert (out / "splits.csv").read_bytes() == (reference / "splits.csv").read_bytes()
+    manifest = json.loads((out / "dataset.json").read_text())
+    assert manifest["models"]["broken_model"]["images"] == 0
+    assert Spe3rDataset(out, "train", image_size=16, num_surface=10, num_occupancy=10)
+    report = check_dataset(out, per_model=1, progress=False)
+    assert report.ok, report.summary()
+    assert any("broken_model: failed" in note for note in report.notes)
+    # The broken model repaired: running again renders it and drops it from failures.json.
+    shutil.copytree(library / sorted(p.name for p in library.iterdir() if p.is_dir())[0],
+                    models / "broken_model", dirs_exist_ok=True)
+    (models / "splits.csv").write_text((library / "splits.csv").read_text()
+                                       + "broken_model,train\n")
+    summary = render_dataset(models, out, RenderOptions(**TINY), progress=False)
+    assert set(summary.failures) == {"missing_model"}
+    assert set(json.loads((out / "failures.json").read_text())) == {"missing_model"}
+    assert "broken_model,train" in (out / "splits.csv").read_text()
+
+
+def test_reader_skips_a_listed_model_that_is_missing(reference, tmp_path):
+    out = tmp_path / "data"
+    shutil.copytree(reference, out)
+    train_model, test_model = sorted(json.loads((out / "dataset.json").read_text())["models"])
+    shutil.rmtree(out / test_model)
+    with pytest.warns(MissingModelWarning, match=test_model):
+        test = Spe3rDataset(out, "test", image_size=16, num_surface=10, num_occupancy=10)
+    assert len(test) == 0 and test.skipped == [test_model]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        train = Spe3rDataset(out, "train", image_size=16, num_surface=10, num_occupancy=10)
+    assert train.models == [train_model] and len(train) == IMAGES
+
+
+@pytest.fixture(scope="session")
+def forty(library, tmp_path_factory) -> Path:
+    """The train model alone, 40 images (32 px, 1 spp)."""
+    models = tmp_path_factory.mktemp("forty_models")
+    model = (library / "splits.csv").read_text().split(",")[0]
+    shutil.copytree(library / model, models / model)
+    (models / "splits.csv").write_text(f"{model},train\n")
+    out = tmp_path_factory.mktemp("forty") / "data"
+    options = RenderOptions(**{**TINY, "images_per_model": 40, "exr": False})
+    assert render_dataset(models, out, options, progress=False).complete
+    return out
+
+
+def test_every_size_of_dataset_has_a_validation_split(forty):
+    kwargs = {"image_size": 16, "num_surface": 10, "num_occupancy": 10}
+    train, val = Spe3rDataset(forty, "train", **kwargs), Spe3rDataset(forty, "val", **kwargs)
+    train_ids = {(m, i) for m, i, _ in train.items}
+    val_ids = {(m, i) for m, i, _ in val.items}
+    assert [i for _, i in sorted(val_ids)] == [16, 17, 18, 19, 36, 37, 38, 39]
+    assert not train_ids & val_ids and train_ids | val_ids == {(0, i) for i in range(40)}
+    assert val[0]["index"] == 16 and val[0]["image"].shape == (1, 16, 16)
+    # SPE3R's own split at 1000 images per model, and the sizes in between.
+    assert [i for i in range(1000) if is_validation(i, 1000)] == [*range(400, 500),
+                                                                  *range(900, 1000)]
+    for count in range(10, 300):
+        val_count = sum(is_validation(i, count) for i in range(count))
+        assert val_count >= 2 and abs(val_count - 0.2 * count) <= 2
+
+
+# ------------------------------------------------------------------------ bounded options
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["render", "--seed", "-1"], "--seed: expected a value in [0, 4294967295], got -1"),
+    (["render", "--seed", "4294967296"], "--seed"),
+    (["render", "--images-per-model", "0"], "--images-per-model"),
+    (["render", "--resolution", "7"], "--resolution"),
+    (["render", "--resolution", "60000"], "GiB of memory per rendering process"),
+    (["render", "--spp", "0"], "--spp"),
+    (["render", "--workers", "0"], "--workers"),
+    (["render", "--shard", "2/2"], "--shard: expected I/N with 0 <= I < N"),
+    (["render", "--shard", "1/2", "--overwrite"], "overwrite: not with shard N > 1"),
+    (["render", "--set", "mask.spp=0"], "--set mask.spp"),
+    (["check", "ROOT", "--per-model", "-3"], "--per-model"),
+    (["check", "ROOT", "--min-iou", "2"], "--min-iou: expected a value in [0, 1], got 2"),
+    (["check", "ROOT", "--spp", "0"], "--spp"),
+    (["preview", "ROOT", "--count", "0"], "--count"),
+    (["preview", "ROOT", "--axis-length", "0"], "--axis-length"),
+])
+def test_numeric_options_are_checked_before_any_work(reference, library, tmp_path, capsys,
+                                                     argv, message):
+    out = tmp_path / "new"
+    if argv[0] == "render":
+        argv = [*argv, "--models", str(library), "--out", str(out), "--quiet"]
+    root = tmp_path / "data"
+    shutil.copytree(reference, root)
+    before = digests(root)
+    argv = [str(root) if a == "ROOT" else a for a in argv]
+    assert main(["dataset", *argv]) == 2
+    err = capsys.readouterr().err
+    assert message in err and len(err.strip().splitlines()) == 1
+    assert not out.exists() and digests(root) == before
+
+
+def test_resolution_is_bounded_by_memory():
+    options = RenderOptions(resolution=4096)
+    need = spe3r_writer.estimate_render_memory(4096, 4096)
+    assert 2.5 * 2**30 < need < 3.5 * 2**30  # 0.75 GiB + 160 B x 16.8 Mpx
+    spe3r_writer.check_render_resources(options.dataset_camera(), options, memory=need)
+    with pytest.raises(DatasetError, match=r"resolution: 4096 x 4096 px needs about 3\.[23] GiB"):
+        spe3r_writer.check_render_resources(options.dataset_camera(), options,
+                                            memory=need - 1)
+    assert RenderOptions(seed=2**32 - 1).seed == 2**32 - 1

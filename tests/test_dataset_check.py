@@ -1,0 +1,184 @@
+"""`dataset check` you can trust, and a reader that names the bad file.
+
+Fresh datasets at 64, 128 and 256 px pass with the default threshold; every kind of damage
+(a shifted mask, a truncated PNG, stray files, bad labels) is found and named, each per file.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from sq_mitsuba.cli import main
+from sq_mitsuba.data.library import generate_model
+from sq_mitsuba.data.spacecraft import catalogue
+from sq_mitsuba.data.spe3r import (
+    CheckOptions,
+    DatasetError,
+    RenderOptions,
+    Spe3rDataset,
+    check_dataset,
+    render_dataset,
+)
+from sq_mitsuba.data.spe3r.check import compare_masks, edge_tolerance
+
+IMAGES = 2
+READER = {"image_size": 32, "num_surface": 10, "num_occupancy": 10}
+
+
+@pytest.fixture(scope="session")
+def check_library(tmp_path_factory) -> Path:
+    """Two generated spacecraft (thin panels and a boom: many edge pixels)."""
+    root = tmp_path_factory.mktemp("check_models")
+    entries = catalogue(2, 3)
+    for entry in entries:
+        generate_model(entry, root, points=2000)
+    (root / "splits.csv").write_text(f"{entries[0].name},train\n{entries[1].name},test\n")
+    return root
+
+
+@pytest.fixture(scope="session")
+def fresh(check_library, tmp_path_factory):
+    """Fresh datasets (default scene, so the default mask pass) by resolution, built once."""
+    built: dict[int, Path] = {}
+
+    def get(resolution: int) -> Path:
+        if resolution not in built:
+            out = tmp_path_factory.mktemp(f"check_{resolution}") / "data"
+            options = RenderOptions(images_per_model=IMAGES, seed=4, resolution=resolution,
+                                    spp=1)
+            assert render_dataset(check_library, out, options, progress=False).complete
+            built[resolution] = out
+        return built[resolution]
+
+    return get
+
+
+def damaged_copy(source: Path, target: Path) -> tuple[Path, str, str]:
+    shutil.copytree(source, target)
+    train, test = sorted(json.loads((target / "dataset.json").read_text())["models"])
+    return target, train, test
+
+
+@pytest.mark.parametrize("resolution", [64, 128, 256])
+def test_fresh_datasets_pass_at_every_resolution(fresh, resolution):
+    report = check_dataset(fresh(resolution), per_model=0, progress=False)
+    assert report.ok, report.summary()
+    assert len(report.iou) == 2 * IMAGES and min(report.iou) >= CheckOptions().min_iou
+    assert report.decoded == 2 * 2 * IMAGES
+    # The edge band is what makes the threshold hold: the plain IoU is lower (and falls below
+    # 0.99 at 64 px for these thin structures).
+    assert min(report.plain_iou) < 1.0 and min(report.plain_iou) <= min(report.iou)
+    if resolution == 64:  # a plain IoU >= 0.99 rule would refuse this correct dataset
+        assert min(report.plain_iou) < 0.99
+
+
+@pytest.mark.parametrize("resolution, shift", [(64, 1), (256, 1)])
+def test_a_mask_shifted_by_one_pixel_fails(fresh, tmp_path, resolution, shift):
+    root, train, _ = damaged_copy(fresh(resolution), tmp_path / "shifted")
+    path = root / train / "masks" / "000001.png"
+    Image.fromarray(np.roll(np.asarray(Image.open(path)), shift, axis=0)).save(path)
+    report = check_dataset(root, per_model=0, progress=False)
+    assert [p.split(":")[0] for p in report.problems] == [f"{train}/000001.png"]
+    assert "label/mask IoU" in report.problems[0]
+
+
+def test_edge_tolerance_leaves_out_only_ambiguous_pixels():
+    coverage = np.array([[0.0, 0.45, 0.6, 1.0]])
+    tolerance = edge_tolerance(256, 256)
+    assert 0.17 < tolerance < 0.18  # 4 sqrt(0.25 / 256 * 2)
+    # The pixels at 0.45 and 0.6 may go either way; the others must agree.
+    assert compare_masks(coverage, np.array([[False, True, False, True]]), tolerance)[0] == 1.0
+    assert compare_masks(coverage, np.array([[True, False, True, True]]), tolerance)[0] == 0.5
+    assert compare_masks(coverage, np.array([[False, False, True, True]]), 0.0) == (1.0, 1.0)
+
+
+def test_truncated_and_corrupt_files_are_named(fresh, tmp_path):
+    root, train, test = damaged_copy(fresh(64), tmp_path / "truncated")
+    image = root / train / "images" / "000000.png"
+    image.write_bytes(image.read_bytes()[: image.stat().st_size // 2])
+    mask = root / test / "masks" / "000001.png"
+    data = bytearray(mask.read_bytes())
+    data[60] ^= 0xFF  # a flipped byte inside the image data: the chunk's CRC no longer matches
+    mask.write_bytes(bytes(data))
+    report = check_dataset(root, per_model=0, progress=False)
+    problems = sorted(p.split(":")[0] for p in report.problems)
+    assert problems == [f"{train}/images/000000.png", f"{test}/masks/000001.png"]
+    assert "cannot read image" in report.problems[0]
+    # The reader names the file too, in one line.
+    dataset = Spe3rDataset(root, "train", **READER)
+    with pytest.raises(DatasetError, match=r"images/000000\.png: cannot read image") as info:
+        dataset[0]
+    assert "\n" not in str(info.value)
+
+
+def test_stray_files_are_reported(fresh, tmp_path):
+    root, train, test = damaged_copy(fresh(64), tmp_path / "strays")
+    (root / train / "images" / ".000001.ab12cd.tmp.png").write_bytes(b"\x89PNG")
+    (root / ".dataset.x1y2z3.tmp.json").write_bytes(b"")
+    (root / train / "models" / "notes.txt").write_bytes(b"")
+    (root / test / ".progress").mkdir()
+    (root / test / ".progress" / "000001.json").write_text("{}")
+    report = check_dataset(root, per_model=1, progress=False)
+    assert sorted(report.problems) == sorted([
+        f"{train}/images/.000001.ab12cd.tmp.png: stray temporary file (left by a killed "
+        f"write)",
+        ".dataset.x1y2z3.tmp.json: stray temporary file (left by a killed write)",
+        f"{train}/models/notes.txt: empty file",
+        f"{test}/.progress/: unfinished model (a render was stopped; run it again to finish)",
+    ])
+
+
+def test_bad_labels_are_reported_per_entry_and_the_rest_is_checked(fresh, tmp_path):
+    root, train, test = damaged_copy(fresh(64), tmp_path / "labels")
+    path = root / train / "labels.json"
+    labels = json.loads(path.read_text())
+    labels[0]["q_vbs2tango_true"][1] = float("nan")
+    labels[1]["r_Vo2To_vbs_true"] = labels[1]["r_Vo2To_vbs_true"][:2]
+    path.write_text(json.dumps(labels))  # NaN is written as NaN, as Python's json does
+    extra = root / test / "masks" / "000009.png"
+    shutil.copy(root / test / "masks" / "000000.png", extra)
+    report = check_dataset(root, per_model=0, progress=False)
+    problems = "\n".join(report.problems)
+    assert f"{train}/labels.json: entry 0 (000000.png): q_vbs2tango_true: not finite" \
+        in problems
+    assert f"{train}/labels.json: entry 1 (000001.png): r_Vo2To_vbs_true: expected a list " \
+           f"of 3 numbers" in problems
+    assert f"{test}/masks/000009.png: no label names it" in problems
+    assert f"{train}/labels.json: changed since dataset.json was written" in problems
+    # The test model's masks were still compared with the mesh.
+    assert len(report.iou) == IMAGES
+    with pytest.raises(DatasetError, match=r"labels\.json: entry 0 \(000000\.png\): "
+                                           r"q_vbs2tango_true: not finite"):
+        Spe3rDataset(root, "train", **READER)
+
+
+def test_reader_names_a_mask_of_another_size(fresh, tmp_path):
+    root, train, _ = damaged_copy(fresh(64), tmp_path / "size")
+    mask = root / train / "masks" / "000001.png"
+    Image.open(mask).resize((48, 48)).save(mask)
+    dataset = Spe3rDataset(root, "train", **READER)
+    assert dataset[0]["mask"].shape == (1, 32, 32)
+    with pytest.raises(DatasetError, match=r"masks/000001\.png: mask is 48 x 48 px, its "
+                                           r"image 000001\.png is 64 x 64 px"):
+        dataset[1]
+    report = check_dataset(root, per_model=0, progress=False)
+    assert [p.split(":")[0] for p in report.problems] == [f"{train}/masks/000001.png"]
+
+
+def test_check_options_are_range_checked(fresh, capsys):
+    root = fresh(64)
+    for bad, message in [(["--per-model", "-3"], "--per-model: expected a value in [0, "),
+                         (["--min-iou", "2"], "--min-iou: expected a value in [0, 1], got 2"),
+                         (["--min-iou", "nan"], "--min-iou")]:
+        assert main(["dataset", "check", str(root), *bad]) == 2
+        assert message in capsys.readouterr().err
+    with pytest.raises(ValueError, match="min_iou"):
+        check_dataset(root, min_iou=-0.1)
+    assert main(["dataset", "check", str(root), "--per-model", "1", "--quiet"]) == 0
+    assert "no problems found" in capsys.readouterr().out
