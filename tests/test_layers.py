@@ -115,3 +115,12 @@ def test_shared_utilities_import_nothing_of_the_project():
         ours = [t for _, t in imported_modules(tree, f"sq_mitsuba.{name}", False)
                 if t.startswith("sq_mitsuba")]
         assert ours == [], f"{path.name} imports {ours}"
+
+
+def test_no_module_points_to_documents_outside_the_repository():
+    # The repository stands on its own: conventions live in docstrings and the README.
+    outside = ("DESIGN", "../shared", "seed/000_")
+    for path in PACKAGE.rglob("*.py"):
+        text = path.read_text(encoding="utf-8")
+        for word in outside:
+            assert word not in text, f"{path.relative_to(PACKAGE.parent)} mentions {word!r}"
