@@ -1,18 +1,394 @@
 """Training and fitting losses, each a documented function on batched tensors.
 
-Convention: shapes are given per argument; every loss returns a scalar tensor unless its
-docstring says otherwise.
+The training objective is a weighted sum (:func:`total_loss`, weights :class:`LossWeights`) of
+
+- ``chamfer``: squared-L2 Chamfer distance between the assembly's surface samples and points
+  on the ground-truth mesh (:func:`chamfer_loss`, :func:`surface_chamfer_loss`; paper Eq. 12);
+- ``occupancy``: binary cross-entropy of the union occupancy at labelled points
+  (:func:`occupancy_loss`; Eq. 14);
+- ``reprojection``: pixel MSE between the Mitsuba silhouette at the true pose and the mask
+  (:func:`reprojection_loss`);
+- ``rotation``, ``translation``: the SPEED pose errors (:func:`pose_loss`), the rotation one
+  minimised over the model's symmetries;
+- ``overlap``: summed occupancy above a tolerance (:func:`overlap`; Eq. 18);
+- ``taper``: mean squared taper (:func:`taper_loss`).
+
+Convention: shapes are given per argument; every loss returns a scalar tensor (the mean over
+the batch) unless its docstring says otherwise.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass, fields
+
+import numpy as np
 import torch
 from torch import Tensor
+from torch.nn import functional as F
 
 from sq_mitsuba.checks import check_tensor
+from sq_mitsuba.config import non_negative
+from sq_mitsuba.geometry.assembly import Assembly
+from sq_mitsuba.geometry.rotation import rotation_angle
+from sq_mitsuba.render.silhouette import SilhouetteRenderer, assembly_camera_vertices
+
+__all__ = [
+    "SILHOUETTE_LOSSES",
+    "LossWeights",
+    "chamfer_loss",
+    "occupancy_loss",
+    "overlap",
+    "pose_loss",
+    "reprojection_loss",
+    "silhouette_loss",
+    "surface_chamfer_loss",
+    "taper_loss",
+    "total_loss",
+]
 
 #: Per-view silhouette losses of :func:`silhouette_loss`.
 SILHOUETTE_LOSSES = ("mse", "iou")
+
+
+# ------------------------------------------------------------------------------- weights
+
+
+@dataclass(frozen=True)
+class LossWeights:
+    """Weights of the training loss terms (defaults: the published configuration).
+
+    A weight of 0 switches its term off: :func:`total_loss` skips it and a training loop can
+    skip computing it (see :meth:`enabled`).
+    """
+
+    chamfer: float = non_negative(10.0)
+    "Weight of the squared-L2 Chamfer distance between surface samples and mesh points."
+    occupancy: float = non_negative(1.0)
+    "Weight of the binary cross-entropy of the union occupancy at labelled points."
+    reprojection: float = non_negative(1.0)
+    "Weight of the pixel MSE between the rendered silhouette and the target mask."
+    translation: float = non_negative(0.1)
+    "Weight of the relative translation error |t - t_hat| / |t|."
+    rotation: float = non_negative(0.1)
+    "Weight of the rotation error in radians (minimised over the model's symmetries)."
+    overlap: float = non_negative(0.1)
+    "Weight of the overlap penalty mean relu(sum_m g_m - beta)."
+    taper: float = non_negative(0.01)
+    "Weight of the taper regulariser mean k^2."
+
+    def enabled(self) -> tuple[str, ...]:
+        """Names of the terms with a non-zero weight, in field order."""
+        return tuple(f.name for f in fields(self) if getattr(self, f.name) != 0)
+
+
+def total_loss(terms: dict[str, Tensor], weights: LossWeights | None = None) -> Tensor:
+    """Weighted sum of scalar loss terms, ``sum_name weights.<name> * terms[name]``.
+
+    Terms whose weight is 0 are skipped (their values are not read, so a NaN there does no
+    harm); every term with a non-zero weight must be present.
+
+    Args:
+        terms: scalar tensors keyed by :class:`LossWeights` field names.
+        weights: default :class:`LossWeights()` (the published weights).
+
+    Returns:
+        Scalar tensor.
+    """
+    weights = LossWeights() if weights is None else weights
+    if not isinstance(weights, LossWeights):
+        raise ValueError(f"weights: expected a LossWeights, got {type(weights).__name__}")
+    names = [f.name for f in fields(LossWeights)]
+    unknown = sorted(set(terms) - set(names))
+    if unknown:
+        raise ValueError(f"terms: unknown term {unknown[0]!r} (expected names from "
+                         f"{', '.join(names)})")
+    active = weights.enabled()
+    if not active:
+        raise ValueError("weights: every term has weight 0")
+    missing = [name for name in active if name not in terms]
+    if missing:
+        raise ValueError(f"terms: {missing[0]!r} is missing but has weight "
+                         f"{getattr(weights, missing[0])}")
+    total: Tensor | None = None
+    for name in active:
+        term = terms[name]
+        if not isinstance(term, Tensor) or term.numel() != 1:
+            shape = tuple(term.shape) if isinstance(term, Tensor) else type(term).__name__
+            raise ValueError(f"terms[{name!r}]: expected a scalar tensor, got {shape}")
+        weighted = getattr(weights, name) * term.reshape(())
+        total = weighted if total is None else total + weighted
+    assert total is not None
+    return total
+
+
+# ------------------------------------------------------------------------------- Chamfer
+
+
+def _nearest(source: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """Index (|source|,) of each source point's nearest target point (Euclidean)."""
+    from scipy.spatial import cKDTree
+
+    _, index = cKDTree(target).query(source, k=1)
+    return index
+
+
+def chamfer_loss(pred_points: Tensor, pred_mask: Tensor | None, target: Tensor) -> Tensor:
+    """Squared-L2 Chamfer distance (paper Eq. 12), mean over the batch.
+
+    Per item: mean over predicted points of the squared distance to the nearest target point,
+    plus mean over target points of the squared distance to the nearest predicted point.
+    Equal in value and gradient to the dense form (all pairwise distances, min per row and
+    column) but O((N + K) log(N + K)) per item: nearest-neighbour indices come from a KD-tree
+    (scipy, no gradient), and the gradient flows through the differences of the matched
+    pairs, which is exactly where the dense form's min sends it.
+
+    Args:
+        pred_points: (B, N, 3), e.g. an assembly's surface samples.
+        pred_mask: (B, N) bool, True for the points that count (e.g. not inside another
+            primitive), or None for all. Points that do not count are left out of both
+            directions. Convention: an item where no point counts uses all its points.
+        target: (B, K, 3) ground-truth surface points, same dtype.
+
+    Returns:
+        Scalar tensor.
+    """
+    check_tensor("pred_points", pred_points, (None, 3), min_dims=3)
+    check_tensor("target", target, (None, 3), min_dims=3)
+    if pred_points.dim() != 3 or target.dim() != 3 or pred_points.shape[0] != target.shape[0]:
+        raise ValueError(f"pred_points, target: expected (B, N, 3) and (B, K, 3), got "
+                         f"{tuple(pred_points.shape)} and {tuple(target.shape)}")
+    if pred_points.shape[1] < 1 or target.shape[1] < 1:
+        raise ValueError("pred_points, target: need at least one point per item")
+    if target.dtype != pred_points.dtype:
+        raise ValueError(f"target: dtype {target.dtype} differs from pred_points' "
+                         f"{pred_points.dtype}")
+    batch, count = pred_points.shape[:2]
+    if pred_mask is None:
+        keep = torch.ones(batch, count, dtype=torch.bool, device=pred_points.device)
+    else:
+        if not isinstance(pred_mask, Tensor) or pred_mask.dtype != torch.bool or \
+                pred_mask.shape != (batch, count):
+            shape = tuple(pred_mask.shape) if isinstance(pred_mask, Tensor) else pred_mask
+            raise ValueError(f"pred_mask: expected a bool tensor of shape {(batch, count)}, "
+                             f"got {shape}")
+        keep = pred_mask.to(pred_points.device)
+        keep = keep | ~keep.any(dim=1, keepdim=True)  # an empty item keeps all its points
+    pred_np = pred_points.detach().to("cpu", torch.float64).numpy()
+    target_np = target.detach().to("cpu", torch.float64).numpy()
+    keep_np = keep.cpu().numpy()
+    to_target = np.zeros((batch, count), dtype=np.int64)  # points that do not count: any
+    to_pred = np.empty((batch, target.shape[1]), dtype=np.int64)
+    for item in range(batch):  # one KD-tree per item and direction
+        kept = np.flatnonzero(keep_np[item])
+        to_target[item, kept] = _nearest(pred_np[item, kept], target_np[item])
+        to_pred[item] = kept[_nearest(target_np[item], pred_np[item, kept])]
+    device = pred_points.device
+    to_target_t = torch.from_numpy(to_target).to(device)[..., None].expand(-1, -1, 3)
+    to_pred_t = torch.from_numpy(to_pred).to(device)[..., None].expand(-1, -1, 3)
+    forward = (pred_points - target.gather(1, to_target_t)).square().sum(-1)  # (B, N)
+    backward = (target - pred_points.gather(1, to_pred_t)).square().sum(-1)  # (B, K)
+    weight = keep.to(pred_points.dtype)
+    forward_mean = (forward * weight).sum(1) / weight.sum(1)
+    return (forward_mean + backward.mean(1)).mean()
+
+
+def surface_chamfer_loss(assembly: Assembly, target: Tensor, level: int = 3) -> Tensor:
+    """:func:`chamfer_loss` of an assembly's dual surface samples (642 per primitive at level
+    3) without those strictly inside another primitive, against ``target`` (B, K, 3)."""
+    points, inside_other = assembly.surface_points_with_mask(level)
+    return chamfer_loss(points.flatten(1, 2), ~inside_other.flatten(1, 2),
+                        target.to(points.dtype))
+
+
+# ------------------------------------------------------------------------------ occupancy
+
+
+def occupancy_loss(assembly: Assembly, points: Tensor, labels: Tensor,
+                   sharpness: float = 10.0, balance: bool = True) -> Tensor:
+    """Binary cross-entropy of the union occupancy at labelled points (paper Eq. 14).
+
+    The union occupancy is ``max_m sigmoid(s (1 - f_m))`` with f_m the dual inside-outside
+    function of primitive m; since the sigmoid is increasing this equals
+    ``sigmoid(s (1 - min_m f_m))``, and the loss is evaluated from that logit (stable where
+    the occupancy saturates at 0 or 1; same value and gradient as the BCE of the max
+    otherwise).
+
+    Args:
+        assembly: batch size B.
+        points: (B, N, 3) query points in the assembly frame, the assembly's dtype.
+        labels: (B, N) bool or float in [0, 1], 1 = inside the ground-truth solid.
+        sharpness: s (10 in the published configuration).
+        balance: weight inside and outside points equally per item (mean over inside points
+            and mean over outside points, averaged). Equal to the plain mean over points when
+            half the labels are inside, as the dataset samples them; an item with one class
+            only uses that class's mean. False: plain mean over points.
+
+    Returns:
+        Scalar tensor, the mean over the batch.
+    """
+    if not isinstance(labels, Tensor) or labels.shape != points.shape[:-1] or \
+            labels.dim() != 2:
+        shape = tuple(labels.shape) if isinstance(labels, Tensor) else type(labels).__name__
+        raise ValueError(f"labels: expected shape {tuple(points.shape[:-1])} (B, N), got "
+                         f"{shape}")
+    target = labels.to(points.dtype)
+    if bool(((target < 0) | (target > 1)).any()):
+        raise ValueError("labels: expected values in [0, 1]")
+    if not sharpness > 0:
+        raise ValueError(f"sharpness: expected a positive number, got {sharpness}")
+    logits = sharpness * (1.0 - assembly.inside_outside(points).amin(dim=1))  # (B, N)
+    per_point = F.binary_cross_entropy_with_logits(logits, target, reduction="none")
+    if not balance:
+        return per_point.mean()
+    inside_count, outside_count = target.sum(1), (1.0 - target).sum(1)
+    inside_mean = (per_point * target).sum(1) / inside_count.clamp_min(1e-12)
+    outside_mean = (per_point * (1.0 - target)).sum(1) / outside_count.clamp_min(1e-12)
+    per_item = torch.where(inside_count == 0, outside_mean,
+                           torch.where(outside_count == 0, inside_mean,
+                                       0.5 * (inside_mean + outside_mean)))
+    return per_item.mean()
+
+
+# --------------------------------------------------------------------------- reprojection
+
+
+def reprojection_loss(assembly: Assembly, rotations: Tensor, translations: Tensor,
+                      masks: Tensor, renderer: SilhouetteRenderer, level: int = 3,
+                      items: int | None = None, generator: torch.Generator | None = None) -> Tensor:
+    """Pixel MSE between the Mitsuba silhouette at the true pose and the mask, batch mean.
+
+    Per item: ``mean over pixels (coverage - mask)^2``, with coverage the silhouette of the
+    merged primitive meshes rendered by the renderer's fused
+    :meth:`~sq_mitsuba.render.silhouette.SilhouetteRenderer.render_loss` (one BVH rebuild per
+    item; gradients from Mitsuba's projective integrator, w.r.t. the assembly parameters and
+    the pose). Without a gradient to compute (``torch.no_grad()`` or constant inputs) only
+    the forward images are rendered.
+
+    Args:
+        assembly: batch size B (or 1, shared by every pose).
+        rotations: (B, 3, 3) body-to-camera rotations (the ground-truth pose in training).
+        translations: (B, 3) body-to-camera translations.
+        masks: (B, H, W) target masks in [0, 1], (H, W) = ``renderer.resolution``.
+        renderer: draws the silhouettes at the masks' resolution.
+        level: icosphere level of each primitive's mesh (3: 642 vertices).
+        items: render only this many batch items, drawn without replacement; the mean over
+            them is an unbiased estimate of the batch mean (rendering dominates the cost of a
+            training step). None (or B): every item.
+        generator: torch.Generator (CPU) drawing the subset, for reproducibility.
+
+    Returns:
+        Scalar tensor, the dtype of ``rotations``.
+    """
+    check_tensor("rotations", rotations, (3, 3), min_dims=3)
+    check_tensor("translations", translations, (3,), min_dims=2)
+    check_tensor("masks", masks, (None, None), min_dims=3)
+    batch = rotations.shape[0]
+    if rotations.dim() != 3 or translations.shape != (batch, 3) or masks.dim() != 3 or \
+            masks.shape[0] != batch:
+        raise ValueError(f"rotations, translations, masks: expected (B, 3, 3), (B, 3) and "
+                         f"(B, H, W), got {tuple(rotations.shape)}, "
+                         f"{tuple(translations.shape)} and {tuple(masks.shape)}")
+    if tuple(masks.shape[1:]) != tuple(renderer.resolution):
+        raise ValueError(f"masks: image size {tuple(masks.shape[1:])} differs from the "
+                         f"renderer's {tuple(renderer.resolution)}")
+    if assembly.batch_size not in (1, batch):
+        raise ValueError(f"assembly: batch size {assembly.batch_size} does not match the "
+                         f"{batch} poses")
+    if items is not None:
+        if isinstance(items, bool) or not isinstance(items, int) or not 1 <= items <= batch:
+            raise ValueError(f"items: expected an integer in [1, {batch}] or None, got "
+                             f"{items!r}")
+        if items < batch:
+            chosen = torch.randperm(batch, generator=generator)[:items].sort().values
+            if assembly.batch_size == batch:
+                assembly = Assembly(assembly.params[chosen.to(assembly.params.device)])
+            rotations = rotations[chosen.to(rotations.device)]
+            translations = translations[chosen.to(translations.device)]
+            masks = masks[chosen.to(masks.device)]
+    count = rotations.shape[0]
+    vertices, faces = assembly_camera_vertices(assembly, rotations, translations, level)
+    if not (torch.is_grad_enabled() and vertices.requires_grad):
+        # No gradient wanted: a forward render only (render_loss would also run the backward).
+        coverage = renderer.render(vertices, faces)
+        return (coverage - masks.to(coverage)).square().flatten(1).mean(1).sum() / count
+    # The renderer hands each item's coverage over as float32 on the CPU.
+    target = masks.detach().to("cpu", torch.float32)
+
+    def per_item(coverage: Tensor, item: int) -> Tensor:
+        return (coverage - target[item]).square().mean()
+
+    loss, _ = renderer.render_loss(vertices, faces, per_item)
+    return loss / count
+
+
+# ------------------------------------------------------------------------------------ pose
+
+
+def pose_loss(pred_rotation: Tensor, pred_translation: Tensor, gt_rotation: Tensor,
+              gt_translation: Tensor, symmetries: Tensor | None = None
+              ) -> tuple[Tensor, Tensor]:
+    """SPEED pose errors per item: rotation angle (radians) and relative translation error.
+
+    rotation = min over the model's symmetries S of angle(R_pred, R_true S): R_true S shows
+    the same image as R_true when S maps the model onto itself, so no symmetric pose is
+    penalised. With ``symmetries`` None (or the identity alone) this is the paper's rotation
+    loss, the angle of R_true^T R_pred (= 2 arccos |<q, q_hat>|). translation =
+    |t_true - t_pred| / |t_true|.
+
+    The angle comes from :func:`sq_mitsuba.geometry.rotation.rotation_angle` (atan2 form):
+    its gradient is finite everywhere, zero error included.
+
+    Args:
+        pred_rotation: (B, 3, 3); pred_translation: (B, 3).
+        gt_rotation: (B, 3, 3); gt_translation: (B, 3), non-zero.
+        symmetries: (B, S, 3, 3) or (S, 3, 3) body-frame symmetries of each model, the
+            identity among them (pad a shorter set with identities), or None.
+
+    Returns:
+        (rotation_term (B,), translation_term (B,)).
+    """
+    for name, value, trailing in (("pred_rotation", pred_rotation, (3, 3)),
+                                  ("gt_rotation", gt_rotation, (3, 3)),
+                                  ("pred_translation", pred_translation, (3,)),
+                                  ("gt_translation", gt_translation, (3,))):
+        check_tensor(name, value, trailing)
+    batch = pred_rotation.shape[0]
+    if pred_rotation.shape != (batch, 3, 3) or gt_rotation.shape != (batch, 3, 3) or \
+            pred_translation.shape != (batch, 3) or gt_translation.shape != (batch, 3):
+        raise ValueError(f"pose: expected rotations (B, 3, 3) and translations (B, 3), got "
+                         f"{tuple(pred_rotation.shape)}, {tuple(pred_translation.shape)}, "
+                         f"{tuple(gt_rotation.shape)}, {tuple(gt_translation.shape)}")
+    distance = torch.linalg.vector_norm(gt_translation, dim=-1)
+    if bool((distance == 0).any()):
+        raise ValueError("gt_translation: must be non-zero (the error is relative to it)")
+    translation_term = torch.linalg.vector_norm(gt_translation - pred_translation,
+                                                dim=-1) / distance
+    if symmetries is None:
+        return rotation_angle(pred_rotation, gt_rotation), translation_term
+    check_tensor("symmetries", symmetries, (3, 3), min_dims=3)
+    if symmetries.dim() == 3:
+        symmetries = symmetries[None].expand(batch, -1, -1, -1)
+    if symmetries.dim() != 4 or symmetries.shape[0] != batch or symmetries.shape[1] < 1:
+        raise ValueError(f"symmetries: expected (B, S, 3, 3) or (S, 3, 3) with B = {batch}, "
+                         f"got {tuple(symmetries.shape)}")
+    candidates = gt_rotation[:, None] @ symmetries.to(gt_rotation.dtype)  # (B, S, 3, 3)
+    angles = rotation_angle(pred_rotation[:, None], candidates)  # (B, S)
+    return angles.amin(dim=1), translation_term
+
+
+# ------------------------------------------------------------------------ regularisers
+
+
+def taper_loss(assembly: Assembly) -> Tensor:
+    """Taper regulariser: mean over primitives and both factors of k^2, a scalar.
+
+    Convention: k^2 rather than |k|: smooth at k = 0 (no gradient kink that would pin tapers
+    to exactly zero) and growing fastest for the large tapers that turn a primitive into a
+    wedge; a taper earns its keep only when the shape terms gain more than 0.01 k^2.
+    """
+    if not isinstance(assembly, Assembly):
+        raise ValueError(f"assembly: expected an Assembly, got {type(assembly).__name__}")
+    return assembly.taper.square().mean()
 
 
 def silhouette_loss(coverage: Tensor, target: Tensor, kind: str = "mse") -> Tensor:
