@@ -8,6 +8,9 @@ Layers, one folder each, lowest first (a module imports only its own layer and t
 Importing this package never imports Mitsuba or Dr.Jit. It only points Dr.Jit at a usable
 libLLVM (if one exists and the user has not chosen one), because Dr.Jit reads
 ``DRJIT_LIBLLVM_PATH`` once, when it first initialises.
+
+``sq_mitsuba.load_model(path=None)`` (:func:`sq_mitsuba.learning.checkpoint.load_model`) gives
+a ready predictor; it is imported lazily, on first access.
 """
 
 from sq_mitsuba.llvm import configure_llvm
@@ -16,4 +19,14 @@ __version__ = "0.1.0"
 
 configure_llvm(required=False)
 
-__all__ = ["__version__"]
+__all__ = ["__version__", "load_model"]
+
+
+def __getattr__(name: str) -> object:
+    """``sq_mitsuba.load_model``, imported on first use so that ``import sq_mitsuba`` stays
+    light (no torch network code, no Mitsuba)."""
+    if name == "load_model":
+        from sq_mitsuba.learning.checkpoint import load_model
+
+        return load_model
+    raise AttributeError(f"module 'sq_mitsuba' has no attribute {name!r}")

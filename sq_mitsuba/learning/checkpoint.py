@@ -1,0 +1,243 @@
+"""Checkpoint files: write atomically, read safely, load a ready :class:`Predictor`.
+
+A checkpoint is a ``torch.save`` of one dictionary::
+
+    {
+        "format": "sq_mitsuba.checkpoint",
+        "version": 1,
+        "config": {...},   # to_dict of the training config; its "network" entry is the
+                           # NetworkConfig as a dict
+        "model": {...},    # SuperquadricNet.state_dict()
+        "camera": {...},   # Camera.to_speed_dict() of the dataset camera
+        ...                # anything else the training adds (optimiser state, step, metrics)
+    }
+
+Every value must load with ``torch.load(weights_only=True)``: dicts, lists, tuples, strings,
+numbers, booleans, None and tensors (:func:`write_checkpoint` refuses anything else before it
+writes). Files are read with ``weights_only=True`` only, so a checkpoint cannot run code.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from collections import OrderedDict
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from sq_mitsuba.config import ConfigError, from_dict, to_dict
+from sq_mitsuba.geometry.camera import Camera
+from sq_mitsuba.io import atomic_path
+from sq_mitsuba.learning.inference import Predictor
+from sq_mitsuba.learning.network import NetworkConfig, SuperquadricNet
+
+__all__ = [
+    "FORMAT",
+    "SHIPPED_MODEL",
+    "VERSION",
+    "checkpoint_payload",
+    "load_model",
+    "model_from_checkpoint",
+    "read_checkpoint",
+    "write_checkpoint",
+]
+
+FORMAT = "sq_mitsuba.checkpoint"
+VERSION = 1
+#: The model shipped as package data, loaded by ``load_model()`` without a path.
+SHIPPED_MODEL = Path(__file__).resolve().parent / "weights" / "model.pt"
+_REQUIRED = ("config", "model", "camera")
+# Exact types: numpy scalars subclass float but weights_only loading refuses them.
+_SCALARS = (str, int, float, bool, type(None))
+_MAX_REASON = 160
+
+
+def _check_loadable(value: Any, where: str) -> None:
+    """Refuse values that ``torch.load(weights_only=True)`` would not read back."""
+    if type(value) in _SCALARS or isinstance(value, Tensor):
+        return
+    if type(value) in (dict, OrderedDict):
+        for key, item in value.items():
+            if not isinstance(key, str | int):
+                raise ValueError(f"{where}: keys must be strings or integers, got {key!r}")
+            _check_loadable(item, f"{where}.{key}")
+        return
+    if isinstance(value, list | tuple) and type(value) in (list, tuple):
+        for index, item in enumerate(value):
+            _check_loadable(item, f"{where}[{index}]")
+        return
+    raise ValueError(f"{where}: {type(value).__name__} cannot be read back with weights_only=True "
+                     "(use dicts, lists, strings, numbers, None and tensors)")
+
+
+def _network_config(payload: Mapping[str, Any], where: str) -> NetworkConfig:
+    config = payload.get("config")
+    if not isinstance(config, Mapping) or not isinstance(config.get("network"), Mapping):
+        raise ValueError(f"{where}: 'config' must be a dict with a 'network' dict")
+    try:
+        return from_dict(NetworkConfig, config["network"], "config.network")
+    except ConfigError as error:
+        raise ValueError(f"{where}: {error}") from None
+
+
+def checkpoint_payload(model: SuperquadricNet, camera: Camera,
+                       config: Mapping[str, Any] | None = None, **extra: Any) -> dict[str, Any]:
+    """A checkpoint dictionary for ``model`` (weights copied to the CPU) and ``camera``.
+
+    Args:
+        model: the network.
+        camera: the dataset camera (the predictor's default camera).
+        config: ``to_dict`` of the training config; its ``network`` entry is replaced by
+            ``model.config`` (default: ``{"network": to_dict(model.config)}``).
+        extra: further entries (e.g. ``step=1000``).
+    """
+    network = to_dict(model.config)
+    state = {key: value.detach().cpu().clone() for key, value in model.state_dict().items()}
+    return {
+        "format": FORMAT,
+        "version": VERSION,
+        "config": {**dict(config or {}), "network": network},
+        "model": state,
+        "camera": camera.to_speed_dict(),
+        **extra,
+    }
+
+
+def write_checkpoint(path: str | os.PathLike[str], payload: dict[str, Any]) -> Path:
+    """Save ``payload`` to ``path`` atomically (temporary file, then rename).
+
+    ``format`` and ``version`` are filled in when missing. Everything is checked before the
+    file is touched.
+
+    Raises:
+        ValueError: naming ``payload`` (or the bad entry): another format or version, a missing
+            ``config`` / ``model`` / ``camera``, a network config that does not parse, or a value
+            ``weights_only`` loading would refuse.
+    """
+    path = Path(path)
+    if not isinstance(payload, dict):
+        raise ValueError(f"payload: expected a dict, got {type(payload).__name__}")
+    payload = {"format": FORMAT, "version": VERSION, **payload}
+    if payload["format"] != FORMAT or payload["version"] != VERSION:
+        raise ValueError(f"payload: format {payload['format']!r} version {payload['version']!r};"
+                         f" expected {FORMAT!r} version {VERSION}")
+    for key in _REQUIRED:
+        if key not in payload:
+            raise ValueError(f"payload: missing {key!r} (required: {', '.join(_REQUIRED)})")
+    if not isinstance(payload["model"], Mapping) or not all(
+            isinstance(v, Tensor) for v in payload["model"].values()):
+        raise ValueError("payload.model: expected a state dict of tensors")
+    if not isinstance(payload["camera"], Mapping):
+        raise ValueError("payload.camera: expected Camera.to_speed_dict()")
+    try:
+        Camera.from_speed_dict(dict(payload["camera"]))
+    except ValueError as error:
+        raise ValueError(f"payload.camera: {error}") from None
+    _network_config(payload, "payload")
+    _check_loadable({k: v for k, v in payload.items() if k != "model"}, "payload")
+    payload["model"] = dict(payload["model"])  # an OrderedDict loads too, but keep it plain
+    with atomic_path(path) as tmp:
+        torch.save(payload, tmp)
+    return path
+
+
+def _reason(error: BaseException) -> str:
+    lines = str(error).strip().splitlines()
+    text = f"{type(error).__name__}: {lines[0]}" if lines else type(error).__name__
+    return text if len(text) <= _MAX_REASON else text[: _MAX_REASON - 3] + "..."
+
+
+def read_checkpoint(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """Load a checkpoint written by :func:`write_checkpoint` (``weights_only=True``, on CPU).
+
+    Raises:
+        FileNotFoundError: ``checkpoint: no such file <path>``.
+        ValueError: ``<path>: ...`` for a corrupt file, another format or a newer version.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"checkpoint: no such file {path}")
+    if not path.is_file():
+        raise ValueError(f"{path}: is not a file")
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as error:  # torch raises many types for damaged files; report one line
+        raise ValueError(f"{path}: not a readable checkpoint ({_reason(error)})") from None
+    if not isinstance(payload, dict) or payload.get("format") != FORMAT:
+        found = payload.get("format") if isinstance(payload, dict) else type(payload).__name__
+        raise ValueError(f"{path}: not an sq_mitsuba checkpoint (format {found!r}, "
+                         f"expected {FORMAT!r})")
+    version = payload.get("version")
+    if isinstance(version, bool) or not isinstance(version, int) or not 1 <= version <= VERSION:
+        raise ValueError(f"{path}: checkpoint version {version!r} is not one this sq_mitsuba "
+                         f"reads (1 to {VERSION})")
+    missing = [key for key in _REQUIRED if key not in payload]
+    if missing:
+        raise ValueError(f"{path}: checkpoint lacks {', '.join(map(repr, missing))}")
+    return payload
+
+
+def model_from_checkpoint(payload: Mapping[str, Any],
+                          where: str = "checkpoint") -> tuple[SuperquadricNet, Camera]:
+    """The network (eval mode, on the CPU) and dataset camera of a checkpoint dictionary.
+
+    The ImageNet file named by ``config.network.pretrained`` is not read: the checkpoint's
+    weights replace it.
+
+    Raises:
+        ValueError: ``<where>: ...`` when the config, weights or camera do not fit.
+    """
+    config = dataclasses.replace(_network_config(payload, where), pretrained=None)
+    model = SuperquadricNet(config)
+    state = payload["model"]
+    if not isinstance(state, Mapping):
+        raise ValueError(f"{where}: 'model' must be a state dict")
+    own = model.state_dict()
+    missing = sorted(set(own) - set(state))
+    unexpected = sorted(set(state) - set(own))
+    if missing or unexpected:
+        raise ValueError(f"{where}: weights do not fit config.network ({len(missing)} missing, "
+                         f"{len(unexpected)} unexpected; first: "
+                         f"{(missing or unexpected)[0]})")
+    for key, value in own.items():
+        if not isinstance(state[key], Tensor) or state[key].shape != value.shape:
+            got = tuple(state[key].shape) if isinstance(state[key], Tensor) else type(state[key])
+            raise ValueError(f"{where}: weights do not fit config.network ({key}: file {got}, "
+                             f"network {tuple(value.shape)})")
+    model.load_state_dict(state, strict=True)
+    try:
+        camera = Camera.from_speed_dict(dict(payload["camera"]))
+    except (ValueError, TypeError) as error:
+        raise ValueError(f"{where}: camera: {error}") from None
+    return model.eval(), camera
+
+
+def load_model(path: str | os.PathLike[str] | None = None, *, fast: bool = False,
+               device: str | torch.device = "cpu") -> Predictor:
+    """A :class:`Predictor` from a checkpoint, with the dataset camera as its default camera.
+
+    Args:
+        path: checkpoint file; None: the model shipped with the package
+            (``sq_mitsuba/learning/weights/model.pt``).
+        fast: predict with BatchNorm folded into the convolutions (see :class:`Predictor`).
+        device: where the network runs.
+
+    Raises:
+        FileNotFoundError: no such file, or no shipped model (saying how to get one).
+        ValueError: ``<path>: ...`` for a corrupt or mismatched checkpoint.
+    """
+    if path is None:
+        if not SHIPPED_MODEL.is_file():
+            raise FileNotFoundError(
+                f"no trained model is shipped with sq_mitsuba yet ({SHIPPED_MODEL} is absent); "
+                "train one with `sq-mitsuba train` and pass its checkpoint: load_model(path)")
+        path = SHIPPED_MODEL
+    path = Path(path)
+    model, camera = model_from_checkpoint(read_checkpoint(path), str(path))
+    predictor = Predictor(model.to(device), camera, fast=fast)
+    predictor.source = path
+    return predictor

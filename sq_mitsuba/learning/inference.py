@@ -1,0 +1,209 @@
+"""Inference API: images of any size in, superquadric assemblies and camera-frame poses out.
+
+:class:`Predictor` wraps a trained :class:`~sq_mitsuba.learning.network.SuperquadricNet` and
+the camera the images were taken with; :func:`sq_mitsuba.load_model` builds one from a
+checkpoint. Example::
+
+    predictor = sq_mitsuba.load_model("run/checkpoint.pt")
+    prediction = predictor.predict(images)          # (B, H, W) uint8 or float in [0, 1]
+    prediction.assembly.export("item0.glb", item=0)
+    prediction.rotation, prediction.translation     # x_cam = R x_body + t
+
+Convention:
+    - Images are resized to the network's S x S input (``config.image_size``): ``area``
+      (box average) when both sides shrink, bilinear (``align_corners=False``) when both grow,
+      antialiased bilinear otherwise. Pixel edges scale with the image, so the intrinsics
+      follow by :meth:`~sq_mitsuba.geometry.camera.Camera.rescaled`; a non-square image is
+      stretched to S x S and its intrinsics stretch with it, so the pose stays consistent
+      (though the network was trained on unstretched squares).
+    - A camera for another image size with the same aspect ratio is taken to have the same
+      field of view and is rescaled to the images' size first.
+    - Poses map body to camera in the OpenCV frame (x right, y down, z forward):
+      ``x_cam = R x_body + t``; quaternions are scalar-first with w >= 0.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from sq_mitsuba.geometry.assembly import Assembly
+from sq_mitsuba.geometry.camera import Camera
+from sq_mitsuba.geometry.rotation import matrix_to_quaternion
+from sq_mitsuba.learning.network import SuperquadricNet
+
+__all__ = ["Prediction", "Predictor", "prepare_images"]
+
+# Relative aspect-ratio difference below which a camera of another size is rescaled.
+_ASPECT_TOLERANCE = 1e-3
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """What :meth:`Predictor.predict` returns for a batch of B images.
+
+    Tensors are ordinary tensors without gradient (computed under ``torch.inference_mode``,
+    then copied out of it), so they may start an autograd computation such as refinement.
+
+    Attributes:
+        assembly: the B assemblies of M superquadrics, in the body frame.
+        rotation: (B, 3, 3) body -> camera rotation.
+        translation: (B, 3) body origin in the camera frame (metres).
+        quaternion: (B, 4) ``rotation`` as (w, x, y, z), w >= 0.
+        pixel: (B, 2) image position (u, v) of the body origin, in pixels of the given images.
+        depth: (B,) camera-frame z of the body origin (``translation[:, 2]``).
+        camera: intrinsics of the given images (after any rescaling of the camera passed in).
+    """
+
+    assembly: Assembly
+    rotation: Tensor
+    translation: Tensor
+    quaternion: Tensor
+    pixel: Tensor
+    depth: Tensor
+    camera: Camera
+
+
+def prepare_images(images: Tensor | np.ndarray, channels: int = 1) -> Tensor:
+    """Check images and return them as float (B, C, H, W) in [0, 1].
+
+    Args:
+        images: (B, H, W) (when ``channels`` is 1) or (B, C, H, W); uint8 (0..255) or floating
+            point in [0, 1]; a torch tensor or a numpy array.
+        channels: the C the network expects.
+
+    Raises:
+        ValueError: naming ``images``: wrong type, shape or dtype, NaN or values outside [0, 1].
+    """
+    if isinstance(images, np.ndarray):
+        images = torch.from_numpy(images)
+    if not isinstance(images, Tensor):
+        raise ValueError(f"images: expected a torch.Tensor or numpy array, "
+                         f"got {type(images).__name__}")
+    if images.dim() == 3 and channels == 1:
+        images = images[:, None]
+    expected = "(B, H, W) or (B, 1, H, W)" if channels == 1 else f"(B, {channels}, H, W)"
+    if images.dim() != 4 or images.shape[1] != channels or images.numel() == 0:
+        raise ValueError(f"images: expected shape {expected}, got {tuple(images.shape)}")
+    if images.dtype == torch.uint8:
+        return images.float() / 255.0
+    if not images.is_floating_point():
+        raise ValueError(f"images: expected uint8 or floating point, got {images.dtype}")
+    if not bool(torch.isfinite(images).all()):
+        raise ValueError("images: contains NaN or infinite values")
+    low, high = float(images.amin()), float(images.amax())
+    if low < 0.0 or high > 1.0:
+        raise ValueError(f"images: float values must lie in [0, 1], got [{low:.4g}, {high:.4g}]"
+                         " (divide uint8-range floats by 255)")
+    return images
+
+
+def resize_images(images: Tensor, size: int) -> Tensor:
+    """(B, C, H, W) -> (B, C, size, size), resampled as the module docstring says."""
+    height, width = images.shape[-2:]
+    if (height, width) == (size, size):
+        return images
+    if height >= size and width >= size:
+        return F.interpolate(images, size=(size, size), mode="area")
+    grow = height <= size and width <= size
+    return F.interpolate(images, size=(size, size), mode="bilinear", align_corners=False,
+                         antialias=not grow)
+
+
+def camera_for(camera: Camera, width: int, height: int) -> Camera:
+    """``camera`` for ``width`` x ``height`` images: itself, or rescaled (same aspect ratio).
+
+    Raises:
+        ValueError: naming ``camera`` when its aspect ratio differs from the images'.
+    """
+    if not isinstance(camera, Camera):
+        raise ValueError(f"camera: expected a Camera, got {type(camera).__name__}")
+    if (camera.width, camera.height) == (width, height):
+        return camera
+    if abs(camera.width * height / (camera.height * width) - 1.0) > _ASPECT_TOLERANCE:
+        raise ValueError(f"camera: is for {camera.width} x {camera.height} images, the images are "
+                         f"{width} x {height} (another aspect ratio); pass their camera")
+    return camera.rescaled(width, height)
+
+
+class Predictor:
+    """A trained network and its camera, ready to predict.
+
+    Args:
+        model: the network; used in eval mode (its own mode is restored after each call).
+        camera: intrinsics of the images :meth:`predict` gets by default (the dataset camera).
+        fast: predict with a BatchNorm-folded, channels-last copy of the network (same output
+            up to ~1e-5 relative; faster on CPU). The copy is a snapshot of the weights now.
+    """
+
+    def __init__(self, model: SuperquadricNet, camera: Camera, fast: bool = False) -> None:
+        if not isinstance(model, SuperquadricNet):
+            raise ValueError(f"model: expected a SuperquadricNet, got {type(model).__name__}")
+        if not isinstance(camera, Camera):
+            raise ValueError(f"camera: expected a Camera, got {type(camera).__name__}")
+        self.model = model
+        self.camera = camera
+        self.fast = bool(fast)
+        self._folded = model.folded(channels_last=True) if self.fast else None
+        #: The checkpoint the model came from (set by ``load_model``), for records.
+        self.source: Path | None = None
+
+    @property
+    def image_size(self) -> int:
+        """Side S of the network's square input."""
+        return self.model.config.image_size
+
+    @property
+    def num_primitives(self) -> int:
+        """Superquadrics per predicted assembly (M)."""
+        return self.model.config.num_primitives
+
+    def predict(self, images: Tensor | np.ndarray, camera: Camera | None = None) -> Prediction:
+        """Predict assemblies and poses for a batch of images.
+
+        Args:
+            images: (B, H, W) or (B, 1, H, W) (C = ``in_channels``), uint8 or float in [0, 1],
+                any H, W (see the module docstring for the resizing).
+            camera: intrinsics of these images (default: the predictor's camera); a camera for
+                another size of the same aspect ratio is rescaled.
+
+        Returns:
+            :class:`Prediction` on the model's device.
+
+        Raises:
+            ValueError: naming ``images`` or ``camera``.
+        """
+        network = self.model
+        x = prepare_images(images, network.config.in_channels)
+        height, width = x.shape[-2:]
+        camera = camera_for(self.camera if camera is None else camera, width, height)
+        parameter = next(network.parameters())
+        size = self.image_size
+        x = resize_images(x.to(device=parameter.device, dtype=parameter.dtype), size)
+        matrix = camera.rescaled(size, size).matrix(parameter.dtype, parameter.device)
+        was_training = network.training
+        network.eval()
+        try:
+            with torch.inference_mode():
+                runner = network if self._folded is None else self._folded
+                output = runner(x, matrix)
+        finally:
+            network.train(was_training)
+        # Clones made outside inference mode are ordinary tensors, so callers (test-time
+        # refinement) can start autograd from them.
+        rotation = output.rotation.clone()
+        scale = rotation.new_tensor([width / size, height / size])
+        return Prediction(
+            assembly=Assembly.from_raw(output.raw.clone()),
+            rotation=rotation,
+            translation=output.translation.clone(),
+            quaternion=matrix_to_quaternion(rotation),
+            pixel=output.pixel.clone() * scale,
+            depth=output.depth.clone(),
+            camera=camera,
+        )

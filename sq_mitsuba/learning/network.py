@@ -1,0 +1,339 @@
+"""The superquadric network: EfficientNet-B0 encoder, M superquadric generators, a pose head.
+
+``images (B, C, S, S) in [0, 1]`` and the intrinsics ``K`` of those S x S pixels go in; the
+raw parameters of an assembly of M superquadrics and its pose in the camera frame come out.
+
+Architecture:
+    - Encoder: :class:`~sq_mitsuba.learning.encoder.EfficientNetB0` -> features (B, 1280).
+    - Two latents: ``z_sq = Linear(1280, latent_dim)(features)`` and ``z_pose`` likewise.
+    - G_sq: M three-layer MLPs (latent -> hidden -> hidden -> 16, SiLU between layers), run as
+      ONE batched operation over a (M, in, out) weight tensor (:class:`GroupedLinear`), giving
+      ``raw`` (B, M, 16), squashed into valid parameters by
+      :meth:`~sq_mitsuba.geometry.assembly.Assembly.from_raw`.
+    - G_pose: one three-layer MLP (latent -> hidden -> hidden -> 9): a 6D rotation, the image
+      position (u, v) of the body origin and its depth z, back-projected through K to the full
+      translation ``t = z K^-1 [u, v, 1]``.
+
+Convention:
+    - Input normalisation happens inside the network: ``(x - input_mean) / input_std`` with
+      ImageNet's channel statistics averaged over RGB by default, so callers pass [0, 1] images
+      and ImageNet weights (whose grey stem sums the RGB filters) see what they were trained on.
+    - Pose: body to camera, OpenCV camera frame, ``x_cam = R x_body + t``; ``R`` from the 6D
+      output by Gram-Schmidt (first two rows, :mod:`sq_mitsuba.geometry.rotation`).
+    - Image position: ``u = W / 2 (1 + pixel_extent tanh(a_u))``, ``v`` likewise with H; it is
+      measured from the image centre, not the principal point, because the encoder sees where
+      the target lies in the image; the principal point enters only through K^-1.
+    - Depth: ``z = depth_prior * (f / S) / prior_focal_ratio * softplus(a_z) / ln 2`` with
+      ``f / S = sqrt(fx fy / (W H))``, the focal length in image widths. A target of a given
+      size in pixels lies proportionally farther from a longer lens, so scaling the depth with
+      the focal length keeps one set of weights right for any camera, and ``a_z = 0`` gives the
+      typical depth ``depth_prior`` at the dataset camera.
+    - Initial prediction (last layers: small weights, chosen biases): M primitives of semi-axes
+      0.255 (raw size 0), shape 0.5, identity rotation, no taper, centres spread on a sphere of
+      radius ``init_spread`` around the origin; pose rotation near identity, origin near the
+      image centre at the typical depth.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from sq_mitsuba.config import in_range, positive, validate
+from sq_mitsuba.geometry.assembly import NUM_PARAMS, Assembly, ParameterRanges
+from sq_mitsuba.geometry.rotation import rotation_6d_to_matrix
+from sq_mitsuba.learning.encoder import EfficientNetB0, fold_batchnorm, load_imagenet_weights
+
+__all__ = [
+    "GroupedLinear",
+    "NetworkConfig",
+    "NetworkOutput",
+    "SuperquadricGenerators",
+    "SuperquadricNet",
+    "check_camera_matrix",
+]
+
+#: Focal length over image width of the project's default camera (SPEED's field of view):
+#: 0.0176 m / 5.86 um / 1920 px.
+DEFAULT_FOCAL_RATIO = 0.0176 / 5.86e-6 / 1920
+_IDENTITY_6D = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0)
+_POSE_OUTPUTS = 9  # 6D rotation, (a_u, a_v), a_z
+_LN2 = math.log(2.0)
+
+
+@dataclass(frozen=True)
+class NetworkConfig:
+    """Shape and initialisation of :class:`SuperquadricNet`."""
+
+    in_channels: int = in_range(1, 4, default=1)
+    "Channels of the input images (1: the grey renders of this project)."
+    num_primitives: int = in_range(1, 64, default=5)
+    "Superquadrics per assembly (M)."
+    latent_dim: int = in_range(1, 4096, default=256)
+    "Width of each of the two latents z_sq and z_pose."
+    hidden_dim: int = in_range(1, 4096, default=256)
+    "Width of the two hidden layers of every generator MLP."
+    image_size: int = in_range(32, 1024, default=128)
+    "Side S in pixels of the square images the network is trained on (the predictor resizes to it)."
+    drop_connect_rate: float = in_range(0.0, 1.0, high_inclusive=False, default=0.2)
+    "Stochastic-depth rate of the encoder (block k of 16 drops with rate * k / 16)."
+    pretrained: Path | None = None
+    "ImageNet EfficientNet-B0 state dict (torchvision or timm naming) loaded into the encoder."
+    input_mean: float = in_range(0.0, 1.0, default=0.449)
+    "Subtracted from the [0, 1] input (ImageNet's RGB means averaged)."
+    input_std: float = positive(0.226)
+    "Divides the centred input (ImageNet's RGB standard deviations averaged)."
+    depth_prior: float = positive(1.8)
+    "Depth in metres predicted at a_z = 0 for a camera of focal ratio prior_focal_ratio."
+    prior_focal_ratio: float = positive(DEFAULT_FOCAL_RATIO)
+    "Focal length over image width at which depth_prior holds (the default camera's, 1.564)."
+    pixel_extent: float = in_range(0.1, 2.0, default=1.0)
+    "Largest distance of the predicted image position from the centre, in half image sides."
+    init_spread: float = in_range(0.0, 0.45, default=0.25)
+    "Distance from the origin of the initial primitive centres (models are unit size)."
+    init_gain: float = in_range(0.0, 1.0, default=0.01)
+    "Scale of the last layers' initial weights (small: the initial prediction is the biases')."
+
+
+# --- the batched generators -----------------------------------------------------------------
+
+
+class GroupedLinear(nn.Module):
+    """M independent linear layers applied as one batched matrix product.
+
+    (M, B, in_features) -> (M, B, out_features), ``y[m] = x[m] @ weight[m] + bias[m]``. A
+    (B, in_features) input is shared by all M layers. Initialised as ``nn.Linear``:
+    U(-1/sqrt(in), 1/sqrt(in)) for weights and biases.
+
+    Attributes:
+        weight: (M, in_features, out_features), so ``weight[m]`` is ``nn.Linear.weight.T``.
+        bias: (M, out_features).
+    """
+
+    def __init__(self, groups: int, in_features: int, out_features: int) -> None:
+        super().__init__()
+        self.weight = nn.Parameter(torch.empty(groups, in_features, out_features))
+        self.bias = nn.Parameter(torch.empty(groups, out_features))
+        bound = 1.0 / math.sqrt(in_features)
+        nn.init.uniform_(self.weight, -bound, bound)
+        nn.init.uniform_(self.bias, -bound, bound)
+
+    def forward(self, x: Tensor) -> Tensor:
+        """(M, B, in) or shared (B, in) -> (M, B, out)."""
+        if x.dim() == 2:
+            groups, out = self.weight.shape[0], self.weight.shape[2]
+            # A shared input is one matmul against all M weight matrices side by side.
+            flat = self.weight.permute(1, 0, 2).reshape(x.shape[1], groups * out)
+            y = (x @ flat).view(x.shape[0], groups, out).transpose(0, 1)
+            return y + self.bias[:, None, :]
+        return torch.baddbmm(self.bias[:, None, :], x, self.weight)
+
+    def extra_repr(self) -> str:
+        groups, fan_in, fan_out = self.weight.shape
+        return f"groups={groups}, in_features={fan_in}, out_features={fan_out}"
+
+
+class SuperquadricGenerators(nn.Module):
+    """G_sq: M three-layer MLPs evaluated together: z_sq (B, latent) -> raw (B, M, 16).
+
+    Layer k of primitive m is ``layers[k].weight[m]`` / ``.bias[m]``; SiLU follows the first
+    two layers.
+    """
+
+    def __init__(self, num_primitives: int, latent_dim: int, hidden_dim: int) -> None:
+        super().__init__()
+        self.layers = nn.ModuleList([
+            GroupedLinear(num_primitives, latent_dim, hidden_dim),
+            GroupedLinear(num_primitives, hidden_dim, hidden_dim),
+            GroupedLinear(num_primitives, hidden_dim, NUM_PARAMS),
+        ])
+
+    def forward(self, z_sq: Tensor) -> Tensor:
+        """(B, latent_dim) -> (B, M, 16)."""
+        h = F.silu(self.layers[0](z_sq))
+        h = F.silu(self.layers[1](h))
+        return self.layers[2](h).transpose(0, 1)
+
+
+# --- the network ----------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class NetworkOutput:
+    """What :meth:`SuperquadricNet.forward` returns (B items, M primitives).
+
+    Attributes:
+        raw: (B, M, 16) unconstrained assembly parameters (see :attr:`assembly`).
+        rotation_6d: (B, 6) raw 6D rotation of the pose.
+        rotation: (B, 3, 3) body -> camera rotation (orthonormal, det 1).
+        pixel: (B, 2) image position (u, v) of the body origin, in pixels of the input.
+        depth: (B,) camera-frame z of the body origin, metres, > 0.
+        translation: (B, 3) body origin in the camera frame, ``depth K^-1 [u, v, 1]``.
+    """
+
+    raw: Tensor
+    rotation_6d: Tensor
+    rotation: Tensor
+    pixel: Tensor
+    depth: Tensor
+    translation: Tensor
+
+    @property
+    def assembly(self) -> Assembly:
+        """``Assembly.from_raw(raw)`` with the default :class:`ParameterRanges`."""
+        return Assembly.from_raw(self.raw, ParameterRanges())
+
+
+def _sphere_directions(count: int) -> Tensor:
+    """``count`` unit vectors spread evenly on the sphere (Fibonacci lattice), (count, 3)."""
+    k = torch.arange(count, dtype=torch.float64) + 0.5
+    z = 1.0 - 2.0 * k / count
+    radius = torch.sqrt((1.0 - z * z).clamp_min(0.0))
+    phi = math.pi * (3.0 - math.sqrt(5.0)) * k
+    return torch.stack([radius * torch.cos(phi), radius * torch.sin(phi), z], dim=-1)
+
+
+def check_camera_matrix(camera_matrix: Tensor, batch: int) -> Tensor:
+    """Validate intrinsics (3, 3) or (batch, 3, 3) and return them as (batch, 3, 3).
+
+    K must be finite, upper triangular with positive focal lengths and last row (0, 0, 1).
+    """
+    if not isinstance(camera_matrix, Tensor) or not camera_matrix.is_floating_point():
+        got = camera_matrix.dtype if isinstance(camera_matrix, Tensor) else type(camera_matrix)
+        raise ValueError(f"camera_matrix: expected a floating-point tensor, got {got}")
+    if camera_matrix.shape not in ((3, 3), (batch, 3, 3)):
+        raise ValueError(f"camera_matrix: expected shape (3, 3) or ({batch}, 3, 3), "
+                         f"got {tuple(camera_matrix.shape)}")
+    k = camera_matrix.expand(batch, 3, 3)
+    with torch.no_grad():
+        if not bool(torch.isfinite(k).all()):
+            raise ValueError("camera_matrix: contains NaN or infinite values")
+        last = k[:, 2] - k.new_tensor([0.0, 0.0, 1.0])
+        if bool(last.abs().amax() > 0) or bool(k[:, 1, 0].abs().amax() > 0):
+            raise ValueError("camera_matrix: expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]]")
+        if bool((k[:, 0, 0] <= 0).any()) or bool((k[:, 1, 1] <= 0).any()):
+            raise ValueError("camera_matrix: focal lengths must be > 0")
+    return k
+
+
+class SuperquadricNet(nn.Module):
+    """Images and intrinsics -> raw assembly parameters and pose (:class:`NetworkOutput`).
+
+    Args:
+        config: a :class:`NetworkConfig`; ``config.pretrained`` (if set) is loaded into the
+            encoder here.
+
+    Attributes:
+        config: the config.
+        encoder: EfficientNet-B0 features (B, 1280).
+        to_z_sq, to_z_pose: Linear(1280, latent_dim).
+        sq_generator: :class:`SuperquadricGenerators`.
+        pose_generator: Sequential(Linear, SiLU, Linear, SiLU, Linear(hidden, 9)).
+    """
+
+    def __init__(self, config: NetworkConfig | None = None) -> None:
+        super().__init__()
+        config = NetworkConfig() if config is None else config
+        validate(config)
+        self.config = config
+        self.encoder = EfficientNetB0(config.in_channels, None, config.drop_connect_rate)
+        if config.pretrained is not None:
+            load_imagenet_weights(self.encoder, config.pretrained)
+        width = self.encoder.num_features
+        self.to_z_sq = nn.Linear(width, config.latent_dim)
+        self.to_z_pose = nn.Linear(width, config.latent_dim)
+        self.sq_generator = SuperquadricGenerators(
+            config.num_primitives, config.latent_dim, config.hidden_dim)
+        self.pose_generator = nn.Sequential(
+            nn.Linear(config.latent_dim, config.hidden_dim), nn.SiLU(),
+            nn.Linear(config.hidden_dim, config.hidden_dim), nn.SiLU(),
+            nn.Linear(config.hidden_dim, _POSE_OUTPUTS),
+        )
+        self.register_buffer("input_mean", torch.tensor(config.input_mean), persistent=False)
+        self.register_buffer("input_std", torch.tensor(config.input_std), persistent=False)
+        # Set by folded(): the encoder stores its weights channels-last, so feed it that way.
+        self.channels_last = False
+        self._init_last_layers()
+
+    @torch.no_grad()
+    def _init_last_layers(self) -> None:
+        """Small last-layer weights, biases that give a sane initial prediction (module doc)."""
+        gain = self.config.init_gain
+        last_sq = self.sq_generator.layers[2]
+        last_sq.weight.mul_(gain)
+        bias = torch.zeros(self.config.num_primitives, NUM_PARAMS, dtype=torch.float64)
+        bias[:, 8:14] = torch.tensor(_IDENTITY_6D, dtype=torch.float64)
+        if self.config.num_primitives > 1:
+            # Raw translation r gives translation_scale tanh(r): invert for the wanted centres.
+            centres = self.config.init_spread * _sphere_directions(self.config.num_primitives)
+            bias[:, 5:8] = torch.atanh(centres / ParameterRanges().translation_scale)
+        last_sq.bias.copy_(bias)
+        last_pose = self.pose_generator[-1]
+        last_pose.weight.mul_(gain)
+        pose_bias = torch.zeros(_POSE_OUTPUTS)
+        pose_bias[:6] = torch.tensor(_IDENTITY_6D)
+        last_pose.bias.copy_(pose_bias)  # a_u = a_v = 0: image centre; a_z = 0: depth prior
+
+    def encode(self, images: Tensor) -> tuple[Tensor, Tensor]:
+        """Images (B, C, H, W) in [0, 1] -> latents z_sq, z_pose, each (B, latent_dim)."""
+        x = (images - self.input_mean) / self.input_std
+        if self.channels_last:
+            x = x.contiguous(memory_format=torch.channels_last)
+        features = self.encoder(x)
+        return self.to_z_sq(features), self.to_z_pose(features)
+
+    def forward(self, images: Tensor, camera_matrix: Tensor) -> NetworkOutput:
+        """Predict the assembly and its pose.
+
+        Args:
+            images: (B, in_channels, H, W) floating point in [0, 1] (normalised inside); H = W =
+                ``config.image_size`` in training and in :class:`~sq_mitsuba.learning.inference.
+                Predictor`, though any size runs.
+            camera_matrix: intrinsics K (3, 3) or (B, 3, 3) in pixels of these H x W images.
+
+        Returns:
+            :class:`NetworkOutput`.
+
+        Raises:
+            ValueError: wrong shape or dtype of ``images``; bad ``camera_matrix``.
+        """
+        channels = self.config.in_channels
+        if (not isinstance(images, Tensor) or images.dim() != 4 or images.shape[1] != channels
+                or not images.is_floating_point()):
+            got = (f"{tuple(images.shape)} {images.dtype}" if isinstance(images, Tensor)
+                   else type(images).__name__)
+            raise ValueError(f"images: expected a floating-point tensor (B, {channels}, H, W), "
+                             f"got {got}")
+        batch, _, height, width = images.shape
+        k = check_camera_matrix(camera_matrix, batch).to(images)
+        z_sq, z_pose = self.encode(images)
+        raw = self.sq_generator(z_sq)  # (B, M, 16)
+        pose = self.pose_generator(z_pose)  # (B, 9)
+        rotation_6d = pose[:, :6]
+        rotation = rotation_6d_to_matrix(rotation_6d)
+        size = images.new_tensor([width, height])
+        pixel = 0.5 * size * (1.0 + self.config.pixel_extent * torch.tanh(pose[:, 6:8]))
+        focal_ratio = torch.sqrt(k[:, 0, 0] * k[:, 1, 1] / (width * height))  # (B,)
+        depth_scale = self.config.depth_prior / self.config.prior_focal_ratio / _LN2
+        depth = depth_scale * focal_ratio * F.softplus(pose[:, 8])
+        homogeneous = torch.cat([pixel, pixel.new_ones(batch, 1)], dim=-1)[..., None]
+        ray = torch.linalg.solve_triangular(k, homogeneous, upper=True)[..., 0]  # K^-1 [u,v,1]
+        translation = depth[:, None] * ray
+        return NetworkOutput(raw, rotation_6d, rotation, pixel, depth, translation)
+
+    def folded(self, channels_last: bool = True) -> SuperquadricNet:
+        """Inference copy: eval mode, no gradients, encoder BatchNorm folded into its convs.
+
+        Equal to ``self.eval()``'s output up to float rounding (~1e-5 relative in float32).
+        The copy is a snapshot: later training of ``self`` does not reach it.
+        """
+        fast = copy.deepcopy(self)
+        fast.encoder = fold_batchnorm(self.encoder, channels_last=channels_last)
+        fast.channels_last = channels_last
+        return fast.eval().requires_grad_(False)

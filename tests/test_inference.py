@@ -1,0 +1,297 @@
+"""Predictor and checkpoints: input forms (uint8/float, with or without a channel dim, any
+size), intrinsics that follow the resizing, input errors, the folded fast path, and checkpoint
+round trips and failures."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+import sq_mitsuba
+from sq_mitsuba.config import to_dict
+from sq_mitsuba.geometry.camera import Camera
+from sq_mitsuba.geometry.rotation import quaternion_to_matrix
+from sq_mitsuba.learning import checkpoint
+from sq_mitsuba.learning.checkpoint import (
+    checkpoint_payload,
+    load_model,
+    read_checkpoint,
+    write_checkpoint,
+)
+from sq_mitsuba.learning.inference import Prediction, Predictor
+from sq_mitsuba.learning.network import NetworkConfig, SuperquadricNet
+
+SIZE = 64
+CAMERA = Camera.default(SIZE)
+
+
+def scene(size: int, supersample: int = 4) -> torch.Tensor:
+    """A grey test scene (1, size, size) in [0, 1] at any resolution: a bright tilted ellipse
+    (a body) and a dimmer one (a panel) on black, each pixel the mean of supersample^2 point
+    samples, so images of one scene at two sizes agree up to sampling."""
+    offsets = (torch.arange(supersample, dtype=torch.float64) + 0.5) / supersample
+    centres = (torch.arange(size, dtype=torch.float64)[:, None] + offsets).reshape(-1) / size
+    v, u = torch.meshgrid(centres, centres, indexing="ij")  # fractions of the image side
+
+    def ellipse(cu: float, cv: float, a: float, b: float, angle_deg: float) -> torch.Tensor:
+        c, s = math.cos(math.radians(angle_deg)), math.sin(math.radians(angle_deg))
+        x, y = u - cu, v - cv
+        return (((c * x + s * y) / a) ** 2 + ((-s * x + c * y) / b) ** 2 <= 1).double()
+
+    image = 0.85 * ellipse(0.42, 0.56, 0.16, 0.09, 30.0)
+    image = torch.maximum(image, 0.4 * ellipse(0.62, 0.45, 0.2, 0.03, 30.0))
+    image = image.reshape(size, supersample, size, supersample).mean(dim=(1, 3))
+    return image[None].float()
+
+
+@torch.no_grad()
+def calibrate_batchnorm(net: SuperquadricNet, images: torch.Tensor) -> None:
+    """Set the BatchNorm running statistics to those of ``images`` (as training would), so the
+    eval-mode network responds to its input."""
+    for module in net.modules():
+        if isinstance(module, nn.BatchNorm2d):
+            module.reset_running_stats()
+            module.momentum = None  # cumulative average over the calibration passes
+    net.train()
+    net(images, CAMERA.matrix())
+    net.eval()
+
+
+@pytest.fixture(scope="module")
+def net() -> SuperquadricNet:
+    """An untrained network whose outputs depend on the image: calibrated BatchNorm, and last
+    layers scaled up from their small initial weights."""
+    torch.manual_seed(0)
+    model = SuperquadricNet(NetworkConfig(image_size=SIZE, num_primitives=3, latent_dim=64,
+                                          hidden_dim=64))
+    gen = torch.Generator().manual_seed(1)
+    shifts = torch.rand(8, 2, generator=gen) * 0.3 - 0.15
+    batch = torch.stack([torch.roll(scene(SIZE), (int(dy * SIZE), int(dx * SIZE)), (1, 2))
+                         for dx, dy in shifts])
+    calibrate_batchnorm(model, torch.cat([batch, torch.rand(8, 1, SIZE, SIZE)]))
+    with torch.no_grad():
+        model.pose_generator[-1].weight.mul_(1000.0)
+        model.sq_generator.layers[2].weight.mul_(1000.0)
+    return model
+
+
+@pytest.fixture(scope="module")
+def predictor(net) -> Predictor:
+    return Predictor(net, CAMERA)
+
+
+def two_scenes() -> torch.Tensor:
+    """(2, 64, 64) float: the scene, and the scene mirrored and dimmed."""
+    image = scene(SIZE)[0]
+    return torch.stack([image, 0.6 * image.flip(-1)])
+
+
+def assert_same(a: Prediction, b: Prediction, atol: float = 0.0) -> None:
+    torch.testing.assert_close(a.assembly.params, b.assembly.params, rtol=0, atol=atol)
+    for name in ("rotation", "translation", "quaternion", "pixel", "depth"):
+        torch.testing.assert_close(getattr(a, name), getattr(b, name), rtol=0, atol=atol,
+                                   msg=name)
+
+
+def test_prediction_fields(predictor):
+    x = two_scenes()
+    prediction = predictor.predict(x)
+    assert prediction.assembly.params.shape == (2, 3, 16)
+    assert prediction.rotation.shape == (2, 3, 3) and prediction.translation.shape == (2, 3)
+    assert bool((prediction.quaternion[:, 0] >= 0).all())
+    torch.testing.assert_close(quaternion_to_matrix(prediction.quaternion), prediction.rotation,
+                               rtol=0, atol=1e-5)
+    torch.testing.assert_close(CAMERA.project(prediction.translation), prediction.pixel,
+                               rtol=0, atol=1e-3)
+    assert bool((prediction.translation[:, 2] > 0).all())
+    # The outputs follow the image.
+    assert float((prediction.pixel[0] - prediction.pixel[1]).abs().max()) > 0.2
+    assert prediction.camera == CAMERA
+    assert predictor.num_primitives == 3 and predictor.image_size == SIZE
+    # Ordinary tensors: refinement can start autograd from them.
+    assert not prediction.translation.is_inference() and not prediction.translation.requires_grad
+    start = prediction.translation.clone().requires_grad_(True)
+    (start * prediction.translation).sum().backward()
+    torch.testing.assert_close(start.grad, prediction.translation)
+
+
+def test_uint8_float_numpy_and_channel_dim_agree(predictor):
+    x8 = (two_scenes() * 255).round().to(torch.uint8)
+    reference = predictor.predict(x8)
+    assert_same(predictor.predict(x8.float() / 255), reference)
+    assert_same(predictor.predict(x8[:, None]), reference)
+    assert_same(predictor.predict(x8.numpy()), reference)
+
+
+def test_larger_image_of_the_same_scene_gives_a_close_pose(predictor):
+    small = predictor.predict(scene(SIZE))
+    large = predictor.predict(scene(2 * SIZE))  # the camera is rescaled to 128 px
+    explicit = predictor.predict(scene(2 * SIZE), camera=CAMERA.rescaled(2 * SIZE))
+    assert_same(large, explicit)
+    assert large.camera == CAMERA.rescaled(2 * SIZE)
+    depth = float(small.depth[0])
+    torch.testing.assert_close(large.translation, small.translation, rtol=0, atol=0.01 * depth)
+    torch.testing.assert_close(large.pixel, 2 * small.pixel, rtol=0, atol=0.5)
+    torch.testing.assert_close(large.camera.project(large.translation), large.pixel, rtol=0,
+                               atol=1e-3)
+    # An up-sampled input (32 px -> 64) goes through the same path.
+    tiny = predictor.predict(scene(SIZE // 2))
+    assert tiny.camera == CAMERA.rescaled(SIZE // 2)
+    torch.testing.assert_close(tiny.translation, small.translation, rtol=0, atol=0.05 * depth)
+
+
+def test_other_camera_moves_the_translation_consistently(predictor):
+    other = Camera(110.0, 110.0, 25.0, 40.0, SIZE, SIZE)
+    default = predictor.predict(two_scenes())
+    moved = predictor.predict(two_scenes(), camera=other)
+    torch.testing.assert_close(moved.pixel, default.pixel, rtol=0, atol=1e-4)
+    torch.testing.assert_close(other.project(moved.translation), moved.pixel, rtol=0, atol=1e-3)
+    torch.testing.assert_close(moved.depth, default.depth * other.fx / CAMERA.fx, rtol=1e-5,
+                               atol=0)
+
+
+def test_bad_input_is_a_one_line_error_naming_the_argument(predictor):
+    x = two_scenes()
+    nan = x.clone()
+    nan[0, 3, 4] = float("nan")
+    cases = [
+        (nan, "images: contains NaN"),
+        (x[0], "images: expected shape"),  # (H, W): no batch dim
+        (x[:, None].expand(2, 3, SIZE, SIZE), "images: expected shape"),
+        (x * 255, r"images: float values must lie in \[0, 1\]"),
+        (x.to(torch.int32), "images: expected uint8 or floating point"),
+        ([[0.0]], "images: expected a torch.Tensor or numpy array"),
+    ]
+    for images, message in cases:
+        with pytest.raises(ValueError, match=f"^{message}") as info:
+            predictor.predict(images)
+        assert "\n" not in str(info.value)
+    with pytest.raises(ValueError, match=r"^camera: is for 64 x 64 images, the images are 96"):
+        predictor.predict(torch.zeros(1, 64, 96))
+    with pytest.raises(ValueError, match=r"^camera: expected a Camera"):
+        predictor.predict(x, camera=CAMERA.matrix())
+
+
+def test_eval_mode_is_used_and_the_mode_restored(net, predictor):
+    x = two_scenes()
+    reference = predictor.predict(x)
+    net.train()
+    try:
+        assert_same(predictor.predict(x), reference)  # BatchNorm in eval mode, no dropping
+        assert net.training
+    finally:
+        net.eval()
+
+
+def test_fast_path_matches_eager(net, predictor):
+    x = two_scenes()
+    fast = Predictor(net, CAMERA, fast=True)
+    assert_same(fast.predict(x), predictor.predict(x), atol=1e-4)
+    assert_same(fast.predict(scene(2 * SIZE)), predictor.predict(scene(2 * SIZE)), atol=1e-4)
+
+
+def test_checkpoint_round_trip(net, predictor, tmp_path):
+    path = tmp_path / "run" / "model.pt"
+    payload = checkpoint_payload(net, CAMERA, config={"seed": 3, "network": {}}, step=7)
+    assert write_checkpoint(path, payload) == path
+    assert [p.name for p in path.parent.iterdir()] == ["model.pt"]  # no temporary left
+    stored = read_checkpoint(path)
+    assert stored["format"] == "sq_mitsuba.checkpoint" and stored["version"] == 1
+    assert stored["step"] == 7 and stored["config"]["seed"] == 3
+    assert stored["config"]["network"] == to_dict(net.config)
+    loaded = sq_mitsuba.load_model(path)
+    assert loaded.camera == CAMERA and not loaded.model.training and loaded.source == path
+    x = two_scenes()
+    assert_same(loaded.predict(x), predictor.predict(x))
+    assert_same(load_model(path, fast=True).predict(x), predictor.predict(x), atol=1e-4)
+
+
+def test_checkpoint_as_the_training_writes_it(net, predictor, tmp_path):
+    """A hand-built payload with the documented keys and typical training extras."""
+    optimizer = torch.optim.Adam(net.parameters())
+    payload = {
+        "format": "sq_mitsuba.checkpoint", "version": 1,
+        "config": {"network": to_dict(net.config), "optim": {"lr": 1e-3}},
+        "model": net.state_dict(), "camera": CAMERA.to_speed_dict(),
+        "optimizer": optimizer.state_dict(), "rng": {"torch": torch.get_rng_state()},
+        "history": [{"step": 1, "loss": 0.5}], "best": None,
+    }
+    path = write_checkpoint(tmp_path / "last.pt", payload)
+    assert_same(load_model(path).predict(two_scenes()), predictor.predict(two_scenes()))
+
+
+def test_unreadable_checkpoints_are_one_line_errors_naming_the_file(net, tmp_path):
+    good = write_checkpoint(tmp_path / "good.pt", checkpoint_payload(net, CAMERA))
+    missing = tmp_path / "missing.pt"
+    with pytest.raises(FileNotFoundError, match=f"^checkpoint: no such file {missing}$"):
+        load_model(missing)
+    garbage = tmp_path / "garbage.pt"
+    garbage.write_bytes(b"not a checkpoint at all\n" * 10)
+    truncated = tmp_path / "truncated.pt"
+    truncated.write_bytes(good.read_bytes()[: good.stat().st_size // 2])
+    unsafe = tmp_path / "unsafe.pt"
+    torch.save({"format": "sq_mitsuba.checkpoint", "path": Path("x")}, unsafe)
+    other = tmp_path / "other.pt"
+    torch.save({"a": torch.zeros(2)}, other)
+    newer = tmp_path / "newer.pt"
+    torch.save({**read_checkpoint(good), "version": 2}, newer)
+    cases = [(garbage, "not a readable checkpoint"), (truncated, "not a readable checkpoint"),
+             (unsafe, "not a readable checkpoint"), (other, "not an sq_mitsuba checkpoint"),
+             (newer, "checkpoint version 2"), (tmp_path, "is not a file")]
+    for path, message in cases:
+        with pytest.raises(ValueError, match=message) as info:
+            load_model(path)
+        text = str(info.value)
+        assert text.startswith(f"{path}: ") and "\n" not in text, text
+
+
+def test_mismatched_checkpoints_are_refused(net, tmp_path):
+    payload = checkpoint_payload(net, CAMERA)
+    payload["config"]["network"]["num_primitives"] = 4
+    path = write_checkpoint(tmp_path / "four.pt", payload)
+    with pytest.raises(ValueError, match=f"^{path}: weights do not fit config.network"):
+        load_model(path)
+    payload["config"]["network"]["num_primitives"] = 3
+    payload["config"]["network"]["pretrained"] = str(tmp_path / "imagenet-b0.pth")  # absent
+    path = write_checkpoint(tmp_path / "pretrained.pt", payload)
+    assert load_model(path).model.config.pretrained is None  # the checkpoint's weights rule
+    payload["config"]["network"]["num_primitives"] = 0
+    with pytest.raises(ValueError, match=r"config\.network\.num_primitives"):
+        write_checkpoint(tmp_path / "zero.pt", payload)
+    assert not (tmp_path / "zero.pt").exists()
+
+
+def test_bad_payloads_are_refused_before_writing(net, tmp_path):
+    good = checkpoint_payload(net, CAMERA)
+    target = tmp_path / "bad.pt"
+    cases = [
+        ({**good, "extra": np.zeros(3)}, "payload.extra: ndarray"),
+        ({**good, "seed": np.float64(1.0)}, "payload.seed: float64"),
+        ({**good, "format": "other"}, "payload: format 'other'"),
+        ({k: v for k, v in good.items() if k != "camera"}, "payload: missing 'camera'"),
+        ({**good, "camera": {"Nu": 64}}, "payload.camera: "),
+        ({**good, "config": {}}, "payload: 'config' must be a dict with a 'network' dict"),
+    ]
+    for payload, message in cases:
+        with pytest.raises(ValueError, match=f"^{message}"):
+            write_checkpoint(target, payload)
+        assert not target.exists()
+    target.write_bytes(b"old")
+    with pytest.raises(ValueError):
+        write_checkpoint(target, cases[0][0])
+    assert target.read_bytes() == b"old"  # an existing file is left as it was
+
+
+def test_shipped_model(net, predictor, tmp_path, monkeypatch):
+    shipped = tmp_path / "weights" / "model.pt"
+    monkeypatch.setattr(checkpoint, "SHIPPED_MODEL", shipped)
+    with pytest.raises(FileNotFoundError, match="no trained model is shipped") as info:
+        sq_mitsuba.load_model()
+    assert "sq-mitsuba train" in str(info.value) and "\n" not in str(info.value)
+    write_checkpoint(shipped, checkpoint_payload(net, CAMERA))
+    assert_same(sq_mitsuba.load_model().predict(two_scenes()), predictor.predict(two_scenes()))
