@@ -77,3 +77,54 @@ def train_dataset(tmp_path_factory):
     summary = render_dataset(models, out, options, progress=False)
     assert not summary.failures
     return out
+
+
+# --- evaluation fixture (tests/test_evaluate.py, test_predict.py, test_study.py) ------------
+
+
+EVAL_NETWORK = {"image_size": 64, "num_primitives": 2, "latent_dim": 32, "hidden_dim": 32}
+"""The tiny network of :func:`eval_checkpoint` (NetworkConfig fields)."""
+
+
+@pytest.fixture(scope="session")
+def eval_checkpoint(train_dataset, tmp_path_factory):
+    """A tiny trained checkpoint ``<tmp>/tiny_run/checkpoint.pt``: a 64 px network with M = 2
+    (:data:`EVAL_NETWORK`), 8 Adam steps on the 16 training images of :func:`train_dataset`
+    with a Chamfer-L2 + SPEED pose loss, written with ``checkpoint_payload`` /
+    ``write_checkpoint`` (dataset camera, config name "tiny")."""
+    from sq_mitsuba.data.spe3r import Spe3rDataset
+    from sq_mitsuba.learning.checkpoint import checkpoint_payload, write_checkpoint
+    from sq_mitsuba.learning.losses import chamfer_loss, pose_loss
+    from sq_mitsuba.learning.network import NetworkConfig, SuperquadricNet
+
+    dataset = Spe3rDataset(train_dataset, "train", image_size=64, num_surface=500,
+                           num_occupancy=2)
+    items = [dataset[i] for i in range(len(dataset))]
+    batch = {key: torch.stack([item[key] for item in items])
+             for key in ("image", "camera", "rotation", "translation", "surface_points")}
+    # One thread: as fast for this tiny network, and it stays fast when other processes share
+    # the cores (two threads then wait for each other at every operation, ~20x slower here).
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    with torch.random.fork_rng():
+        torch.manual_seed(0)
+        network = SuperquadricNet(NetworkConfig(**EVAL_NETWORK))
+        optimizer = torch.optim.Adam(network.parameters(), lr=1e-3)
+        network.train()
+        for _ in range(8):
+            optimizer.zero_grad()
+            output = network(batch["image"], batch["camera"])
+            points, inside = output.assembly.surface_points_with_mask(2)
+            size = points.shape[0]
+            chamfer = chamfer_loss(points.reshape(size, -1, 3), (~inside).reshape(size, -1),
+                                   batch["surface_points"])
+            rotation, translation = pose_loss(output.rotation, output.translation,
+                                              batch["rotation"], batch["translation"])
+            (chamfer + rotation.mean() + translation.mean()).backward()
+            optimizer.step()
+    torch.set_num_threads(threads)
+    path = tmp_path_factory.mktemp("eval_checkpoint") / "tiny_run" / "checkpoint.pt"
+    path.parent.mkdir()
+    write_checkpoint(path, checkpoint_payload(network.eval(), dataset.camera, {"name": "tiny"},
+                                              step=8))
+    return path

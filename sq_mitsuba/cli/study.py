@@ -1,0 +1,77 @@
+"""``sq-mitsuba study illumination``: metrics against the sun's phase angle, Earth and eclipse."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from sq_mitsuba.cli import CLIError
+from sq_mitsuba.cli._options import add_config_options, add_set_option, config_from_args
+
+HELP = "studies of a trained model (illumination: phase angle, Earth, eclipse)"
+DESCRIPTION = """\
+Two ways to see how lighting changes the results:
+
+  study illumination --models LIB --out DIR [--checkpoint PT] [--poses N] [--step 15]
+    Render fixed poses of the library's models under a sweep of sun phase angles (0 to 180
+    degrees in steps of --step), each with and without the Earth in view, plus eclipse
+    frames, with the dataset renderer (one dataset per sweep point, scene overrides
+    sun.phase_deg, earth.probability_in_view, eclipse.probability); evaluate each with and
+    without test-time refinement; write per_image.csv, illumination.{csv,md,png} (every
+    metric against the phase angle, one line per background, shaded ± std) and study.json.
+    A rerun into the same --out resumes the renders.
+
+  study illumination --eval EVAL_DIR [--out DIR] [--step 15]
+    Break a regular `sq-mitsuba eval` folder down by the lighting recorded in its
+    per_image.csv: phase-angle bins of --step degrees, Earth in view or not, eclipses apart;
+    writes lighting.{csv,md,png} (into EVAL_DIR by default).
+
+Renderer and evaluation settings go through --set, e.g. --set render.resolution=128
+--set render.spp=32 --set evaluation.refinement.steps=20 --set evaluation.refine=false."""
+
+FLAGS = {"poses": "--poses", "step": "--step", "split": "--split",
+         "max_models": "--max-models"}
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    from sq_mitsuba.evaluation.study import StudyOptions
+
+    parser = subparsers.add_parser("study", help=HELP, description=DESCRIPTION,
+                                   formatter_class=argparse.RawDescriptionHelpFormatter)
+    studies = parser.add_subparsers(dest="study", metavar="STUDY", required=True)
+    illumination = studies.add_parser(
+        "illumination", help="metrics against the sun phase angle, with and without the "
+                             "Earth, and in eclipse", description=DESCRIPTION,
+        formatter_class=argparse.RawDescriptionHelpFormatter)
+    source = illumination.add_mutually_exclusive_group(required=True)
+    source.add_argument("--models", type=Path, metavar="DIR",
+                        help="model library to render (a `sq-mitsuba models` folder)")
+    source.add_argument("--eval", type=Path, dest="eval_dir", metavar="EVAL_DIR",
+                        help="break down this evaluation folder by its recorded lighting")
+    illumination.add_argument("--checkpoint", type=Path, default=None, metavar="PT",
+                              help="checkpoint file (default: the model shipped with the "
+                                   "package)")
+    illumination.add_argument("--out", type=Path, default=None, metavar="DIR",
+                              help="output folder (required with --models; default with "
+                                   "--eval: EVAL_DIR)")
+    add_config_options(illumination, StudyOptions, FLAGS, metavars={"max_models": "N"})
+    add_set_option(illumination, "study options")
+    illumination.add_argument("--quiet", action="store_true", help="no progress bar")
+    illumination.set_defaults(func=_illumination)
+
+
+def _illumination(args: argparse.Namespace) -> int:
+    from sq_mitsuba.evaluation.study import StudyOptions, illumination_study, lighting_breakdown
+
+    options = config_from_args(StudyOptions, args)
+    if args.eval_dir is not None:
+        if args.checkpoint is not None:
+            raise CLIError("--checkpoint: not used with --eval (the evaluation is done)")
+        result = lighting_breakdown(args.eval_dir, args.out, options.step)
+    else:
+        if args.out is None:
+            raise CLIError("--out: required with --models")
+        result = illumination_study(args.checkpoint, args.models, args.out, options,
+                                    progress=not args.quiet)
+    print(result.describe())
+    return 0

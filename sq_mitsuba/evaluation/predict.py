@@ -1,0 +1,306 @@
+"""``predict``: images in, a superquadric assembly and a pose per image out, as files.
+
+Per input image ``<stem>`` the output folder receives (each file written atomically):
+
+- ``<stem>.assembly.json``: the assembly (named fields per primitive), loadable with
+  :meth:`sq_mitsuba.geometry.assembly.Assembly.load`;
+- ``<stem>.obj`` (one merged mesh) and ``<stem>.glb`` (one mesh per primitive), body frame;
+- ``<stem>.pose.json``: quaternion ``q_vbs2tango`` (w, x, y, z) and translation
+  ``r_Vo2To_vbs`` (metres), body to camera in the OpenCV frame (``x_cam = R(q) x_body + r``),
+  the camera used, the image's size and mode, and the milliseconds taken;
+- ``<stem>.overlay.png``: the image (grey) with the network's silhouette in red and, when
+  refined, the refined silhouette in green and the outline of the target mask in yellow.
+
+Images: PNG/JPG/TIFF, any size; converted to one grey channel in [0, 1] as
+:func:`sq_mitsuba.data.masks.read_gray_image` does: RGB and palette images become luminance
+(ITU-R 601), an alpha channel composites them on black (transparent = space), 16-bit images
+keep their 16-bit range (divided by 65535). The camera defaults to the one the model was
+trained with, rescaled to each image; an image of another aspect ratio than the camera is a
+one-line error naming the file (pass its own camera with ``camera``).
+
+Refinement (``refine``): against the given masks (one per image, same size; bright = target,
+converted and thresholded as :func:`sq_mitsuba.data.masks.read_mask` says), or against a mask
+segmented from the image itself (:func:`sq_mitsuba.data.segmentation.segment_target`).
+
+Every input is read and checked before the first prediction: a bad one is a one-line error
+naming the file, and nothing is written.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from sq_mitsuba.config import in_range, validate
+from sq_mitsuba.learning.refine import RefineOptions
+
+#: Suffixes of the files written per image, in order.
+OUTPUT_SUFFIXES = (".assembly.json", ".obj", ".glb", ".pose.json", ".overlay.png")
+#: Colours (RGB in [0, 1]) of the overlay: network silhouette, refined silhouette, mask edge.
+NETWORK_COLOUR = (1.0, 0.15, 0.1)
+REFINED_COLOUR = (0.1, 0.9, 0.2)
+MASK_COLOUR = (1.0, 0.85, 0.0)
+
+
+@dataclass(frozen=True)
+class PredictOptions:
+    """Settings of ``sq-mitsuba predict``."""
+
+    refine: bool = False
+    "Refine each prediction at test time against a mask (given, or segmented from the image)."
+    refinement: RefineOptions = field(default_factory=RefineOptions)
+    "Test-time refinement settings."
+    level: int = in_range(0, 5, default=3)
+    "Icosphere level of the exported meshes and the overlay silhouettes (3: 642 vertices each)."
+    overlay_spp: int = in_range(1, 1024, default=16)
+    "Samples per pixel of the overlay silhouettes."
+    fast: bool = True
+    "Predict with the batch-norm-folded network (same output up to ~1e-5; faster on CPU)."
+
+
+@dataclass
+class PredictRecord:
+    """What :func:`predict_files` did for one image.
+
+    Attributes:
+        image: the input; files: the files written (:data:`OUTPUT_SUFFIXES` order).
+        network_ms: the network's time for this image (after one untimed warm-up call on
+            the first image); refine_ms: the refinement's (0 when not refined).
+        iou_before, iou_after: refinement IoU of the start and the result (at the refinement
+            resolution) against the mask; warning: the segmentation's, if any.
+    """
+
+    image: Path
+    files: list[Path]
+    network_ms: float
+    refine_ms: float = 0.0
+    iou_before: float | None = None
+    iou_after: float | None = None
+    warning: str | None = None
+
+    def describe(self) -> str:
+        """One line: the image, its times and (when refined) the IoUs."""
+        text = f"{self.image}: network {self.network_ms:.1f} ms"
+        if self.iou_before is not None:
+            text += (f", refined in {self.refine_ms:.0f} ms (IoU {self.iou_before:.3f} -> "
+                     f"{self.iou_after:.3f})")
+        return text + (f"; warning: {self.warning}" if self.warning else "")
+
+
+def overlay_image(image: np.ndarray, silhouettes: list[tuple[np.ndarray, tuple[float, ...]]],
+                  outline: np.ndarray | None) -> np.ndarray:
+    """RGB (H, W, 3) uint8: the grey image (H, W) in [0, 1], dimmed, with each coverage
+    (H, W) blended in its colour (45 %) and the edge of ``outline`` (H, W) bool on top."""
+    rgb = np.repeat(image[..., None], 3, axis=-1) * 0.8
+    for coverage, colour in silhouettes:
+        alpha = 0.45 * np.clip(coverage, 0, 1)[..., None]
+        rgb = rgb * (1 - alpha) + alpha * np.asarray(colour)
+    if outline is not None:
+        from scipy import ndimage
+
+        edge = outline & ~ndimage.binary_erosion(outline)
+        rgb[edge] = MASK_COLOUR
+    return (np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8)
+
+
+def _image_mode(path: Path) -> str:
+    from PIL import Image
+
+    with Image.open(path) as image:
+        return image.mode
+
+
+def _check_inputs(paths: list[Path], camera: Any, masks: list[Path] | None,
+                  options: PredictOptions) -> tuple[list[np.ndarray], list[np.ndarray] | None,
+                                                    list[str | None]]:
+    """Read every image (and mask) and check them; returns images, targets and warnings."""
+    from sq_mitsuba.data.masks import read_gray_image, read_mask
+    from sq_mitsuba.data.segmentation import segment_target
+    from sq_mitsuba.learning.inference import camera_for
+
+    if not paths:
+        raise ValueError("images: give at least one image")
+    if masks is not None and not options.refine:
+        raise ValueError("masks: only used with refinement (--refine)")
+    if masks is not None and len(masks) != len(paths):
+        raise ValueError(f"masks: {len(masks)} given for {len(paths)} images (one per image)")
+    stems = [p.stem for p in paths]
+    if len(set(stems)) != len(stems):
+        twice = sorted({s for s in stems if stems.count(s) > 1})
+        raise ValueError(f"images: several inputs are named {twice[0]!r} (without suffix); "
+                         "their outputs would overwrite each other")
+    pictures = []
+    for path in paths:
+        picture = read_gray_image(path)
+        try:
+            camera_for(camera, picture.shape[1], picture.shape[0])
+        except ValueError:
+            raise ValueError(f"image {path}: {picture.shape[1]} x {picture.shape[0]} px has "
+                             f"another aspect ratio than the camera's {camera.width} x "
+                             f"{camera.height}; pass the images' own camera (--camera)") from None
+        pictures.append(picture)
+    targets, warnings = None, [None] * len(paths)
+    if masks is not None:
+        targets = []
+        for path, picture, mask_path in zip(paths, pictures, masks, strict=True):
+            target = read_mask(mask_path)
+            if target.shape != picture.shape:
+                raise ValueError(f"mask {mask_path}: {target.shape[1]} x {target.shape[0]} px, "
+                                 f"its image {path} is {picture.shape[1]} x "
+                                 f"{picture.shape[0]} px")
+            targets.append(target)
+    elif options.refine:
+        targets = []
+        for k, (path, picture) in enumerate(zip(paths, pictures, strict=True)):
+            try:
+                segmentation = segment_target(picture)
+            except ValueError as error:
+                raise ValueError(f"image {path}: cannot segment the target for refinement "
+                                 f"({error}); pass a mask (--mask)") from None
+            targets.append(segmentation.mask)
+            warnings[k] = segmentation.warning
+    return pictures, targets, warnings
+
+
+def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
+                  options: PredictOptions | None = None, camera: Any = None,
+                  masks: list[str | Path] | None = None,
+                  progress: bool = True) -> list[PredictRecord]:
+    """Predict every image and write its files (see the module docstring).
+
+    Args:
+        images: image paths; all are read and checked before any prediction.
+        out_dir: output folder (created; must be writable).
+        predictor: a :class:`sq_mitsuba.learning.inference.Predictor`.
+        options: :class:`PredictOptions` (default settings when None).
+        camera: a :class:`~sq_mitsuba.geometry.camera.Camera` of the images, or of images
+            of the same aspect ratio (default: the predictor's).
+        masks: with refinement, one mask per image (default: segmented from the image).
+        progress: show a progress bar.
+
+    Returns:
+        One :class:`PredictRecord` per image, in order.
+    """
+    from PIL import Image
+    from tqdm import tqdm
+
+    from sq_mitsuba.evaluation.evaluate import with_fast_path
+    from sq_mitsuba.io import atomic_path, atomic_write_json, check_output_folder
+    from sq_mitsuba.learning.inference import camera_for
+    from sq_mitsuba.learning.refine import refine_pose_and_shape
+    from sq_mitsuba.render.silhouette import SilhouetteRenderer, render_assembly
+
+    options = options or PredictOptions()
+    validate(options)
+    camera = camera or predictor.camera
+    paths = [Path(p) for p in images]
+    mask_paths = [Path(m) for m in masks] if masks is not None else None
+    pictures, targets, warnings = _check_inputs(paths, camera, mask_paths, options)
+    out = check_output_folder(out_dir)
+    predictor = with_fast_path(predictor, options.fast)
+    out.mkdir(parents=True, exist_ok=True)
+    # One untimed call first: the first run of a network sets up its kernels (~1 s), which
+    # would otherwise count against the first image.
+    predictor.predict(torch.from_numpy(pictures[0]).float()[None],
+                      camera_for(camera, pictures[0].shape[1], pictures[0].shape[0]))
+    renderers: dict[Any, Any] = {}
+    records = []
+    for k, (path, picture) in enumerate(tqdm(list(zip(paths, pictures, strict=True)),
+                                             desc="predict", unit="img",
+                                             disable=not progress)):
+        image_camera = camera_for(camera, picture.shape[1], picture.shape[0])
+        if image_camera not in renderers:
+            renderers[image_camera] = SilhouetteRenderer(image_camera, spp=options.overlay_spp)
+        renderer = renderers[image_camera]
+        tick = time.perf_counter()
+        prediction = predictor.predict(torch.from_numpy(picture).float()[None], image_camera)
+        record = PredictRecord(path, [], 1000 * (time.perf_counter() - tick))
+        assembly, rotation, translation = (prediction.assembly, prediction.rotation,
+                                           prediction.translation)
+        quaternion = prediction.quaternion
+        with torch.no_grad():
+            before = render_assembly(assembly, rotation, translation, renderer,
+                                     options.level)[0].numpy()
+        layers = [(before, NETWORK_COLOUR)]
+        outline = None
+        if options.refine:
+            assert targets is not None
+            outline = targets[k]
+            tick = time.perf_counter()
+            result = refine_pose_and_shape(assembly, rotation, translation,
+                                           torch.from_numpy(outline)[None], image_camera,
+                                           options.refinement)
+            record.refine_ms = 1000 * (time.perf_counter() - tick)
+            assembly, rotation, translation = (result.assembly, result.rotation,
+                                               result.translation)
+            from sq_mitsuba.geometry.rotation import matrix_to_quaternion
+
+            quaternion = matrix_to_quaternion(rotation)
+            record.iou_before = float(result.iou_before[0])
+            record.iou_after = float(result.iou_after[0])
+            record.warning = warnings[k]
+            with torch.no_grad():
+                after = render_assembly(assembly, rotation, translation, renderer,
+                                        options.level)[0].numpy()
+            layers.append((after, REFINED_COLOUR))
+        stem = out / path.stem
+        record.files.append(assembly.save(Path(f"{stem}.assembly.json")))
+        record.files.append(assembly.export(Path(f"{stem}.obj"), level=options.level))
+        record.files.append(assembly.export(Path(f"{stem}.glb"), level=options.level))
+        pose = {
+            "image": str(path), "width": picture.shape[1], "height": picture.shape[0],
+            "image_mode": _image_mode(path),
+            "q_vbs2tango": [float(v) for v in quaternion[0]],
+            "r_Vo2To_vbs": [float(v) for v in translation[0]],
+            "convention": "x_cam = R(q) x_body + r; OpenCV camera frame (x right, y down, "
+                          "z forward); q = (w, x, y, z); metres",
+            "camera": image_camera.to_speed_dict(),
+            "checkpoint": str(getattr(predictor, "source", None) or ""),
+            "refined": options.refine, "network_ms": round(record.network_ms, 3),
+        }
+        if options.refine:
+            pose.update(refine_ms=round(record.refine_ms, 3), iou_before=record.iou_before,
+                        iou_after=record.iou_after,
+                        mask=str(mask_paths[k]) if mask_paths is not None else "segmented",
+                        warning=record.warning)
+        atomic_write_json(Path(f"{stem}.pose.json"), pose)
+        record.files.append(Path(f"{stem}.pose.json"))
+        overlay_path = Path(f"{stem}.overlay.png")
+        with atomic_path(overlay_path) as tmp:
+            Image.fromarray(overlay_image(picture, layers, outline), "RGB").save(tmp,
+                                                                                format="PNG")
+        record.files.append(overlay_path)
+        records.append(record)
+    return records
+
+
+def predict_images(images: list[str | Path], out_dir: str | Path,
+                   checkpoint: str | Path | None = None, camera: str | Path | None = None,
+                   masks: list[str | Path] | None = None,
+                   options: PredictOptions | None = None,
+                   progress: bool = True) -> list[PredictRecord]:
+    """:func:`predict_files` with the model of a checkpoint file (None: the model shipped
+    with the package; a clear error when there is none) and a SPEED-style ``camera.json``
+    (None: the checkpoint's camera)."""
+    from sq_mitsuba.geometry.camera import Camera
+    from sq_mitsuba.learning.checkpoint import load_model
+
+    options = options or PredictOptions()
+    validate(options)
+    image_camera = None
+    if camera is not None:
+        try:
+            image_camera = Camera.load(camera)
+        except FileNotFoundError:
+            raise FileNotFoundError(f"camera {camera}: no such file") from None
+        except ValueError as error:
+            message = str(error)
+            raise ValueError(message if str(camera) in message else f"camera {camera}: "
+                             f"{message}") from None
+    predictor = load_model(checkpoint)  # predict_files folds it once the inputs are checked
+    return predict_files(images, out_dir, predictor, options, image_camera, masks, progress)

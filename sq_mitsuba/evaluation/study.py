@@ -1,0 +1,372 @@
+"""Illumination study: how the metrics change with the sun's phase angle, the Earth behind the
+target, and eclipses.
+
+:func:`illumination_study` renders fixed poses of the given models under a sweep of sun phase
+angles (0 to 180 degrees in steps of ``step``), each with and without the Earth in view, plus
+eclipse frames (the sun behind the Earth), then evaluates the model on every one with
+:func:`sq_mitsuba.evaluation.evaluate.evaluate` (with and without test-time refinement by
+default). Every sweep point is an ordinary dataset, rendered by
+:func:`sq_mitsuba.data.spe3r.render_dataset` with scene overrides
+(``sun.phase_deg=[a,a]``, ``earth.probability_in_view=0|1``, ``eclipse.probability=0|1``), so
+the images are exactly what the dataset renderer makes: the same seed and image index draw
+the same pose whatever the lighting (the pose is drawn before the lighting), and a rerun into
+the same folder resumes.
+
+Output folder:
+
+- ``models/``: copies of the chosen models (with their ``symmetries.json``), marked ``test``;
+- ``renders/<point>/``: one SPE3R-layout dataset per sweep point (``phase_030_space``,
+  ``phase_030_earth``, ..., ``eclipse``);
+- ``evals/<point>/``: the evaluation of each (tables and ``eval.json``);
+- ``per_image.csv``: every evaluated row with its sweep point (``point``, ``background``:
+  space, earth or eclipse, ``phase_set_deg``) beside the recorded lighting;
+- ``illumination.csv`` / ``illumination.md``: mean, std and median of every metric per
+  background, phase angle and method; ``illumination.png``: every metric against the phase
+  angle, one line per background and method, shaded ± std, eclipses as markers;
+- ``study.json``: settings, sweep points, counts and times.
+
+:func:`lighting_breakdown` does the same grouping for a regular evaluation folder, from the
+lighting recorded in its ``per_image.csv``: phase-angle bins of ``step`` degrees, Earth in
+view or not, eclipses apart (``lighting.csv``, ``lighting.md``, ``lighting.png``).
+
+Convention: on the plots and in the tables, an eclipse group sits at the mean of its recorded
+phase angles; a frame of a sweep point that the sampler had to keep in the Earth's shadow
+(possible with the Earth in view and the sun behind the target) stays in its sweep point, and
+its ``eclipse`` column says so.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import math
+import shutil
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+from sq_mitsuba.config import apply_overrides, in_range, to_dict, validate
+from sq_mitsuba.data.spe3r import RenderOptions
+from sq_mitsuba.evaluation.evaluate import (
+    METRICS,
+    SHOWN,
+    EvalOptions,
+    csv_text,
+    format_stats,
+    markdown_table,
+    summarise,
+)
+from sq_mitsuba.io import atomic_write_json, atomic_write_text
+
+#: Background names: the Earth out of view, in view, and eclipse frames.
+BACKGROUNDS = ("space", "earth", "eclipse")
+
+
+def _study_evaluation() -> EvalOptions:
+    return EvalOptions(split="test", refine=True, baseline=False, figures=False)
+
+
+@dataclass(frozen=True)
+class StudyOptions:
+    """Settings of ``sq-mitsuba study illumination``."""
+
+    poses: int = in_range(1, 100_000, default=8)
+    "Fixed poses (images) per model, the same at every sweep point."
+    step: float = in_range(1.0, 180.0, default=15.0)
+    "Step in degrees of the phase-angle sweep from 0 to 180 (and of the bins of --eval)."
+    split: Literal["train", "test", "all"] = "test"
+    "Models of the library to use, by its splits.csv ('all': every model)."
+    max_models: int | None = in_range(1, 100_000, default=None)
+    "Use at most this many of them (spread evenly over their sorted names; None: all)."
+    render: RenderOptions = field(default_factory=RenderOptions)
+    "Dataset renderer settings (images_per_model, shard and overwrite are set by the study)."
+    evaluation: EvalOptions = field(default_factory=_study_evaluation)
+    "Evaluation settings (split 'test' and no baseline: every study model is a test model)."
+
+
+@dataclass(frozen=True)
+class SweepPoint:
+    """One lighting of the sweep: its name, background, phase angle and scene overrides."""
+
+    name: str
+    background: str
+    phase_deg: float | None
+    overrides: tuple[str, ...]
+
+
+def sweep_points(step: float) -> list[SweepPoint]:
+    """Phase angles 0, step, ..., up to 180 deg, each without and with the Earth in view,
+    then the eclipse point."""
+    points = []
+    angles = [float(k * step) for k in range(int(180.0 / step + 1e-9) + 1)]
+    for angle in angles:
+        for background, in_view in (("space", 0), ("earth", 1)):
+            points.append(SweepPoint(
+                f"phase_{angle:05.1f}_{background}".replace(".0_", "_"), background, angle,
+                (f"sun.phase_deg=[{angle!r},{angle!r}]", f"earth.probability_in_view={in_view}",
+                 "eclipse.probability=0")))
+    points.append(SweepPoint("eclipse", "eclipse", None, ("eclipse.probability=1",)))
+    return points
+
+
+@dataclass
+class StudyResult:
+    """What :func:`illumination_study` or :func:`lighting_breakdown` did."""
+
+    rows: list[dict[str, Any]]
+    table: list[dict[str, Any]]
+    out_dir: Path
+    files: list[Path]
+
+    def describe(self) -> str:
+        return f"{len(self.rows)} rows in {len(self.table)} groups; wrote " + \
+            ", ".join(str(p) for p in self.files)
+
+
+# ------------------------------------------------------------------------------- grouping
+
+
+def group_table(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Mean, std and median of every metric per (background, phase_deg, method) of ``rows``
+    (each row with ``background`` and ``phase_deg``); an eclipse group's ``phase_deg`` is the
+    mean of its rows'. Sorted by background, phase angle and method."""
+    from sq_mitsuba.evaluation.evaluate import METHODS
+
+    stats = summarise(rows, ("background", "phase_deg", "method"),
+                      metrics=(*METRICS, "phase_angle_deg"))
+    table = []
+    for (background, phase, method), values in stats.items():
+        members = [r for r in rows if (r["background"], r["phase_deg"], r["method"]) ==
+                   (background, phase, method)]
+        entry: dict[str, Any] = {"background": background, "phase_deg": phase,
+                                 "method": method, "images": len(members),
+                                 "eclipse_frames": sum(_flag(r.get("eclipse"))
+                                                       for r in members),
+                                 "phase_recorded_deg": values["phase_angle_deg"][0]}
+        for metric in METRICS:
+            mean, std, median = values[metric]
+            entry.update({f"{metric}_mean": mean, f"{metric}_std": std,
+                          f"{metric}_median": median})
+        table.append(entry)
+    order = {m: k for k, m in enumerate(METHODS)}
+    table.sort(key=lambda e: (BACKGROUNDS.index(e["background"]) if e["background"] in
+                              BACKGROUNDS else 9, e["phase_deg"], order.get(e["method"], 9)))
+    return table
+
+
+def _flag(value: Any) -> bool:
+    return value is True or str(value).strip().lower() in ("true", "1")
+
+
+def write_group_tables(table: Sequence[dict[str, Any]], out_dir: Path, stem: str,
+                       title: str) -> list[Path]:
+    """``<stem>.csv`` (long: one row per group and metric), ``<stem>.md`` and ``<stem>.png``."""
+    from sq_mitsuba.evaluation.figures import plot_illumination
+
+    header = ["background", "phase_deg", "method", "images", "eclipse_frames",
+              "phase_recorded_deg", "metric", "mean", "std", "median"]
+    body = [[e["background"], round(e["phase_deg"], 3), e["method"], e["images"],
+             e["eclipse_frames"], round(e["phase_recorded_deg"], 3), metric,
+             e[f"{metric}_mean"], e[f"{metric}_std"], e[f"{metric}_median"]]
+            for e in table for metric in METRICS]
+    atomic_write_text(out_dir / f"{stem}.csv", csv_text(header, body))
+    md_rows = [[e["background"], f"{e['phase_deg']:.1f}", e["method"], e["images"],
+                e["eclipse_frames"],
+                *(format_stats(e[f"{m}_mean"], e[f"{m}_std"], e[f"{m}_median"])
+                  for m in SHOWN)] for e in table]
+    atomic_write_text(out_dir / f"{stem}.md", (
+        f"# {title}\n\nMean ± std (median) per background, phase angle and method; every "
+        f"metric is in {stem}.csv. An eclipse group's phase angle is the mean of its recorded "
+        "ones.\n\n" + markdown_table(["background", "phase [deg]", "method", "images",
+                                      "eclipse frames", *SHOWN], md_rows)))
+    plot_illumination(table, out_dir / f"{stem}.png", METRICS, title)
+    return [out_dir / f"{stem}.{suffix}" for suffix in ("csv", "md", "png")]
+
+
+# ------------------------------------------------------------------------------- the study
+
+
+def _choose_models(models_dir: Path, options: StudyOptions) -> list[str]:
+    from sq_mitsuba.data.spe3r.layout import DatasetError, read_splits
+    from sq_mitsuba.data.spe3r.writer import find_models
+    from sq_mitsuba.evaluation.evaluate import evenly
+
+    names = find_models(models_dir)
+    if options.split != "all":
+        splits_path = models_dir / "splits.csv"
+        if not splits_path.is_file():
+            raise DatasetError(f"{splits_path}: missing; use split 'all' to take every model")
+        splits = read_splits(splits_path)
+        names = [n for n in names if splits.get(n) == options.split]
+    if not names:
+        raise DatasetError(f"{models_dir}: no {options.split!r} models in splits.csv")
+    return [names[k] for k in evenly(len(names), options.max_models)]
+
+
+def _stage_models(models_dir: Path, names: Sequence[str], stage: Path) -> None:
+    """Copy the models into ``stage`` with a splits.csv marking them all ``test``, and detect
+    each one's symmetries once there (the renders copy ``symmetries.json`` along)."""
+    from sq_mitsuba.data.spe3r.layout import MODELS
+    from sq_mitsuba.data.symmetry import model_symmetries
+
+    stage.mkdir(parents=True, exist_ok=True)
+    for name in names:
+        shutil.copytree(models_dir / name / MODELS, stage / name / MODELS, dirs_exist_ok=True)
+        model_symmetries(stage / name)
+    atomic_write_text(stage / "splits.csv", "".join(f"{name},test\n" for name in names))
+
+
+def illumination_study(checkpoint: str | Path | None, models_dir: str | Path,
+                       out_dir: str | Path, options: StudyOptions | None = None,
+                       progress: bool = True) -> StudyResult:
+    """Render and evaluate the sweep described in the module docstring.
+
+    Args:
+        checkpoint: the model to study (None: the model shipped with the package).
+        models_dir: a model library (``<model>/models/model_normalized.obj``, splits.csv).
+        out_dir: output folder (a rerun with the same settings resumes its renders).
+        options: :class:`StudyOptions`.
+    """
+    from tqdm import tqdm
+
+    from sq_mitsuba.data.spe3r import render_dataset
+    from sq_mitsuba.evaluation.evaluate import check_predictor, evaluate, with_fast_path
+    from sq_mitsuba.io import check_output_folder
+    from sq_mitsuba.learning.checkpoint import load_model
+
+    options = options or StudyOptions()
+    validate(options)
+    models_dir, out_dir = Path(models_dir), Path(out_dir)
+    predictor = load_model(checkpoint)
+    check_predictor(predictor)
+    names = _choose_models(models_dir, options)
+    check_output_folder(out_dir)
+    points = sweep_points(options.step)
+    # Every scene override is checked before the first render.
+    renders = {point.name: dataclasses.replace(
+        options.render, images_per_model=options.poses, shard="0/1", overwrite=False,
+        scene=apply_overrides(options.render.scene, point.overrides)) for point in points}
+    evaluation = dataclasses.replace(options.evaluation, split="test", baseline=False)
+    validate(evaluation)
+    predictor = with_fast_path(predictor, evaluation.fast)  # once, not per sweep point
+    started = time.perf_counter()
+    stage = out_dir / "models"
+    _stage_models(models_dir, names, stage)
+    rows: list[dict[str, Any]] = []
+    seconds = {"render": 0.0, "evaluate": 0.0}
+    for point in tqdm(points, desc="illumination study", unit="point", disable=not progress):
+        tick = time.perf_counter()
+        summary = render_dataset(stage, out_dir / "renders" / point.name, renders[point.name],
+                                 progress=False)
+        if summary.failures:
+            model, reason = next(iter(summary.failures.items()))
+            raise ValueError(f"{out_dir / 'renders' / point.name}: {model} failed to render "
+                             f"({reason})")
+        seconds["render"] += time.perf_counter() - tick
+        tick = time.perf_counter()
+        result = evaluate(predictor, out_dir / "renders" / point.name,
+                          out_dir / "evals" / point.name, evaluation, progress=False)
+        seconds["evaluate"] += time.perf_counter() - tick
+        for row in result.rows:
+            phase = point.phase_deg if point.phase_deg is not None else \
+                float(row["phase_angle_deg"])
+            rows.append({"point": point.name, "background": point.background,
+                         "phase_set_deg": "" if point.phase_deg is None else point.phase_deg,
+                         "phase_deg": phase, **row})
+    _eclipse_at_mean_phase(rows)
+    from sq_mitsuba.evaluation.evaluate import COLUMNS
+
+    columns = ["point", "background", "phase_set_deg", *COLUMNS]
+    atomic_write_text(out_dir / "per_image.csv",
+                      csv_text(columns, [[r.get(c, "") for c in columns] for r in rows]))
+    table = group_table(rows)
+    files = [out_dir / "per_image.csv", *write_group_tables(
+        table, out_dir, "illumination",
+        f"illumination study: {len(names)} model(s) x {options.poses} pose(s)")]
+    atomic_write_json(out_dir / "study.json", {
+        "checkpoint": str(getattr(predictor, "source", None) or ""),
+        "models_dir": str(models_dir), "models": names,
+        "points": [dataclasses.asdict(p) for p in points],
+        "options": to_dict(options), "rows": len(rows),
+        "render_seconds": round(seconds["render"], 2),
+        "evaluate_seconds": round(seconds["evaluate"], 2),
+        "wall_seconds": round(time.perf_counter() - started, 2),
+    })
+    files.append(out_dir / "study.json")
+    return StudyResult(rows, table, out_dir, files)
+
+
+def _eclipse_at_mean_phase(rows: list[dict[str, Any]]) -> None:
+    """Put every eclipse row at the mean recorded phase angle of the eclipse rows (one group
+    per method, not one per frame)."""
+    phases = [float(r["phase_angle_deg"]) for r in rows if r["background"] == "eclipse"]
+    if phases:
+        mean = sum(phases) / len(phases)
+        for row in rows:
+            if row["background"] == "eclipse":
+                row["phase_deg"] = mean
+
+
+# ------------------------------------------------------------------------------- breakdown
+
+
+def read_per_image(path: Path) -> list[dict[str, Any]]:
+    """Rows of an evaluation's ``per_image.csv``; a one-line error naming the file when it is
+    missing, malformed or has no lighting record."""
+    from sq_mitsuba.evaluation.evaluate import LIGHTING
+
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: missing (not an evaluation folder?)")
+    with open(path, newline="", encoding="utf-8") as handle:
+        reader = csv.DictReader(handle)
+        missing = [c for c in ("model", "method", *METRICS, *LIGHTING)
+                   if c not in (reader.fieldnames or [])]
+        if missing:
+            raise ValueError(f"{path}: no column {missing[0]!r} (written by another version?)")
+        rows = list(reader)
+    if not rows:
+        raise ValueError(f"{path}: no rows")
+    return rows
+
+
+def lighting_breakdown(eval_dir: str | Path, out_dir: str | Path | None = None,
+                       step: float | None = None) -> StudyResult:
+    """Group a regular evaluation's ``per_image.csv`` by its recorded lighting: phase-angle
+    bins of ``step`` degrees (default :class:`StudyOptions`' step; a bin is drawn at its
+    centre), Earth in view or not, and eclipse frames apart; writes ``lighting.csv``,
+    ``lighting.md`` and ``lighting.png`` into ``out_dir`` (default: ``eval_dir``)."""
+    from sq_mitsuba.io import check_output_folder
+
+    eval_dir = Path(eval_dir)
+    out_dir = Path(out_dir) if out_dir is not None else eval_dir
+    step = StudyOptions().step if step is None else float(step)
+    if not 1.0 <= step <= 180.0:
+        raise ValueError(f"step: expected a value in [1, 180], got {step:g}")
+    source = eval_dir / "per_image.csv"
+    raw = read_per_image(source)
+    unlit = [r for r in raw if not r["phase_angle_deg"].strip()]
+    if len(unlit) == len(raw):
+        raise ValueError(f"{source}: no lighting record (phase_angle_deg is empty: a dataset "
+                         "without one, such as the SPE3R release)")
+    check_output_folder(out_dir)
+    bins = math.ceil(180.0 / step - 1e-9)
+    rows = []
+    for row in raw:
+        if row in unlit:
+            continue
+        phase = float(row["phase_angle_deg"])
+        if _flag(row["eclipse"]):
+            background = "eclipse"
+        else:
+            background = "earth" if _flag(row["earth_in_view"]) else "space"
+        centre = (min(int(phase // step), bins - 1) + 0.5) * step
+        rows.append({**row, "background": background,
+                     "phase_deg": min(centre, 180.0)})
+    _eclipse_at_mean_phase(rows)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    table = group_table(rows)
+    files = write_group_tables(table, out_dir, "lighting",
+                               f"{source}: metrics by recorded lighting ({step:g} deg bins)")
+    return StudyResult(rows, table, out_dir, files)

@@ -1,0 +1,260 @@
+"""``sq-mitsuba eval`` end to end on the tiny trained checkpoint, then ``report`` on its output.
+
+The numbers in the files are checked against references computed here without the
+evaluation code: the network's own prediction (rotation and translation errors), scipy's
+rotation mean (the baseline), numpy means (the summary) and the dataset's labels (lighting).
+Bad input is a one-line error (exit code 2) with nothing written.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import shutil
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+from scipy.spatial.transform import Rotation
+
+from sq_mitsuba.cli import main
+from sq_mitsuba.data.spe3r import Spe3rDataset
+from sq_mitsuba.evaluation.evaluate import COLUMNS, METRICS, OUTPUT_FILES
+from sq_mitsuba.evaluation.report import PAPER_TABLES
+from sq_mitsuba.learning import checkpoint as checkpoint_module
+from sq_mitsuba.learning.checkpoint import (
+    checkpoint_payload,
+    load_model,
+    read_checkpoint,
+    write_checkpoint,
+)
+from sq_mitsuba.learning.network import NetworkConfig, SuperquadricNet
+
+#: Small settings: few refinement steps and points (the defaults are for real evaluations).
+SMALL = ["--set", "refinement.steps=3", "--set", "refinement.patience=3",
+         "--set", "surface_points=500", "--set", "volume_points=3000",
+         "--set", "qualitative=2", "--set", "consistency_views=2", "--quiet"]
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_torch_thread():
+    """Torch on one thread in this module: as fast for the tiny network, and it stays fast when
+    other processes share the cores (two threads then wait for each other at every operation)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def assert_picture(path):
+    """A PNG that exists, is not empty and is not a single colour."""
+    assert path.is_file() and path.stat().st_size > 0, path
+    with Image.open(path) as image:
+        pixels = np.asarray(image.convert("RGB")).reshape(-1, 3)
+    assert len(np.unique(pixels, axis=0)) > 1, f"{path} is a single colour"
+
+
+def read_rows(path):
+    with open(path, newline="", encoding="utf-8") as handle:
+        return list(csv.DictReader(handle))
+
+
+def error_line(capsys) -> str:
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1, lines
+    return lines[0]
+
+
+@pytest.fixture(scope="module")
+def val_eval(eval_checkpoint, train_dataset, tmp_path_factory):
+    out = tmp_path_factory.mktemp("eval") / "tiny" / "val"
+    code = main(["eval", "--checkpoint", str(eval_checkpoint), "--data", str(train_dataset),
+                 "--split", "val", "--out", str(out), "--refine", *SMALL])
+    assert code == 0
+    return out
+
+
+def test_eval_writes_every_file(val_eval, capsys):
+    for name in OUTPUT_FILES:
+        assert (val_eval / name).is_file(), name
+        assert (val_eval / name).stat().st_size > 0, name
+    for name in OUTPUT_FILES:
+        if name.endswith(".png"):
+            assert_picture(val_eval / name)
+    info = json.loads((val_eval / "eval.json").read_text())
+    assert info["split"] == "val" and info["images"] == 4 and info["num_primitives"] == 2
+    assert info["label"] == "tiny_run"  # the checkpoint's folder: the training run
+    assert info["methods"] == ["network", "refined_gt", "refined_seg", "baseline"]
+    assert info["images_per_second"] > 0
+
+
+def test_per_image_rows_match_the_network_and_the_labels(val_eval, eval_checkpoint,
+                                                          train_dataset):
+    rows = read_rows(val_eval / "per_image.csv")
+    assert list(rows[0]) == list(COLUMNS)
+    assert len(rows) == 4 * 4  # the val split (images 4 and 9 of two models) x 4 methods
+    dataset = Spe3rDataset(train_dataset, "val", image_size=64)
+    predictor = load_model(eval_checkpoint)
+    items = [dataset[i] for i in range(len(dataset))]
+    prediction = predictor.predict(torch.stack([item["image"] for item in items]),
+                                   dataset.camera.rescaled(64, 64))
+    network = {(r["model"], int(r["index"])): r for r in rows if r["method"] == "network"}
+    for k, item in enumerate(items):
+        row = network[(item["model"], item["index"])]
+        relative = prediction.rotation[k].double().T @ item["rotation"].double()
+        angle = np.degrees(np.arccos(np.clip((float(torch.trace(relative)) - 1) / 2, -1, 1)))
+        assert float(row["rotation_error_deg"]) == pytest.approx(angle, abs=0.05)
+        assert float(row["rotation_error_sym_deg"]) <= float(row["rotation_error_deg"]) + 1e-9
+        distance = np.linalg.norm((prediction.translation[k] - item["translation"]).numpy())
+        assert float(row["translation_error_m"]) == pytest.approx(distance, rel=1e-4)
+        label = json.loads((train_dataset / item["model"] / "labels.json").read_text())[
+            item["index"]]
+        assert row["filename"] == label["filename"]
+        assert float(row["phase_angle_deg"]) == pytest.approx(label["phase_angle_deg"])
+        assert row["earth_in_view"] == str(label["earth_in_view"])
+        assert row["eclipse"] == str(label["eclipse"])
+        assert float(row["target_visibility"]) == pytest.approx(label["target_visibility"])
+        for metric in ("iou_2d", "iou_3d"):
+            assert 0.0 <= float(row[metric]) <= 1.0
+        assert float(row["chamfer_l1_paper"]) > float(row["chamfer_l1_occnet"]) > 0
+
+
+def test_baseline_is_the_mean_training_pose(val_eval, train_dataset):
+    rows = [r for r in read_rows(val_eval / "per_image.csv") if r["method"] == "baseline"]
+    train = Spe3rDataset(train_dataset, "train", image_size=64, num_surface=1,
+                         num_occupancy=2)
+    labels = [train.items[i][2] for i in range(len(train))]
+    quaternions = np.array([label["q_vbs2tango_true"] for label in labels])
+    mean = Rotation.from_quat(quaternions[:, [1, 2, 3, 0]]).mean()  # scipy: scalar last
+    translation = np.mean([label["r_Vo2To_vbs_true"] for label in labels], axis=0)
+    for row in rows:
+        label = json.loads((train_dataset / row["model"] / "labels.json").read_text())[
+            int(row["index"])]
+        truth = Rotation.from_quat(np.roll(label["q_vbs2tango_true"], -1))
+        assert float(row["rotation_error_deg"]) == pytest.approx(
+            np.degrees((mean.inv() * truth).magnitude()), abs=0.01)
+        assert float(row["translation_error_m"]) == pytest.approx(
+            np.linalg.norm(translation - label["r_Vo2To_vbs_true"]), rel=1e-5)
+
+
+def test_refinement_rows_and_summary_tables(val_eval):
+    rows = read_rows(val_eval / "per_image.csv")
+    for row in rows:
+        if row["method"] in ("refined_gt", "refined_seg"):
+            if row["refine_iou_before"]:
+                assert float(row["refine_iou_after"]) >= float(row["refine_iou_before"])
+        else:
+            assert row["refine_iou_before"] == row["refine_iou_after"] == ""
+    assert all(0 <= float(r["segmentation_iou"]) <= 1 for r in rows
+               if r["method"] == "refined_seg")
+    summary = {(r["method"], r["metric"]): r for r in read_rows(val_eval / "summary.csv")}
+    for method in ("network", "refined_gt", "refined_seg", "baseline"):
+        for metric in METRICS:
+            values = np.array([float(r[metric]) for r in rows if r["method"] == method])
+            entry = summary[(method, metric)]
+            assert float(entry["mean"]) == pytest.approx(values.mean())
+            assert float(entry["std"]) == pytest.approx(values.std(), abs=1e-12)
+            assert float(entry["median"]) == pytest.approx(np.median(values))
+    per_model = read_rows(val_eval / "per_model.csv")
+    assert {r["model"] for r in per_model} == {r["model"] for r in rows}
+    markdown = (val_eval / "summary.md").read_text()
+    network = summary[("network", "chamfer_l1_paper")]
+    assert (f"{float(network['mean']):.3f} ± {float(network['std']):.3f} "
+            f"({float(network['median']):.3f})") in markdown
+
+
+def test_report_on_the_eval_output_holds_ours_and_the_papers_numbers(
+        val_eval, eval_checkpoint, train_dataset, tmp_path, capsys):
+    test_out = val_eval.parent / "test"
+    assert main(["eval", "--checkpoint", str(eval_checkpoint), "--data", str(train_dataset),
+                 "--split", "test", "--out", str(test_out), "--limit", "3", "--no-figures",
+                 *SMALL]) == 0
+    assert len(read_rows(test_out / "per_image.csv")) == 3 * 2  # network and baseline
+    assert not (test_out / "qualitative.png").exists()
+    capsys.readouterr()
+    assert main(["report", str(val_eval), str(test_out), "--out", str(tmp_path)]) == 0
+    report = (tmp_path / "report.md").read_text()
+    assert PAPER_TABLES.is_file()
+    assert "0.054 ± 0.026" in report  # the paper's Table 1 (a), validation Chamfer-L1
+    assert "0.146 ± 0.084" in report  # ... and test
+    for folder in (val_eval, test_out):
+        ours = {r["metric"]: r for r in read_rows(folder / "summary.csv")
+                if r["method"] == "network"}["chamfer_l1_paper"]
+        assert f"{float(ours['mean']):.3f} ± {float(ours['std']):.3f}" in report
+    assert "| tiny_run |" in report  # the run (the checkpoint's folder): its val and test
+
+
+# ------------------------------------------------------------------------------ bad input
+
+
+def test_checkpoint_of_another_config_is_one_line(eval_checkpoint, train_dataset, tmp_path,
+                                                  capsys):
+    payload = read_checkpoint(eval_checkpoint)
+    payload["config"]["network"]["num_primitives"] = 3  # weights are for 2
+    write_checkpoint(tmp_path / "other.pt", payload)
+    payload = read_checkpoint(eval_checkpoint)
+    payload["config"]["network"]["depth_layers"] = 4  # no such field in this version
+    torch.save(payload, tmp_path / "unknown.pt")  # write_checkpoint refuses to write it
+    for name, expected in (("other.pt", "do not fit config.network"),
+                           ("unknown.pt", "depth_layers")):
+        out = tmp_path / f"out_{name}"
+        code = main(["eval", "--checkpoint", str(tmp_path / name), "--data",
+                     str(train_dataset), "--out", str(out), "--quiet"])
+        assert code == 2
+        line = error_line(capsys)
+        assert name in line and expected in line
+        assert not out.exists()
+    colour = SuperquadricNet(NetworkConfig(in_channels=3, image_size=64, num_primitives=2,
+                                           latent_dim=8, hidden_dim=8))
+    write_checkpoint(tmp_path / "rgb.pt", checkpoint_payload(colour, load_model(
+        eval_checkpoint).camera))
+    assert main(["eval", "--checkpoint", str(tmp_path / "rgb.pt"), "--data",
+                 str(train_dataset), "--out", str(tmp_path / "rgb"), "--quiet"]) == 2
+    assert "3-channel" in error_line(capsys)
+    assert not (tmp_path / "rgb").exists()
+
+
+def test_missing_split_and_missing_data_are_one_line(eval_checkpoint, train_dataset, tmp_path,
+                                                     capsys):
+    only_train = tmp_path / "only_train"
+    only_train.mkdir()
+    shutil.copy(train_dataset / "camera.json", only_train)
+    lines = [line for line in (train_dataset / "splits.csv").read_text().splitlines()
+             if line.endswith(",train")]
+    (only_train / "splits.csv").write_text("\n".join(lines) + "\n")
+    for line in lines:
+        (only_train / line.split(",")[0]).symlink_to(train_dataset / line.split(",")[0])
+    for data, split, expected in ((only_train, "test", "'test' split is empty"),
+                                  (tmp_path / "nowhere", "val", "missing")):
+        out = tmp_path / f"out_{split}"
+        assert main(["eval", "--checkpoint", str(eval_checkpoint), "--data", str(data),
+                     "--split", split, "--out", str(out), "--quiet"]) == 2
+        assert expected in error_line(capsys)
+        assert not out.exists()
+    # The baseline needs the train split: a dataset without one says how to go on.
+    only_test = tmp_path / "only_test"
+    only_test.mkdir()
+    shutil.copy(train_dataset / "camera.json", only_test)
+    test_line = next(line for line in (train_dataset / "splits.csv").read_text().splitlines()
+                     if line.endswith(",test"))
+    (only_test / "splits.csv").write_text(test_line + "\n")
+    (only_test / test_line.split(",")[0]).symlink_to(train_dataset / test_line.split(",")[0])
+    assert main(["eval", "--checkpoint", str(eval_checkpoint), "--data", str(only_test),
+                 "--split", "test", "--out", str(tmp_path / "out_base"), "--quiet"]) == 2
+    assert "--no-baseline" in error_line(capsys)
+    assert not (tmp_path / "out_base").exists()
+    with pytest.raises(SystemExit) as stop:  # argparse: not a choice
+        main(["eval", "--checkpoint", str(eval_checkpoint), "--data", str(train_dataset),
+              "--split", "train", "--out", str(tmp_path / "x")])
+    assert stop.value.code == 2
+
+
+def test_without_checkpoint_and_no_shipped_model_is_one_clear_line(train_dataset, tmp_path,
+                                                                   monkeypatch, capsys):
+    monkeypatch.setattr(checkpoint_module, "SHIPPED_MODEL", tmp_path / "absent" / "model.pt")
+    assert main(["eval", "--data", str(train_dataset), "--out", str(tmp_path / "out"),
+                 "--quiet"]) == 2
+    line = error_line(capsys)
+    assert "no trained model is shipped" in line and "sq-mitsuba train" in line
+    assert not (tmp_path / "out").exists()

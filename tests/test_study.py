@@ -1,0 +1,156 @@
+"""``sq-mitsuba study illumination``: the sweep through the dataset renderer (fixed poses, the
+lighting asked for, eclipse frames), evaluated with and without refinement; and the breakdown
+of a regular evaluation by its recorded lighting."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from sq_mitsuba.cli import main
+from sq_mitsuba.evaluation.evaluate import METRICS, EvalOptions, evaluate
+from sq_mitsuba.evaluation.study import sweep_points
+from sq_mitsuba.learning.checkpoint import load_model
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_torch_thread():
+    """Torch on one thread in this module: as fast for the tiny network, and it stays fast when
+    other processes share the cores (two threads then wait for each other at every operation)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def assert_picture(path):
+    """A PNG that exists, is not empty and is not a single colour."""
+    assert path.is_file() and path.stat().st_size > 0, path
+    with Image.open(path) as image:
+        pixels = np.asarray(image.convert("RGB")).reshape(-1, 3)
+    assert len(np.unique(pixels, axis=0)) > 1, f"{path} is a single colour"
+
+
+def read_rows(path):
+    with open(path, newline="", encoding="utf-8") as handle:
+        return list(csv.DictReader(handle))
+
+
+def error_line(capsys) -> str:
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1, lines
+    return lines[0]
+
+
+def test_sweep_points():
+    points = sweep_points(15)
+    angles = sorted({p.phase_deg for p in points if p.phase_deg is not None})
+    assert angles == [15.0 * k for k in range(13)]
+    assert len(points) == 2 * 13 + 1 and points[-1].name == "eclipse"
+    assert "sun.phase_deg=[30.0,30.0]" in points[4].overrides
+    assert {p.background for p in points} == {"space", "earth", "eclipse"}
+    assert len({p.name for p in points}) == len(points)
+
+
+def test_illumination_study_end_to_end(eval_checkpoint, train_dataset, tmp_path, capsys):
+    out = tmp_path / "study"
+    # The training dataset doubles as a model library (<model>/models/, splits.csv): its one
+    # test model, 2 poses, phase angles 0, 90 and 180 deg.
+    code = main(["study", "illumination", "--checkpoint", str(eval_checkpoint), "--models",
+                 str(train_dataset), "--out", str(out), "--poses", "2", "--step", "90",
+                 "--set", "render.resolution=64", "--set", "render.spp=4",
+                 "--set", "evaluation.refinement.steps=2",
+                 "--set", "evaluation.refinement.patience=2",
+                 "--set", "evaluation.surface_points=500",
+                 "--set", "evaluation.volume_points=2000", "--quiet"])
+    assert code == 0, capsys.readouterr().err
+    for name in ("per_image.csv", "illumination.csv", "illumination.md", "study.json"):
+        assert (out / name).stat().st_size > 0
+    assert_picture(out / "illumination.png")
+    points = sweep_points(90)
+    rows = read_rows(out / "per_image.csv")
+    assert len(rows) == len(points) * 2 * 3  # 2 poses, network + 2 refinements
+    assert {r["method"] for r in rows} == {"network", "refined_gt", "refined_seg"}
+    poses = set()
+    for point in points:
+        labels = [label for folder in (out / "renders" / point.name).iterdir()
+                  if (folder / "labels.json").is_file()
+                  for label in json.loads((folder / "labels.json").read_text())]
+        assert len(labels) == 2
+        poses.add(json.dumps([(lb["q_vbs2tango_true"], lb["r_Vo2To_vbs_true"])
+                              for lb in labels]))
+        for label in labels:
+            if point.background == "eclipse":
+                assert label["eclipse"] is True
+            else:
+                assert label["earth_in_view"] is (point.background == "earth")
+                if not label["eclipse"]:
+                    assert label["phase_angle_deg"] == pytest.approx(point.phase_deg, abs=1e-4)
+        mine = [r for r in rows if r["point"] == point.name]
+        assert {r["phase_angle_deg"] for r in mine} == \
+            {str(round(lb["phase_angle_deg"], 6)) for lb in labels}
+    assert len(poses) == 1  # the same poses under every lighting
+    table = read_rows(out / "illumination.csv")
+    groups = {(r["background"], r["method"]) for r in table}
+    assert ("eclipse", "network") in groups and ("earth", "refined_seg") in groups
+    network_at_0 = [float(r["chamfer_l1_paper"]) for r in rows
+                    if r["point"] == "phase_000_space" and r["method"] == "network"]
+    entry = next(r for r in table if r["background"] == "space" and float(r["phase_deg"]) == 0
+                 and r["method"] == "network" and r["metric"] == "chamfer_l1_paper")
+    assert float(entry["mean"]) == pytest.approx(np.mean(network_at_0))
+    assert int(entry["images"]) == 2
+
+
+def test_breakdown_of_an_evaluation_by_recorded_lighting(eval_checkpoint, train_dataset,
+                                                        tmp_path, capsys):
+    folder = tmp_path / "eval"
+    evaluate(load_model(eval_checkpoint), train_dataset, folder,
+             EvalOptions(split="test", baseline=False, figures=False, surface_points=300,
+                         volume_points=1000), progress=False)
+    rows = read_rows(folder / "per_image.csv")
+    assert main(["study", "illumination", "--eval", str(folder), "--step", "30"]) == 0
+    for name in ("lighting.csv", "lighting.md"):
+        assert (folder / name).stat().st_size > 0
+    assert_picture(folder / "lighting.png")
+    table = read_rows(folder / "lighting.csv")
+    expected: dict[tuple[str, float], list[float]] = {}
+    eclipses = [float(r["phase_angle_deg"]) for r in rows if r["eclipse"] == "True"]
+    for row in rows:  # the grouping, done here from the recorded lighting
+        if row["eclipse"] == "True":  # eclipses: one group, at their mean phase angle
+            key = ("eclipse", float(np.mean(eclipses)))
+        else:
+            key = ("earth" if row["earth_in_view"] == "True" else "space",
+                   15.0 + 30.0 * min(int(float(row["phase_angle_deg"]) // 30), 5))
+        expected.setdefault(key, []).append(float(row["iou_2d"]))
+    got = {(r["background"], round(float(r["phase_deg"]), 2)): r for r in table
+           if r["metric"] == "iou_2d" and r["method"] == "network"}
+    assert set(got) == {(b, round(round(p, 3), 2)) for b, p in expected}
+    for (background, phase), values in expected.items():
+        key = (background, round(round(phase, 3), 2))
+        assert int(got[key]["images"]) == len(values)
+        assert float(got[key]["mean"]) == pytest.approx(np.mean(values))
+    assert {r["metric"] for r in table} == set(METRICS)
+
+
+def test_bad_study_input_is_one_line(eval_checkpoint, train_dataset, tmp_path, capsys):
+    assert main(["study", "illumination", "--eval", str(tmp_path)]) == 2
+    assert "per_image.csv: missing" in error_line(capsys)
+    assert main(["study", "illumination", "--models", str(train_dataset),
+                 "--checkpoint", str(eval_checkpoint)]) == 2
+    assert "--out: required" in error_line(capsys)
+    assert main(["study", "illumination", "--models", str(tmp_path / "nowhere"),
+                 "--checkpoint", str(eval_checkpoint), "--out", str(tmp_path / "o")]) == 2
+    assert "nowhere" in error_line(capsys)
+    assert main(["study", "illumination", "--models", str(train_dataset), "--checkpoint",
+                 str(eval_checkpoint), "--out", str(tmp_path / "o"), "--step", "0.5"]) == 2
+    assert "--step" in error_line(capsys)
+    assert main(["study", "illumination", "--models", str(train_dataset), "--checkpoint",
+                 str(eval_checkpoint), "--out", str(tmp_path / "o"),
+                 "--set", "render.scene.sun.irradiance=-1"]) == 2
+    assert "irradiance" in error_line(capsys)
+    assert not (tmp_path / "o").exists()
