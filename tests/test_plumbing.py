@@ -176,3 +176,13 @@ def test_cli_errors_are_one_line(capsys):
     assert main(["bench", "geometry", "--threads", "0"]) == 2
     err = capsys.readouterr().err
     assert err == "sq-mitsuba bench: error: --threads: expected a value in [1, 1024], got 0\n"
+
+
+def test_benchmarks_are_recorded_in_the_repository_eval_folder():
+    from pathlib import Path
+
+    from sq_mitsuba.evaluation import bench
+
+    repository = Path(__file__).resolve().parents[1]
+    assert bench.BENCHMARKS_MD == repository / "eval" / "BENCHMARKS.md"
+    assert bench.BENCHMARKS_MD.is_file()

@@ -23,7 +23,7 @@ from pathlib import Path
 from sq_mitsuba.config import in_range, validate
 from sq_mitsuba.io import atomic_write_text
 
-BENCHMARKS_MD = Path(__file__).resolve().parents[2] / "eval" / "BENCHMARKS.md"
+BENCHMARKS_MD = Path(__file__).resolve().parents[3] / "eval" / "BENCHMARKS.md"
 
 
 @dataclass(frozen=True)
