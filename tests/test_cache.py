@@ -1,0 +1,99 @@
+"""The training cache holds exactly what the dataset gives, is reused, keyed, and atomic."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from sq_mitsuba.data.spe3r import DatasetError, Spe3rDataset
+from sq_mitsuba.learning.cache import dataset_fingerprint, open_image_cache, open_point_cache
+
+
+def _dataset(root: Path, split: str = "train", size: int = 32) -> Spe3rDataset:
+    return Spe3rDataset(root, split, image_size=size, num_surface=1, num_occupancy=2)
+
+
+def test_image_cache_equals_dataset_items(train_dataset, tmp_path):
+    dataset = _dataset(train_dataset)
+    fingerprint = dataset_fingerprint(train_dataset)
+    cache = open_image_cache(dataset, "train", tmp_path, fingerprint, workers=2)
+    assert len(cache) == len(dataset) > 0
+    batch = cache.batch(np.arange(len(cache)))
+    for i in range(len(dataset)):
+        item = dataset[i]
+        assert torch.equal(batch["image"][i], item["image"])
+        assert torch.equal(batch["mask"][i], item["mask"])
+        assert torch.equal(batch["rotation"][i], item["rotation"])
+        assert torch.equal(batch["translation"][i], item["translation"])
+        assert int(batch["model_index"][i]) == item["model_index"]
+        assert int(cache.image_index[i]) == item["index"]
+    # Reused: the same folder, not rewritten.
+    stamp = (cache.folder / "images.u8").stat().st_mtime_ns
+    again = open_image_cache(dataset, "train", tmp_path, fingerprint)
+    assert again.folder == cache.folder
+    assert (again.folder / "images.u8").stat().st_mtime_ns == stamp
+    # Keyed by size, split and subset.
+    other = open_image_cache(_dataset(train_dataset, size=48), "train", tmp_path, fingerprint)
+    assert other.folder != cache.folder and other.images.shape[1:] == (48, 48)
+    subset = open_image_cache(dataset, "train", tmp_path, fingerprint, indices=[3, 1])
+    assert subset.folder != cache.folder
+    assert torch.equal(subset.batch([0])["image"][0], dataset[3]["image"])
+    assert list(subset.dataset_index) == [3, 1]
+
+
+def test_point_cache_samples_like_the_dataset(train_dataset, tmp_path):
+    dataset = _dataset(train_dataset)
+    points = open_point_cache(dataset, tmp_path, dataset_fingerprint(train_dataset))
+    assert points.models == dataset.models
+    for model_index in range(len(dataset.models)):
+        reference = dataset.model_points(model_index)
+        rng = np.random.default_rng(0)
+        surface, occupancy, labels = points.sample(model_index, rng, 500, 400)
+        assert surface.shape == (500, 3) and occupancy.shape == (400, 3)
+        assert labels.sum() == 200  # balanced: half inside
+        # Every sampled point is one of the model's, with the model's own label.
+        lookup = {tuple(p): bool(inside) for p, inside in
+                  zip(reference["points"].astype(np.float32), reference["inside"], strict=True)}
+        assert all(lookup[tuple(p)] == bool(lab) for p, lab in zip(occupancy, labels,
+                                                                   strict=True))
+        surface_set = {tuple(p) for p in reference["surface"].astype(np.float32)}
+        assert all(tuple(p) in surface_set for p in surface)
+
+
+def test_fingerprint_follows_the_content(train_dataset, tmp_path):
+    root = tmp_path / "copy"
+    shutil.copytree(train_dataset, root)
+    first = dataset_fingerprint(root)
+    assert first == dataset_fingerprint(train_dataset)
+    model = _dataset(root).models[0]
+    labels_path = root / model / "labels.json"
+    labels = json.loads(labels_path.read_text())
+    labels[0]["r_Vo2To_vbs_true"][2] += 0.5
+    labels_path.write_text(json.dumps(labels))
+    second = dataset_fingerprint(root)
+    assert second != first  # edited labels, manifest untouched
+    manifest = root / "dataset.json"
+    assert manifest.is_file()
+    manifest.write_text(manifest.read_text().replace('"spp": 4', '"spp": 5'))
+    assert dataset_fingerprint(root) not in (first, second)
+    manifest.unlink()  # the SPE3R release has none: labels, splits and camera still count
+    assert dataset_fingerprint(root) not in (first, second)
+
+
+def test_corrupt_image_names_the_file_and_leaves_nothing(train_dataset, tmp_path):
+    root = tmp_path / "copy"
+    shutil.copytree(train_dataset, root)
+    dataset = _dataset(root)
+    model = dataset.models[1]
+    victim = sorted((root / model / "images").glob("*.png"))[2]
+    victim.write_bytes(b"\x89PNG\r\n\x1a\n this is not an image")
+    cache_root = tmp_path / "cache"
+    with pytest.raises(DatasetError, match=victim.name) as info:
+        open_image_cache(dataset, "train", cache_root, dataset_fingerprint(root))
+    assert "\n" not in str(info.value) and str(victim) in str(info.value)
+    assert not any(cache_root.iterdir())  # no half-written cache folder

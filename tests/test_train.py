@@ -1,0 +1,510 @@
+"""Training: every config runs, SIGKILL + --resume repeats an uninterrupted run, bad input is
+refused in one line, NaN stops with the last checkpoint intact, DDP matches one process, and
+the network learns (the loss terms fall, silhouettes fit)."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from sq_mitsuba.cli import main
+from sq_mitsuba.config import apply_overrides, from_dict, to_dict
+from sq_mitsuba.learning.train import (
+    TERMS,
+    chamfer_l1_paper,
+    cosine_lr_factor,
+    train,
+)
+from sq_mitsuba.learning.train_config import TrainConfig, load_train_config
+
+ROOT = Path(__file__).resolve().parents[1]
+CONFIGS = sorted((ROOT / "train" / "configs").glob("*.toml"))
+TINY = ROOT / "train" / "configs" / "tiny.toml"
+# Shrinks any config to fixture size without touching its loss structure, M or augmentation.
+SMALL = ["network.image_size=32", "optim.batch_size=4", "data.num_surface=200",
+         "data.num_occupancy=256", "reprojection.resolution=32", "validation.images=2",
+         "validation.batch_size=2"]
+
+
+def _rows(path: Path) -> list[dict[str, str]]:
+    with open(path, newline="") as handle:
+        return list(csv.DictReader(handle))
+
+
+def _read_checkpoint(path: Path) -> dict:
+    from sq_mitsuba.learning.checkpoint import read_checkpoint
+
+    return read_checkpoint(path)
+
+
+def _val_count(root: Path) -> int:
+    from sq_mitsuba.data.spe3r import Spe3rDataset
+
+    return len(Spe3rDataset(root, "val", image_size=32, num_surface=1, num_occupancy=2))
+
+
+@pytest.fixture(scope="module")
+def cache_dir(tmp_path_factory) -> Path:
+    """One decoded-data cache shared by the runs of this module."""
+    return tmp_path_factory.mktemp("train_cache")
+
+
+def _cli(args: list[str], capsys) -> tuple[int, str]:
+    code = main(args)
+    return code, capsys.readouterr().err
+
+
+# ------------------------------------------------------------------------ configs
+
+
+def test_configs_say_what_they_reproduce():
+    names = {p.name for p in CONFIGS}
+    assert {"a.toml", "b.toml", "c.toml", "d.toml", "cpu.toml", "tiny.toml"} <= names
+    assert {f"a_m{m}.toml" for m in range(4, 9)} <= names
+    for path in CONFIGS:
+        assert path.read_text().startswith("#"), f"{path.name}: no comment saying what it is"
+    weights = {name: load_train_config(ROOT / "train" / "configs" / name).loss.weights
+               for name in ("a.toml", "b.toml", "c.toml", "d.toml")}
+    on = {name: {t for t in ("chamfer", "occupancy", "reprojection") if getattr(w, t)}
+          for name, w in weights.items()}
+    assert on == {"a.toml": {"chamfer", "reprojection"}, "b.toml": {"occupancy", "reprojection"},
+                  "c.toml": {"chamfer", "occupancy"},
+                  "d.toml": {"chamfer", "occupancy", "reprojection"}}
+    for m in range(4, 9):
+        config = load_train_config(ROOT / "train" / "configs" / f"a_m{m}.toml")
+        assert config.network.num_primitives == m
+        assert config.loss == load_train_config(ROOT / "train" / "configs" / "a.toml").loss
+    paper = [load_train_config(p) for p in CONFIGS
+             if p.stem in ("a", "b", "c", "d") or p.stem.startswith("a_m")]
+    assert len(paper) == 9
+    assert all(not c.augment.enabled for c in paper)
+    assert all((c.optim.lr, c.optim.weight_decay, c.optim.eps, c.optim.grad_clip,
+                c.optim.batch_size, c.loss.sharpness, c.loss.beta, c.reprojection.level,
+                c.network.image_size) == (1e-4, 1e-4, 1e-5, 1.0, 32, 10.0, 1.25, 3, 128)
+               for c in paper)
+    assert load_train_config(ROOT / "train" / "configs" / "cpu.toml").augment.enabled
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("config_path", CONFIGS, ids=[p.stem for p in CONFIGS])
+def test_every_config_runs_two_steps(config_path, train_dataset, cache_dir, tmp_path, capsys):
+    out = tmp_path / "run"
+    overrides = [*SMALL, f"data.cache_dir={cache_dir}"]
+    args = ["train", "--config", str(config_path), "--data", str(train_dataset), "--out",
+            str(out), "--max-steps", "2", "--quiet"]
+    for item in overrides:
+        args += ["--set", item]
+    code, err = _cli(args, capsys)
+    assert code == 0, err
+    rows = _rows(out / "log.csv")
+    assert [int(r["step"]) for r in rows] == [1, 2]
+    config = apply_overrides(load_train_config(config_path), overrides)
+    enabled = set(config.loss.weights.enabled())
+    for row in rows:
+        assert math.isfinite(float(row["loss"])) and float(row["images_per_s"]) > 0
+        assert {t for t in TERMS if row[t] != ""} == enabled
+    checkpoint = _read_checkpoint(out / "last.pt")
+    assert checkpoint["step"] == 2
+    assert from_dict(TrainConfig, checkpoint["config"]) == config
+    assert _rows(out / "val.csv") == []  # 16 images at batch 4: no epoch ended, no validation
+    assert (out / "curves.png").stat().st_size > 0
+
+
+def test_lr_schedule_is_cosine_per_step():
+    assert cosine_lr_factor(0, 11) == 1.0
+    assert cosine_lr_factor(10, 11) == pytest.approx(0.0, abs=1e-12)
+    assert cosine_lr_factor(5, 11) == pytest.approx(0.5)
+    assert cosine_lr_factor(0, 11, warmup_steps=2) == 0.5
+    assert cosine_lr_factor(10, 11, min_ratio=0.1) == pytest.approx(0.1)
+
+
+def test_chamfer_matches_brute_force():
+    gen = torch.Generator().manual_seed(0)
+    pred, gt = torch.rand(2, 50, 3, generator=gen), torch.rand(2, 70, 3, generator=gen)
+    keep = torch.rand(2, 50, generator=gen) > 0.3
+    value = chamfer_l1_paper(pred, keep, gt)
+    for b in range(2):
+        a = pred[b][keep[b]].double()
+        d = (a[:, None] - gt[b][None].double()).abs().sum(-1)  # L1 distances
+        expected = d.min(1).values.mean() + d.min(0).values.mean()
+        assert float(value[b]) == pytest.approx(float(expected), rel=1e-12)
+
+
+# ------------------------------------------------------------------------ resume
+
+
+@pytest.fixture(scope="module")
+def reference_run(train_dataset, cache_dir, tmp_path_factory) -> Path:
+    """tiny.toml run to its end (3 epochs of 4 steps) without interruption, in this process."""
+    out = tmp_path_factory.mktemp("reference") / "run"
+    config = apply_overrides(load_train_config(TINY), [f"data.cache_dir={cache_dir}"])
+    result = train(config, train_dataset, out, progress=False)
+    assert result.steps == result.total_steps == 12
+    return out
+
+
+@pytest.mark.slow
+def test_sigkill_then_resume_repeats_the_uninterrupted_run(train_dataset, cache_dir,
+                                                           reference_run, tmp_path, capsys):
+    out = tmp_path / "run"
+    sets = ["--set", f"data.cache_dir={cache_dir}"]
+    env = {**os.environ, "OMP_NUM_THREADS": str(torch.get_num_threads())}
+    process = subprocess.Popen(
+        [sys.executable, "-m", "sq_mitsuba", "train", "--config", str(TINY), "--data",
+         str(train_dataset), "--out", str(out), "--quiet", *sets], env=env,
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    deadline = time.monotonic() + 240
+    try:
+        while time.monotonic() < deadline:
+            log = out / "log.csv"
+            if log.is_file() and len(log.read_text().splitlines()) >= 1 + 3:
+                break
+            assert process.poll() is None, process.stdout.read().decode()[-2000:]
+            time.sleep(0.02)
+        else:
+            pytest.fail("the training run logged no 3 steps in time")
+        os.kill(process.pid, signal.SIGKILL)
+    finally:
+        process.wait()
+    assert process.returncode == -signal.SIGKILL
+    resumed_from = int(_read_checkpoint(out / "last.pt")["step"])
+    assert 2 <= resumed_from <= 7
+    code, err = _cli(["train", "--config", str(TINY), "--data", str(train_dataset), "--out",
+                      str(out), "--resume", "--quiet", "--max-steps", str(resumed_from + 5),
+                      *sets], capsys)
+    assert code == 0, err
+    rows = _rows(out / "log.csv")
+    # The log is continuous: the kill's half-finished step is replaced, not repeated.
+    assert [int(r["step"]) for r in rows] == list(range(1, resumed_from + 6))
+    reference = {int(r["step"]): r for r in _rows(reference_run / "log.csv")}
+    # Bit for bit (the log holds exact float reprs): rendering runs on one Dr.Jit thread
+    # (reprojection.deterministic), so nothing depends on thread timing.
+    for row in rows[resumed_from:]:
+        expected = reference[int(row["step"])]
+        for key in ("loss", "lr", "grad_norm", *TERMS):
+            assert row[key] == expected[key], (row["step"], key, row[key], expected[key])
+
+
+@pytest.mark.slow
+def test_resume_refuses_another_config_or_dataset(train_dataset, cache_dir, tmp_path, capsys):
+    out = tmp_path / "run"
+    sets = ["--set", f"data.cache_dir={cache_dir}"]
+    base = ["train", "--config", str(TINY), "--data", str(train_dataset), "--out", str(out),
+            "--quiet", *sets]
+    code, err = _cli([*base, "--max-steps", "1"], capsys)
+    assert code == 0, err
+    before = (out / "last.pt").read_bytes()
+    code, err = _cli([*base, "--resume", "--set", "optim.lr=0.5"], capsys)
+    assert code == 2 and err.count("\n") == 1
+    assert "optim.lr" in err and "0.001" in err and "0.5" in err
+    other = tmp_path / "other"
+    shutil.copytree(train_dataset, other)
+    labels = sorted(other.glob("*/labels.json"))[0]
+    entries = json.loads(labels.read_text())
+    entries[0]["r_Vo2To_vbs_true"][2] += 1.0
+    labels.write_text(json.dumps(entries))
+    code, err = _cli(["train", "--config", str(TINY), "--data", str(other), "--out", str(out),
+                      "--resume", "--quiet", *sets], capsys)
+    assert code == 2 and err.count("\n") == 1 and "another dataset" in err
+    code, err = _cli(base, capsys)  # not resuming: the folder holds a run
+    assert code == 2 and "--resume" in err
+    assert (out / "last.pt").read_bytes() == before
+
+
+# ------------------------------------------------------------------------ bad input
+
+
+def test_bad_config_is_one_line_naming_the_field(tmp_path, capsys, train_dataset):
+    out = tmp_path / "run"
+    common = ["--data", str(train_dataset), "--out", str(out)]
+    bad_key = tmp_path / "bad_key.toml"
+    bad_key.write_text(f'base = "{TINY.as_posix()}"\n[optim]\nlrr = 1e-3\n')
+    bad_value = tmp_path / "bad_value.toml"
+    bad_value.write_text("[optim]\nbatch_size = 0\n")
+    loop_a, loop_b = tmp_path / "loop_a.toml", tmp_path / "loop_b.toml"
+    loop_a.write_text('base = "loop_b.toml"\n')
+    loop_b.write_text('base = "loop_a.toml"\n')
+    cases = [
+        (["--config", str(bad_key)], ["optim.lrr", "unknown key", "did you mean 'lr'"]),
+        (["--config", str(bad_value)], ["optim.batch_size", "[1, 4096]"]),
+        (["--config", str(loop_a)], ["loops"]),
+        (["--config", str(TINY), "--set", "optim.lr=-1"], ["--set", "optim.lr", "> 0"]),
+        (["--config", str(TINY), "--set", "network.num_primitives=abc"],
+         ["network.num_primitives", "integer"]),
+        (["--config", str(TINY), "--set", "augment.gamma_range=[2.0, 1.0]"],
+         ["gamma_range"]),
+        (["--config", str(tmp_path / "missing.toml")], ["no such file"]),
+    ]
+    for extra, needles in cases:
+        code, err = _cli(["train", *extra, *common], capsys)
+        assert code == 2, extra
+        assert err.count("\n") == 1, err
+        for needle in needles:
+            assert needle in err, (needle, err)
+    assert not out.exists()  # refused before any work
+
+
+def test_unwritable_out_is_refused_before_work(tmp_path, capsys, train_dataset):
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    code, err = _cli(["train", "--config", str(TINY), "--data", str(train_dataset), "--out",
+                      str(blocker / "run")], capsys)
+    assert code == 2 and "not writable" in err and err.count("\n") == 1
+
+
+def test_visibility_threshold_filters_training_images(train_dataset, cache_dir, tmp_path,
+                                                      capsys):
+    from sq_mitsuba.data.spe3r import Spe3rDataset
+
+    labels = [item[-1] for item in Spe3rDataset(train_dataset, "train", image_size=32).items]
+    visibility = sorted(label["target_visibility"] for label in labels)
+    common = ["train", "--config", str(TINY), "--data", str(train_dataset), "--quiet",
+              "--set", f"data.cache_dir={cache_dir}", "--max-steps", "1"]
+    code, err = _cli([*common, "--out", str(tmp_path / "none"), "--set",
+                      f"data.min_visibility={min(1.0, visibility[-1] + 0.01)}"], capsys)
+    assert code == 2 and "data.min_visibility" in err and err.count("\n") == 1
+    threshold = visibility[len(visibility) // 2]
+    code, err = _cli([*common, "--out", str(tmp_path / "half"), "--set",
+                      f"data.min_visibility={threshold}"], capsys)
+    assert code == 0, err
+    kept = sum(v >= threshold for v in visibility)
+    assert _read_checkpoint(tmp_path / "half" / "last.pt")["data_order"]["train_images"] == kept
+    assert 0 < kept < len(visibility)
+
+
+def test_corrupt_image_names_the_file(train_dataset, tmp_path, capsys):
+    data = tmp_path / "data"
+    shutil.copytree(train_dataset, data)
+    victim = sorted(data.glob("*/images/*.png"))[0]
+    victim.write_bytes(b"not a png at all")
+    out = tmp_path / "run"
+    code, err = _cli(["train", "--config", str(TINY), "--data", str(data), "--out", str(out),
+                      "--quiet"], capsys)
+    assert code == 2 and str(victim) in err and err.count("\n") == 1
+    assert not (out / "last.pt").exists() and not (out / "log.csv").exists()
+
+
+@pytest.mark.slow
+def test_nan_stops_with_the_last_good_checkpoint_intact(train_dataset, cache_dir, tmp_path,
+                                                        capsys):
+    """A learning rate of 1e12 makes the second step's network output overflow."""
+    out = tmp_path / "run"
+    code, err = _cli(["train", "--config", str(TINY), "--data", str(train_dataset), "--out",
+                      str(out), "--quiet", "--set", "optim.lr=1e12", "--set",
+                      f"data.cache_dir={cache_dir}"], capsys)
+    assert code == 2 and err.count("\n") == 1
+    assert "not finite" in err and "intact" in err
+    rows = _rows(out / "log.csv")
+    checkpoint = _read_checkpoint(out / "last.pt")
+    assert checkpoint["step"] == len(rows) >= 1
+    assert f"step {len(rows) + 1}:" in err
+    assert all(bool(torch.isfinite(v).all()) for v in checkpoint["model"].values()
+               if v.is_floating_point())
+
+
+# ------------------------------------------------------------------------ distributed
+
+
+@pytest.mark.slow
+def test_torchrun_two_processes_match_one(train_dataset, cache_dir, tmp_path):
+    """3 steps of 2 gloo processes x 2 images = 3 steps of 1 process x 4 images.
+
+    At the paper's learning rate and 64 px: at tiny.toml's 1e-3 and 32 px (1 x 1 feature maps
+    at the encoder's end, BatchNorm over 4 values per channel) training is chaotic enough that
+    float rounding alone (the two reduction orders) grows to percent-level differences within
+    3 steps, which would hide what this test is about.
+    """
+    sets = []
+    for item in (f"data.cache_dir={cache_dir}", "augment.probability=0.0", "optim.lr=1e-4",
+                 "network.image_size=64", "reprojection.resolution=64"):
+        sets += ["--set", item]
+    common = ["train", "--config", str(TINY), "--data", str(train_dataset), "--quiet",
+              "--max-steps", "3", *sets]
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    torchrun = Path(sys.executable).with_name("torchrun")
+    launcher = [str(torchrun)] if torchrun.is_file() else [sys.executable, "-m",
+                                                           "torch.distributed.run"]
+    two = subprocess.run([*launcher, "--standalone", "--nproc_per_node", "2", "-m",
+                          "sq_mitsuba", *common, "--out", str(tmp_path / "two")], env=env,
+                         capture_output=True, text=True, timeout=600)
+    assert two.returncode == 0, two.stdout[-3000:] + two.stderr[-3000:]
+    one = subprocess.run([sys.executable, "-m", "sq_mitsuba", *common, "--out",
+                          str(tmp_path / "one")], env=env, capture_output=True, text=True,
+                         timeout=600)
+    assert one.returncode == 0, one.stderr[-3000:]
+    a, b = _read_checkpoint(tmp_path / "one" / "last.pt"), _read_checkpoint(
+        tmp_path / "two" / "last.pt")
+    assert a["world_size"] == 1 and b["world_size"] == 2
+    from sq_mitsuba.learning.network import SuperquadricNet
+
+    torch.manual_seed(42)  # tiny.toml's seed: the initialisation of both runs
+    start = SuperquadricNet(load_train_config(TINY).network).state_dict()
+    moved = 0.0
+    for key, value in a["model"].items():
+        if not value.is_floating_point():
+            assert torch.equal(value, b["model"][key]), key
+            continue
+        assert torch.allclose(value, b["model"][key], rtol=1e-5, atol=2e-6), key
+        moved = max(moved, float((value - start[key]).abs().max()))
+    assert moved > 1e-4  # 3 steps of lr 1e-4 moved the weights: the comparison is not vacuous
+    for x, y in zip(_rows(tmp_path / "one" / "log.csv"), _rows(tmp_path / "two" / "log.csv"),
+                    strict=True):
+        for key in ("loss", *TERMS):
+            assert float(x[key]) == pytest.approx(float(y[key]), rel=1e-5), key
+
+
+# ------------------------------------------------------------------------ learning
+
+
+@pytest.fixture(scope="module")
+def one_spacecraft(train_dataset, tmp_path_factory) -> Path:
+    """The fixture's first training spacecraft alone: its 8 training images are one batch."""
+    root = tmp_path_factory.mktemp("one") / "data"
+    root.mkdir()
+    shutil.copy(train_dataset / "camera.json", root / "camera.json")
+    model = sorted(p.parent.name for p in train_dataset.glob("*/labels.json"))[0]
+    shutil.copytree(train_dataset / model, root / model)
+    (root / "splits.csv").write_text(f"{model},train\n")
+    return root
+
+
+def _learning_config(cache_dir: Path, **weights: float) -> TrainConfig:
+    """tiny.toml at 64 px, M = 3, lr 3e-3, no augmentation: 8 images = one fixed batch."""
+    config = load_train_config(TINY)
+    overrides = [f"data.cache_dir={cache_dir}", "network.image_size=64", "optim.batch_size=8",
+                 "network.num_primitives=3", "reprojection.resolution=64",
+                 "reprojection.level=2", "loss.level=2", "augment.probability=0.0",
+                 "validation.every=0", "checkpoint_every=0", "optim.epochs=150",
+                 "optim.lr=3e-3"]
+    overrides += [f"loss.weights.{k}={v}" for k, v in weights.items()]
+    return apply_overrides(config, overrides)
+
+
+def _occupancy_floor(root: Path, primitives: int, sharpness: float) -> float:
+    """The occupancy loss of the best assembly of ``primitives`` superquadrics found by Adam
+    on the assembly's own parameters (no network), on 8 x 1024 points of the model: the
+    smooth occupancy of a superquadric cannot reach 0 at the near-surface points."""
+    from sq_mitsuba.data.spe3r import Spe3rDataset
+    from sq_mitsuba.geometry.assembly import Assembly
+    from sq_mitsuba.learning.fit import default_raw
+    from sq_mitsuba.learning.losses import occupancy_loss
+
+    dataset = Spe3rDataset(root, "train", image_size=32, num_surface=1, num_occupancy=1024)
+    items = [dataset[i] for i in range(8)]
+    points = torch.stack([i["occupancy_points"] for i in items]).double()
+    labels = torch.stack([i["occupancy_labels"] for i in items]).double()
+    raw = default_raw(primitives, torch.Generator().manual_seed(0)).requires_grad_(True)
+    optimizer = torch.optim.Adam([raw], lr=0.03)
+    best = math.inf
+    for _ in range(200):
+        loss = occupancy_loss(Assembly.from_raw(raw.expand(8, -1, -1)), points, labels,
+                              sharpness)
+        best = min(best, float(loss.detach()))
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    return best
+
+
+@pytest.mark.slow
+def test_each_loss_term_falls_on_a_fixed_batch(one_spacecraft, cache_dir, tmp_path):
+    """Every term falls by half over 100 steps on 8 images of one spacecraft; the occupancy
+    term, whose floor is far above 0, by half of its excess over the best direct fit."""
+    config = _learning_config(cache_dir)
+    result = train(config, one_spacecraft, tmp_path / "run", progress=False, max_steps=100)
+    rows = _rows(tmp_path / "run" / "log.csv")
+    assert len(rows) == result.steps == 100
+    drops = {}
+    for term in ("chamfer", "occupancy", "reprojection", "rotation", "translation", "overlap"):
+        values = np.array([float(r[term]) for r in rows])
+        drops[term] = (values[:3].mean(), values[-5:].mean())
+    for term in ("chamfer", "reprojection", "rotation", "translation", "overlap"):
+        start, end = drops[term]
+        assert end <= 0.5 * start, (term, start, end)
+    floor = _occupancy_floor(one_spacecraft, config.network.num_primitives,
+                             config.loss.sharpness)
+    start, end = drops["occupancy"]
+    assert floor < start and end - floor <= 0.5 * (start - floor), (start, end, floor)
+
+
+@pytest.mark.slow
+def test_reprojection_alone_fits_the_silhouettes(one_spacecraft, cache_dir, tmp_path):
+    """Only the reprojection loss: the predicted assembly's silhouette at the ground-truth
+    pose goes from IoU < 0.5 to >= 0.8 against the masks of the 8 training images.
+
+    BatchNorm uses the statistics of the 8 images, as in training (the check is about what
+    the loss optimises; the running averages trail weights moving at lr 3e-3).
+    """
+    from sq_mitsuba.data.spe3r import Spe3rDataset
+    from sq_mitsuba.geometry.assembly import Assembly
+    from sq_mitsuba.learning.network import SuperquadricNet
+    from sq_mitsuba.render.silhouette import SilhouetteRenderer, mask_iou, render_assembly
+
+    weights = dict.fromkeys(("chamfer", "occupancy", "rotation", "translation", "overlap",
+                             "taper"), 0.0)
+    config = _learning_config(cache_dir, **weights)
+    dataset = Spe3rDataset(one_spacecraft, "train", image_size=64, num_surface=1,
+                           num_occupancy=2)
+    assert len(dataset) == config.optim.batch_size
+    items = [dataset[i] for i in range(len(dataset))]
+    images = torch.stack([i["image"] for i in items])
+    masks = torch.stack([i["mask"][0] for i in items]).double()
+    rotations = torch.stack([i["rotation"] for i in items]).double()
+    translations = torch.stack([i["translation"] for i in items]).double()
+    camera = dataset.camera.rescaled(64, 64)
+    renderer = SilhouetteRenderer(camera, spp=16)
+
+    def mean_iou(model: torch.nn.Module) -> float:
+        model.train()
+        with torch.no_grad():
+            params = model(images, camera.matrix()).assembly.params.double()
+            silhouettes = render_assembly(Assembly(params), rotations, translations, renderer,
+                                          level=3)
+        return float(mask_iou(silhouettes, masks).mean())
+
+    torch.manual_seed(config.seed)
+    before = mean_iou(SuperquadricNet(config.network))
+    train(config, one_spacecraft, tmp_path / "run", progress=False, max_steps=100)
+    trained = SuperquadricNet(config.network)
+    trained.load_state_dict(_read_checkpoint(tmp_path / "run" / "last.pt")["model"])
+    after = mean_iou(trained)
+    assert before < 0.5 and after >= 0.8, (before, after)
+
+
+def test_checkpoint_records_everything(reference_run, train_dataset):
+    checkpoint = _read_checkpoint(reference_run / "last.pt")
+    assert checkpoint["format"] == "sq_mitsuba.checkpoint" and checkpoint["version"] == 1
+    for key in ("config", "model", "camera", "optimizer", "scheduler", "rng", "data_order",
+                "dataset", "git", "step"):
+        assert key in checkpoint, key
+    assert set(checkpoint["rng"]) >= {"torch", "numpy", "python"}
+    from sq_mitsuba.learning.cache import dataset_fingerprint
+
+    assert checkpoint["dataset"]["fingerprint"] == dataset_fingerprint(train_dataset)
+    assert checkpoint["data_order"]["step"] == checkpoint["step"] == 12
+    assert checkpoint["camera"]["Nu"] == 64  # the dataset camera (the predictor rescales it)
+    assert to_dict(load_train_config(TINY))["network"] == checkpoint["config"]["network"]
+    # Validation after each of the 3 epochs on the fixture's 4 val images; best.pt from one.
+    validation = _rows(reference_run / "val.csv")
+    assert [int(r["step"]) for r in validation] == [4, 8, 12]
+    for row in validation:
+        assert 0 <= float(row["iou_2d"]) <= 1 and 0 <= float(row["rotation_error_deg"]) <= 180
+        assert 0 < float(row["chamfer_l1"]) < 3
+    best = _read_checkpoint(reference_run / "best.pt")
+    assert best["best"]["metric"] == "chamfer_l1" and best["step"] == best["best"]["step"]
+    assert best["best"]["value"] == min(float(r["chamfer_l1"]) for r in validation)
+    assert (reference_run / "curves.png").stat().st_size > 0
+    lrs = [float(r["lr"]) for r in _rows(reference_run / "log.csv")]
+    assert lrs == pytest.approx([1e-3 * cosine_lr_factor(s, 12) for s in range(12)], rel=1e-6)
