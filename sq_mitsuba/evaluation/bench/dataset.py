@@ -5,6 +5,10 @@ One generated spacecraft, 64 samples per pixel: the per-image step of ``dataset 
 image by image after warm-up at each resolution, so the median and interquartile range are
 those of the per-image time; throughput is its inverse. Building the scene (once per model
 and process) is left out. Target at 256 px: >= 2 images/s on 2 CPU cores.
+
+Then the visibility statistics of the default scene: :data:`VISIBILITY_MODELS` models x
+:data:`VISIBILITY_IMAGES` images at 128 px (the training resolution), the share of images whose
+target mean grey level is below 10/255 (target <= 3 %) and the phase-angle histogram.
 """
 
 from __future__ import annotations
@@ -18,6 +22,39 @@ RESOLUTIONS = (128, 256)
 SPP = 64
 #: Per-image time targets in seconds (None: recorded, no target).
 TARGETS = {128: None, 256: 0.5}
+VISIBILITY_MODELS, VISIBILITY_IMAGES, VISIBILITY_SPP = 8, 25, 16
+DARK = 10 / 255
+
+
+def visibility_notes(root: Path) -> list[str]:
+    """Dark-image share and phase histogram of the default scene (see the module docstring)."""
+    import numpy as np
+
+    from sq_mitsuba.data.frames import sample_frame
+    from sq_mitsuba.data.library import generate_model
+    from sq_mitsuba.data.spacecraft import catalogue
+    from sq_mitsuba.data.spe3r import RenderOptions, load_model
+    from sq_mitsuba.render.space import SpaceScene
+
+    options = RenderOptions(resolution=128, spp=VISIBILITY_SPP)
+    camera = options.dataset_camera()
+    means, phases = [], []
+    for entry in catalogue(VISIBILITY_MODELS, 0):
+        generate_model(entry, root / "visibility", points=2000)
+        vertices, faces, tags = load_model(root / "visibility" / entry.name)
+        scene = SpaceScene(vertices, faces, tags, camera, options.scene, spp=VISIBILITY_SPP)
+        for index in range(VISIBILITY_IMAGES):
+            frame = sample_frame(vertices, camera, options.scene, 0, entry.name, index)
+            means.append(scene.render(frame).visibility()[0])
+            phases.append(frame.phase_angle_deg)
+    means = np.asarray(means)
+    histogram, _ = np.histogram(phases, bins=np.arange(0, 181, 15))
+    return [f"visibility, default scene, {len(means)} images ({VISIBILITY_MODELS} models x "
+            f"{VISIBILITY_IMAGES}, 128 px, {VISIBILITY_SPP} spp): "
+            f"{100 * float((means < DARK).mean()):.1f} % with a target mean below 10/255 "
+            f"(target <= 3 %); median target mean {255 * float(np.median(means)):.1f}/255",
+            "phase angles (15 deg bins from 0 to 180): " +
+            ", ".join(str(int(c)) for c in histogram)]
 
 
 def run(options: BenchOptions) -> Report:
@@ -61,4 +98,5 @@ def run(options: BenchOptions) -> Report:
                 f"(IQR of per-image rate {rates[len(rates) // 4]:.2f} - "
                 f"{rates[(3 * len(rates)) // 4]:.2f})"
                 + (f"; target >= {1.0 / target:.0f} images/s" if target else ""))
+        report.notes += visibility_notes(root)
     return report
