@@ -17,7 +17,7 @@ MATERIALS: tuple[str, ...] = (
     "antenna_white",
 )
 
-# Grey-level diffuse reflectance used by previews and the .mtl written beside each OBJ
+# Grey-level diffuse reflectance used by previews
 # (a rough visual cue only; the dataset renderer assigns its own physically based materials).
 PREVIEW_ALBEDO: dict[str, float] = {
     "gold_mli": 0.55,
@@ -29,7 +29,7 @@ PREVIEW_ALBEDO: dict[str, float] = {
     "antenna_white": 0.9,
 }
 
-# RGB colours for the .mtl file (viewers only).
+# sRGB viewer colours of the GLB written beside each OBJ (viewers and Blender only).
 MTL_COLOUR: dict[str, tuple[float, float, float]] = {
     "gold_mli": (0.83, 0.62, 0.21),
     "silver_mli": (0.78, 0.78, 0.80),
