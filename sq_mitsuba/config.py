@@ -521,7 +521,10 @@ def _suffix(path: Path) -> str:
     return suffix
 
 
-def _read_mapping(path: Path) -> Mapping[str, Any]:
+def read_mapping(path: str | PathLike[str]) -> Mapping[str, Any]:
+    """The top-level table of a ``.toml`` or ``.json`` file; one-line :class:`ConfigError`
+    naming the file when it is missing, unreadable, malformed or not a table."""
+    path = Path(path)
     suffix = _suffix(path)
     try:
         text = path.read_bytes().decode("utf-8-sig")
@@ -556,7 +559,7 @@ def load(cls: type[T], path: str | PathLike[str]) -> T:
     Every error message starts with the file: ``scenes/space.json: sun.irradiance: ...``.
     """
     path = Path(path)
-    data = _read_mapping(path)
+    data = read_mapping(path)
     try:
         return from_dict(cls, data)
     except ConfigError as exc:

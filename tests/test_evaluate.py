@@ -8,14 +8,13 @@ Bad input is a one-line error (exit code 2) with nothing written.
 
 from __future__ import annotations
 
-import csv
 import json
 import shutil
 
 import numpy as np
 import pytest
 import torch
-from PIL import Image
+from output_checks import assert_picture, error_line, one_torch_thread, read_rows  # noqa: F401 (autouse fixture)
 from scipy.spatial.transform import Rotation
 
 from sq_mitsuba.cli import main
@@ -35,35 +34,6 @@ from sq_mitsuba.learning.network import NetworkConfig, SuperquadricNet
 SMALL = ["--set", "refinement.steps=3", "--set", "refinement.patience=3",
          "--set", "surface_points=500", "--set", "volume_points=3000",
          "--set", "qualitative=2", "--set", "consistency_views=2", "--quiet"]
-
-
-@pytest.fixture(autouse=True, scope="module")
-def one_torch_thread():
-    """Torch on one thread in this module: as fast for the tiny network, and it stays fast when
-    other processes share the cores (two threads then wait for each other at every operation)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
-def assert_picture(path):
-    """A PNG that exists, is not empty and is not a single colour."""
-    assert path.is_file() and path.stat().st_size > 0, path
-    with Image.open(path) as image:
-        pixels = np.asarray(image.convert("RGB")).reshape(-1, 3)
-    assert len(np.unique(pixels, axis=0)) > 1, f"{path} is a single colour"
-
-
-def read_rows(path):
-    with open(path, newline="", encoding="utf-8") as handle:
-        return list(csv.DictReader(handle))
-
-
-def error_line(capsys) -> str:
-    lines = capsys.readouterr().err.strip().splitlines()
-    assert len(lines) == 1, lines
-    return lines[0]
 
 
 @pytest.fixture(scope="module")

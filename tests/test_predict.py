@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import torch
 import trimesh
+from output_checks import assert_picture, error_line, one_torch_thread  # noqa: F401 (autouse fixture)
 from PIL import Image
 
 from sq_mitsuba.cli import main
@@ -19,30 +20,6 @@ from sq_mitsuba.learning import checkpoint as checkpoint_module
 from sq_mitsuba.learning.checkpoint import load_model
 
 SMALL_REFINE = ["--set", "refinement.steps=4", "--set", "refinement.patience=4"]
-
-
-@pytest.fixture(autouse=True, scope="module")
-def one_torch_thread():
-    """Torch on one thread in this module: as fast for the tiny network, and it stays fast when
-    other processes share the cores (two threads then wait for each other at every operation)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
-def assert_picture(path):
-    """A PNG that exists, is not empty and is not a single colour."""
-    assert path.is_file() and path.stat().st_size > 0, path
-    with Image.open(path) as image:
-        pixels = np.asarray(image.convert("RGB")).reshape(-1, 3)
-    assert len(np.unique(pixels, axis=0)) > 1, f"{path} is a single colour"
-
-
-def error_line(capsys) -> str:
-    lines = capsys.readouterr().err.strip().splitlines()
-    assert len(lines) == 1, lines
-    return lines[0]
 
 
 @pytest.fixture(scope="module")

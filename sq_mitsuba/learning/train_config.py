@@ -13,13 +13,19 @@ an ordinary, complete config.
 
 from __future__ import annotations
 
-import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-from sq_mitsuba.config import ConfigError, from_dict, in_range, non_negative, positive
+from sq_mitsuba.config import (
+    ConfigError,
+    from_dict,
+    in_range,
+    non_negative,
+    positive,
+    read_mapping,
+)
 from sq_mitsuba.learning.augment import AugmentConfig
 from sq_mitsuba.learning.losses import LossWeights
 from sq_mitsuba.learning.network import NetworkConfig
@@ -186,23 +192,6 @@ def _merge(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
     return merged
 
 
-def _read_toml(path: Path) -> dict[str, Any]:
-    try:
-        text = path.read_bytes().decode("utf-8-sig")
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: no such file") from None
-    except IsADirectoryError:
-        raise ConfigError(f"{path}: is a directory, not a config file") from None
-    except UnicodeDecodeError as exc:
-        raise ConfigError(f"{path}: not UTF-8 text (byte {exc.start})") from None
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read ({exc.strerror or exc})") from None
-    try:
-        return tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path}: malformed TOML: {exc}") from None
-
-
 def resolve_mapping(path: str | Path, _seen: tuple[Path, ...] = ()) -> dict[str, Any]:
     """The table of a TOML config file with its ``base`` chain merged in (``base`` removed)."""
     path = Path(path)
@@ -214,7 +203,7 @@ def resolve_mapping(path: str | Path, _seen: tuple[Path, ...] = ()) -> dict[str,
         raise ConfigError(f"{path}: base: the chain of bases loops ({chain})")
     if len(_seen) >= _MAX_BASE_DEPTH:
         raise ConfigError(f"{path}: base: more than {_MAX_BASE_DEPTH} levels of bases")
-    data = _read_toml(path)
+    data = dict(read_mapping(path))
     base = data.pop(BASE_KEY, None)
     if base is None:
         return data
