@@ -362,3 +362,17 @@ def test_backward_restores_the_topology_of_its_forward_pass(unit_sphere):
     # Equal up to the order of Dr.Jit's float32 atomic additions (not bit-reproducible).
     scale = float(gradients[1].abs().max())
     assert torch.allclose(gradients[0], gradients[1], rtol=0, atol=1e-5 * scale)
+
+
+def test_reseed_restarts_the_sample_sequence(unit_sphere):
+    from sq_mitsuba.geometry.camera import Camera
+    from sq_mitsuba.render.silhouette import SilhouetteRenderer
+
+    vertices, faces = unit_sphere
+    posed = (0.3 * vertices + torch.tensor([0.0, 0.0, 2.0], dtype=torch.float64))[None].float()
+    used = SilhouetteRenderer(Camera.default(32), spp=1, seed=5)
+    used.render(posed, faces)
+    used.render(posed, faces)
+    used.reseed(9)
+    fresh = SilhouetteRenderer(Camera.default(32), spp=1, seed=9)
+    assert torch.equal(used.render(posed, faces), fresh.render(posed, faces))

@@ -468,13 +468,6 @@ def _loss_terms(output: Any, batch: dict[str, Any], config: TrainConfig, rendere
     return terms
 
 
-def _reseed_renderer(renderer: Any, seed: int) -> None:
-    """Restart a SilhouetteRenderer's sample sequence from ``seed`` (so a step's samples depend
-    on the step alone, not on how many renders came before: exact resumption)."""
-    renderer.seed = int(seed) & 0xFFFFFFFF
-    renderer._calls = 0  # the renderer has no public way to restart its call counter
-
-
 # ------------------------------------------------------------------------------ validation
 
 
@@ -508,7 +501,7 @@ def _validate(model: nn.Module, cache: ImageCache, points: PointCache, config: T
     model.eval()
     metrics: dict[str, list[Tensor]] = {name: [] for name in VAL_METRICS}
     k_matrix = camera.matrix(device=device)
-    _reseed_renderer(renderer, _seed_of(config.seed, _STREAMS["render"], 2**31))
+    renderer.reseed(_seed_of(config.seed, _STREAMS["render"], 2**31))
     try:
         with torch.no_grad():
             for start in range(0, len(cache), cfg.batch_size):
@@ -958,8 +951,8 @@ def _train_loop(cfg: TrainConfig, data_root: Path, out_dir: Path,
                 _seed_of(cfg.seed, _STREAMS["subset"], step, world.rank))
             if renderer is not None:
                 # Item j of this process is item rank * local + j of the global batch.
-                _reseed_renderer(renderer, _seed_of(cfg.seed, _STREAMS["render"], step)
-                                 + 7919 * world.rank * local)
+                renderer.reseed(_seed_of(cfg.seed, _STREAMS["render"], step)
+                                + 7919 * world.rank * local)
             # The inputs are checked once, in the cache; the per-call NaN scans of the
             # geometry and loss functions are switched off here and replaced by one check of
             # the outputs and one of the loss, which stop the run with a clear message.

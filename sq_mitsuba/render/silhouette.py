@@ -187,6 +187,12 @@ class SilhouetteRenderer:
         # Convention: Mitsuba renders with fx on both axes; y is stretched to give fy.
         self._y_stretch = camera.fy / camera.fx
 
+    def reseed(self, seed: int) -> None:
+        """Restart the sample sequence from ``seed``: the next render draws the samples a fresh
+        renderer with this seed would (so a training step's samples depend on the step alone)."""
+        self.seed = int(seed) & 0xFFFFFFFF
+        self._calls = 0
+
     def __repr__(self) -> str:
         c = self.camera
         return (f"SilhouetteRenderer({c.width}x{c.height}, fx={c.fx:.2f}, spp={self.spp}, "
