@@ -10,7 +10,7 @@ TORCH  := torch==2.13.0
 # Dr.Jit's LLVM backend aborts on libLLVM 15; any libLLVM >= 17 works.
 LLVM_GLOB := /usr/lib/*/libLLVM-1[7-9]*.so* /usr/lib/*/libLLVM-[2-9][0-9]*.so* /usr/lib/llvm-1[7-9]/lib/libLLVM*.so* /usr/lib/llvm-[2-9][0-9]/lib/libLLVM*.so*
 
-.PHONY: setup llvm test lint bench clean
+.PHONY: setup llvm test lint bench clean demo demo-train
 
 setup: llvm $(STAMP)
 
@@ -36,6 +36,14 @@ lint: setup
 
 bench: setup
 	$(VENV)/bin/sq-mitsuba bench all
+
+# Unseen spacecraft in, assemblies and poses out: demo_output/index.html (under a minute).
+demo: setup
+	$(VENV)/bin/sq-mitsuba demo
+
+# The same after training a small model from scratch (10 to 15 min on 2 cores).
+demo-train: setup
+	$(VENV)/bin/sq-mitsuba demo --train
 
 clean:
 	rm -rf $(VENV) .pytest_cache .ruff_cache *.egg-info

@@ -77,3 +77,11 @@ def test_wheel_ships_the_scenes_and_every_module(wheel):
     entry_points = next(n for n in names if n.endswith(".dist-info/entry_points.txt"))
     with zipfile.ZipFile(wheel) as archive:
         assert "sq-mitsuba = sq_mitsuba.cli:main" in archive.read(entry_points).decode()
+
+
+def test_wheel_ships_the_trained_model_when_present(wheel):
+    shipped = PACKAGE / "learning" / "weights" / "model.pt"
+    if not shipped.is_file():
+        pytest.skip("no shipped model in this checkout")
+    with zipfile.ZipFile(wheel) as archive:
+        assert archive.read("sq_mitsuba/learning/weights/model.pt") == shipped.read_bytes()

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
+from sq_mitsuba.cli import CLIError
 from sq_mitsuba.cli._options import add_config_options, config_from_args
 from sq_mitsuba.evaluation import bench
 
@@ -15,18 +17,43 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     suites = bench.available_suites()
     parser = subparsers.add_parser(
         "bench", help="measure the speed figures named in the issues",
-        description="Run benchmark suites; --write records them in eval/BENCHMARKS.md.")
-    parser.add_argument("suite", choices=[*suites, "all"], help="which suite to run")
+        description="Run benchmark suites; --write records them in eval/BENCHMARKS.md. "
+                    "'curves' trains configs for equal wall time on --data and plots held-out "
+                    "Chamfer-L1 against time (eval/figures/learning_curves.png).")
+    parser.add_argument("suite", choices=[*suites, "all", "curves"], help="which suite to run")
     add_config_options(parser, bench.BenchOptions, FLAGS)
     parser.add_argument("--write", action="store_true",
                         help="store the figures in eval/BENCHMARKS.md")
+    curves = parser.add_argument_group("curves")
+    curves.add_argument("--data", type=Path, metavar="DIR", help="SPE3R-layout dataset")
+    curves.add_argument("--minutes", type=float, metavar="M",
+                        help="training wall time of each config")
+    curves.add_argument("--out", type=Path, metavar="DIR",
+                        help="folder of the runs (one per config)")
+    curves.add_argument("--configs", nargs="+", metavar="LABEL",
+                        help="which of 'a', 'cpu', 'cpu, no augmentation' (default: all)")
     parser.set_defaults(func=_run)
 
 
 def _run(args: argparse.Namespace) -> int:
+    if args.suite == "curves":
+        return _curves(args)
     options = config_from_args(bench.BenchOptions, args)
     for report in bench.run_suites([args.suite], options, write=args.write):
         print(report.to_markdown())
         if args.write:
             print(f"recorded in {bench.BENCHMARKS_MD}")
+    return 0
+
+
+def _curves(args: argparse.Namespace) -> int:
+    from sq_mitsuba.evaluation.bench.train import run_curves
+
+    for flag, value in (("--data", args.data), ("--minutes", args.minutes),
+                        ("--out", args.out)):
+        if value is None:
+            raise CLIError(f"{flag}: required by the curves suite")
+    if not args.minutes > 0:
+        raise CLIError(f"--minutes: expected > 0, got {args.minutes}")
+    print(run_curves(args.data, args.out, args.minutes, args.configs, write=args.write))
     return 0

@@ -7,10 +7,10 @@ import sys
 from pathlib import Path
 
 from sq_mitsuba.cli._options import add_config_options, config_from_args
-from sq_mitsuba.data.contact_sheet import ContactSheetOptions
-from sq_mitsuba.data.library import GenerateOptions, ImportOptions
 
 EXIT_BATCH_FAILED = 1
+# Listed by `sq-mitsuba --help` without importing the library (numpy, trimesh: ~0.25 s).
+HELP = "spacecraft model library: generate, import, preview"
 
 GENERATE_DESCRIPTION = """\
 Generate the first COUNT models of the seeded procedural catalogue into OUT/<model>/models/.
@@ -29,8 +29,11 @@ Exit code 1 when some file failed, 2 on bad options or missing files (nothing wr
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
+    from sq_mitsuba.data.contact_sheet import ContactSheetOptions
+    from sq_mitsuba.data.library import GenerateOptions, ImportOptions
+
     parser = subparsers.add_parser(
-        "models", help="spacecraft model library: generate, import, preview",
+        "models", help=HELP,
         description="Procedural spacecraft and imported meshes, processed as in the paper "
                     "(watertight, unit size, centred on the centre of mass, aligned).")
     sub = parser.add_subparsers(dest="models_command", metavar="ACTION", required=True)
@@ -72,19 +75,19 @@ def _report(summary) -> int:
 
 
 def _generate(args: argparse.Namespace) -> int:
-    from sq_mitsuba.data.library import generate_library
+    from sq_mitsuba.data.library import GenerateOptions, generate_library
 
     return _report(generate_library(config_from_args(GenerateOptions, args)))
 
 
 def _import(args: argparse.Namespace) -> int:
-    from sq_mitsuba.data.library import import_models
+    from sq_mitsuba.data.library import ImportOptions, import_models
 
     return _report(import_models(args.meshes, config_from_args(ImportOptions, args)))
 
 
 def _preview(args: argparse.Namespace) -> int:
-    from sq_mitsuba.data.contact_sheet import contact_sheet
+    from sq_mitsuba.data.contact_sheet import ContactSheetOptions, contact_sheet
 
     sheet = contact_sheet(args.root, config_from_args(ContactSheetOptions, args))
     print(f"contact sheet of {sheet.models} model(s) written to {sheet.path}")

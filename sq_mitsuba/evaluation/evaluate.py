@@ -398,20 +398,22 @@ class _ModelData:
 
 
 def baseline_prediction(predictor: Any, data_root: Path, count: int,
-                        batch_size: int = 32) -> tuple[Tensor, Tensor, Tensor]:
+                        batch_size: int = 32, split: str = "train"
+                        ) -> tuple[Tensor, Tensor, Tensor]:
     """The trivial baseline: mean raw output (1, M, 16) of the network over up to ``count``
     training images (spread evenly), with the mean rotation (1, 3, 3) and translation (1, 3)
-    of their labels.
+    of their labels. ``split``: the split those images come from (``sq-mitsuba demo`` takes
+    its own test images when the checkpoint stores no baseline).
 
     Raises:
-        ValueError: the dataset has no training images.
+        ValueError: the split has no images.
     """
     from sq_mitsuba.data.spe3r import Spe3rDataset
 
-    train = Spe3rDataset(data_root, "train", image_size=predictor.image_size, num_surface=1,
+    train = Spe3rDataset(data_root, split, image_size=predictor.image_size, num_surface=1,
                          num_occupancy=2)
     if len(train) == 0:
-        raise ValueError(f"{data_root}: no training images for the baseline (the 'train' split "
+        raise ValueError(f"{data_root}: no images for the baseline (the {split!r} split "
                          "is empty); evaluate without it (--no-baseline)")
     camera = train.camera.rescaled(predictor.image_size, predictor.image_size)
     indices = evenly(len(train), count)

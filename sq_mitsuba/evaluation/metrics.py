@@ -14,7 +14,8 @@ Chamfer conventions (both reported, always named, because published numbers mix 
 - ``"occnet"``: 0.5 (mean_x min_y |x - y|_2 + mean_y min_x |x - y|_2), as Occupancy Networks,
   Neural Parts and SuperDec report.
 
-Nearest neighbours come from a KD-tree per batch item (scipy), exact for both norms; metrics
+Nearest neighbours come from a KD-tree per batch item
+(:func:`sq_mitsuba.geometry.nearest.nearest_neighbours`), exact for both norms; metrics
 carry no gradient (the training loss lives in :mod:`sq_mitsuba.learning.losses`).
 """
 
@@ -27,6 +28,7 @@ import torch
 from torch import Tensor
 
 from sq_mitsuba.checks import check_tensor
+from sq_mitsuba.geometry.nearest import nearest_neighbours
 from sq_mitsuba.geometry.rotation import quaternion_angle, rotation_angle
 from sq_mitsuba.render.silhouette import mask_iou
 
@@ -65,14 +67,6 @@ def _clouds(name: str, points: Tensor, mask: Tensor | None) -> list[np.ndarray]:
     return clouds
 
 
-def _nearest_distances(source: np.ndarray, target: np.ndarray, p: float) -> np.ndarray:
-    """Distance (|source|,) under the L``p`` norm from each source point to the target."""
-    from scipy.spatial import cKDTree
-
-    distances, _ = cKDTree(target).query(source, k=1, p=p)
-    return distances
-
-
 def _directional_means(pred: Tensor, gt: Tensor, p: float, pred_mask: Tensor | None,
                        gt_mask: Tensor | None, power: int = 1) -> tuple[Tensor, Tensor]:
     """(B,) means of nearest distances**power pred -> gt and gt -> pred."""
@@ -80,8 +74,8 @@ def _directional_means(pred: Tensor, gt: Tensor, p: float, pred_mask: Tensor | N
         raise ValueError(f"pred, gt: batch sizes differ ({pred.shape[0]} vs {gt.shape[0]})")
     forward, backward = [], []
     for a, b in zip(_clouds("pred", pred, pred_mask), _clouds("gt", gt, gt_mask), strict=True):
-        forward.append(np.mean(_nearest_distances(a, b, p) ** power))
-        backward.append(np.mean(_nearest_distances(b, a, p) ** power))
+        forward.append(np.mean(nearest_neighbours(a, b, p)[0] ** power))
+        backward.append(np.mean(nearest_neighbours(b, a, p)[0] ** power))
     return (torch.tensor(forward, dtype=torch.float64),
             torch.tensor(backward, dtype=torch.float64))
 

@@ -9,6 +9,8 @@ A checkpoint is a ``torch.save`` of one dictionary::
                            # NetworkConfig as a dict
         "model": {...},    # SuperquadricNet.state_dict()
         "camera": {...},   # Camera.to_speed_dict() of the dataset camera
+        "baseline": {...}, # optional: the trivial baseline ("raw" (1, M, 16), "rotation"
+                           # (1, 3, 3), "translation" (1, 3)), see checkpoint_baseline
         ...                # anything else the training adds (optimiser state, step, metrics)
     }
 
@@ -39,6 +41,7 @@ __all__ = [
     "FORMAT",
     "SHIPPED_MODEL",
     "VERSION",
+    "checkpoint_baseline",
     "checkpoint_payload",
     "load_model",
     "model_from_checkpoint",
@@ -237,7 +240,35 @@ def load_model(path: str | os.PathLike[str] | None = None, *, fast: bool = False
                 "train one with `sq-mitsuba train` and pass its checkpoint: load_model(path)")
         path = SHIPPED_MODEL
     path = Path(path)
-    model, camera = model_from_checkpoint(read_checkpoint(path), str(path))
+    payload = read_checkpoint(path)
+    model, camera = model_from_checkpoint(payload, str(path))
     predictor = Predictor(model.to(device), camera, fast=fast)
     predictor.source = path
+    predictor.baseline = checkpoint_baseline(payload, str(path))
     return predictor
+
+
+def checkpoint_baseline(payload: Mapping[str, Any],
+                        where: str = "checkpoint") -> tuple[Tensor, Tensor, Tensor] | None:
+    """The trivial baseline stored in a checkpoint, or None when it holds none.
+
+    Returns:
+        raw (1, M, 16), rotation (1, 3, 3), translation (1, 3), all float64.
+
+    Raises:
+        ValueError: ``<where>: baseline ...`` when the entry is malformed.
+    """
+    entry = payload.get("baseline")
+    if entry is None:
+        return None
+    shapes = {"raw": (1, _network_config(payload, where).num_primitives, 16),
+              "rotation": (1, 3, 3), "translation": (1, 3)}
+    if not isinstance(entry, Mapping) or set(entry) != set(shapes):
+        raise ValueError(f"{where}: baseline must hold exactly {sorted(shapes)}")
+    values = []
+    for key, shape in shapes.items():
+        value = entry[key]
+        if not isinstance(value, Tensor) or tuple(value.shape) != shape:
+            raise ValueError(f"{where}: baseline {key}: expected a tensor of shape {shape}")
+        values.append(value.double())
+    return values[0], values[1], values[2]

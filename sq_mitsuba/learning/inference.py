@@ -149,9 +149,20 @@ class Predictor:
         self.model = model
         self.camera = camera
         self.fast = bool(fast)
+        # Tried and not kept (`sq-mitsuba bench train`, batch 1, 128 px, 2-core EPYC shared
+        # with other jobs, load 2.5-4.3): torch.jit.trace + freeze of the folded network,
+        # 15.1 ms vs 12.4 ms (1 thread) and 60.7 vs 44.6 ms (2 threads); with
+        # optimize_for_inference 22.8 ms (1 thread). inference_mode (used by predict) took the
+        # folded network from 16.6 to 12.4 ms (1 thread). One intra-op thread beat two at
+        # batch 1 under that load (65 vs 168 ms), but predict leaves the process-wide thread
+        # count to the caller: compare the two rows of the bench on a quiet machine first.
         self._folded = model.folded(channels_last=True) if self.fast else None
         #: The checkpoint the model came from (set by ``load_model``), for records.
         self.source: Path | None = None
+        #: The trivial baseline stored with the checkpoint (set by ``load_model``), or None:
+        #: the mean raw output (1, M, 16) of the network over training images, with the mean
+        #: rotation (1, 3, 3) and translation (1, 3) of their labels.
+        self.baseline: tuple[Tensor, Tensor, Tensor] | None = None
 
     @property
     def image_size(self) -> int:

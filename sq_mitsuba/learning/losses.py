@@ -21,7 +21,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, fields
 
-import numpy as np
 import torch
 from torch import Tensor
 from torch.nn import functional as F
@@ -29,6 +28,7 @@ from torch.nn import functional as F
 from sq_mitsuba.checks import check_tensor
 from sq_mitsuba.config import non_negative
 from sq_mitsuba.geometry.assembly import Assembly
+from sq_mitsuba.geometry.nearest import gathered_differences, matched_indices
 from sq_mitsuba.geometry.rotation import rotation_angle
 from sq_mitsuba.render.silhouette import SilhouetteRenderer, assembly_camera_vertices
 
@@ -124,14 +124,6 @@ def total_loss(terms: dict[str, Tensor], weights: LossWeights | None = None) -> 
 # ------------------------------------------------------------------------------- Chamfer
 
 
-def _nearest(source: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """Index (|source|,) of each source point's nearest target point (Euclidean)."""
-    from scipy.spatial import cKDTree
-
-    _, index = cKDTree(target).query(source, k=1)
-    return index
-
-
 def chamfer_loss(pred_points: Tensor, pred_mask: Tensor | None, target: Tensor) -> Tensor:
     """Squared-L2 Chamfer distance (paper Eq. 12), mean over the batch.
 
@@ -139,8 +131,8 @@ def chamfer_loss(pred_points: Tensor, pred_mask: Tensor | None, target: Tensor) 
     plus mean over target points of the squared distance to the nearest predicted point.
     Equal in value and gradient to the dense form (all pairwise distances, min per row and
     column) but O((N + K) log(N + K)) per item: nearest-neighbour indices come from a KD-tree
-    (scipy, no gradient), and the gradient flows through the differences of the matched
-    pairs, which is exactly where the dense form's min sends it.
+    (:mod:`sq_mitsuba.geometry.nearest`, no gradient), and the gradient flows through the
+    differences of the matched pairs, which is exactly where the dense form's min sends it.
 
     Args:
         pred_points: (B, N, 3), e.g. an assembly's surface samples.
@@ -173,20 +165,9 @@ def chamfer_loss(pred_points: Tensor, pred_mask: Tensor | None, target: Tensor) 
                              f"got {shape}")
         keep = pred_mask.to(pred_points.device)
         keep = keep | ~keep.any(dim=1, keepdim=True)  # an empty item keeps all its points
-    pred_np = pred_points.detach().to("cpu", torch.float64).numpy()
-    target_np = target.detach().to("cpu", torch.float64).numpy()
-    keep_np = keep.cpu().numpy()
-    to_target = np.zeros((batch, count), dtype=np.int64)  # points that do not count: any
-    to_pred = np.empty((batch, target.shape[1]), dtype=np.int64)
-    for item in range(batch):  # one KD-tree per item and direction
-        kept = np.flatnonzero(keep_np[item])
-        to_target[item, kept] = _nearest(pred_np[item, kept], target_np[item])
-        to_pred[item] = kept[_nearest(target_np[item], pred_np[item, kept])]
-    device = pred_points.device
-    to_target_t = torch.from_numpy(to_target).to(device)[..., None].expand(-1, -1, 3)
-    to_pred_t = torch.from_numpy(to_pred).to(device)[..., None].expand(-1, -1, 3)
-    forward = (pred_points - target.gather(1, to_target_t)).square().sum(-1)  # (B, N)
-    backward = (target - pred_points.gather(1, to_pred_t)).square().sum(-1)  # (B, K)
+    to_target, to_pred = matched_indices(pred_points, keep, target)
+    forward = gathered_differences(pred_points, target, to_target).square().sum(-1)  # (B, N)
+    backward = gathered_differences(target, pred_points, to_pred).square().sum(-1)  # (B, K)
     weight = keep.to(pred_points.dtype)
     forward_mean = (forward * weight).sum(1) / weight.sum(1)
     return (forward_mean + backward.mean(1)).mean()

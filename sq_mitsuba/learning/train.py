@@ -74,6 +74,7 @@ from sq_mitsuba.checks import value_checks
 from sq_mitsuba.config import to_dict
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.camera import Camera
+from sq_mitsuba.geometry.nearest import nearest_neighbours
 from sq_mitsuba.geometry.rotation import rotation_angle
 from sq_mitsuba.io import atomic_path, atomic_write_json, atomic_write_text
 from sq_mitsuba.learning.augment import augment_batch, check_rotation_exact
@@ -138,6 +139,8 @@ class TrainResult:
     "Every validation of the run so far (resumed runs include the earlier ones)."
     images_per_second: float = float("nan")
     "Mean training throughput of this call (after its first step, which compiles kernels)."
+    train_seconds: float = 0.0
+    "Wall time of this call's steps (validation, checkpoints and set-up excluded)."
 
 
 # ------------------------------------------------------------------------------ schedule
@@ -468,6 +471,36 @@ def _loss_terms(output: Any, batch: dict[str, Any], config: TrainConfig, rendere
     return terms
 
 
+def _forward_loss(model: nn.Module, images: Tensor, k_matrix: Tensor, batch: dict[str, Any],
+                  config: TrainConfig, renderer: Any, reprojection_camera: Camera | None,
+                  generator: torch.Generator, device: torch.device
+                  ) -> tuple[dict[str, Tensor], Tensor | None]:
+    """The forward half of a training step: the network on ``images`` (B, C, S, S) and the
+    weighted loss of its output on ``batch`` (the local batch, see ``_TrainingData.batch``).
+
+    Returns:
+        (terms, loss): the loss terms with a non-zero weight and their weighted sum, each a
+        scalar; ({}, None) when the network's outputs are not finite.
+    """
+    output = model(images, k_matrix)
+    if not (bool(torch.isfinite(output.raw).all()) and bool(
+            torch.isfinite(output.translation).all()) and bool(
+            torch.isfinite(output.rotation).all())):
+        return {}, None
+    batch = {k: v.to(device) if isinstance(v, Tensor) else v for k, v in batch.items()}
+    terms = _loss_terms(output, batch, config, renderer, reprojection_camera, generator)
+    return terms, total_loss(terms, config.loss.weights)
+
+
+def _gradient_norm(model: nn.Module, grad_clip: float | None) -> float:
+    """Norm of the gradient of every parameter, before clipping it to ``grad_clip`` (None:
+    no clipping)."""
+    if grad_clip is not None:
+        return float(nn.utils.clip_grad_norm_(model.parameters(), grad_clip))
+    return float(torch.linalg.vector_norm(torch.stack([
+        p.grad.norm() for p in model.parameters() if p.grad is not None])))
+
+
 # ------------------------------------------------------------------------------ validation
 
 
@@ -477,16 +510,14 @@ def chamfer_l1_paper(pred: Tensor, pred_keep: Tensor, gt: Tensor) -> Tensor:
     :func:`sq_mitsuba.evaluation.metrics.chamfer_l1` with ``"paper"``, which sits in a higher
     layer). pred (B, N, 3) with pred_keep (B, N) bool (an item keeping none keeps all);
     gt (B, K, 3)."""
-    from scipy.spatial import cKDTree
-
     values = []
     pred_np = pred.detach().to("cpu", torch.float64).numpy()
     keep_np = pred_keep.detach().cpu().numpy()
     gt_np = gt.detach().to("cpu", torch.float64).numpy()
     for a, keep, b in zip(pred_np, keep_np, gt_np, strict=True):
         a = a[keep] if keep.any() else a
-        forward, _ = cKDTree(b).query(a, k=1, p=1)
-        backward, _ = cKDTree(a).query(b, k=1, p=1)
+        forward = nearest_neighbours(a, b, p=1)[0]
+        backward = nearest_neighbours(b, a, p=1)[0]
         values.append(forward.mean() + backward.mean())
     return torch.tensor(values, dtype=torch.float64)
 
@@ -717,8 +748,8 @@ def _mitsuba_for(device: torch.device, deterministic: bool) -> Iterator[None]:
 
 
 def train(config: TrainConfig | None, data_root: str | Path, out_dir: str | Path, *,
-          resume: bool = False, max_steps: int | None = None, progress: bool = True
-          ) -> TrainResult:
+          resume: bool = False, max_steps: int | None = None, progress: bool = True,
+          max_seconds: float | None = None) -> TrainResult:
     """Train (or resume) a run; see the module docstring for what it writes.
 
     Args:
@@ -731,6 +762,9 @@ def train(config: TrainConfig | None, data_root: str | Path, out_dir: str | Path
         max_steps: stop after this many steps in total (the schedule still spans every epoch;
             a later ``resume`` continues); None: run to the end.
         progress: show a progress bar (rank 0).
+        max_seconds: stop after the first step that ends this many seconds (wall clock,
+            validations and checkpoints included) after the first step started, writing
+            ``last.pt`` (a later ``resume`` continues); None: no time limit.
 
     Returns:
         A :class:`TrainResult`.
@@ -746,6 +780,8 @@ def train(config: TrainConfig | None, data_root: str | Path, out_dir: str | Path
     data_root, out_dir = Path(data_root), Path(out_dir)
     if max_steps is not None and max_steps < 0:
         raise TrainError(f"max_steps: expected >= 0, got {max_steps}")
+    if max_seconds is not None and not max_seconds > 0:
+        raise TrainError(f"max_seconds: expected > 0, got {max_seconds}")
     env_rank = int(os.environ.get("RANK", "0"))
     # Checks before any work: the run folder (rank 0 writes), the dataset's presence.
     if env_rank == 0:
@@ -779,7 +815,7 @@ def train(config: TrainConfig | None, data_root: str | Path, out_dir: str | Path
     world = _start_distributed(device)
     try:
         return _run(config, data_root, out_dir, checkpoint, fingerprint, device, world,
-                    max_steps, progress, Spe3rDataset, SuperquadricNet)
+                    max_steps, progress, Spe3rDataset, SuperquadricNet, max_seconds)
     finally:
         if world.owns_group:
             import torch.distributed as dist
@@ -789,7 +825,8 @@ def train(config: TrainConfig | None, data_root: str | Path, out_dir: str | Path
 
 def _run(config: TrainConfig, data_root: Path, out_dir: Path, checkpoint: dict[str, Any] | None,
          fingerprint: str, device: torch.device, world: _World, max_steps: int | None,
-         progress: bool, dataset_class: Any, network_class: Any) -> TrainResult:
+         progress: bool, dataset_class: Any, network_class: Any,
+         max_seconds: float | None = None) -> TrainResult:
     cfg = config
     if cfg.optim.batch_size % world.size:
         raise TrainError(f"optim.batch_size: {cfg.optim.batch_size} does not split over "
@@ -797,13 +834,15 @@ def _run(config: TrainConfig, data_root: Path, out_dir: Path, checkpoint: dict[s
     size = cfg.network.image_size
     with _mitsuba_for(device, cfg.reprojection.deterministic):
         return _train_loop(cfg, data_root, out_dir, checkpoint, fingerprint, device, world,
-                           max_steps, progress, dataset_class, network_class, size)
+                           max_steps, progress, dataset_class, network_class, size,
+                           max_seconds)
 
 
 def _train_loop(cfg: TrainConfig, data_root: Path, out_dir: Path,
                 checkpoint: dict[str, Any] | None, fingerprint: str, device: torch.device,
                 world: _World, max_steps: int | None, progress: bool, dataset_class: Any,
-                network_class: Any, size: int) -> TrainResult:
+                network_class: Any, size: int, max_seconds: float | None = None
+                ) -> TrainResult:
     from sq_mitsuba.learning.checkpoint import write_checkpoint
     from sq_mitsuba.render.silhouette import SilhouetteRenderer
 
@@ -942,6 +981,7 @@ def _train_loop(cfg: TrainConfig, data_root: Path, out_dir: Path,
         bar = tqdm(total=end_step, initial=start_step, unit="step", desc="train",
                    dynamic_ncols=True)
     timed_images, timed_seconds = 0, 0.0
+    stop_at = None if max_seconds is None else time.perf_counter() + max_seconds
     try:
         for step in range(start_step, end_step):
             tick = time.perf_counter()
@@ -956,31 +996,18 @@ def _train_loop(cfg: TrainConfig, data_root: Path, out_dir: Path,
             # The inputs are checked once, in the cache; the per-call NaN scans of the
             # geometry and loss functions are switched off here and replaced by one check of
             # the outputs and one of the loss, which stop the run with a clear message.
-            terms: dict[str, Tensor] = {}
             with value_checks(False):
-                output = model(images_in, k_matrix)
-                finite = bool(torch.isfinite(output.raw).all()) and bool(
-                    torch.isfinite(output.translation).all()) and bool(
-                    torch.isfinite(output.rotation).all())
-                if finite:
-                    batch = {k: v.to(device) if isinstance(v, Tensor) else v
-                             for k, v in batch.items()}
-                    terms = _loss_terms(output, batch, cfg, renderer, reprojection_camera,
-                                        generator)
-                    loss = total_loss(terms, cfg.loss.weights)
-                    finite = bool(torch.isfinite(loss))
+                terms, loss = _forward_loss(model, images_in, k_matrix, batch, cfg, renderer,
+                                            reprojection_camera, generator, device)
+                finite = loss is not None and bool(torch.isfinite(loss))
             # Every process agrees before the backward pass (whose gradient all-reduce would
             # wait forever for a process that skipped it) and again after it.
             if _any(not finite, world):
                 raise _not_finite(step, terms, out_dir)
+            assert loss is not None
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
-            if cfg.optim.grad_clip is not None:
-                grad_norm = float(nn.utils.clip_grad_norm_(model.parameters(),
-                                                           cfg.optim.grad_clip))
-            else:
-                grad_norm = float(torch.linalg.vector_norm(torch.stack([
-                    p.grad.norm() for p in model.parameters() if p.grad is not None])))
+            grad_norm = _gradient_norm(model, cfg.optim.grad_clip)
             if _any(not math.isfinite(grad_norm), world):
                 raise _not_finite(step, {**terms, "gradient norm": torch.tensor(grad_norm)},
                                   out_dir)
@@ -993,6 +1020,7 @@ def _train_loop(cfg: TrainConfig, data_root: Path, out_dir: Path,
             values = _all_mean(values, world)
             seconds = time.perf_counter() - tick
             rate = cfg.optim.batch_size / seconds
+            result.train_seconds += seconds
             if step > start_step:  # the first step compiles kernels and fills caches
                 timed_images += cfg.optim.batch_size
                 timed_seconds += seconds
@@ -1032,11 +1060,16 @@ def _train_loop(cfg: TrainConfig, data_root: Path, out_dir: Path,
                     best = {"metric": name, "value": metrics[name], "step": done}
                     save(out_dir / BEST, done)
                     result.best_checkpoint = out_dir / BEST
-            if epoch_end or done == end_step or (
+            # Every process stops at the same step (rank 0's clock decides).
+            out_of_time = stop_at is not None and done < end_step and bool(
+                _broadcast_object(time.perf_counter() >= stop_at, world))
+            if epoch_end or done == end_step or out_of_time or (
                     cfg.checkpoint_every and done % cfg.checkpoint_every == 0):
                 save(out_dir / LAST, done)
                 result.last_checkpoint = out_dir / LAST
                 _barrier(world)
+            if out_of_time:
+                break
     finally:
         if bar is not None:
             bar.close()

@@ -165,8 +165,14 @@ def run_suites(names: Sequence[str], options: BenchOptions, write: bool = False,
 
 def write_report(report: Report, path: Path = BENCHMARKS_MD) -> None:
     """Replace this suite's section of ``path`` (or append it), atomically."""
-    start, end = f"<!-- bench:{report.suite}:start -->", f"<!-- bench:{report.suite}:end -->"
-    block = f"{start}\n{report.to_markdown()}{end}"
+    write_section(report.suite, report.to_markdown(), path)
+
+
+def write_section(name: str, markdown: str, path: Path = BENCHMARKS_MD) -> None:
+    """Replace the section ``name`` of ``path`` (between ``<!-- bench:NAME:start/end -->``)
+    by ``markdown``, or append it, atomically."""
+    start, end = f"<!-- bench:{name}:start -->", f"<!-- bench:{name}:end -->"
+    block = f"{start}\n{markdown}{end}"
     text = path.read_text(encoding="utf-8") if path.exists() else (
         "# Benchmarks\n\nLatest figures of `sq-mitsuba bench SUITE --write`, one section per "
         "suite, each with the machine and date it was measured on. Median and interquartile "

@@ -1,0 +1,44 @@
+"""``sq-mitsuba export``: a training checkpoint in, a small inference checkpoint out."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from sq_mitsuba.cli._options import add_config_options, config_from_args
+
+HELP = "export a training checkpoint for inference (what the package ships)"
+DESCRIPTION = """\
+Write an inference checkpoint from a training checkpoint (RUN/best.pt): the config, the
+dataset camera and the weights (half precision unless --no-half), the trivial baseline
+computed with those weights over training images of --data (skipped without --data), and a
+record of the run it came from; no optimiser, scheduler or RNG state. The shipped model
+(sq_mitsuba/learning/weights/model.pt) is such a file. Written atomically; a corrupt or
+mismatched checkpoint, or a dataset without training images, is a one-line error (exit 2)
+before anything is written."""
+
+FLAGS = {"half": "--half", "baseline_images": "--baseline-images"}
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    from sq_mitsuba.evaluation.export import ExportOptions
+
+    parser = subparsers.add_parser("export", help=HELP, description=DESCRIPTION,
+                                   formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--checkpoint", type=Path, required=True, metavar="PT",
+                        help="training checkpoint (e.g. RUN/best.pt)")
+    parser.add_argument("--data", type=Path, default=None, metavar="DIR",
+                        help="the training dataset, for the baseline (default: no baseline)")
+    parser.add_argument("--out", type=Path, required=True, metavar="PT",
+                        help="inference checkpoint to write")
+    add_config_options(parser, ExportOptions, FLAGS)
+    parser.set_defaults(func=_run)
+
+
+def _run(args: argparse.Namespace) -> int:
+    from sq_mitsuba.evaluation.export import ExportOptions, export_model
+
+    path = export_model(args.checkpoint, args.data, args.out,
+                        config_from_args(ExportOptions, args))
+    print(f"wrote {path} ({path.stat().st_size / 2**20:.1f} MiB)")
+    return 0
