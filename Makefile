@@ -8,14 +8,16 @@ PIP    := $(PY) -m pip
 STAMP  := $(VENV)/.installed
 TORCH  := torch==2.13.0
 # Dr.Jit's LLVM backend aborts on libLLVM 15; any libLLVM >= 17 works.
-LLVM_GLOB := /usr/lib/*/libLLVM-1[7-9]*.so* /usr/lib/*/libLLVM-[2-9][0-9]*.so* /usr/lib/llvm-1[7-9]/lib/libLLVM*.so* /usr/lib/llvm-[2-9][0-9]/lib/libLLVM*.so*
+LLVM_GLOB := /usr/lib/*/libLLVM.so.1[7-9]* /usr/lib/*/libLLVM.so.[2-9][0-9]* /usr/lib/*/libLLVM-1[7-9]*.so* /usr/lib/*/libLLVM-[2-9][0-9]*.so* /usr/lib/llvm-1[7-9]/lib/libLLVM*.so* /usr/lib/llvm-[2-9][0-9]/lib/libLLVM*.so*
 
 .PHONY: setup llvm test lint bench clean demo demo-train
 
 setup: llvm $(STAMP)
 
 llvm:
-	@if ls $(LLVM_GLOB) >/dev/null 2>&1; then :; else \
+	@# One existing match is enough (ls over all the patterns fails when any one is absent).
+	@found=; for f in $(LLVM_GLOB); do [ -e "$$f" ] && found=1; done; \
+	if [ -n "$$found" ]; then :; else \
 	  echo "libLLVM >= 17 not found: installing Debian's libllvm19"; \
 	  if [ "$$(id -u)" = 0 ]; then SUDO=; else SUDO=sudo; fi; \
 	  $$SUDO apt-get update -qq && $$SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libllvm19; \
