@@ -45,7 +45,6 @@ drawn at the rendered resolution.
 
 from __future__ import annotations
 
-import math
 import os
 import shutil
 import tempfile
@@ -622,18 +621,12 @@ def _write_outputs(records: Sequence[dict[str, Any]], data: Path, out: Path,
             "camera": camera.to_speed_dict(), **poses})
 
 
-def _number(value: Any) -> float:
-    try:
-        return float(value)
-    except (TypeError, ValueError):
-        return math.nan
-
-
 def _write_page(out: Path, options: DemoOptions, records: Sequence[dict[str, Any]],
                 table: dict[str, dict[str, tuple[float, float, float]]], checkpoint: str,
                 baseline_source: str, curves: bool, stages: dict[str, float],
                 wall: float) -> tuple[Path, Path]:
     from sq_mitsuba.evaluation.demo_page import DemoPage, PageImage, write_page
+    from sq_mitsuba.evaluation.evaluate import as_number
 
     preset = options.preset
     models = sorted({r["model"] for r in records})
@@ -665,13 +658,13 @@ def _write_page(out: Path, options: DemoOptions, records: Sequence[dict[str, Any
             pictures=[
                 (f"data/{record['model']}/images/{record['filename']}", "input image"),
                 (f"images/{stem}.network.png",
-                 f"network: 2D IoU {_number(record['metrics']['network']['iou_2d']):.3f}"),
+                 f"network: 2D IoU {as_number(record['metrics']['network']['iou_2d']):.3f}"),
                 (f"images/{stem}.refined.png",
-                 f"refined: 2D IoU {_number(refined['iou_2d']):.3f}"),
+                 f"refined: 2D IoU {as_number(refined['iou_2d']):.3f}"),
                 (f"images/{stem}.assembly.png", "refined assembly, one colour per primitive"),
                 (f"images/{stem}.truth.png", "ground-truth mesh at the true pose"),
             ],
-            metrics=[(METHOD_LABELS[m], {k: _number(record["metrics"][m][k])
+            metrics=[(METHOD_LABELS[m], {k: as_number(record["metrics"][m][k])
                                          for k in PAGE_METRICS})
                      for m in METHOD_LABELS],
             links=[

@@ -94,11 +94,12 @@ def _html_table(labels: dict[str, str], rows: Sequence[tuple[str, dict[str, floa
 
 def _markdown_table(labels: dict[str, str], rows: Sequence[tuple[str, dict[str, float]]]
                     ) -> str:
-    header = ["method", *labels.values()]
-    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    lines += ["| " + " | ".join([name, *(_value(values.get(k, math.nan)) for k in labels)])
-              + " |" for name, values in rows]
-    return "\n".join(lines)
+    from sq_mitsuba.evaluation.evaluate import markdown_table
+
+    table = markdown_table(
+        ["method", *labels.values()],
+        [[name, *(_value(values.get(k, math.nan)) for k in labels)] for name, values in rows])
+    return table.rstrip("\n")
 
 
 def _figure(path: str, caption: str, wide: bool = False) -> str:

@@ -243,7 +243,7 @@ def summarise(rows: Sequence[dict[str, Any]], keys: Sequence[str] = ("method",),
     for group, members in groups.items():
         stats = {}
         for metric in metrics:
-            values = np.array([_number(m.get(metric)) for m in members], dtype=np.float64)
+            values = np.array([as_number(m.get(metric)) for m in members], dtype=np.float64)
             values = values[np.isfinite(values)]
             stats[metric] = ((float(values.mean()), float(values.std()), float(np.median(values)))
                              if len(values) else (math.nan, math.nan, math.nan))
@@ -251,7 +251,8 @@ def summarise(rows: Sequence[dict[str, Any]], keys: Sequence[str] = ("method",),
     return out
 
 
-def _number(value: Any) -> float:
+def as_number(value: Any) -> float:
+    """``float(value)``, or NaN for a value that is not a number (a blank CSV cell, None)."""
     try:
         return float(value)
     except (TypeError, ValueError):

@@ -110,6 +110,12 @@ def time_callable(fn: Callable[[], object], repeats: int, warmup: int,
     return samples
 
 
+def load_average() -> float:
+    """The 1-minute load average (NaN where the platform has none): benchmark records carry it
+    because other processes on the cores inflate the timings."""
+    return os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+
+
 def cpu_model() -> str:
     try:
         with open("/proc/cpuinfo", encoding="utf-8") as handle:

@@ -23,7 +23,7 @@ import os
 import tempfile
 from pathlib import Path
 
-from sq_mitsuba.evaluation.bench import BenchOptions, Report, Timing, time_callable
+from sq_mitsuba.evaluation.bench import BenchOptions, Report, Timing, load_average, time_callable
 
 RESOLUTION = 128
 IMAGES = 4
@@ -122,7 +122,7 @@ def run(options: BenchOptions) -> Report:
         report.timings.append(Timing(
             "predict_files: network + overlay + OBJ/GLB/JSON/PNG, per image", whole,
             note="one image per call (renderer built per call)"))
-    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    load = load_average()
     report.notes.append(
         f"randomly initialised default network ({sum(p.numel() for p in network.parameters()):,}"
         f" parameters, M = {network.config.num_primitives}); dataset: 2 generated spacecraft x "

@@ -14,7 +14,7 @@ import time
 
 import torch
 
-from sq_mitsuba.evaluation.bench import BenchOptions, Report, Timing, time_callable
+from sq_mitsuba.evaluation.bench import BenchOptions, Report, Timing, load_average, time_callable
 
 BATCH = 32
 PRIMITIVES = 5
@@ -112,7 +112,7 @@ def run(options: BenchOptions) -> Report:
             f"{renderer.sppp * resolution**2} silhouette samples per image) against a "
             f"reference of sppp 256 (4 x 64): mean relative L2 error {100 * noise:.1f} % "
             f"({few} items)")
-    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    load = load_average()
     report.notes.append(f"1-minute load average at the end: {load:.2f} on {os.cpu_count()} cores "
                         "(the benchmark's own threads count; above ~2, other processes "
                         "inflate these timings)")

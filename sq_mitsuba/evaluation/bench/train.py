@@ -42,7 +42,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from sq_mitsuba.evaluation.bench import BENCHMARKS_MD, BenchOptions, Report, Timing
+from sq_mitsuba.evaluation.bench import BENCHMARKS_MD, BenchOptions, Report, Timing, load_average
 
 BATCH = 32
 INPUT = 128
@@ -237,10 +237,6 @@ class _Trainer:
         return times
 
 
-def _load() -> float:
-    return os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
-
-
 def _train_figures(report: Report, name: str, repeats: int) -> dict[str, float]:
     """Rows and notes of config ``name``; returns the median seconds of each part."""
     from sq_mitsuba.learning.train import _mitsuba_for
@@ -272,7 +268,7 @@ def _train_figures(report: Report, name: str, repeats: int) -> dict[str, float]:
         f"{name}.toml step parts (median of {repeats} decomposed steps, sum "
         f"{1e3 * whole:.0f} ms vs {1e3 * statistics.median(steps):.0f} ms for the real step): "
         f"{shares}; other = pose and taper terms, gradient clipping, AdamW; 1-minute load "
-        f"average after it: {_load():.2f}")
+        f"average after it: {load_average():.2f}")
     if name == "a":
         report.timings.append(Timing(
             "reprojection forward + backward, 128 x 128, level 3, spp 16, per image",
@@ -393,15 +389,16 @@ def _inference_figures(report: Report, options: BenchOptions) -> None:
             f"predict, batch {BATCH}, {INPUT} px: {name}, per image",
             [v / BATCH for v in values],
             note=f"{BATCH / statistics.median(values):.0f} images/s, {threads} thread(s)"))
-    report.notes.append(f"inference: 1-minute load average after it: {_load():.2f}")
+    report.notes.append(f"inference: 1-minute load average after it: {load_average():.2f}")
 
 
 def run(options: BenchOptions) -> Report:
     torch.set_num_threads(options.threads)
     report = Report("train", options=options)
     repeats = max(1, min(options.repeats, 5))  # each repeat is a training step of 32 images
-    report.notes.append(f"load average at the start: {_load():.2f} on {os.cpu_count()} cores "
-                        "(above ~2, other processes inflate these timings)")
+    report.notes.append(f"load average at the start: {load_average():.2f} on "
+                        f"{os.cpu_count()} cores (above ~2, other processes inflate these "
+                        "timings)")
     for name in ("a", "cpu"):
         _train_figures(report, name, repeats)
     _inference_figures(report, options)
@@ -540,7 +537,8 @@ def curves_report(curves: Sequence[Curve], minutes: float, data_root: Path,
     lines = ["### `sq-mitsuba bench curves`", "",
              f"Measured {_dt.date.today().isoformat()} on {platform.node() or 'host'} "
              f"({os.cpu_count()} cores, torch {torch.__version__}): {minutes:g} min of training "
-             f"per config on {data_root}; 1-minute load average at the end {_load():.2f}.", "",
+             f"per config on {data_root}; 1-minute load average at the end "
+             f"{load_average():.2f}.", "",
              "| config | images/s | training min | steps | val Chamfer-L1 |",
              "|---|---:|---:|---:|---:|"]
     for curve in curves:
