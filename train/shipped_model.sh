@@ -6,7 +6,7 @@
 #
 # 256 procedural spacecraft (catalogue seed 0: 228 train models, 28 test models covering all
 # 14 archetypes), 32 images each at 128 px under the default space scene, then this project's
-# CPU recipe (train/configs/cpu.toml) for 10 epochs, then evaluation on val and test.
+# CPU recipe (train/configs/cpu.toml) for 16 epochs, then evaluation on val and test.
 set -euo pipefail
 WORK=${1:-data/shipped}
 SQ=${SQ:-sq-mitsuba}
@@ -25,7 +25,7 @@ $SQ dataset render --models "$WORK/models" --out "$WORK/data" --images-per-model
 RESUME=""
 [ -f "$WORK/run/last.pt" ] && RESUME="--resume"
 $SQ train --config train/configs/cpu.toml --data "$WORK/data" --out "$WORK/run" \
-  --set optim.epochs=10 $RESUME
+  --set optim.epochs=16 $RESUME
 
 # 4. The inference checkpoint the package ships: half precision, with the trivial baseline.
 $SQ export --checkpoint "$WORK/run/best.pt" --data "$WORK/data" \

@@ -600,7 +600,9 @@ def sample_model(mesh: TaggedMesh, n_surface: int = 100_000, n_uniform: int = 10
     points, face = sample_triangles(mesh.vertices, mesh.faces, n_surface, rng)
     tri = mesh.vertices[mesh.faces]
     normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    # Zero-area faces keep a zero normal: area-weighted sampling never picks them.
+    length = np.linalg.norm(normals, axis=1, keepdims=True)
+    normals /= np.where(length > 0, length, 1.0)
     centre = (mesh.vertices.min(axis=0) + mesh.vertices.max(axis=0)) / 2
     cube_min = centre - UNIFORM_CUBE_SIDE / 2
     uniform = cube_min + UNIFORM_CUBE_SIDE * rng.random((n_uniform, 3))

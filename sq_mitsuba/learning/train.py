@@ -659,12 +659,18 @@ def plot_curves(rows: Sequence[dict[str, float]], val_rows: Sequence[dict[str, f
     figure = Figure(figsize=(12, 4))
     axes = figure.subplots(1, 1 + len(VAL_METRICS))
     steps = [r["step"] for r in rows]
+    settled: list[float] = []  # values after the first steps, which set the y range
+    skip = max(10, len(rows) // 50)
     for name in ("loss", *TERMS):
         values = [r.get(name) for r in rows]
         if any(v is not None and v > 0 for v in values):
             axes[0].plot(steps, [v if v is not None and v > 0 else np.nan for v in values],
                          label=name, linewidth=0.8)
+            settled += [v for v in values[skip:] if v is not None and v > 0]
     axes[0].set_yscale("log")
+    if settled:  # a regulariser starting near 0 (taper) would otherwise squash every curve
+        low, high = np.percentile(settled, [0.5, 100.0])
+        axes[0].set_ylim(0.5 * low, 2.0 * high)
     axes[0].set_xlabel("step")
     axes[0].set_title("training loss (global batch mean)")
     axes[0].legend(fontsize=7)
