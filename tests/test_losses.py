@@ -24,6 +24,7 @@ from sq_mitsuba.learning.losses import (
     LossWeights,
     chamfer_loss,
     occupancy_loss,
+    oriented_chamfer_loss,
     pose_loss,
     reprojection_loss,
     surface_chamfer_loss,
@@ -99,6 +100,52 @@ def test_chamfer_of_identical_clouds_is_zero_and_known_for_a_shift():
     a = torch.zeros(1, 1, 3, dtype=torch.float64)
     b = torch.tensor([[[0.0, 0.3, 0.0]]], dtype=torch.float64)
     assert float(chamfer_loss(a, None, b)) == pytest.approx(0.18, rel=1e-12)
+
+
+def test_oriented_chamfer_is_the_chamfer_of_the_turned_clouds():
+    pred, keep, target = clouds(seed=11)
+    generator = torch.Generator().manual_seed(12)
+    r_pred, r_true = (random_rotations(3, generator, torch.float64) for _ in range(2))
+    ours = oriented_chamfer_loss(pred, keep, r_pred, target, r_true)
+    reference = dense_chamfer(pred @ r_pred.transpose(1, 2), keep,
+                              target @ r_true.transpose(1, 2))
+    assert ours.item() == pytest.approx(reference.item(), rel=1e-12)
+    identity = torch.eye(3, dtype=torch.float64).expand(3, 3, 3)
+    assert oriented_chamfer_loss(pred, keep, identity, target, identity).item() == \
+        pytest.approx(chamfer_loss(pred, keep, target).item(), rel=1e-12)
+
+
+def test_oriented_chamfer_is_blind_to_a_change_of_body_frame_and_gradchecks():
+    # x_pred = S x_true with R_pred = R_true S^T shows the camera the same shape: no loss,
+    # though both the body-frame Chamfer and the rotation error are large.
+    generator = torch.Generator().manual_seed(13)
+    target = torch.rand(2, 25, 3, generator=generator, dtype=torch.float64) * \
+        torch.tensor([1.0, 0.4, 0.1], dtype=torch.float64)
+    s, r_true = random_rotations(2, generator, torch.float64), random_rotations(
+        2, generator, torch.float64)
+    moved = target @ s.transpose(1, 2)
+    assert float(oriented_chamfer_loss(moved, None, r_true @ s.transpose(1, 2), target,
+                                       r_true)) < 1e-24
+    assert float(chamfer_loss(moved, None, target)) > 1e-3
+    # Gradient through the predicted rotation (6D parameters) and points, float64.
+    d6 = r_true[:, :2, :].reshape(2, 6) + 0.1 * torch.randn(2, 6, generator=generator,
+                                                           dtype=torch.float64)
+    pred = (target + 0.05 * torch.randn_like(target))[:, :12].clone().requires_grad_()
+    d6.requires_grad_()
+    assert torch.autograd.gradcheck(
+        lambda p, d: oriented_chamfer_loss(p, None, rotation_6d_to_matrix(d), target, r_true),
+        (pred, d6), eps=1e-7, atol=1e-6)
+
+
+def test_oriented_chamfer_bad_input():
+    pred, _, target = clouds()
+    identity = torch.eye(3, dtype=torch.float64)
+    with pytest.raises(ValueError, match="pred_rotation"):
+        oriented_chamfer_loss(pred, None, identity.expand(2, 3, 3), target,
+                              identity.expand(3, 3, 3))
+    with pytest.raises(ValueError, match="gt_rotation"):
+        oriented_chamfer_loss(pred, None, identity.expand(3, 3, 3), target,
+                              torch.full((3, 3, 3), math.nan, dtype=torch.float64))
 
 
 def test_surface_chamfer_matches_metrics_chamfer_l2():
@@ -373,6 +420,23 @@ def test_pose_loss_is_invariant_under_the_model_symmetries(group):
         assert torch.allclose(off, torch.full_like(off, math.pi), atol=1e-6)
 
 
+def test_pose_loss_chordal_form_is_half_angle_sine_squared_and_keeps_symmetries():
+    generator = torch.Generator().manual_seed(14)
+    pred, true = random_rotations(6, generator, torch.float64), random_rotations(
+        6, generator, torch.float64)
+    t = torch.tensor([[0.0, 0.0, 8.0]], dtype=torch.float64).expand(6, 3)
+    angle, _ = pose_loss(pred, t, true, t)
+    chordal, _ = pose_loss(pred, t, true, t, rotation_form="chordal")
+    assert torch.allclose(chordal, torch.sin(angle / 2).square(), atol=1e-12)
+    symmetries = torch.stack([torch.eye(3, dtype=torch.float64), half_turn(2)])
+    # Same minimiser over the symmetries: sin^2(x / 2) increases on [0, pi].
+    angle_s, _ = pose_loss(pred, t, true, t, symmetries)
+    chordal_s, _ = pose_loss(pred, t, true @ half_turn(2), t, symmetries, "chordal")
+    assert torch.allclose(chordal_s, torch.sin(angle_s / 2).square(), atol=1e-12)
+    with pytest.raises(ValueError, match="rotation_form"):
+        pose_loss(pred, t, true, t, rotation_form="geodesic")
+
+
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_pose_loss_gradient_is_finite_at_zero_error(dtype):
     true = random_rotations(3, torch.Generator().manual_seed(10), dtype)
@@ -419,6 +483,7 @@ def test_loss_weights_defaults_and_config():
     weights = LossWeights()
     assert (weights.chamfer, weights.occupancy, weights.reprojection, weights.translation,
             weights.rotation, weights.overlap, weights.taper) == (10, 1, 1, 0.1, 0.1, 0.1, 0.01)
+    assert weights.oriented_chamfer == 0  # not in the paper
     assert weights.enabled() == ("chamfer", "occupancy", "reprojection", "translation",
                                  "rotation", "overlap", "taper")
     off = from_dict(LossWeights, {"reprojection": 0, "taper": 0.5})

@@ -11,7 +11,12 @@ The training objective is a weighted sum (:func:`total_loss`, weights :class:`Lo
 - ``rotation``, ``translation``: the SPEED pose errors (:func:`pose_loss`), the rotation one
   minimised over the model's symmetries;
 - ``overlap``: summed occupancy above a tolerance (:func:`overlap`; Eq. 18);
-- ``taper``: mean squared taper (:func:`taper_loss`).
+- ``taper``: mean squared taper (:func:`taper_loss`);
+- ``oriented_chamfer`` (not in the paper; off in its configurations): the Chamfer distance
+  between the assembly rotated by the predicted rotation and the mesh rotated by the true one
+  (:func:`oriented_chamfer_loss`). It scores the shape as the camera sees it, so it trains
+  rotation and shape together and is blind to any rotation that leaves the seen shape alike
+  (symmetries and near-symmetries alike, none of them listed).
 
 Convention: shapes are given per argument; every loss returns a scalar tensor (the mean over
 the batch) unless its docstring says otherwise.
@@ -37,6 +42,7 @@ __all__ = [
     "LossWeights",
     "chamfer_loss",
     "occupancy_loss",
+    "oriented_chamfer_loss",
     "overlap",
     "pose_loss",
     "reprojection_loss",
@@ -75,6 +81,9 @@ class LossWeights:
     "Weight of the overlap penalty mean relu(sum_m g_m - beta)."
     taper: float = non_negative(0.01)
     "Weight of the taper regulariser mean k^2."
+    oriented_chamfer: float = non_negative(0.0)
+    """Weight of the Chamfer distance between the assembly under the predicted rotation and the
+    mesh under the true one (not in the paper, so 0 by default)."""
 
     def enabled(self) -> tuple[str, ...]:
         """Names of the terms with a non-zero weight, in field order."""
@@ -179,6 +188,39 @@ def surface_chamfer_loss(assembly: Assembly, target: Tensor, level: int = 3) -> 
     points, inside_other = assembly.surface_points_with_mask(level)
     return chamfer_loss(points.flatten(1, 2), ~inside_other.flatten(1, 2),
                         target.to(points.dtype))
+
+
+def oriented_chamfer_loss(points: Tensor, keep: Tensor | None, pred_rotation: Tensor,
+                          target: Tensor, gt_rotation: Tensor) -> Tensor:
+    """:func:`chamfer_loss` of body-frame clouds each turned by its own rotation.
+
+    The predicted cloud is turned by the predicted rotation and the target by the true one,
+    both about the body origin, so translation plays no part. Where the paper's rotation loss
+    needs R_pred to equal R_true (up to listed symmetries), this needs only R_pred X_pred to
+    look like R_true X_true: an assembly and a rotation that together show the right shape from
+    the camera's side score well, whatever body frame they chose, and a model that is nearly
+    symmetric sends no contradictory gradients. The body-frame :func:`chamfer_loss` still
+    anchors the shape to the model's own frame.
+
+    Args:
+        points: (B, N, 3) predicted surface samples, body frame.
+        keep: (B, N) bool or None, as ``pred_mask`` of :func:`chamfer_loss`.
+        pred_rotation: (B, 3, 3) predicted body-to-camera rotation.
+        target: (B, K, 3) ground-truth surface points, body frame.
+        gt_rotation: (B, 3, 3) true body-to-camera rotation.
+
+    Returns:
+        Scalar tensor.
+    """
+    check_tensor("pred_rotation", pred_rotation, (3, 3), min_dims=3)
+    check_tensor("gt_rotation", gt_rotation, (3, 3), min_dims=3)
+    batch = points.shape[0]
+    if pred_rotation.shape != (batch, 3, 3) or gt_rotation.shape != (batch, 3, 3):
+        raise ValueError(f"pred_rotation, gt_rotation: expected ({batch}, 3, 3) each, got "
+                         f"{tuple(pred_rotation.shape)} and {tuple(gt_rotation.shape)}")
+    turned = points @ pred_rotation.transpose(-1, -2).to(points.dtype)
+    turned_target = target.to(points.dtype) @ gt_rotation.transpose(-1, -2).to(points.dtype)
+    return chamfer_loss(turned, keep, turned_target)
 
 
 # ------------------------------------------------------------------------------ occupancy
@@ -306,8 +348,8 @@ def reprojection_loss(assembly: Assembly, rotations: Tensor, translations: Tenso
 
 
 def pose_loss(pred_rotation: Tensor, pred_translation: Tensor, gt_rotation: Tensor,
-              gt_translation: Tensor, symmetries: Tensor | None = None
-              ) -> tuple[Tensor, Tensor]:
+              gt_translation: Tensor, symmetries: Tensor | None = None,
+              rotation_form: str = "angle") -> tuple[Tensor, Tensor]:
     """SPEED pose errors per item: rotation angle (radians) and relative translation error.
 
     rotation = min over the model's symmetries S of angle(R_pred, R_true S): R_true S shows
@@ -318,6 +360,13 @@ def pose_loss(pred_rotation: Tensor, pred_translation: Tensor, gt_rotation: Tens
 
     The angle comes from :func:`sq_mitsuba.geometry.rotation.rotation_angle` (atan2 form):
     its gradient is finite everywhere, zero error included.
+
+    With ``rotation_form="chordal"`` the rotation term is instead the squared Frobenius
+    distance / 8 = sin^2(angle / 2), in [0, 1], minimised over the same symmetries. Why offer
+    it: the angle's gradient has the same size at every error and points along the
+    geodesic, so over images whose poses the network cannot yet tell apart the gradients cancel
+    and a constant prediction is a stable point; the chordal gradient is linear in the true
+    matrix, so the network first learns its expectation given the image, a plain regression.
 
     Args:
         pred_rotation: (B, 3, 3); pred_translation: (B, 3).
@@ -344,8 +393,16 @@ def pose_loss(pred_rotation: Tensor, pred_translation: Tensor, gt_rotation: Tens
         raise ValueError("gt_translation: must be non-zero (the error is relative to it)")
     translation_term = torch.linalg.vector_norm(gt_translation - pred_translation,
                                                 dim=-1) / distance
+    if rotation_form not in ("angle", "chordal"):
+        raise ValueError(f"rotation_form: expected 'angle' or 'chordal', got {rotation_form!r}")
+
+    def error(pred: Tensor, true: Tensor) -> Tensor:
+        if rotation_form == "angle":
+            return rotation_angle(pred, true)
+        return (pred - true).square().sum((-1, -2)) / 8.0
+
     if symmetries is None:
-        return rotation_angle(pred_rotation, gt_rotation), translation_term
+        return error(pred_rotation, gt_rotation), translation_term
     check_tensor("symmetries", symmetries, (3, 3), min_dims=3)
     if symmetries.dim() == 3:
         symmetries = symmetries[None].expand(batch, -1, -1, -1)
@@ -353,8 +410,8 @@ def pose_loss(pred_rotation: Tensor, pred_translation: Tensor, gt_rotation: Tens
         raise ValueError(f"symmetries: expected (B, S, 3, 3) or (S, 3, 3) with B = {batch}, "
                          f"got {tuple(symmetries.shape)}")
     candidates = gt_rotation[:, None] @ symmetries.to(gt_rotation.dtype)  # (B, S, 3, 3)
-    angles = rotation_angle(pred_rotation[:, None], candidates)  # (B, S)
-    return angles.amin(dim=1), translation_term
+    errors = error(pred_rotation[:, None], candidates)  # (B, S)
+    return errors.amin(dim=1), translation_term
 
 
 # ------------------------------------------------------------------------ regularisers

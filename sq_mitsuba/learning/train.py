@@ -87,11 +87,12 @@ from sq_mitsuba.learning.cache import (
     open_point_cache,
 )
 from sq_mitsuba.learning.losses import (
+    chamfer_loss,
     occupancy_loss,
+    oriented_chamfer_loss,
     overlap,
     pose_loss,
     reprojection_loss,
-    surface_chamfer_loss,
     taper_loss,
     total_loss,
 )
@@ -110,7 +111,8 @@ LOG_FILE, VAL_FILE, CURVES_FILE = "log.csv", "val.csv", "curves.png"
 LAST, BEST, CONFIG_FILE = "last.pt", "best.pt", "config.json"
 CHECKPOINT_FORMAT, CHECKPOINT_VERSION = "sq_mitsuba.checkpoint", 1
 #: Loss terms in log order (the fields of LossWeights).
-TERMS = ("chamfer", "occupancy", "reprojection", "rotation", "translation", "overlap", "taper")
+TERMS = ("chamfer", "occupancy", "reprojection", "rotation", "translation", "overlap", "taper",
+         "oriented_chamfer")
 VAL_METRICS = ("chamfer_l1", "iou_2d", "rotation_error_deg")
 #: Config fields that may differ between a checkpoint and the run that resumes it.
 RESUME_FREE = frozenset({"data.cache_dir"})
@@ -436,9 +438,16 @@ def _loss_terms(output: Any, batch: dict[str, Any], config: TrainConfig, rendere
     weights = config.loss.weights
     assembly = output.assembly
     terms: dict[str, Tensor] = {}
-    if weights.chamfer:
-        terms["chamfer"] = surface_chamfer_loss(
-            assembly, batch["surface_points"].to(assembly.params), config.loss.level)
+    if weights.chamfer or weights.oriented_chamfer:
+        # One set of surface samples serves both Chamfer terms.
+        points, inside_other = assembly.surface_points_with_mask(config.loss.level)
+        points, keep = points.flatten(1, 2), ~inside_other.flatten(1, 2)
+        target = batch["surface_points"].to(points)
+        if weights.chamfer:
+            terms["chamfer"] = chamfer_loss(points, keep, target)
+        if weights.oriented_chamfer:
+            terms["oriented_chamfer"] = oriented_chamfer_loss(
+                points, keep, output.rotation, target, batch["rotation"])
     if weights.occupancy or weights.overlap:
         points = batch["occupancy_points"].to(assembly.params)
         if weights.occupancy:
@@ -463,7 +472,8 @@ def _loss_terms(output: Any, batch: dict[str, Any], config: TrainConfig, rendere
         rotation, translation = pose_loss(output.rotation, output.translation,
                                           batch["rotation"].to(output.rotation),
                                           batch["translation"].to(output.translation),
-                                          batch["symmetries"].to(output.rotation))
+                                          batch["symmetries"].to(output.rotation),
+                                          config.loss.rotation_form)
         terms["rotation"] = rotation.mean()
         terms["translation"] = translation.mean()
     if weights.taper:
@@ -715,6 +725,13 @@ def _set_rng_state(state: dict[str, Any]) -> None:
         torch.cuda.set_rng_state_all(state["cuda"])
 
 
+def _to_channels_last(model: nn.Module) -> None:
+    """Store ``model``'s 4-D weights channels-last and have it feed its encoder that way."""
+    model.to(memory_format=torch.channels_last)
+    if hasattr(model, "channels_last"):
+        model.channels_last = True
+
+
 def _unwrap(model: nn.Module) -> nn.Module:
     return model.module if hasattr(model, "module") else model
 
@@ -902,6 +919,8 @@ def _train_loop(cfg: TrainConfig, data_root: Path, out_dir: Path,
     if checkpoint is not None:
         model.load_state_dict(checkpoint["model"])
     model.to(device).train()
+    if cfg.channels_last:
+        _to_channels_last(model)
     if world.distributed:
         if device.type == "cuda":
             model = nn.SyncBatchNorm.convert_sync_batchnorm(model)

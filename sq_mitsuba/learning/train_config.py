@@ -78,6 +78,10 @@ class LossConfig:
     "Summed occupancy tolerated before the overlap penalty starts (paper Eq. 18)."
     level: int = in_range(0, 5, default=3)
     "Icosphere level of the assembly's surface samples for the Chamfer loss (3: 642 each)."
+    rotation_form: Literal["angle", "chordal"] = "angle"
+    """Form of the rotation term: "angle" (the paper's, radians) or "chordal" (squared
+    Frobenius distance / 8 = sin^2(angle / 2), smooth, its gradient linear in the true matrix;
+    both minimised over the model's symmetries)."""
 
 
 @dataclass(frozen=True)
@@ -174,6 +178,11 @@ class TrainConfig:
     "Seeds the network's initialisation, the data order, point sampling and augmentation."
     device: Literal["auto", "cpu", "cuda"] = "auto"
     "Where to train: auto = CUDA when available (Mitsuba's cuda variant), else the CPU."
+    channels_last: bool = True
+    """Train with the encoder's weights and activations channels-last (NHWC). The same
+    network up to float rounding; on the CPU its depthwise convolutions run far faster this way
+    (B0 forward + backward, batch 32, 2 cores: 123 against 69 images/s at 96 px, 54 against
+    40 at 128 px)."""
     checkpoint_every: int = non_negative(200)
     "Also write last.pt every this many steps (0: only at the end of each epoch)."
 

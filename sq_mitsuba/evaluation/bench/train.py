@@ -53,7 +53,7 @@ INFERENCE_TARGET_S = 0.005
 REPROJECTION_TARGET_S = 0.010
 PARTS = ("data", "encoder", "chamfer", "occupancy", "reprojection", "other")
 #: Loss terms timed together as one part of the decomposed step.
-_PART_TERMS = {"chamfer": ("chamfer",), "occupancy": ("occupancy", "overlap"),
+_PART_TERMS = {"chamfer": ("chamfer", "oriented_chamfer"), "occupancy": ("occupancy", "overlap"),
                "reprojection": ("reprojection",), "other": ("rotation", "translation", "taper")}
 _DEPTH = 2.0  # camera distance (m) of the synthetic poses: a unit-size model fills the frame
 
@@ -156,6 +156,10 @@ class _Trainer:
         self.data = SyntheticData(config)
         torch.manual_seed(config.seed)
         self.model = SuperquadricNet(config.network).train()
+        if config.channels_last:
+            from sq_mitsuba.learning.train import _to_channels_last
+
+            _to_channels_last(self.model)
         optim = config.optim
         self.optimizer = torch.optim.AdamW(self.model.parameters(), lr=optim.lr,
                                            betas=optim.betas, eps=optim.eps,
@@ -237,11 +241,16 @@ class _Trainer:
         return times
 
 
-def _train_figures(report: Report, name: str, repeats: int) -> dict[str, float]:
-    """Rows and notes of config ``name``; returns the median seconds of each part."""
+def _train_figures(report: Report, name: str, repeats: int, overrides: Sequence[str] = ()
+                   ) -> dict[str, float]:
+    """Rows and notes of config ``name`` with ``--set`` style ``overrides`` (a comparison row,
+    without target); returns the median seconds of each part."""
+    from sq_mitsuba.config import apply_overrides
     from sq_mitsuba.learning.train import _mitsuba_for
 
-    config = load_config(name)
+    config = apply_overrides(load_config(name), overrides)
+    label = f"{name}.toml" + "".join(f", {o}" for o in overrides)
+    target = None if overrides else TARGETS[name]
     size = config.network.image_size
     with _mitsuba_for(torch.device("cpu"), config.reprojection.deterministic):
         trainer = _Trainer(config)
@@ -255,17 +264,19 @@ def _train_figures(report: Report, name: str, repeats: int) -> dict[str, float]:
     rep = config.reprojection
     rendered = BATCH if rep.items is None else min(rep.items, BATCH)
     rate = BATCH / statistics.median(steps)
+    wanted = "" if target is None else f" (target >= {target:.0f})"
     report.timings.append(Timing(
-        f"train step, {name}.toml, per image", [s / BATCH for s in steps], 1 / TARGETS[name],
-        note=f"batch {BATCH}, {size} px input, {rate:.1f} images/s (target >= "
-             f"{TARGETS[name]:.0f}); reprojection {rendered} of {BATCH} items at "
-             f"{rep.resolution or size} px, level {rep.level}, spp {rep.spp}"))
+        f"train step, {label}, per image", [s / BATCH for s in steps],
+        None if target is None else 1 / target,
+        note=f"batch {BATCH}, {size} px input, {rate:.1f} images/s{wanted}; reprojection "
+             f"{rendered} of {BATCH} items at {rep.resolution or size} px, level {rep.level}, "
+             f"spp {rep.spp}; channels-last {'on' if config.channels_last else 'off'}"))
     medians = {p: statistics.median(t[p] for t in parts) for p in PARTS}
     whole = sum(medians.values())
     shares = ", ".join(f"{p} {1e3 * medians[p]:.0f} ms ({100 * medians[p] / whole:.0f} %)"
                        for p in PARTS)
     report.notes.append(
-        f"{name}.toml step parts (median of {repeats} decomposed steps, sum "
+        f"{label} step parts (median of {repeats} decomposed steps, sum "
         f"{1e3 * whole:.0f} ms vs {1e3 * statistics.median(steps):.0f} ms for the real step): "
         f"{shares}; other = pose and taper terms, gradient clipping, AdamW; 1-minute load "
         f"average after it: {load_average():.2f}")
@@ -401,6 +412,8 @@ def run(options: BenchOptions) -> Report:
                         "timings)")
     for name in ("a", "cpu"):
         _train_figures(report, name, repeats)
+    # The same recipe with the encoder channels-first: what channels-last buys, in one run.
+    _train_figures(report, "cpu", repeats, ("channels_last=false",))
     _inference_figures(report, options)
     report.notes.append(
         "training on synthetic in-memory batches (random assemblies' silhouettes and "
