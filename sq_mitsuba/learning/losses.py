@@ -41,6 +41,7 @@ __all__ = [
     "SILHOUETTE_LOSSES",
     "LossWeights",
     "chamfer_loss",
+    "counted_surface_samples",
     "occupancy_loss",
     "oriented_chamfer_loss",
     "overlap",
@@ -182,12 +183,21 @@ def chamfer_loss(pred_points: Tensor, pred_mask: Tensor | None, target: Tensor) 
     return (forward_mean + backward.mean(1)).mean()
 
 
-def surface_chamfer_loss(assembly: Assembly, target: Tensor, level: int = 3) -> Tensor:
-    """:func:`chamfer_loss` of an assembly's dual surface samples (642 per primitive at level
-    3) without those strictly inside another primitive, against ``target`` (B, K, 3)."""
+def counted_surface_samples(assembly: Assembly, level: int = 3) -> tuple[Tensor, Tensor]:
+    """An assembly's dual surface samples (642 per primitive at level 3) as one cloud, with
+    the mask of those that count in a Chamfer loss (not strictly inside another primitive).
+
+    Returns:
+        points (B, M * V, 3) and keep (B, M * V) bool, as :func:`chamfer_loss` takes them.
+    """
     points, inside_other = assembly.surface_points_with_mask(level)
-    return chamfer_loss(points.flatten(1, 2), ~inside_other.flatten(1, 2),
-                        target.to(points.dtype))
+    return points.flatten(1, 2), ~inside_other.flatten(1, 2)
+
+
+def surface_chamfer_loss(assembly: Assembly, target: Tensor, level: int = 3) -> Tensor:
+    """:func:`chamfer_loss` of :func:`counted_surface_samples` against ``target`` (B, K, 3)."""
+    points, keep = counted_surface_samples(assembly, level)
+    return chamfer_loss(points, keep, target.to(points.dtype))
 
 
 def oriented_chamfer_loss(points: Tensor, keep: Tensor | None, pred_rotation: Tensor,

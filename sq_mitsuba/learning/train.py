@@ -88,6 +88,7 @@ from sq_mitsuba.learning.cache import (
 )
 from sq_mitsuba.learning.losses import (
     chamfer_loss,
+    counted_surface_samples,
     occupancy_loss,
     oriented_chamfer_loss,
     overlap,
@@ -440,8 +441,7 @@ def _loss_terms(output: Any, batch: dict[str, Any], config: TrainConfig, rendere
     terms: dict[str, Tensor] = {}
     if weights.chamfer or weights.oriented_chamfer:
         # One set of surface samples serves both Chamfer terms.
-        points, inside_other = assembly.surface_points_with_mask(config.loss.level)
-        points, keep = points.flatten(1, 2), ~inside_other.flatten(1, 2)
+        points, keep = counted_surface_samples(assembly, config.loss.level)
         target = batch["surface_points"].to(points)
         if weights.chamfer:
             terms["chamfer"] = chamfer_loss(points, keep, target)
