@@ -43,7 +43,7 @@ bench: setup
 demo: setup
 	$(VENV)/bin/sq-mitsuba demo
 
-# The same after training a small model from scratch (10 to 15 min on 2 cores).
+# The same after training a small model from scratch (measured 2.6 min on 2 cores).
 demo-train: setup
 	$(VENV)/bin/sq-mitsuba demo --train
 

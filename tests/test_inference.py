@@ -189,10 +189,19 @@ def test_eval_mode_is_used_and_the_mode_restored(net, predictor):
 
 
 def test_fast_path_matches_eager(net, predictor):
+    """The folded, traced network at every batch size it meets (a trace may fix the batch
+    size, so each shape gets its own, and only a few are kept)."""
     x = two_scenes()
     fast = Predictor(net, CAMERA, fast=True)
     assert_same(fast.predict(x), predictor.predict(x), atol=1e-4)
     assert_same(fast.predict(scene(2 * SIZE)), predictor.predict(scene(2 * SIZE)), atol=1e-4)
+    three = torch.cat([x, x[:1].flip(-2)])
+    assert_same(fast.predict(three), predictor.predict(three), atol=1e-4)
+    assert_same(fast.predict(x), predictor.predict(x), atol=1e-4)  # a kept trace, reused
+    assert len(fast._traced) == 3
+    for batch in range(4, 7):
+        fast.predict(three[:1].expand(batch, -1, -1))
+    assert len(fast._traced) == 4
 
 
 def test_checkpoint_round_trip(net, predictor, tmp_path):

@@ -35,7 +35,7 @@ TINY = ROOT / "train" / "configs" / "tiny.toml"
 # Shrinks any config to fixture size without touching its loss structure, M or augmentation.
 SMALL = ["network.image_size=32", "optim.batch_size=4", "data.num_surface=200",
          "data.num_occupancy=256", "reprojection.resolution=32", "validation.images=2",
-         "validation.batch_size=2"]
+         "validation.batch_size=2", "reprojection.workers=0"]
 
 
 def _rows(path: Path) -> list[dict[str, str]]:
@@ -155,16 +155,40 @@ def reference_run(train_dataset, cache_dir, tmp_path_factory) -> Path:
     return out
 
 
+def _children(pid: int) -> list[int]:
+    """Process ids of ``pid``'s children (Linux /proc)."""
+    found = []
+    for status in Path("/proc").glob("[0-9]*/status"):
+        try:
+            fields = dict(line.split(":\t", 1) for line in status.read_text().splitlines()
+                          if ":\t" in line)
+        except OSError:
+            continue
+        if fields.get("PPid", "").strip() == str(pid):
+            found.append(int(status.parent.name))
+    return found
+
+
+def _state(pid: int) -> str:
+    try:
+        return next(line for line in Path(f"/proc/{pid}/status").read_text().splitlines()
+                    if line.startswith("State:"))
+    except (OSError, StopIteration):
+        return "Z"
+
+
 @pytest.mark.slow
 def test_sigkill_then_resume_repeats_the_uninterrupted_run(train_dataset, cache_dir,
                                                            reference_run, tmp_path, capsys):
+    """The killed run renders in two worker processes, the reference and the resumed run in
+    their own process: the workers change no bit, and die with the run."""
     out = tmp_path / "run"
     sets = ["--set", f"data.cache_dir={cache_dir}"]
     env = {**os.environ, "OMP_NUM_THREADS": str(torch.get_num_threads())}
     process = subprocess.Popen(
         [sys.executable, "-m", "sq_mitsuba", "train", "--config", str(TINY), "--data",
-         str(train_dataset), "--out", str(out), "--quiet", *sets], env=env,
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+         str(train_dataset), "--out", str(out), "--quiet", *sets, "--set",
+         "reprojection.workers=2"], env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
     deadline = time.monotonic() + 240
     try:
         while time.monotonic() < deadline:
@@ -175,10 +199,18 @@ def test_sigkill_then_resume_repeats_the_uninterrupted_run(train_dataset, cache_
             time.sleep(0.02)
         else:
             pytest.fail("the training run logged no 3 steps in time")
+        workers = _children(process.pid)
+        assert len(workers) == 2, workers
         os.kill(process.pid, signal.SIGKILL)
     finally:
         process.wait()
     assert process.returncode == -signal.SIGKILL
+    deadline = time.monotonic() + 30  # orphaned workers see their socket close and leave
+    while time.monotonic() < deadline and any(Path(f"/proc/{pid}").exists() and
+                                              "Z" not in _state(pid) for pid in workers):
+        time.sleep(0.05)
+    assert not [pid for pid in workers if Path(f"/proc/{pid}").exists() and "Z" not in
+                _state(pid)], "worker processes outlived the killed run"
     resumed_from = int(_read_checkpoint(out / "last.pt")["step"])
     assert 2 <= resumed_from <= 7
     code, err = _cli(["train", "--config", str(TINY), "--data", str(train_dataset), "--out",
@@ -189,9 +221,9 @@ def test_sigkill_then_resume_repeats_the_uninterrupted_run(train_dataset, cache_
     # The log is continuous: the kill's half-finished step is replaced, not repeated.
     assert [int(r["step"]) for r in rows] == list(range(1, resumed_from + 6))
     reference = {int(r["step"]): r for r in _rows(reference_run / "log.csv")}
-    # Bit for bit (the log holds exact float reprs): rendering runs on one Dr.Jit thread
-    # (reprojection.deterministic), so nothing depends on thread timing.
-    for row in rows[resumed_from:]:
+    # Bit for bit (the log holds exact float reprs), the killed run's steps too: rendering
+    # runs on one Dr.Jit thread per process, so nothing depends on thread timing.
+    for row in rows:
         expected = reference[int(row["step"])]
         for key in ("loss", "lr", "grad_norm", *TERMS):
             assert row[key] == expected[key], (row["step"], key, row[key], expected[key])

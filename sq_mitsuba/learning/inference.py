@@ -41,6 +41,8 @@ __all__ = ["Prediction", "Predictor", "prepare_images"]
 
 # Relative aspect-ratio difference below which a camera of another size is rescaled.
 _ASPECT_TOLERANCE = 1e-3
+# Traces of the fast path kept per Predictor (one per input shape seen, oldest dropped).
+_TRACES_KEPT = 4
 
 
 @dataclass(frozen=True)
@@ -137,8 +139,10 @@ class Predictor:
     Args:
         model: the network; used in eval mode (its own mode is restored after each call).
         camera: intrinsics of the images :meth:`predict` gets by default (the dataset camera).
-        fast: predict with a BatchNorm-folded, channels-last copy of the network (same output
-            up to ~1e-5 relative; faster on CPU). The copy is a snapshot of the weights now.
+        fast: predict with a BatchNorm-folded, channels-last copy of the network, traced and
+            frozen by TorchScript once per input shape (the same output up to ~1e-5 relative;
+            faster on CPU; the first call at a new batch size or device takes about a
+            second). The copy is a snapshot of the weights now.
     """
 
     def __init__(self, model: SuperquadricNet, camera: Camera, fast: bool = False) -> None:
@@ -149,14 +153,12 @@ class Predictor:
         self.model = model
         self.camera = camera
         self.fast = bool(fast)
-        # Tried and not kept (`sq-mitsuba bench train`, batch 1, 128 px, 2-core EPYC shared
-        # with other jobs, load 2.5-4.3): torch.jit.trace + freeze of the folded network,
-        # 15.1 ms vs 12.4 ms (1 thread) and 60.7 vs 44.6 ms (2 threads); with
-        # optimize_for_inference 22.8 ms (1 thread). inference_mode (used by predict) took the
-        # folded network from 16.6 to 12.4 ms (1 thread). One intra-op thread beat two at
-        # batch 1 under that load (65 vs 168 ms), but predict leaves the process-wide thread
-        # count to the caller: compare the two rows of the bench on a quiet machine first.
+        # Measured (`sq-mitsuba bench train`, batch 1, quiet 2-core EPYC): TorchScript's trace +
+        # freeze of the folded network takes 6.2 ms at 96 px against 8.7 ms eager (the eager
+        # time is mostly Python's per-module overhead at batch 1); optimize_for_inference was
+        # slower (11 ms), oneDNN graph fusion fails to compile this network.
         self._folded = model.folded(channels_last=True) if self.fast else None
+        self._traced: dict[tuple, torch.nn.Module] = {}
         #: The checkpoint the model came from (set by ``load_model``), for records.
         self.source: Path | None = None
         #: The trivial baseline stored with the checkpoint (set by ``load_model``), or None:
@@ -197,24 +199,71 @@ class Predictor:
         size = self.image_size
         x = resize_images(x.to(device=parameter.device, dtype=parameter.dtype), size)
         matrix = camera.rescaled(size, size).matrix(parameter.dtype, parameter.device)
-        was_training = network.training
-        network.eval()
-        try:
+        if self._folded is not None:
             with torch.inference_mode():
-                runner = network if self._folded is None else self._folded
-                output = runner(x, matrix)
-        finally:
-            network.train(was_training)
+                raw, rotation, translation, pixel, depth = self._traced_network(x, matrix)(
+                    x, matrix)
+        else:
+            was_training = network.training
+            if was_training:
+                network.eval()
+            try:
+                with torch.inference_mode():
+                    output = network(x, matrix)
+            finally:
+                if was_training:
+                    network.train()
+            raw, rotation, translation, pixel, depth = (output.raw, output.rotation,
+                                                        output.translation, output.pixel,
+                                                        output.depth)
         # Clones made outside inference mode are ordinary tensors, so callers (test-time
         # refinement) can start autograd from them.
-        rotation = output.rotation.clone()
+        rotation = rotation.clone()
         scale = rotation.new_tensor([width / size, height / size])
         return Prediction(
-            assembly=Assembly.from_raw(output.raw.clone()),
+            assembly=Assembly.from_raw(raw.clone()),
             rotation=rotation,
-            translation=output.translation.clone(),
+            translation=translation.clone(),
             quaternion=matrix_to_quaternion(rotation),
-            pixel=output.pixel.clone() * scale,
-            depth=output.depth.clone(),
+            pixel=pixel.clone() * scale,
+            depth=depth.clone(),
             camera=camera,
         )
+
+    def _traced_network(self, images: Tensor, matrix: Tensor) -> torch.nn.Module:
+        """The folded network traced and frozen for inputs like these (cached per shape, dtype
+        and device: a trace may fix the batch size); returns (raw, rotation, translation,
+        pixel, depth)."""
+        key = (tuple(images.shape), tuple(matrix.shape), images.dtype, images.device)
+        traced = self._traced.get(key)
+        if traced is None:
+            import warnings
+
+            module = OutputTuple(self._folded).eval()
+            # torch 2.13 (pinned) marks TorchScript deprecated; should a later torch drop it,
+            # the eager folded network runs instead (the same outputs, ~2.5 ms slower).
+            try:
+                with torch.no_grad(), warnings.catch_warnings():
+                    warnings.simplefilter("ignore", torch.jit.TracerWarning)
+                    warnings.simplefilter("ignore", DeprecationWarning)
+                    traced = torch.jit.freeze(torch.jit.trace(module, (images, matrix),
+                                                              check_trace=False))
+            except Exception:  # any failure to trace leaves the eager network, never an error
+                traced = module
+            if len(self._traced) >= _TRACES_KEPT:
+                self._traced.pop(next(iter(self._traced)))  # the oldest
+            self._traced[key] = traced
+        return traced
+
+
+class OutputTuple(torch.nn.Module):
+    """``network``'s outputs as a tuple (raw, rotation, translation, pixel, depth): TorchScript
+    traces tuples, not dataclasses."""
+
+    def __init__(self, network: torch.nn.Module) -> None:
+        super().__init__()
+        self.network = network
+
+    def forward(self, images: Tensor, matrix: Tensor) -> tuple[Tensor, ...]:
+        out = self.network(images, matrix)
+        return out.raw, out.rotation, out.translation, out.pixel, out.depth

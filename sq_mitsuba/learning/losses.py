@@ -292,10 +292,11 @@ def reprojection_loss(assembly: Assembly, rotations: Tensor, translations: Tenso
 
     Per item: ``mean over pixels (coverage - mask)^2``, with coverage the silhouette of the
     merged primitive meshes rendered by the renderer's fused
-    :meth:`~sq_mitsuba.render.silhouette.SilhouetteRenderer.render_loss` (one BVH rebuild per
-    item; gradients from Mitsuba's projective integrator, w.r.t. the assembly parameters and
-    the pose). Without a gradient to compute (``torch.no_grad()`` or constant inputs) only
-    the forward images are rendered.
+    :meth:`~sq_mitsuba.render.silhouette.SilhouetteRenderer.render_mask_mse` (one BVH rebuild
+    per item, items shared among the renderer's worker processes if it has any; gradients from
+    Mitsuba's projective integrator, w.r.t. the assembly parameters and the pose). Without a
+    gradient to compute (``torch.no_grad()`` or constant inputs) only the forward images are
+    rendered.
 
     Args:
         assembly: batch size B (or 1, shared by every pose).
@@ -338,20 +339,9 @@ def reprojection_loss(assembly: Assembly, rotations: Tensor, translations: Tenso
             rotations = rotations[chosen.to(rotations.device)]
             translations = translations[chosen.to(translations.device)]
             masks = masks[chosen.to(masks.device)]
-    count = rotations.shape[0]
     vertices, faces = assembly_camera_vertices(assembly, rotations, translations, level)
-    if not (torch.is_grad_enabled() and vertices.requires_grad):
-        # No gradient wanted: a forward render only (render_loss would also run the backward).
-        coverage = renderer.render(vertices, faces)
-        return (coverage - masks.to(coverage)).square().flatten(1).mean(1).sum() / count
-    # The renderer hands each item's coverage over as float32 on the CPU.
-    target = masks.detach().to("cpu", torch.float32)
-
-    def per_item(coverage: Tensor, item: int) -> Tensor:
-        return (coverage - target[item]).square().mean()
-
-    loss, _ = renderer.render_loss(vertices, faces, per_item)
-    return loss / count
+    loss, _ = renderer.render_mask_mse(vertices, faces, masks)
+    return loss / rotations.shape[0]
 
 
 # ------------------------------------------------------------------------------------ pose

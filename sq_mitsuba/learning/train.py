@@ -28,8 +28,11 @@ Convention: on the CPU, the losses after a resume are bit-identical to an uninte
 vertex gradients atomically in thread order (6e-8 apart between two runs with 2 threads), and
 training amplifies such differences (two runs differed by 1e-3 in the loss after 5 steps of
 tiny.toml), so with ``reprojection.deterministic`` (the default) Dr.Jit renders on one thread
-during training (measured: a.toml steps take 1.3 x longer). Torch's CPU kernels are
-deterministic at a fixed thread count; a resumed run must use the same one.
+during training. The cores are used instead by ``reprojection.workers`` processes that share a
+step's rendered items, each on one thread: an item's samples depend on (seed, step, item)
+alone, so any number of workers gives the same losses bit for bit (tested), and a run may
+resume with another. Torch's CPU kernels are deterministic at a fixed thread count; a resumed
+run must use the same one.
 
 Convention: the training data are an endless stream of per-epoch permutations of the training
 images (epoch e's permutation drawn from the seed and e); step s takes the next
@@ -116,7 +119,7 @@ TERMS = ("chamfer", "occupancy", "reprojection", "rotation", "translation", "ove
          "oriented_chamfer")
 VAL_METRICS = ("chamfer_l1", "iou_2d", "rotation_error_deg")
 #: Config fields that may differ between a checkpoint and the run that resumes it.
-RESUME_FREE = frozenset({"data.cache_dir"})
+RESUME_FREE = frozenset({"data.cache_dir", "reprojection.workers"})
 _HIGHER_IS_BETTER = {"chamfer_l1": False, "iou_2d": True, "rotation_error_deg": False}
 _STREAMS = {"order": 1, "item": 2, "subset": 3, "render": 4, "torch": 5}
 
@@ -751,6 +754,22 @@ def _device_of(config: TrainConfig) -> torch.device:
     return torch.device("cpu")
 
 
+def render_workers(requested: int | None, device: torch.device, processes: int = 1) -> int:
+    """Worker processes for the reprojection renderer (see ``ReprojectionConfig.workers``).
+
+    Args:
+        requested: the config's value; None picks one per CPU core available to this process,
+            divided among ``processes`` training processes (0 when that leaves one).
+        device: the training device; CUDA renders in the training process (0).
+        processes: training processes on this machine (torchrun's world size).
+    """
+    from sq_mitsuba.render.silhouette_workers import default_worker_count
+
+    if device.type != "cpu":
+        return 0
+    return default_worker_count(processes) if requested is None else requested
+
+
 @contextlib.contextmanager
 def _mitsuba_for(device: torch.device, deterministic: bool) -> Iterator[None]:
     """Mitsuba's variant for ``device``; on the CPU with ``deterministic``, one Dr.Jit thread
@@ -777,8 +796,8 @@ def train(config: TrainConfig | None, data_root: str | Path, out_dir: str | Path
 
     Args:
         config: the run's config; None takes the checkpoint's when resuming, else the
-            defaults. Resuming with a config that differs (other than in ``data.cache_dir``)
-            is refused, naming the first differing field.
+            defaults. Resuming with a config that differs (other than in ``data.cache_dir``
+            and ``reprojection.workers``) is refused, naming the first differing field.
         data_root: SPE3R-layout dataset (``train`` split for training, ``val`` for validation).
         out_dir: run folder (created; must not hold a run unless ``resume``).
         resume: continue from ``out_dir/last.pt``.
@@ -953,7 +972,9 @@ def _train_loop(cfg: TrainConfig, data_root: Path, out_dir: Path,
         reprojection_camera = train_set.camera.rescaled(cfg.reprojection.resolution or size,
                                                         cfg.reprojection.resolution or size)
         renderer = SilhouetteRenderer(reprojection_camera, spp=cfg.reprojection.spp,
-                                      sppp=cfg.reprojection.sppp)
+                                      sppp=cfg.reprojection.sppp,
+                                      workers=render_workers(cfg.reprojection.workers, device,
+                                                             world.size))
     val_renderer = (SilhouetteRenderer(camera, spp=cfg.validation.spp)
                     if val_images is not None and world.main else None)
 
@@ -1098,6 +1119,8 @@ def _train_loop(cfg: TrainConfig, data_root: Path, out_dir: Path,
     finally:
         if bar is not None:
             bar.close()
+        if renderer is not None:
+            renderer.close()
         if log is not None:
             if log.rows and not (out_dir / CURVES_FILE).is_file():
                 with contextlib.suppress(Exception):

@@ -104,8 +104,13 @@ class ReprojectionConfig:
     """On the CPU, render with one Dr.Jit thread while training: Mitsuba's backward pass sums
     vertex gradients with atomic adds whose order varies between threads, so with several
     threads two runs (or a run and its resumption) differ in the last float bits, which
-    training amplifies. One thread repeats every run exactly; a step of a.toml takes 1.3 x
-    longer (measured on 2 cores: 9.8 instead of 12.6 images/s)."""
+    training amplifies. One thread repeats every run exactly. Worker processes (``workers``)
+    always render on one thread each, so they are exact either way."""
+    workers: int | None = in_range(0, 256, default=None)
+    """Processes that share the rendered items of a step, each on one Dr.Jit thread (CPU
+    only; the losses and gradients equal a one-process run's bit for bit, so a run may resume
+    with another count). None: one per CPU core available, shared among torchrun's processes
+    (none when that leaves one); 0: render in the training process."""
 
 
 @dataclass(frozen=True)

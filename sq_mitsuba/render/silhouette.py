@@ -4,23 +4,31 @@ A :class:`SilhouetteRenderer` holds one Mitsuba scene: a perspective sensor fixe
 (OpenCV frame, see :func:`sensor_dict`), a constant white environment, and one mesh slot whose
 vertex positions are swapped per batch item. With ``max_depth = 1`` a camera ray sees only the
 environment, so every pixel reads the fraction of its area *not* covered by the mesh:
-``coverage = 1 - image``. Gradients with respect to the vertices come from ``prb_projective``'s
-primarily visible silhouette sampling (``sppp`` samples per pixel); interior (``sppc``) and
-indirect (``sppi``) terms are zero for a mask and are switched off (``sppi > 0`` alone costs
-seconds per backward pass: it builds an indirect-silhouette guide every time).
+``coverage = 1 - image``. Gradients with respect to the vertices come from Mitsuba's projective
+sampling of the primarily visible silhouette (``sppp`` samples per pixel); interior (``sppc``)
+and indirect (``sppi``) terms are zero for a mask and are switched off (``sppi > 0`` alone
+costs seconds per backward pass: it builds an indirect-silhouette guide every time). The
+integrator is ``silhouette_projective`` (:mod:`sq_mitsuba.render.silhouette_integrator`):
+``prb_projective`` with its path-tracing loop replaced by one visibility test, which renders
+the same images and gradients bit for bit at about half the cost.
 
 Convention: the batch is a loop over items inside one ``torch.autograd.Function``: Mitsuba's
 ``batch`` sensor fails in the backward pass and ``dr.freeze`` refuses projective integrators.
 Each item costs one vertex update (a BVH rebuild) in the forward pass and one in the backward
 pass; the backward pass runs the items in reverse so that the last item, still in the scene,
 needs none.
+
+Convention: :meth:`SilhouetteRenderer.render_mask_mse` (the training loss) can spread its items
+over worker processes (``workers``), each rendering on one Dr.Jit thread. An item draws its
+samples from ``(seed, call, item)`` alone, so the pooled result equals a one-process,
+one-thread render bit for bit, whatever the number of workers.
 """
 
 from __future__ import annotations
 
 import math
 import weakref
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -31,7 +39,12 @@ from torch import Tensor
 from sq_mitsuba.checks import check_tensor
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.render.backend import mitsuba
+from sq_mitsuba.render.silhouette_integrator import register as register_integrator
+from sq_mitsuba.render.silhouette_workers import SilhouetteWorkers, WorkerError
 
+#: Integrators a renderer can use: the lean mask integrator (default) and Mitsuba's general
+#: ``prb_projective``, which renders the same images and gradients at about twice the cost.
+INTEGRATORS = ("silhouette_projective", "prb_projective")
 MESH_ID = "silhouette_mesh"
 VERTEX_KEY = f"{MESH_ID}.vertex_positions"
 DEFAULT_SPP = 16
@@ -154,6 +167,11 @@ class SilhouetteRenderer:
             4.5 % at 64 x 64 for 1 / 4 / 16); default :func:`default_sppp` (4 at 64 x 64,
             1 at 128 x 128: a fixed budget of silhouette samples per image).
         seed: base seed; every call draws fresh samples, reproducibly from this seed.
+        workers: processes that :meth:`render_mask_mse` spreads its items over (see
+            :mod:`sq_mitsuba.render.silhouette_workers`); 0 renders in this process. Started
+            on first use; CPU variants only.
+        integrator: ``"silhouette_projective"`` (:mod:`sq_mitsuba.render.silhouette_integrator`,
+            the lean one) or ``"prb_projective"`` (Mitsuba's general one, the reference).
 
     One Mitsuba scene is built on the first call and reused while the mesh topology (vertex
     count and faces) stays the same; a new topology rebuilds it. Recognising the topology costs
@@ -163,7 +181,8 @@ class SilhouetteRenderer:
     """
 
     def __init__(self, camera: Camera, spp: int = DEFAULT_SPP, sppp: int | None = None,
-                 seed: int = 0) -> None:
+                 seed: int = 0, workers: int = 0,
+                 integrator: str = "silhouette_projective") -> None:
         if not isinstance(camera, Camera):
             raise ValueError(f"camera: expected a Camera, got {type(camera).__name__}")
         if sppp is None:
@@ -171,6 +190,11 @@ class SilhouetteRenderer:
         for name, value in (("spp", spp), ("sppp", sppp)):
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"{name}: expected a positive integer, got {value!r}")
+        if isinstance(workers, bool) or not isinstance(workers, int) or not 0 <= workers <= 256:
+            raise ValueError(f"workers: expected an integer in [0, 256], got {workers!r}")
+        if integrator not in INTEGRATORS:
+            raise ValueError(f"integrator: expected one of {INTEGRATORS}, got {integrator!r}")
+        self.integrator = integrator
         self.camera = camera
         self.spp = spp
         self.sppp = sppp
@@ -184,6 +208,8 @@ class SilhouetteRenderer:
         self._loaded: tuple[int, int] | None = None  # (call, item) whose vertices the scene holds
         self._loaded_vertices: Any = None
         self._calls = 0
+        self.workers = workers
+        self._pool: Any = None
         # Convention: Mitsuba renders with fx on both axes; y is stretched to give fy.
         self._y_stretch = camera.fy / camera.fx
 
@@ -196,7 +222,13 @@ class SilhouetteRenderer:
     def __repr__(self) -> str:
         c = self.camera
         return (f"SilhouetteRenderer({c.width}x{c.height}, fx={c.fx:.2f}, spp={self.spp}, "
-                f"sppp={self.sppp}, variant={self._mi.variant()})")
+                f"sppp={self.sppp}, workers={self.workers}, variant={self._mi.variant()})")
+
+    def close(self) -> None:
+        """Stop the worker processes, if any were started (a later call starts new ones)."""
+        if self._pool is not None:
+            self._pool.close()
+            self._pool = None
 
     @property
     def scenes_built(self) -> int:
@@ -252,6 +284,8 @@ class SilhouetteRenderer:
 
     def _build_scene(self, num_vertices: int, faces: np.ndarray) -> None:
         mi = self._mi
+        if self.integrator == "silhouette_projective":
+            register_integrator()
         # Drop the old scene first: Dr.Jit traces virtual calls over every live instance.
         self._scene = self._params = self._integrator = self._loaded_vertices = None
         self._loaded = None
@@ -268,7 +302,7 @@ class SilhouetteRenderer:
         self._scene = mi.load_dict({
             "type": "scene",
             "integrator": {
-                "type": "prb_projective",
+                "type": self.integrator,
                 "max_depth": 1,
                 "sppc": 0,
                 "sppi": 0,
@@ -368,7 +402,8 @@ class SilhouetteRenderer:
         Equivalent to ``sum(loss_fn(c, i) for i, c in enumerate(render(vertices, faces)))``,
         but each item's vertices are loaded once (one BVH rebuild instead of two): the
         backward pass of an item runs right after its forward pass, with the gradient of its
-        loss, so a loss must be a sum of per-item terms (a reprojection loss is).
+        loss, so a loss must be a sum of per-item terms (a reprojection loss is). Runs in this
+        process; :meth:`render_mask_mse` is the same for a mask MSE, and can use ``workers``.
 
         Args:
             vertices: (B, V, 3) camera-frame vertices (see :meth:`render`).
@@ -383,7 +418,111 @@ class SilhouetteRenderer:
         if not callable(loss_fn):
             raise ValueError("loss_fn: expected a callable (coverage (H, W), item) -> scalar")
         self._prepare(vertices, faces)
-        return _RenderedLoss.apply(vertices, self, loss_fn)
+        return _RenderedLoss.apply(vertices, self,
+                                   lambda detached, call: self._loss_items(detached, call,
+                                                                           loss_fn))
+
+    def render_mask_mse(self, vertices: Tensor, faces: Tensor,
+                        masks: Tensor) -> tuple[Tensor, Tensor]:
+        """``sum_i mean_pixels (coverage_i - masks_i)^2``, differentiable w.r.t. ``vertices``.
+
+        :meth:`render_loss` for the reprojection loss, with the loss computed by the renderer
+        rather than a Python callback, so that ``workers`` processes can share the items.
+        Without a gradient to compute, only the forward images are rendered.
+
+        Args:
+            vertices: (B, V, 3) camera-frame vertices (see :meth:`render`).
+            faces: (F, 3) shared faces.
+            masks: (B, H, W) targets in [0, 1]; (H, W) = :attr:`resolution`.
+
+        Returns:
+            (loss, coverage): the summed loss (scalar, vertices' dtype) and the coverage
+            images (B, H, W), detached.
+        """
+        self._prepare(vertices, faces)
+        check_tensor("masks", masks, (None, None), min_dims=3)
+        expected = (vertices.shape[0], *self.resolution)
+        if tuple(masks.shape) != expected:
+            raise ValueError(f"masks: expected shape {expected}, got {tuple(masks.shape)}")
+        targets = masks.detach().to("cpu", torch.float32).contiguous()
+        requires_grad = torch.is_grad_enabled() and vertices.requires_grad
+
+        def run(detached: Tensor, call: int) -> tuple[float, Tensor, Tensor]:
+            if self.workers and detached.shape[0] > 1 and self._mi.variant().startswith("llvm"):
+                if self._pool is None:
+                    self._pool = SilhouetteWorkers(self.camera, self.spp, self.sppp,
+                                                   self.integrator, self.workers)
+                try:
+                    losses, coverage, grad = self._pool.mask_mse(
+                        self.seed, call, detached, self._topology.faces, targets,
+                        requires_grad)
+                except WorkerError:
+                    self.close()  # the next call starts a fresh pool
+                    raise
+            else:
+                losses, coverage, grad = self.mask_mse_items(
+                    detached, targets, call, range(detached.shape[0]), requires_grad)
+            return float(sum(losses.tolist())), coverage, grad  # item order, as render_loss
+
+        if requires_grad:
+            return _RenderedLoss.apply(vertices, self, run)
+        total, coverage, _ = run(vertices.detach(), self._next_call())
+        return (vertices.new_tensor(total),
+                coverage.to(dtype=vertices.dtype, device=vertices.device))
+
+    def mask_mse_items(self, vertices: Tensor, masks: Tensor, call: int, items: Sequence[int],
+                       requires_grad: bool) -> tuple[Tensor, Tensor, Tensor]:
+        """The per-item work of :meth:`render_mask_mse` (also what a worker process runs).
+
+        Args:
+            vertices: (k, V, 3) camera-frame vertices of ``items`` (the scene must already fit
+                their topology, see :meth:`_prepare`).
+            masks: (k, H, W) float32 CPU targets.
+            call, items: the render call and the batch indices of the k items; with the seed,
+                they fix each item's samples.
+            requires_grad: also run each item's backward pass.
+
+        Returns:
+            losses (k,) float64 (pixel-mean squared errors), coverage (k, H, W) float32, and
+            d(sum of losses)/d(vertices) (k, V, 3) float32 (zeros without ``requires_grad``).
+        """
+        count = vertices.shape[0]
+        losses = torch.zeros(count, dtype=torch.float64)
+        grad_vertices = torch.zeros((count, vertices.shape[1], 3), dtype=torch.float32)
+        images = []
+        for index, item in enumerate(items):
+            values = self._load(vertices[index], (call, item), requires_grad)
+            coverage = self._render_item(call, item)
+            difference = coverage - masks[index]
+            losses[index] = float(difference.square().mean())
+            images.append(coverage)
+            if requires_grad and bool(difference.any()):
+                # coverage = 1 - image: d(loss)/d(image) = -2 (coverage - mask) / pixels.
+                grad_image = difference.mul_(-2.0 / difference.numel())
+                grad_vertices[index] = self._vertex_gradient(values, grad_image, call, item)
+        return losses, torch.stack(images), grad_vertices
+
+    def _loss_items(self, vertices: Tensor, call: int,
+                    loss_fn: Callable[[Tensor, int], Tensor]) -> tuple[float, Tensor, Tensor]:
+        """Per-item forward, loss and backward of :meth:`render_loss`: (total, coverage (B, H,
+        W), d(total)/d(vertices) (B, V, 3) float32)."""
+        grad_vertices = torch.zeros(vertices.shape, dtype=torch.float32)
+        images, total = [], 0.0
+        for item in range(vertices.shape[0]):
+            values = self._load(vertices[item], (call, item), requires_grad=True)
+            coverage = self._render_item(call, item).requires_grad_()
+            with torch.enable_grad():
+                loss = loss_fn(coverage, item)
+                if not isinstance(loss, Tensor) or loss.numel() != 1:
+                    raise ValueError("loss_fn: must return a scalar tensor")
+                (grad_coverage,) = torch.autograd.grad(loss, coverage, allow_unused=True)
+            total += float(loss)
+            images.append(coverage.detach())
+            if grad_coverage is not None and bool(grad_coverage.any()):
+                # coverage = 1 - image, so the image receives the negated gradient.
+                grad_vertices[item] = self._vertex_gradient(
+                    values, (-grad_coverage).contiguous(), call, item)
+        return total, torch.stack(images), grad_vertices
 
 
 class _RenderSilhouettes(torch.autograd.Function):
@@ -408,34 +547,20 @@ class _RenderSilhouettes(torch.autograd.Function):
 
 
 class _RenderedLoss(torch.autograd.Function):
-    """Autograd bridge of :meth:`SilhouetteRenderer.render_loss`: the vertex gradients are
-    computed item by item during the forward pass and returned, scaled, by the backward."""
+    """Autograd bridge of the fused losses (:meth:`SilhouetteRenderer.render_loss`,
+    :meth:`~SilhouetteRenderer.render_mask_mse`): ``run(vertices, call)`` computes the loss,
+    the coverage and the vertex gradients item by item during the forward pass; the backward
+    returns the gradients, scaled."""
 
     @staticmethod
     def forward(ctx: Any, vertices: Tensor, renderer: SilhouetteRenderer,
-                loss_fn: Callable[[Tensor, int], Tensor]) -> tuple[Tensor, Tensor]:
-        call = renderer._next_call()
-        detached = vertices.detach()
-        grad_vertices = torch.zeros(detached.shape, dtype=torch.float32)
-        images, total = [], 0.0
-        for item in range(detached.shape[0]):
-            values = renderer._load(detached[item], (call, item), requires_grad=True)
-            coverage = renderer._render_item(call, item).requires_grad_()
-            with torch.enable_grad():
-                loss = loss_fn(coverage, item)
-                if not isinstance(loss, Tensor) or loss.numel() != 1:
-                    raise ValueError("loss_fn: must return a scalar tensor")
-                (grad_coverage,) = torch.autograd.grad(loss, coverage, allow_unused=True)
-            total += float(loss)
-            images.append(coverage.detach())
-            if grad_coverage is not None and bool(grad_coverage.any()):
-                # coverage = 1 - image, so the image receives the negated gradient.
-                grad_vertices[item] = renderer._vertex_gradient(
-                    values, (-grad_coverage).contiguous(), call, item)
+                run: Callable[[Tensor, int], tuple[float, Tensor, Tensor]]
+                ) -> tuple[Tensor, Tensor]:
+        total, coverage, grad_vertices = run(vertices.detach(), renderer._next_call())
         ctx.save_for_backward(grad_vertices.to(dtype=vertices.dtype, device=vertices.device))
-        coverage_all = torch.stack(images).to(dtype=vertices.dtype, device=vertices.device)
-        ctx.mark_non_differentiable(coverage_all)
-        return vertices.new_tensor(total), coverage_all
+        coverage = coverage.to(dtype=vertices.dtype, device=vertices.device)
+        ctx.mark_non_differentiable(coverage)
+        return vertices.new_tensor(total), coverage
 
     @staticmethod
     def backward(ctx: Any, grad_loss: Tensor, grad_coverage: Tensor | None

@@ -4,7 +4,9 @@ Batch 32 of assemblies of M = 5 primitives (642 vertices each, one merged mesh o
 vertices and 6,400 faces), random poses at the default distance, a loss that touches every
 pixel; per-image time of forward + backward at 64 x 64 and 128 x 128 with the default sample
 counts, Dr.Jit kernel compilations after the first batch, and the gradient noise of the
-defaults against a high-sample reference.
+defaults against a high-sample reference. Then the training loss (``render_mask_mse``) as
+training runs it, in one run: Mitsuba's ``prb_projective`` against the lean
+``silhouette_projective`` on one Dr.Jit thread, and the lean one shared among worker processes.
 """
 
 from __future__ import annotations
@@ -19,6 +21,8 @@ from sq_mitsuba.evaluation.bench import BenchOptions, Report, Timing, load_avera
 BATCH = 32
 PRIMITIVES = 5
 TARGETS_S = {64: 0.030, 128: 0.050}
+#: Issue 10's stretch target for the training reprojection at 128 x 128.
+REPROJECTION_TARGET_S = 0.010
 
 
 def _inputs(batch: int, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
@@ -50,6 +54,58 @@ def _fused_step(renderer, vertices: torch.Tensor, faces: torch.Tensor,
     pixels = target[0].numel()
     loss, _ = renderer.render_loss(
         leaf, faces, lambda coverage, item: ((coverage - target[item]) ** 2).sum() / pixels)
+    loss.backward()
+    return leaf.grad
+
+
+def _mask_loss_rows(report: Report, camera, vertices: torch.Tensor, faces: torch.Tensor,
+                    target: torch.Tensor, repeats: int) -> None:
+    """The training loss (``render_mask_mse``) as training runs it: Mitsuba's
+    ``prb_projective`` and the lean ``silhouette_projective`` on one Dr.Jit thread, then the
+    lean one shared among worker processes (one per core), all in this run."""
+    import drjit as dr
+
+    from sq_mitsuba.render.silhouette import SilhouetteRenderer
+    from sq_mitsuba.render.silhouette_workers import default_worker_count
+
+    size = f"{camera.width} x {camera.height}"
+    workers = default_worker_count()
+    previous = dr.thread_count()
+    dr.set_thread_count(1)
+    medians = {}
+    try:
+        for label, integrator, count in (("prb_projective", "prb_projective", 0),
+                                         ("silhouette_projective", "silhouette_projective", 0),
+                                         (f"silhouette_projective, {workers} workers",
+                                          "silhouette_projective", workers)):
+            if label.endswith("workers") and workers == 0:
+                continue  # one core: nothing to share
+            renderer = SilhouetteRenderer(camera, integrator=integrator, workers=count)
+            try:
+                samples = time_callable(
+                    lambda r=renderer: _mask_step(r, vertices, faces, target),
+                    repeats=repeats, warmup=1)
+            finally:
+                renderer.close()
+            medians[label] = sorted(samples)[len(samples) // 2]
+            report.timings.append(Timing(
+                f"mask loss forward + backward, {label}, {size}, per image",
+                [t / BATCH for t in samples],
+                REPROJECTION_TARGET_S if count and camera.width == 128 else None,
+                note="render_mask_mse as in training (one Dr.Jit thread per process)"))
+    finally:
+        dr.set_thread_count(previous)
+    base = medians.get("prb_projective")
+    if base:
+        ratios = ", ".join(f"{label} {value / base:.2f} x" for label, value in medians.items())
+        report.notes.append(f"{size} mask loss, time against prb_projective in this run: "
+                            f"{ratios}")
+
+
+def _mask_step(renderer, vertices: torch.Tensor, faces: torch.Tensor,
+               target: torch.Tensor) -> torch.Tensor:
+    leaf = vertices.clone().requires_grad_(True)
+    loss, _ = renderer.render_mask_mse(leaf, faces, target)
     loss.backward()
     return leaf.grad
 
@@ -100,6 +156,7 @@ def run(options: BenchOptions) -> Report:
         report.timings.append(Timing(f"forward only, {resolution} x {resolution}, per image",
                                      [s / BATCH for s in forward],
                                      note=f"spp {DEFAULT_SPP}"))
+        _mask_loss_rows(report, camera, vertices, faces, target, repeats)
         report.notes.append(
             f"{resolution} x {resolution}: first batch {first_s:.2f} s; after it, "
             f"{counter.compiled} kernel compilations and {counter.loaded} disk-cache loads "
@@ -117,9 +174,9 @@ def run(options: BenchOptions) -> Report:
                         "(the benchmark's own threads count; above ~2, other processes "
                         "inflate these timings)")
     report.notes.append(
-        "render + backward: one vertex update (BVH rebuild, ~12-16 ms for 6,400 faces) forward "
-        "and one backward per item (the last item of a batch reuses its scene); render_loss "
-        "back-propagates each item right after its render, so one update per item. Several "
-        "items cannot share one scene: the silhouette sampler and Dr.Jit's virtual calls "
-        "scale with every mesh and scene alive")
+        "render + backward: one vertex update (BVH rebuild, ~12-16 ms for 6,400 faces on one "
+        "thread) forward and one backward per item (the last item of a batch reuses its "
+        "scene); the fused losses back-propagate each item right after its render, so one "
+        "update per item. Several items cannot share one scene: the silhouette sampler and "
+        "Dr.Jit's virtual calls scale with every mesh and scene alive")
     return report

@@ -4,8 +4,9 @@ Training (batch 32, each config at its own input size): ``train/configs/a.toml``
 settings: 128 px, Chamfer on level-3 primitives, every item rendered at 128 px) and
 ``train/configs/cpu.toml`` (this project's CPU recipe: 96 px input, reprojection on 8 of 32
 items at 64 px). The step is the training loop's own (``_forward_loss``, backward,
-``_gradient_norm``, AdamW step, under ``value_checks(False)`` and the loop's single Dr.Jit
-thread) on synthetic in-memory batches of the right shapes, so no dataset is needed:
+``_gradient_norm``, AdamW step, under ``value_checks(False)``, one Dr.Jit thread per process
+and the config's render workers) on synthetic in-memory batches of the right shapes, so no
+dataset is needed:
 
 - images: Mitsuba silhouettes of random M = 5 assemblies at random poses, drawn once, with a
   random grey level and noise; masks: those silhouettes;
@@ -22,8 +23,8 @@ occupancy (with the overlap penalty, which reads the same points), the Mitsuba r
 gradient clipping, AdamW).
 
 Inference (128 px): :class:`~sq_mitsuba.learning.inference.Predictor` at batch 1 and 32,
-eager (``fast=False``) and the fast path (``fast=True``), plus the experiments that decided the
-fast path (one intra-op thread, TorchScript trace + freeze).
+eager (``fast=False``) and the fast path (``fast=True``), on one intra-op thread too, and the
+shipped model (its own input size) on the same images.
 
 :func:`learning_curves` (``sq-mitsuba bench curves``) trains several configs for the same
 wall-clock budget each on a real dataset and plots held-out Chamfer-L1 against training time.
@@ -150,6 +151,7 @@ class _Trainer:
 
     def __init__(self, config: Any) -> None:
         from sq_mitsuba.learning.network import SuperquadricNet
+        from sq_mitsuba.learning.train import render_workers
         from sq_mitsuba.render.silhouette import SilhouetteRenderer
 
         self.config = config
@@ -169,9 +171,15 @@ class _Trainer:
         if config.loss.weights.reprojection:
             size = config.reprojection.resolution or config.network.image_size
             self.reprojection_camera = self.data.camera.rescaled(size, size)
-            self.renderer = SilhouetteRenderer(self.reprojection_camera,
-                                               spp=config.reprojection.spp,
-                                               sppp=config.reprojection.sppp)
+            self.renderer = SilhouetteRenderer(
+                self.reprojection_camera, spp=config.reprojection.spp,
+                sppp=config.reprojection.sppp,
+                workers=render_workers(config.reprojection.workers, torch.device("cpu")))
+
+    def close(self) -> None:
+        """Stop the renderer's worker processes."""
+        if self.renderer is not None:
+            self.renderer.close()
 
     def step(self, step: int) -> None:
         """One training step exactly as the loop runs it (without logging)."""
@@ -249,18 +257,23 @@ def _train_figures(report: Report, name: str, repeats: int, overrides: Sequence[
     from sq_mitsuba.learning.train import _mitsuba_for
 
     config = apply_overrides(load_config(name), overrides)
-    label = f"{name}.toml" + "".join(f", {o}" for o in overrides)
+    suffix = "".join(f", {o}" for o in overrides)
+    label = f"{name}.toml{suffix}"
     target = None if overrides else TARGETS[name]
     size = config.network.image_size
     with _mitsuba_for(torch.device("cpu"), config.reprojection.deterministic):
         trainer = _Trainer(config)
-        trainer.step(0)  # warm-up: Dr.Jit kernels, allocator, AdamW state
-        steps = []
-        for step in range(1, repeats + 1):
-            start = time.perf_counter()
-            trainer.step(step)
-            steps.append(time.perf_counter() - start)
-        parts = [trainer.timed_parts(repeats + 1 + i) for i in range(repeats)]
+        try:
+            trainer.step(0)  # warm-up: Dr.Jit kernels, workers, allocator, AdamW state
+            steps = []
+            for step in range(1, repeats + 1):
+                start = time.perf_counter()
+                trainer.step(step)
+                steps.append(time.perf_counter() - start)
+            parts = [trainer.timed_parts(repeats + 1 + i) for i in range(repeats)]
+        finally:
+            trainer.close()
+        workers = 0 if trainer.renderer is None else trainer.renderer.workers
     rep = config.reprojection
     rendered = BATCH if rep.items is None else min(rep.items, BATCH)
     rate = BATCH / statistics.median(steps)
@@ -270,7 +283,8 @@ def _train_figures(report: Report, name: str, repeats: int, overrides: Sequence[
         None if target is None else 1 / target,
         note=f"batch {BATCH}, {size} px input, {rate:.1f} images/s{wanted}; reprojection "
              f"{rendered} of {BATCH} items at {rep.resolution or size} px, level {rep.level}, "
-             f"spp {rep.spp}; channels-last {'on' if config.channels_last else 'off'}"))
+             f"spp {rep.spp}, {workers or 'no'} render workers; channels-last "
+             f"{'on' if config.channels_last else 'off'}"))
     medians = {p: statistics.median(t[p] for t in parts) for p in PARTS}
     whole = sum(medians.values())
     shares = ", ".join(f"{p} {1e3 * medians[p]:.0f} ms ({100 * medians[p] / whole:.0f} %)"
@@ -282,38 +296,16 @@ def _train_figures(report: Report, name: str, repeats: int, overrides: Sequence[
         f"average after it: {load_average():.2f}")
     if name == "a":
         report.timings.append(Timing(
-            "reprojection forward + backward, 128 x 128, level 3, spp 16, per image",
-            [t["reprojection"] / rendered for t in parts], REPROJECTION_TARGET_S,
-            note="a.toml's reprojection part of the decomposed step / items rendered "
-                 "(one Dr.Jit thread, as in training)"))
+            f"reprojection forward + backward, 128 x 128, level 3, spp 16, per image{suffix}",
+            [t["reprojection"] / rendered for t in parts],
+            None if overrides else REPROJECTION_TARGET_S,
+            note=f"a.toml's reprojection part of the decomposed step / items rendered (one "
+                 f"Dr.Jit thread per process, {workers or 'no'} worker processes, as in "
+                 f"training)"))
     return medians
 
 
 # ------------------------------------------------------------------------------ inference
-
-
-class _Outputs(torch.nn.Module):
-    """A network returning its outputs as a tuple (TorchScript traces tuples, not dataclasses)."""
-
-    def __init__(self, network: torch.nn.Module) -> None:
-        super().__init__()
-        self.network = network
-
-    def forward(self, images: torch.Tensor, k: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        out = self.network(images, k)
-        return out.raw, out.rotation, out.translation, out.pixel, out.depth
-
-
-def traced_network(network: torch.nn.Module, images: torch.Tensor, k: torch.Tensor
-                   ) -> torch.jit.ScriptModule:
-    """``torch.jit.freeze`` of a trace of ``network`` (eval mode) on ``images``, ``k``; returns
-    (raw, rotation, translation, pixel, depth). Measured here, not used by the fast path."""
-    import warnings
-
-    with torch.no_grad(), warnings.catch_warnings():
-        warnings.simplefilter("ignore", torch.jit.TracerWarning)
-        traced = torch.jit.trace(_Outputs(network).eval(), (images, k), check_trace=False)
-        return torch.jit.freeze(traced)
 
 
 def _interleaved(calls: dict[str, Callable[[], object]], repeats: int, warmup: int
@@ -347,13 +339,9 @@ def _inference_figures(report: Report, options: BenchOptions) -> None:
     camera = Camera.default(INPUT)
     eager, fast = Predictor(network, camera), Predictor(network, camera, fast=True)
     one, many = torch.rand(1, INPUT, INPUT), torch.rand(BATCH, INPUT, INPUT)
-    k = camera.matrix()
-    frozen = traced_network(fast._folded, one[:, None], k)
     with torch.no_grad():
-        reference = network(one[:, None], k)
-        deviation = max(float((a - b).abs().max()) for a, b in zip(
-            frozen(one[:, None], k), (reference.raw, reference.rotation, reference.translation,
-                                      reference.pixel, reference.depth), strict=True))
+        deviation = float((fast.predict(one).rotation - eager.predict(one).rotation
+                           ).abs().max())
 
     def in_threads(threads: int, fn: Callable[[], object]) -> Callable[[], object]:
         def call() -> object:
@@ -365,33 +353,36 @@ def _inference_figures(report: Report, options: BenchOptions) -> None:
                 torch.set_num_threads(previous)
         return call
 
-    def frozen_call() -> object:
-        with torch.inference_mode():
-            return frozen(one[:, None], k)
-
     threads = options.threads
     calls = {
         "eager": lambda: eager.predict(one),
         "fast": lambda: fast.predict(one),
         "fast, 1 thread": in_threads(1, lambda: fast.predict(one)),
-        "fast network, TorchScript trace + freeze": frozen_call,
     }
+    notes = {
+        "eager": "Predictor(fast=False)",
+        "fast": f"Predictor(fast=True): BatchNorm folded, channels_last, TorchScript trace + "
+                f"freeze, inference_mode; largest rotation difference from eager "
+                f"{deviation:.1e}",
+        "fast, 1 thread": "the same with torch.set_num_threads(1)",
+    }
+    from sq_mitsuba.learning.checkpoint import SHIPPED_MODEL, load_model
+
+    if SHIPPED_MODEL.is_file():
+        shipped = load_model(fast=True)
+        label = f"shipped model ({shipped.image_size} px network), fast"
+        calls[label] = lambda: shipped.predict(one)
+        notes[label] = (f"sq_mitsuba.load_model(fast=True) on the same {INPUT} px image, "
+                        f"resized to its input")
     if threads == 1:
         del calls["fast, 1 thread"]
     samples = _interleaved(calls, max(5, options.repeats), max(2, options.warmup))
     for name, values in samples.items():
-        target = INFERENCE_TARGET_S if name.startswith("fast") else None
+        target = INFERENCE_TARGET_S if "fast" in name else None
         used = 1 if "1 thread" in name else threads
         report.timings.append(Timing(
             f"predict latency, batch 1, {INPUT} px: {name}", values, target,
-            note=f"{used} thread(s); " + {
-                "eager": "Predictor(fast=False)",
-                "fast": "Predictor(fast=True): BatchNorm folded, channels_last, "
-                        "inference_mode",
-                "fast, 1 thread": "the same with torch.set_num_threads(1)",
-                "fast network, TorchScript trace + freeze":
-                    f"network alone (no resizing, no Assembly), not used; largest output "
-                    f"difference from eager {deviation:.1e}"}.get(name, "")))
+            note=f"{used} thread(s); {notes[name]}"))
     batches = _interleaved({"eager": lambda: eager.predict(many),
                             "fast": lambda: fast.predict(many)},
                            max(1, min(options.repeats, 3)), 1)
@@ -412,7 +403,8 @@ def run(options: BenchOptions) -> Report:
                         "timings)")
     for name in ("a", "cpu"):
         _train_figures(report, name, repeats)
-    # The same recipe with the encoder channels-first: what channels-last buys, in one run.
+    # What the render workers and channels-last buy, each measured in the same run.
+    _train_figures(report, "a", repeats, ("reprojection.workers=0",))
     _train_figures(report, "cpu", repeats, ("channels_last=false",))
     _inference_figures(report, options)
     report.notes.append(

@@ -1,0 +1,78 @@
+"""``silhouette_projective``: Mitsuba's projective integrator, specialised to masks.
+
+:class:`SilhouetteRenderer`'s scene is a black, non-emitting mesh in front of a constant
+environment, seen with ``max_depth = 1``. There a camera ray's radiance is the environment's
+where it escapes and zero where it hits the mesh, so a path tracer's loop (BSDF sampling,
+emitter sampling, Russian roulette) has nothing to add. ``prb_projective`` still traces that
+loop, in Python, for the primal image and twice per silhouette sample of the backward pass (the
+radiance on either side of the edge): most of a 128 x 128 backward pass went to it.
+
+This integrator is a :class:`PathProjectiveIntegrator` (``prb_projective``) whose radiance
+estimates are one ray-visibility test each; the silhouette sampling, its Jacobian and the
+splatting of gradients are Mitsuba's own. It renders the same images and gradients as
+``prb_projective`` for scenes of this kind (tested against it) and is wrong for any other:
+only non-emitting shapes, one environment emitter, ``max_depth = 1``.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from sq_mitsuba.render.backend import mitsuba
+
+PLUGIN = "silhouette_projective"
+_registered = False
+
+
+def register() -> None:
+    """Register the ``silhouette_projective`` integrator with Mitsuba (idempotent; sets up the
+    variant first)."""
+    global _registered
+    if _registered:
+        return
+    mi = mitsuba()
+    import drjit as dr
+    from mitsuba.ad.integrators.prb_projective import PathProjectiveIntegrator
+
+    def environment_radiance(scene: Any, ray: Any, escaped: Any) -> Any:
+        """The environment's radiance (Spectrum) along ``ray`` where ``escaped``, else 0."""
+        environment = scene.environment()
+        if environment is None:
+            return mi.Spectrum(0.0)
+        interaction = dr.zeros(mi.SurfaceInteraction3f)
+        interaction.wi = -ray.d
+        interaction.wavelengths = ray.wavelengths
+        return dr.select(escaped, environment.eval(interaction, escaped), 0.0)
+
+    class SilhouetteProjectiveIntegrator(PathProjectiveIntegrator):
+        """``prb_projective`` for a black mesh against an environment (see the module)."""
+
+        def __init__(self, props: Any) -> None:
+            super().__init__(props)
+            if self.max_depth != 1:
+                raise ValueError(f"{PLUGIN}: max_depth must be 1, got {self.max_depth}")
+
+        def sample(self, mode: Any, scene: Any, sampler: Any, ray: Any, depth: Any,
+                   δL: Any, state_in: Any, active: Any, project: bool = False,
+                   si_shade: Any = None, **kwargs: Any) -> tuple[Any, Any, list, Any]:
+            if project:
+                raise ValueError(f"{PLUGIN}: indirect silhouettes (sppi > 0) are not supported")
+            active = mi.Bool(active)
+            if si_shade is not None:  # starts on a surface, which emits nothing
+                return mi.Spectrum(0.0), active, [], mi.Spectrum(0.0)
+            escaped = active & ~scene.ray_test(mi.Ray3f(dr.detach(ray)), active)
+            radiance = environment_radiance(scene, ray, escaped)
+            return radiance, active, [], radiance
+
+        def sample_radiance_difference(self, scene: Any, ss: Any, curr_depth: Any,
+                                       sampler: Any, wavelengths: Any,
+                                       active: Any) -> tuple[Any, Any]:
+            # Foreground: the black surface at the silhouette point, 0. Background: the ray
+            # grazing past the edge, the environment if it escapes.
+            ray = ss.spawn_ray(wavelengths)
+            escaped = active & ~scene.ray_test(ray, active)
+            difference = -environment_radiance(scene, ray, escaped)
+            return difference, escaped & (dr.max(dr.abs(difference)) > 0)
+
+    mi.register_integrator(PLUGIN, lambda props: SilhouetteProjectiveIntegrator(props))
+    _registered = True
