@@ -26,6 +26,7 @@ import sys
 import weakref
 from dataclasses import asdict
 from multiprocessing.connection import Connection
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -86,11 +87,15 @@ class SilhouetteWorkers:
         self._processes: list[subprocess.Popen] = []
         settings = {"camera": asdict(camera), "spp": spp, "sppp": sppp,
                     "integrator": integrator, "variant": variant}
+        # The workers import this very copy of the package, wherever the parent found it.
+        package_root = str(Path(__file__).resolve().parents[2])
+        env = {**os.environ, "PYTHONPATH": os.pathsep.join(
+            [package_root, *filter(None, [os.environ.get("PYTHONPATH")])])}
         for _ in range(count):
             ours, theirs = socket.socketpair()
             process = subprocess.Popen(
                 [sys.executable, "-m", __name__, str(theirs.fileno())],
-                pass_fds=(theirs.fileno(),), stdin=subprocess.DEVNULL)
+                pass_fds=(theirs.fileno(),), stdin=subprocess.DEVNULL, env=env)
             theirs.close()
             connection = Connection(ours.detach())
             connection.send(settings)
