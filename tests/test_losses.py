@@ -437,6 +437,37 @@ def test_pose_loss_chordal_form_is_half_angle_sine_squared_and_keeps_symmetries(
         pose_loss(pred, t, true, t, rotation_form="geodesic")
 
 
+def test_pose_loss_6d_form_regresses_the_raw_output_onto_the_target_rows():
+    """The 6D form compares the raw network output with the first two rows of R_true S (the
+    rows rotation_6d_to_matrix keeps), minimised over the symmetries, with its gradient on the
+    raw output."""
+    from sq_mitsuba.geometry.rotation import rotation_6d_to_matrix
+
+    generator = torch.Generator().manual_seed(15)
+    true = random_rotations(5, generator, torch.float64)
+    t = torch.tensor([[0.0, 0.0, 8.0]], dtype=torch.float64).expand(5, 3)
+    raw = torch.randn(5, 6, generator=generator, dtype=torch.float64, requires_grad=True)
+    pred = rotation_6d_to_matrix(raw)
+    value, _ = pose_loss(pred, t, true, t, rotation_form="6d", pred_rotation_6d=raw)
+    expected = (raw - true[:, :2].reshape(5, 6)).square().sum(-1)
+    assert torch.allclose(value, expected, atol=1e-12)
+    # The target rows are a fixed point: they map to the true rotation, at zero loss.
+    rows = true[:, :2].reshape(5, 6)
+    assert torch.allclose(rotation_6d_to_matrix(rows), true, atol=1e-12)
+    zero, _ = pose_loss(true, t, true, t, rotation_form="6d", pred_rotation_6d=rows)
+    assert float(zero.abs().max()) < 1e-24
+    # Symmetries: the turned target is as good as the target itself.
+    symmetries = torch.stack([torch.eye(3, dtype=torch.float64), half_turn(0)])
+    turned, _ = pose_loss(true, t, true @ half_turn(0), t, symmetries, "6d", rows)
+    assert float(turned.abs().max()) < 1e-24
+    value.sum().backward()
+    assert torch.allclose(raw.grad, 2 * (raw - rows).detach(), atol=1e-12)
+    with pytest.raises(ValueError, match="pred_rotation_6d: needed"):
+        pose_loss(pred, t, true, t, rotation_form="6d")
+    with pytest.raises(ValueError, match="pred_rotation_6d: expected shape"):
+        pose_loss(pred, t, true, t, rotation_form="6d", pred_rotation_6d=raw[:3])
+
+
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_pose_loss_gradient_is_finite_at_zero_error(dtype):
     true = random_rotations(3, torch.Generator().manual_seed(10), dtype)

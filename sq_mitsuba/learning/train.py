@@ -476,7 +476,7 @@ def _loss_terms(output: Any, batch: dict[str, Any], config: TrainConfig, rendere
                                           batch["rotation"].to(output.rotation),
                                           batch["translation"].to(output.translation),
                                           batch["symmetries"].to(output.rotation),
-                                          config.loss.rotation_form)
+                                          config.loss.rotation_form, output.rotation_6d)
         terms["rotation"] = rotation.mean()
         terms["translation"] = translation.mean()
     if weights.taper:

@@ -78,10 +78,11 @@ class LossConfig:
     "Summed occupancy tolerated before the overlap penalty starts (paper Eq. 18)."
     level: int = in_range(0, 5, default=3)
     "Icosphere level of the assembly's surface samples for the Chamfer loss (3: 642 each)."
-    rotation_form: Literal["angle", "chordal"] = "angle"
-    """Form of the rotation term: "angle" (the paper's, radians) or "chordal" (squared
-    Frobenius distance / 8 = sin^2(angle / 2), smooth, its gradient linear in the true matrix;
-    both minimised over the model's symmetries)."""
+    rotation_form: Literal["angle", "chordal", "6d"] = "angle"
+    """Form of the rotation term: "angle" (the paper's, radians), "chordal" (squared
+    Frobenius distance / 8 = sin^2(angle / 2), smooth, its gradient linear in the true matrix)
+    or "6d" (squared distance of the raw 6D output to the true matrix's first two rows, before
+    Gram-Schmidt); each minimised over the model's symmetries."""
 
 
 @dataclass(frozen=True)

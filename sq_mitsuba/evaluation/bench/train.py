@@ -221,6 +221,7 @@ class _Trainer:
             leaves = dataclasses.replace(
                 output, raw=output.raw.detach().requires_grad_(True),
                 rotation=output.rotation.detach().requires_grad_(True),
+                rotation_6d=output.rotation_6d.detach().requires_grad_(True),
                 translation=output.translation.detach().requires_grad_(True))
             for part, names in _PART_TERMS.items():
                 weights = LossWeights(**{f.name: getattr(cfg.loss.weights, f.name)
@@ -238,6 +239,7 @@ class _Trainer:
         start = time.perf_counter()
         pairs = [(o, leaf.grad) for o, leaf in ((output.raw, leaves.raw),
                                                  (output.rotation, leaves.rotation),
+                                                 (output.rotation_6d, leaves.rotation_6d),
                                                  (output.translation, leaves.translation))
                  if leaf.grad is not None]
         torch.autograd.backward([o for o, _ in pairs], [g for _, g in pairs])
