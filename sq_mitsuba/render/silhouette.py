@@ -418,16 +418,20 @@ class SilhouetteRenderer:
         if not callable(loss_fn):
             raise ValueError("loss_fn: expected a callable (coverage (H, W), item) -> scalar")
         self._prepare(vertices, faces)
-        return _RenderedLoss.apply(vertices, self,
-                                   lambda detached, call: self._loss_items(detached, call,
-                                                                           loss_fn))
+
+        def run(detached: Tensor, call: int) -> tuple[float, Tensor, Tensor]:
+            losses, coverage, grad = self._loss_items(detached, call, range(detached.shape[0]),
+                                                      loss_fn, requires_grad=True)
+            return float(sum(losses.tolist())), coverage, grad  # in item order
+
+        return _RenderedLoss.apply(vertices, self, run)
 
     def render_mask_mse(self, vertices: Tensor, faces: Tensor,
                         masks: Tensor) -> tuple[Tensor, Tensor]:
         """``sum_i mean_pixels (coverage_i - masks_i)^2``, differentiable w.r.t. ``vertices``.
 
-        :meth:`render_loss` for the reprojection loss, with the loss computed by the renderer
-        rather than a Python callback, so that ``workers`` processes can share the items.
+        :meth:`render_loss` for the reprojection loss, with the loss defined by the renderer
+        rather than passed in as a callback, so that ``workers`` processes can share the items.
         Without a gradient to compute, only the forward images are rendered.
 
         Args:
@@ -462,7 +466,7 @@ class SilhouetteRenderer:
             else:
                 losses, coverage, grad = self.mask_mse_items(
                     detached, targets, call, range(detached.shape[0]), requires_grad)
-            return float(sum(losses.tolist())), coverage, grad  # item order, as render_loss
+            return float(sum(losses.tolist())), coverage, grad  # in item order
 
         if requires_grad:
             return _RenderedLoss.apply(vertices, self, run)
@@ -486,43 +490,41 @@ class SilhouetteRenderer:
             losses (k,) float64 (pixel-mean squared errors), coverage (k, H, W) float32, and
             d(sum of losses)/d(vertices) (k, V, 3) float32 (zeros without ``requires_grad``).
         """
+        return self._loss_items(vertices, call, items,
+                                lambda coverage, index: (coverage - masks[index]).square().mean(),
+                                requires_grad)
+
+    def _loss_items(self, vertices: Tensor, call: int, items: Sequence[int],
+                    loss_fn: Callable[[Tensor, int], Tensor],
+                    requires_grad: bool) -> tuple[Tensor, Tensor, Tensor]:
+        """Per-item forward, loss and (with ``requires_grad``) backward of the fused losses.
+
+        ``loss_fn(coverage, index)`` gets the index into ``vertices`` (k, V, 3); ``items`` are
+        the batch indices that fix the samples. Returns losses (k,) float64, coverage (k, H, W)
+        float32 and d(sum of losses)/d(vertices) (k, V, 3) float32 (zeros without
+        ``requires_grad``).
+        """
         count = vertices.shape[0]
         losses = torch.zeros(count, dtype=torch.float64)
         grad_vertices = torch.zeros((count, vertices.shape[1], 3), dtype=torch.float32)
         images = []
         for index, item in enumerate(items):
             values = self._load(vertices[index], (call, item), requires_grad)
-            coverage = self._render_item(call, item)
-            difference = coverage - masks[index]
-            losses[index] = float(difference.square().mean())
-            images.append(coverage)
-            if requires_grad and bool(difference.any()):
-                # coverage = 1 - image: d(loss)/d(image) = -2 (coverage - mask) / pixels.
-                grad_image = difference.mul_(-2.0 / difference.numel())
-                grad_vertices[index] = self._vertex_gradient(values, grad_image, call, item)
-        return losses, torch.stack(images), grad_vertices
-
-    def _loss_items(self, vertices: Tensor, call: int,
-                    loss_fn: Callable[[Tensor, int], Tensor]) -> tuple[float, Tensor, Tensor]:
-        """Per-item forward, loss and backward of :meth:`render_loss`: (total, coverage (B, H,
-        W), d(total)/d(vertices) (B, V, 3) float32)."""
-        grad_vertices = torch.zeros(vertices.shape, dtype=torch.float32)
-        images, total = [], 0.0
-        for item in range(vertices.shape[0]):
-            values = self._load(vertices[item], (call, item), requires_grad=True)
-            coverage = self._render_item(call, item).requires_grad_()
-            with torch.enable_grad():
-                loss = loss_fn(coverage, item)
+            coverage = self._render_item(call, item).requires_grad_(requires_grad)
+            grad_coverage = None
+            with torch.set_grad_enabled(requires_grad):
+                loss = loss_fn(coverage, index)
                 if not isinstance(loss, Tensor) or loss.numel() != 1:
                     raise ValueError("loss_fn: must return a scalar tensor")
-                (grad_coverage,) = torch.autograd.grad(loss, coverage, allow_unused=True)
-            total += float(loss)
+                if requires_grad:
+                    (grad_coverage,) = torch.autograd.grad(loss, coverage, allow_unused=True)
+            losses[index] = float(loss)
             images.append(coverage.detach())
             if grad_coverage is not None and bool(grad_coverage.any()):
                 # coverage = 1 - image, so the image receives the negated gradient.
-                grad_vertices[item] = self._vertex_gradient(
+                grad_vertices[index] = self._vertex_gradient(
                     values, (-grad_coverage).contiguous(), call, item)
-        return total, torch.stack(images), grad_vertices
+        return losses, torch.stack(images), grad_vertices
 
 
 class _RenderSilhouettes(torch.autograd.Function):
