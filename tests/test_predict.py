@@ -38,6 +38,16 @@ def inputs(train_dataset, tmp_path_factory):
     Image.fromarray(np.stack([grey, np.full_like(grey, 255)], -1), "LA").save(root / "alpha.png")
     Image.fromarray(mask).save(root / "mask.png")
     Image.fromarray(grey[:48]).save(root / "cropped.png")
+    # The middle 48 rows of the image, and the image with the other rows black: what the
+    # 64 x 48 image becomes when padded back to the camera's square aspect ratio.
+    Image.fromarray(grey[8:56]).save(root / "wide.png")
+    Image.fromarray(mask[8:56]).save(root / "wide_mask.png")
+    letterbox = grey.copy()
+    letterbox[:8] = letterbox[56:] = 0
+    Image.fromarray(letterbox).save(root / "letterbox.png")
+    letterbox_mask = mask.copy()
+    letterbox_mask[:8] = letterbox_mask[56:] = 0
+    Image.fromarray(letterbox_mask).save(root / "letterbox_mask.png")
     return root
 
 
@@ -109,8 +119,11 @@ def test_predict_without_checkpoint_uses_the_shipped_model(eval_checkpoint, inpu
 
 
 def test_bad_inputs_are_one_line_naming_the_file(eval_checkpoint, inputs, tmp_path, capsys):
+    square_camera = tmp_path / "camera.json"
+    square_camera.write_text(json.dumps(load_model(eval_checkpoint).camera.to_speed_dict()))
     cases = [
-        ([str(inputs / "grey.png"), str(inputs / "cropped.png")], [],
+        ([str(inputs / "grey.png"), str(inputs / "cropped.png")],
+         ["--camera", str(square_camera)],
          f"image {inputs / 'cropped.png'}: 64 x 48 px has another aspect ratio"),
         ([str(inputs / "grey.png"), str(tmp_path / "missing.png")], [],
          str(tmp_path / "missing.png")),
@@ -124,6 +137,9 @@ def test_bad_inputs_are_one_line_naming_the_file(eval_checkpoint, inputs, tmp_pa
         ([str(inputs / "grey.png")], ["--camera", str(tmp_path / "nocam.json")],
          f"camera {tmp_path / 'nocam.json'}: no such file"),
     ]
+    strip = tmp_path / "strip.png"
+    Image.fromarray(np.zeros((8, 64), np.uint8)).save(strip)
+    cases.append(([str(strip)], [], f"image {strip}: 64 x 8 px is too far from the camera's"))
     not_an_image = tmp_path / "notes.png"
     not_an_image.write_text("not a picture")
     cases.append(([str(not_an_image)], [], f"image {not_an_image}: not an image"))
@@ -148,3 +164,64 @@ def test_other_size_same_aspect_ratio_is_rescaled(eval_checkpoint, inputs, tmp_p
     assert pose["camera"]["cameraMatrix"][0][0] == pytest.approx(2 * small.fx)
     with Image.open(out / "large.overlay.png") as overlay:
         assert overlay.size == (128, 128)
+
+
+def test_other_aspect_ratio_is_padded_with_black_and_reported_for_the_image(
+        eval_checkpoint, inputs, tmp_path):
+    """Reference: the same picture padded by hand. A 64 x 48 image predicts and refines as
+    the 64 x 64 image with 8 black rows above and below it, and its outputs are that image's,
+    cut back to the 48 rows: same pose, overlay rows 8-55, camera with cy 8 px less."""
+    wide, boxed = tmp_path / "wide", tmp_path / "boxed"
+    refine = ["--refine", *SMALL_REFINE, "--quiet"]
+    assert main(["predict", str(inputs / "wide.png"), "--checkpoint", str(eval_checkpoint),
+                 "--out", str(wide), "--mask", str(inputs / "wide_mask.png"), *refine]) == 0
+    assert main(["predict", str(inputs / "letterbox.png"), "--checkpoint",
+                 str(eval_checkpoint), "--out", str(boxed), "--mask",
+                 str(inputs / "letterbox_mask.png"), *refine]) == 0
+    pose = json.loads((wide / "wide.pose.json").read_text())
+    reference = json.loads((boxed / "letterbox.pose.json").read_text())
+    for key in ("q_vbs2tango", "r_Vo2To_vbs", "iou_before", "iou_after"):
+        assert pose[key] == pytest.approx(reference[key], abs=1e-6), key
+    assert (pose["width"], pose["height"], pose["padded_to"]) == (64, 48, [64, 64])
+    assert "padded with black to 64 x 64 px" in pose["warning"]
+    camera, boxed_camera = pose["camera"], reference["camera"]
+    assert (camera["Nu"], camera["Nv"]) == (64, 48)
+    assert camera["cameraMatrix"][0] == boxed_camera["cameraMatrix"][0]
+    assert camera["cameraMatrix"][1][2] == boxed_camera["cameraMatrix"][1][2] - 8
+    overlay = np.asarray(Image.open(wide / "wide.overlay.png"))
+    boxed_overlay = np.asarray(Image.open(boxed / "letterbox.overlay.png"))
+    assert overlay.shape == (48, 64, 3)
+    np.testing.assert_array_equal(overlay, boxed_overlay[8:56])
+
+
+@pytest.mark.parametrize("size", [(64, 48), (48, 64), (63, 20), (20, 63), (64, 64)])
+def test_padding_gives_the_cameras_aspect_ratio_and_keeps_its_pixels(size):
+    from sq_mitsuba.evaluation.predict import padded_camera, padding_to_aspect
+    from sq_mitsuba.geometry.camera import Camera
+
+    width, height = size
+    for camera in (Camera.default(64), Camera(50.0, 55.0, 31.0, 20.0, 64, 40)):
+        padding = padding_to_aspect(width, height, camera)
+        if (width, height) == (64, 64) and camera.width == camera.height:
+            assert padding is None
+            continue
+        assert padding is not None
+        picture = np.arange(width * height, dtype=np.float32).reshape(height, width) + 1
+        padded = padding.pad(picture)
+        assert padded.shape == (padding.padded_height, padding.padded_width)
+        # Only one side grows, the image sits centred, and cropping undoes the padding.
+        assert (padding.padded_width == width) or (padding.padded_height == height)
+        assert abs(padding.top - (padding.padded_height - height) / 2) <= 0.5
+        assert abs(padding.left - (padding.padded_width - width) / 2) <= 0.5
+        np.testing.assert_array_equal(padding.crop(padded), picture)
+        assert padded.sum() == picture.sum()
+        # The padded picture's camera keeps the camera's field of view across the width and
+        # its pixel aspect; the image's own camera sees the same rays through its pixels.
+        ratio = padding.padded_width / padding.padded_height
+        assert ratio == pytest.approx(camera.width / camera.height, rel=1 / min(width, height))
+        full = padded_camera(camera, padding.padded_width, padding.padded_height)
+        assert full.fx / full.width == pytest.approx(camera.fx / camera.width, rel=1e-12)
+        assert full.fx / full.fy == pytest.approx(camera.fx / camera.fy, rel=1e-12)
+        own = padding.crop_camera(full)
+        assert (own.width, own.height) == (width, height)
+        assert (own.cx, own.cy) == (full.cx - padding.left, full.cy - padding.top)

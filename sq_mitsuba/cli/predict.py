@@ -19,7 +19,9 @@ the milliseconds per image.
 Images: any size; RGB and palette images are converted to grey (luminance), an alpha channel
 composites them on black, 16-bit images keep their range. The camera is the checkpoint's
 (the dataset's), rescaled to each image, unless --camera gives the images' own (SPEED-style
-camera.json); an image of another aspect ratio than the camera is an error naming the file.
+camera.json). Without --camera, an image of another aspect ratio is padded with black to the
+camera's (its field of view then lies across the image's longer side; pose.json records the
+camera of the image's own pixels and a warning); with --camera it is an error naming the file.
 
 --refine refines each prediction at test time against its --mask (one per image, same size,
 target bright) or, without masks, against a mask segmented from the image. Every input is

@@ -15,8 +15,18 @@ Images: PNG/JPG/TIFF, any size; converted to one grey channel in [0, 1] as
 :func:`sq_mitsuba.data.masks.read_gray_image` does: RGB and palette images become luminance
 (ITU-R 601), an alpha channel composites them on black (transparent = space), 16-bit images
 keep their 16-bit range (divided by 65535). The camera defaults to the one the model was
-trained with, rescaled to each image; an image of another aspect ratio than the camera is a
-one-line error naming the file (pass its own camera with ``camera``).
+trained with, rescaled to each image.
+
+Convention (images of another aspect ratio than the default camera): such an image is padded
+with black, centred, to the camera's aspect ratio (space is black, so the padding looks like
+more sky, and the network sees an unstretched picture as in training); the camera is taken to
+span the padded picture, so the default field of view lies across the image's longer side.
+The padded picture is predicted (and refined: a given mask is padded alike) and the outputs
+are for the original image: the overlay is cropped back, and ``pose.json`` records the
+camera of the original pixels (the padded camera with its principal point shifted by the
+padding) with ``padded_to`` and a warning. A crop keeps the camera frame, so the pose needs
+no change. An explicit ``camera`` of another aspect ratio is a one-line error naming the
+file instead.
 
 Refinement (``refine``): against the given masks (one per image, same size; bright = target,
 converted and thresholded as :func:`sq_mitsuba.data.masks.read_mask` says), or against a mask
@@ -41,6 +51,9 @@ from sq_mitsuba.learning.refine import RefineOptions
 
 #: Suffixes of the files written per image, in order.
 OUTPUT_SUFFIXES = (".assembly.json", ".obj", ".glb", ".pose.json", ".overlay.png")
+#: Largest growth of the pixel count by padding to the camera's aspect ratio (a strip of 4:1
+#: or worse is no picture of a spacecraft to pad into a square).
+MAX_PADDING_GROWTH = 4
 #: Colours (RGB in [0, 1]) of the overlay: network silhouette, refined silhouette, mask edge.
 NETWORK_COLOUR = (1.0, 0.15, 0.1)
 REFINED_COLOUR = (0.1, 0.9, 0.2)
@@ -115,13 +128,89 @@ def _image_mode(path: Path) -> str:
         return image.mode
 
 
+@dataclass(frozen=True)
+class Padding:
+    """Where an image sits in the black picture it was padded to (pixels)."""
+
+    top: int
+    left: int
+    height: int
+    "Height of the image (not of the padded picture)."
+    width: int
+    "Width of the image."
+    padded_height: int
+    padded_width: int
+
+    def pad(self, array: np.ndarray) -> np.ndarray:
+        """(height, width, ...) -> (padded_height, padded_width, ...), zeros around."""
+        padded = np.zeros((self.padded_height, self.padded_width, *array.shape[2:]),
+                          dtype=array.dtype)
+        padded[self.top:self.top + self.height, self.left:self.left + self.width] = array
+        return padded
+
+    def crop(self, array: np.ndarray) -> np.ndarray:
+        """The inverse of :meth:`pad`: the image's part of a padded array."""
+        return array[self.top:self.top + self.height, self.left:self.left + self.width]
+
+    def crop_camera(self, camera: Any) -> Any:
+        """The padded picture's camera -> the camera of the image's own pixels."""
+        from dataclasses import replace
+
+        return replace(camera, cx=camera.cx - self.left, cy=camera.cy - self.top,
+                       width=self.width, height=self.height)
+
+    def describe(self) -> str:
+        return (f"{self.width} x {self.height} px, another aspect ratio than the model's camera: "
+                f"padded with black to {self.padded_width} x {self.padded_height} px, the "
+                "camera's field of view taken across the padded picture (pass --camera for "
+                "the image's own)")
+
+
+def padding_to_aspect(width: int, height: int, camera: Any) -> Padding | None:
+    """The centred black padding that gives a ``width`` x ``height`` image ``camera``'s aspect
+    ratio, or None when it has it already (within rounding to whole pixels)."""
+    from sq_mitsuba.learning.inference import camera_for
+
+    try:
+        camera_for(camera, width, height)
+        return None
+    except ValueError:
+        pass
+    if width * camera.height > height * camera.width:  # wider than the camera: pad rows
+        padded_width, padded_height = width, max(height, round(width * camera.height
+                                                               / camera.width))
+    else:
+        padded_width, padded_height = max(width, round(height * camera.width
+                                                       / camera.height)), height
+    return Padding((padded_height - height) // 2, (padded_width - width) // 2, height, width,
+                   padded_height, padded_width)
+
+
+def padded_camera(camera: Any, width: int, height: int) -> Any:
+    """``camera`` for a ``width`` x ``height`` picture: rescaled when the aspect ratios agree,
+    else (a picture padded to the camera's aspect ratio, off by the rounding to whole pixels)
+    scaled by the width ratio with square pixels kept, principal point at the same fraction
+    of the picture."""
+    from sq_mitsuba.geometry.camera import Camera
+    from sq_mitsuba.learning.inference import camera_for
+
+    try:
+        return camera_for(camera, width, height)
+    except ValueError:
+        scale = width / camera.width
+        return Camera(camera.fx * scale, camera.fy * scale, camera.cx * scale,
+                      camera.cy * height / camera.height, width, height)
+
+
 def _check_inputs(paths: list[Path], camera: Any, masks: list[Path] | None,
-                  options: PredictOptions) -> tuple[list[np.ndarray], list[np.ndarray] | None,
-                                                    list[str | None]]:
-    """Read every image (and mask) and check them; returns images, targets and warnings."""
+                  options: PredictOptions, pad: bool
+                  ) -> tuple[list[np.ndarray], list[np.ndarray] | None, list[str | None],
+                             list[Padding | None]]:
+    """Read every image (and mask) and check them; returns the pictures and targets (padded
+    to the camera's aspect ratio where ``pad`` allows and an image needs it), a warning and a
+    :class:`Padding` (or None) per image."""
     from sq_mitsuba.data.masks import read_gray_image, read_mask
     from sq_mitsuba.data.segmentation import segment_target
-    from sq_mitsuba.learning.inference import camera_for
 
     if not paths:
         raise ValueError("images: give at least one image")
@@ -134,17 +223,24 @@ def _check_inputs(paths: list[Path], camera: Any, masks: list[Path] | None,
         twice = sorted({s for s in stems if stems.count(s) > 1})
         raise ValueError(f"images: several inputs are named {twice[0]!r} (without suffix); "
                          "their outputs would overwrite each other")
-    pictures = []
+    pictures, paddings = [], []
     for path in paths:
         picture = read_gray_image(path)
-        try:
-            camera_for(camera, picture.shape[1], picture.shape[0])
-        except ValueError:
+        padding = padding_to_aspect(picture.shape[1], picture.shape[0], camera)
+        if padding is not None and not pad:
             raise ValueError(f"image {path}: {picture.shape[1]} x {picture.shape[0]} px has "
                              f"another aspect ratio than the camera's {camera.width} x "
-                             f"{camera.height}; pass the images' own camera (--camera)") from None
+                             f"{camera.height}; pass the images' own camera (--camera)")
+        if padding is not None and (padding.padded_width * padding.padded_height
+                                    > MAX_PADDING_GROWTH * picture.size):
+            raise ValueError(f"image {path}: {picture.shape[1]} x {picture.shape[0]} px is too "
+                             f"far from the camera's aspect ratio ({camera.width} x "
+                             f"{camera.height}) to pad (more than {MAX_PADDING_GROWTH} x its "
+                             "pixels); crop it to the target, or pass its camera (--camera)")
         pictures.append(picture)
-    targets, warnings = None, [None] * len(paths)
+        paddings.append(padding)
+    targets = None
+    warnings: list[str | None] = [None] * len(paths)
     if masks is not None:
         targets = []
         for path, picture, mask_path in zip(paths, pictures, masks, strict=True):
@@ -164,7 +260,14 @@ def _check_inputs(paths: list[Path], camera: Any, masks: list[Path] | None,
                                  f"({error}); pass a mask (--mask)") from None
             targets.append(segmentation.mask)
             warnings[k] = segmentation.warning
-    return pictures, targets, warnings
+    for k, padding in enumerate(paddings):
+        if padding is None:
+            continue
+        pictures[k] = padding.pad(pictures[k])
+        if targets is not None:
+            targets[k] = padding.pad(targets[k])
+        warnings[k] = "; ".join(w for w in (padding.describe(), warnings[k]) if w)
+    return pictures, targets, warnings, paddings
 
 
 def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
@@ -191,35 +294,38 @@ def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
 
     from sq_mitsuba.evaluation.evaluate import with_fast_path
     from sq_mitsuba.io import atomic_path, atomic_write_json, check_output_folder
-    from sq_mitsuba.learning.inference import camera_for
     from sq_mitsuba.learning.refine import refine_pose_and_shape
     from sq_mitsuba.render.silhouette import SilhouetteRenderer, render_assembly
 
     options = options or PredictOptions()
     validate(options)
+    explicit_camera = camera is not None
     camera = camera or predictor.camera
     paths = [Path(p) for p in images]
     mask_paths = [Path(m) for m in masks] if masks is not None else None
-    pictures, targets, warnings = _check_inputs(paths, camera, mask_paths, options)
+    pictures, targets, warnings, paddings = _check_inputs(paths, camera, mask_paths, options,
+                                                          pad=not explicit_camera)
     out = check_output_folder(out_dir)
     predictor = with_fast_path(predictor, options.fast)
     out.mkdir(parents=True, exist_ok=True)
     # One untimed call first: the first run of a network sets up its kernels (~1 s), which
     # would otherwise count against the first image.
     predictor.predict(torch.from_numpy(pictures[0]).float()[None],
-                      camera_for(camera, pictures[0].shape[1], pictures[0].shape[0]))
+                      padded_camera(camera, pictures[0].shape[1], pictures[0].shape[0]))
     renderers: dict[Any, Any] = {}
     records = []
     for k, (path, picture) in enumerate(tqdm(list(zip(paths, pictures, strict=True)),
                                              desc="predict", unit="img",
                                              disable=not progress)):
-        image_camera = camera_for(camera, picture.shape[1], picture.shape[0])
+        image_camera = padded_camera(camera, picture.shape[1], picture.shape[0])
+        padding = paddings[k]
         if image_camera not in renderers:
             renderers[image_camera] = SilhouetteRenderer(image_camera, spp=options.overlay_spp)
         renderer = renderers[image_camera]
         tick = time.perf_counter()
         prediction = predictor.predict(torch.from_numpy(picture).float()[None], image_camera)
-        record = PredictRecord(path, [], 1000 * (time.perf_counter() - tick))
+        record = PredictRecord(path, [], 1000 * (time.perf_counter() - tick),
+                               warning=warnings[k])
         assembly, rotation, translation = (prediction.assembly, prediction.rotation,
                                            prediction.translation)
         quaternion = prediction.quaternion
@@ -243,7 +349,6 @@ def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
             quaternion = matrix_to_quaternion(rotation)
             record.iou_before = float(result.iou_before[0])
             record.iou_after = float(result.iou_after[0])
-            record.warning = warnings[k]
             with torch.no_grad():
                 after = render_assembly(assembly, rotation, translation, renderer,
                                         options.level)[0].numpy()
@@ -252,28 +357,34 @@ def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
         record.files.append(assembly.save(Path(f"{stem}.assembly.json")))
         record.files.append(assembly.export(Path(f"{stem}.obj"), level=options.level))
         record.files.append(assembly.export(Path(f"{stem}.glb"), level=options.level))
+        own_camera = image_camera if padding is None else padding.crop_camera(image_camera)
         pose = {
-            "image": str(path), "width": picture.shape[1], "height": picture.shape[0],
+            "image": str(path), "width": own_camera.width, "height": own_camera.height,
             "image_mode": _image_mode(path),
             "q_vbs2tango": [float(v) for v in quaternion[0]],
             "r_Vo2To_vbs": [float(v) for v in translation[0]],
             "convention": "x_cam = R(q) x_body + r; OpenCV camera frame (x right, y down, "
                           "z forward); q = (w, x, y, z); metres",
-            "camera": image_camera.to_speed_dict(),
+            "camera": own_camera.to_speed_dict(),
             "checkpoint": str(getattr(predictor, "source", None) or ""),
             "refined": options.refine, "network_ms": round(record.network_ms, 3),
         }
         if options.refine:
             pose.update(refine_ms=round(record.refine_ms, 3), iou_before=record.iou_before,
                         iou_after=record.iou_after,
-                        mask=str(mask_paths[k]) if mask_paths is not None else "segmented",
-                        warning=record.warning)
+                        mask=str(mask_paths[k]) if mask_paths is not None else "segmented")
+        if padding is not None:
+            pose["padded_to"] = [padding.padded_width, padding.padded_height]
+        if record.warning:
+            pose["warning"] = record.warning
         atomic_write_json(Path(f"{stem}.pose.json"), pose)
         record.files.append(Path(f"{stem}.pose.json"))
         overlay_path = Path(f"{stem}.overlay.png")
         with atomic_path(overlay_path) as tmp:
-            Image.fromarray(overlay_image(picture, layers, outline), "RGB").save(tmp,
-                                                                                format="PNG")
+            overlay = overlay_image(picture, layers, outline)
+            if padding is not None:
+                overlay = padding.crop(overlay)
+            Image.fromarray(overlay, "RGB").save(tmp, format="PNG")
         record.files.append(overlay_path)
         records.append(record)
     return records

@@ -43,6 +43,8 @@ __all__ = ["Prediction", "Predictor", "prepare_images"]
 _ASPECT_TOLERANCE = 1e-3
 # Traces of the fast path kept per Predictor (one per input shape seen, oldest dropped).
 _TRACES_KEPT = 4
+# Runs of a new trace before it is used (the profiling executor optimises on the second).
+_TRACE_WARMUP_RUNS = 2
 
 
 @dataclass(frozen=True)
@@ -248,6 +250,11 @@ class Predictor:
                     warnings.simplefilter("ignore", DeprecationWarning)
                     traced = torch.jit.freeze(torch.jit.trace(module, (images, matrix),
                                                               check_trace=False))
+                    # TorchScript's profiling executor records shapes on the first run and
+                    # builds the optimised graph on the second; run both here, so that the
+                    # first prediction a caller times is the steady-state one.
+                    for _ in range(_TRACE_WARMUP_RUNS):
+                        traced(images, matrix)
             except Exception:  # any failure to trace leaves the eager network, never an error
                 traced = module
             if len(self._traced) >= _TRACES_KEPT:
