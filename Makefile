@@ -39,11 +39,11 @@ lint: setup
 bench: setup
 	$(VENV)/bin/sq-mitsuba bench all
 
-# Unseen spacecraft in, assemblies and poses out: demo_output/index.html (under a minute).
+# Unseen spacecraft in, assemblies and poses out: demo_output/index.html (about a minute).
 demo: setup
 	$(VENV)/bin/sq-mitsuba demo
 
-# The same after training a small model from scratch (measured 2.6 min on 2 cores).
+# The same after training a small model from scratch (measured 2.6-5.8 min on 2 cores).
 demo-train: setup
 	$(VENV)/bin/sq-mitsuba demo --train
 

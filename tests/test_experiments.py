@@ -9,6 +9,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import torch
+
 EXPERIMENTS = Path(__file__).resolve().parents[1] / "eval" / "experiments"
 
 
@@ -17,12 +19,16 @@ def test_rotation_views_trains_and_scores_both_view_sets(train_dataset, tmp_path
     shutil.copytree(train_dataset, data)
     command = [sys.executable, str(EXPERIMENTS / "rotation_views.py"), str(data), "--steps", "2",
                "--views", "12", "--threads", "1"]
-    for _ in range(2):  # the second run reads the cached tensors
-        result = subprocess.run(command, capture_output=True, text=True, timeout=300)
-        assert result.returncode == 0, result.stderr
-        assert "12 training views" in result.stdout
-        match = re.search(r"step 2: loss ([\d.]+), median E_R training views ([\d.]+) deg, "
-                          r"held-out views ([\d.]+) deg", result.stdout)
-        assert match, result.stdout
-        assert all(0 <= float(value) <= 180 for value in match.groups()[1:])
-    assert (data / "rotation_views.pt").is_file()
+    result = subprocess.run(command, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr
+    assert "12 training views" in result.stdout
+    match = re.search(r"step 2: loss ([\d.]+), median E_R training views ([\d.]+) deg, "
+                      r"held-out views ([\d.]+) deg", result.stdout)
+    assert match, result.stdout
+    assert all(0 <= float(value) <= 180 for value in match.groups()[1:])
+    # The cache a second run reads: both splits, images with their rotations and translations.
+    train, val = torch.load(data / "rotation_views.pt", weights_only=True)
+    for images, rotations, translations in (train, val):
+        assert images.shape[1:] == (1, 96, 96) and rotations.shape == (len(images), 3, 3)
+        assert translations.shape == (len(images), 3) and len(images) > 0
+    assert len(train[0]) >= 12

@@ -488,12 +488,14 @@ def _occupancy_floor(root: Path, primitives: int, sharpness: float) -> float:
 
 @pytest.mark.slow
 def test_each_loss_term_falls_on_a_fixed_batch(one_spacecraft, cache_dir, tmp_path):
-    """Every term falls by half over 100 steps on 8 images of one spacecraft; the occupancy
-    term, whose floor is far above 0, by half of its excess over the best direct fit."""
+    """Every term falls by half over 60 steps on 8 images of one spacecraft; the occupancy
+    term, whose floor is far above 0, by half of its excess over the best direct fit.
+    (Measured at 60 steps: the mean of the last 5 steps over that of the first 3 is 0.40 for
+    translation, the slowest, and 0.24 or less for the others.)"""
     config = _learning_config(cache_dir)
-    result = train(config, one_spacecraft, tmp_path / "run", progress=False, max_steps=100)
+    result = train(config, one_spacecraft, tmp_path / "run", progress=False, max_steps=60)
     rows = _rows(tmp_path / "run" / "log.csv")
-    assert len(rows) == result.steps == 100
+    assert len(rows) == result.steps == 60
     drops = {}
     for term in ("chamfer", "occupancy", "reprojection", "rotation", "translation", "overlap"):
         values = np.array([float(r[term]) for r in rows])
@@ -510,7 +512,8 @@ def test_each_loss_term_falls_on_a_fixed_batch(one_spacecraft, cache_dir, tmp_pa
 @pytest.mark.slow
 def test_reprojection_alone_fits_the_silhouettes(one_spacecraft, cache_dir, tmp_path):
     """Only the reprojection loss: the predicted assembly's silhouette at the ground-truth
-    pose goes from IoU < 0.5 to >= 0.8 against the masks of the 8 training images.
+    pose goes from IoU < 0.5 to >= 0.8 against the masks of the 8 training images in 60 steps
+    (measured: 0.19 -> 0.83 after 40 steps, 0.85 after 60, 0.87 after 100).
 
     BatchNorm uses the statistics of the 8 images, as in training (the check is about what
     the loss optimises; the running averages trail weights moving at lr 3e-3).
@@ -544,7 +547,7 @@ def test_reprojection_alone_fits_the_silhouettes(one_spacecraft, cache_dir, tmp_
 
     torch.manual_seed(config.seed)
     before = mean_iou(SuperquadricNet(config.network))
-    train(config, one_spacecraft, tmp_path / "run", progress=False, max_steps=100)
+    train(config, one_spacecraft, tmp_path / "run", progress=False, max_steps=60)
     trained = SuperquadricNet(config.network)
     trained.load_state_dict(_read_checkpoint(tmp_path / "run" / "last.pt")["model"])
     after = mean_iou(trained)

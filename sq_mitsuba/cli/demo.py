@@ -29,13 +29,14 @@ complete; it must be absent, empty or an earlier demo.
 
 Sizes (--size):
 {sizes}
-The default size takes under a minute on 2 CPU cores with the shipped model (measured: 35 s
-wall, of which 24 s predicting, refining and scoring 15 images), a few minutes with a network
+The default size takes about a minute on 2 CPU cores with the shipped model (measured: 35 s
+wall, of which 24 s predicting, refining and scoring 15 images; 55 s on a slower AVX2-only
+CPU), a few minutes with a network
 that takes 128 px or more.
 
 --train first trains a small model from scratch (a small library of the training catalogue,
 a small dataset, train/configs/tiny.toml with the overrides of --set training.overrides;
-measured: 2.6 minutes in all on 2 quiet cores) and demonstrates that model, with its training
+measured: 2.6-5.8 minutes in all on 2 cores, by CPU) and demonstrates that model, with its training
 curves on the page. It needs the repository's train/configs/ (an editable install).
 
 Without --checkpoint the model shipped with the package is used; when there is none, or the

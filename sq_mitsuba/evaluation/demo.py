@@ -147,7 +147,7 @@ class DemoOptions:
     baseline_images: int = in_range(1, 1_000_000, default=256)
     "Images whose mean prediction and mean pose make the baseline, when it is computed here."
     train: bool = False
-    """First train a small model from scratch (library, dataset, training; measured 2.6
+    """First train a small model from scratch (library, dataset, training; measured 2.6-5.8
     minutes in all on 2 cores) and demonstrate it instead of the shipped one."""
     training: DemoTraining = field(default_factory=DemoTraining)
     "The training run of --train."

@@ -1,4 +1,5 @@
-"""``silhouette_projective``: Mitsuba's projective integrator, specialised to masks.
+"""Lean Mitsuba integrators for black meshes before an environment: ``silhouette_projective``
+(differentiable, for training) and ``target_coverage`` (the dataset's mask pass).
 
 :class:`SilhouetteRenderer`'s scene is a black, non-emitting mesh in front of a constant
 environment, seen with ``max_depth = 1``. There a camera ray's radiance is the environment's
@@ -12,6 +13,15 @@ estimates are one ray-visibility test each; the silhouette sampling, its Jacobia
 splatting of gradients are Mitsuba's own. It renders the same images and gradients as
 ``prb_projective`` for scenes of this kind (tested against it) and is wrong for any other:
 only non-emitting shapes, one environment emitter, ``max_depth = 1``.
+
+``target_coverage`` is the same shortcut without gradients, for the mask pass of the dataset
+renderer (:class:`~sq_mitsuba.render.space.SpaceScene`: the target's mesh before a constant
+environment, at many stratified samples per pixel, the coverage being one minus the pixel
+value). Mitsuba's ``path`` with ``max_depth = 1`` renders that right, but its kernel still
+carries the whole path-tracing loop, masked off lane by lane; at 256 samples per pixel it was
+90 % of the time of a 128 px dataset image. ``target_coverage`` renders the same coverage bit
+for bit (tested, also inside the ``aov`` integrator that adds depth, whose depth then agrees
+to float32 rounding) in a third of the time (``sq-mitsuba bench dataset``).
 """
 
 from __future__ import annotations
@@ -21,12 +31,13 @@ from typing import Any
 from sq_mitsuba.render.backend import mitsuba
 
 PLUGIN = "silhouette_projective"
+COVERAGE_PLUGIN = "target_coverage"
 _registered = False
 
 
 def register() -> None:
-    """Register the ``silhouette_projective`` integrator with Mitsuba (idempotent; sets up the
-    variant first)."""
+    """Register the ``silhouette_projective`` and ``target_coverage`` integrators with Mitsuba
+    (idempotent; sets up the variant first)."""
     global _registered
     if _registered:
         return
@@ -74,5 +85,15 @@ def register() -> None:
             difference = -environment_radiance(scene, ray, escaped)
             return difference, escaped & (dr.max(dr.abs(difference)) > 0)
 
+    class TargetCoverageIntegrator(mi.SamplingIntegrator):
+        """The environment where a camera ray escapes, zero where it is blocked."""
+
+        def sample(self, scene: Any, sampler: Any, ray: Any, medium: Any = None,
+                   active: Any = True, **kwargs: Any) -> tuple[Any, Any, list]:
+            active = mi.Bool(active)
+            escaped = active & ~scene.ray_test(ray, active)
+            return environment_radiance(scene, ray, escaped), active, []
+
     mi.register_integrator(PLUGIN, lambda props: SilhouetteProjectiveIntegrator(props))
+    mi.register_integrator(COVERAGE_PLUGIN, lambda props: TargetCoverageIntegrator(props))
     _registered = True

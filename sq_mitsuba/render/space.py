@@ -9,9 +9,11 @@ The camera is the dataset camera at the origin (OpenCV frame,
 :func:`sq_mitsuba.render.silhouette.sensor_dict`); poses move the vertices.
 
 A second, tiny scene renders the mask of the target alone: black meshes before a constant
-white environment with ``max_depth=1`` (the camera sees emitters only), so the image is
-1 - coverage; the mask is coverage >= 0.5, estimated with stratified samples. With
-``with_depth`` the same pass also gives the target's depth (for EXR output).
+white environment, seen by one visibility test per sample (the ``target_coverage`` integrator
+of :mod:`sq_mitsuba.render.silhouette_integrator`, what ``path`` with ``max_depth=1`` renders,
+three times faster), so the image is 1 - coverage; the mask is coverage >= 0.5, estimated
+with stratified samples. With ``with_depth`` the same pass also gives the target's depth (for
+EXR output).
 
 Eclipses (the sun behind the Earth's disk, seen from the target) switch the sun off
 analytically; everything else, earthshine included, is path traced.
@@ -33,6 +35,8 @@ from sq_mitsuba.geometry.frames import orthonormal_basis
 from sq_mitsuba.render.backend import mitsuba
 from sq_mitsuba.render.scene_config import ExposureConfig, Frame, SceneConfig, scenes_dir
 from sq_mitsuba.render.silhouette import sensor_dict
+from sq_mitsuba.render.silhouette_integrator import COVERAGE_PLUGIN
+from sq_mitsuba.render.silhouette_integrator import register as register_integrators
 
 # Stratified samples estimate edge coverage with far less noise than independent ones.
 MASK_SAMPLER = "stratified"
@@ -288,7 +292,8 @@ class SpaceScene:
         mask_sensor["sampler"] = {"type": MASK_SAMPLER,
                                   "sample_count": mask_samples(config.mask.spp, camera)}
         self.with_depth = with_depth
-        coverage_integrator = {"type": "path", "max_depth": 1}
+        register_integrators()
+        coverage_integrator = {"type": COVERAGE_PLUGIN}
         mask_scene: dict[str, Any] = {
             "type": "scene", "sensor": mask_sensor,
             "integrator": ({"type": "aov", "aovs": "depth:depth",
@@ -325,15 +330,32 @@ class SpaceScene:
         for tag, used, _ in self.parts:
             params[f"part_{tag}.vertex_positions"] = self.mi.Float(posed[used].ravel())
 
+    def _posed(self, frame: Frame) -> np.ndarray:
+        """The target's vertices (V, 3) float32 in the camera frame at ``frame``'s pose."""
+        return (self.vertices @ frame.rotation.T + np.asarray(frame.translation)).astype(
+            np.float32)
+
+    def mask_pass(self, frame: Frame, integrator: Any = None) -> np.ndarray:
+        """The raw mask pass of ``frame``: (H, W, 1) float64 of 1 - coverage, and the
+        coverage-weighted depth as a second channel with ``with_depth``.
+
+        Args:
+            frame: the pose (and seed) to render.
+            integrator: another Mitsuba integrator to render the mask scene with (the
+                benchmark and the tests compare the lean one against ``path``); None: the
+                scene's own.
+        """
+        self._set_pose(self.mask_params, self._posed(frame))
+        self.mask_params.update()
+        return np.array(self.mi.render(self.mask_scene, integrator=integrator,
+                                       seed=frame.seed % (1 << 31)), dtype=np.float64)
+
     def render(self, frame: Frame, radiance: bool = True) -> RenderedFrame:
         """Path-trace ``frame`` (and its mask). ``radiance=False`` renders the mask only."""
         mi = self.mi
-        posed = (self.vertices @ frame.rotation.T + np.asarray(frame.translation)).astype(
-            np.float32)
+        posed = self._posed(frame)
         seed = frame.seed % (1 << 31)
-        self._set_pose(self.mask_params, posed)
-        self.mask_params.update()
-        channels = np.array(mi.render(self.mask_scene, seed=seed), dtype=np.float64)
+        channels = self.mask_pass(frame)
         coverage = np.clip(1.0 - channels[..., 0], 0.0, 1.0)
         depth = None
         if self.with_depth:
