@@ -31,8 +31,7 @@ Sizes (--size):
 {sizes}
 The default size takes about a minute on 2 CPU cores with the shipped model (measured: 35 s
 wall, of which 24 s predicting, refining and scoring 15 images; 55 s on a slower AVX2-only
-CPU), a few minutes with a network
-that takes 128 px or more.
+CPU), a few minutes with a network that takes 128 px or more.
 
 --train first trains a small model from scratch (a small library of the training catalogue,
 a small dataset, train/configs/tiny.toml with the overrides of --set training.overrides;

@@ -205,6 +205,11 @@ def _transform(mi: Any, linear: np.ndarray, offset: np.ndarray | None = None) ->
     return mi.ScalarTransform4f(matrix.tolist())
 
 
+def _render_seed(frame: Frame) -> int:
+    """Mitsuba's sampler seed of ``frame`` (its seed folded into 31 bits)."""
+    return frame.seed % (1 << 31)
+
+
 def _warm_up_frame() -> Frame:
     """A fixed frame: target 2 m ahead, sun behind the camera, Earth to the side."""
     identity = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
@@ -348,13 +353,13 @@ class SpaceScene:
         self._set_pose(self.mask_params, self._posed(frame))
         self.mask_params.update()
         return np.array(self.mi.render(self.mask_scene, integrator=integrator,
-                                       seed=frame.seed % (1 << 31)), dtype=np.float64)
+                                       seed=_render_seed(frame)), dtype=np.float64)
 
     def render(self, frame: Frame, radiance: bool = True) -> RenderedFrame:
         """Path-trace ``frame`` (and its mask). ``radiance=False`` renders the mask only."""
         mi = self.mi
         posed = self._posed(frame)
-        seed = frame.seed % (1 << 31)
+        seed = _render_seed(frame)
         channels = self.mask_pass(frame)
         coverage = np.clip(1.0 - channels[..., 0], 0.0, 1.0)
         depth = None

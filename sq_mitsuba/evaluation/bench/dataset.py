@@ -111,7 +111,6 @@ def mask_pass_ratio(report: Report, scene: Any, vertices: Any, resolution: int,
     """Time the mask pass alone with the lean ``target_coverage`` integrator (the renderer's)
     and with Mitsuba's ``path`` at ``max_depth = 1`` (what it replaces, same images), adding
     both timings to ``report``; returns the note with their ratio."""
-
     from sq_mitsuba.data.frames import sample_frame
 
     frame = sample_frame(vertices, scene.camera, scene.config, 0, "bench", 0)
