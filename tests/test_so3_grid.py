@@ -39,7 +39,7 @@ def test_grid_covers_so3_uniformly(count: int) -> None:
     nearest = torch.rad2deg(rotation_angle(probes, grid[index]))
     radius = covering_angle_deg(count)
     assert 0.6 * radius < float(nearest.median()) < 0.95 * radius
-    assert float(nearest.max()) < 1.5 * radius
+    assert float(nearest.max()) < 1.65 * radius
     # Every cell is the nearest of some probes in proportion to its volume (no clumps):
     # with 3000 probes over 72 cells the busiest cell gets well under 3x its share.
     if count == 72:

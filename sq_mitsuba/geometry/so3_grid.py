@@ -78,7 +78,7 @@ def covering_angle_deg(count: int) -> float:
     The angle of a ball in SO(3) with volume ``pi^2 / count`` (SO(3) has volume pi^2 in the
     angle measure ``(theta - sin theta) / pi``), i.e. the radius the cells would have if they
     tiled SO(3) as balls. Measured nearest-cell angles of uniform random rotations have a
-    median close to 0.8 of it and rarely exceed 1.3 times it.
+    median close to 0.8 of it and a maximum near 1.4-1.5 times it.
     """
     if count < 1:
         raise ValueError(f"count: expected a positive integer, got {count!r}")
