@@ -7,12 +7,8 @@ import pytest
 import torch
 from torch import Tensor, nn
 
-from sq_mitsuba.learning.encoder import (
-    EfficientNetB0,
-    StochasticDepth,
-    fold_batchnorm,
-    load_imagenet_weights,
-)
+from sq_mitsuba.learning.encoder import EfficientNetB0, StochasticDepth, fold_batchnorm
+from sq_mitsuba.learning.pretrained import load_imagenet_weights
 
 # (expand ratio, repeats) of the 7 B0 stages, from the published stage table.
 B0_STAGES = ((1, 1), (6, 2), (6, 2), (6, 3), (6, 3), (6, 4), (6, 1))
@@ -239,7 +235,7 @@ def test_weight_loading_errors(tmp_path) -> None:
     with pytest.raises(ValueError, match=r"shape mismatch for blocks\.3\.0\.bn2\.bias"):
         attempt(wrong)
     with pytest.raises(ValueError, match="unrecognised key naming"):
-        attempt({"_conv_stem.weight": torch.zeros(32, 3, 3, 3)})
+        attempt({"model.stem.weight": torch.zeros(32, 3, 3, 3)})
     with pytest.raises(ValueError, match=r"shape mismatch for classifier\.weight"):
         attempt(good, EfficientNetB0(in_channels=3, num_classes=10))
     with pytest.raises(ValueError, match="BN-folded"):

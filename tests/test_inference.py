@@ -75,7 +75,7 @@ def net() -> SuperquadricNet:
                          for dx, dy in shifts])
     calibrate_batchnorm(model, torch.cat([batch, torch.rand(8, 1, SIZE, SIZE)]))
     with torch.no_grad():
-        model.pose_generator[-1].weight.mul_(1000.0)
+        model.pose_head.mlp[-1].weight.mul_(1000.0)
         model.sq_generator.layers[2].weight.mul_(1000.0)
     return model
 

@@ -14,13 +14,14 @@ import torch.nn.functional as F
 from sq_mitsuba.config import ConfigError, field_docs, from_dict
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.rotation import random_rotations, rotation_angle
-from sq_mitsuba.learning.encoder import EfficientNetB0, _torchvision_key
+from sq_mitsuba.learning.encoder import EfficientNetB0
 from sq_mitsuba.learning.network import (
     NetworkConfig,
     NetworkOutput,
     SuperquadricGenerators,
     SuperquadricNet,
 )
+from sq_mitsuba.learning.pretrained import _torchvision_key
 
 SIZE = 64
 
@@ -36,7 +37,7 @@ def scramble_last_layers(net: SuperquadricNet, scale: float, seed: int = 0) -> N
     """Replace the small initial last-layer weights by large random ones, so the outputs leave
     the neighbourhood of the initial prediction (and test the squashing at its extremes)."""
     gen = torch.Generator().manual_seed(seed)
-    for weight in (net.sq_generator.layers[2].weight, net.pose_generator[-1].weight):
+    for weight in (net.sq_generator.layers[2].weight, net.pose_head.mlp[-1].weight):
         weight.copy_(scale * torch.randn(weight.shape, generator=gen) / math.sqrt(
             weight.shape[-2] if weight.dim() == 3 else weight.shape[-1]))
 
@@ -240,8 +241,8 @@ def test_pose_head_learns_a_fixed_batch_of_poses():
         target = random_rotations(8, gen)
         target_6d = target[:, :2].reshape(8, 6)
         k = Camera.default(size).matrix()
-        parameters = [*net.encoder.parameters(), *net.to_z_pose.parameters(),
-                      *net.pose_generator.parameters()]
+        parameters = [*net.encoder.parameters(), *net.latent_head.to_z_pose.parameters(),
+                      *net.pose_head.parameters()]
         optimizer = torch.optim.Adam(parameters, lr=1e-3)
         start = time.perf_counter()
         errors = torch.full((8,), math.pi)

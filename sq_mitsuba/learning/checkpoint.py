@@ -35,7 +35,7 @@ from sq_mitsuba.config import ConfigError, from_dict, to_dict
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.io import atomic_path
 from sq_mitsuba.learning.inference import Predictor
-from sq_mitsuba.learning.network import NetworkConfig, SuperquadricNet
+from sq_mitsuba.learning.network import NetworkConfig, SuperquadricNet, upgrade_state_dict
 
 __all__ = [
     "FORMAT",
@@ -199,6 +199,7 @@ def model_from_checkpoint(payload: Mapping[str, Any],
     state = payload["model"]
     if not isinstance(state, Mapping):
         raise ValueError(f"{where}: 'model' must be a state dict")
+    state = upgrade_state_dict(state)  # checkpoints of the fixed-head layout load too
     own = model.state_dict()
     missing = sorted(set(own) - set(state))
     unexpected = sorted(set(state) - set(own))

@@ -1,10 +1,19 @@
-"""EfficientNet-B0 image encoder in plain torch, with ImageNet weight loading and BN folding.
+"""EfficientNet-B0 and EfficientNet-Lite0 image encoders in plain torch, with BN folding.
 
-The network is the B0 of Tan & Le (2019) layer for layer, with the same parameter shapes as
-torchvision's ``efficientnet_b0`` and timm's ``efficientnet_b0`` (5,288,548 parameters with an
-RGB stem and a 1000-class classifier), so that their ImageNet state dicts load through
-:func:`load_imagenet_weights`. Module names are this file's own (``stem``, ``stages``, ``head``,
-``classifier``); the loader maps the two published namings onto them.
+Two variants of one architecture (:data:`VARIANTS`):
+
+- ``b0``: the B0 of Tan & Le (2019) layer for layer, with the same parameter shapes as
+  torchvision's and timm's ``efficientnet_b0`` (5,288,548 parameters with an RGB stem and a
+  1000-class classifier): squeeze-excite in every block, SiLU, BatchNorm eps 1e-5,
+  symmetric "same" padding.
+- ``lite0``: EfficientNet-Lite0, B0's stage table made for mobile inference: no
+  squeeze-excite, ReLU6, BatchNorm eps 1e-3, and TensorFlow's "SAME" padding (asymmetric for
+  stride 2: the extra row and column go at the bottom and right), because its ImageNet
+  weights were trained in TensorFlow (4,652,008 parameters with an RGB stem and classifier).
+
+Module names are this file's own (``stem``, ``stages``, ``head``, ``classifier``);
+:mod:`sq_mitsuba.learning.pretrained` maps the published namings (torchvision, timm, and the
+lukemelas naming of the Lite0 ImageNet file) onto them.
 
 Convention:
     - Input: ``images`` (B, C, H, W), floating point, C = ``in_channels`` (1 for the grayscale
@@ -16,24 +25,25 @@ Convention:
       global average pooling). In training mode BatchNorm needs more than one value per channel,
       i.e. B * ceil(H / 32) * ceil(W / 32) > 1.
     - Output: ``features`` (B, 1280) after global average pooling when ``num_classes`` is None,
-      else ``logits`` (B, num_classes) from dropout(0.2) + a linear layer.
-    - BatchNorm: ``nn.BatchNorm2d`` defaults (eps 1e-5, momentum 0.1), as torchvision's B0
-      (torchvision uses eps 1e-3 / momentum 0.01 only for B5-B7) and timm's B0.
+      else ``logits`` (B, num_classes) from dropout(0.2) + a linear layer;
+      :meth:`EfficientNet.forward_pyramid` gives the feature maps at strides 4, 8, 16 and 32
+      instead (spatial latents and the mask head read them).
+    - BatchNorm: momentum 0.1 (torch's default) in both variants; eps 1e-5 for B0 (as
+      torchvision's and timm's B0) and 1e-3 for Lite0 (as its TensorFlow original).
     - Stochastic depth ("row" mode): block k of the 16 MBConv blocks (k = 0..15) drops its
       residual branch per sample with probability ``drop_connect_rate * k / 16`` (0 for the first
       block, 0.1875 for the last at the default 0.2, as torchvision), only in training mode and
       only in blocks with a residual connection; kept samples are scaled by 1 / (1 - p).
-    - Squeeze-excite: reduced width max(1, block_input_channels // 4), SiLU then sigmoid gate.
+    - Squeeze-excite (B0 only): reduced width max(1, block_input_channels // 4), SiLU then
+      sigmoid gate.
 """
 
 from __future__ import annotations
 
 import copy
 import math
-import os
 from collections import OrderedDict
-from collections.abc import Callable, Mapping
-from pathlib import Path
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
@@ -52,13 +62,36 @@ STAGES: tuple[tuple[int, int, int, int, int], ...] = (
 STEM_CHANNELS = 32
 NUM_FEATURES = 1280
 CLASSIFIER_DROPOUT = 0.2
+#: Stages whose outputs :meth:`EfficientNet.forward_pyramid` returns (strides 4, 8, 16, 32).
+PYRAMID_STAGES = (1, 2, 4, 6)
+
+
+@dataclass(frozen=True)
+class Variant:
+    """What tells B0 and Lite0 apart (module docstring)."""
+
+    squeeze_excite: bool
+    activation: str  # "silu" or "relu6"
+    bn_eps: float
+    tf_same_padding: bool
+
+
+VARIANTS: dict[str, Variant] = {
+    "b0": Variant(squeeze_excite=True, activation="silu", bn_eps=1e-5, tf_same_padding=False),
+    "lite0": Variant(squeeze_excite=False, activation="relu6", bn_eps=1e-3,
+                     tf_same_padding=True),
+}
+_ACTIVATIONS = {"silu": nn.SiLU, "relu6": nn.ReLU6}
 
 
 class ConvBNAct(nn.Module):
-    """Conv2d (no bias, "same" padding) + BatchNorm2d + optional SiLU.
+    """Conv2d (no bias, "same" padding) + BatchNorm2d + optional activation.
 
     (B, in_channels, H, W) -> (B, out_channels, ceil(H / stride), ceil(W / stride)).
     :func:`fold_batchnorm` turns ``bn`` into ``nn.Identity`` and gives ``conv`` a bias.
+    ``tf_same_padding`` pads a strided conv as TensorFlow's "SAME" does (total padding
+    ``max((ceil(n / s) - 1) s + k - n, 0)``, the odd one at the end); for stride 1 and odd
+    kernels that equals the symmetric padding.
     """
 
     def __init__(
@@ -68,23 +101,36 @@ class ConvBNAct(nn.Module):
         kernel_size: int,
         stride: int = 1,
         groups: int = 1,
-        activation: bool = True,
+        activation: str | None = "silu",
+        bn_eps: float = 1e-5,
+        tf_same_padding: bool = False,
     ) -> None:
         super().__init__()
+        self.pad_like_tf = tf_same_padding and stride > 1
         self.conv = nn.Conv2d(
             in_channels,
             out_channels,
             kernel_size,
             stride=stride,
-            padding=(kernel_size - 1) // 2,
+            padding=0 if self.pad_like_tf else (kernel_size - 1) // 2,
             groups=groups,
             bias=False,
         )
-        self.bn: nn.Module = nn.BatchNorm2d(out_channels)
-        self.act: nn.Module = nn.SiLU() if activation else nn.Identity()
+        self.bn: nn.Module = nn.BatchNorm2d(out_channels, eps=bn_eps)
+        self.act: nn.Module = _ACTIVATIONS[activation]() if activation else nn.Identity()
+
+    def _tf_pad(self, x: Tensor) -> Tensor:
+        pads = []
+        for size, k, s in zip(x.shape[:-3:-1], self.conv.kernel_size[::-1],
+                              self.conv.stride[::-1], strict=True):  # width, then height
+            total = max((math.ceil(size / s) - 1) * s + k - size, 0)
+            pads += [total // 2, total - total // 2]
+        return F.pad(x, pads)
 
     def forward(self, x: Tensor) -> Tensor:
         """(B, C_in, H, W) -> (B, C_out, H', W')."""
+        if self.pad_like_tf:
+            x = self._tf_pad(x)
         return self.act(self.bn(self.conv(x)))
 
 
@@ -133,7 +179,7 @@ class StochasticDepth(nn.Module):
 
 
 class MBConv(nn.Module):
-    """Inverted residual block: [1x1 expand] -> depthwise kxk -> squeeze-excite -> 1x1 project.
+    """Inverted residual block: [1x1 expand] -> depthwise kxk -> [squeeze-excite] -> 1x1 project.
 
     (B, in_channels, H, W) -> (B, out_channels, ceil(H / stride), ceil(W / stride)). The
     residual connection (with stochastic depth on the branch) exists when stride is 1 and
@@ -148,15 +194,20 @@ class MBConv(nn.Module):
         kernel_size: int,
         stride: int,
         drop_rate: float,
+        variant: Variant = VARIANTS["b0"],
     ) -> None:
         super().__init__()
         hidden = in_channels * expand_ratio
+        common = {"activation": variant.activation, "bn_eps": variant.bn_eps,
+                  "tf_same_padding": variant.tf_same_padding}
         self.expand: ConvBNAct | None = (
-            ConvBNAct(in_channels, hidden, 1) if expand_ratio != 1 else None
+            ConvBNAct(in_channels, hidden, 1, **common) if expand_ratio != 1 else None
         )
-        self.depthwise = ConvBNAct(hidden, hidden, kernel_size, stride=stride, groups=hidden)
-        self.se = SqueezeExcite(hidden, max(1, in_channels // 4))
-        self.project = ConvBNAct(hidden, out_channels, 1, activation=False)
+        self.depthwise = ConvBNAct(hidden, hidden, kernel_size, stride=stride, groups=hidden,
+                                   **common)
+        self.se: nn.Module = (SqueezeExcite(hidden, max(1, in_channels // 4))
+                              if variant.squeeze_excite else nn.Identity())
+        self.project = ConvBNAct(hidden, out_channels, 1, **{**common, "activation": None})
         self.use_residual = stride == 1 and in_channels == out_channels
         self.drop_path = StochasticDepth(drop_rate)
 
@@ -169,21 +220,23 @@ class MBConv(nn.Module):
         return y
 
 
-class EfficientNetB0(nn.Module):
-    """EfficientNet-B0 encoder: images (B, in_channels, H, W) -> features (B, 1280).
+class EfficientNet(nn.Module):
+    """EfficientNet-B0 or -Lite0 encoder: images (B, in_channels, H, W) -> features (B, 1280).
 
     Args:
         in_channels: channels of the input images (1 for grayscale, 3 for RGB).
         num_classes: None for the feature encoder; an int adds dropout(0.2) + Linear(1280,
             num_classes) and ``forward`` returns logits (B, num_classes).
         drop_connect_rate: stochastic-depth rate; block k of 16 drops with rate * k / 16.
+        variant: ``"b0"`` or ``"lite0"`` (:data:`VARIANTS`).
 
     Attributes:
         stem: 3x3 stride-2 conv to 32 channels (+ BN + SiLU).
         stages: 7 ``nn.Sequential`` stages of :class:`MBConv` blocks (``STAGES``).
-        head: 1x1 conv 320 -> 1280 (+ BN + SiLU).
+        head: 1x1 conv 320 -> 1280 (+ BN + activation).
         classifier: ``Sequential(dropout, fc)`` or None.
         num_features: 1280, the width of ``features``.
+        pyramid_channels: channels of the :meth:`forward_pyramid` maps, (24, 40, 112, 320).
     """
 
     def __init__(
@@ -191,8 +244,11 @@ class EfficientNetB0(nn.Module):
         in_channels: int = 1,
         num_classes: int | None = None,
         drop_connect_rate: float = 0.2,
+        variant: str = "b0",
     ) -> None:
         super().__init__()
+        if variant not in VARIANTS:
+            raise ValueError(f"variant: expected one of {sorted(VARIANTS)}, got {variant!r}")
         if isinstance(in_channels, bool) or not isinstance(in_channels, int) or in_channels < 1:
             raise ValueError(f"in_channels: expected a positive int, got {in_channels!r}")
         if num_classes is not None and (
@@ -204,8 +260,13 @@ class EfficientNetB0(nn.Module):
         self.in_channels = in_channels
         self.num_classes = num_classes
         self.num_features = NUM_FEATURES
+        self.variant = variant
+        self.pyramid_channels = tuple(STAGES[i][3] for i in PYRAMID_STAGES)
+        spec = VARIANTS[variant]
+        common = {"activation": spec.activation, "bn_eps": spec.bn_eps,
+                  "tf_same_padding": spec.tf_same_padding}
 
-        self.stem = ConvBNAct(in_channels, STEM_CHANNELS, 3, stride=2)
+        self.stem = ConvBNAct(in_channels, STEM_CHANNELS, 3, stride=2, **common)
         total_blocks = sum(stage[4] for stage in STAGES)
         stages: list[nn.Module] = []
         channels, block_index = STEM_CHANNELS, 0
@@ -214,13 +275,12 @@ class EfficientNetB0(nn.Module):
             for j in range(repeats):
                 rate = drop_connect_rate * block_index / total_blocks
                 block_stride = stride if j == 0 else 1
-                blocks.append(
-                    MBConv(channels, out_channels, expand_ratio, kernel, block_stride, rate)
-                )
+                blocks.append(MBConv(channels, out_channels, expand_ratio, kernel, block_stride,
+                                     rate, spec))
                 channels, block_index = out_channels, block_index + 1
             stages.append(nn.Sequential(*blocks))
         self.stages = nn.Sequential(*stages)
-        self.head = ConvBNAct(channels, NUM_FEATURES, 1)
+        self.head: ConvBNAct | None = ConvBNAct(channels, NUM_FEATURES, 1, **common)
         self.classifier: nn.Sequential | None = None
         if num_classes is not None:
             self.classifier = nn.Sequential(
@@ -246,8 +306,7 @@ class EfficientNetB0(nn.Module):
                 nn.init.uniform_(module.weight, -bound, bound)
                 nn.init.zeros_(module.bias)
 
-    def forward_features(self, images: Tensor) -> Tensor:
-        """Pooled features (B, 1280) of images (B, in_channels, H, W), ignoring the classifier."""
+    def _check_images(self, images: Tensor) -> None:
         if (
             not isinstance(images, Tensor)
             or images.dim() != 4
@@ -262,6 +321,31 @@ class EfficientNetB0(nn.Module):
             raise ValueError(
                 f"images: expected a floating-point tensor (B, {self.in_channels}, H, W), got {got}"
             )
+
+    def forward_pyramid(self, images: Tensor) -> list[Tensor]:
+        """Feature maps of images (B, in_channels, H, W), finest first.
+
+        Returns:
+            ``[s4, s8, s16, s32, head]``: the outputs of stages 1, 2, 4 and 6, of
+            ``pyramid_channels`` (24, 40, 112, 320) channels at strides 4, 8, 16, 32
+            (``ceil(H / stride)`` rows), then the head's (B, 1280, ceil(H / 32), ceil(W / 32)),
+            which is left out when ``head`` is None (a network whose heads do not read it
+            drops it, so that no parameter goes without a gradient).
+        """
+        self._check_images(images)
+        x = self.stem(images)
+        maps = []
+        for index, stage in enumerate(self.stages):
+            x = stage(x)
+            if index in PYRAMID_STAGES:
+                maps.append(x)
+        if self.head is not None:
+            maps.append(self.head(x))
+        return maps
+
+    def forward_features(self, images: Tensor) -> Tensor:
+        """Pooled features (B, 1280) of images (B, in_channels, H, W), ignoring the classifier."""
+        self._check_images(images)
         x = self.head(self.stages(self.stem(images)))  # (B, 1280, H/32, W/32)
         return x.mean(dim=(2, 3))
 
@@ -269,153 +353,6 @@ class EfficientNetB0(nn.Module):
         """images (B, in_channels, H, W) -> features (B, 1280), or logits (B, num_classes)."""
         features = self.forward_features(images)
         return features if self.classifier is None else self.classifier(features)
-
-
-# --- ImageNet weights -----------------------------------------------------------------------
-
-
-def _split_block_key(key: str) -> tuple[int, str, str, list[str]]:
-    """``stages.s.j.part.sub.rest`` -> (s, "s.j", part, [sub, *rest])."""
-    parts = key.split(".")
-    return int(parts[1]), f"{parts[1]}.{parts[2]}", parts[3], parts[4:]
-
-
-def _torchvision_key(key: str) -> str:
-    """This module's state-dict key -> torchvision ``efficientnet_b0`` key."""
-    parts = key.split(".")
-    conv_bn = {"conv": "0", "bn": "1"}
-    if parts[0] in ("stem", "head"):
-        index = 0 if parts[0] == "stem" else len(STAGES) + 1
-        return ".".join(["features", str(index), conv_bn[parts[1]], *parts[2:]])
-    if parts[0] == "stages":
-        stage, block, part, rest = _split_block_key(key)
-        offset = 0 if STAGES[stage][0] == 1 else 1  # position of the depthwise conv
-        prefix = f"features.{stage + 1}.{block.split('.')[1]}.block"
-        if part == "se":
-            fc = {"reduce": "fc1", "expand": "fc2"}[rest[0]]
-            return ".".join([prefix, str(offset + 1), fc, *rest[1:]])
-        position = {"expand": 0, "depthwise": offset, "project": offset + 2}[part]
-        return ".".join([prefix, str(position), conv_bn[rest[0]], *rest[1:]])
-    if parts[0] == "classifier" and parts[1] == "fc":
-        return ".".join(["classifier", "1", *parts[2:]])
-    raise KeyError(key)
-
-
-def _timm_key(key: str) -> str:
-    """This module's state-dict key -> timm ``efficientnet_b0`` key."""
-    parts = key.split(".")
-    if parts[0] == "stem":
-        return ".".join([{"conv": "conv_stem", "bn": "bn1"}[parts[1]], *parts[2:]])
-    if parts[0] == "head":
-        return ".".join([{"conv": "conv_head", "bn": "bn2"}[parts[1]], *parts[2:]])
-    if parts[0] == "stages":
-        stage, block, part, rest = _split_block_key(key)
-        prefix = f"blocks.{block}"
-        if part == "se":
-            conv = {"reduce": "conv_reduce", "expand": "conv_expand"}[rest[0]]
-            return ".".join([prefix, "se", conv, *rest[1:]])
-        if STAGES[stage][0] == 1:  # timm DepthwiseSeparableConv
-            names = {
-                ("depthwise", "conv"): "conv_dw",
-                ("depthwise", "bn"): "bn1",
-                ("project", "conv"): "conv_pw",
-                ("project", "bn"): "bn2",
-            }
-        else:  # timm InvertedResidual
-            names = {
-                ("expand", "conv"): "conv_pw",
-                ("expand", "bn"): "bn1",
-                ("depthwise", "conv"): "conv_dw",
-                ("depthwise", "bn"): "bn2",
-                ("project", "conv"): "conv_pwl",
-                ("project", "bn"): "bn3",
-            }
-        return ".".join([prefix, names[(part, rest[0])], *rest[1:]])
-    if parts[0] == "classifier" and parts[1] == "fc":
-        return ".".join(["classifier", *parts[2:]])
-    raise KeyError(key)
-
-
-_NAMINGS: dict[str, tuple[str, Callable[[str], str]]] = {
-    "torchvision": ("features.0.0.weight", _torchvision_key),
-    "timm": ("conv_stem.weight", _timm_key),
-}
-
-
-def _listing(keys: set[str], limit: int = 5) -> str:
-    ordered = sorted(keys)
-    more = f" (+{len(ordered) - limit} more)" if len(ordered) > limit else ""
-    return ", ".join(ordered[:limit]) + more
-
-
-def load_imagenet_weights(model: EfficientNetB0, path: str | os.PathLike[str]) -> EfficientNetB0:
-    """Load a local ImageNet state dict (torchvision or timm naming) into ``model`` in place.
-
-    The naming is detected from the stem key (``features.0.0.weight`` or ``conv_stem.weight``).
-    For a 1-channel model the RGB stem weight (32, 3, 3, 3) is summed over its input channels,
-    so that a gray image x gives what the RGB network gives for (x, x, x). The file's classifier
-    is skipped when ``model`` has none. A missing ``num_batches_tracked`` buffer keeps the
-    model's value. Values are copied into the model's dtype and device.
-
-    Args:
-        model: an unfolded :class:`EfficientNetB0`.
-        path: file written by ``torch.save(state_dict)``; read with ``weights_only=True``.
-
-    Returns:
-        ``model``.
-
-    Raises:
-        FileNotFoundError: ``path`` does not exist.
-        ValueError: unrecognised naming, unknown or missing keys, or a shape mismatch (naming
-            the key).
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"ImageNet weights: no such file {path}")
-    state = torch.load(path, map_location="cpu", weights_only=True)
-    if not isinstance(state, Mapping) or not all(isinstance(v, Tensor) for v in state.values()):
-        raise ValueError(f"{path}: expected a state dict of tensors, got {type(state).__name__}")
-    naming = next((name for name, (probe, _) in _NAMINGS.items() if probe in state), None)
-    if naming is None:
-        first = next(iter(state), None)
-        raise ValueError(
-            f"{path}: unrecognised key naming (first key {first!r}); expected torchvision "
-            "('features.0.0.weight') or timm ('conv_stem.weight')"
-        )
-    rename = _NAMINGS[naming][1]
-    if any(isinstance(m, ConvBNAct) and isinstance(m.bn, nn.Identity) for m in model.modules()):
-        raise ValueError("model: is BN-folded; load weights before fold_batchnorm")
-
-    own = model.state_dict()
-    source_of = {key: rename(key) for key in own}
-    expected = set(source_of.values())
-    skipped = (
-        {k for k in state if k.startswith("classifier.")} if model.classifier is None else set()
-    )
-    unknown = set(state) - expected - skipped
-    if unknown:
-        raise ValueError(f"{path}: {len(unknown)} unknown {naming} key(s): {_listing(unknown)}")
-    missing = {k for k in expected - set(state) if not k.endswith("num_batches_tracked")}
-    if missing:
-        raise ValueError(f"{path}: {len(missing)} missing {naming} key(s): {_listing(missing)}")
-
-    loaded: dict[str, Tensor] = {}
-    for key, current in own.items():
-        source = source_of[key]
-        if source not in state:  # num_batches_tracked only
-            loaded[key] = current
-            continue
-        value = state[source]
-        if key == "stem.conv.weight" and model.in_channels == 1 and value.shape[1:2] == (3,):
-            value = value.sum(dim=1, keepdim=True)  # gray x acts as RGB (x, x, x)
-        if value.shape != current.shape:
-            raise ValueError(
-                f"{path}: shape mismatch for {source} (model {key}): file {tuple(value.shape)},"
-                f" model {tuple(current.shape)}"
-            )
-        loaded[key] = value
-    model.load_state_dict(loaded, strict=True)
-    return model
 
 
 # --- inference ------------------------------------------------------------------------------
@@ -436,7 +373,7 @@ def _fuse_conv_bn(conv: nn.Conv2d, bn: nn.BatchNorm2d) -> None:
     conv.bias = nn.Parameter(bias.to(dtype))
 
 
-def fold_batchnorm(model: EfficientNetB0, channels_last: bool = False) -> EfficientNetB0:
+def fold_batchnorm(model: EfficientNet, channels_last: bool = False) -> EfficientNet:
     """Inference copy of ``model`` with every conv + BatchNorm pair fused into one conv.
 
     The copy is in eval mode, has no BatchNorm layers (each ``ConvBNAct.bn`` becomes
@@ -445,7 +382,7 @@ def fold_batchnorm(model: EfficientNetB0, channels_last: bool = False) -> Effici
     ``model`` itself is left untouched. Do not train the copy or load weights into it.
 
     Args:
-        model: an :class:`EfficientNetB0` (any dtype, any device).
+        model: an :class:`EfficientNet` (any dtype, any device).
         channels_last: store the conv weights in ``torch.channels_last`` memory format; feed it
             ``images.contiguous(memory_format=torch.channels_last)`` for the fast CPU path.
 
@@ -462,3 +399,7 @@ def fold_batchnorm(model: EfficientNetB0, channels_last: bool = False) -> Effici
     if channels_last:
         folded = folded.to(memory_format=torch.channels_last)
     return folded
+
+
+#: The paper's encoder under its historical name.
+EfficientNetB0 = EfficientNet

@@ -8,6 +8,8 @@ checkpoint. Example::
     prediction = predictor.predict(images)          # (B, H, W) uint8 or float in [0, 1]
     prediction.assembly.export("item0.glb", item=0)
     prediction.rotation, prediction.translation     # x_cam = R x_body + t
+    prediction.rotation_hypotheses                  # (B, K, 3, 3), best first
+    prediction.mask                                 # (B, H, W) in [0, 1], or None
 
 Convention:
     - Images are resized to the network's S x S input (``config.image_size``): ``area``
@@ -24,7 +26,7 @@ Convention:
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 
 import numpy as np
@@ -35,7 +37,8 @@ from torch import Tensor
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.rotation import matrix_to_quaternion
-from sq_mitsuba.learning.network import SuperquadricNet
+from sq_mitsuba.learning.network import NetworkOutput, SuperquadricNet
+from sq_mitsuba.learning.rotation_grid import RotationGridPoseHead, rotation_hypotheses
 
 __all__ = ["Prediction", "Predictor", "prepare_images"]
 
@@ -45,6 +48,8 @@ _ASPECT_TOLERANCE = 1e-3
 _TRACES_KEPT = 4
 # Runs of a new trace before it is used (the profiling executor optimises on the second).
 _TRACE_WARMUP_RUNS = 2
+#: Rotation hypotheses a Predictor gives per image by default (distribution heads).
+DEFAULT_HYPOTHESES = 8
 
 
 @dataclass(frozen=True)
@@ -62,6 +67,13 @@ class Prediction:
         pixel: (B, 2) image position (u, v) of the body origin, in pixels of the given images.
         depth: (B,) camera-frame z of the body origin (``translation[:, 2]``).
         camera: intrinsics of the given images (after any rescaling of the camera passed in).
+        rotation_hypotheses: (B, K, 3, 3) distinct candidate rotations, best first: the modes
+            of a distribution head (K = the predictor's ``hypotheses``), or ``rotation``
+            alone (K = 1) for a regressing head.
+        rotation_scores: (B, K) the network's probability of each hypothesis (1 for a
+            regressing head's single one).
+        mask: (B, H, W) the mask head's probability that a pixel of the given images shows
+            the target, or None for a network without a mask head.
     """
 
     assembly: Assembly
@@ -71,6 +83,9 @@ class Prediction:
     pixel: Tensor
     depth: Tensor
     camera: Camera
+    rotation_hypotheses: Tensor
+    rotation_scores: Tensor
+    mask: Tensor | None = None
 
 
 def prepare_images(images: Tensor | np.ndarray, channels: int = 1) -> Tensor:
@@ -145,22 +160,27 @@ class Predictor:
             frozen by TorchScript once per input shape (the same output up to ~1e-5 relative;
             faster on CPU; the first call at a new batch size or device takes about a
             second). The copy is a snapshot of the weights now.
+        hypotheses: K, the rotation hypotheses per image of a distribution head.
     """
 
-    def __init__(self, model: SuperquadricNet, camera: Camera, fast: bool = False) -> None:
+    def __init__(self, model: SuperquadricNet, camera: Camera, fast: bool = False,
+                 hypotheses: int = DEFAULT_HYPOTHESES) -> None:
         if not isinstance(model, SuperquadricNet):
             raise ValueError(f"model: expected a SuperquadricNet, got {type(model).__name__}")
         if not isinstance(camera, Camera):
             raise ValueError(f"camera: expected a Camera, got {type(camera).__name__}")
+        if isinstance(hypotheses, bool) or not isinstance(hypotheses, int) or hypotheses < 1:
+            raise ValueError(f"hypotheses: expected an int >= 1, got {hypotheses!r}")
         self.model = model
         self.camera = camera
         self.fast = bool(fast)
+        self.hypotheses = hypotheses
         # Measured (`sq-mitsuba bench train`, batch 1, quiet 2-core EPYC): TorchScript's trace +
         # freeze of the folded network takes 6.2 ms at 96 px against 8.7 ms eager (the eager
         # time is mostly Python's per-module overhead at batch 1); optimize_for_inference was
         # slower (11 ms), oneDNN graph fusion fails to compile this network.
         self._folded = model.folded(channels_last=True) if self.fast else None
-        self._traced: dict[tuple, torch.nn.Module] = {}
+        self._traced: dict[tuple, tuple[torch.nn.Module, tuple[str, ...]]] = {}
         #: The checkpoint the model came from (set by ``load_model``), for records.
         self.source: Path | None = None
         #: The trivial baseline stored with the checkpoint (set by ``load_model``), or None:
@@ -203,8 +223,8 @@ class Predictor:
         matrix = camera.rescaled(size, size).matrix(parameter.dtype, parameter.device)
         if self._folded is not None:
             with torch.inference_mode():
-                raw, rotation, translation, pixel, depth = self._traced_network(x, matrix)(
-                    x, matrix)
+                traced, names = self._traced_network(x, matrix)
+                output = NetworkOutput(**dict(zip(names, traced(x, matrix), strict=True)))
         else:
             was_training = network.training
             if was_training:
@@ -215,33 +235,53 @@ class Predictor:
             finally:
                 if was_training:
                     network.train()
-            raw, rotation, translation, pixel, depth = (output.raw, output.rotation,
-                                                        output.translation, output.pixel,
-                                                        output.depth)
         # Clones made outside inference mode are ordinary tensors, so callers (test-time
         # refinement) can start autograd from them.
-        rotation = rotation.clone()
+        rotation = output.rotation.clone()
+        hypotheses, scores = self._hypotheses(output, rotation)
+        mask = None
+        if output.mask_logits is not None:
+            mask = F.interpolate(output.mask_logits.clone(), size=(height, width),
+                                 mode="bilinear", align_corners=False).sigmoid()[:, 0]
         scale = rotation.new_tensor([width / size, height / size])
         return Prediction(
-            assembly=Assembly.from_raw(raw.clone()),
+            assembly=Assembly.from_raw(output.raw.clone()),
             rotation=rotation,
-            translation=translation.clone(),
+            translation=output.translation.clone(),
             quaternion=matrix_to_quaternion(rotation),
-            pixel=pixel.clone() * scale,
-            depth=depth.clone(),
+            pixel=output.pixel.clone() * scale,
+            depth=output.depth.clone(),
             camera=camera,
+            rotation_hypotheses=hypotheses,
+            rotation_scores=scores,
+            mask=mask,
         )
 
-    def _traced_network(self, images: Tensor, matrix: Tensor) -> torch.nn.Module:
+    def _hypotheses(self, output: NetworkOutput, rotation: Tensor) -> tuple[Tensor, Tensor]:
+        """(B, K, 3, 3) rotation hypotheses and (B, K) scores of a network output."""
+        head = self.model.pose_head
+        if output.rotation_logits is None or not isinstance(head, RotationGridPoseHead):
+            return rotation[:, None], rotation.new_ones(rotation.shape[0], 1)
+        grid = head.grid_rotations().to(rotation)
+        rotations, scores = rotation_hypotheses(output.rotation_logits.clone(), grid,
+                                                self.hypotheses)
+        # The best hypothesis is the head's own rotation (its argmax, refined locally).
+        rotations[:, 0] = rotation
+        return rotations, scores.to(rotation)
+
+    def _traced_network(self, images: Tensor,
+                        matrix: Tensor) -> tuple[torch.nn.Module, tuple[str, ...]]:
         """The folded network traced and frozen for inputs like these (cached per shape, dtype
-        and device: a trace may fix the batch size); returns (raw, rotation, translation,
-        pixel, depth)."""
+        and device: a trace may fix the batch size), and the names of the
+        :class:`NetworkOutput` fields whose tensors it returns."""
         key = (tuple(images.shape), tuple(matrix.shape), images.dtype, images.device)
-        traced = self._traced.get(key)
-        if traced is None:
+        cached = self._traced.get(key)
+        if cached is None:
             import warnings
 
             module = OutputTuple(self._folded).eval()
+            with torch.no_grad():
+                module(images, matrix)  # sets module.names
             # torch 2.13 (pinned) marks TorchScript deprecated; should a later torch drop it,
             # the eager folded network runs instead (the same outputs, ~2.5 ms slower).
             try:
@@ -259,18 +299,22 @@ class Predictor:
                 traced = module
             if len(self._traced) >= _TRACES_KEPT:
                 self._traced.pop(next(iter(self._traced)))  # the oldest
-            self._traced[key] = traced
-        return traced
+            cached = self._traced[key] = (traced, module.names)
+        return cached
 
 
 class OutputTuple(torch.nn.Module):
-    """``network``'s outputs as a tuple (raw, rotation, translation, pixel, depth): TorchScript
-    traces tuples, not dataclasses."""
+    """``network``'s :class:`NetworkOutput` as a tuple of its tensors (TorchScript traces
+    tuples, not dataclasses): the fields that are not None, in field order; ``names`` (set by
+    the first call) says which."""
 
     def __init__(self, network: torch.nn.Module) -> None:
         super().__init__()
         self.network = network
+        self.names: tuple[str, ...] = ()
 
     def forward(self, images: Tensor, matrix: Tensor) -> tuple[Tensor, ...]:
         out = self.network(images, matrix)
-        return out.raw, out.rotation, out.translation, out.pixel, out.depth
+        present = [f.name for f in fields(out) if getattr(out, f.name) is not None]
+        self.names = tuple(present)
+        return tuple(getattr(out, name) for name in present)

