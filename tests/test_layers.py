@@ -124,3 +124,130 @@ def test_no_module_points_to_documents_outside_the_repository():
         text = path.read_text(encoding="utf-8")
         for word in outside:
             assert word not in text, f"{path.relative_to(PACKAGE.parent)} mentions {word!r}"
+
+
+# ------------------------------------------------------------------------ import cycles
+
+
+def import_graph(root: Path) -> dict[str, set[str]]:
+    """Module -> the package's modules it imports (anywhere in it, functions included).
+
+    ``from package import name`` counts as importing ``package.name`` when that is a module,
+    else the package itself; a module's import of its own enclosing package is left out
+    (Python runs a package's ``__init__`` before any of its modules anyway)."""
+    modules = {module_name(path, root): path for path in sorted(root.rglob("*.py"))}
+    graph: dict[str, set[str]] = {}
+    for module, path in modules.items():
+        tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
+        targets: set[str] = set()
+        for node in ast.walk(tree):
+            names: list[str] = []
+            if isinstance(node, ast.Import):
+                names = [alias.name for alias in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                base = imported_modules(ast.Module([node], []), module,
+                                        path.name == "__init__.py")[0][1]
+                names = [f"{base}.{alias.name}" if f"{base}.{alias.name}" in modules else base
+                         for alias in node.names]
+            for name in names:
+                while name and name not in modules:  # a.b.c imports a.b too; keep ours
+                    name = name.rpartition(".")[0]
+                if name and name != module and not module.startswith(name + "."):
+                    targets.add(name)
+        graph[module] = targets
+    return graph
+
+
+def import_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """One cycle per strongly connected group of mutually importing modules (Tarjan)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    groups: list[list[str]] = []
+
+    def visit(node: str) -> None:
+        index[node] = low[node] = len(index)
+        stack.append(node)
+        on_stack.add(node)
+        for target in sorted(graph.get(node, ())):
+            if target not in index:
+                visit(target)
+                low[node] = min(low[node], low[target])
+            elif target in on_stack:
+                low[node] = min(low[node], index[target])
+        if low[node] == index[node]:
+            group = []
+            while True:
+                member = stack.pop()
+                on_stack.discard(member)
+                group.append(member)
+                if member == node:
+                    break
+            if len(group) > 1:
+                groups.append(sorted(group))
+
+    for node in sorted(graph):
+        if node not in index:
+            visit(node)
+    return groups
+
+
+def test_no_modules_import_each_other_in_a_loop():
+    assert import_cycles(import_graph(PACKAGE)) == []
+
+
+def test_a_planted_import_cycle_is_caught(tmp_path):
+    copy = tmp_path / "sq_mitsuba"
+    shutil.copytree(PACKAGE, copy, ignore=shutil.ignore_patterns("__pycache__"))
+    (copy / "geometry" / "planted_a.py").write_text("from sq_mitsuba.geometry import planted_b\n")
+    (copy / "geometry" / "planted_b.py").write_text(
+        "def late():\n    from sq_mitsuba.geometry.planted_c import x\n    return x\n")
+    (copy / "geometry" / "planted_c.py").write_text("from .planted_a import y\nx = 1\n")
+    assert import_cycles(import_graph(copy)) == [["sq_mitsuba.geometry.planted_a",
+                                                  "sq_mitsuba.geometry.planted_b",
+                                                  "sq_mitsuba.geometry.planted_c"]]
+
+
+# ------------------------------------------------------------------------ private names
+
+
+def private_learning_imports(paths: list[Path]) -> list[str]:
+    """One line per import of a ``_private`` name of ``sq_mitsuba.learning`` in ``paths``."""
+    problems = []
+    for path in paths:
+        tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom) and (node.module or "").startswith(
+                    "sq_mitsuba.learning"):
+                problems += [f"{path}:{node.lineno}: {node.module}.{alias.name}"
+                             for alias in node.names if alias.name.startswith("_")]
+            elif isinstance(node, ast.Import):
+                problems += [f"{path}:{node.lineno}: {alias.name}" for alias in node.names
+                             if alias.name.startswith("sq_mitsuba.learning") and any(
+                                 part.startswith("_") and part != "__init__"
+                                 for part in alias.name.split("."))]
+    return problems
+
+
+def test_nothing_outside_learning_imports_its_private_names():
+    """The training step, the trainer and the losses are public: the benchmark, the CLI,
+    evaluation and the experiments under eval/ use them by their public names."""
+    outside = [p for p in sorted(PACKAGE.rglob("*.py")) if "learning" not in p.relative_to(
+        PACKAGE).parts]
+    experiments = sorted((PACKAGE.parent / "eval").rglob("*.py"))
+    assert experiments, "eval/ scripts not found"
+    assert private_learning_imports(outside + experiments) == []
+
+
+def test_a_planted_private_import_is_caught(tmp_path):
+    planted = tmp_path / "bench.py"
+    planted.write_text("def f():\n    from sq_mitsuba.learning.train import _loop, train\n")
+    assert private_learning_imports([planted]) == [
+        f"{planted}:2: sq_mitsuba.learning.train._loop"]
+
+
+def test_no_file_in_learning_is_over_500_lines():
+    long = {p.name: n for p in (PACKAGE / "learning").glob("*.py")
+            if (n := len(p.read_text(encoding="utf-8").splitlines())) > 500}
+    assert long == {}

@@ -20,16 +20,15 @@ from sq_mitsuba.geometry.rotation import (
     rotation_6d_to_matrix,
 )
 from sq_mitsuba.geometry.superquadric import inside_outside_dual
+from sq_mitsuba.learning.loss_terms import PUBLISHED_WEIGHTS, LossConfig, total_loss
 from sq_mitsuba.learning.losses import (
-    LossWeights,
     chamfer_loss,
     occupancy_loss,
-    oriented_chamfer_loss,
     pose_loss,
     reprojection_loss,
+    rotation_6d_loss,
     surface_chamfer_loss,
     taper_loss,
-    total_loss,
 )
 from sq_mitsuba.render.silhouette import SilhouetteRenderer, render_assembly
 
@@ -100,52 +99,6 @@ def test_chamfer_of_identical_clouds_is_zero_and_known_for_a_shift():
     a = torch.zeros(1, 1, 3, dtype=torch.float64)
     b = torch.tensor([[[0.0, 0.3, 0.0]]], dtype=torch.float64)
     assert float(chamfer_loss(a, None, b)) == pytest.approx(0.18, rel=1e-12)
-
-
-def test_oriented_chamfer_is_the_chamfer_of_the_turned_clouds():
-    pred, keep, target = clouds(seed=11)
-    generator = torch.Generator().manual_seed(12)
-    r_pred, r_true = (random_rotations(3, generator, torch.float64) for _ in range(2))
-    ours = oriented_chamfer_loss(pred, keep, r_pred, target, r_true)
-    reference = dense_chamfer(pred @ r_pred.transpose(1, 2), keep,
-                              target @ r_true.transpose(1, 2))
-    assert ours.item() == pytest.approx(reference.item(), rel=1e-12)
-    identity = torch.eye(3, dtype=torch.float64).expand(3, 3, 3)
-    assert oriented_chamfer_loss(pred, keep, identity, target, identity).item() == \
-        pytest.approx(chamfer_loss(pred, keep, target).item(), rel=1e-12)
-
-
-def test_oriented_chamfer_is_blind_to_a_change_of_body_frame_and_gradchecks():
-    # x_pred = S x_true with R_pred = R_true S^T shows the camera the same shape: no loss,
-    # though both the body-frame Chamfer and the rotation error are large.
-    generator = torch.Generator().manual_seed(13)
-    target = torch.rand(2, 25, 3, generator=generator, dtype=torch.float64) * \
-        torch.tensor([1.0, 0.4, 0.1], dtype=torch.float64)
-    s, r_true = random_rotations(2, generator, torch.float64), random_rotations(
-        2, generator, torch.float64)
-    moved = target @ s.transpose(1, 2)
-    assert float(oriented_chamfer_loss(moved, None, r_true @ s.transpose(1, 2), target,
-                                       r_true)) < 1e-24
-    assert float(chamfer_loss(moved, None, target)) > 1e-3
-    # Gradient through the predicted rotation (6D parameters) and points, float64.
-    d6 = r_true[:, :2, :].reshape(2, 6) + 0.1 * torch.randn(2, 6, generator=generator,
-                                                           dtype=torch.float64)
-    pred = (target + 0.05 * torch.randn_like(target))[:, :12].clone().requires_grad_()
-    d6.requires_grad_()
-    assert torch.autograd.gradcheck(
-        lambda p, d: oriented_chamfer_loss(p, None, rotation_6d_to_matrix(d), target, r_true),
-        (pred, d6), eps=1e-7, atol=1e-6)
-
-
-def test_oriented_chamfer_bad_input():
-    pred, _, target = clouds()
-    identity = torch.eye(3, dtype=torch.float64)
-    with pytest.raises(ValueError, match="pred_rotation"):
-        oriented_chamfer_loss(pred, None, identity.expand(2, 3, 3), target,
-                              identity.expand(3, 3, 3))
-    with pytest.raises(ValueError, match="gt_rotation"):
-        oriented_chamfer_loss(pred, None, identity.expand(3, 3, 3), target,
-                              torch.full((3, 3, 3), math.nan, dtype=torch.float64))
 
 
 def test_surface_chamfer_matches_metrics_chamfer_l2():
@@ -420,52 +373,30 @@ def test_pose_loss_is_invariant_under_the_model_symmetries(group):
         assert torch.allclose(off, torch.full_like(off, math.pi), atol=1e-6)
 
 
-def test_pose_loss_chordal_form_is_half_angle_sine_squared_and_keeps_symmetries():
-    generator = torch.Generator().manual_seed(14)
-    pred, true = random_rotations(6, generator, torch.float64), random_rotations(
-        6, generator, torch.float64)
-    t = torch.tensor([[0.0, 0.0, 8.0]], dtype=torch.float64).expand(6, 3)
-    angle, _ = pose_loss(pred, t, true, t)
-    chordal, _ = pose_loss(pred, t, true, t, rotation_form="chordal")
-    assert torch.allclose(chordal, torch.sin(angle / 2).square(), atol=1e-12)
-    symmetries = torch.stack([torch.eye(3, dtype=torch.float64), half_turn(2)])
-    # Same minimiser over the symmetries: sin^2(x / 2) increases on [0, pi].
-    angle_s, _ = pose_loss(pred, t, true, t, symmetries)
-    chordal_s, _ = pose_loss(pred, t, true @ half_turn(2), t, symmetries, "chordal")
-    assert torch.allclose(chordal_s, torch.sin(angle_s / 2).square(), atol=1e-12)
-    with pytest.raises(ValueError, match="rotation_form"):
-        pose_loss(pred, t, true, t, rotation_form="geodesic")
-
-
-def test_pose_loss_6d_form_regresses_the_raw_output_onto_the_target_rows():
-    """The 6D form compares the raw network output with the first two rows of R_true S (the
-    rows rotation_6d_to_matrix keeps), minimised over the symmetries, with its gradient on the
-    raw output."""
+def test_rotation_6d_loss_regresses_the_raw_output_onto_the_target_rows():
+    """The 6D regression compares the raw network output with the first two rows of R_true S
+    (the rows rotation_6d_to_matrix keeps), minimised over the symmetries, with its gradient
+    on the raw output."""
     from sq_mitsuba.geometry.rotation import rotation_6d_to_matrix
 
     generator = torch.Generator().manual_seed(15)
     true = random_rotations(5, generator, torch.float64)
-    t = torch.tensor([[0.0, 0.0, 8.0]], dtype=torch.float64).expand(5, 3)
     raw = torch.randn(5, 6, generator=generator, dtype=torch.float64, requires_grad=True)
-    pred = rotation_6d_to_matrix(raw)
-    value, _ = pose_loss(pred, t, true, t, rotation_form="6d", pred_rotation_6d=raw)
+    value = rotation_6d_loss(raw, true)
     expected = (raw - true[:, :2].reshape(5, 6)).square().sum(-1)
     assert torch.allclose(value, expected, atol=1e-12)
     # The target rows are a fixed point: they map to the true rotation, at zero loss.
     rows = true[:, :2].reshape(5, 6)
     assert torch.allclose(rotation_6d_to_matrix(rows), true, atol=1e-12)
-    zero, _ = pose_loss(true, t, true, t, rotation_form="6d", pred_rotation_6d=rows)
-    assert float(zero.abs().max()) < 1e-24
+    assert float(rotation_6d_loss(rows, true).abs().max()) < 1e-24
     # Symmetries: the turned target is as good as the target itself.
     symmetries = torch.stack([torch.eye(3, dtype=torch.float64), half_turn(0)])
-    turned, _ = pose_loss(true, t, true @ half_turn(0), t, symmetries, "6d", rows)
+    turned = rotation_6d_loss(rows, true @ half_turn(0), symmetries)
     assert float(turned.abs().max()) < 1e-24
     value.sum().backward()
     assert torch.allclose(raw.grad, 2 * (raw - rows).detach(), atol=1e-12)
-    with pytest.raises(ValueError, match="pred_rotation_6d: needed"):
-        pose_loss(pred, t, true, t, rotation_form="6d")
     with pytest.raises(ValueError, match="pred_rotation_6d: expected shape"):
-        pose_loss(pred, t, true, t, rotation_form="6d", pred_rotation_6d=raw[:3])
+        rotation_6d_loss(raw[:3], true)
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
@@ -511,33 +442,39 @@ def test_taper_loss_is_the_mean_squared_taper():
 
 
 def test_loss_weights_defaults_and_config():
-    weights = LossWeights()
-    assert (weights.chamfer, weights.occupancy, weights.reprojection, weights.translation,
-            weights.rotation, weights.overlap, weights.taper) == (10, 1, 1, 0.1, 0.1, 0.1, 0.01)
-    assert weights.oriented_chamfer == 0  # not in the paper
-    assert weights.enabled() == ("chamfer", "occupancy", "reprojection", "translation",
-                                 "rotation", "overlap", "taper")
-    off = from_dict(LossWeights, {"reprojection": 0, "taper": 0.5})
-    assert "reprojection" not in off.enabled() and off.taper == 0.5
+    weights = LossConfig().weights
+    assert weights == PUBLISHED_WEIGHTS == {"chamfer": 10, "occupancy": 1, "reprojection": 1,
+                                            "rotation": 0.1, "translation": 0.1,
+                                            "overlap": 0.1, "taper": 0.01}
+    assert LossConfig().enabled() == ("chamfer", "occupancy", "reprojection", "rotation",
+                                      "translation", "overlap", "taper")  # registry order
+    off = from_dict(LossConfig, {"weights": {**PUBLISHED_WEIGHTS, "reprojection": 0,
+                                             "taper": 0.5}})
+    assert "reprojection" not in off.enabled() and off.weights["taper"] == 0.5
+    # A table lists the terms that train: one left out is off.
+    assert from_dict(LossConfig, {"weights": {"chamfer": 1.0}}).enabled() == ("chamfer",)
     with pytest.raises(ConfigError, match="chamfer"):
-        from_dict(LossWeights, {"chamfer": -1})
+        from_dict(LossConfig, {"weights": {"chamfer": -1}})
+    with pytest.raises(ConfigError, match="unknown loss term 'oriented_chamfer'"):
+        from_dict(LossConfig, {"weights": {"oriented_chamfer": 1.0}})
 
 
 def test_total_loss_sums_weighted_terms_and_skips_zero_weights():
+    names = LossConfig().enabled()
     terms = {name: torch.tensor(float(i + 1), requires_grad=True)
-             for i, name in enumerate(LossWeights().enabled())}
-    total = total_loss(terms)
-    expected = 10 * 1 + 1 * 2 + 1 * 3 + 0.1 * 4 + 0.1 * 5 + 0.1 * 6 + 0.01 * 7
+             for i, name in enumerate(names)}
+    total = total_loss(terms, PUBLISHED_WEIGHTS)
+    expected = sum(PUBLISHED_WEIGHTS[name] * (i + 1) for i, name in enumerate(names))
     assert total.item() == pytest.approx(expected)
     total.backward()
     assert float(terms["chamfer"].grad) == pytest.approx(10.0)
-    weights = LossWeights(reprojection=0.0, taper=0.0)
+    weights = {**PUBLISHED_WEIGHTS, "reprojection": 0.0, "taper": 0.0}
     partial = {k: v for k, v in terms.items() if k != "reprojection"}
     partial["taper"] = torch.tensor(math.nan)  # a switched-off term is never read
     assert total_loss(partial, weights).item() == pytest.approx(expected - 3 - 0.07)
     with pytest.raises(ValueError, match="reprojection"):
-        total_loss(partial)
+        total_loss(partial, PUBLISHED_WEIGHTS)
     with pytest.raises(ValueError, match="unknown term 'shape'"):
-        total_loss({**terms, "shape": torch.tensor(1.0)})
+        total_loss({**terms, "shape": torch.tensor(1.0)}, PUBLISHED_WEIGHTS)
     with pytest.raises(ValueError, match="scalar"):
-        total_loss({**terms, "rotation": torch.ones(3)})
+        total_loss({**terms, "rotation": torch.ones(3)}, PUBLISHED_WEIGHTS)

@@ -1,6 +1,7 @@
 """The fast paths of the reprojection renderer, each against its reference: the lean
-``silhouette_projective`` integrator against Mitsuba's ``prb_projective``, the mask loss
-against the general fused loss, worker processes against one process, bit for bit."""
+``silhouette_projective`` integrator against Mitsuba's ``prb_projective``, the per-target loss
+(the renderer renders, the loss from ``learning.losses`` is handed in) against the general
+fused loss, worker processes against one process, bit for bit."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ import torch
 
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.camera import Camera
+from sq_mitsuba.learning.losses import mask_mse, soft_iou_loss
 from sq_mitsuba.render.silhouette import SilhouetteRenderer
 from sq_mitsuba.render.silhouette_workers import WorkerError
 
@@ -43,10 +45,11 @@ def batch() -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     return vertices, faces, masks
 
 
-def _mask_mse(renderer: SilhouetteRenderer, vertices, faces, masks, seed: int = 5):
+def _mask_mse(renderer: SilhouetteRenderer, vertices, faces, masks, seed: int = 5,
+              loss_fn=mask_mse):
     renderer.reseed(seed)
     leaf = vertices.clone().requires_grad_()
-    loss, coverage = renderer.render_mask_mse(leaf, faces, masks)
+    loss, coverage = renderer.render_target_loss(leaf, faces, masks, loss_fn)
     (3.0 * loss).backward()  # the incoming gradient scales the vertex gradients
     return loss.detach(), coverage, leaf.grad / 3.0
 
@@ -69,8 +72,8 @@ def test_lean_integrator_renders_what_prb_projective_renders(batch):
 
 
 def test_mask_loss_matches_the_general_fused_loss(batch):
-    """``render_mask_mse`` (loss computed by the renderer) against ``render_loss`` with the
-    same MSE written as a Python callback and differentiated by autograd."""
+    """``render_target_loss`` with ``mask_mse`` against ``render_loss`` with the same MSE
+    written as a per-index callback."""
     vertices, faces, masks = batch
     renderer = SilhouetteRenderer(Camera.default(40), spp=8, sppp=4)
     with one_drjit_thread():
@@ -85,7 +88,7 @@ def test_mask_loss_matches_the_general_fused_loss(batch):
     torch.testing.assert_close(grad, leaf.grad, rtol=1e-5, atol=1e-7)
     with torch.no_grad():  # no gradient wanted: forward images only, the same loss
         renderer.reseed(5)
-        value, images = renderer.render_mask_mse(vertices, faces, masks)
+        value, images = renderer.render_target_loss(vertices, faces, masks, mask_mse)
     torch.testing.assert_close(images, coverage, rtol=0, atol=0)
     torch.testing.assert_close(value, loss, rtol=0, atol=0)
 
@@ -93,10 +96,13 @@ def test_mask_loss_matches_the_general_fused_loss(batch):
 def test_mask_loss_rejects_bad_masks(batch):
     vertices, faces, masks = batch
     renderer = SilhouetteRenderer(Camera.default(40), spp=4)
-    with pytest.raises(ValueError, match="masks: expected shape"):
-        renderer.render_mask_mse(vertices, faces, masks[:, :20])
-    with pytest.raises(ValueError, match="masks"):
-        renderer.render_mask_mse(vertices, faces, masks.clone().fill_(float("nan")))
+    with pytest.raises(ValueError, match="targets: expected shape"):
+        renderer.render_target_loss(vertices, faces, masks[:, :20], mask_mse)
+    with pytest.raises(ValueError, match="targets"):
+        renderer.render_target_loss(vertices, faces, masks.clone().fill_(float("nan")),
+                                    mask_mse)
+    with pytest.raises(ValueError, match="loss"):
+        renderer.render_target_loss(vertices, faces, masks, "mse")
     with pytest.raises(ValueError, match="workers"):
         SilhouetteRenderer(Camera.default(40), workers=-1)
 
@@ -123,5 +129,14 @@ def test_workers_match_one_process_bit_for_bit(batch):
         for ours, theirs in zip(_mask_mse(pooled, vertices, faces, masks), expected,
                                 strict=True):
             assert torch.equal(ours, theirs)
+        # Another loss of learning.losses runs in the workers as it runs here.
+        with one_drjit_thread():
+            expected = _mask_mse(SilhouetteRenderer(camera, spp=8, sppp=4), vertices, faces,
+                                 masks, loss_fn=soft_iou_loss)
+        for ours, theirs in zip(_mask_mse(pooled, vertices, faces, masks,
+                                          loss_fn=soft_iou_loss), expected, strict=True):
+            assert torch.equal(ours, theirs)
+        with pytest.raises(ValueError, match="module-level function"):
+            _mask_mse(pooled, vertices, faces, masks, loss_fn=lambda c, t: c.mean())
     finally:
         pooled.close()

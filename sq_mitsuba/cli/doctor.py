@@ -18,7 +18,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from sq_mitsuba.render.backend import diagnose
+    from sq_mitsuba.render.doctor import diagnose
 
     rows, error = diagnose(render=args.render)
     for key, value in rows.items():

@@ -2,7 +2,7 @@
 
 A rotation S with ``S(model) = model`` makes the poses R and R S show the same image, so a pose
 loss or error must not tell them apart (:func:`sq_mitsuba.learning.losses.pose_loss`,
-:func:`sq_mitsuba.evaluation.metrics.rotation_error_deg`). Processed models are principal-axis
+:func:`sq_mitsuba.geometry.metrics.rotation_error_deg`). Processed models are principal-axis
 aligned (extents x >= y >= z, centre of mass at the origin), so the candidates are the half
 turns about the body axes x, y and z; each is tested by the Chamfer distance between the
 surface and its turned copy.

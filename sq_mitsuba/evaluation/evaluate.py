@@ -52,13 +52,13 @@ import torch
 from torch import Tensor
 
 from sq_mitsuba.config import in_range, to_dict, validate
+from sq_mitsuba.evaluation.methods import METHODS
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.rotation import matrix_to_quaternion
 from sq_mitsuba.io import atomic_write_json, atomic_write_text
 from sq_mitsuba.learning.refine import RefineOptions, raw_from_assembly
 
-METHODS = ("network", "refined_gt", "refined_seg", "baseline")
 #: Metric columns of ``per_image.csv``, in order.
 METRICS = ("chamfer_l1_paper", "chamfer_l1_occnet", "chamfer_l2", "iou_2d", "iou_3d",
            "rotation_error_deg", "rotation_error_sym_deg", "translation_error_m",

@@ -11,6 +11,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from sq_mitsuba.evaluation.methods import METHODS
 from sq_mitsuba.learning.fit import FitResult
 from sq_mitsuba.render.silhouette import mask_iou
 
@@ -78,8 +79,6 @@ def _pyplot():
 
 
 def _methods_in(rows: Sequence[dict]) -> list[str]:
-    from sq_mitsuba.evaluation.evaluate import METHODS
-
     present = {r["method"] for r in rows}
     return [m for m in METHODS if m in present] + sorted(present - set(METHODS))
 

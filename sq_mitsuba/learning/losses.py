@@ -1,22 +1,24 @@
 """Training and fitting losses, each a documented function on batched tensors.
 
-The training objective is a weighted sum (:func:`total_loss`, weights :class:`LossWeights`) of
+The training terms (:mod:`sq_mitsuba.learning.loss_terms` names them, weighs them and feeds them
+from the network output and the batch) are computed by
 
-- ``chamfer``: squared-L2 Chamfer distance between the assembly's surface samples and points
-  on the ground-truth mesh (:func:`chamfer_loss`, :func:`surface_chamfer_loss`; paper Eq. 12);
-- ``occupancy``: binary cross-entropy of the union occupancy at labelled points
-  (:func:`occupancy_loss`; Eq. 14);
-- ``reprojection``: pixel MSE between the Mitsuba silhouette at the true pose and the mask
-  (:func:`reprojection_loss`);
-- ``rotation``, ``translation``: the SPEED pose errors (:func:`pose_loss`), the rotation one
-  minimised over the model's symmetries;
-- ``overlap``: summed occupancy above a tolerance (:func:`overlap`; Eq. 18);
-- ``taper``: mean squared taper (:func:`taper_loss`);
-- ``oriented_chamfer`` (not in the paper; off in its configurations): the Chamfer distance
-  between the assembly rotated by the predicted rotation and the mesh rotated by the true one
-  (:func:`oriented_chamfer_loss`). It scores the shape as the camera sees it, so it trains
-  rotation and shape together and is blind to any rotation that leaves the seen shape alike
-  (symmetries and near-symmetries alike, none of them listed).
+- :func:`chamfer_loss`, :func:`surface_chamfer_loss`: squared-L2 Chamfer distance between the
+  assembly's surface samples and points on the ground-truth mesh (paper Eq. 12);
+- :func:`occupancy_loss`: binary cross-entropy of the union occupancy at labelled points
+  (Eq. 14);
+- :func:`reprojection_loss`: pixel MSE (:func:`mask_mse`) between the Mitsuba silhouette at the
+  true pose and the mask;
+- :func:`pose_loss` (:func:`rotation_loss`, :func:`translation_loss`): the SPEED pose errors,
+  the rotation one minimised over the model's symmetries; :func:`rotation_6d_loss`: the
+  regression of a 6D rotation output onto the true matrix's rows;
+- :func:`overlap`: summed occupancy above a tolerance (Eq. 18);
+- :func:`taper_loss`: mean squared taper.
+
+The per-view silhouette losses (:func:`mask_mse`, :func:`soft_iou_loss`, and
+:func:`silhouette_loss` naming one of them) are what the renderer is handed: it renders the
+coverage and back-propagates the gradient they return (see
+:meth:`~sq_mitsuba.render.silhouette.SilhouetteRenderer.render_target_loss`).
 
 Convention: shapes are given per argument; every loss returns a scalar tensor (the mean over
 the batch) unless its docstring says otherwise.
@@ -24,14 +26,11 @@ the batch) unless its docstring says otherwise.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
-
 import torch
 from torch import Tensor
 from torch.nn import functional as F
 
 from sq_mitsuba.checks import check_tensor
-from sq_mitsuba.config import non_negative
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.nearest import gathered_differences, matched_indices
 from sq_mitsuba.geometry.rotation import rotation_angle
@@ -39,96 +38,24 @@ from sq_mitsuba.render.silhouette import SilhouetteRenderer, assembly_camera_ver
 
 __all__ = [
     "SILHOUETTE_LOSSES",
-    "LossWeights",
     "chamfer_loss",
     "counted_surface_samples",
+    "mask_mse",
     "occupancy_loss",
-    "oriented_chamfer_loss",
     "overlap",
     "pose_loss",
     "reprojection_loss",
+    "rotation_6d_loss",
+    "rotation_loss",
     "silhouette_loss",
+    "soft_iou_loss",
     "surface_chamfer_loss",
     "taper_loss",
-    "total_loss",
+    "translation_loss",
 ]
 
 #: Per-view silhouette losses of :func:`silhouette_loss`.
 SILHOUETTE_LOSSES = ("mse", "iou")
-
-
-# ------------------------------------------------------------------------------- weights
-
-
-@dataclass(frozen=True)
-class LossWeights:
-    """Weights of the training loss terms (defaults: the published configuration).
-
-    A weight of 0 switches its term off: :func:`total_loss` skips it and a training loop can
-    skip computing it (see :meth:`enabled`).
-    """
-
-    chamfer: float = non_negative(10.0)
-    "Weight of the squared-L2 Chamfer distance between surface samples and mesh points."
-    occupancy: float = non_negative(1.0)
-    "Weight of the binary cross-entropy of the union occupancy at labelled points."
-    reprojection: float = non_negative(1.0)
-    "Weight of the pixel MSE between the rendered silhouette and the target mask."
-    translation: float = non_negative(0.1)
-    "Weight of the relative translation error |t - t_hat| / |t|."
-    rotation: float = non_negative(0.1)
-    "Weight of the rotation error in radians (minimised over the model's symmetries)."
-    overlap: float = non_negative(0.1)
-    "Weight of the overlap penalty mean relu(sum_m g_m - beta)."
-    taper: float = non_negative(0.01)
-    "Weight of the taper regulariser mean k^2."
-    oriented_chamfer: float = non_negative(0.0)
-    """Weight of the Chamfer distance between the assembly under the predicted rotation and the
-    mesh under the true one (not in the paper, so 0 by default)."""
-
-    def enabled(self) -> tuple[str, ...]:
-        """Names of the terms with a non-zero weight, in field order."""
-        return tuple(f.name for f in fields(self) if getattr(self, f.name) != 0)
-
-
-def total_loss(terms: dict[str, Tensor], weights: LossWeights | None = None) -> Tensor:
-    """Weighted sum of scalar loss terms, ``sum_name weights.<name> * terms[name]``.
-
-    Terms whose weight is 0 are skipped (their values are not read, so a NaN there does no
-    harm); every term with a non-zero weight must be present.
-
-    Args:
-        terms: scalar tensors keyed by :class:`LossWeights` field names.
-        weights: default :class:`LossWeights()` (the published weights).
-
-    Returns:
-        Scalar tensor.
-    """
-    weights = LossWeights() if weights is None else weights
-    if not isinstance(weights, LossWeights):
-        raise ValueError(f"weights: expected a LossWeights, got {type(weights).__name__}")
-    names = [f.name for f in fields(LossWeights)]
-    unknown = sorted(set(terms) - set(names))
-    if unknown:
-        raise ValueError(f"terms: unknown term {unknown[0]!r} (expected names from "
-                         f"{', '.join(names)})")
-    active = weights.enabled()
-    if not active:
-        raise ValueError("weights: every term has weight 0")
-    missing = [name for name in active if name not in terms]
-    if missing:
-        raise ValueError(f"terms: {missing[0]!r} is missing but has weight "
-                         f"{getattr(weights, missing[0])}")
-    total: Tensor | None = None
-    for name in active:
-        term = terms[name]
-        if not isinstance(term, Tensor) or term.numel() != 1:
-            shape = tuple(term.shape) if isinstance(term, Tensor) else type(term).__name__
-            raise ValueError(f"terms[{name!r}]: expected a scalar tensor, got {shape}")
-        weighted = getattr(weights, name) * term.reshape(())
-        total = weighted if total is None else total + weighted
-    assert total is not None
-    return total
 
 
 # ------------------------------------------------------------------------------- Chamfer
@@ -200,39 +127,6 @@ def surface_chamfer_loss(assembly: Assembly, target: Tensor, level: int = 3) -> 
     return chamfer_loss(points, keep, target.to(points.dtype))
 
 
-def oriented_chamfer_loss(points: Tensor, keep: Tensor | None, pred_rotation: Tensor,
-                          target: Tensor, gt_rotation: Tensor) -> Tensor:
-    """:func:`chamfer_loss` of body-frame clouds each turned by its own rotation.
-
-    The predicted cloud is turned by the predicted rotation and the target by the true one,
-    both about the body origin, so translation plays no part. Where the paper's rotation loss
-    needs R_pred to equal R_true (up to listed symmetries), this needs only R_pred X_pred to
-    look like R_true X_true: an assembly and a rotation that together show the right shape from
-    the camera's side score well, whatever body frame they chose, and a model that is nearly
-    symmetric sends no contradictory gradients. The body-frame :func:`chamfer_loss` still
-    anchors the shape to the model's own frame.
-
-    Args:
-        points: (B, N, 3) predicted surface samples, body frame.
-        keep: (B, N) bool or None, as ``pred_mask`` of :func:`chamfer_loss`.
-        pred_rotation: (B, 3, 3) predicted body-to-camera rotation.
-        target: (B, K, 3) ground-truth surface points, body frame.
-        gt_rotation: (B, 3, 3) true body-to-camera rotation.
-
-    Returns:
-        Scalar tensor.
-    """
-    check_tensor("pred_rotation", pred_rotation, (3, 3), min_dims=3)
-    check_tensor("gt_rotation", gt_rotation, (3, 3), min_dims=3)
-    batch = points.shape[0]
-    if pred_rotation.shape != (batch, 3, 3) or gt_rotation.shape != (batch, 3, 3):
-        raise ValueError(f"pred_rotation, gt_rotation: expected ({batch}, 3, 3) each, got "
-                         f"{tuple(pred_rotation.shape)} and {tuple(gt_rotation.shape)}")
-    turned = points @ pred_rotation.transpose(-1, -2).to(points.dtype)
-    turned_target = target.to(points.dtype) @ gt_rotation.transpose(-1, -2).to(points.dtype)
-    return chamfer_loss(turned, keep, turned_target)
-
-
 # ------------------------------------------------------------------------------ occupancy
 
 
@@ -290,11 +184,12 @@ def reprojection_loss(assembly: Assembly, rotations: Tensor, translations: Tenso
                       items: int | None = None, generator: torch.Generator | None = None) -> Tensor:
     """Pixel MSE between the Mitsuba silhouette at the true pose and the mask, batch mean.
 
-    Per item: ``mean over pixels (coverage - mask)^2``, with coverage the silhouette of the
-    merged primitive meshes rendered by the renderer's fused
-    :meth:`~sq_mitsuba.render.silhouette.SilhouetteRenderer.render_mask_mse` (one BVH rebuild
-    per item, items shared among the renderer's worker processes if it has any; gradients from
-    Mitsuba's projective integrator, w.r.t. the assembly parameters and the pose). Without a
+    Per item: :func:`mask_mse` ``= mean over pixels (coverage - mask)^2``, with coverage the
+    silhouette of the merged primitive meshes rendered by the renderer's fused
+    :meth:`~sq_mitsuba.render.silhouette.SilhouetteRenderer.render_target_loss` (one BVH
+    rebuild per item, items shared among the renderer's worker processes if it has any;
+    gradients from Mitsuba's projective integrator, w.r.t. the assembly parameters and the
+    pose). Without a
     gradient to compute (``torch.no_grad()`` or constant inputs) only the forward images are
     rendered.
 
@@ -340,57 +235,108 @@ def reprojection_loss(assembly: Assembly, rotations: Tensor, translations: Tenso
             translations = translations[chosen.to(translations.device)]
             masks = masks[chosen.to(masks.device)]
     vertices, faces = assembly_camera_vertices(assembly, rotations, translations, level)
-    loss, _ = renderer.render_mask_mse(vertices, faces, masks)
+    loss, _ = renderer.render_target_loss(vertices, faces, masks, mask_mse)
     return loss / rotations.shape[0]
 
 
 # ------------------------------------------------------------------------------------ pose
 
-#: Forms of the rotation term of :func:`pose_loss`.
-ROTATION_FORMS = ("angle", "chordal", "6d")
+def translation_loss(pred_translation: Tensor, gt_translation: Tensor) -> Tensor:
+    """Relative translation error per item, ``|t_true - t_pred| / |t_true|``, shape (B,).
+
+    Args:
+        pred_translation, gt_translation: (B, 3); ``gt_translation`` non-zero.
+    """
+    check_tensor("pred_translation", pred_translation, (3,))
+    check_tensor("gt_translation", gt_translation, (3,))
+    if pred_translation.dim() != 2 or pred_translation.shape != gt_translation.shape:
+        raise ValueError(f"pred_translation, gt_translation: expected (B, 3) each, got "
+                         f"{tuple(pred_translation.shape)} and {tuple(gt_translation.shape)}")
+    distance = torch.linalg.vector_norm(gt_translation, dim=-1)
+    if bool((distance == 0).any()):
+        raise ValueError("gt_translation: must be non-zero (the error is relative to it)")
+    return torch.linalg.vector_norm(gt_translation - pred_translation, dim=-1) / distance
 
 
-def pose_loss(pred_rotation: Tensor, pred_translation: Tensor, gt_rotation: Tensor,
-              gt_translation: Tensor, symmetries: Tensor | None = None,
-              rotation_form: str = "angle",
-              pred_rotation_6d: Tensor | None = None) -> tuple[Tensor, Tensor]:
-    """SPEED pose errors per item: rotation angle (radians) and relative translation error.
+def _symmetric_targets(gt_rotation: Tensor, symmetries: Tensor | None) -> Tensor:
+    """The rotations that show the same image as ``gt_rotation`` (B, 3, 3): (B, S, 3, 3),
+    ``R_true S`` for each symmetry S (S = 1, the identity, when ``symmetries`` is None)."""
+    batch = gt_rotation.shape[0]
+    if symmetries is None:
+        return gt_rotation[:, None]
+    check_tensor("symmetries", symmetries, (3, 3), min_dims=3)
+    if symmetries.dim() == 3:
+        symmetries = symmetries[None].expand(batch, -1, -1, -1)
+    if symmetries.dim() != 4 or symmetries.shape[0] != batch or symmetries.shape[1] < 1:
+        raise ValueError(f"symmetries: expected (B, S, 3, 3) or (S, 3, 3) with B = {batch}, "
+                         f"got {tuple(symmetries.shape)}")
+    return gt_rotation[:, None] @ symmetries.to(gt_rotation.dtype)
+
+
+def rotation_loss(pred_rotation: Tensor, gt_rotation: Tensor,
+                  symmetries: Tensor | None = None) -> Tensor:
+    """The paper's rotation error per item (radians, shape (B,)), minimised over symmetries.
 
     rotation = min over the model's symmetries S of angle(R_pred, R_true S): R_true S shows
     the same image as R_true when S maps the model onto itself, so no symmetric pose is
-    penalised. With ``symmetries`` None (or the identity alone) this is the paper's rotation
-    loss, the angle of R_true^T R_pred (= 2 arccos |<q, q_hat>|). translation =
-    |t_true - t_pred| / |t_true|.
+    penalised. With ``symmetries`` None (or the identity alone) this is the angle of
+    R_true^T R_pred (= 2 arccos |<q, q_hat>|), from
+    :func:`sq_mitsuba.geometry.rotation.rotation_angle` (atan2 form: its gradient is finite
+    everywhere, zero error included).
 
-    The angle comes from :func:`sq_mitsuba.geometry.rotation.rotation_angle` (atan2 form):
-    its gradient is finite everywhere, zero error included.
+    Args:
+        pred_rotation, gt_rotation: (B, 3, 3).
+        symmetries: (B, S, 3, 3) or (S, 3, 3) body-frame symmetries of each model, the
+            identity among them (pad a shorter set with identities), or None.
+    """
+    check_tensor("pred_rotation", pred_rotation, (3, 3))
+    check_tensor("gt_rotation", gt_rotation, (3, 3))
+    if pred_rotation.dim() != 3 or pred_rotation.shape != gt_rotation.shape:
+        raise ValueError(f"pred_rotation, gt_rotation: expected (B, 3, 3) each, got "
+                         f"{tuple(pred_rotation.shape)} and {tuple(gt_rotation.shape)}")
+    candidates = _symmetric_targets(gt_rotation, symmetries)  # (B, S, 3, 3)
+    return rotation_angle(pred_rotation[:, None], candidates).amin(dim=1)
 
-    With ``rotation_form="chordal"`` the rotation term is instead the squared Frobenius
-    distance / 8 = sin^2(angle / 2), in [0, 1], minimised over the same symmetries. Why offer
-    it: the angle's gradient has the same size at every error and points along the
-    geodesic, so over images whose poses the network cannot yet tell apart the gradients cancel
-    and a constant prediction is a stable point; the chordal gradient is linear in the true
-    matrix, so the network first learns its expectation given the image, a plain regression.
 
-    With ``rotation_form="6d"`` it is the squared distance between the network's raw 6D output
-    ``pred_rotation_6d`` and the first two rows of ``R_true S`` (what
-    :func:`~sq_mitsuba.geometry.rotation.rotation_6d_to_matrix` maps to ``R_true S``), before
-    Gram-Schmidt: 0 at the target, about 8 at most for unit rows (the raw output is not
-    normalised), minimised over the symmetries. Why offer it: on 160 images of one asymmetric
-    model (pose loss alone, 600 steps) the angle form left the training-image error at chance
-    (121 deg) and the chordal form alike, while this one fitted them to 18 deg.
+def rotation_6d_loss(pred_rotation_6d: Tensor, gt_rotation: Tensor,
+                     symmetries: Tensor | None = None) -> Tensor:
+    """Regression of a raw 6D rotation onto the true rotation, per item (B,).
+
+    The squared distance between the network's 6D output (before Gram-Schmidt) and the first
+    two rows of ``R_true S`` (what :func:`~sq_mitsuba.geometry.rotation.rotation_6d_to_matrix`
+    maps to ``R_true S``), minimised over the symmetries S: 0 at the target, about 8 at most
+    for unit rows (the raw output is not normalised). Why: the angle's gradient has the same
+    size at every error, so over images whose poses the network cannot yet tell apart the
+    gradients cancel and a constant prediction is a stable point; this regression's gradient
+    is linear in the target, so the network first learns its expectation given the image (see
+    the model card for what it measured).
+
+    Args:
+        pred_rotation_6d: (B, 6) raw 6D output, the two rows concatenated.
+        gt_rotation: (B, 3, 3).
+        symmetries: as :func:`rotation_loss`.
+    """
+    check_tensor("pred_rotation_6d", pred_rotation_6d, (6,))
+    check_tensor("gt_rotation", gt_rotation, (3, 3))
+    batch = gt_rotation.shape[0]
+    if gt_rotation.dim() != 3 or pred_rotation_6d.shape != (batch, 6):
+        raise ValueError(f"pred_rotation_6d: expected shape ({batch}, 6) for {batch} rotations, "
+                         f"got {tuple(pred_rotation_6d.shape)}")
+    rows = pred_rotation_6d.reshape(batch, 1, 2, 3)
+    candidates = _symmetric_targets(gt_rotation, symmetries)  # (B, S, 3, 3)
+    return (rows - candidates[..., :2, :]).square().sum((-1, -2)).amin(dim=1)
+
+
+def pose_loss(pred_rotation: Tensor, pred_translation: Tensor, gt_rotation: Tensor,
+              gt_translation: Tensor, symmetries: Tensor | None = None
+              ) -> tuple[Tensor, Tensor]:
+    """SPEED pose errors per item: (:func:`rotation_loss` (B,) in radians,
+    :func:`translation_loss` (B,)).
 
     Args:
         pred_rotation: (B, 3, 3); pred_translation: (B, 3).
         gt_rotation: (B, 3, 3); gt_translation: (B, 3), non-zero.
-        symmetries: (B, S, 3, 3) or (S, 3, 3) body-frame symmetries of each model, the
-            identity among them (pad a shorter set with identities), or None.
-        rotation_form: ``"angle"`` (the paper's), ``"chordal"`` or ``"6d"``.
-        pred_rotation_6d: (B, 6) the raw 6D output behind ``pred_rotation``; needed by the
-            ``"6d"`` form only.
-
-    Returns:
-        (rotation_term (B,), translation_term (B,)).
+        symmetries: (B, S, 3, 3), (S, 3, 3) or None, as :func:`rotation_loss`.
     """
     for name, value, trailing in (("pred_rotation", pred_rotation, (3, 3)),
                                   ("gt_rotation", gt_rotation, (3, 3)),
@@ -403,41 +349,8 @@ def pose_loss(pred_rotation: Tensor, pred_translation: Tensor, gt_rotation: Tens
         raise ValueError(f"pose: expected rotations (B, 3, 3) and translations (B, 3), got "
                          f"{tuple(pred_rotation.shape)}, {tuple(pred_translation.shape)}, "
                          f"{tuple(gt_rotation.shape)}, {tuple(gt_translation.shape)}")
-    distance = torch.linalg.vector_norm(gt_translation, dim=-1)
-    if bool((distance == 0).any()):
-        raise ValueError("gt_translation: must be non-zero (the error is relative to it)")
-    translation_term = torch.linalg.vector_norm(gt_translation - pred_translation,
-                                                dim=-1) / distance
-    if rotation_form not in ROTATION_FORMS:
-        raise ValueError(f"rotation_form: expected one of {ROTATION_FORMS}, got "
-                         f"{rotation_form!r}")
-    if rotation_form == "6d":
-        if pred_rotation_6d is None:
-            raise ValueError("pred_rotation_6d: needed by rotation_form '6d'")
-        check_tensor("pred_rotation_6d", pred_rotation_6d, (6,))
-        if pred_rotation_6d.shape != (batch, 6):
-            raise ValueError(f"pred_rotation_6d: expected shape ({batch}, 6), got "
-                             f"{tuple(pred_rotation_6d.shape)}")
-        pred_rotation = pred_rotation_6d.reshape(batch, 2, 3)  # compared with two rows
-
-    def error(pred: Tensor, true: Tensor) -> Tensor:
-        if rotation_form == "angle":
-            return rotation_angle(pred, true)
-        if rotation_form == "6d":
-            return (pred - true[..., :2, :]).square().sum((-1, -2))
-        return (pred - true).square().sum((-1, -2)) / 8.0
-
-    if symmetries is None:
-        return error(pred_rotation, gt_rotation), translation_term
-    check_tensor("symmetries", symmetries, (3, 3), min_dims=3)
-    if symmetries.dim() == 3:
-        symmetries = symmetries[None].expand(batch, -1, -1, -1)
-    if symmetries.dim() != 4 or symmetries.shape[0] != batch or symmetries.shape[1] < 1:
-        raise ValueError(f"symmetries: expected (B, S, 3, 3) or (S, 3, 3) with B = {batch}, "
-                         f"got {tuple(symmetries.shape)}")
-    candidates = gt_rotation[:, None] @ symmetries.to(gt_rotation.dtype)  # (B, S, 3, 3)
-    errors = error(pred_rotation[:, None], candidates)  # (B, S)
-    return errors.amin(dim=1), translation_term
+    return (rotation_loss(pred_rotation, gt_rotation, symmetries),
+            translation_loss(pred_translation, gt_translation))
 
 
 # ------------------------------------------------------------------------ regularisers
@@ -455,16 +368,34 @@ def taper_loss(assembly: Assembly) -> Tensor:
     return assembly.taper.square().mean()
 
 
+def mask_mse(coverage: Tensor, target: Tensor) -> Tensor:
+    """Pixel-mean squared error of one view: ``mean (coverage - target)^2`` (the paper's
+    reprojection loss per image). coverage, target: (H, W) (or any equal shapes); a scalar.
+
+    A module-level function, so the renderer's worker processes can run it (see
+    :meth:`~sq_mitsuba.render.silhouette.SilhouetteRenderer.render_target_loss`)."""
+    return (coverage - target).square().mean()
+
+
+def soft_iou_loss(coverage: Tensor, target: Tensor) -> Tensor:
+    """``1 - soft IoU`` of one view: ``1 - sum(c t) / sum(c + t - c t)`` (the union clamped
+    at 1e-6). coverage, target: (H, W) in [0, 1]; a scalar."""
+    inter = (coverage * target).sum()
+    union = (coverage + target - coverage * target).sum().clamp_min(1e-6)
+    return 1 - inter / union
+
+
+#: Per-view silhouette losses by name (:func:`silhouette_loss`).
+_SILHOUETTE_LOSS_FUNCTIONS = {"mse": mask_mse, "iou": soft_iou_loss}
+
+
 def silhouette_loss(coverage: Tensor, target: Tensor, kind: str = "mse") -> Tensor:
-    """Per-view loss summed over views: ``mse`` (the paper's reprojection loss, mean over
-    pixels) or ``iou`` (1 - soft IoU). coverage, target: (V, H, W)."""
-    if kind == "mse":
-        return ((coverage - target) ** 2).flatten(1).mean(1).sum()
-    if kind == "iou":
-        inter = (coverage * target).flatten(1).sum(1)
-        union = (coverage + target - coverage * target).flatten(1).sum(1).clamp_min(1e-6)
-        return (1 - inter / union).sum()
-    raise ValueError(f"loss: expected one of {SILHOUETTE_LOSSES}, got {kind!r}")
+    """A per-view loss summed over views: ``mse`` (:func:`mask_mse`) or ``iou``
+    (:func:`soft_iou_loss`). coverage, target: (V, H, W)."""
+    if kind not in _SILHOUETTE_LOSS_FUNCTIONS:
+        raise ValueError(f"loss: expected one of {SILHOUETTE_LOSSES}, got {kind!r}")
+    view_loss = _SILHOUETTE_LOSS_FUNCTIONS[kind]
+    return torch.stack([view_loss(c, t) for c, t in zip(coverage, target, strict=True)]).sum()
 
 
 def overlap(occupancy: Tensor, beta: float = 1.25) -> Tensor:

@@ -27,7 +27,7 @@ from sq_mitsuba.config import (
     read_mapping,
 )
 from sq_mitsuba.learning.augment import AugmentConfig
-from sq_mitsuba.learning.losses import LossWeights
+from sq_mitsuba.learning.loss_terms import LossConfig, ReprojectionConfig
 from sq_mitsuba.learning.network import NetworkConfig
 
 __all__ = [
@@ -64,54 +64,6 @@ class DataConfig:
     cache_dir: Path | None = None
     """Folder of the decoded training cache (shared between runs of the same dataset and
     size); None: ``RUN_DIR/cache``. Not compared when a run resumes."""
-
-
-@dataclass(frozen=True)
-class LossConfig:
-    """Loss terms and their weights (a weight of 0 switches a term off and skips its work)."""
-
-    weights: LossWeights = field(default_factory=LossWeights)
-    "Weights of the loss terms."
-    sharpness: float = positive(10.0)
-    "Sharpness s of the occupancy sigmoid g = sigmoid(s (1 - f)) (paper Eq. 14)."
-    beta: float = positive(1.25)
-    "Summed occupancy tolerated before the overlap penalty starts (paper Eq. 18)."
-    level: int = in_range(0, 5, default=3)
-    "Icosphere level of the assembly's surface samples for the Chamfer loss (3: 642 each)."
-    rotation_form: Literal["angle", "chordal", "6d"] = "angle"
-    """Form of the rotation term: "angle" (the paper's, radians), "chordal" (squared
-    Frobenius distance / 8 = sin^2(angle / 2), smooth, its gradient linear in the true matrix)
-    or "6d" (squared distance of the raw 6D output to the true matrix's first two rows, before
-    Gram-Schmidt); each minimised over the model's symmetries."""
-
-
-@dataclass(frozen=True)
-class ReprojectionConfig:
-    """The differentiable-silhouette (reprojection) term."""
-
-    resolution: int | None = in_range(8, 1024, default=None)
-    "Side in pixels of the rendered silhouettes and target masks; None: network.image_size."
-    level: int = in_range(0, 5, default=3)
-    "Icosphere level of each primitive's mesh (3: 642 vertices, as the paper)."
-    items: int | None = in_range(1, 100_000, default=None)
-    """Images rendered per step and process, drawn at random from the process's batch (an
-    unbiased estimate of the batch mean; all of them when the batch is smaller); None: every
-    image."""
-    spp: int = in_range(1, 1024, default=16)
-    "Samples per pixel of the forward silhouette."
-    sppp: int | None = in_range(1, 1024, default=None)
-    "Silhouette samples per pixel of the backward pass; None: the renderer's fixed budget."
-    deterministic: bool = True
-    """On the CPU, render with one Dr.Jit thread while training: Mitsuba's backward pass sums
-    vertex gradients with atomic adds whose order varies between threads, so with several
-    threads two runs (or a run and its resumption) differ in the last float bits, which
-    training amplifies. One thread repeats every run exactly. Worker processes (``workers``)
-    always render on one thread each, so they are exact either way."""
-    workers: int | None = in_range(0, 256, default=None)
-    """Processes that share the rendered items of a step, each on one Dr.Jit thread (CPU
-    only; the losses and gradients equal a one-process run's bit for bit, so a run may resume
-    with another count). None: one per CPU core available, shared among torchrun's processes
-    (none when that leaves one); 0: render in the training process."""
 
 
 @dataclass(frozen=True)
@@ -185,10 +137,9 @@ class TrainConfig:
     device: Literal["auto", "cpu", "cuda"] = "auto"
     "Where to train: auto = CUDA when available (Mitsuba's cuda variant), else the CPU."
     channels_last: bool = True
-    """Train with the encoder's weights and activations channels-last (NHWC). The same
-    network up to float rounding; on the CPU its depthwise convolutions run far faster this way
-    (B0 forward + backward, batch 32, 2 cores: 123 against 69 images/s at 96 px, 54 against
-    40 at 128 px)."""
+    """Train with the encoder's weights and activations channels-last (NHWC): the same
+    network up to float rounding, and on the CPU its depthwise convolutions run far faster this
+    way (see eval/BENCHMARKS.md)."""
     checkpoint_every: int = non_negative(200)
     "Also write last.pt every this many steps (0: only at the end of each epoch)."
 

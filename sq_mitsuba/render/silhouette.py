@@ -18,10 +18,11 @@ Each item costs one vertex update (a BVH rebuild) in the forward pass and one in
 pass; the backward pass runs the items in reverse so that the last item, still in the scene,
 needs none.
 
-Convention: :meth:`SilhouetteRenderer.render_mask_mse` (the training loss) can spread its items
-over worker processes (``workers``), each rendering on one Dr.Jit thread. An item draws its
-samples from ``(seed, call, item)`` alone, so the pooled result equals a one-process,
-one-thread render bit for bit, whatever the number of workers.
+Convention: :meth:`SilhouetteRenderer.render_target_loss` (how training's reprojection loss
+renders) can spread its items over worker processes (``workers``), each rendering on one Dr.Jit
+thread. An item draws its samples from ``(seed, call, item)`` alone, so the pooled result
+equals a one-process, one-thread render bit for bit, whatever the number of workers. The
+renderer renders and back-propagates; the losses it is given are the caller's.
 """
 
 from __future__ import annotations
@@ -38,6 +39,7 @@ from torch import Tensor
 
 from sq_mitsuba.checks import check_tensor
 from sq_mitsuba.geometry.camera import Camera
+from sq_mitsuba.geometry.metrics import mask_iou  # noqa: F401  (re-exported for callers)
 from sq_mitsuba.render.backend import mitsuba
 from sq_mitsuba.render.silhouette_integrator import register as register_integrator
 from sq_mitsuba.render.silhouette_workers import SilhouetteWorkers, WorkerError
@@ -167,7 +169,7 @@ class SilhouetteRenderer:
             4.5 % at 64 x 64 for 1 / 4 / 16); default :func:`default_sppp` (4 at 64 x 64,
             1 at 128 x 128: a fixed budget of silhouette samples per image).
         seed: base seed; every call draws fresh samples, reproducibly from this seed.
-        workers: processes that :meth:`render_mask_mse` spreads its items over (see
+        workers: processes that :meth:`render_target_loss` spreads its items over (see
             :mod:`sq_mitsuba.render.silhouette_workers`); 0 renders in this process. Started
             on first use; CPU variants only.
         integrator: ``"silhouette_projective"`` (:mod:`sq_mitsuba.render.silhouette_integrator`,
@@ -403,7 +405,8 @@ class SilhouetteRenderer:
         but each item's vertices are loaded once (one BVH rebuild instead of two): the
         backward pass of an item runs right after its forward pass, with the gradient of its
         loss, so a loss must be a sum of per-item terms (a reprojection loss is). Runs in this
-        process; :meth:`render_mask_mse` is the same for a mask MSE, and can use ``workers``.
+        process; :meth:`render_target_loss` is the same for a loss against per-item target
+        images, and can use ``workers``.
 
         Args:
             vertices: (B, V, 3) camera-frame vertices (see :meth:`render`).
@@ -426,29 +429,38 @@ class SilhouetteRenderer:
 
         return _RenderedLoss.apply(vertices, self, run)
 
-    def render_mask_mse(self, vertices: Tensor, faces: Tensor,
-                        masks: Tensor) -> tuple[Tensor, Tensor]:
-        """``sum_i mean_pixels (coverage_i - masks_i)^2``, differentiable w.r.t. ``vertices``.
+    def render_target_loss(self, vertices: Tensor, faces: Tensor, targets: Tensor,
+                           loss: Callable[[Tensor, Tensor], Tensor]) -> tuple[Tensor, Tensor]:
+        """``sum_i loss(coverage_i, targets_i)``, differentiable w.r.t. ``vertices``.
 
-        :meth:`render_loss` for the reprojection loss, with the loss defined by the renderer
-        rather than passed in as a callback, so that ``workers`` processes can share the items.
-        Without a gradient to compute, only the forward images are rendered.
+        :meth:`render_loss` for a loss that compares each item's coverage with its own target
+        image: the renderer renders the coverage, hands it to ``loss`` and back-propagates the
+        coverage gradient the loss returns (one BVH rebuild per item), sharing the items among
+        the ``workers`` processes when it has any. The loss itself is the caller's (the
+        training losses live in :mod:`sq_mitsuba.learning.losses`); with workers it must be a
+        module-level function, which the processes import by name. Without a gradient to
+        compute, only the forward images are rendered.
 
         Args:
             vertices: (B, V, 3) camera-frame vertices (see :meth:`render`).
             faces: (F, 3) shared faces.
-            masks: (B, H, W) targets in [0, 1]; (H, W) = :attr:`resolution`.
+            targets: (B, H, W) target images; (H, W) = :attr:`resolution`.
+            loss: maps one coverage image (H, W) and its target (H, W), both float32 CPU, to a
+                scalar; only its gradient w.r.t. the coverage is used.
 
         Returns:
             (loss, coverage): the summed loss (scalar, vertices' dtype) and the coverage
             images (B, H, W), detached.
         """
         self._prepare(vertices, faces)
-        check_tensor("masks", masks, (None, None), min_dims=3)
+        check_tensor("targets", targets, (None, None), min_dims=3)
         expected = (vertices.shape[0], *self.resolution)
-        if tuple(masks.shape) != expected:
-            raise ValueError(f"masks: expected shape {expected}, got {tuple(masks.shape)}")
-        targets = masks.detach().to("cpu", torch.float32).contiguous()
+        if tuple(targets.shape) != expected:
+            raise ValueError(f"targets: expected shape {expected}, got {tuple(targets.shape)}")
+        if not callable(loss):
+            raise ValueError("loss: expected a callable (coverage (H, W), target (H, W)) -> "
+                             "scalar")
+        targets = targets.detach().to("cpu", torch.float32).contiguous()
         requires_grad = torch.is_grad_enabled() and vertices.requires_grad
 
         def run(detached: Tensor, call: int) -> tuple[float, Tensor, Tensor]:
@@ -457,15 +469,15 @@ class SilhouetteRenderer:
                     self._pool = SilhouetteWorkers(self.camera, self.spp, self.sppp,
                                                    self.integrator, self.workers)
                 try:
-                    losses, coverage, grad = self._pool.mask_mse(
-                        self.seed, call, detached, self._topology.faces, targets,
+                    losses, coverage, grad = self._pool.target_loss(
+                        self.seed, call, detached, self._topology.faces, targets, loss,
                         requires_grad)
                 except WorkerError:
                     self.close()  # the next call starts a fresh pool
                     raise
             else:
-                losses, coverage, grad = self.mask_mse_items(
-                    detached, targets, call, range(detached.shape[0]), requires_grad)
+                losses, coverage, grad = self.target_loss_items(
+                    detached, targets, call, range(detached.shape[0]), loss, requires_grad)
             return float(sum(losses.tolist())), coverage, grad  # in item order
 
         if requires_grad:
@@ -474,24 +486,26 @@ class SilhouetteRenderer:
         return (vertices.new_tensor(total),
                 coverage.to(dtype=vertices.dtype, device=vertices.device))
 
-    def mask_mse_items(self, vertices: Tensor, masks: Tensor, call: int, items: Sequence[int],
-                       requires_grad: bool) -> tuple[Tensor, Tensor, Tensor]:
-        """The per-item work of :meth:`render_mask_mse` (also what a worker process runs).
+    def target_loss_items(self, vertices: Tensor, targets: Tensor, call: int,
+                          items: Sequence[int], loss: Callable[[Tensor, Tensor], Tensor],
+                          requires_grad: bool) -> tuple[Tensor, Tensor, Tensor]:
+        """The per-item work of :meth:`render_target_loss` (also what a worker process runs).
 
         Args:
             vertices: (k, V, 3) camera-frame vertices of ``items`` (the scene must already fit
                 their topology, see :meth:`_prepare`).
-            masks: (k, H, W) float32 CPU targets.
+            targets: (k, H, W) float32 CPU targets.
             call, items: the render call and the batch indices of the k items; with the seed,
                 they fix each item's samples.
+            loss: (coverage (H, W), target (H, W)) -> scalar.
             requires_grad: also run each item's backward pass.
 
         Returns:
-            losses (k,) float64 (pixel-mean squared errors), coverage (k, H, W) float32, and
-            d(sum of losses)/d(vertices) (k, V, 3) float32 (zeros without ``requires_grad``).
+            losses (k,) float64, coverage (k, H, W) float32, and d(sum of losses)/d(vertices)
+            (k, V, 3) float32 (zeros without ``requires_grad``).
         """
         return self._loss_items(vertices, call, items,
-                                lambda coverage, index: (coverage - masks[index]).square().mean(),
+                                lambda coverage, index: loss(coverage, targets[index]),
                                 requires_grad)
 
     def _loss_items(self, vertices: Tensor, call: int, items: Sequence[int],
@@ -518,7 +532,7 @@ class SilhouetteRenderer:
                     raise ValueError("loss_fn: must return a scalar tensor")
                 if requires_grad:
                     (grad_coverage,) = torch.autograd.grad(loss, coverage, allow_unused=True)
-            losses[index] = float(loss)
+            losses[index] = float(loss.detach())
             images.append(coverage.detach())
             if grad_coverage is not None and bool(grad_coverage.any()):
                 # coverage = 1 - image, so the image receives the negated gradient.
@@ -550,7 +564,7 @@ class _RenderSilhouettes(torch.autograd.Function):
 
 class _RenderedLoss(torch.autograd.Function):
     """Autograd bridge of the fused losses (:meth:`SilhouetteRenderer.render_loss`,
-    :meth:`~SilhouetteRenderer.render_mask_mse`): ``run(vertices, call)`` computes the loss,
+    :meth:`~SilhouetteRenderer.render_target_loss`): ``run(vertices, call)`` computes the loss,
     the coverage and the vertex gradients item by item during the forward pass; the backward
     returns the gradients, scaled."""
 
@@ -616,11 +630,3 @@ def render_assembly_loss(assembly: Any, rotation: Tensor, translation: Tensor,
     :meth:`SilhouetteRenderer.render_loss`); returns (loss, coverage (B, H, W) detached)."""
     vertices, faces = assembly_camera_vertices(assembly, rotation, translation, level)
     return renderer.render_loss(vertices, faces, loss_fn)
-
-
-def mask_iou(prediction: Tensor, target: Tensor, threshold: float = 0.5) -> Tensor:
-    """IoU (...,) of images (..., H, W) thresholded at ``threshold`` (empty union gives 1)."""
-    a, b = prediction > threshold, target > threshold
-    inter = (a & b).flatten(-2).sum(-1).double()
-    union = (a | b).flatten(-2).sum(-1).double()
-    return torch.where(union > 0, inter / union.clamp_min(1), torch.ones_like(union))

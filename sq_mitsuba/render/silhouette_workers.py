@@ -8,7 +8,8 @@ processes, each rendering whole items on one Dr.Jit thread, use every core and k
 exact: an item's samples depend on ``(seed, call, item)`` alone, so the pooled loss, coverage
 and gradients equal a one-process, one-thread render bit for bit.
 
-Convention: workers are plain subprocesses (``python -m sq_mitsuba.render.silhouette_workers``)
+Convention: workers are plain subprocesses (``python -m
+sq_mitsuba.render.silhouette_worker_process``, which holds their side)
 talking over a socket pair with :mod:`multiprocessing.connection` framing, not a
 ``multiprocessing`` pool, so that no caller needs an ``if __name__ == "__main__"`` guard. Each
 request carries a contiguous chunk of the batch; replies come back in order. A worker that
@@ -20,10 +21,12 @@ from __future__ import annotations
 
 import contextlib
 import os
+import pickle
 import socket
 import subprocess
 import sys
 import weakref
+from collections.abc import Callable
 from dataclasses import asdict
 from multiprocessing.connection import Connection
 from pathlib import Path
@@ -35,6 +38,8 @@ from torch import Tensor
 
 from sq_mitsuba.geometry.camera import Camera
 
+WORKER_MODULE = "sq_mitsuba.render.silhouette_worker_process"
+"""What each worker process runs (named, not imported: it imports the renderer)."""
 _STARTUP_TIMEOUT_S = 300.0  # importing torch and Mitsuba, compiling kernels on a cold cache
 
 
@@ -94,7 +99,7 @@ class SilhouetteWorkers:
         for _ in range(count):
             ours, theirs = socket.socketpair()
             process = subprocess.Popen(
-                [sys.executable, "-m", __name__, str(theirs.fileno())],
+                [sys.executable, "-m", WORKER_MODULE, str(theirs.fileno())],
                 pass_fds=(theirs.fileno(),), stdin=subprocess.DEVNULL, env=env)
             theirs.close()
             connection = Connection(ours.detach())
@@ -141,15 +146,18 @@ class SilhouetteWorkers:
             raise WorkerError(f"silhouette worker {index}: {payload}")
         return payload
 
-    def mask_mse(self, seed: int, call: int, vertices: Tensor, faces: np.ndarray,
-                 masks: Tensor, requires_grad: bool) -> tuple[Tensor, Tensor, Tensor]:
-        """:meth:`SilhouetteRenderer.mask_mse_items` over the whole batch, shared out.
+    def target_loss(self, seed: int, call: int, vertices: Tensor, faces: np.ndarray,
+                    targets: Tensor, loss: Callable[[Tensor, Tensor], Tensor],
+                    requires_grad: bool) -> tuple[Tensor, Tensor, Tensor]:
+        """``SilhouetteRenderer.target_loss_items`` over the whole batch, shared out.
 
         Args:
             seed, call: the calling renderer's seed and call number.
             vertices: (B, V, 3) camera-frame vertices.
             faces: (F, 3) uint32 faces.
-            masks: (B, H, W) float32 targets.
+            targets: (B, H, W) float32 targets.
+            loss: a module-level function (coverage (H, W), target (H, W)) -> scalar; the
+                workers import it by name.
             requires_grad: also compute the vertex gradients.
 
         Returns:
@@ -157,59 +165,19 @@ class SilhouetteWorkers:
         """
         if self._broken is not None:
             raise WorkerError(f"{self._broken}; close this pool and start a new one")
+        try:
+            pickle.dumps(loss)
+        except (pickle.PicklingError, AttributeError, TypeError) as error:
+            raise ValueError(f"loss: worker processes need a module-level function, got "
+                             f"{loss!r} ({error})") from None
         array = np.ascontiguousarray(vertices.detach().to("cpu", torch.float32).numpy())
-        target = np.ascontiguousarray(masks.numpy())
+        target = np.ascontiguousarray(targets.numpy())
         chunks = [chunk for chunk in np.array_split(np.arange(array.shape[0]), self.count)
                   if chunk.size]
         for index, chunk in enumerate(chunks):
             first, last = int(chunk[0]), int(chunk[-1]) + 1
             self._send(index, (seed, call, first, array[first:last], faces, target[first:last],
-                               requires_grad))
+                               loss, requires_grad))
         replies = [self._receive(index) for index in range(len(chunks))]
         losses, coverage, grad = (np.concatenate(part) for part in zip(*replies, strict=True))
         return torch.from_numpy(losses), torch.from_numpy(coverage), torch.from_numpy(grad)
-
-
-def _serve(connection: Connection) -> None:
-    """A worker's life: settings, then requests until ``None``."""
-    settings = connection.recv()
-    try:
-        torch.set_num_threads(1)
-        from sq_mitsuba.render.backend import mitsuba
-
-        mitsuba(settings["variant"])
-        import drjit as dr
-
-        dr.set_thread_count(1)
-        from sq_mitsuba.render.silhouette import SilhouetteRenderer
-
-        renderer = SilhouetteRenderer(Camera(**settings["camera"]), spp=settings["spp"],
-                                      sppp=settings["sppp"],
-                                      integrator=settings["integrator"])
-    except Exception as error:  # reported to the parent, which raises it
-        connection.send(("error", f"startup failed: {type(error).__name__}: {error}"))
-        return
-    connection.send(("ok", "ready"))
-    while True:
-        try:
-            request = connection.recv()
-        except EOFError:  # the parent is gone
-            return
-        if request is None:
-            return
-        seed, call, first, vertices, faces, masks, requires_grad = request
-        try:
-            vertices = torch.from_numpy(vertices)
-            renderer.seed = seed
-            renderer._prepare(vertices, torch.from_numpy(faces.astype(np.int64)))
-            losses, coverage, grad = renderer.mask_mse_items(
-                vertices, torch.from_numpy(masks), call,
-                range(first, first + vertices.shape[0]), requires_grad)
-            connection.send(("ok", (losses.numpy(), coverage.numpy(), grad.numpy())))
-        except Exception as error:
-            connection.send(("error", f"{type(error).__name__}: {error}"))
-
-
-if __name__ == "__main__":
-    _serve(Connection(int(sys.argv[1])))
-    os._exit(0)  # skip interpreter teardown of Dr.Jit's thread pool

@@ -4,9 +4,10 @@ Batch 32 of assemblies of M = 5 primitives (642 vertices each, one merged mesh o
 vertices and 6,400 faces), random poses at the default distance, a loss that touches every
 pixel; per-image time of forward + backward at 64 x 64 and 128 x 128 with the default sample
 counts, Dr.Jit kernel compilations after the first batch, and the gradient noise of the
-defaults against a high-sample reference. Then the training loss (``render_mask_mse``) as
-training runs it, in one run: Mitsuba's ``prb_projective`` against the lean
-``silhouette_projective`` on one Dr.Jit thread, and the lean one shared among worker processes.
+defaults against a high-sample reference. Then the training loss (``render_target_loss`` with
+:func:`~sq_mitsuba.learning.losses.mask_mse`) as training runs it, in one run: Mitsuba's
+``prb_projective`` against the lean ``silhouette_projective`` on one Dr.Jit thread, and the
+lean one shared among worker processes.
 """
 
 from __future__ import annotations
@@ -60,7 +61,7 @@ def _fused_step(renderer, vertices: torch.Tensor, faces: torch.Tensor,
 
 def _mask_loss_rows(report: Report, camera, vertices: torch.Tensor, faces: torch.Tensor,
                     target: torch.Tensor, repeats: int) -> None:
-    """The training loss (``render_mask_mse``) as training runs it: Mitsuba's
+    """The training loss (``render_target_loss`` with ``mask_mse``) as training runs it: Mitsuba's
     ``prb_projective`` and the lean ``silhouette_projective`` on one Dr.Jit thread, then the
     lean one shared among worker processes (one per core), all in this run."""
     import drjit as dr
@@ -92,7 +93,8 @@ def _mask_loss_rows(report: Report, camera, vertices: torch.Tensor, faces: torch
                 f"mask loss forward + backward, {label}, {size}, per image",
                 [t / BATCH for t in samples],
                 REPROJECTION_TARGET_S if count and camera.width == 128 else None,
-                note="render_mask_mse as in training (one Dr.Jit thread per process)"))
+                note="render_target_loss with mask_mse, as in training (one Dr.Jit thread "
+                     "per process)"))
     finally:
         dr.set_thread_count(previous)
     base = medians.get("prb_projective")
@@ -104,8 +106,10 @@ def _mask_loss_rows(report: Report, camera, vertices: torch.Tensor, faces: torch
 
 def _mask_step(renderer, vertices: torch.Tensor, faces: torch.Tensor,
                target: torch.Tensor) -> torch.Tensor:
+    from sq_mitsuba.learning.losses import mask_mse
+
     leaf = vertices.clone().requires_grad_(True)
-    loss, _ = renderer.render_mask_mse(leaf, faces, target)
+    loss, _ = renderer.render_target_loss(leaf, faces, target, mask_mse)
     loss.backward()
     return leaf.grad
 

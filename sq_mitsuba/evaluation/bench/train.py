@@ -3,10 +3,10 @@
 Training (batch 32, each config at its own input size): ``train/configs/a.toml`` (the paper's
 settings: 128 px, Chamfer on level-3 primitives, every item rendered at 128 px) and
 ``train/configs/cpu.toml`` (this project's CPU recipe: 96 px input, reprojection on 8 of 32
-items at 64 px). The step is the training loop's own (``_forward_loss``, backward,
-``_gradient_norm``, AdamW step, under ``value_checks(False)``, one Dr.Jit thread per process
-and the config's render workers) on synthetic in-memory batches of the right shapes, so no
-dataset is needed:
+items at 64 px). The step is the training loop's own
+(:func:`~sq_mitsuba.learning.training_step.training_step`: forward, loss terms, backward,
+gradient clipping, AdamW step, one Dr.Jit thread per process and the config's render workers)
+on synthetic in-memory batches of the right shapes, so no dataset is needed:
 
 - images: Mitsuba silhouettes of random M = 5 assemblies at random poses, drawn once, with a
   random grey level and noise; masks: those silhouettes;
@@ -17,10 +17,9 @@ dataset is needed:
   augmentation.
 
 A second, decomposed pass over the same step times its parts: data (point draws and
-augmentation), encoder (network forward, then backward from the output gradients), Chamfer,
-occupancy (with the overlap penalty, which reads the same points), the Mitsuba reprojection
-(each forward + backward to the network outputs), and the rest (pose and taper terms,
-gradient clipping, AdamW).
+augmentation), encoder (network forward, then backward from the output gradients), each
+weighted loss term of the registry (:data:`~sq_mitsuba.learning.loss_terms.LOSS_TERMS`; its
+forward + backward to the network outputs), and the update (gradient clipping, AdamW).
 
 Inference (128 px): :class:`~sq_mitsuba.learning.inference.Predictor` at batch 1 and 32,
 eager (``fast=False``) and the fast path (``fast=True``), on one intra-op thread too, and the
@@ -44,6 +43,7 @@ import numpy as np
 import torch
 
 from sq_mitsuba.evaluation.bench import BENCHMARKS_MD, BenchOptions, Report, Timing, load_average
+from sq_mitsuba.learning.batch import TrainingBatch
 
 BATCH = 32
 INPUT = 128
@@ -52,10 +52,8 @@ CONFIG_DIR = Path(__file__).resolve().parents[3] / "train" / "configs"
 TARGETS = {"a": 20.0, "cpu": 40.0}
 INFERENCE_TARGET_S = 0.005
 REPROJECTION_TARGET_S = 0.010
-PARTS = ("data", "encoder", "chamfer", "occupancy", "reprojection", "other")
-#: Loss terms timed together as one part of the decomposed step.
-_PART_TERMS = {"chamfer": ("chamfer", "oriented_chamfer"), "occupancy": ("occupancy", "overlap"),
-               "reprojection": ("reprojection",), "other": ("rotation", "translation", "taper")}
+#: Parts of the decomposed step besides the loss terms (which the registry names).
+STEP_PARTS = ("data", "encoder", "update")
 _DEPTH = 2.0  # camera distance (m) of the synthetic poses: a unit-size model fills the frame
 
 
@@ -108,8 +106,8 @@ class SyntheticData:
         noise = 0.03 * torch.randn(self.mask.shape, generator=generator)
         self.image = (self.mask * grey + noise).clamp(0, 1)
 
-    def batch(self, step: int) -> dict[str, Any]:
-        """Step ``step``'s batch: the keys of the training loop's batches."""
+    def batch(self, step: int) -> TrainingBatch:
+        """Step ``step``'s batch, as the training loop's data stream makes them."""
         from sq_mitsuba.learning.augment import augment_batch
 
         cfg = self.config
@@ -128,143 +126,119 @@ class SyntheticData:
             points.append(self.box[model][rows])
             labels.append(np.concatenate([np.ones(want_in, np.float32),
                                           np.zeros(len(rows) - want_in, np.float32)]))
-        batch: dict[str, Any] = {
-            "image": self.image, "mask": self.mask, "rotation": self.rotation,
-            "translation": self.translation, "model_index": self.model_index,
-            "surface_points": torch.from_numpy(np.stack(surface)),
-            "occupancy_points": torch.from_numpy(np.stack(points)),
-            "occupancy_labels": torch.from_numpy(np.stack(labels)),
-            "symmetries": torch.eye(3).expand(len(self.image), 1, 3, 3)}
+        image, mask, rotation, translation = self.image, self.mask, self.rotation, \
+            self.translation
         if cfg.augment.enabled:
             image, mask, rotation, translation = augment_batch(
-                self.image, self.mask, self.rotation, self.translation, cfg.augment,
-                generators, self.camera)
-            batch.update(image=image, mask=mask, rotation=rotation, translation=translation)
-        return batch
+                image, mask, rotation, translation, cfg.augment, generators, self.camera)
+        return TrainingBatch(
+            image=image, mask=mask, rotation=rotation, translation=translation,
+            model_index=self.model_index, surface_points=torch.from_numpy(np.stack(surface)),
+            occupancy_points=torch.from_numpy(np.stack(points)),
+            occupancy_labels=torch.from_numpy(np.stack(labels)),
+            symmetries=torch.eye(3).expand(len(self.image), 1, 3, 3))
 
 
 # ------------------------------------------------------------------------------ training step
 
 
-class _Trainer:
-    """One config's network, optimiser and renderer, as the training loop builds them."""
+class StepBench:
+    """One config's network, optimiser and renderer, as the training loop builds them, on
+    :class:`SyntheticData`."""
 
     def __init__(self, config: Any) -> None:
         from sq_mitsuba.learning.network import SuperquadricNet
-        from sq_mitsuba.learning.train import render_workers
-        from sq_mitsuba.render.silhouette import SilhouetteRenderer
+        from sq_mitsuba.learning.schedule import make_optimizer
+        from sq_mitsuba.learning.training_step import reprojection_renderer, to_channels_last
 
         self.config = config
         self.data = SyntheticData(config)
         torch.manual_seed(config.seed)
         self.model = SuperquadricNet(config.network).train()
         if config.channels_last:
-            from sq_mitsuba.learning.train import _to_channels_last
-
-            _to_channels_last(self.model)
-        optim = config.optim
-        self.optimizer = torch.optim.AdamW(self.model.parameters(), lr=optim.lr,
-                                           betas=optim.betas, eps=optim.eps,
-                                           weight_decay=optim.weight_decay)
+            to_channels_last(self.model)
+        self.optimizer, _ = make_optimizer(self.model, config.optim, 1)
         self.k_matrix = self.data.camera.matrix()
-        self.renderer = self.reprojection_camera = None
-        if config.loss.weights.reprojection:
-            size = config.reprojection.resolution or config.network.image_size
-            self.reprojection_camera = self.data.camera.rescaled(size, size)
-            self.renderer = SilhouetteRenderer(
-                self.reprojection_camera, spp=config.reprojection.spp,
-                sppp=config.reprojection.sppp,
-                workers=render_workers(config.reprojection.workers, torch.device("cpu")))
+        self.renderer = reprojection_renderer(config, self.data.camera, torch.device("cpu"))
 
     def close(self) -> None:
         """Stop the renderer's worker processes."""
         if self.renderer is not None:
             self.renderer.close()
 
+    def context(self, step: int) -> Any:
+        """Step ``step``'s loss context (renderer reseeded, subset generator seeded)."""
+        from sq_mitsuba.learning.training_step import loss_context
+
+        return loss_context(self.config, self.renderer, step)
+
     def step(self, step: int) -> None:
         """One training step exactly as the loop runs it (without logging)."""
-        from sq_mitsuba.checks import value_checks
-        from sq_mitsuba.learning.train import _forward_loss, _gradient_norm
+        from sq_mitsuba.learning.training_step import NotFiniteError, training_step
 
-        batch = self.data.batch(step)
-        generator = torch.Generator().manual_seed(step)
-        with value_checks(False):
-            _, loss = _forward_loss(self.model, batch["image"], self.k_matrix, batch,
-                                    self.config, self.renderer, self.reprojection_camera,
-                                    generator, torch.device("cpu"))
-        if loss is None or not torch.isfinite(loss):
-            raise RuntimeError(f"bench train: step {step}: loss not finite")
-        self.optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        _gradient_norm(self.model, self.config.optim.grad_clip)
-        self.optimizer.step()
+        try:
+            training_step(self.model, self.optimizer, self.data.batch(step), self.k_matrix,
+                          self.context(step), self.config.optim.grad_clip)
+        except NotFiniteError as error:
+            raise RuntimeError(f"bench train: step {step}: {error}") from None
 
     def timed_parts(self, step: int) -> dict[str, float]:
-        """The same step cut into :data:`PARTS`, each timed (seconds): the loss terms are
-        back-propagated one group at a time to detached network outputs, whose gradients
-        then run the encoder's backward pass; the update equals :meth:`step`'s up to float
-        summation order."""
+        """The same step cut into parts, each timed (seconds): ``data``, ``encoder``, each
+        weighted loss term by name, ``update``. The terms are back-propagated one at a time
+        to detached network outputs, whose gradients then run the encoder's backward pass;
+        the update equals :meth:`step`'s up to float summation order."""
         from sq_mitsuba.checks import value_checks
-        from sq_mitsuba.learning.losses import LossWeights, total_loss
-        from sq_mitsuba.learning.train import _gradient_norm, _loss_terms
+        from sq_mitsuba.learning.loss_terms import compute_terms, enabled_terms, total_loss
+        from sq_mitsuba.learning.training_step import gradient_norm
 
         cfg = self.config
-        times = dict.fromkeys(PARTS, 0.0)
+        names = enabled_terms(cfg.loss)
+        times = dict.fromkeys((*STEP_PARTS[:2], *names, STEP_PARTS[2]), 0.0)
         start = time.perf_counter()
         batch = self.data.batch(step)
         times["data"] = time.perf_counter() - start
         self.optimizer.zero_grad(set_to_none=True)
+        context = self.context(step)
         with value_checks(False):
             start = time.perf_counter()
-            output = self.model(batch["image"], self.k_matrix)
+            output = self.model(batch.image, self.k_matrix)
             forward_s = time.perf_counter() - start
-            leaves = dataclasses.replace(
-                output, raw=output.raw.detach().requires_grad_(True),
-                rotation=output.rotation.detach().requires_grad_(True),
-                rotation_6d=output.rotation_6d.detach().requires_grad_(True),
-                translation=output.translation.detach().requires_grad_(True))
-            for part, names in _PART_TERMS.items():
-                weights = LossWeights(**{f.name: getattr(cfg.loss.weights, f.name)
-                                         if f.name in names else 0.0
-                                         for f in dataclasses.fields(LossWeights)})
-                if not weights.enabled():
-                    continue
-                part_cfg = dataclasses.replace(cfg, loss=dataclasses.replace(cfg.loss,
-                                                                             weights=weights))
+            pairs = {f.name: getattr(output, f.name) for f in dataclasses.fields(output)
+                     if isinstance(getattr(output, f.name), torch.Tensor)
+                     and getattr(output, f.name).requires_grad}
+            leaves = dataclasses.replace(output, **{name: value.detach().requires_grad_(True)
+                                                    for name, value in pairs.items()})
+            for name in names:
                 start = time.perf_counter()
-                terms = _loss_terms(leaves, batch, part_cfg, self.renderer,
-                                    self.reprojection_camera, torch.Generator().manual_seed(step))
-                total_loss(terms, weights).backward()
-                times[part] += time.perf_counter() - start
+                terms = compute_terms(leaves, batch, context, (name,))
+                total_loss(terms, {name: cfg.loss.weights[name]}).backward()
+                times[name] += time.perf_counter() - start
         start = time.perf_counter()
-        pairs = [(o, leaf.grad) for o, leaf in ((output.raw, leaves.raw),
-                                                 (output.rotation, leaves.rotation),
-                                                 (output.rotation_6d, leaves.rotation_6d),
-                                                 (output.translation, leaves.translation))
-                 if leaf.grad is not None]
-        torch.autograd.backward([o for o, _ in pairs], [g for _, g in pairs])
+        grads = [(pairs[name], getattr(leaves, name).grad) for name in pairs
+                 if getattr(leaves, name).grad is not None]
+        torch.autograd.backward([o for o, _ in grads], [g for _, g in grads])
         times["encoder"] = forward_s + time.perf_counter() - start
         start = time.perf_counter()
-        _gradient_norm(self.model, cfg.optim.grad_clip)
+        gradient_norm(self.model, cfg.optim.grad_clip)
         self.optimizer.step()
-        times["other"] += time.perf_counter() - start
+        times["update"] += time.perf_counter() - start
         return times
 
 
 def _train_figures(report: Report, name: str, repeats: int, overrides: Sequence[str] = ()
                    ) -> dict[str, float]:
     """Rows and notes of config ``name`` with ``--set`` style ``overrides`` (a comparison row,
-    without target); returns the median seconds of each part."""
+    without target); returns the median seconds of each part (:meth:`StepBench.timed_parts`)."""
     from sq_mitsuba.config import apply_overrides
-    from sq_mitsuba.learning.train import _mitsuba_for
+    from sq_mitsuba.learning.training_step import mitsuba_for
 
     config = apply_overrides(load_config(name), overrides)
     suffix = "".join(f", {o}" for o in overrides)
     label = f"{name}.toml{suffix}"
     target = None if overrides else TARGETS[name]
     size = config.network.image_size
-    with _mitsuba_for(torch.device("cpu"), config.reprojection.deterministic):
-        trainer = _Trainer(config)
+    with mitsuba_for(torch.device("cpu"), config.reprojection.deterministic):
+        trainer = StepBench(config)
         try:
             trainer.step(0)  # warm-up: Dr.Jit kernels, workers, allocator, AdamW state
             steps = []
@@ -287,14 +261,15 @@ def _train_figures(report: Report, name: str, repeats: int, overrides: Sequence[
              f"{rendered} of {BATCH} items at {rep.resolution or size} px, level {rep.level}, "
              f"spp {rep.spp}, {workers or 'no'} render workers; channels-last "
              f"{'on' if config.channels_last else 'off'}"))
-    medians = {p: statistics.median(t[p] for t in parts) for p in PARTS}
+    medians = {p: statistics.median(t[p] for t in parts) for p in parts[0]}
     whole = sum(medians.values())
     shares = ", ".join(f"{p} {1e3 * medians[p]:.0f} ms ({100 * medians[p] / whole:.0f} %)"
-                       for p in PARTS)
+                       for p in medians)
     report.notes.append(
         f"{label} step parts (median of {repeats} decomposed steps, sum "
         f"{1e3 * whole:.0f} ms vs {1e3 * statistics.median(steps):.0f} ms for the real step): "
-        f"{shares}; other = pose and taper terms, gradient clipping, AdamW; 1-minute load "
+        f"{shares} (each weighted loss term by name; update = gradient clipping, AdamW); "
+        f"1-minute load "
         f"average after it: {load_average():.2f}")
     if name == "a":
         report.timings.append(Timing(

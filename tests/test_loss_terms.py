@@ -1,0 +1,185 @@
+"""The loss-term registry: a term added by one function and one entry trains, logs and is
+timed with no other edit; unknown or unfeedable terms are one-line errors before any work; the
+terms equal the loss functions they wrap; bad inputs to ``train`` leave nothing behind."""
+
+from __future__ import annotations
+
+import csv
+import shutil
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+import torch
+
+from sq_mitsuba.cli import main
+from sq_mitsuba.config import apply_overrides
+from sq_mitsuba.learning.batch import TrainingBatch
+from sq_mitsuba.learning.loss_terms import (
+    LOSS_TERMS,
+    LossConfig,
+    LossContext,
+    compute_terms,
+    register_term,
+    total_loss,
+)
+from sq_mitsuba.learning.losses import pose_loss, rotation_6d_loss, taper_loss
+from sq_mitsuba.learning.train import train
+from sq_mitsuba.learning.train_config import load_train_config
+
+ROOT = Path(__file__).resolve().parents[1]
+TINY = ROOT / "train" / "configs" / "tiny.toml"
+
+
+def _mean_depth(output, batch: TrainingBatch, context: LossContext) -> torch.Tensor:
+    """A toy term: the mean predicted depth (metres)."""
+    return output.depth.mean()
+
+
+def _needs_a_mask(output, batch: TrainingBatch, context: LossContext) -> torch.Tensor:
+    return output.mask_logits.mean()
+
+
+@pytest.fixture
+def toy_terms() -> Iterator[None]:
+    register_term("toy_depth", _mean_depth, ("depth",))
+    register_term("toy_mask", _needs_a_mask, ("mask_logits",))
+    try:
+        yield
+    finally:
+        del LOSS_TERMS["toy_depth"], LOSS_TERMS["toy_mask"]
+
+
+def _rows(path: Path) -> list[dict[str, str]]:
+    with open(path, newline="") as handle:
+        return list(csv.DictReader(handle))
+
+
+def test_a_term_added_through_the_registry_trains_logs_and_is_timed(
+        toy_terms, train_dataset, tmp_path):
+    config = apply_overrides(load_train_config(TINY), ["loss.weights.toy_depth=0.5",
+                                                       "validation.every=0"])
+    result = train(config, train_dataset, tmp_path / "run", progress=False, max_steps=2)
+    rows = _rows(tmp_path / "run" / "log.csv")
+    assert [int(r["step"]) for r in rows] == [1, 2] and result.steps == 2
+    for row in rows:
+        depth = float(row["toy_depth"])
+        assert depth > 0  # a depth in metres, logged under the term's name
+        shown = {t: float(row[t]) for t in config.loss.enabled()}
+        total = sum(config.loss.weights[t] * v for t, v in shown.items())
+        assert float(row["loss"]) == pytest.approx(total, rel=1e-5)  # weighted into the loss
+    from sq_mitsuba.evaluation.bench.train import StepBench
+    from sq_mitsuba.learning.training_step import mitsuba_for
+
+    with mitsuba_for(torch.device("cpu"), True):
+        bench = StepBench(apply_overrides(config, ["loss.weights.reprojection=0"]))
+        try:
+            parts = bench.timed_parts(0)
+        finally:
+            bench.close()
+    assert "toy_depth" in parts and parts["toy_depth"] >= 0
+
+
+def test_an_unknown_term_is_a_one_line_error(tmp_path, train_dataset, capsys):
+    out = tmp_path / "run"
+    bad = tmp_path / "bad.toml"
+    bad.write_text(f'base = "{TINY.as_posix()}"\n[loss.weights]\nchamfr = 1.0\n')
+    for extra in (["--config", str(TINY), "--set", "loss.weights.chamfr=1"],
+                  ["--config", str(bad)]):
+        code = main(["train", *extra, "--data", str(train_dataset), "--out", str(out)])
+        err = capsys.readouterr().err
+        assert code == 2 and err.count("\n") == 1, err
+        assert "unknown loss term 'chamfr'" in err and "chamfer" in err
+    assert not out.exists()
+
+
+def test_a_term_the_network_cannot_feed_is_refused_before_work(toy_terms, train_dataset,
+                                                               tmp_path, capsys):
+    out = tmp_path / "run"
+    code = main(["train", "--config", str(TINY), "--set", "loss.weights.toy_mask=1", "--data",
+                 str(train_dataset), "--out", str(out)])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1, err
+    assert "toy_mask" in err and "mask_logits" in err
+    assert not out.exists()
+
+
+def test_terms_equal_the_losses_they_wrap():
+    from sq_mitsuba.learning.network import NetworkConfig, SuperquadricNet
+
+    torch.manual_seed(0)
+    network = SuperquadricNet(NetworkConfig(image_size=32, num_primitives=2, latent_dim=16,
+                                            hidden_dim=16)).eval()
+    k = torch.tensor([[40.0, 0, 16], [0, 40.0, 16], [0, 0, 1]])
+    with torch.no_grad():
+        output = network(torch.rand(3, 1, 32, 32), k)
+    rotation = torch.linalg.qr(torch.randn(3, 3, 3)).Q
+    rotation = rotation * torch.linalg.det(rotation)[:, None, None]
+    translation = torch.tensor([[0.1, 0.0, 3.0], [0.0, 0.2, 4.0], [-0.1, 0.1, 5.0]])
+    flip = torch.diag(torch.tensor([-1.0, -1.0, 1.0]))
+    symmetries = torch.stack([torch.eye(3), flip])[None].expand(3, -1, -1, -1)
+    batch = TrainingBatch(torch.rand(3, 1, 32, 32), torch.zeros(3, 1, 32, 32), rotation,
+                          translation, torch.arange(3), torch.rand(3, 10, 3),
+                          torch.rand(3, 12, 3), torch.zeros(3, 12), symmetries)
+    loss = LossConfig(weights={"rotation": 2.0, "rotation_6d": 0.5, "translation": 3.0,
+                               "taper": 1.0})
+    terms = compute_terms(output, batch, LossContext(loss))
+    assert list(terms) == ["rotation", "rotation_6d", "translation", "taper"]  # registry order
+    rot, trans = pose_loss(output.rotation, output.translation, rotation, translation,
+                           symmetries)
+    assert torch.equal(terms["rotation"], rot.mean())
+    assert torch.equal(terms["translation"], trans.mean())
+    assert torch.equal(terms["taper"], taper_loss(output.assembly))
+    expected_6d = rotation_6d_loss(output.rotation_6d, rotation, symmetries).mean()
+    assert torch.equal(terms["rotation_6d"], expected_6d)
+    total = total_loss(terms, loss)
+    assert float(total) == pytest.approx(2 * float(rot.mean()) + 0.5 * float(expected_6d)
+                                         + 3 * float(trans.mean()) + float(terms["taper"]))
+    with pytest.raises(ValueError, match="missing"):
+        total_loss({"rotation": terms["rotation"]}, loss)
+
+
+# ------------------------------------------------------------------------ bad inputs
+
+
+def test_an_unloadable_pretrained_file_leaves_nothing(train_dataset, tmp_path, capsys):
+    junk = tmp_path / "junk.pt"
+    junk.write_bytes(b"\x80\x04not a checkpoint at all" * 10)
+    out = tmp_path / "run"
+    for path in (junk, tmp_path / "missing.pt"):
+        code = main(["train", "--config", str(TINY), "--set", f"network.pretrained={path}",
+                     "--data", str(train_dataset), "--out", str(out), "--quiet"])
+        err = capsys.readouterr().err
+        assert code == 2 and err.count("\n") == 1, err
+        assert "network.pretrained" in err or str(path) in err, err
+        assert "Traceback" not in err and "weights_only=False" not in err
+        assert not out.exists()
+
+
+def test_a_truncated_image_leaves_no_run_folder_or_cache(train_dataset, tmp_path, capsys):
+    data = tmp_path / "data"
+    shutil.copytree(train_dataset, data)
+    victim = sorted(data.glob("*/images/*.png"))[0]
+    victim.write_bytes(victim.read_bytes()[:200])
+    out = tmp_path / "run"
+    code = main(["train", "--config", str(TINY), "--data", str(data), "--out", str(out),
+                 "--quiet"])
+    err = capsys.readouterr().err
+    assert code == 2 and str(victim) in err and err.count("\n") == 1, err
+    assert not out.exists()
+    # A run folder that existed before keeps what it held, and gets no cache.
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    code = main(["train", "--config", str(TINY), "--data", str(data), "--out", str(out),
+                 "--quiet"])
+    assert code == 2 and [p.name for p in out.iterdir()] == ["notes.txt"]
+
+
+def test_a_stale_temporary_checkpoint_is_removed_by_the_next_run(train_dataset, tmp_path):
+    config = apply_overrides(load_train_config(TINY), ["validation.every=0"])
+    out = tmp_path / "run"
+    train(config, train_dataset, out, progress=False, max_steps=1)
+    stale = out / ".last.abc123.tmp.pt"  # what a kill during a checkpoint write leaves
+    stale.write_bytes(b"")
+    train(config, train_dataset, out, resume=True, progress=False, max_steps=2)
+    assert not stale.exists() and (out / "last.pt").is_file()
