@@ -38,7 +38,7 @@ from torch import Tensor, nn
 from sq_mitsuba.geometry.rotation import rotation_6d_to_matrix
 
 if TYPE_CHECKING:
-    from sq_mitsuba.learning.network import NetworkConfig
+    from sq_mitsuba.learning.network_config import NetworkConfig
 
 __all__ = [
     "LATENT_HEADS",

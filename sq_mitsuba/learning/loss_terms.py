@@ -18,9 +18,12 @@ The terms (weights of the paper's configuration in :data:`PUBLISHED_WEIGHTS`):
 - ``rotation``: rotation angle in radians, minimised over the model's symmetries (the paper's);
 - ``rotation_6d``: squared distance of the raw 6D rotation output to the true matrix's first
   two rows, minimised over the symmetries (not in the paper; see the model card);
+- ``rotation_grid``: cross-entropy of a distribution head's grid scores against every
+  symmetric equivalent of the true rotation;
 - ``translation``: relative translation error;
 - ``overlap``: summed occupancy above ``loss.beta`` (Eq. 18);
-- ``taper``: mean squared taper.
+- ``taper``: mean squared taper;
+- ``mask``: binary cross-entropy of the mask head against the mask.
 """
 
 from __future__ import annotations
@@ -38,10 +41,12 @@ from sq_mitsuba.learning.batch import TrainingBatch
 from sq_mitsuba.learning.losses import (
     chamfer_loss,
     counted_surface_samples,
+    mask_loss,
     occupancy_loss,
     overlap,
     reprojection_loss,
     rotation_6d_loss,
+    rotation_distribution_loss,
     rotation_loss,
     taper_loss,
     translation_loss,
@@ -82,7 +87,8 @@ class LossConfig:
     weights: dict[str, float] = field(default_factory=lambda: dict(PUBLISHED_WEIGHTS),
                                       metadata=bounds(0, None))
     """Weight of each term by name (the names of ``sq_mitsuba.learning.loss_terms``: chamfer,
-    occupancy, reprojection, rotation, rotation_6d, translation, overlap, taper). A table in a
+    occupancy, reprojection, rotation, rotation_6d, rotation_grid, translation, overlap, taper,
+    mask). A table in a
     file lists every term that trains; --set loss.weights.NAME=W changes one."""
     sharpness: float = positive(10.0)
     "Sharpness s of the occupancy sigmoid g = sigmoid(s (1 - f)) (paper Eq. 14)."
@@ -243,14 +249,29 @@ def taper_term(output: Any, batch: TrainingBatch, context: LossContext) -> Tenso
     return taper_loss(output.assembly)
 
 
+def rotation_grid_term(output: Any, batch: TrainingBatch, context: LossContext) -> Tensor:
+    """:func:`~sq_mitsuba.learning.losses.rotation_distribution_loss` of
+    ``output.rotation_logits`` (every symmetric equivalent right), batch mean."""
+    logits = output.rotation_logits
+    return rotation_distribution_loss(logits, batch.rotation.to(logits),
+                                      batch.symmetries.to(logits)).mean()
+
+
+def mask_term(output: Any, batch: TrainingBatch, context: LossContext) -> Tensor:
+    """:func:`~sq_mitsuba.learning.losses.mask_loss` of ``output.mask_logits``."""
+    return mask_loss(output.mask_logits, batch.mask)
+
+
 register_term("chamfer", chamfer_term, ("assembly",))
 register_term("occupancy", occupancy_term, ("assembly",))
 register_term("reprojection", reprojection_term, ("assembly",))
 register_term("rotation", rotation_term, ("rotation",))
 register_term("rotation_6d", rotation_6d_term, ("rotation_6d",))
+register_term("rotation_grid", rotation_grid_term, ("rotation_logits",))
 register_term("translation", translation_term, ("translation",))
 register_term("overlap", overlap_term, ("assembly",))
 register_term("taper", taper_term, ("assembly",))
+register_term("mask", mask_term, ("mask_logits",))
 
 
 # ------------------------------------------------------------------------------ use

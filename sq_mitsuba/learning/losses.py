@@ -12,6 +12,9 @@ from the network output and the batch) are computed by
 - :func:`pose_loss` (:func:`rotation_loss`, :func:`translation_loss`): the SPEED pose errors,
   the rotation one minimised over the model's symmetries; :func:`rotation_6d_loss`: the
   regression of a 6D rotation output onto the true matrix's rows;
+  :func:`rotation_distribution_loss`: cross-entropy of a distribution head's scores over the
+  SO(3) grid against every rotation that shows the same object;
+- :func:`mask_loss`: binary cross-entropy of the mask head's logits against the mask;
 - :func:`overlap`: summed occupancy above a tolerance (Eq. 18);
 - :func:`taper_loss`: mean squared taper.
 
@@ -34,18 +37,21 @@ from sq_mitsuba.checks import check_tensor
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.nearest import gathered_differences, matched_indices
 from sq_mitsuba.geometry.rotation import rotation_angle
+from sq_mitsuba.learning.rotation_grid import grid_quaternions, soft_rotation_targets
 from sq_mitsuba.render.silhouette import SilhouetteRenderer, assembly_camera_vertices
 
 __all__ = [
     "SILHOUETTE_LOSSES",
     "chamfer_loss",
     "counted_surface_samples",
+    "mask_loss",
     "mask_mse",
     "occupancy_loss",
     "overlap",
     "pose_loss",
     "reprojection_loss",
     "rotation_6d_loss",
+    "rotation_distribution_loss",
     "rotation_loss",
     "silhouette_loss",
     "soft_iou_loss",
@@ -354,6 +360,46 @@ def pose_loss(pred_rotation: Tensor, pred_translation: Tensor, gt_rotation: Tens
 
 
 # ------------------------------------------------------------------------ regularisers
+
+
+def rotation_distribution_loss(logits: Tensor, gt_rotation: Tensor,
+                               symmetries: Tensor | None = None) -> Tensor:
+    """Cross-entropy of scores over the SO(3) grid against the true rotations' distribution.
+
+    Args:
+        logits: (B, G) scores over the super-Fibonacci grid of G cells (a distribution head's
+            ``rotation_logits``).
+        gt_rotation: (B, 3, 3) true body -> camera rotations.
+        symmetries: (B, S, 3, 3) each model's body-frame symmetries (identity included);
+            None: the identity alone.
+
+    Returns:
+        (B,) ``-sum_g target_g log softmax(logits)_g`` with the targets of
+        :func:`~sq_mitsuba.learning.rotation_grid.soft_rotation_targets`: every symmetric
+        equivalent of the true rotation counts as right, each spread over nearby cells.
+    """
+    check_tensor("logits", logits, min_dims=2)
+    if symmetries is None:
+        symmetries = torch.eye(3, dtype=gt_rotation.dtype,
+                               device=gt_rotation.device).expand(len(gt_rotation), 1, 3, 3)
+    cells = grid_quaternions(logits.shape[-1]).to(device=logits.device)
+    targets = soft_rotation_targets(gt_rotation.float(), symmetries.float(), cells)
+    return -(targets.to(logits) * logits.log_softmax(dim=-1)).sum(dim=-1)
+
+
+def mask_loss(logits: Tensor, mask: Tensor) -> Tensor:
+    """Binary cross-entropy of the mask head's logits against the target's mask.
+
+    Args:
+        logits: (B, 1, h, w) the mask head's logits (a quarter of the image's size).
+        mask: (B, 1, H, W) in [0, 1], area-averaged to h x w (a soft target at the outline).
+
+    Returns:
+        Scalar: the mean over cells and images.
+    """
+    check_tensor("logits", logits, (1, None, None), min_dims=4)
+    target = F.interpolate(mask.to(logits), size=logits.shape[-2:], mode="area")
+    return F.binary_cross_entropy_with_logits(logits, target)
 
 
 def taper_loss(assembly: Assembly) -> Tensor:

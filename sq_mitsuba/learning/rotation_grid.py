@@ -22,6 +22,7 @@ Convention:
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import TYPE_CHECKING
 
@@ -34,17 +35,25 @@ from sq_mitsuba.geometry.so3_grid import covering_angle_deg, super_fibonacci_qua
 from sq_mitsuba.learning.heads import POSITION_OUTPUTS, PoseHeadOutput, register_pose_head
 
 if TYPE_CHECKING:
-    from sq_mitsuba.learning.network import NetworkConfig
+    from sq_mitsuba.learning.network_config import NetworkConfig
 
 __all__ = [
     "NEIGHBOURS",
     "RotationGridPoseHead",
+    "grid_quaternions",
     "rotation_hypotheses",
     "soft_rotation_targets",
 ]
 
 #: Cells besides the argmax averaged by the local refinement.
 NEIGHBOURS = 8
+
+
+@functools.lru_cache(maxsize=4)
+def grid_quaternions(cells: int) -> Tensor:
+    """The (cells, 4) float32 quaternions of the grid a head of ``cells`` cells scores (cached;
+    do not modify the returned tensor)."""
+    return super_fibonacci_quaternions(cells).float()
 
 
 def _nearest_cells(quaternions: Tensor, count: int, chunk: int = 1024) -> Tensor:
@@ -74,7 +83,7 @@ class RotationGridPoseHead(nn.Module):
         self.to_logits = nn.Linear(hidden, cells)
         self.to_position = nn.Linear(hidden, POSITION_OUTPUTS)
         quaternions = super_fibonacci_quaternions(cells)
-        self.register_buffer("quaternions", quaternions.float(), persistent=False)
+        self.register_buffer("quaternions", grid_quaternions(cells).clone(), persistent=False)
         self.register_buffer("neighbours", _nearest_cells(quaternions, NEIGHBOURS),
                              persistent=False)
 
