@@ -56,12 +56,14 @@ from sq_mitsuba.evaluation.methods import METHODS
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.rotation import matrix_to_quaternion
+from sq_mitsuba.geometry.so3_grid import half_turns
 from sq_mitsuba.io import atomic_write_json, atomic_write_text
 from sq_mitsuba.learning.refine import RefineOptions, raw_from_assembly
 
 #: Metric columns of ``per_image.csv``, in order.
 METRICS = ("chamfer_l1_paper", "chamfer_l1_occnet", "chamfer_l2", "iou_2d", "iou_3d",
-           "rotation_error_deg", "rotation_error_sym_deg", "translation_error_m",
+           "rotation_error_deg", "rotation_error_sym_deg", "rotation_error_folded_deg",
+           "translation_error_m",
            "translation_error_rel", "speed_score", "camera_chamfer")
 #: Metrics where higher is better (the others: lower is better).
 HIGHER_IS_BETTER = ("iou_2d", "iou_3d")
@@ -74,7 +76,8 @@ LIGHTING = ("phase_angle_deg", "earth_in_view", "eclipse", "target_visibility")
 COLUMNS = ("model", "index", "filename", "method", *METRICS, *EXTRAS, *LIGHTING)
 #: Metrics shown in the Markdown tables (every metric is in the CSV files).
 SHOWN = ("chamfer_l1_paper", "chamfer_l1_occnet", "camera_chamfer", "iou_2d", "iou_3d",
-         "rotation_error_deg", "rotation_error_sym_deg", "translation_error_rel")
+         "rotation_error_deg", "rotation_error_sym_deg", "rotation_error_folded_deg",
+         "translation_error_rel")
 OUTPUT_FILES = ("per_image.csv", "per_model.csv", "per_model.md", "summary.csv", "summary.md",
                 "per_model.png", "qualitative.png", "consistency.png", "eval.json")
 """What :func:`evaluate` writes (the PNGs unless ``figures`` is off)."""
@@ -212,6 +215,10 @@ def score(assembly: Assembly, rotation: Tensor, translation: Tensor, batch: dict
         "iou_3d": volume_iou,
         "rotation_error_deg": rotation_error_deg(rotation, gt_rotation),
         "rotation_error_sym_deg": symmetric,
+        # Up to the four half turns of the body frame: on an unknown model which end of an
+        # axis is "+" is not visible, so this is the error a user can expect at best.
+        "rotation_error_folded_deg": rotation_error_deg(rotation, gt_rotation,
+                                                        half_turns(rotation.dtype)),
         "translation_error_m": translation_error(translation, gt_translation),
         "translation_error_rel": translation_error(translation, gt_translation, relative=True),
         "speed_score": speed.total,
