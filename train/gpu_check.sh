@@ -9,7 +9,7 @@
 #   Without mitsuba installed it unpacks .gpu/site-cpXY.tar.xz (train/gpu_bundle.sh builds it)
 #   into /tmp/site. Environment: STEPS (training steps, default 100), MODELS and IMAGES (the
 #   dataset: models, images per model; default 8 and 32), DATA (an existing SPE3R-layout
-#   dataset instead), WORK (folder kept for the dataset and runs; default temporary), SQ_SRC (folder holding the sq_mitsuba package; default the repository),
+#   dataset instead), DATA_FALLBACK (a dataset to train on if rendering one fails), WORK (folder kept for the dataset and runs; default temporary), SQ_SRC (folder holding the sq_mitsuba package; default the repository),
 #   PROBE_STEPS (steps of stages 4 and 5, default 8: past the first epoch's validation with
 #   the default dataset), REPEATS (bench repeats, default 5), PYTHON (default python3), DEVICE (default cuda; cpu dry-runs the script). Every stage runs under a time limit and the script goes on
 #   after a failure; it prints one "stage ... rc=..." line per stage and writes
@@ -84,6 +84,9 @@ if [ -z "$data" ]; then
       --images-per-model "${IMAGES:-32}" --resolution 128 --spp 16 --quiet; then
     images=$(find "$data" -path '*/images/*' -type f | wc -l)
     note "dataset: $images images at 128 px, spp 16"
+  elif [ -n "${DATA_FALLBACK:-}" ]; then
+    data=$DATA_FALLBACK
+    note "dataset: rendering failed; training on $data"
   fi
 fi
 
