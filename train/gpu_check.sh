@@ -16,14 +16,17 @@
 #   OUT_DIR/summary.txt, the training logs (log_*.csv) and bench_render.txt.
 set -u -o pipefail
 
-out=${1:-/tmp/sq-gpu-check}
+absolute() { case $1 in /*) echo "$1" ;; *) echo "$PWD/$1" ;; esac; }
+out=$(absolute "${1:-/tmp/sq-gpu-check}")
 steps=${STEPS:-100}
 device=${DEVICE:-cuda}  # DEVICE=cpu dry-runs the script on a machine without a GPU
 py=${PYTHON:-python3}
 repo=$(cd "$(dirname "$0")/.." && pwd)
-src=${SQ_SRC:-$repo}
+src=$(absolute "${SQ_SRC:-$repo}")
+stages=${STAGES:-doctor dataset train torchrun probe bench}
+want() { [[ " $stages " == *" $1 "* ]]; }
 # WORK keeps the dataset and runs (default: a temporary folder, removed at the end).
-work=${WORK:-}
+work=${WORK:+$(absolute "$WORK")}
 [ -z "$work" ] && work=$(mktemp -d /tmp/sq-gpu-work.XXXX) && trap 'rm -rf "$work"' EXIT
 mkdir -p "$out" "$work"
 export PYTHONUNBUFFERED=1
@@ -54,6 +57,12 @@ if ! "$py" -c 'import mitsuba' 2>/dev/null; then
   export PYTHONPATH=/tmp/site${PYTHONPATH:+:$PYTHONPATH}
 fi
 export PYTHONPATH=$src${PYTHONPATH:+:$PYTHONPATH}
+# `python -m` puts the working folder first on sys.path: run from $src so that its sq_mitsuba
+# is the one imported.
+for var in DATA DATA_FALLBACK; do
+  [ -n "${!var:-}" ] && export "$var=$(absolute "${!var}")"
+done
+cd "$src" || exit 2
 
 nvidia-smi -L 2>&1 | tee -a "$summary"
 "$py" -c 'import torch, sys; print("python", sys.version.split()[0], "torch", torch.__version__,
@@ -61,7 +70,7 @@ nvidia-smi -L 2>&1 | tee -a "$summary"
 else "")' 2>&1 | tee -a "$summary"
 echo "libraries:"; ldconfig -p | grep -E "libcuda\.so|libnvoptix|libLLVM" || true
 
-# 1. Mitsuba's variant and the silhouette self-test (CUDA is preferred when it works).
+# 1. Mitsuba's variant and the silhouette self-test (CUDA is preferred when it works); always.
 stage doctor 300 "${sq[@]}" doctor --render 2>&1 | tee "$work/doctor.txt"
 if [ "$device" = cuda ] && ! grep -q "variant: cuda_ad_mono" "$work/doctor.txt"; then
   # Dr.Jit looks for libcuda.so and libnvoptix.so.1; point it at the driver's files.
@@ -77,41 +86,65 @@ grep -E "variant|device|silhouette" "$work/doctor.txt" >> "$summary"
 
 # 2. A small dataset rendered here (on the GPU when the CUDA variant runs).
 data=${DATA:-}
-if [ -z "$data" ]; then
+if [ -z "$data" ] && want dataset; then
   data=$work/dataset
-  stage models 300 "${sq[@]}" models generate --count "${MODELS:-8}" --points 20000 --out "$work/models"
+  stage models 300 "${sq[@]}" models generate --count "${MODELS:-8}" --points 20000 \
+    --out "$work/models"
   if stage dataset 420 "${sq[@]}" dataset render --models "$work/models" --out "$data" \
       --images-per-model "${IMAGES:-32}" --resolution 128 --spp 16 --quiet; then
     images=$(find "$data" -path '*/images/*' -type f | wc -l)
     note "dataset: $images images at 128 px, spp 16"
-  elif [ -n "${DATA_FALLBACK:-}" ]; then
-    data=$DATA_FALLBACK
-    note "dataset: rendering failed; training on $data"
+  else
+    data=
   fi
 fi
+if [ -z "$data" ]; then
+  data=${DATA_FALLBACK:?no dataset: set DATA, or DATA_FALLBACK, or keep the dataset stage}
+  note "dataset: training on $data"
+fi
 
-# 3. The paper's configuration on $device (no validation: its rate is the training step's).
-run=$work/run_train
-stage train 900 "${sq[@]}" train --config "$repo/train/configs/a.toml" --data "$data" \
-  --out "$run" --set device=$device --set validation.every=0 --max-steps "$steps" --quiet \
-  2>&1 | tee "$work/stage.txt"; grep "^trained\|rror" "$work/stage.txt" >> "$summary"
-cp "$run/log.csv" "$out/log_train.csv" 2>/dev/null
+# train_stage NAME RUN_NAME STEPS LAUNCHER... -- EXTRA_OPTIONS...: a.toml on $device.
+train_stage() {
+  local name=$1 run=$work/$2 count=$3; shift 3
+  local launcher=()
+  while [ "$1" != -- ]; do launcher+=("$1"); shift; done
+  shift
+  stage "$name" 900 "${launcher[@]}" train --config "$repo/train/configs/a.toml" \
+    --data "$data" --out "$run" --set "device=$device" --max-steps "$count" --quiet "$@" \
+    2>&1 | tee "$work/stage.txt"
+  grep "^trained\|rror" "$work/stage.txt" >> "$summary"
+}
 
+# 3. The paper's configuration (no validation: its rate is the training step's).
+if want train; then
+  train_stage train run_train "$steps" "${sq[@]}" -- --set validation.every=0
+  cp "$work/run_train/log.csv" "$out/log_train.csv" 2>/dev/null
+fi
 # 4. The same under torchrun (one process), with the config's validation (every epoch).
-stage torchrun 600 "$py" -m torch.distributed.run --standalone --nproc_per_node 1 \
-  -m sq_mitsuba train --config "$repo/train/configs/a.toml" --data "$data" \
-  --out "$work/run_torchrun" --set device=$device --max-steps "${PROBE_STEPS:-8}" --quiet \
-  2>&1 | tee "$work/stage.txt"; grep "^trained\|rror" "$work/stage.txt" >> "$summary"
-cp "$work/run_torchrun/val.csv" "$out/val_torchrun.csv" 2>/dev/null
-
+if want torchrun; then
+  train_stage torchrun run_torchrun "${PROBE_STEPS:-8}" "$py" -m torch.distributed.run \
+    --standalone --nproc_per_node 1 -m sq_mitsuba --
+  cp "$work/run_torchrun/val.csv" "$out/val_torchrun.csv" 2>/dev/null
+fi
 # 5. The trainer's distributed path in one process (nccl + gloo group, SyncBatchNorm, DDP).
-stage ddp-probe 600 "$py" "$repo/train/gpu_ddp_probe.py" --config "$repo/train/configs/a.toml" \
-  --data "$data" --out "$work/run_probe" --set device=$device --max-steps "${PROBE_STEPS:-8}" --quiet \
-  2>&1 | tee "$work/stage.txt"; grep "^trained\|rror" "$work/stage.txt" >> "$summary"
-cp "$work/run_probe/log.csv" "$out/log_probe.csv" 2>/dev/null
-
-# 6. Silhouette renderer timings on CUDA.
-stage bench-render 400 "${sq[@]}" bench render --repeats "${REPEATS:-5}" --warmup 1 --device "$device" \
-  2>&1 | tee "$out/bench_render.txt"
+if want probe; then
+  train_stage ddp-probe run_probe "${PROBE_STEPS:-8}" "$py" "$repo/train/gpu_ddp_probe.py" --
+  cp "$work/run_probe/log.csv" "$out/log_probe.csv" 2>/dev/null
+fi
+# 6. Where a training step's time goes: cProfile of PROFILE_STEPS (20) steps, top functions by own time and
+# by cumulative time (CUDA work is charged to whatever waits for it).
+if want profile; then
+  train_stage profile run_profile "${PROFILE_STEPS:-20}" "$py" -m cProfile -o "$work/train.prof" -m sq_mitsuba -- \
+    --set validation.every=0
+  "$py" -c 'import pstats, sys
+stats = pstats.Stats(sys.argv[1])
+stats.sort_stats("tottime").print_stats(25)
+stats.sort_stats("cumulative").print_stats(45)' "$work/train.prof" > "$out/profile.txt" 2>&1
+fi
+# 7. Silhouette renderer timings.
+if want bench; then
+  stage bench-render 400 "${sq[@]}" bench render --repeats "${REPEATS:-5}" --warmup 1 \
+    --device "$device" 2>&1 | tee "$out/bench_render.txt"
+fi
 
 echo "=== summary"; cat "$summary"
