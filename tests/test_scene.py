@@ -52,6 +52,25 @@ def test_shipped_scene_loads_and_holds_the_defaults():
     assert any(key.startswith("_") for key in raw["sun"])
 
 
+def test_scenes_dir_of_a_checkout_on_pythonpath_that_is_not_installed():
+    """Run from a checkout on PYTHONPATH (no pip install, as on a GPU machine with carried
+    packages), sq_mitsuba.scenes does not exist; the scenes come from the checkout's folder.
+    ``-S`` skips site's .pth files, so the editable install's mapping is not there."""
+    import site
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[1]
+    code = (f"import sys; sys.path[:0] = [{str(root)!r}, *{site.getsitepackages()!r}]; "
+            "import importlib.util as u; print(u.find_spec('sq_mitsuba.scenes')); "
+            "from sq_mitsuba.render.scene_config import scenes_dir; print(scenes_dir())")
+    lines = subprocess.run([sys.executable, "-S", "-c", code], capture_output=True, text=True,
+                           check=True).stdout.split()
+    assert lines[0] == "None"  # not importable: the fallback is what is tested
+    assert Path(lines[1]) == root / "scenes"
+    assert (Path(lines[1]) / "space.json").is_file()
+
+
 def test_partial_scene_files_with_comments_json_and_toml(tmp_path):
     path = tmp_path / "scene.json"
     path.write_text(json.dumps({"_note": "top-level comment",

@@ -116,7 +116,11 @@ def start_distributed(device: torch.device) -> World:
 
     owns = False
     if not dist.is_initialized():
-        dist.init_process_group(backend="nccl" if device.type == "cuda" else "gloo")
+        if device.type == "cuda":
+            torch.cuda.set_device(device)  # object collectives and barriers use this GPU
+        # nccl takes CUDA tensors only; the loss means and flags are CPU tensors (gloo).
+        dist.init_process_group(backend="cpu:gloo,cuda:nccl" if device.type == "cuda"
+                                else "gloo")
         owns = True
     return World(dist.get_rank(), dist.get_world_size(),
                   int(os.environ.get("LOCAL_RANK", "0")), owns)

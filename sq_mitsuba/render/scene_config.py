@@ -44,7 +44,12 @@ from sq_mitsuba.io import read_json
 def scenes_dir() -> Path:
     """The folder of the shipped scene files (``scenes/`` in a checkout, package data in a
     wheel)."""
-    return Path(str(resources.files("sq_mitsuba.scenes")))
+    try:
+        return Path(str(resources.files("sq_mitsuba.scenes")))
+    except ModuleNotFoundError:
+        # A checkout on PYTHONPATH, not installed: sq_mitsuba.scenes is only a mapping of
+        # the installed package, so read the checkout's top-level scenes/ folder.
+        return Path(__file__).resolve().parents[2] / "scenes"
 
 
 EARTH_CLEARANCE_M = 5.0

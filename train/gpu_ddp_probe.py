@@ -1,0 +1,66 @@
+"""Run the trainer's distributed code path in ONE process (for a machine with one GPU).
+
+``torchrun --nproc_per_node 1`` sets WORLD_SIZE=1, and the trainer then runs without a process
+group, so on one GPU nothing of DistributedDataParallel, SyncBatchNorm or the nccl collectives
+runs. (Two processes cannot share one GPU under nccl.) This probe makes the trainer take its
+distributed path with a process group of size 1: it reports WORLD_SIZE=2 to the trainer, lets
+the trainer choose the backend and call ``init_process_group`` itself, but rewrites that call
+to a group of one process, and counts a group it owns as distributed. Everything else (backend
+choice, SyncBatchNorm conversion, DDP wrapping, loss averaging, agreement checks, object
+broadcasts, checkpoint gathering, barriers) is the trainer's own code.
+
+Usage: python train/gpu_ddp_probe.py sq-mitsuba-train-arguments...
+  e.g. python train/gpu_ddp_probe.py --config train/configs/a.toml --data DS --out RUN
+       --max-steps 10 --quiet
+Relies on a private name of sq_mitsuba.learning (``_World``); a probe, not a product.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+
+import torch.distributed as dist
+
+
+def _find_world_class() -> type | None:
+    """The trainer's ``_World`` (in whichever module of sq_mitsuba.learning holds it)."""
+    import importlib
+    import pkgutil
+
+    import sq_mitsuba.learning as learning
+
+    for info in pkgutil.iter_modules(learning.__path__):
+        module = importlib.import_module(f"sq_mitsuba.learning.{info.name}")
+        found = getattr(module, "_World", None)
+        if isinstance(found, type):
+            return found
+    return None
+
+
+def main() -> int:
+    os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=os.environ.get("MASTER_PORT", "29517"),
+                      RANK="0", LOCAL_RANK="0", WORLD_SIZE="2")
+    real_init = dist.init_process_group
+
+    def init_one(*args: object, **kwargs: object) -> None:
+        backend = kwargs.get("backend", args[0] if args else None)
+        print(f"probe: the trainer asked for backend {backend!r}; group of 1 process",
+              flush=True)
+        kwargs.update(world_size=1, rank=0)
+        real_init(*args, **kwargs)
+
+    dist.init_process_group = init_one
+
+    world_class = _find_world_class()
+    if world_class is None:
+        print("probe: no _World class in sq_mitsuba.learning; adapt the probe", file=sys.stderr)
+        return 2
+    world_class.distributed = property(lambda self: self.owns_group or self.size > 1)
+    from sq_mitsuba.cli import main as cli_main
+
+    return cli_main(["train", *sys.argv[1:]])
+
+
+if __name__ == "__main__":
+    sys.exit(main())
