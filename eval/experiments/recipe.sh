@@ -42,12 +42,12 @@ train_one() {
       --out "$run" --set device="$DEVICE" --quiet $resume > "$WORK/runs/$name.log" 2>&1 || true
   else
     $SQ train --config "$config" --data "$WORK/data" --out "$run" --set device="$DEVICE" \
-      --quiet $resume > "$WORK/runs/$name.log" 2>&1
+      --quiet $resume > "$WORK/runs/$name.log" 2>&1 || echo "$name: training failed"
   fi
   for split in val test; do
     [ -f "$run/eval_$split/summary.csv" ] || $SQ eval --checkpoint "$run/best.pt" \
       --data "$WORK/data" --split $split --out "$run/eval_$split" --limit "$LIMIT" \
-      --no-figures --quiet >> "$WORK/runs/$name.log" 2>&1
+      --no-figures --quiet >> "$WORK/runs/$name.log" 2>&1 || echo "$name: eval $split failed"
   done
 }
 
@@ -55,8 +55,8 @@ running=0
 for config in "${CONFIGS[@]}"; do
   train_one "$config" &
   running=$((running + 1))
-  if [ "$running" -ge "$PARALLEL" ]; then wait -n; running=$((running - 1)); fi
+  if [ "$running" -ge "$PARALLEL" ]; then wait -n || true; running=$((running - 1)); fi
 done
-wait
+wait || true  # a failed run shows as "-" in the table and names itself above
 names=(); for config in "${CONFIGS[@]}"; do names+=("$(basename "$config" .toml)"); done
 python3 "$HERE/recipe_table.py" "$WORK/runs" --names "${names[@]}" | tee "$WORK/table.md"
