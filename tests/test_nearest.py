@@ -6,12 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from sq_mitsuba.geometry.nearest import (
-    dense_matched_indices,
-    gathered_differences,
-    matched_indices,
-    nearest_neighbours,
-)
+from sq_mitsuba.geometry.nearest import gathered_differences, matched_indices, nearest_neighbours
 
 
 @pytest.mark.parametrize("p", [1.0, 2.0])
@@ -39,23 +34,6 @@ def test_matched_indices_respect_the_mask_both_ways(p):
         assert torch.equal(a_to_b[item][~kept], torch.zeros_like(a_to_b[item][~kept]))
         masked = dense.masked_fill(~kept[:, None], float("inf"))
         assert torch.equal(b_to_a[item], masked.argmin(0))
-
-
-@pytest.mark.parametrize("p", [1.0, 2.0])
-def test_dense_matched_indices_equal_the_kd_tree_ones(p):
-    """The GPU path (all pairwise distances), run here on the CPU, against the KD-trees; float32
-    clouds of training size, with a mask, including an item that keeps a single point."""
-    gen = torch.Generator().manual_seed(3)
-    a = torch.randn(4, 500, 3, generator=gen)
-    b = torch.randn(4, 400, 3, generator=gen)
-    keep = torch.rand(4, 500, generator=gen) > 0.3
-    keep[3] = False
-    keep[3, 7] = True
-    dense = dense_matched_indices(a, keep, b, p)
-    tree = matched_indices(a, keep, b, p)
-    assert torch.equal(dense[0], tree[0]) and torch.equal(dense[1], tree[1])
-    assert torch.equal(dense[1][3], torch.full((400,), 7))
-    assert dense[0].dtype == dense[1].dtype == torch.int64
 
 
 def test_gathered_differences_value_and_gradient():
