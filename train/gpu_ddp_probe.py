@@ -12,7 +12,8 @@ broadcasts, checkpoint gathering, barriers) is the trainer's own code.
 Usage: python train/gpu_ddp_probe.py sq-mitsuba-train-arguments...
   e.g. python train/gpu_ddp_probe.py --config train/configs/a.toml --data DS --out RUN
        --max-steps 10 --quiet
-Relies on a private name of sq_mitsuba.learning (``_World``); a probe, not a product.
+Patches the ``distributed`` property of :class:`sq_mitsuba.learning.distributed.World`; a
+probe, not a product.
 """
 
 from __future__ import annotations
@@ -21,21 +22,6 @@ import os
 import sys
 
 import torch.distributed as dist
-
-
-def _find_world_class() -> type | None:
-    """The trainer's ``_World`` (in whichever module of sq_mitsuba.learning holds it)."""
-    import importlib
-    import pkgutil
-
-    import sq_mitsuba.learning as learning
-
-    for info in pkgutil.iter_modules(learning.__path__):
-        module = importlib.import_module(f"sq_mitsuba.learning.{info.name}")
-        found = getattr(module, "_World", None)
-        if isinstance(found, type):
-            return found
-    return None
 
 
 def main() -> int:
@@ -52,11 +38,9 @@ def main() -> int:
 
     dist.init_process_group = init_one
 
-    world_class = _find_world_class()
-    if world_class is None:
-        print("probe: no _World class in sq_mitsuba.learning; adapt the probe", file=sys.stderr)
-        return 2
-    world_class.distributed = property(lambda self: self.owns_group or self.size > 1)
+    from sq_mitsuba.learning.distributed import World
+
+    World.distributed = property(lambda self: self.owns_group or self.size > 1)
     from sq_mitsuba.cli import main as cli_main
 
     return cli_main(["train", *sys.argv[1:]])
