@@ -19,7 +19,6 @@ from sq_mitsuba.learning.network_config import NetworkConfig
 from sq_mitsuba.learning.train import train
 from sq_mitsuba.learning.train_config import load_train_config
 
-
 TINY = Path(__file__).resolve().parents[1] / "train" / "configs" / "tiny.toml"
 
 
