@@ -39,6 +39,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from sq_mitsuba.inputs import load_torch_file
+
 # (expand ratio, kernel, stride of the first block, output channels, repeats) per stage.
 STAGES: tuple[tuple[int, int, int, int, int], ...] = (
     (1, 3, 1, 16, 1),
@@ -366,13 +368,12 @@ def load_imagenet_weights(model: EfficientNetB0, path: str | os.PathLike[str]) -
 
     Raises:
         FileNotFoundError: ``path`` does not exist.
-        ValueError: unrecognised naming, unknown or missing keys, or a shape mismatch (naming
-            the key).
+        ValueError: a file that is no torch file of tensors (random, damaged or hostile),
+            unrecognised naming, unknown or missing keys, or a shape mismatch (naming the key).
     """
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"ImageNet weights: no such file {path}")
-    state = torch.load(path, map_location="cpu", weights_only=True)
+    # The one safe reader of torch files: a random or hostile file is one line naming it.
+    state = load_torch_file(path, "ImageNet weights")
     if not isinstance(state, Mapping) or not all(isinstance(v, Tensor) for v in state.values()):
         raise ValueError(f"{path}: expected a state dict of tensors, got {type(state).__name__}")
     naming = next((name for name, (probe, _) in _NAMINGS.items() if probe in state), None)

@@ -518,7 +518,7 @@ class SilhouetteRenderer:
                     raise ValueError("loss_fn: must return a scalar tensor")
                 if requires_grad:
                     (grad_coverage,) = torch.autograd.grad(loss, coverage, allow_unused=True)
-            losses[index] = float(loss)
+            losses[index] = float(loss.detach())
             images.append(coverage.detach())
             if grad_coverage is not None and bool(grad_coverage.any()):
                 # coverage = 1 - image, so the image receives the negated gradient.
