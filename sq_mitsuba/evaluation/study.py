@@ -58,6 +58,7 @@ from sq_mitsuba.evaluation.evaluate import (
     markdown_table,
     summarise,
 )
+from sq_mitsuba.inputs import finite_number
 from sq_mitsuba.io import atomic_write_json, atomic_write_text
 
 #: Background names: the Earth out of view, in view, and eclipse frames.
@@ -189,7 +190,7 @@ def write_group_tables(table: Sequence[dict[str, Any]], out_dir: Path, stem: str
 
 
 def _choose_models(models_dir: Path, options: StudyOptions) -> list[str]:
-    from sq_mitsuba.data.spe3r.layout import DatasetError, read_splits
+    from sq_mitsuba.data.spe3r.layout import DatasetError, load_model, read_splits
     from sq_mitsuba.data.spe3r.writer import find_models
     from sq_mitsuba.evaluation.evaluate import evenly
 
@@ -202,7 +203,10 @@ def _choose_models(models_dir: Path, options: StudyOptions) -> list[str]:
         names = [n for n in names if splits.get(n) == options.split]
     if not names:
         raise DatasetError(f"{models_dir}: no {options.split!r} models in splits.csv")
-    return [names[k] for k in evenly(len(names), options.max_models)]
+    chosen = [names[k] for k in evenly(len(names), options.max_models)]
+    for name in chosen:  # read in the library, before any work: a bad mesh is named there
+        load_model(models_dir / name)
+    return chosen
 
 
 def _stage_models(models_dir: Path, names: Sequence[str], stage: Path) -> None:
@@ -214,7 +218,11 @@ def _stage_models(models_dir: Path, names: Sequence[str], stage: Path) -> None:
     stage.mkdir(parents=True, exist_ok=True)
     for name in names:
         shutil.copytree(models_dir / name / MODELS, stage / name / MODELS, dirs_exist_ok=True)
-        model_symmetries(stage / name)
+        try:
+            model_symmetries(stage / name)
+        except (OSError, ValueError) as error:  # the copy is the library's file: name that
+            raise ValueError(str(error).replace(str(stage / name), str(models_dir / name))) \
+                from None
     atomic_write_text(stage / "splits.csv", "".join(f"{name},test\n" for name in names))
 
 
@@ -356,7 +364,8 @@ def lighting_breakdown(eval_dir: str | Path, out_dir: str | Path | None = None,
     for row in raw:
         if row in unlit:
             continue
-        phase = float(row["phase_angle_deg"])
+        phase = finite_number(row["phase_angle_deg"], f"{source}: phase_angle_deg of "
+                              f"{row['model']} image {row.get('index', '?')}")
         if _flag(row["eclipse"]):
             background = "eclipse"
         else:
