@@ -130,13 +130,14 @@ def _torch_reason(error: BaseException) -> str:
     """The cause of a failed ``torch.load``, without torch's advice to load unsafely."""
     lines = [line.strip() for line in str(error).splitlines() if line.strip()]
     if lines and lines[0].startswith("Weights only load failed"):
-        boilerplate = ("Weights only load failed", "Please file an issue", "Check the documentation")
+        boilerplate = ("Weights only load failed", "Please file an issue",
+                       "Check the documentation")
         detail = [line.removeprefix("WeightsUnpickler error:").strip() for line in lines[1:]
                   if not line.startswith(boilerplate)]
         detail = [line for line in detail if line and "weights_only" not in line]
         cause = detail[0] if detail else "an object other than tensors and plain values"
-        return (f"it holds more than tensors and plain values, which is all a file may hold "
-                f"here: {_one_line(cause)}")
+        return (f"refused by the safe loader, which reads tensors and plain values only: "
+                f"{_one_line(cause)}")
     text = f"{type(error).__name__}: {lines[0]}" if lines else type(error).__name__
     return _one_line(text) if "weights_only" not in text else type(error).__name__
 
