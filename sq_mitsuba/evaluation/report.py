@@ -37,9 +37,10 @@ def read_eval_folder(folder: str | Path) -> dict[str, Any]:
     """``eval.json`` plus {method: {metric: (mean, std)}} from ``summary.csv``, strictly.
 
     ``eval.json`` must name the split (``val`` or ``test``) and the number of primitives;
-    ``summary.csv`` must hold the network's row of every metric of :data:`COLUMNS`, finite.
-    Another method's metric that is NaN (no image gave a value, e.g. nothing segmented) is
-    left out of its row.
+    ``summary.csv`` must hold a row of every metric of :data:`COLUMNS` for the network, the
+    methods ``eval.json`` lists, and any other method it holds, the network's finite. Another
+    method's metric that is NaN (no image gave a value, e.g. nothing segmented) is left out of
+    its row.
 
     Raises:
         FileNotFoundError: ``<folder>/eval.json: missing ...`` (or ``summary.csv``).
@@ -65,22 +66,28 @@ def read_eval_folder(folder: str | Path) -> dict[str, Any]:
         raise ValueError(f"{where}: label {label!r} is not a name")
     path = folder / "summary.csv"
     summary: dict[str, dict[str, tuple[float, float]]] = {}
-    wanted = {metric for metric, *_ in COLUMNS}
+    wanted = [metric for metric, *_ in COLUMNS]
+    methods = info.get("methods", ["network"])
+    if not isinstance(methods, list) or not all(isinstance(m, str) for m in methods):
+        raise ValueError(f"{where}: methods {methods!r} is not a list of names")
+    seen: dict[str, set[str]] = {method: set() for method in methods}
     for row in read_csv_table(path, ("method", "metric", "mean", "std")):
         method, metric = row["method"], row["metric"]
         if metric not in wanted:
             continue
         at = f"{path}: {method} {metric}"
-        if metric in summary.get(method, {}):
+        if metric in seen.setdefault(method, set()):
             raise ValueError(f"{at}: given twice")
+        seen[method].add(metric)
         mean, std = (_cell(row[key], f"{at} {key}", method == "network")
                      for key in ("mean", "std"))
         if mean is not None and std is not None:
             summary.setdefault(method, {})[metric] = (mean, std)
-    missing = [metric for metric, *_ in COLUMNS if metric not in summary.get("network", {})]
-    if missing:
-        raise ValueError(f"{path}: no network row for {missing[0]} (cut short, or not "
-                         "written by `sq-mitsuba eval`?)")
+    for method, metrics in seen.items():
+        missing = [metric for metric in wanted if metric not in metrics]
+        if missing:
+            raise ValueError(f"{path}: no {method} row for {missing[0]} (cut short, or not "
+                             "written by `sq-mitsuba eval`?)")
     return {"folder": folder, "split": info["split"], "info": info, "summary": summary,
             "label": label or folder.parent.name or folder.name}
 
