@@ -503,3 +503,54 @@ def test_all_or_nothing_removes_what_a_failed_run_added(tmp_path):
     with all_or_nothing(old):
         (old / "done.txt").write_text("ok")
     assert "done.txt" in _entries(old)
+
+
+# --------------------------------------------------------------- normal runs print no warnings
+
+
+def test_mask_sample_counts_are_squares_the_stratified_sampler_takes_as_they_are():
+    import math
+
+    from sq_mitsuba.geometry.camera import Camera
+    from sq_mitsuba.render.space import mask_samples
+
+    for spp in (1, 16, 64, 100):
+        for resolution in (8, 48, 96, 100, 128, 200, 256, 1000):
+            count = mask_samples(spp, Camera.default(resolution))
+            wanted = max(spp, math.ceil(spp * (256 / resolution) ** 2))
+            side = math.isqrt(count)
+            # The smallest square at or above the proportional count: what Mitsuba's
+            # stratified sampler rounds any count up to.
+            assert side * side == count and (side - 1) ** 2 < wanted <= count
+
+
+def test_dataset_render_and_predict_print_no_warnings(bad, eval_checkpoint, tmp_path, capfd):
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        # 48 px: the mask pass wants 1,821 samples per pixel, which Mitsuba's sampler would
+        # round to 1,849 with a warning.
+        assert main(["dataset", "render", "--models", str(bad / "library"), "--out",
+                     str(tmp_path / "data"), "--images-per-model", "1", "--resolution", "48",
+                     "--spp", "1", "--quiet"]) == 0
+        assert main(["predict", str(bad / "image.png"), "--checkpoint", str(eval_checkpoint),
+                     "--out", str(tmp_path / "predict"), "--refine", "--set",
+                     "refinement.steps=2", "--quiet"]) == 0
+    printed = capfd.readouterr()
+    assert not caught, [str(w.message) for w in caught]
+    assert "warn" not in printed.err.lower() and "warn" not in printed.out.lower(), printed
+
+
+def test_the_training_loss_renders_without_a_grad_warning(renderer64):
+    """What a render worker of the training loss runs (grad mode on, as in a fresh process)."""
+    from sq_mitsuba.geometry.icosphere import icosphere
+
+    sphere, faces = icosphere(2)
+    vertices = (0.3 * torch.tensor(sphere, dtype=torch.float32)
+                + torch.tensor([0.0, 0.0, 2.0]))[None].repeat(2, 1, 1)
+    faces = torch.tensor(faces)
+    renderer64._prepare(vertices, faces)
+    with warnings.catch_warnings(), torch.enable_grad():
+        warnings.simplefilter("error")
+        losses, _, grad = renderer64.mask_mse_items(vertices, torch.zeros(2, 64, 64), 0,
+                                                    range(2), requires_grad=True)
+    assert bool((losses > 0).all()) and bool(grad.abs().sum() > 0)

@@ -160,3 +160,19 @@ def test_every_set_option_shows_an_example():
 def test_help_examples_parse(path, example, config_class):
     assert config_class is not None, f"{' '.join(path)}: --set of which config?"
     apply_overrides(config_class(), [example])
+
+
+def test_every_optional_value_shows_its_default():
+    """An option that takes a value and may be left out says what leaving it out means."""
+    missing = []
+    for path, parser in _parsers(build_parser()):
+        grouped = {a for g in parser._mutually_exclusive_groups if g.required
+                   for a in g._group_actions}
+        for action in parser._actions:
+            if (not action.option_strings or action.required or action in grouped
+                    or action.nargs == 0 or isinstance(action, argparse._AppendAction)
+                    or isinstance(action, argparse.BooleanOptionalAction)):
+                continue
+            if "default" not in (action.help or ""):
+                missing.append(f"{' '.join(path)} {action.option_strings[0]}")
+    assert not missing, missing
