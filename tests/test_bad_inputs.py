@@ -446,17 +446,53 @@ def test_a_data_error_during_eval_leaves_no_out(train_dataset, eval_checkpoint, 
     assert not out.exists()  # not even the empty folder
 
 
+# A failing run of each command whose --out is all or nothing: (argv, file the error names).
+GUARDED = {
+    "eval": lambda bad, ck, out: (["eval", "--checkpoint", ck, "--data", bad / "nothing",
+                                   "--out", out], bad / "nothing"),
+    "predict": lambda bad, ck, out: (["predict", bad / "image.png", bad / "tiny.png",
+                                      "--checkpoint", ck, "--out", out], bad / "tiny.png"),
+    "fit": lambda bad, ck, out: (["fit", "--masks", bad / "tiny.png", "--poses",
+                                  bad / "nothing.json", "--out", out], bad / "nothing.json"),
+    "report": lambda bad, ck, out: (["report", bad / "nothing", "--out", out], bad / "nothing"),
+    "study": lambda bad, ck, out: (["study", "illumination", "--checkpoint", ck, "--models",
+                                    bad / "nothing", "--out", out], bad / "nothing"),
+}
+
+
+@pytest.mark.parametrize("command", GUARDED)
 def test_a_failed_run_leaves_out_as_it_was_and_removes_stray_temporaries(
-        bad, eval_checkpoint, tmp_path, capsys):
+        command, bad, eval_checkpoint, tmp_path, capsys):
     out = tmp_path / "out"
     out.mkdir()
     (out / "mine.txt").write_text("kept")
     stray = out / ".qualitative.k2j4_x9q.tmp.png"  # a kill mid-write leaves such a file
     stray.write_bytes(b"")
-    line = _run(capsys, ["predict", bad / "image.png", bad / "tiny.png", "--checkpoint",
-                         eval_checkpoint, "--out", out, "--quiet"])
-    assert str(bad / "tiny.png") in line
+    argv, named = GUARDED[command](bad, eval_checkpoint, out)
+    line = _run(capsys, [*argv, "--quiet"] if command != "report" else argv)
+    assert str(named) in line
     assert _entries(out) == ["mine.txt"]
+
+
+def test_export_removes_its_own_stray_temporaries_only(bad, eval_checkpoint, tmp_path, capsys):
+    out = tmp_path / "model.pt"
+    strays = [tmp_path / ".model.a1b2c3d4.tmp.pt", tmp_path / ".other.a1b2c3d4.tmp.pt"]
+    for stray in strays:
+        stray.write_bytes(b"")
+    line = _run(capsys, ["export", "--checkpoint", bad / "nan.pt", "--out", out])
+    assert str(bad / "nan.pt") in line
+    assert _entries(tmp_path) == [".other.a1b2c3d4.tmp.pt"]  # another file's is not its own
+
+
+def test_raw_operating_system_errors_read_as_file_and_cause():
+    from sq_mitsuba.cli import _one_line
+
+    rename = IsADirectoryError(21, "Is a directory", "/x/.model.a1b2c3d4.tmp.pt", None, "/x/out")
+    assert _one_line(rename) == "/x/out: is a directory"
+    assert _one_line(PermissionError(13, "Permission denied", "/x/report.md")) == \
+        "/x/report.md: permission denied"
+    assert _one_line(FileNotFoundError("checkpoint: no such file a.pt")) == \
+        "checkpoint: no such file a.pt"
 
 
 def test_atomic_temporaries_are_recognised_and_only_they(tmp_path):
