@@ -352,21 +352,33 @@ def test_study_names_the_library_file_of_a_bad_model(bad, eval_checkpoint, tmp_p
     assert not out.exists()
 
 
-def test_study_of_an_evaluation_with_nan_phase_names_file_and_column(tmp_path, capsys):
+def _per_image_text(phase: str) -> str:
     from sq_mitsuba.evaluation.evaluate import COLUMNS
 
-    folder = tmp_path / "eval"
-    folder.mkdir()
     row = {column: "" for column in COLUMNS}
-    row.update({"model": "sat", "index": "3", "method": "network", "phase_angle_deg": "nan",
+    row.update({"model": "sat", "index": "3", "method": "network", "phase_angle_deg": phase,
                 "earth_in_view": "False", "eclipse": "False",
                 **{metric: "0.5" for metric in METRICS}})
-    (folder / "per_image.csv").write_text(",".join(COLUMNS) + "\n"
-                                          + ",".join(row[c] for c in COLUMNS) + "\n")
+    return ",".join(COLUMNS) + "\n" + ",".join(row[c] for c in COLUMNS) + "\n"
+
+
+STUDY_EVAL_CASES = {
+    "NaN phase angle": (_per_image_text("nan"),
+                        "phase_angle_deg of sat image 3: expected a finite number"),
+    "cut short": (_per_image_text("40")[:-30], "cut short"),
+    "empty": ("", "empty"),
+}
+
+
+@pytest.mark.parametrize("case", STUDY_EVAL_CASES)
+def test_study_of_a_bad_evaluation_names_file_and_column(case, tmp_path, capsys):
+    text, needle = STUDY_EVAL_CASES[case]
+    folder = tmp_path / "eval"
+    folder.mkdir()
+    (folder / "per_image.csv").write_text(text)
     out = tmp_path / "lighting"
     line = _run(capsys, ["study", "illumination", "--eval", folder, "--out", out])
-    assert f"{folder / 'per_image.csv'}: phase_angle_deg of sat image 3" in line
-    assert "finite number" in line
+    assert f"{folder / 'per_image.csv'}: " in line and needle in line, line
     assert not out.exists()
 
 

@@ -37,7 +37,6 @@ its ``eclipse`` column says so.
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 import math
 import shutil
@@ -58,7 +57,7 @@ from sq_mitsuba.evaluation.evaluate import (
     markdown_table,
     summarise,
 )
-from sq_mitsuba.inputs import finite_number
+from sq_mitsuba.inputs import finite_number, read_csv_table
 from sq_mitsuba.io import atomic_write_json, atomic_write_text
 
 #: Background names: the Earth out of view, in view, and eclipse frames.
@@ -322,21 +321,11 @@ def _eclipse_at_mean_phase(rows: list[dict[str, Any]]) -> None:
 
 def read_per_image(path: Path) -> list[dict[str, Any]]:
     """Rows of an evaluation's ``per_image.csv``; a one-line error naming the file when it is
-    missing, malformed or has no lighting record."""
+    missing, empty, cut short or has no lighting record (:func:`sq_mitsuba.inputs.
+    read_csv_table`)."""
     from sq_mitsuba.evaluation.evaluate import LIGHTING
 
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: missing (not an evaluation folder?)")
-    with open(path, newline="", encoding="utf-8") as handle:
-        reader = csv.DictReader(handle)
-        missing = [c for c in ("model", "method", *METRICS, *LIGHTING)
-                   if c not in (reader.fieldnames or [])]
-        if missing:
-            raise ValueError(f"{path}: no column {missing[0]!r} (written by another version?)")
-        rows = list(reader)
-    if not rows:
-        raise ValueError(f"{path}: no rows")
-    return rows
+    return read_csv_table(path, ("model", "method", *METRICS, *LIGHTING))
 
 
 def lighting_breakdown(eval_dir: str | Path, out_dir: str | Path | None = None,
