@@ -602,3 +602,14 @@ def test_the_training_loss_renders_without_a_grad_warning(renderer64):
         losses, _, grad = renderer64.mask_mse_items(vertices, torch.zeros(2, 64, 64), 0,
                                                     range(2), requires_grad=True)
     assert bool((losses > 0).all()) and bool(grad.abs().sum() > 0)
+
+
+def test_the_demo_page_names_the_shipped_model_without_this_machines_path():
+    from sq_mitsuba.evaluation.demo import _shown_model
+    from sq_mitsuba.learning.checkpoint import SHIPPED_MODEL
+
+    shown = _shown_model(str(SHIPPED_MODEL))
+    assert "sq_mitsuba/learning/weights/model.pt" in shown
+    assert str(SHIPPED_MODEL.parents[2]) not in shown  # the checkout's absolute path
+    assert _shown_model("") == shown
+    assert _shown_model("runs/cpu/best.pt") == "runs/cpu/best.pt"
