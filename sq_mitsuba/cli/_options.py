@@ -74,16 +74,22 @@ def add_config_options(parser: argparse.ArgumentParser, config_class: type,
     parser.set_defaults(**{_FLAGS: known, _CLASSES: classes})
 
 
-def add_set_option(parser: argparse.ArgumentParser, what: str, example: str,
+def add_set_option(parser: argparse.ArgumentParser, what: str, example: str | None = None,
                    config_class: type | None = None) -> None:
     """``--set key=value`` (repeatable): dotted overrides of any field of ``what``'s config.
 
-    ``example`` (``key=value``) is shown in the help; ``config_class`` is the config the
-    overrides apply to (default: the class of the options added last by
-    :func:`add_config_options`), recorded so that tests check the example against it.
+    ``example`` (``key=value``; default: the first numeric field at its default) is shown in
+    the help; ``config_class`` is the config the overrides apply to (default: the class of the
+    options added last by :func:`add_config_options`), recorded so that tests check the
+    example against it.
     """
     if config_class is None:
         config_class = list((parser.get_default(_CLASSES) or {}).values())[-1]
+    if example is None:
+        defaults = config_class()
+        example = next(f"{f.name}={getattr(defaults, f.name)}"
+                       for f in dataclasses.fields(config_class)
+                       if type(getattr(defaults, f.name)) in (int, float))
     parser.add_argument("--set", dest="overrides", action="append", default=[],
                         metavar="KEY=VALUE",
                         help=f"override a field of the {what} (dotted, e.g. {example}); "
