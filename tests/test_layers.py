@@ -1,9 +1,9 @@
 """The folder tree is the architecture: every import points down the layer order.
 
-Order, lowest first: the shared utilities at the top level (``checks``, ``config``, ``io``,
-``llvm``), then ``geometry``, ``render``, ``data``, ``learning``, ``evaluation``, ``cli``. A
-module may import its own layer and the layers below it, never one above. Imports inside
-functions count too (the project defers heavy imports into functions).
+Order, lowest first: the shared utilities at the top level (``checks``, ``config``, ``inputs``,
+``io``, ``llvm``, ``outputs``), then ``geometry``, ``render``, ``data``, ``learning``,
+``evaluation``, ``cli``. A module may import its own layer and the layers below it, never one
+above. Imports inside functions count too (the project defers heavy imports into functions).
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from pathlib import Path
 import sq_mitsuba
 
 PACKAGE = Path(sq_mitsuba.__file__).resolve().parent
-UTILITIES = ("checks", "config", "io", "llvm")
+UTILITIES = ("checks", "config", "inputs", "io", "llvm", "outputs")
 LAYERS = ("utilities", "geometry", "render", "data", "learning", "evaluation", "cli")
 # The package root re-exports the inference API and runs the CLI: it sits on top.
 TOP = ("__init__", "__main__")

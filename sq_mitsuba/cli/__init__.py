@@ -19,6 +19,10 @@ import sys
 from collections.abc import Sequence
 
 EXIT_ERROR = 2
+#: Commands whose ``--out`` is all or nothing (:func:`sq_mitsuba.outputs.all_or_nothing`): a
+#: folder, or one file; stray temporary files go at start-up, a failed run's output with it.
+ALL_OR_NOTHING = {"eval": "folder", "predict": "folder", "fit": "folder", "report": "folder",
+                  "study": "folder", "export": "file"}
 
 
 class CLIError(Exception):
@@ -57,6 +61,10 @@ def build_parser(command: str | None = None, listing: bool = False) -> argparse.
 
 
 def _one_line(error: BaseException) -> str:
+    if isinstance(error, OSError) and error.strerror and error.filename is not None:
+        # A raw operating-system error: "<file>: <what>", not "[Errno 21] Is a directory: ...".
+        where = error.filename2 if error.filename2 is not None else error.filename
+        return f"{where}: {error.strerror[:1].lower()}{error.strerror[1:]}"
     lines = [line.strip() for line in str(error).splitlines() if line.strip()]
     return "; ".join(lines) or type(error).__name__
 
@@ -67,8 +75,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser(command, listing=True).parse_args(argv)
     if not hasattr(args, "func"):  # a listed-only command was reached some other way
         args = build_parser(args.command).parse_args(argv)
+    from sq_mitsuba.outputs import all_or_nothing
+
+    kind = ALL_OR_NOTHING.get(args.command)
     try:
-        return int(args.func(args) or 0)
+        with all_or_nothing(getattr(args, "out", None) if kind else None, kind == "file"):
+            return int(args.func(args) or 0)
     except (CLIError, ValueError, FileNotFoundError, PermissionError, OSError) as error:
         print(f"sq-mitsuba {args.command}: error: {_one_line(error)}", file=sys.stderr)
         return EXIT_ERROR

@@ -26,6 +26,8 @@ from sq_mitsuba.config import ConfigError, apply_overrides, field_docs, from_dic
 _FLAGS = "_config_flags"
 # Parser default {field: config class}, beside _FLAGS: lets tests find each option's class.
 _CLASSES = "_config_classes"
+#: Parser default: the config class that ``--set`` overrides (see :func:`add_set_option`).
+SET_CLASS = "_set_class"
 
 
 def _option_kwargs(annotation: Any, default: Any) -> dict[str, Any]:
@@ -72,12 +74,27 @@ def add_config_options(parser: argparse.ArgumentParser, config_class: type,
     parser.set_defaults(**{_FLAGS: known, _CLASSES: classes})
 
 
-def add_set_option(parser: argparse.ArgumentParser, what: str) -> None:
-    """``--set key=value`` (repeatable): dotted overrides of any field of ``what``'s config."""
+def add_set_option(parser: argparse.ArgumentParser, what: str, example: str | None = None,
+                   config_class: type | None = None) -> None:
+    """``--set key=value`` (repeatable): dotted overrides of any field of ``what``'s config.
+
+    ``example`` (``key=value``; default: the first numeric field at its default) is shown in
+    the help; ``config_class`` is the config the overrides apply to (default: the class of the
+    options added last by :func:`add_config_options`), recorded so that tests check the
+    example against it.
+    """
+    if config_class is None:
+        config_class = list((parser.get_default(_CLASSES) or {}).values())[-1]
+    if example is None:
+        defaults = config_class()
+        example = next(f"{f.name}={getattr(defaults, f.name)}"
+                       for f in dataclasses.fields(config_class)
+                       if type(getattr(defaults, f.name)) in (int, float))
     parser.add_argument("--set", dest="overrides", action="append", default=[],
                         metavar="KEY=VALUE",
-                        help=f"override a field of the {what} (dotted, e.g. "
-                             "pose.distance_scale=[1.0,1.2]); repeatable")
+                        help=f"override a field of the {what} (dotted, e.g. {example}); "
+                             "repeatable")
+    parser.set_defaults(**{SET_CLASS: config_class})
 
 
 def config_from_args(config_class: type, args: argparse.Namespace, base: Any = None,

@@ -25,11 +25,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--write", action="store_true",
                         help="store the figures in eval/BENCHMARKS.md")
     curves = parser.add_argument_group("curves")
-    curves.add_argument("--data", type=Path, metavar="DIR", help="SPE3R-layout dataset")
+    curves.add_argument("--data", type=Path, metavar="DIR",
+                        help="SPE3R-layout dataset (default: none; required by curves)")
     curves.add_argument("--minutes", type=float, metavar="M",
-                        help="training wall time of each config")
+                        help="training wall time of each config, > 0 (default: none; "
+                             "required by curves)")
     curves.add_argument("--out", type=Path, metavar="DIR",
-                        help="folder of the runs (one per config)")
+                        help="folder of the runs, one per config (default: none; required "
+                             "by curves)")
     curves.add_argument("--configs", nargs="+", metavar="LABEL",
                         help="which of 'a', 'cpu', 'cpu, no augmentation' (default: all)")
     parser.set_defaults(func=_run)

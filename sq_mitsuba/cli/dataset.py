@@ -36,6 +36,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     from sq_mitsuba.data.spe3r.check import CheckOptions
     from sq_mitsuba.data.spe3r.preview import PreviewOptions
     from sq_mitsuba.data.spe3r.writer import RenderOptions
+    from sq_mitsuba.render.scene_config import SceneConfig
 
     parser = subparsers.add_parser(
         "dataset", help=HELP,
@@ -52,7 +53,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     render.add_argument("--scene", type=Path, default=None, metavar="FILE",
                         help="scene configuration, JSON or TOML (default scenes/space.json); "
                              "fields it leaves out keep their defaults")
-    add_set_option(render, "scene configuration")
+    add_set_option(render, "scene configuration", "sun.irradiance=1000",
+                   SceneConfig)
     render.add_argument("--quiet", action="store_true", help="no progress bar")
     render.set_defaults(func=_render)
 

@@ -63,7 +63,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--checkpoint", type=Path, default=None, metavar="PT",
                         help="checkpoint file (default: the model shipped with the package)")
     add_config_options(parser, DemoOptions, FLAGS)
-    add_set_option(parser, "demo options")
+    add_set_option(parser, "demo options", "silhouette_spp=64")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     parser.set_defaults(func=_run)
 

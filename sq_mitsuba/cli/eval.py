@@ -50,7 +50,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="name of the run in eval.json and the report (default: the "
                              "checkpoint's folder name)")
     add_config_options(parser, EvalOptions, FLAGS, metavars={"limit": "N"})
-    add_set_option(parser, "eval options")
+    add_set_option(parser, "eval options", "refinement.steps=20")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.set_defaults(func=_run)
 

@@ -56,7 +56,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="output folder (created)")
     add_config_options(parser, FitOptions, FLAGS, metavars={"num_primitives": "M",
                                                             "steps": "N"})
-    add_set_option(parser, "fit options")
+    add_set_option(parser, "fit options", "level=4")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.set_defaults(func=_run)
 

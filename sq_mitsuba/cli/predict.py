@@ -45,9 +45,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="SPEED-style camera.json of the images (default: the "
                              "checkpoint's camera, rescaled to each image)")
     parser.add_argument("--mask", nargs="+", type=Path, default=None, metavar="MASK",
-                        help="with --refine: one mask per image, in the same order")
+                        help="with --refine: one mask per image, in the same order "
+                             "(default: a mask segmented from each image)")
     add_config_options(parser, PredictOptions, FLAGS)
-    add_set_option(parser, "predict options")
+    add_set_option(parser, "predict options", "refinement.steps=20")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.set_defaults(func=_run)
 

@@ -18,8 +18,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="evaluation folders (holding eval.json and summary.csv)")
     parser.add_argument("--out", type=Path, required=True, metavar="DIR",
                         help="output folder for report.md and report.csv")
-    parser.add_argument("--paper", type=Path, default=PAPER_TABLES, metavar="TOML",
-                        help=f"the paper's published tables (default: {PAPER_TABLES})")
+    parser.add_argument("--paper", type=Path, default=None, metavar="TOML",
+                        help="the paper's published tables, read strictly (default: "
+                             f"{PAPER_TABLES.relative_to(PAPER_TABLES.parents[1])} of a source "
+                             "checkout, when present)")
     parser.set_defaults(func=_run)
 
 

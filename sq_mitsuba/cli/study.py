@@ -55,7 +55,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                               help="output folder (required with --models; default with "
                                    "--eval: EVAL_DIR)")
     add_config_options(illumination, StudyOptions, FLAGS, metavars={"max_models": "N"})
-    add_set_option(illumination, "study options")
+    add_set_option(illumination, "study options", "render.resolution=128")
     illumination.add_argument("--quiet", action="store_true", help="no progress bar")
     illumination.set_defaults(func=_illumination)
 

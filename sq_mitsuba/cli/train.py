@@ -55,7 +55,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="continue the run in --out from its last.pt")
     parser.add_argument("--max-steps", type=int, metavar="N",
                         help="stop after N steps in total (the schedule still spans every "
-                             "epoch; --resume continues)")
+                             "epoch; --resume continues; default: no stop before the end)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.set_defaults(func=_run)
 

@@ -54,7 +54,7 @@ from sq_mitsuba.data.spacecraft.generator import (
     MAX_CATALOGUE_SEED,
     catalogue,
 )
-from sq_mitsuba.io import atomic_write_json, read_json
+from sq_mitsuba.io import atomic_write_json, check_output_folder, read_json
 
 SPLITS_FILE = "splits.csv"
 FAILURES_FILE = "failures.json"
@@ -199,8 +199,8 @@ def _write_splits(root: Path, splits: dict[str, str]) -> None:
 
 
 def _check_root(root: Path) -> None:
-    if root.exists() and not root.is_dir():
-        raise ValueError(f"out: {root} exists and is not a folder")
+    """A folder that is, or can be created as, a writable folder: checked before any work."""
+    check_output_folder(root)
 
 
 def _reason(error: Exception) -> str:

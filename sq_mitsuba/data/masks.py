@@ -22,6 +22,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from sq_mitsuba.inputs import open_image
 from sq_mitsuba.io import read_json
 
 QUATERNION_KEY = "q_vbs2tango_true"
@@ -64,24 +65,13 @@ def read_gray_image(path: str | Path, what: str = "image") -> np.ndarray:
 
     Raises:
         FileNotFoundError: ``path`` does not exist.
-        ValueError: not an image, or a corrupt or truncated one; one line naming ``what`` and
-            ``path``.
+        ValueError: not an image, a corrupt or truncated one, or one outside the size bounds
+            of :func:`sq_mitsuba.inputs.open_image` (at least 8 x 8 px); one line naming
+            ``what`` and ``path``.
     """
-    from PIL import Image, UnidentifiedImageError
-
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{what} {path}: no such file")
-    try:
-        with Image.open(path) as image:
-            image.load()
-            gray, top = _gray(image, path)
-    except UnidentifiedImageError:
-        raise ValueError(f"{what} {path}: not an image PIL can read") from None
-    except (OSError, SyntaxError, Image.DecompressionBombError) as error:
-        # Pillow reports damaged files as OSError ("image file is truncated", "broken data
-        # stream") or SyntaxError (bad chunk headers).
-        raise ValueError(f"{what} {path}: corrupt image ({_one_line(error)})") from None
+    image = open_image(path, what)
+    gray, top = _gray(image, path)
     if gray.ndim != 2:
         raise ValueError(f"{what} {path}: expected one image channel, got shape {gray.shape}")
     return np.clip(gray / top, 0.0, 1.0)

@@ -621,6 +621,16 @@ def _write_outputs(records: Sequence[dict[str, Any]], data: Path, out: Path,
             "camera": camera.to_speed_dict(), **poses})
 
 
+def _shown_model(checkpoint: str) -> str:
+    """How the page names the model: the shipped one by its place in the package, not by
+    this machine's path to it; another checkpoint by the path it was given as."""
+    from sq_mitsuba.learning.checkpoint import SHIPPED_MODEL
+
+    if not checkpoint or Path(checkpoint) == SHIPPED_MODEL:
+        return "the model shipped with sq_mitsuba (sq_mitsuba/learning/weights/model.pt)"
+    return checkpoint
+
+
 def _write_page(out: Path, options: DemoOptions, records: Sequence[dict[str, Any]],
                 table: dict[str, dict[str, tuple[float, float, float]]], checkpoint: str,
                 baseline_source: str, curves: bool, stages: dict[str, float],
@@ -637,7 +647,7 @@ def _write_page(out: Path, options: DemoOptions, records: Sequence[dict[str, Any
         "scene. For each image the network predicts a superquadric assembly and its pose; "
         f"test-time refinement ({preset.refine_steps} steps at most) then adjusts both "
         "through the differentiable Mitsuba silhouette against the ground-truth mask.",
-        f"Model: {checkpoint or 'the model shipped with sq_mitsuba'}. Trivial baseline: "
+        f"Model: {_shown_model(checkpoint)}. Trivial baseline: "
         f"{baseline_source}.",
         "Silhouettes: red, the network's prediction; green, after refinement; yellow, the "
         "outline of the true mask. 2D IoU is measured at the network's input size; Chamfer-L1 "

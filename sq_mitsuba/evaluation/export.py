@@ -81,12 +81,16 @@ def export_model(checkpoint: str | Path, data_root: str | Path | None, out: str 
         ``out`` as a Path.
 
     Raises:
-        ValueError / FileNotFoundError: a corrupt or mismatched checkpoint, or a dataset
-            without training images; checked before ``out`` is touched.
+        ValueError / FileNotFoundError: a corrupt or mismatched checkpoint (or one whose
+            weights are not finite), ``out`` a folder, or a dataset without training images;
+            checked before ``out`` is touched.
     """
     options = options or ExportOptions()
     validate(options)
     checkpoint, out = Path(checkpoint), Path(out)
+    if out.is_dir():
+        raise ValueError(f"out {out}: is a folder; give the file to write (e.g. "
+                         f"{out / 'model.pt'})")
     payload = read_checkpoint(checkpoint)
     model_from_checkpoint(payload, str(checkpoint))  # refuse a mismatched file early
     check_output_folder(out.parent)

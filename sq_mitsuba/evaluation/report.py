@@ -3,19 +3,21 @@
 Each folder written by :func:`sq_mitsuba.evaluation.evaluate.evaluate` holds ``eval.json``
 (split, label, number of primitives) and ``summary.csv`` (mean, std, median per method and
 metric). A run is identified by its label (the training config's name unless given); its
-``val`` and ``test`` folders fill one row. The paper's published rows
-(``eval/paper_tables.toml``) are printed beside ours, the best value of each column in bold,
-with a note on what is not comparable.
+``val`` and ``test`` folders fill one row; Table 2 (number of primitives) shows each run's M.
+The paper's published rows (``eval/paper_tables.toml``) are printed beside ours, the best value
+of each column in bold, with a note on what is not comparable. Inputs are read strictly: a
+folder, summary or paper table that is missing, empty, cut short, malformed or holds NaN where
+a number is due is a one-line error naming the file, before anything is written.
 """
 
 from __future__ import annotations
 
-import csv
-import tomllib
 from pathlib import Path
 from typing import Any
 
-from sq_mitsuba.io import atomic_write_text, read_json
+from sq_mitsuba.config import ConfigError, read_mapping
+from sq_mitsuba.inputs import finite_number, read_csv_table
+from sq_mitsuba.io import atomic_write_text, check_output_folder, read_json
 
 #: (metric key in summary.csv, key in paper_tables.toml, column title, lower is better)
 COLUMNS = (("chamfer_l1_paper", "chamfer_l1", "Chamfer-L1 ↓", True),
@@ -32,36 +34,132 @@ NOT_COMPARABLE = (
 
 
 def read_eval_folder(folder: str | Path) -> dict[str, Any]:
-    """``eval.json`` plus {method: {metric: (mean, std)}} from ``summary.csv``."""
+    """``eval.json`` plus {method: {metric: (mean, std)}} from ``summary.csv``, strictly.
+
+    ``eval.json`` must name the split (``val`` or ``test``) and the number of primitives;
+    ``summary.csv`` must hold a row of every metric of :data:`COLUMNS` for the network, the
+    methods ``eval.json`` lists, and any other method it holds, the network's finite. Another
+    method's metric that is NaN (no image gave a value, e.g. nothing segmented) is left out of
+    its row.
+
+    Raises:
+        FileNotFoundError: ``<folder>/eval.json: missing ...`` (or ``summary.csv``).
+        ValueError: one line naming the file (and row) for anything else amiss: not JSON,
+            another split, an empty, cut-short or malformed ``summary.csv``, NaN in the
+            network's metrics, a row given twice.
+    """
     folder = Path(folder)
     for name in ("eval.json", "summary.csv"):
         if not (folder / name).is_file():
             raise FileNotFoundError(f"{folder / name}: missing (not an evaluation folder?)")
     info = read_json(folder / "eval.json")
+    where = folder / "eval.json"
+    if not isinstance(info, dict):
+        raise ValueError(f"{where}: expected a JSON object, got {type(info).__name__}")
+    if info.get("split") not in ("val", "test"):
+        raise ValueError(f"{where}: split {info.get('split')!r} is neither 'val' nor 'test'")
+    primitives = info.get("num_primitives")
+    if isinstance(primitives, bool) or not isinstance(primitives, int) or primitives < 1:
+        raise ValueError(f"{where}: num_primitives {primitives!r} is not a positive integer")
+    label = info.get("label")
+    if label is not None and not (isinstance(label, str) and label.strip()):
+        raise ValueError(f"{where}: label {label!r} is not a name")
+    path = folder / "summary.csv"
     summary: dict[str, dict[str, tuple[float, float]]] = {}
-    with open(folder / "summary.csv", newline="", encoding="utf-8") as handle:
-        for row in csv.DictReader(handle):
-            try:
-                summary.setdefault(row["method"], {})[row["metric"]] = (float(row["mean"]),
-                                                                       float(row["std"]))
-            except (KeyError, ValueError):
-                raise ValueError(f"{folder / 'summary.csv'}: malformed row {row}") from None
-    return {"folder": folder, "split": info.get("split"), "info": info, "summary": summary,
-            "label": info.get("label") or folder.parent.name or folder.name}
+    wanted = [metric for metric, *_ in COLUMNS]
+    methods = info.get("methods", ["network"])
+    if not isinstance(methods, list) or not all(isinstance(m, str) for m in methods):
+        raise ValueError(f"{where}: methods {methods!r} is not a list of names")
+    seen: dict[str, set[str]] = {method: set() for method in methods}
+    for row in read_csv_table(path, ("method", "metric", "mean", "std")):
+        method, metric = row["method"], row["metric"]
+        if metric not in wanted:
+            continue
+        at = f"{path}: {method} {metric}"
+        if metric in seen.setdefault(method, set()):
+            raise ValueError(f"{at}: given twice")
+        seen[method].add(metric)
+        mean, std = (_cell(row[key], f"{at} {key}", method == "network")
+                     for key in ("mean", "std"))
+        if mean is not None and std is not None:
+            summary.setdefault(method, {})[metric] = (mean, std)
+    for method, metrics in seen.items():
+        missing = [metric for metric in wanted if metric not in metrics]
+        if missing:
+            raise ValueError(f"{path}: no {method} row for {missing[0]} (cut short, or not "
+                             "written by `sq-mitsuba eval`?)")
+    return {"folder": folder, "split": info["split"], "info": info, "summary": summary,
+            "label": label or folder.parent.name or folder.name}
 
 
-def _paper_rows(path: Path | None) -> tuple[list[dict], list[dict]]:
-    if path is None or not path.is_file():
-        return [], []
-    data = tomllib.loads(path.read_text(encoding="utf-8"))
-    tables = []
+def _cell(text: str, where: str, required: bool) -> float | None:
+    """A summary number: finite, or None for NaN where the row may lack it."""
+    if not required and text.strip().lower() in ("nan", ""):
+        return None
+    return finite_number(text, where)
+
+
+def _pair(value: Any, where: str) -> tuple[float, float]:
+    """A paper entry's ``[mean, std]``: two finite numbers, std >= 0."""
+    if not isinstance(value, list) or len(value) != 2:
+        raise ValueError(f"{where}: expected [mean, std], got {value!r}")
+    mean, std = (finite_number(v, where) for v in value)
+    if std < 0:
+        raise ValueError(f"{where}: std {std:g} is negative")
+    return mean, std
+
+
+def read_paper_tables(path: str | Path) -> tuple[list[dict], list[dict]]:
+    """The rows of Tables 1 and 2 of a paper-tables TOML (see ``eval/paper_tables.toml``),
+    strictly: only the tables ``table1`` and ``table2`` (and a ``source`` note), at least one
+    row, every row a ``label``, ``val`` and ``test`` with ``[mean, std]`` of each metric, and
+    Table 2's rows their number of ``primitives``.
+
+    Raises:
+        ValueError: ``paper tables <path>: ...`` (missing, not TOML, or a bad entry, named).
+    """
+    path = Path(path)
+    try:
+        data = read_mapping(path)
+    except ConfigError as error:
+        raise ValueError(f"paper tables {error}") from None
+    where = f"paper tables {path}"
+    unknown = sorted(set(data) - {"source", "table1", "table2"})
+    if unknown:
+        raise ValueError(f"{where}: unknown key {unknown[0]!r} (expected table1, table2 and "
+                         "source: is it the paper's tables?)")
+    tables: list[list[dict]] = []
     for table in ("table1", "table2"):
+        entries = data.get(table, {})
+        if not isinstance(entries, dict):
+            raise ValueError(f"{where}: {table} must be a table of rows")
         rows = []
-        for entry in data.get(table, {}).values():
-            rows.append({"label": f"paper {entry['label']}",
-                         "val": {k: tuple(v) for k, v in entry["val"].items()},
-                         "test": {k: tuple(v) for k, v in entry["test"].items()}})
+        for key, entry in entries.items():
+            at = f"{where}: {table}.{key}"
+            keys = {"label", "val", "test"} | ({"primitives"} if table == "table2" else set())
+            if not isinstance(entry, dict) or set(entry) != keys:
+                got = sorted(entry) if isinstance(entry, dict) else type(entry).__name__
+                raise ValueError(f"{at}: expected the keys {sorted(keys)}, got {got}")
+            if not isinstance(entry["label"], str) or not entry["label"].strip():
+                raise ValueError(f"{at}.label: expected a name, got {entry['label']!r}")
+            row: dict[str, Any] = {"label": f"paper {entry['label']}", "M": None}
+            if table == "table2":
+                m = entry["primitives"]
+                if isinstance(m, bool) or not isinstance(m, int) or m < 1:
+                    raise ValueError(f"{at}.primitives: expected a positive integer, got {m!r}")
+                row["M"] = m
+            for split in ("val", "test"):
+                metrics = entry[split]
+                names = {paper_key for _, paper_key, _, _ in COLUMNS}
+                if not isinstance(metrics, dict) or set(metrics) != names:
+                    got = sorted(metrics) if isinstance(metrics, dict) else metrics
+                    raise ValueError(f"{at}.{split}: expected the metrics {sorted(names)}, "
+                                     f"got {got}")
+                row[split] = {k: _pair(v, f"{at}.{split}.{k}") for k, v in metrics.items()}
+            rows.append(row)
         tables.append(rows)
+    if not tables[0] and not tables[1]:
+        raise ValueError(f"{where}: no rows in table1 or table2 (is it the paper's tables?)")
     return tables[0], tables[1]
 
 
@@ -72,16 +170,20 @@ def _our_rows(folders: list[dict[str, Any]]) -> list[dict]:
             label = folder["label"] if method == "network" else f"{folder['label']} ({method})"
             row = rows.setdefault((label, method), {"label": label, "val": {}, "test": {},
                                                     "M": folder["info"].get("num_primitives")})
-            split = folder["split"] if folder["split"] in ("val", "test") else "val"
+            split = folder["split"]
+            if metrics and any(key in row[split] for _, key, _, _ in COLUMNS):
+                raise ValueError(f"{folder['folder']}: a second {split} evaluation of the run "
+                                 f"{folder['label']!r} (give each run's val and test once)")
             for metric, paper_key, _, _ in COLUMNS:
                 if metric in metrics:
                     row[split][paper_key] = metrics[metric]
     return list(rows.values())
 
 
-def _table(rows: list[dict]) -> tuple[list[str], list[list[str]]]:
-    header = ["run"] + [f"{split} {title}" for split in ("val", "test")
-                        for _, _, title, _ in COLUMNS]
+def _table(rows: list[dict], with_m: bool) -> tuple[list[str], list[list[str]]]:
+    """Header and cells of a table of ``rows``; ``with_m``: a column of each run's M."""
+    header = ["run", *(["M"] if with_m else [])] + [
+        f"{split} {title}" for split in ("val", "test") for _, _, title, _ in COLUMNS]
     best: dict[tuple[str, str], float] = {}
     for split in ("val", "test"):
         for _, key, _, lower in COLUMNS:
@@ -90,7 +192,7 @@ def _table(rows: list[dict]) -> tuple[list[str], list[list[str]]]:
                 best[(split, key)] = min(values) if lower else max(values)
     body = []
     for row in rows:
-        cells = [row["label"]]
+        cells = [row["label"], *([str(row["M"])] if with_m else [])]
         for split in ("val", "test"):
             for _, key, _, _ in COLUMNS:
                 if key not in row[split]:
@@ -104,35 +206,46 @@ def _table(rows: list[dict]) -> tuple[list[str], list[list[str]]]:
 
 
 def write_report(folders: list[str | Path], out_dir: str | Path,
-                 paper_tables: str | Path | None = PAPER_TABLES) -> Path:
+                 paper_tables: str | Path | None = None) -> Path:
     """Write ``report.md`` and ``report.csv`` collating evaluation ``folders`` (each one
-    split of one run) with the paper's Tables 1 and 2; returns the Markdown path."""
+    split of one run) with the paper's Tables 1 and 2; returns the Markdown path.
+
+    Every input is read strictly (:func:`read_eval_folder`, :func:`read_paper_tables`) and
+    ``out_dir`` checked before anything is written. ``paper_tables`` None: the tables of a
+    source checkout (``eval/paper_tables.toml``), or none, with a note, where it is absent.
+    Table 2 (number of primitives) shows each run's M.
+    """
     if not folders:
         raise ValueError("folders: give at least one evaluation folder")
     evaluations = [read_eval_folder(f) for f in folders]
     ours = _our_rows(evaluations)
-    table1, table2 = _paper_rows(Path(paper_tables) if paper_tables else None)
-    out_dir = Path(out_dir)
+    if paper_tables is None:
+        table1, table2 = read_paper_tables(PAPER_TABLES) if PAPER_TABLES.is_file() else ([], [])
+    else:
+        table1, table2 = read_paper_tables(paper_tables)
+    out_dir = check_output_folder(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     lines = ["# Results in the layout of the paper's tables", ""]
     csv_rows: list[list[str]] = []
-    sections = [("Table 1: loss configurations", ours + table1),
-                ("Table 2: number of primitives M (configuration (a))",
-                 [r for r in ours if r.get("M")] + table2)]
-    for title, rows in sections:
-        header, body = _table(rows)
+    sections = [("Table 1: loss configurations", ours + table1, False),
+                ("Table 2: number of primitives M (configuration (a))", ours + table2, True)]
+    for title, rows, with_m in sections:
+        header, body = _table(rows, with_m)
         lines += [f"## {title}", "", "| " + " | ".join(header) + " |",
                   "|" + "---|" * len(header)]
         lines += ["| " + " | ".join(cells) + " |" for cells in body]
         lines.append("")
-        csv_rows += [[title, *[c.replace("**", "") for c in cells]] for cells in body]
-    if not table1:
+        for row, cells in zip(rows, body, strict=True):
+            plain = [c.replace("**", "") for c in cells]
+            m = "" if row["M"] is None else str(row["M"])
+            csv_rows.append([title, plain[0], m, *plain[2 if with_m else 1:]])
+    if not table1 and not table2:
         lines += ["The paper's numbers were not found (eval/paper_tables.toml is part of a "
-                  "source checkout).", ""]
+                  "source checkout; --paper names another copy).", ""]
     lines += [NOT_COMPARABLE, ""]
     markdown = out_dir / "report.md"
     atomic_write_text(markdown, "\n".join(lines))
-    header = ["table", *_table(ours or table1)[0]]
+    header = ["table", *_table([], True)[0]]
     text = ",".join(header) + "\n" + "".join(
         ",".join(f'"{c}"' for c in row) + "\n" for row in csv_rows)
     atomic_write_text(out_dir / "report.csv", text)

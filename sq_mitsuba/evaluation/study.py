@@ -37,7 +37,6 @@ its ``eclipse`` column says so.
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 import math
 import shutil
@@ -58,6 +57,7 @@ from sq_mitsuba.evaluation.evaluate import (
     markdown_table,
     summarise,
 )
+from sq_mitsuba.inputs import finite_number, read_csv_table
 from sq_mitsuba.io import atomic_write_json, atomic_write_text
 
 #: Background names: the Earth out of view, in view, and eclipse frames.
@@ -189,7 +189,7 @@ def write_group_tables(table: Sequence[dict[str, Any]], out_dir: Path, stem: str
 
 
 def _choose_models(models_dir: Path, options: StudyOptions) -> list[str]:
-    from sq_mitsuba.data.spe3r.layout import DatasetError, read_splits
+    from sq_mitsuba.data.spe3r.layout import DatasetError, load_model, read_splits
     from sq_mitsuba.data.spe3r.writer import find_models
     from sq_mitsuba.evaluation.evaluate import evenly
 
@@ -202,7 +202,10 @@ def _choose_models(models_dir: Path, options: StudyOptions) -> list[str]:
         names = [n for n in names if splits.get(n) == options.split]
     if not names:
         raise DatasetError(f"{models_dir}: no {options.split!r} models in splits.csv")
-    return [names[k] for k in evenly(len(names), options.max_models)]
+    chosen = [names[k] for k in evenly(len(names), options.max_models)]
+    for name in chosen:  # read in the library, before any work: a bad mesh is named there
+        load_model(models_dir / name)
+    return chosen
 
 
 def _stage_models(models_dir: Path, names: Sequence[str], stage: Path) -> None:
@@ -214,7 +217,11 @@ def _stage_models(models_dir: Path, names: Sequence[str], stage: Path) -> None:
     stage.mkdir(parents=True, exist_ok=True)
     for name in names:
         shutil.copytree(models_dir / name / MODELS, stage / name / MODELS, dirs_exist_ok=True)
-        model_symmetries(stage / name)
+        try:
+            model_symmetries(stage / name)
+        except (OSError, ValueError) as error:  # the copy is the library's file: name that
+            raise ValueError(str(error).replace(str(stage / name), str(models_dir / name))) \
+                from None
     atomic_write_text(stage / "splits.csv", "".join(f"{name},test\n" for name in names))
 
 
@@ -314,21 +321,11 @@ def _eclipse_at_mean_phase(rows: list[dict[str, Any]]) -> None:
 
 def read_per_image(path: Path) -> list[dict[str, Any]]:
     """Rows of an evaluation's ``per_image.csv``; a one-line error naming the file when it is
-    missing, malformed or has no lighting record."""
+    missing, empty, cut short or has no lighting record (:func:`sq_mitsuba.inputs.
+    read_csv_table`)."""
     from sq_mitsuba.evaluation.evaluate import LIGHTING
 
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: missing (not an evaluation folder?)")
-    with open(path, newline="", encoding="utf-8") as handle:
-        reader = csv.DictReader(handle)
-        missing = [c for c in ("model", "method", *METRICS, *LIGHTING)
-                   if c not in (reader.fieldnames or [])]
-        if missing:
-            raise ValueError(f"{path}: no column {missing[0]!r} (written by another version?)")
-        rows = list(reader)
-    if not rows:
-        raise ValueError(f"{path}: no rows")
-    return rows
+    return read_csv_table(path, ("model", "method", *METRICS, *LIGHTING))
 
 
 def lighting_breakdown(eval_dir: str | Path, out_dir: str | Path | None = None,
@@ -356,7 +353,8 @@ def lighting_breakdown(eval_dir: str | Path, out_dir: str | Path | None = None,
     for row in raw:
         if row in unlit:
             continue
-        phase = float(row["phase_angle_deg"])
+        phase = finite_number(row["phase_angle_deg"], f"{source}: phase_angle_deg of "
+                              f"{row['model']} image {row.get('index', '?')}")
         if _flag(row["eclipse"]):
             background = "eclipse"
         else:

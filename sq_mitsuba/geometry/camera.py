@@ -20,6 +20,7 @@ import torch
 from torch import Tensor
 
 from sq_mitsuba.checks import check_tensor
+from sq_mitsuba.inputs import check_camera_intrinsics
 from sq_mitsuba.io import read_json
 
 # SPEED camera (Sharma et al.): focal length 17.6 mm, pixel pitch 5.86 um, 1920 x 1200 px.
@@ -73,10 +74,14 @@ class Camera:
         return cls(focal, focal, width / 2, height / 2, width, height)
 
     @classmethod
-    def from_speed_dict(cls, data: dict[str, Any]) -> Camera:
+    def from_speed_dict(cls, data: dict[str, Any], where: str = "camera") -> Camera:
         """From a SPEED-style camera dictionary: ``Nu``, ``Nv`` and ``cameraMatrix`` (pixels),
         or, without a matrix, ``fx``, ``fy`` in metres with the pixel pitch ``ppx``, ``ppy``
-        and principal point ``ccx``, ``ccy``."""
+        and principal point ``ccx``, ``ccy``.
+
+        The description must be consistent (:func:`sq_mitsuba.inputs.check_camera_intrinsics`:
+        images of at least 8 x 8 px, a matrix that fits ``Nu`` x ``Nv``); ``where`` (the file)
+        starts the one-line ``ValueError`` otherwise."""
         try:
             width, height = int(data["Nu"]), int(data["Nv"])
             if "cameraMatrix" in data:
@@ -88,9 +93,12 @@ class Camera:
                 fy = float(data["fy"]) / float(data["ppy"])
                 cx = float(data.get("ccx", width / 2))
                 cy = float(data.get("ccy", height / 2))
-        except (KeyError, TypeError, IndexError) as error:
-            raise ValueError(f"camera: not a SPEED-style camera description ({error!r})") from None
-        return cls(fx, fy, cx, cy, width, height)
+        except (KeyError, TypeError, IndexError, ValueError) as error:
+            raise ValueError(f"{where}: not a SPEED-style camera description ({error!r})") \
+                from None
+        camera = cls(fx, fy, cx, cy, width, height)
+        check_camera_intrinsics(width, height, camera.fx, camera.fy, cx, cy, where)
+        return camera
 
     @classmethod
     def load(cls, path: str | Path) -> Camera:
@@ -99,7 +107,7 @@ class Camera:
         data = read_json(path)
         if not isinstance(data, dict):
             raise ValueError(f"camera: {path} must hold a JSON object")
-        return cls.from_speed_dict(data)
+        return cls.from_speed_dict(data, str(path))
 
     def to_speed_dict(self) -> dict[str, Any]:
         """SPEED-style dictionary: ``cameraMatrix`` in pixels; focal lengths in metres with the

@@ -33,6 +33,7 @@ from torch import Tensor
 
 from sq_mitsuba.config import ConfigError, from_dict, to_dict
 from sq_mitsuba.geometry.camera import Camera
+from sq_mitsuba.inputs import check_finite_tensors, load_torch_file
 from sq_mitsuba.io import atomic_path
 from sq_mitsuba.learning.inference import Predictor
 from sq_mitsuba.learning.network import NetworkConfig, SuperquadricNet, upgrade_state_dict
@@ -56,7 +57,6 @@ SHIPPED_MODEL = Path(__file__).resolve().parent / "weights" / "model.pt"
 _REQUIRED = ("config", "model", "camera")
 # Exact types: numpy scalars subclass float but weights_only loading refuses them.
 _SCALARS = (str, int, float, bool, type(None))
-_MAX_REASON = 160
 
 
 def _check_loadable(value: Any, where: str) -> None:
@@ -148,28 +148,16 @@ def write_checkpoint(path: str | os.PathLike[str], payload: dict[str, Any]) -> P
     return path
 
 
-def _reason(error: BaseException) -> str:
-    lines = str(error).strip().splitlines()
-    text = f"{type(error).__name__}: {lines[0]}" if lines else type(error).__name__
-    return text if len(text) <= _MAX_REASON else text[: _MAX_REASON - 3] + "..."
-
-
 def read_checkpoint(path: str | os.PathLike[str]) -> dict[str, Any]:
     """Load a checkpoint written by :func:`write_checkpoint` (``weights_only=True``, on CPU).
 
     Raises:
         FileNotFoundError: ``checkpoint: no such file <path>``.
-        ValueError: ``<path>: ...`` for a corrupt file, another format or a newer version.
+        ValueError: ``<path>: ...`` for a corrupt, random or hostile file, another format or a
+            newer version, or weights holding NaN or infinities (a run that diverged).
     """
     path = Path(path)
-    if not path.exists():
-        raise FileNotFoundError(f"checkpoint: no such file {path}")
-    if not path.is_file():
-        raise ValueError(f"{path}: is not a file")
-    try:
-        payload = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as error:  # torch raises many types for damaged files; report one line
-        raise ValueError(f"{path}: not a readable checkpoint ({_reason(error)})") from None
+    payload = load_torch_file(path, "checkpoint")
     if not isinstance(payload, dict) or payload.get("format") != FORMAT:
         found = payload.get("format") if isinstance(payload, dict) else type(payload).__name__
         raise ValueError(f"{path}: not an sq_mitsuba checkpoint (format {found!r}, "
@@ -181,6 +169,8 @@ def read_checkpoint(path: str | os.PathLike[str]) -> dict[str, Any]:
     missing = [key for key in _REQUIRED if key not in payload]
     if missing:
         raise ValueError(f"{path}: checkpoint lacks {', '.join(map(repr, missing))}")
+    if isinstance(payload["model"], Mapping):
+        check_finite_tensors(payload["model"], str(path))
     return payload
 
 
@@ -272,4 +262,5 @@ def checkpoint_baseline(payload: Mapping[str, Any],
         if not isinstance(value, Tensor) or tuple(value.shape) != shape:
             raise ValueError(f"{where}: baseline {key}: expected a tensor of shape {shape}")
         values.append(value.double())
+    check_finite_tensors({f"baseline.{key}": value for key, value in entry.items()}, where)
     return values[0], values[1], values[2]

@@ -20,9 +20,9 @@ import os
 from collections.abc import Callable, Mapping
 from pathlib import Path
 
-import torch
 from torch import Tensor, nn
 
+from sq_mitsuba.inputs import load_torch_file
 from sq_mitsuba.learning.encoder import STAGES, ConvBNAct, EfficientNet
 
 __all__ = [
@@ -189,13 +189,12 @@ def load_imagenet_weights(model: EfficientNet, path: str | os.PathLike[str]) -> 
 
     Raises:
         FileNotFoundError: ``path`` does not exist.
-        ValueError: unrecognised naming, unknown or missing keys, or a shape mismatch (naming
-            the key).
+        ValueError: a file that is no torch file of tensors (random, damaged or hostile),
+            unrecognised naming, unknown or missing keys, or a shape mismatch (naming the key).
     """
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"ImageNet weights: no such file {path}")
-    state = torch.load(path, map_location="cpu", weights_only=True)
+    # The one safe reader of torch files: a random or hostile file is one line naming it.
+    state = load_torch_file(path, "ImageNet weights")
     if not isinstance(state, Mapping) or not all(isinstance(v, Tensor) for v in state.values()):
         raise ValueError(f"{path}: expected a state dict of tensors, got {type(state).__name__}")
     naming = next((name for name, (probe, _) in _NAMINGS.items() if probe in state), None)

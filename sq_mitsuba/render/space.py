@@ -122,13 +122,19 @@ def auto_exposure(radiance: np.ndarray, inside: np.ndarray, fixed: float,
 
 
 def mask_samples(spp_at_256: int, camera: Camera) -> int:
-    """Mask samples per pixel: ``spp_at_256`` at 256 px, more for smaller images.
+    """Mask samples per pixel: ``spp_at_256`` at 256 px, more for smaller images, rounded up
+    to a square.
 
     A pixel of a smaller image covers more of the target's outline, so it gets proportionally
-    more samples; the boundary noise per unit of image size then stays the same.
+    more samples; the boundary noise per unit of image size then stays the same. The stratified
+    sampler draws a square number of samples (a k x k grid) and warns when asked for another
+    count, then takes the next square anyway: asking for that square renders the same images
+    without the warning.
     """
     scale = (256.0 / min(camera.width, camera.height)) ** 2
-    return max(spp_at_256, math.ceil(spp_at_256 * scale))
+    wanted = max(spp_at_256, math.ceil(spp_at_256 * scale))
+    side = math.isqrt(wanted)
+    return (side + (side * side < wanted)) ** 2
 
 
 def load_materials(path: str | Path | None = None) -> dict[str, dict[str, Any]]:

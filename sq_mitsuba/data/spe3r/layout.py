@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 from PIL import Image
 
+from sq_mitsuba.inputs import open_image
 from sq_mitsuba.io import atomic_path, atomic_write_text, read_json
 
 IMAGES, MASKS, MODELS, PROGRESS = "images", "masks", "models", ".progress"
@@ -160,19 +161,13 @@ def load_model(model_dir: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | No
 def read_image(path: Path, verify: bool = False) -> Image.Image:
     """The image at ``path`` decoded completely (a truncated file is an error, not a grey
     tail); ``verify`` also checks every chunk's checksum (PNG). One-line DatasetError naming
-    the file otherwise."""
+    the file otherwise (read by :func:`sq_mitsuba.inputs.open_image`, as every image is)."""
     try:
-        if verify:
-            with Image.open(path) as image:
-                image.verify()
-        with Image.open(path) as image:
-            image.load()
-            return image.copy()
+        return open_image(path, "", verify=verify)
     except FileNotFoundError:
         raise DatasetError(f"{path}: missing") from None
-    except (OSError, ValueError, SyntaxError, EOFError) as error:
-        # PIL reports corrupt data as OSError, SyntaxError (bad chunk), EOFError or ValueError.
-        raise DatasetError(f"{path}: cannot read image ({error})") from None
+    except ValueError as error:
+        raise DatasetError(str(error)) from None
 
 
 def read_gray(path: Path) -> np.ndarray:

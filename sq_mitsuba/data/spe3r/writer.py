@@ -416,7 +416,11 @@ def render_model(models_dir: Path, out_dir: Path, model: str, camera: Camera,
     indices = range(count) if indices is None else indices
     model_out = out_dir / model
     _clear_failure(out_dir, model, options.shard)
-    assembled = _assembled(model_out)
+    try:
+        assembled = _assembled(model_out)
+    except DatasetError as error:  # damaged after the fact: the images can be rendered again
+        raise DatasetError(f"{error}; delete {model_out} and run again to render the model "
+                           "anew (the same settings give the same images)") from None
     if len(assembled) > count:
         raise DatasetError(f"{model_out / 'labels.json'}: {len(assembled)} labels, more than "
                            f"images_per_model {count}")

@@ -1,0 +1,259 @@
+"""Input files checked one way for every command: images, torch files, cameras, tables.
+
+Each reader here is the one path its kind of file takes, whichever command reads it, and each
+failure is one line that names the file (and where in it): a ``FileNotFoundError`` for a
+missing file, a ``ValueError`` otherwise, raised before any work that depends on the file.
+
+- **Images** (:func:`open_image`): decoded completely (a truncated file is an error, not a
+  grey tail), at least :data:`MIN_IMAGE_SIDE` pixels on each side (the smallest resolution a
+  dataset renders at, and the smallest a silhouette can be fitted at) and at most
+  :data:`MAX_IMAGE_PIXELS` pixels; PIL's decompression-bomb warning, which that bound
+  replaces, is not printed.
+- **Torch files** (:func:`load_torch_file`): read with ``weights_only=True`` on the CPU, so a
+  file cannot run code; a random, damaged or hostile file is one line saying so, without
+  torch's advice to load it unsafely, and torch's warnings about the pickle are not printed.
+  :func:`check_finite_tensors` refuses weights holding NaN or infinities (a diverged run).
+- **Cameras** (:func:`check_camera_intrinsics`): a camera description (SPEED's
+  ``camera.json``: ``Nu``, ``Nv``, ``cameraMatrix``) must describe images of at least
+  :data:`MIN_IMAGE_SIDE` pixels, and its matrix must fit them: the principal point within a
+  quarter of the image size of its centre, and a field of view under
+  :data:`MAX_FIELD_OF_VIEW_DEG` across either axis. A matrix written for another image size
+  fails one of these, instead of giving poses that are silently wrong.
+- **Tables** (:func:`read_csv_table`, :func:`finite_number`): CSV files with the columns a
+  reader needs, every row complete (a truncated file is an error), numbers finite.
+
+This module imports nothing of the project; torch, PIL and numpy are imported when used.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+import warnings
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+__all__ = [
+    "MAX_FIELD_OF_VIEW_DEG",
+    "MAX_IMAGE_PIXELS",
+    "MIN_IMAGE_SIDE",
+    "check_camera_intrinsics",
+    "check_finite_tensors",
+    "check_image_size",
+    "finite_number",
+    "load_torch_file",
+    "open_image",
+    "read_csv_table",
+]
+
+MIN_IMAGE_SIDE = 8
+"""Smallest width and height of an image, and of the images a camera describes (pixels)."""
+MAX_IMAGE_PIXELS = 2**27
+"""Largest image, in pixels (134 megapixels, e.g. 11,585 x 11,585; PIL warns from 89)."""
+MAX_FIELD_OF_VIEW_DEG = 160.0
+"""Widest field of view a camera description may give across either image axis (degrees)."""
+_MAX_REASON = 160
+
+
+def _label(what: str, path: Path) -> str:
+    return f"{what} {path}" if what else str(path)
+
+
+def _one_line(error: BaseException) -> str:
+    text = " ".join(str(error).split()) or type(error).__name__
+    return text if len(text) <= _MAX_REASON else text[: _MAX_REASON - 3] + "..."
+
+
+# ----------------------------------------------------------------------------- images
+
+
+def check_image_size(width: int, height: int, where: str) -> None:
+    """Refuse a ``width`` x ``height`` image outside [:data:`MIN_IMAGE_SIDE`, ...] per side or
+    above :data:`MAX_IMAGE_PIXELS` pixels; ``where`` starts the message."""
+    if width < MIN_IMAGE_SIDE or height < MIN_IMAGE_SIDE:
+        raise ValueError(f"{where}: {width} x {height} px is below the smallest image size, "
+                         f"{MIN_IMAGE_SIDE} x {MIN_IMAGE_SIDE} px")
+    if width * height > MAX_IMAGE_PIXELS:
+        raise ValueError(f"{where}: {width} x {height} px is above the largest image size, "
+                         f"{MAX_IMAGE_PIXELS:,} pixels")
+
+
+def open_image(path: str | os.PathLike[str], what: str = "image", verify: bool = False) -> Any:
+    """The image at ``path`` as a PIL image, decoded completely and of a size within bounds.
+
+    Args:
+        path: the file.
+        what: the word that names it in messages (``"image"``, ``"mask"``; ``""``: the path
+            alone).
+        verify: also check every chunk's checksum (PNG) first.
+
+    Raises:
+        FileNotFoundError: ``<what> <path>: no such file``.
+        ValueError: ``<what> <path>: ...``: not an image, corrupt or truncated, or of a size
+            :func:`check_image_size` refuses.
+    """
+    from PIL import Image, UnidentifiedImageError
+
+    path = Path(path)
+    where = _label(what, path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{where}: no such file")
+    try:
+        with warnings.catch_warnings():
+            # The size bound below replaces PIL's warning (it would print for large images).
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            if verify:
+                with Image.open(path) as image:
+                    image.verify()
+            with Image.open(path) as image:
+                check_image_size(image.width, image.height, where)
+                image.load()
+                return image.copy()
+    except UnidentifiedImageError:
+        raise ValueError(f"{where}: not an image (no format PIL reads)") from None
+    except Image.DecompressionBombError as error:
+        raise ValueError(f"{where}: above the largest image size, {MAX_IMAGE_PIXELS:,} pixels "
+                         f"({_one_line(error)})") from None
+    except (OSError, SyntaxError, EOFError) as error:
+        # PIL reports damaged data as OSError ("image file is truncated"), SyntaxError (bad
+        # chunk headers) or EOFError.
+        raise ValueError(f"{where}: cannot read image (corrupt or truncated: "
+                         f"{_one_line(error)})") from None
+
+
+# ----------------------------------------------------------------------------- torch files
+
+
+def _torch_reason(error: BaseException) -> str:
+    """The cause of a failed ``torch.load``, without torch's advice to load unsafely."""
+    lines = [line.strip() for line in str(error).splitlines() if line.strip()]
+    if lines and lines[0].startswith("Weights only load failed"):
+        boilerplate = ("Weights only load failed", "Please file an issue",
+                       "Check the documentation")
+        detail = [line.removeprefix("WeightsUnpickler error:").strip() for line in lines[1:]
+                  if not line.startswith(boilerplate)]
+        detail = [line for line in detail if line and "weights_only" not in line]
+        cause = detail[0] if detail else "an object other than tensors and plain values"
+        return (f"refused by the safe loader, which reads tensors and plain values only: "
+                f"{_one_line(cause)}")
+    text = f"{type(error).__name__}: {lines[0]}" if lines else type(error).__name__
+    return _one_line(text) if "weights_only" not in text else type(error).__name__
+
+
+def load_torch_file(path: str | os.PathLike[str], what: str) -> Any:
+    """``torch.load(path, map_location="cpu", weights_only=True)`` with one-line errors.
+
+    Args:
+        what: what the file should be (``"checkpoint"``, ``"ImageNet weights"``), for messages.
+
+    Raises:
+        FileNotFoundError: ``<what>: no such file <path>``.
+        ValueError: ``<path>: not a readable <what> (<cause>)``: a folder, an empty, random,
+            damaged or hostile file (one that would run code when unpickled).
+    """
+    import torch
+
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{what}: no such file {path}")
+    if not path.is_file():
+        raise ValueError(f"{path}: is not a file (expected {what})")
+    try:
+        with warnings.catch_warnings():
+            # torch warns about pickle protocols of raw pickles before refusing them.
+            warnings.simplefilter("ignore")
+            return torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as error:  # torch raises many types for damaged files; report one line
+        raise ValueError(f"{path}: not a readable {what} ({_torch_reason(error)})") from None
+
+
+def check_finite_tensors(tensors: Mapping[str, Any], where: str) -> None:
+    """Refuse floating-point tensors of ``tensors`` holding NaN or infinities (weights of a run
+    that diverged); ``where`` (the file) starts the one-line message, which names the first
+    such tensor."""
+    import torch
+
+    bad = [key for key, value in tensors.items()
+           if isinstance(value, torch.Tensor) and value.is_floating_point()
+           and not bool(torch.isfinite(value).all())]
+    if bad:
+        raise ValueError(f"{where}: {len(bad)} weight tensor(s) hold NaN or infinite values "
+                         f"(first: {bad[0]}); the training that wrote it diverged, so use an "
+                         "earlier checkpoint")
+
+
+# ----------------------------------------------------------------------------- cameras
+
+
+def check_camera_intrinsics(width: int, height: int, fx: float, fy: float, cx: float,
+                            cy: float, where: str) -> None:
+    """Refuse a camera description whose matrix does not fit its image size (see the module
+    docstring); ``where`` (the file) starts the one-line message."""
+    if width < MIN_IMAGE_SIDE or height < MIN_IMAGE_SIDE:
+        raise ValueError(f"{where}: Nu x Nv = {width} x {height} px is below the smallest "
+                         f"image size, {MIN_IMAGE_SIDE} x {MIN_IMAGE_SIDE} px")
+    if abs(cx - width / 2) >= width / 4 or abs(cy - height / 2) >= height / 4:
+        raise ValueError(f"{where}: the principal point ({cx:g}, {cy:g}) of cameraMatrix is "
+                         f"far from the centre ({width / 2:g}, {height / 2:g}) of the Nu x Nv "
+                         f"= {width} x {height} px image (a matrix for another image size?)")
+    for axis, size, focal, centre in (("x", width, fx, cx), ("y", height, fy, cy)):
+        fov = math.degrees(math.atan(centre / focal) + math.atan((size - centre) / focal))
+        if fov >= MAX_FIELD_OF_VIEW_DEG:
+            raise ValueError(f"{where}: cameraMatrix gives a {fov:.1f} deg field of view "
+                             f"across {axis} over the Nu x Nv = {width} x {height} px image, "
+                             f"more than the {MAX_FIELD_OF_VIEW_DEG:g} deg a camera may have "
+                             "(a matrix for another image size?)")
+
+
+# ----------------------------------------------------------------------------- tables
+
+
+def finite_number(value: Any, where: str) -> float:
+    """``value`` as a finite float; ``where`` starts the one-line message otherwise."""
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{where}: expected a number, got {value!r}") from None
+    if isinstance(value, bool) or not math.isfinite(number):
+        raise ValueError(f"{where}: expected a finite number, got {value!r}")
+    return number
+
+
+def read_csv_table(path: str | os.PathLike[str], columns: Sequence[str]) -> list[dict[str, str]]:
+    """The rows of a CSV file with a header row that holds ``columns``: at least one row, every
+    row with a value in every header column (a file cut short ends in a short row).
+
+    Raises:
+        FileNotFoundError: ``<path>: missing``.
+        ValueError: ``<path>: ...``: empty, no header, a missing column, no rows, or a short
+            or overlong row (naming its line).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: missing")
+    try:
+        with open(path, newline="", encoding="utf-8") as handle:
+            reader = csv.DictReader(handle)
+            header = reader.fieldnames
+            if not header:
+                raise ValueError(f"{path}: empty (no header row)")
+            missing = [c for c in columns if c not in header]
+            if missing:
+                raise ValueError(f"{path}: no column {missing[0]!r} (header: "
+                                 f"{', '.join(header)})")
+            rows = []
+            for row in reader:
+                if None in row or any(row[c] is None for c in header):
+                    count = sum(1 for c in header if row[c] is not None) + len(row.get(None, []))
+                    raise ValueError(f"{path}: line {reader.line_num} has {count} values for "
+                                     f"{len(header)} columns (cut short?)")
+                rows.append(row)
+    except UnicodeDecodeError as error:
+        raise ValueError(f"{path}: not UTF-8 text (byte {error.start})") from None
+    except csv.Error as error:
+        raise ValueError(f"{path}: malformed CSV ({_one_line(error)})") from None
+    if not rows:
+        raise ValueError(f"{path}: no rows below the header")
+    return rows
