@@ -10,7 +10,7 @@ TORCH  := torch==2.13.0
 # Dr.Jit's LLVM backend aborts on libLLVM 15; any libLLVM >= 17 works.
 LLVM_GLOB := /usr/lib/*/libLLVM.so.1[7-9]* /usr/lib/*/libLLVM.so.[2-9][0-9]* /usr/lib/*/libLLVM-1[7-9]*.so* /usr/lib/*/libLLVM-[2-9][0-9]*.so* /usr/lib/llvm-1[7-9]/lib/libLLVM*.so* /usr/lib/llvm-[2-9][0-9]/lib/libLLVM*.so*
 
-.PHONY: setup llvm test lint bench clean demo demo-train
+.PHONY: setup llvm test test-fast lint bench clean demo demo-train
 
 setup: llvm $(STAMP)
 
@@ -32,6 +32,10 @@ $(STAMP): pyproject.toml
 
 test: setup
 	$(PY) -m pytest -q
+
+# The inner loop while developing: everything but the tests marked slow (end-to-end runs).
+test-fast: setup
+	$(PY) -m pytest -q -m "not slow"
 
 lint: setup
 	$(VENV)/bin/ruff check sq_mitsuba tests

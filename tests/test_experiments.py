@@ -3,6 +3,7 @@ the tiny fixture dataset), so the commands the card gives keep working."""
 
 from __future__ import annotations
 
+import csv
 import re
 import shutil
 import subprocess
@@ -15,6 +16,7 @@ EXPERIMENTS = Path(__file__).resolve().parents[1] / "eval" / "experiments"
 
 
 def test_rotation_views_trains_and_scores_both_view_sets(train_dataset, tmp_path):
+    """The experiment is a run of the real trainer: its log holds the pose terms alone."""
     data = tmp_path / "data"
     shutil.copytree(train_dataset, data)
     command = [sys.executable, str(EXPERIMENTS / "rotation_views.py"), str(data), "--steps", "2",
@@ -26,6 +28,13 @@ def test_rotation_views_trains_and_scores_both_view_sets(train_dataset, tmp_path
                       r"held-out views ([\d.]+) deg", result.stdout)
     assert match, result.stdout
     assert all(0 <= float(value) <= 180 for value in match.groups()[1:])
+    run = data / "rotation_views_runs" / "rotation_6d_12"
+    with open(run / "log.csv", newline="") as handle:
+        rows = list(csv.DictReader(handle))
+    assert [int(r["step"]) for r in rows] == [1, 2]
+    assert {k for k, v in rows[0].items() if v} == {"step", "epoch", "lr", "loss", "rotation_6d",
+                                                    "translation", "grad_norm", "images_per_s"}
+    assert abs(float(rows[-1]["loss"]) - float(match.group(1))) < 1e-3  # printed to 3 places
     # The cache a second run reads: both splits, images with their rotations and translations.
     train, val = torch.load(data / "rotation_views.pt", weights_only=True)
     for images, rotations, translations in (train, val):

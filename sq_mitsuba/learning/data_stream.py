@@ -219,6 +219,8 @@ def open_training_data(run: TrainRun, sources: DataSources) -> TrainingData:
         if len(keep) == 0:
             raise TrainError(f"data.min_visibility: no training image has target_visibility >= "
                              f"{cfg.data.min_visibility}")
+    if cfg.data.train_images is not None:
+        keep = keep[:cfg.data.train_images]
     size = cfg.network.image_size
     camera = train_set.camera.rescaled(size, size)
     stream = TrainingStream(images, points, keep, cfg, camera,

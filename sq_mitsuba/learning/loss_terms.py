@@ -30,7 +30,6 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import Any
 
 import torch
 import torch.nn.functional as F
@@ -51,6 +50,8 @@ from sq_mitsuba.learning.losses import (
     taper_loss,
     translation_loss,
 )
+from sq_mitsuba.learning.network import NetworkOutput
+from sq_mitsuba.render.silhouette import SilhouetteRenderer
 
 __all__ = [
     "LOSS_TERMS",
@@ -143,7 +144,7 @@ class LossContext:
 
     loss: LossConfig
     reprojection: ReprojectionConfig = field(default_factory=ReprojectionConfig)
-    renderer: Any = None
+    renderer: SilhouetteRenderer | None = None
     """The reprojection term's :class:`~sq_mitsuba.render.silhouette.SilhouetteRenderer`
     (None when that term is off), reseeded by the training step."""
     generator: torch.Generator | None = None
@@ -154,7 +155,7 @@ class LossContext:
 
 
 #: A term: (network output, batch, context) -> scalar tensor.
-TermFunction = Callable[[Any, TrainingBatch, LossContext], Tensor]
+TermFunction = Callable[[NetworkOutput, TrainingBatch, LossContext], Tensor]
 
 
 @dataclass(frozen=True)
@@ -181,21 +182,21 @@ def register_term(name: str, function: TermFunction, needs: tuple[str, ...] = ()
     return LOSS_TERMS[name]
 
 
-def chamfer_term(output: Any, batch: TrainingBatch, context: LossContext) -> Tensor:
+def chamfer_term(output: NetworkOutput, batch: TrainingBatch, context: LossContext) -> Tensor:
     """:func:`~sq_mitsuba.learning.losses.chamfer_loss` of the assembly's counted surface
     samples (level ``loss.level``) against ``batch.surface_points``."""
     points, keep = counted_surface_samples(output.assembly, context.loss.level)
     return chamfer_loss(points, keep, batch.surface_points.to(points))
 
 
-def occupancy_term(output: Any, batch: TrainingBatch, context: LossContext) -> Tensor:
+def occupancy_term(output: NetworkOutput, batch: TrainingBatch, context: LossContext) -> Tensor:
     """:func:`~sq_mitsuba.learning.losses.occupancy_loss` at the batch's labelled points."""
     assembly = output.assembly
     return occupancy_loss(assembly, batch.occupancy_points.to(assembly.params),
                           batch.occupancy_labels, context.loss.sharpness)
 
 
-def overlap_term(output: Any, batch: TrainingBatch, context: LossContext) -> Tensor:
+def overlap_term(output: NetworkOutput, batch: TrainingBatch, context: LossContext) -> Tensor:
     """:func:`~sq_mitsuba.learning.losses.overlap` of the per-primitive occupancy at the
     batch's occupancy points."""
     assembly = output.assembly
@@ -203,7 +204,7 @@ def overlap_term(output: Any, batch: TrainingBatch, context: LossContext) -> Ten
     return overlap(assembly.occupancy(points, context.loss.sharpness), context.loss.beta)
 
 
-def reprojection_term(output: Any, batch: TrainingBatch, context: LossContext) -> Tensor:
+def reprojection_term(output: NetworkOutput, batch: TrainingBatch, context: LossContext) -> Tensor:
     """:func:`~sq_mitsuba.learning.losses.reprojection_loss` of the predicted assembly at the
     true pose against the masks (resized to the renderer's resolution by area averaging), on
     ``reprojection.items`` items drawn by ``context.generator``."""
@@ -223,7 +224,7 @@ def reprojection_term(output: Any, batch: TrainingBatch, context: LossContext) -
                              context.reprojection.level, items, context.generator)
 
 
-def rotation_term(output: Any, batch: TrainingBatch, context: LossContext) -> Tensor:
+def rotation_term(output: NetworkOutput, batch: TrainingBatch, context: LossContext) -> Tensor:
     """:func:`~sq_mitsuba.learning.losses.rotation_loss` (radians, symmetry-aware), batch
     mean."""
     rotation = output.rotation
@@ -231,20 +232,20 @@ def rotation_term(output: Any, batch: TrainingBatch, context: LossContext) -> Te
                          batch.symmetries.to(rotation)).mean()
 
 
-def rotation_6d_term(output: Any, batch: TrainingBatch, context: LossContext) -> Tensor:
+def rotation_6d_term(output: NetworkOutput, batch: TrainingBatch, context: LossContext) -> Tensor:
     """:func:`~sq_mitsuba.learning.losses.rotation_6d_loss` of ``output.rotation_6d``
     (symmetry-aware), batch mean."""
     raw = output.rotation_6d
     return rotation_6d_loss(raw, batch.rotation.to(raw), batch.symmetries.to(raw)).mean()
 
 
-def translation_term(output: Any, batch: TrainingBatch, context: LossContext) -> Tensor:
+def translation_term(output: NetworkOutput, batch: TrainingBatch, context: LossContext) -> Tensor:
     """:func:`~sq_mitsuba.learning.losses.translation_loss` (relative error), batch mean."""
     translation = output.translation
     return translation_loss(translation, batch.translation.to(translation)).mean()
 
 
-def taper_term(output: Any, batch: TrainingBatch, context: LossContext) -> Tensor:
+def taper_term(output: NetworkOutput, batch: TrainingBatch, context: LossContext) -> Tensor:
     """:func:`~sq_mitsuba.learning.losses.taper_loss` of the assembly."""
     return taper_loss(output.assembly)
 
@@ -292,7 +293,7 @@ def enabled_terms(config: LossConfig | Mapping[str, float]) -> tuple[str, ...]:
     return tuple(name for name in LOSS_TERMS if weights.get(name, 0.0) != 0)
 
 
-def check_terms(config: LossConfig, output: Any) -> None:
+def check_terms(config: LossConfig, output: NetworkOutput) -> None:
     """Refuse (one line) a config whose weighted terms need an output field that ``output``
     (a network output) lacks or leaves None, or that weighs nothing."""
     names = enabled_terms(config)
@@ -305,7 +306,7 @@ def check_terms(config: LossConfig, output: Any) -> None:
                                     f"'{needed}', which this network does not produce")
 
 
-def compute_terms(output: Any, batch: TrainingBatch, context: LossContext,
+def compute_terms(output: NetworkOutput, batch: TrainingBatch, context: LossContext,
                   names: tuple[str, ...] | None = None) -> dict[str, Tensor]:
     """The value of each term of ``names`` (default: those ``context.loss`` weighs non-zero),
     each a scalar tensor, in registry order."""

@@ -61,6 +61,10 @@ class DataConfig:
     """Train only on images whose label ``target_visibility`` (the target's mean grey level /
     255) is at least this: 0 keeps every image, 0.04 drops the dark ones (mean grey below
     10 / 255). Labels without the key (the SPE3R release) always count."""
+    train_images: int | None = in_range(1, 100_000_000, default=None)
+    """Train only on the first this many images of the train split (after the
+    ``min_visibility`` filter), e.g. to study how results grow with the number of views;
+    None: every image."""
     cache_dir: Path | None = None
     """Folder of the decoded training cache (shared between runs of the same dataset and
     size); None: ``RUN_DIR/cache``. Not compared when a run resumes."""
