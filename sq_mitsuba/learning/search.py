@@ -38,10 +38,12 @@ from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.so3_grid import so3_grid, with_half_turns
 from sq_mitsuba.learning.refine import RefineOptions, RefineResult, refine_pose_and_shape
+from sq_mitsuba.render.silhouette_batch import PoseSilhouettes
 
 __all__ = [
     "SearchOptions",
     "SearchRefineResult",
+    "SearchRenderers",
     "SearchResult",
     "check_search_inputs",
     "pose_candidates",
@@ -60,7 +62,11 @@ class SearchOptions:
     """Settings of the global pose search and of the refinement that follows it."""
 
     resolution: int = in_range(8, 512, default=64)
-    "Width in pixels of the silhouettes scored (the mask is averaged down to it)."
+    "Width in pixels of the final scores (the mask is averaged down to it)."
+    coarse_resolution: int = in_range(8, 512, default=32)
+    "Width in pixels at which every candidate is scored first."
+    fine: int = in_range(1, 100_000, default=32)
+    "Best candidates of the coarse pass scored again at `resolution`."
     spp: int = in_range(1, 64, default=1)
     "Samples per pixel of the scored silhouettes (1: the pixel centre)."
     grid: int = in_range(0, 100_000, default=1024)
@@ -87,7 +93,10 @@ class SearchResult:
         rotation: (B, 3, 3) the best-scoring candidate; translation: (B, 3) its translation.
         score: (B,) its soft IoU against the mask at the search resolution.
         candidates: (B, N, 3, 3) every candidate rotation; translations: (B, N, 3) the
-            translation each was scored at (recentred); scores: (B, N) their soft IoUs.
+            translation each was last scored at (recentred); scores: (B, N) their soft IoUs at
+            the coarse resolution.
+        fine_index: (B, F) the candidates scored again at the search resolution, and
+            fine_scores: (B, F) those scores (the ranking that picks the best).
     """
 
     rotation: Tensor
@@ -96,10 +105,14 @@ class SearchResult:
     candidates: Tensor
     translations: Tensor
     scores: Tensor
+    fine_index: Tensor
+    fine_scores: Tensor
 
     def best(self, count: int) -> Tensor:
-        """Indices (B, count) of the ``count`` best-scoring candidates, best first."""
-        return self.scores.topk(min(count, self.scores.shape[1]), dim=1).indices
+        """Indices (B, count) into ``candidates`` of the ``count`` best, best first (by the
+        fine scores)."""
+        order = self.fine_scores.topk(min(count, self.fine_scores.shape[1]), dim=1).indices
+        return self.fine_index.gather(1, order)
 
 
 @dataclass
@@ -252,9 +265,21 @@ def _recentred(translation: Tensor, coverage: Tensor, target: Tensor,
     return scaled + torch.cat([shift, torch.zeros_like(shift[:, :1])], dim=1)
 
 
+def _score_views(renderer: PoseSilhouettes, mesh: tuple[Tensor, Tensor], rotations: Tensor,
+                 translations: Tensor, target: Tensor, recentre: bool
+                 ) -> tuple[Tensor, Tensor]:
+    """Soft IoUs (n,) of one mesh (vertices (V, 3), faces (F, 3)) at n poses against a target
+    (H, W), and the translations (n, 3) scored (recentred when ``recentre``)."""
+    coverage = renderer.render(*mesh, rotations, translations).double()
+    if recentre:
+        translations = _recentred(translations, coverage, target, renderer.camera)
+        coverage = renderer.render(*mesh, rotations, translations).double()
+    return soft_iou(coverage, target), translations
+
+
 def search_poses(assembly: Assembly, candidates: Tensor, translation: Tensor, masks: Tensor,
                  camera: Camera, options: SearchOptions | None = None,
-                 renderer: object | None = None) -> SearchResult:
+                 renderers: SearchRenderers | None = None) -> SearchResult:
     """Score every candidate rotation of each image by its silhouette's soft IoU with the mask.
 
     Args:
@@ -263,9 +288,12 @@ def search_poses(assembly: Assembly, candidates: Tensor, translation: Tensor, ma
         translation: (B, 3) the translation every candidate starts from.
         masks: (B, H, W) target masks at ``camera``'s resolution (bool, or float in [0, 1]).
         camera: intrinsics of the masks.
-        options: :class:`SearchOptions` (resolution, spp, recentre, level, seed).
-        renderer: a :class:`~sq_mitsuba.render.silhouette_batch.PoseSilhouettes` for the
-            search resolution to reuse (made when None).
+        options: :class:`SearchOptions` (resolutions, fine, spp, recentre, level, seed).
+        renderers: :class:`SearchRenderers` to reuse (made when None).
+
+    Every candidate is rendered at ``coarse_resolution`` (and, with ``recentre``, rendered
+    again at its fitted translation) and scored; the ``fine`` best are rendered and scored
+    again at ``resolution``, and the best of those wins.
 
     Returns:
         :class:`SearchResult`: the best candidate per image and every candidate's score.
@@ -273,36 +301,54 @@ def search_poses(assembly: Assembly, candidates: Tensor, translation: Tensor, ma
     Raises:
         ValueError: naming the argument (see :func:`check_search_inputs`).
     """
-    from sq_mitsuba.learning.fit import resize_masks
-    from sq_mitsuba.render.silhouette_batch import PoseSilhouettes
-
     options = options or SearchOptions()
     validate(options)
     check_search_inputs(assembly, candidates, translation, masks, camera)
-    search_camera = camera.rescaled(options.resolution)
-    if renderer is None:
-        renderer = PoseSilhouettes(search_camera, spp=options.spp, seed=options.seed)
-    targets = resize_masks((masks.double() > 0.5).double(), search_camera.height,
-                           search_camera.width)
+    renderers = renderers or SearchRenderers(camera, options)
     candidates = candidates.detach().double().cpu()
-    count = candidates.shape[1]
+    batch, count = candidates.shape[:2]
     vertices, faces = Assembly(assembly.params.detach().double().cpu()).merged_mesh(
         options.level)
-    scores = torch.empty(assembly.batch_size, count, dtype=torch.float64)
+    coarse_targets = renderers.targets(masks, coarse=True)
+    fine_targets = renderers.targets(masks, coarse=False)
+    fine = min(options.fine, count)
+    scores = torch.empty(batch, count, dtype=torch.float64)
+    fine_index = torch.empty(batch, fine, dtype=torch.int64)
+    fine_scores = torch.empty(batch, fine, dtype=torch.float64)
     translations = translation.detach().double().cpu()[:, None].repeat(1, count, 1)
-    for item in range(assembly.batch_size):
-        coverage = renderer.render(vertices[item], faces, candidates[item],
-                                   translations[item]).double()
-        if options.recentre:
-            translations[item] = _recentred(translations[item], coverage, targets[item],
-                                            search_camera)
-            coverage = renderer.render(vertices[item], faces, candidates[item],
-                                       translations[item]).double()
-        scores[item] = soft_iou(coverage, targets[item])
-    best = scores.argmax(dim=1)
-    rows = torch.arange(assembly.batch_size)
-    return SearchResult(candidates[rows, best], translations[rows, best], scores[rows, best],
-                        candidates, translations, scores)
+    for item in range(batch):
+        mesh = (vertices[item], faces)
+        scores[item], translations[item] = _score_views(
+            renderers.coarse, mesh, candidates[item], translations[item], coarse_targets[item],
+            options.recentre)
+        fine_index[item] = scores[item].topk(fine).indices
+        chosen = fine_index[item]
+        fine_scores[item], translations[item, chosen] = _score_views(
+            renderers.fine, mesh, candidates[item, chosen], translations[item, chosen],
+            fine_targets[item], options.recentre)
+    best = fine_index.gather(1, fine_scores.argmax(dim=1, keepdim=True))[:, 0]
+    rows = torch.arange(batch)
+    return SearchResult(candidates[rows, best], translations[rows, best],
+                        fine_scores.amax(dim=1), candidates, translations, scores, fine_index,
+                        fine_scores)
+
+
+class SearchRenderers:
+    """The two :class:`~sq_mitsuba.render.silhouette_batch.PoseSilhouettes` of a search (coarse
+    and fine resolution), kept between calls so their scenes and kernels are reused."""
+
+    def __init__(self, camera: Camera, options: SearchOptions) -> None:
+        self.coarse = PoseSilhouettes(camera.rescaled(options.coarse_resolution),
+                                      spp=options.spp, seed=options.seed)
+        self.fine = PoseSilhouettes(camera.rescaled(options.resolution), spp=options.spp,
+                                    seed=options.seed)
+
+    def targets(self, masks: Tensor, coarse: bool) -> Tensor:
+        """Masks (B, H, W) thresholded at 0.5 and averaged down to a renderer's size."""
+        from sq_mitsuba.learning.fit import resize_masks
+
+        camera = (self.coarse if coarse else self.fine).camera
+        return resize_masks((masks.double() > 0.5).double(), camera.height, camera.width)
 
 
 # ------------------------------------------------------------------------------- with refinement
@@ -355,8 +401,6 @@ def search_and_refine(assembly: Assembly, rotation: Tensor, translation: Tensor,
         ValueError: naming the argument: see :func:`pose_candidates` and
             :func:`check_search_inputs` (mask size, empty mask, NaN hypotheses, K = 0).
     """
-    from sq_mitsuba.render.silhouette_batch import PoseSilhouettes
-
     search = search or SearchOptions()
     refine = refine or RefineOptions()
     validate(search)
@@ -364,9 +408,8 @@ def search_and_refine(assembly: Assembly, rotation: Tensor, translation: Tensor,
     candidates = pose_candidates(rotation, hypotheses, search.grid)
     translation = translation.detach().double().cpu()
     masks = masks.detach().cpu()
-    renderer = PoseSilhouettes(camera.rescaled(search.resolution), spp=search.spp,
-                               seed=search.seed)
-    first = search_poses(assembly, candidates, translation, masks, camera, search, renderer)
+    renderers = SearchRenderers(camera, search)
+    first = search_poses(assembly, candidates, translation, masks, camera, search, renderers)
     current, rounds = first, []
     best: RefineResult | None = None
     shape = Assembly(assembly.params.detach().double().cpu())
@@ -395,7 +438,7 @@ def search_and_refine(assembly: Assembly, rotation: Tensor, translation: Tensor,
             shape = Assembly(best.assembly.params.detach().double())
             again = torch.cat([with_half_turns(best.rotation.double()), candidates], dim=1)
             current = search_poses(shape, again, best.translation.double(), masks, camera,
-                                   search, renderer)
+                                   search, renderers)
     assert best is not None
     return SearchRefineResult(best.assembly, best.rotation, best.translation, best.iou_after,
                               first, first.rotation, first.translation, rounds)
