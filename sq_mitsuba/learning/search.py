@@ -27,6 +27,7 @@ Convention: poses map body to camera, ``x_cam = R x_body + t`` (OpenCV frame); r
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field, replace
 
 import torch
@@ -65,7 +66,7 @@ class SearchOptions:
     "Width in pixels of the final scores (the mask is averaged down to it)."
     coarse_resolution: int = in_range(8, 512, default=32)
     "Width in pixels at which every candidate is scored first."
-    fine: int = in_range(1, 100_000, default=32)
+    fine: int = in_range(1, 100_000, default=128)
     "Best candidates of the coarse pass scored again at `resolution`."
     spp: int = in_range(1, 64, default=1)
     "Samples per pixel of the scored silhouettes (1: the pixel centre)."
@@ -75,9 +76,9 @@ class SearchOptions:
     "Fit each candidate's translation to the mask's centroid and area (a second render)."
     level: int = in_range(0, 5, default=2)
     "Icosphere level of the primitives' meshes in the search (2: 162 vertices)."
-    keep: int = in_range(1, 64, default=3)
+    keep: int = in_range(1, 64, default=2)
     "Best-scoring candidates refined a few steps each; the best of them is refined to the end."
-    screen_steps: int = in_range(0, 1000, default=8)
+    screen_steps: int = in_range(0, 1000, default=5)
     "Refinement steps given to each kept candidate (0: refine the best-scoring one only)."
     rounds: int = in_range(1, 10, default=1)
     "Search-and-refine passes; each later one searches again with the refined shape."
@@ -125,6 +126,7 @@ class SearchRefineResult:
         search: the first pass's :class:`SearchResult` (every candidate and its score).
         search_rotation, search_translation: (B, 3, 3), (B, 3) the first search's best pose.
         rounds: per pass, the mean IoU after its refinement (to compare passes).
+        search_seconds, total_seconds: wall time of the first search, and of everything.
     """
 
     assembly: Assembly
@@ -135,6 +137,8 @@ class SearchRefineResult:
     search_rotation: Tensor
     search_translation: Tensor
     rounds: list[float] = field(default_factory=list)
+    search_seconds: float = 0.0
+    total_seconds: float = 0.0
 
 
 # ------------------------------------------------------------------------------- checks
@@ -401,6 +405,7 @@ def search_and_refine(assembly: Assembly, rotation: Tensor, translation: Tensor,
         ValueError: naming the argument: see :func:`pose_candidates` and
             :func:`check_search_inputs` (mask size, empty mask, NaN hypotheses, K = 0).
     """
+    started = time.perf_counter()
     search = search or SearchOptions()
     refine = refine or RefineOptions()
     validate(search)
@@ -410,6 +415,7 @@ def search_and_refine(assembly: Assembly, rotation: Tensor, translation: Tensor,
     masks = masks.detach().cpu()
     renderers = SearchRenderers(camera, search)
     first = search_poses(assembly, candidates, translation, masks, camera, search, renderers)
+    search_seconds = time.perf_counter() - started
     current, rounds = first, []
     best: RefineResult | None = None
     shape = Assembly(assembly.params.detach().double().cpu())
@@ -441,4 +447,5 @@ def search_and_refine(assembly: Assembly, rotation: Tensor, translation: Tensor,
                                    search, renderers)
     assert best is not None
     return SearchRefineResult(best.assembly, best.rotation, best.translation, best.iou_after,
-                              first, first.rotation, first.translation, rounds)
+                              first, first.rotation, first.translation, rounds, search_seconds,
+                              time.perf_counter() - started)
