@@ -64,7 +64,7 @@ from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.rotation import matrix_to_quaternion
 from sq_mitsuba.io import atomic_write_json, atomic_write_text
 from sq_mitsuba.learning.refine import RefineOptions, raw_from_assembly
-from sq_mitsuba.learning.search import SearchOptions
+from sq_mitsuba.learning.search import SEARCH_REFINEMENT, SearchOptions
 
 METHODS = ("network", "search", "refined", "refined_gt", "baseline")
 #: Metric columns of ``per_image.csv``, in order.
@@ -110,8 +110,7 @@ class EvalOptions:
     "With refine, also search and refine against the ground-truth mask (an upper bound)."
     search: SearchOptions = field(default_factory=SearchOptions)
     "Global pose search settings."
-    refinement: RefineOptions = field(default_factory=lambda: RefineOptions(
-        steps=25, patience=10, shape="pose"))
+    refinement: RefineOptions = field(default_factory=lambda: SEARCH_REFINEMENT)
     "Refinement after the search (pose only by default: shape changes degraded Chamfer-L1)."
     baseline: bool = True
     "Also score the trivial baseline (needs the dataset's train split)."
