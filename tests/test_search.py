@@ -72,7 +72,7 @@ def test_search_finds_the_pose_from_a_grid_within_its_spacing(scene):
     the assembly has no symmetry, so no rotation shows the same outline."""
     truth, rotation, translation, masks, camera = scene
     network = rotation @ torch.diag(torch.tensor([-1.0, 1.0, -1.0], dtype=torch.float64))
-    off = translation + torch.tensor([0.04, -0.03, 0.15], dtype=torch.float64)
+    off = translation + torch.tensor([0.04, -0.03, 0.0], dtype=torch.float64)
     candidates = pose_candidates(network, grid=GRID)
     assert candidates.shape == (3, 4 + GRID, 3, 3)
     result = search_poses(truth, candidates, off, masks, camera, SearchOptions())
@@ -81,9 +81,14 @@ def test_search_finds_the_pose_from_a_grid_within_its_spacing(scene):
     spacing = 1.5 * covering_angle_deg(GRID)  # the largest nearest-cell angle measured
     assert bool((error <= spacing).all()), (error, nearest, spacing)
     assert bool((error <= nearest + 8.0).all()), (error, nearest)
-    # Recentring found the translation again (the search fits it to the mask).
+    # Recentring found the translation again (the search fits it to the mask), the depth
+    # too when asked to.
     distance = translation.norm(dim=-1)
-    assert bool(((result.translation - translation).norm(dim=-1) < 0.06 * distance).all())
+    assert bool(((result.translation - translation).norm(dim=-1) < 0.03 * distance).all())
+    deeper = off + torch.tensor([0.0, 0.0, 0.15], dtype=torch.float64)
+    fitted = search_poses(truth, result.rotation[:, None], deeper, masks, camera,
+                          SearchOptions(fit_depth=True))
+    assert bool(((fitted.translation - translation).norm(dim=-1) < 0.04 * distance).all())
     # Every candidate has a score; the winner's is the best of the fine pass.
     assert result.scores.shape == (3, 4 + GRID)
     assert torch.equal(result.score, result.fine_scores.amax(dim=1))
