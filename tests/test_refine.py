@@ -91,7 +91,7 @@ def test_refinement_never_makes_a_perfect_start_worse(perturbed):
 
 
 def test_pose_only_refinement_keeps_the_shape_and_fixes_the_pose(perturbed):
-    truth, rotation, translation, masks, camera, _, rotation_start, translation_start = perturbed
+    truth, rotation, _, masks, camera, _start, rotation_start, translation_start = perturbed
     result = refine_pose_and_shape(truth, rotation_start, translation_start, masks, camera,
                                    RefineOptions(steps=30, shape="pose"))
     assert torch.equal(result.assembly.params, Assembly.from_raw(
