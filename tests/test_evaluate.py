@@ -32,6 +32,7 @@ from sq_mitsuba.learning.network import NetworkConfig, SuperquadricNet
 
 #: Small settings: few refinement steps and points (the defaults are for real evaluations).
 SMALL = ["--set", "refinement.steps=3", "--set", "refinement.patience=3",
+         "--set", "search.grid=128", "--set", "search.screen_steps=2",
          "--set", "surface_points=500", "--set", "volume_points=3000",
          "--set", "qualitative=2", "--set", "consistency_views=2", "--quiet"]
 
@@ -55,7 +56,8 @@ def test_eval_writes_every_file(val_eval, capsys):
     info = json.loads((val_eval / "eval.json").read_text())
     assert info["split"] == "val" and info["images"] == 4 and info["num_primitives"] == 2
     assert info["label"] == "tiny_run"  # the checkpoint's folder: the training run
-    assert info["methods"] == ["network", "refined_gt", "refined_seg", "baseline"]
+    assert info["methods"] == ["network", "search", "refined", "refined_gt", "baseline"]
+    assert info["search_ms_per_image"] > 0
     assert info["images_per_second"] > 0
 
 
@@ -63,7 +65,7 @@ def test_per_image_rows_match_the_network_and_the_labels(val_eval, eval_checkpoi
                                                           train_dataset):
     rows = read_rows(val_eval / "per_image.csv")
     assert list(rows[0]) == list(COLUMNS)
-    assert len(rows) == 4 * 4  # the val split (images 4 and 9 of two models) x 4 methods
+    assert len(rows) == 4 * 5  # the val split (images 4 and 9 of two models) x 5 methods
     dataset = Spe3rDataset(train_dataset, "val", image_size=64)
     predictor = load_model(eval_checkpoint)
     items = [dataset[i] for i in range(len(dataset))]
@@ -111,15 +113,22 @@ def test_baseline_is_the_mean_training_pose(val_eval, train_dataset):
 def test_refinement_rows_and_summary_tables(val_eval):
     rows = read_rows(val_eval / "per_image.csv")
     for row in rows:
-        if row["method"] in ("refined_gt", "refined_seg"):
-            if row["refine_iou_before"]:
-                assert float(row["refine_iou_after"]) >= float(row["refine_iou_before"])
+        if row["method"] in ("search", "refined", "refined_gt"):
+            if row["search_score"]:
+                assert 0 <= float(row["search_score"]) <= 1
+                assert 0 <= float(row["refine_iou_after"]) <= 1
+            assert row["mask_source"] == ("ground truth" if row["method"] == "refined_gt"
+                                          else "segmentation")  # the tiny model has no mask head
         else:
-            assert row["refine_iou_before"] == row["refine_iou_after"] == ""
+            assert row["search_score"] == row["refine_iou_after"] == row["mask_source"] == ""
     assert all(0 <= float(r["segmentation_iou"]) <= 1 for r in rows
-               if r["method"] == "refined_seg")
+               if r["method"] in ("search", "refined"))
+    # The search keeps the network's assembly: its shape metrics are the network's.
+    for network, search in zip((r for r in rows if r["method"] == "network"),
+                               (r for r in rows if r["method"] == "search"), strict=True):
+        assert network["chamfer_l1_paper"] == search["chamfer_l1_paper"]
     summary = {(r["method"], r["metric"]): r for r in read_rows(val_eval / "summary.csv")}
-    for method in ("network", "refined_gt", "refined_seg", "baseline"):
+    for method in ("network", "search", "refined", "refined_gt", "baseline"):
         for metric in METRICS:
             values = np.array([float(r[metric]) for r in rows if r["method"] == method])
             entry = summary[(method, metric)]
@@ -228,3 +237,25 @@ def test_without_checkpoint_and_no_shipped_model_is_one_clear_line(train_dataset
     line = error_line(capsys)
     assert "no trained model is shipped" in line and "sq-mitsuba train" in line
     assert not (tmp_path / "out").exists()
+
+
+def test_image_masks_prefer_the_networks_mask_head():
+    """The mask fitted: the prediction's mask head when it has one (thresholded at 0.5), else
+    the threshold segmentation of the image; an empty mask is not usable."""
+    from types import SimpleNamespace
+
+    from sq_mitsuba.evaluation.evaluate import image_masks
+
+    images = torch.zeros(2, 1, 16, 16)
+    images[0, 0, 4:9, 5:12] = 0.8  # a lit target; image 1 is black (nothing to segment)
+    head = torch.zeros(2, 16, 16)
+    head[:, 2:6, 3:7] = 0.9
+    head[1] = 0.2  # the head sees nothing in image 1
+    masks, usable, source = image_masks(SimpleNamespace(mask=head), images, "network")
+    assert source == "network" and usable.tolist() == [True, False]
+    assert torch.equal(masks, head > 0.5)
+    for prediction, wanted in ((SimpleNamespace(), "network"),
+                               (SimpleNamespace(mask=head), "segmentation")):
+        masks, usable, source = image_masks(prediction, images, wanted)
+        assert source == "segmentation" and usable.tolist() == [True, False]
+        assert int(masks[0].sum()) == 5 * 7 and not bool(masks[1].any())

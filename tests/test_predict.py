@@ -19,7 +19,8 @@ from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.learning import checkpoint as checkpoint_module
 from sq_mitsuba.learning.checkpoint import load_model
 
-SMALL_REFINE = ["--set", "refinement.steps=4", "--set", "refinement.patience=4"]
+SMALL_REFINE = ["--set", "refinement.steps=4", "--set", "refinement.patience=4",
+                "--set", "search.grid=128", "--set", "search.screen_steps=2"]
 
 
 @pytest.fixture(scope="module")
@@ -90,14 +91,17 @@ def test_predict_refines_against_a_given_and_a_segmented_mask(eval_checkpoint, i
     assert main(["predict", str(inputs / "grey.png"), "--checkpoint", str(eval_checkpoint),
                  "--out", str(given), "--refine", "--mask", str(inputs / "mask.png"),
                  *SMALL_REFINE, "--quiet"]) == 0
-    assert "refined in" in capsys.readouterr().out
+    assert "against the file mask" in capsys.readouterr().out
     assert main(["predict", str(inputs / "rgb.png"), "--checkpoint", str(eval_checkpoint),
                  "--out", str(segmented), "--refine", *SMALL_REFINE, "--quiet"]) == 0
-    for folder, stem, mask in ((given, "grey", str(inputs / "mask.png")),
-                               (segmented, "rgb", "segmented")):
+    assert "against the segmentation mask" in capsys.readouterr().out
+    for folder, stem, mask, source in ((given, "grey", str(inputs / "mask.png"), "file"),
+                                       (segmented, "rgb", "segmentation", "segmentation")):
         pose = json.loads((folder / f"{stem}.pose.json").read_text())
         assert pose["refined"] is True and pose["mask"] == mask
-        assert pose["iou_after"] >= pose["iou_before"]
+        assert pose["mask_source"] == source  # the tiny model has no mask head
+        assert 0 <= pose["search_score"] <= 1 and 0 <= pose["iou_after"] <= 1
+        assert 0 < pose["search_ms"] <= pose["refine_ms"]
         assert np.linalg.norm(pose["q_vbs2tango"]) == pytest.approx(1.0)
         overlay = np.asarray(Image.open(folder / f"{stem}.overlay.png"))
         assert_picture(folder / f"{stem}.overlay.png")
@@ -180,7 +184,7 @@ def test_other_aspect_ratio_is_padded_with_black_and_reported_for_the_image(
                  str(inputs / "letterbox_mask.png"), *refine]) == 0
     pose = json.loads((wide / "wide.pose.json").read_text())
     reference = json.loads((boxed / "letterbox.pose.json").read_text())
-    for key in ("q_vbs2tango", "r_Vo2To_vbs", "iou_before", "iou_after"):
+    for key in ("q_vbs2tango", "r_Vo2To_vbs", "search_score", "iou_after"):
         assert pose[key] == pytest.approx(reference[key], abs=1e-6), key
     assert (pose["width"], pose["height"], pose["padded_to"]) == (64, 48, [64, 64])
     assert "padded with black to 64 x 64 px" in pose["warning"]

@@ -90,6 +90,18 @@ def test_refinement_never_makes_a_perfect_start_worse(perturbed):
     assert float(result.iou_after.min()) > 0.9
 
 
+def test_pose_only_refinement_keeps_the_shape_and_fixes_the_pose(perturbed):
+    truth, rotation, _, masks, camera, _start, rotation_start, translation_start = perturbed
+    result = refine_pose_and_shape(truth, rotation_start, translation_start, masks, camera,
+                                   RefineOptions(steps=30, shape="pose"))
+    assert torch.equal(result.assembly.params, Assembly.from_raw(
+        raw_from_assembly(truth)).params)  # the start's shape, through the raw round trip
+    assert float((result.iou_after - result.iou_before).mean()) >= 0.1
+    cos = ((result.rotation.transpose(-1, -2) @ rotation).diagonal(dim1=-2, dim2=-1).sum(-1)
+           - 1) / 2
+    assert float(torch.rad2deg(torch.arccos(cos.clamp(-1, 1))).mean()) < 10.0  # from 10 deg
+
+
 def test_bad_input_is_refused(perturbed):
     _, rotation, translation, masks, camera, start, *_ = perturbed
     with pytest.raises(ValueError, match="masks: size"):
@@ -104,3 +116,5 @@ def test_bad_input_is_refused(perturbed):
         from_dict(RefineOptions, {"steps": 0})
     with pytest.raises(ConfigError, match="loss"):
         from_dict(RefineOptions, {"loss": "l1"})
+    with pytest.raises(ConfigError, match="shape"):
+        from_dict(RefineOptions, {"shape": "sizes"})

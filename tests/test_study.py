@@ -35,6 +35,7 @@ def test_illumination_study_end_to_end(eval_checkpoint, train_dataset, tmp_path,
                  "--set", "render.resolution=64", "--set", "render.spp=4",
                  "--set", "evaluation.refinement.steps=2",
                  "--set", "evaluation.refinement.patience=2",
+                 "--set", "evaluation.search.grid=64",
                  "--set", "evaluation.surface_points=500",
                  "--set", "evaluation.volume_points=2000", "--quiet"])
     assert code == 0, capsys.readouterr().err
@@ -43,8 +44,8 @@ def test_illumination_study_end_to_end(eval_checkpoint, train_dataset, tmp_path,
     assert_picture(out / "illumination.png")
     points = sweep_points(90)
     rows = read_rows(out / "per_image.csv")
-    assert len(rows) == len(points) * 2 * 3  # 2 poses, network + 2 refinements
-    assert {r["method"] for r in rows} == {"network", "refined_gt", "refined_seg"}
+    assert len(rows) == len(points) * 2 * 3  # 2 poses, network, search, search + refinement
+    assert {r["method"] for r in rows} == {"network", "search", "refined"}
     poses = set()
     for point in points:
         labels = [label for folder in (out / "renders" / point.name).iterdir()
@@ -66,7 +67,7 @@ def test_illumination_study_end_to_end(eval_checkpoint, train_dataset, tmp_path,
     assert len(poses) == 1  # the same poses under every lighting
     table = read_rows(out / "illumination.csv")
     groups = {(r["background"], r["method"]) for r in table}
-    assert ("eclipse", "network") in groups and ("earth", "refined_seg") in groups
+    assert ("eclipse", "network") in groups and ("earth", "refined") in groups
     network_at_0 = [float(r["chamfer_l1_paper"]) for r in rows
                     if r["point"] == "phase_000_space" and r["method"] == "network"]
     entry = next(r for r in table if r["background"] == "space" and float(r["phase_deg"]) == 0

@@ -14,11 +14,13 @@ One image in, a superquadric assembly and a pose out, on spacecraft the model ne
 
 Generates a few procedural spacecraft from catalogue seed --seed (default 20261122; the
 shipped model trains on catalogue seed 0, so these are new to it), path-traces images of each
-in the default space scene, predicts every image with the model, refines the prediction at
-test time through the Mitsuba silhouette against the true mask, and scores the network, the
-refined prediction and the trivial baseline (the mean training assembly at the mean training
-pose, as stored with the checkpoint; without one, computed over the demo's own images) with
-the metrics of `sq-mitsuba eval`.
+in the default space scene, predicts every image with the model, searches its pose globally
+and refines it at test time through Mitsuba silhouettes against the mask read from the image
+(the network's mask head, or the threshold segmentation for a model without one; the page
+names it), and scores the network, the searched and refined prediction and the trivial
+baseline (the mean training assembly at the mean training pose, as stored with the
+checkpoint; without one, computed over the demo's own images) with the metrics of
+`sq-mitsuba eval`.
 
 Writes --out (default demo_output): index.html and its Markdown twin index.md (input, the
 silhouettes before and after refinement, the predicted assembly with one colour per primitive

@@ -11,11 +11,15 @@ HELP = "evaluate a trained model on a dataset split (metrics, tables, figures)"
 DESCRIPTION = """\
 Run the network over the val or test split of an SPE3R-layout dataset (`sq-mitsuba dataset
 render`) and score every image: Chamfer-L1 (the paper's and the occnet convention), Chamfer-L2,
-2D IoU at the predicted pose, 3D IoU, rotation error (raw and over the model's symmetries),
-translation error, SPEED score and a camera-frame Chamfer. The trivial baseline (the mean
-training assembly at the mean training pose) is scored beside it; --refine adds the
-prediction refined at test time against the ground-truth mask and against a mask segmented
-from the image.
+2D IoU at the predicted pose, 3D IoU, rotation error (raw, over the model's symmetries and over
+the four half turns of the body frame), translation error, SPEED score and a camera-frame
+Chamfer. The trivial baseline (the mean training assembly at the mean training pose) is scored
+beside it. --refine adds render and compare: a global pose search (the network's rotation and
+hypotheses, or a uniform grid, times the four half turns, scored by Mitsuba silhouettes; row
+'search') and the search followed by refinement (row 'refined'), both against the mask read
+from the image (the network's mask head, or the threshold segmentation for a model without
+one; column mask_source), and the same against the ground-truth mask as an upper bound (row
+'refined_gt'). Silhouettes cannot tell apart poses with the same outline.
 
 Outputs in --out: per_image.csv (every metric and the label's lighting: phase angle, Earth in
 view, eclipse, visibility), per_model.{csv,md}, summary.{csv,md} (mean ± std and median),
@@ -26,7 +30,8 @@ eval folders into the paper's tables.
 Without --checkpoint the model shipped with the package is used. A checkpoint that does not
 fit this version's network, an empty split or an unwritable --out is a one-line error before
 any work (exit code 2). Other settings: --set key=value on the eval options, e.g.
---set refinement.steps=20 --set volume_points=20000."""
+--set refinement.steps=20 --set search.grid=576 --set mask=segmentation
+--set refinement.shape=free --set volume_points=20000."""
 
 #: EvalOptions fields exposed as options; the rest are reachable through --set.
 FLAGS = {"split": "--split", "refine": "--refine", "limit": "--limit",

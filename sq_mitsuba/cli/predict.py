@@ -23,8 +23,12 @@ camera.json). Without --camera, an image of another aspect ratio is padded with 
 camera's (its field of view then lies across the image's longer side; pose.json records the
 camera of the image's own pixels and a warning); with --camera it is an error naming the file.
 
---refine refines each prediction at test time against its --mask (one per image, same size,
-target bright) or, without masks, against a mask segmented from the image. Every input is
+--refine searches the pose globally (the network's rotation and hypotheses, or a uniform grid,
+times the four half turns of the body frame, scored by Mitsuba silhouettes), then refines the
+best few, against its --mask (one per image, same size, target bright) or, without masks, the
+mask the network predicts (a mask segmented from the image for a model without a mask head;
+--set mask=segmentation forces it); the line printed and pose.json name the mask fitted.
+Silhouettes cannot tell apart poses with the same outline. Every input is
 checked before the first prediction (a bad one is a one-line error, exit code 2, nothing
 written). Without --checkpoint the model shipped with the package is used."""
 
@@ -64,6 +68,7 @@ def _run(args: argparse.Namespace) -> int:
     network = sum(r.network_ms for r in records) / len(records)
     line = f"{len(records)} image(s): network {network:.1f} ms per image"
     if options.refine:
-        line += f", refinement {sum(r.refine_ms for r in records) / len(records):.0f} ms"
+        line += (f", search {sum(r.search_ms for r in records) / len(records):.0f} ms, search + "
+                 f"refinement {sum(r.refine_ms for r in records) / len(records):.0f} ms")
     print(f"{line}; wrote {len(records) * 5} files to {args.out}")
     return 0

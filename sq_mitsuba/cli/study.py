@@ -16,10 +16,10 @@ Two ways to see how lighting changes the results:
     Render fixed poses of the library's models under a sweep of sun phase angles (0 to 180
     degrees in steps of --step), each with and without the Earth in view, plus eclipse
     frames, with the dataset renderer (one dataset per sweep point, scene overrides
-    sun.phase_deg, earth.probability_in_view, eclipse.probability); evaluate each with and
-    without test-time refinement; write per_image.csv, illumination.{csv,md,png} (every
-    metric against the phase angle, one line per background, shaded ± std) and study.json.
-    A rerun into the same --out resumes the renders.
+    sun.phase_deg, earth.probability_in_view, eclipse.probability); evaluate each: the
+    network, the pose search and search + refinement against the image's own mask; write
+    per_image.csv, illumination.{csv,md,png} (every metric against the phase angle, one line
+    per background, shaded ± std) and study.json. A rerun into the same --out resumes the renders.
 
   study illumination --eval EVAL_DIR [--out DIR] [--step 15]
     Break a regular `sq-mitsuba eval` folder down by the lighting recorded in its

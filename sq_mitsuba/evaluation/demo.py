@@ -8,9 +8,11 @@ model never saw, as a web page.
    a test model;
 2. path-trace a few images of each in the default space scene (the ``sq-mitsuba dataset
    render`` writer), with masks and pose labels;
-3. predict each image with the network (the shipped model, or a checkpoint), refine the
-   prediction at test time through the renderer against the ground-truth mask, and score the
-   network, the refined prediction and the trivial baseline with the evaluation's own
+3. predict each image with the network (the shipped model, or a checkpoint), search its pose
+   globally and refine it at test time through the renderer against the mask read from the
+   image (the network's mask head, or the threshold segmentation for a model without one; the
+   rows name it), and score the network, the searched and refined prediction and the trivial
+   baseline with the evaluation's own
    :func:`~sq_mitsuba.evaluation.evaluate.score` (every metric of ``sq-mitsuba eval``);
 4. write a page, ``index.html`` and its Markdown twin ``index.md``
    (:mod:`sq_mitsuba.evaluation.demo_page`), with the pictures, metrics and the files of each
@@ -50,7 +52,7 @@ import shutil
 import tempfile
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
 
@@ -66,7 +68,7 @@ DEMO_CATALOGUE_SEED = 20261122
 #: The file that marks a folder as a demo's output (and holds its record).
 MANIFEST = "demo.json"
 #: Methods scored per image, in the page's order, with their labels.
-METHOD_LABELS = {"network": "network", "refined_gt": "refined (GT mask)",
+METHOD_LABELS = {"network": "network", "refined": "search + refined (image's mask)",
                  "baseline": "trivial baseline"}
 #: Metrics on the page (every metric of ``sq-mitsuba eval`` is in per_image.csv).
 PAGE_METRICS = {"chamfer_l1_paper": "Chamfer-L1 (paper)",
@@ -470,19 +472,21 @@ def _predict_and_score(predictor: Any, data: Path, options: DemoOptions,
     from sq_mitsuba.evaluation.evaluate import (
         EvalOptions,
         collate,
+        image_masks,
         label_record,
         open_split,
         score,
+        search_where,
         volume_points,
     )
-    from sq_mitsuba.learning.refine import RefineOptions, refine_pose_and_shape
+    from sq_mitsuba.learning.search import SEARCH_REFINEMENT, SearchOptions
     from sq_mitsuba.render.silhouette import SilhouetteRenderer
 
     dataset = open_split(data, "test", EvalOptions(surface_points=options.surface_points),
                          predictor.image_size)
     camera = dataset.camera.rescaled(predictor.image_size, predictor.image_size)
     renderer = SilhouetteRenderer(camera, spp=options.silhouette_spp)
-    refine_options = RefineOptions(steps=options.preset.refine_steps)
+    refine_options = replace(SEARCH_REFINEMENT, steps=options.preset.refine_steps)
     symmetries: dict[int, Tensor] = {}
     volumes: dict[int, tuple[Tensor, Tensor]] = {}
     for index, model in enumerate(dataset.models):
@@ -499,12 +503,12 @@ def _predict_and_score(predictor: Any, data: Path, options: DemoOptions,
             batch = collate([dataset[i] for i in chunk])
             size = len(chunk)
             prediction = predictor.predict(batch["image"], camera)
-            refined = refine_pose_and_shape(prediction.assembly, prediction.rotation,
-                                            prediction.translation, batch["mask"][:, 0] > 0.5,
-                                            camera, refine_options)
+            masks, usable, mask_source = image_masks(prediction, batch["image"], "network")
+            refined = search_where(prediction, masks, usable, camera, SearchOptions(),
+                                   refine_options)
             candidates = {
                 "network": (prediction.assembly, prediction.rotation, prediction.translation),
-                "refined_gt": (refined.assembly, refined.rotation, refined.translation),
+                "refined": refined.refined,
                 "baseline": (Assembly(base_assembly.params.expand(size, -1, -1)),
                              baseline[1].double().expand(size, -1, -1),
                              baseline[2].double().expand(size, -1)),
@@ -514,12 +518,13 @@ def _predict_and_score(predictor: Any, data: Path, options: DemoOptions,
                 metrics = score(assembly, rotation, translation, batch, renderer,
                                 [symmetries[m] for m in model_indices],
                                 [volumes[m] for m in model_indices], options.level)
-                if method == "refined_gt":
-                    metrics["refine_iou_before"] = refined.iou_before
-                    metrics["refine_iou_after"] = refined.iou_after
+                if method == "refined":
+                    metrics["search_score"] = refined.search_score
+                    metrics["refine_iou_after"] = refined.refine_iou
                 for k, item in enumerate(chunk):
                     row = {"model": batch["model"][k], "index": int(batch["index"][k]),
-                           "method": method, **label_record(dataset.items[item][2])}
+                           "method": method, **label_record(dataset.items[item][2]),
+                           "mask_source": mask_source if method == "refined" else ""}
                     row.update({name: float(value[k]) for name, value in metrics.items()})
                     rows.append(row)
             for k, item in enumerate(chunk):
@@ -585,7 +590,7 @@ def _write_outputs(records: Sequence[dict[str, Any]], data: Path, out: Path,
         image, mask = dataset.read_pair(record["item"])
         picture = image.astype(np.float64) / 255.0
         outline = mask >= 128
-        for method, colour in (("network", NETWORK_COLOUR), ("refined_gt", REFINED_COLOUR)):
+        for method, colour in (("network", NETWORK_COLOUR), ("refined", REFINED_COLOUR)):
             assembly, rotation, translation = record[method]
             with torch.no_grad():
                 silhouette = render_assembly(assembly, rotation[None], translation[None],
@@ -595,7 +600,7 @@ def _write_outputs(records: Sequence[dict[str, Any]], data: Path, out: Path,
                       overlay_image(picture, [(silhouette, colour)], outline))
             assembly.save(out / "assemblies" / f"{stem}.{name}.assembly.json")
             assembly.export(out / "assemblies" / f"{stem}.{name}.glb", level=options.level)
-        assembly, rotation, translation = record["refined_gt"]
+        assembly, rotation, translation = record["refined"]
         _save_png(out / "images" / f"{stem}.assembly.png",
                   assembly_picture(assembly, rotation, translation, camera, options.level))
         if record["model"] not in meshes:
@@ -605,7 +610,7 @@ def _write_outputs(records: Sequence[dict[str, Any]], data: Path, out: Path,
                              record["gt_translation"], camera)
         _save_png(out / "images" / f"{stem}.truth.png", np.repeat(truth[..., None], 3, -1))
         poses = {}
-        for method in ("network", "refined_gt"):
+        for method in ("network", "refined"):
             _, rotation, translation = record[method]
             poses[method] = {"q_vbs2tango": [float(v) for v in
                                              matrix_to_quaternion(rotation[None])[0]],
@@ -640,13 +645,20 @@ def _write_page(out: Path, options: DemoOptions, records: Sequence[dict[str, Any
 
     preset = options.preset
     models = sorted({r["model"] for r in records})
+    sources = sorted({r["metrics"]["refined"].get("mask_source") or "none" for r in records})
+    mask_sources = " / ".join({"network": "the network's mask head",
+                               "segmentation": "threshold segmentation"}.get(m, m)
+                              for m in sources)
     intro = [
         f"{len(records)} image(s) of {len(models)} procedural spacecraft the model never saw "
         f"(catalogue seed {options.seed}; the shipped model trains on catalogue seed 0), "
         f"path-traced at {preset.resolution} x {preset.resolution} px in the default space "
         "scene. For each image the network predicts a superquadric assembly and its pose; "
-        f"test-time refinement ({preset.refine_steps} steps at most) then adjusts both "
-        "through the differentiable Mitsuba silhouette against the ground-truth mask.",
+        "a global search then scores its rotations (the network's and a uniform grid, each with "
+        "the four half turns of the body frame) by Mitsuba silhouettes against the mask read "
+        f"from the image ({mask_sources}), and test-time refinement ({preset.refine_steps} "
+        "steps at most) adjusts the best through the differentiable silhouette. Silhouettes "
+        "cannot tell apart poses with the same outline.",
         f"Model: {_shown_model(checkpoint)}. Trivial baseline: "
         f"{baseline_source}.",
         "Silhouettes: red, the network's prediction; green, after refinement; yellow, the "
@@ -662,7 +674,7 @@ def _write_page(out: Path, options: DemoOptions, records: Sequence[dict[str, Any
     images = []
     for record in records:
         stem = stem_of(record)
-        refined = record["metrics"]["refined_gt"]
+        refined = record["metrics"]["refined"]
         images.append(PageImage(
             title=f"{record['model']}, image {record['index']}",
             pictures=[

@@ -5,11 +5,18 @@ dataset and scores every image with every metric of :mod:`sq_mitsuba.evaluation.
 up to four methods:
 
 - ``network``: the network's prediction;
-- ``refined_gt``: refined at test time against the ground-truth mask (``refine``);
-- ``refined_seg``: refined against a mask segmented from the image itself
-  (:func:`sq_mitsuba.data.segmentation.segment_target`; ``refine``); an image with nothing
-  to segment (an eclipse, a black frame) keeps the network's prediction, with blank
-  refinement columns;
+- ``search``: the global pose search (:func:`sq_mitsuba.learning.search.search_poses`: the
+  network's rotation and its top-K hypotheses, or a uniform grid, each times the four half
+  turns, scored by Mitsuba silhouettes) against the mask read from the image, with the
+  network's assembly (``refine``);
+- ``refined``: that search followed by refinement of its best few
+  (:func:`sq_mitsuba.learning.search.search_and_refine`) against the same mask; the mask is
+  the network's mask head when it has one (``mask = "network"``), else the threshold
+  segmentation of the image (:func:`sq_mitsuba.data.segmentation.segment_target`), named in
+  the ``mask_source`` column; an image with nothing to segment (an eclipse, a black frame)
+  keeps the network's prediction, with blank search columns;
+- ``refined_gt``: search and refinement against the ground-truth mask, an upper bound
+  (``refine`` and ``refine_ground_truth``);
 - ``baseline``: a trivial floor, the mean training assembly (the mean of the network's raw
   outputs over training images, squashed) at the mean training pose (chordal mean rotation,
   mean translation of the training labels).
@@ -59,21 +66,24 @@ from sq_mitsuba.geometry.rotation import matrix_to_quaternion
 from sq_mitsuba.geometry.so3_grid import half_turns
 from sq_mitsuba.io import atomic_write_json, atomic_write_text
 from sq_mitsuba.learning.refine import RefineOptions, raw_from_assembly
+from sq_mitsuba.learning.search import SEARCH_REFINEMENT, SearchOptions
 
 #: Metric columns of ``per_image.csv``, in order.
 METRICS = ("chamfer_l1_paper", "chamfer_l1_occnet", "chamfer_l2", "iou_2d", "iou_3d",
            "rotation_error_deg", "rotation_error_sym_deg", "rotation_error_folded_deg",
-           "translation_error_m",
-           "translation_error_rel", "speed_score", "camera_chamfer")
+           "translation_error_m", "translation_error_rel", "speed_score", "camera_chamfer")
 #: Metrics where higher is better (the others: lower is better).
 HIGHER_IS_BETTER = ("iou_2d", "iou_3d")
-#: Refinement columns: its IoU at the refinement resolution before and after, and the IoU of
-#: the segmented mask against the ground truth (``refined_seg`` rows only).
-EXTRAS = ("refine_iou_before", "refine_iou_after", "segmentation_iou")
+#: Search and refinement columns: the search's best soft IoU at its resolution, the refinement's
+#: IoU after it (refinement resolution), and the IoU of the image's mask against the ground
+#: truth (``search`` and ``refined`` rows).
+EXTRAS = ("search_score", "refine_iou_after", "segmentation_iou")
+#: Mask sources named in the ``mask_source`` column.
+MASK_SOURCES = ("network", "segmentation", "ground truth")
 #: The label's lighting record (empty where the dataset has none, e.g. the SPE3R release).
 LIGHTING = ("phase_angle_deg", "earth_in_view", "eclipse", "target_visibility")
 #: Columns of ``per_image.csv``.
-COLUMNS = ("model", "index", "filename", "method", *METRICS, *EXTRAS, *LIGHTING)
+COLUMNS = ("model", "index", "filename", "method", *METRICS, *EXTRAS, "mask_source", *LIGHTING)
 #: Metrics shown in the Markdown tables (every metric is in the CSV files).
 SHOWN = ("chamfer_l1_paper", "chamfer_l1_occnet", "camera_chamfer", "iou_2d", "iou_3d",
          "rotation_error_deg", "rotation_error_sym_deg", "rotation_error_folded_deg",
@@ -94,9 +104,15 @@ class EvalOptions:
     batch_size: int = in_range(1, 1024, default=16)
     "Images per network batch (and per refinement batch)."
     refine: bool = False
-    "Also refine every prediction at test time, against the ground-truth and a segmented mask."
-    refinement: RefineOptions = field(default_factory=RefineOptions)
-    "Test-time refinement settings."
+    "Also search the pose and refine it at test time (rows search, refined, refined_gt)."
+    mask: Literal["network", "segmentation"] = "network"
+    "Mask read from the image: the network's mask head (segmentation for a model without one)."
+    refine_ground_truth: bool = True
+    "With refine, also search and refine against the ground-truth mask (an upper bound)."
+    search: SearchOptions = field(default_factory=SearchOptions)
+    "Global pose search settings."
+    refinement: RefineOptions = field(default_factory=lambda: SEARCH_REFINEMENT)
+    "Refinement after the search (pose only by default: shape changes degraded Chamfer-L1)."
     baseline: bool = True
     "Also score the trivial baseline (needs the dataset's train split)."
     baseline_images: int = in_range(1, 1_000_000, default=256)
@@ -205,6 +221,8 @@ def score(assembly: Assembly, rotation: Tensor, translation: Tensor, batch: dict
     symmetric = torch.stack([
         rotation_error_deg(rotation[i:i + 1], gt_rotation[i:i + 1], symmetries[i])[0]
         for i in range(size)])
+
+    folded = rotation_error_deg(rotation, gt_rotation, half_turns())
     speed = speed_score(matrix_to_quaternion(rotation), batch["quaternion"].double(),
                         translation, gt_translation)
     return {
@@ -215,10 +233,7 @@ def score(assembly: Assembly, rotation: Tensor, translation: Tensor, batch: dict
         "iou_3d": volume_iou,
         "rotation_error_deg": rotation_error_deg(rotation, gt_rotation),
         "rotation_error_sym_deg": symmetric,
-        # Up to the four half turns of the body frame: on an unknown model which end of an
-        # axis is "+" is not visible, so this is the error a user can expect at best.
-        "rotation_error_folded_deg": rotation_error_deg(rotation, gt_rotation,
-                                                        half_turns(rotation.dtype)),
+        "rotation_error_folded_deg": folded,
         "translation_error_m": translation_error(translation, gt_translation),
         "translation_error_rel": translation_error(translation, gt_translation, relative=True),
         "speed_score": speed.total,
@@ -437,35 +452,63 @@ def baseline_prediction(predictor: Any, data_root: Path, count: int,
 
 
 @dataclass
-class _Refined:
-    assembly: Assembly
-    rotation: Tensor
-    translation: Tensor
-    iou_before: Tensor
-    iou_after: Tensor
+class _Searched:
+    """Search and search + refinement of a batch (items not searched keep the network's
+    prediction, with NaN scores)."""
+
+    search: tuple[Assembly, Tensor, Tensor]
+    refined: tuple[Assembly, Tensor, Tensor]
+    search_score: Tensor
+    refine_iou: Tensor
+    search_seconds: float
+    seconds: float
 
 
-def _refine_where(prediction: Any, masks: Tensor, usable: Tensor, camera: Camera,
-                  options: RefineOptions) -> _Refined:
-    """Refine the items where ``usable`` (B,) against ``masks`` (B, S, S); the others keep the
-    network's prediction (NaN refinement IoUs)."""
-    from sq_mitsuba.learning.refine import refine_pose_and_shape
+def search_where(prediction: Any, masks: Tensor, usable: Tensor, camera: Camera,
+                 search: SearchOptions, refinement: RefineOptions) -> _Searched:
+    """:func:`~sq_mitsuba.learning.search.search_and_refine` of the items where ``usable``
+    (B,) against ``masks`` (B, S, S), with the prediction's rotation hypotheses when it has
+    them (a uniform grid otherwise)."""
+    from sq_mitsuba.learning.search import search_and_refine
 
     params = prediction.assembly.params.detach().clone().double()
     rotation = prediction.rotation.detach().clone().double()
     translation = prediction.translation.detach().clone().double()
-    before = torch.full((len(rotation),), math.nan, dtype=torch.float64)
-    after = before.clone()
+    hypotheses = getattr(prediction, "rotation_hypotheses", None)
+    score_nan = torch.full((len(rotation),), math.nan, dtype=torch.float64)
+    refine_iou = score_nan.clone()
+    search_rotation, search_translation = rotation.clone(), translation.clone()
+    refined_params = params.clone()
+    refined_rotation, refined_translation = rotation.clone(), translation.clone()
     chosen = torch.nonzero(usable).flatten()
+    search_seconds = seconds = 0.0
     if len(chosen):
-        result = refine_pose_and_shape(Assembly(params[chosen]), rotation[chosen],
-                                       translation[chosen], masks[chosen], camera, options)
-        params[chosen] = result.assembly.params.detach().double()
-        rotation[chosen] = result.rotation.double()
-        translation[chosen] = result.translation.double()
-        before[chosen] = result.iou_before.double()
-        after[chosen] = result.iou_after.double()
-    return _Refined(Assembly(params), rotation, translation, before, after)
+        result = search_and_refine(
+            Assembly(params[chosen]), rotation[chosen], translation[chosen], masks[chosen],
+            camera, None if hypotheses is None else hypotheses[chosen], search, refinement)
+        search_rotation[chosen] = result.search_rotation.double()
+        search_translation[chosen] = result.search_translation.double()
+        score_nan[chosen] = result.search.score.double()
+        refined_params[chosen] = result.assembly.params.detach().double()
+        refined_rotation[chosen] = result.rotation.double()
+        refined_translation[chosen] = result.translation.double()
+        refine_iou[chosen] = result.iou.double()
+        search_seconds, seconds = result.search_seconds, result.total_seconds
+    return _Searched((Assembly(params), search_rotation, search_translation),
+                     (Assembly(refined_params), refined_rotation, refined_translation),
+                     score_nan, refine_iou, search_seconds, seconds)
+
+
+def image_masks(prediction: Any, images: Tensor, source: str) -> tuple[Tensor, Tensor, str]:
+    """The masks (B, S, S) bool read from the images, which are usable (B,), and their source
+    (:data:`MASK_SOURCES`): the prediction's mask head when ``source`` is "network" and it has
+    one, else the threshold segmentation of ``images`` (B, 1, S, S)."""
+    mask = getattr(prediction, "mask", None)
+    if source == "network" and mask is not None:
+        masks = mask.detach().cpu() > 0.5
+        return masks, masks.flatten(1).any(dim=1), "network"
+    masks, usable = _segmented(images)
+    return masks, usable, "segmentation"
 
 
 def _segmented(images: Tensor) -> tuple[Tensor, Tensor]:
@@ -564,7 +607,7 @@ def evaluate(predictor: Any, data_root: str | Path, out_dir: str | Path,
     wanted = {indices[k] for k in evenly(len(indices), options.qualitative)}
     rows: list[dict[str, Any]] = []
     examples: list[dict[str, Any]] = []
-    network_seconds = refine_seconds = 0.0
+    network_seconds = search_seconds = refine_seconds = 0.0
     loop_started = time.perf_counter()
     with tqdm(total=len(indices), unit="img", disable=not progress, dynamic_ncols=True,
               desc=f"eval {options.split}") as bar:
@@ -581,25 +624,30 @@ def evaluate(predictor: Any, data_root: str | Path, out_dir: str | Path,
             candidates: dict[str, tuple[Assembly, Tensor, Tensor]] = {
                 "network": (prediction.assembly, prediction.rotation, prediction.translation)}
             extras: dict[str, dict[str, Tensor]] = {}
+            sources: dict[str, str] = {}
             if options.refine:
-                tick = time.perf_counter()
                 gt_masks = batch["mask"][:, 0] > 0.5
-                refined = _refine_where(prediction, gt_masks, torch.ones(size, dtype=torch.bool),
-                                        camera, options.refinement)
-                candidates["refined_gt"] = (refined.assembly, refined.rotation,
-                                            refined.translation)
-                extras["refined_gt"] = {"refine_iou_before": refined.iou_before,
-                                        "refine_iou_after": refined.iou_after}
-                segmented, usable = _segmented(batch["image"])
-                refined = _refine_where(prediction, segmented, usable, camera,
+                masks, usable, mask_source = image_masks(prediction, batch["image"],
+                                                          options.mask)
+                searched = search_where(prediction, masks, usable, camera, options.search,
                                         options.refinement)
-                candidates["refined_seg"] = (refined.assembly, refined.rotation,
-                                             refined.translation)
-                extras["refined_seg"] = {"refine_iou_before": refined.iou_before,
-                                         "refine_iou_after": refined.iou_after,
-                                         "segmentation_iou": mask_iou(segmented.double(),
-                                                                      gt_masks.double())}
-                refine_seconds += time.perf_counter() - tick
+                search_seconds += searched.search_seconds
+                refine_seconds += searched.seconds
+                mask_iou_gt = mask_iou(masks.double(), gt_masks.double())
+                candidates["search"] = searched.search
+                candidates["refined"] = searched.refined
+                for method in ("search", "refined"):
+                    extras[method] = {"search_score": searched.search_score,
+                                      "refine_iou_after": searched.refine_iou,
+                                      "segmentation_iou": mask_iou_gt}
+                    sources[method] = mask_source
+                if options.refine_ground_truth:
+                    upper = search_where(prediction, gt_masks, torch.ones(size, dtype=torch.bool),
+                                         camera, options.search, options.refinement)
+                    candidates["refined_gt"] = upper.refined
+                    extras["refined_gt"] = {"search_score": upper.search_score,
+                                            "refine_iou_after": upper.refine_iou}
+                    sources["refined_gt"] = "ground truth"
             if baseline is not None:
                 candidates["baseline"] = (Assembly(baseline[0].params.expand(size, -1, -1)),
                                           baseline[1].expand(size, -1, -1),
@@ -610,9 +658,10 @@ def evaluate(predictor: Any, data_root: str | Path, out_dir: str | Path,
                 metrics.update(extras.get(method, {}))
                 for k, item in enumerate(chunk):
                     row = {"model": batch["model"][k], "index": int(batch["index"][k]),
-                           "method": method, **label_record(dataset.items[item][2])}
+                           "method": method, "mask_source": sources.get(method, ""),
+                           **label_record(dataset.items[item][2])}
                     row.update({name: float(value[k]) for name, value in metrics.items()})
-                    for name in EXTRAS:  # NaN: not refined (no target segmented) -> blank
+                    for name in EXTRAS:  # NaN: not searched (no target segmented) -> blank
                         if name in row and not math.isfinite(row[name]):
                             row[name] = ""
                     rows.append(row)
@@ -664,7 +713,8 @@ def evaluate(predictor: Any, data_root: str | Path, out_dir: str | Path,
         "symmetries": {dataset.models[m]: len(s) for m, s in sorted(models.symmetries.items())},
         "images_per_second": round(images_per_second, 4),
         "network_ms_per_image": round(1000 * network_seconds / images, 3),
-        "refine_ms_per_image": round(1000 * refine_seconds / images, 3),
+        "search_ms_per_image": round(1000 * search_seconds / images, 3),
+        "search_refine_ms_per_image": round(1000 * refine_seconds / images, 3),
         "loop_seconds": round(loop_seconds, 3),
         "wall_seconds": round(time.perf_counter() - started, 3),
     })

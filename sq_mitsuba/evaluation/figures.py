@@ -60,8 +60,8 @@ PRIMITIVE_COLOURS = np.array([(0.12, 0.47, 0.71), (1.0, 0.5, 0.05), (0.17, 0.63,
                               (0.89, 0.47, 0.76), (0.5, 0.5, 0.5), (0.74, 0.74, 0.13),
                               (0.09, 0.75, 0.81)])
 #: Colour per method in the charts.
-METHOD_COLOURS = {"network": "tab:blue", "refined_gt": "tab:green", "refined_seg": "tab:orange",
-                  "baseline": "tab:gray"}
+METHOD_COLOURS = {"network": "tab:blue", "search": "tab:purple", "refined": "tab:orange",
+                  "refined_gt": "tab:green", "baseline": "tab:gray"}
 #: The fixed view of the body frame in the consistency figure: a rotation (body -> camera) that
 #: shows three faces of the model's box, at a depth where a unit-size model fits the default
 #: field of view.
@@ -181,9 +181,9 @@ def plot_qualitative(examples: Sequence[dict], dataset, camera, figure_camera, r
 
     plt = _pyplot()
     first = examples[0] if examples else {}
-    compared = [m for m in ("network", "refined_gt", "baseline") if m in first]
-    titles = {"network": "network vs mask", "refined_gt": "refined (GT mask)",
-              "baseline": "baseline vs mask"}
+    compared = [m for m in ("network", "refined", "refined_gt", "baseline") if m in first]
+    titles = {"network": "network vs mask", "refined": "search + refined",
+              "refined_gt": "refined (GT mask)", "baseline": "baseline vs mask"}
     columns = ["input", *(titles[m] for m in compared), "assembly", "surface points",
                "ground truth"]
     rows = max(len(examples), 1)

@@ -28,9 +28,13 @@ padding) with ``padded_to`` and a warning. A crop keeps the camera frame, so the
 no change. An explicit ``camera`` of another aspect ratio is a one-line error naming the
 file instead.
 
-Refinement (``refine``): against the given masks (one per image, same size; bright = target,
-converted and thresholded as :func:`sq_mitsuba.data.masks.read_mask` says), or against a mask
-segmented from the image itself (:func:`sq_mitsuba.data.segmentation.segment_target`).
+Refinement (``refine``): a global pose search, then refinement of its best few
+(:func:`sq_mitsuba.learning.search.search_and_refine`), against a mask: the given masks (one
+per image, same size; bright = target, converted and thresholded as
+:func:`sq_mitsuba.data.masks.read_mask` says), else the network's mask head when it has one
+(``mask = "network"``), else a mask segmented from the image itself
+(:func:`sq_mitsuba.data.segmentation.segment_target`). ``pose.json`` and the printed line name
+the mask fitted. Silhouettes cannot tell apart poses with the same outline.
 
 Every input is read and checked before the first prediction: a bad one is a one-line error
 naming the file, and nothing is written.
@@ -41,13 +45,14 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import torch
 
 from sq_mitsuba.config import in_range, validate
 from sq_mitsuba.learning.refine import RefineOptions
+from sq_mitsuba.learning.search import SEARCH_REFINEMENT, SearchOptions
 
 #: Suffixes of the files written per image, in order.
 OUTPUT_SUFFIXES = (".assembly.json", ".obj", ".glb", ".pose.json", ".overlay.png")
@@ -65,9 +70,13 @@ class PredictOptions:
     """Settings of ``sq-mitsuba predict``."""
 
     refine: bool = False
-    "Refine each prediction at test time against a mask (given, or segmented from the image)."
-    refinement: RefineOptions = field(default_factory=RefineOptions)
-    "Test-time refinement settings."
+    "Search the pose and refine it at test time against a mask (given, or read from the image)."
+    mask: Literal["network", "segmentation"] = "network"
+    "Without --mask: the network's mask head (segmentation for a model without one)."
+    search: SearchOptions = field(default_factory=SearchOptions)
+    "Global pose search settings."
+    refinement: RefineOptions = field(default_factory=lambda: SEARCH_REFINEMENT)
+    "Refinement after the search."
     level: int = in_range(0, 5, default=3)
     "Icosphere level of the exported meshes and the overlay silhouettes (3: 642 vertices each)."
     overlay_spp: int = in_range(1, 1024, default=16)
@@ -83,15 +92,19 @@ class PredictRecord:
     Attributes:
         image: the input; files: the files written (:data:`OUTPUT_SUFFIXES` order).
         network_ms: the network's time for this image (after one untimed warm-up call on
-            the first image); refine_ms: the refinement's (0 when not refined).
-        iou_before, iou_after: refinement IoU of the start and the result (at the refinement
-            resolution) against the mask; warning: the segmentation's, if any.
+            the first image); refine_ms: the search and refinement's (0 when not refined),
+            search_ms: the search's part of it.
+        iou_before, iou_after: the search's best soft IoU (search resolution) and the
+            refinement's IoU (refinement resolution) against the mask; mask_source: the mask
+            fitted ("file", "network" or "segmentation"); warning: the segmentation's, if any.
     """
 
     image: Path
     files: list[Path]
     network_ms: float
     refine_ms: float = 0.0
+    search_ms: float = 0.0
+    mask_source: str | None = None
     iou_before: float | None = None
     iou_after: float | None = None
     warning: str | None = None
@@ -100,7 +113,8 @@ class PredictRecord:
         """One line: the image, its times and (when refined) the IoUs."""
         text = f"{self.image}: network {self.network_ms:.1f} ms"
         if self.iou_before is not None:
-            text += (f", refined in {self.refine_ms:.0f} ms (IoU {self.iou_before:.3f} -> "
+            text += (f", searched and refined in {self.refine_ms:.0f} ms against the "
+                     f"{self.mask_source} mask (IoU {self.iou_before:.3f} -> "
                      f"{self.iou_after:.3f})")
         return text + (f"; warning: {self.warning}" if self.warning else "")
 
@@ -202,8 +216,16 @@ def padded_camera(camera: Any, width: int, height: int) -> Any:
                       camera.cy * height / camera.height, width, height)
 
 
+def has_mask_head(predictor: Any) -> bool:
+    """Whether the predictor's network predicts a target mask (``Prediction.mask``)."""
+    model = getattr(predictor, "model", None)
+    config = getattr(model, "config", None)
+    return bool(getattr(model, "mask_head", None) is not None
+                or getattr(config, "mask_head", False))
+
+
 def _check_inputs(paths: list[Path], camera: Any, masks: list[Path] | None,
-                  options: PredictOptions, pad: bool
+                  options: PredictOptions, pad: bool, predictor: Any = None
                   ) -> tuple[list[np.ndarray], list[np.ndarray] | None, list[str | None],
                              list[Padding | None]]:
     """Read every image (and mask) and check them; returns the pictures and targets (padded
@@ -250,7 +272,7 @@ def _check_inputs(paths: list[Path], camera: Any, masks: list[Path] | None,
                                  f"its image {path} is {picture.shape[1]} x "
                                  f"{picture.shape[0]} px")
             targets.append(target)
-    elif options.refine:
+    elif options.refine and not (options.mask == "network" and has_mask_head(predictor)):
         targets = []
         for k, (path, picture) in enumerate(zip(paths, pictures, strict=True)):
             try:
@@ -268,6 +290,24 @@ def _check_inputs(paths: list[Path], camera: Any, masks: list[Path] | None,
             targets[k] = padding.pad(targets[k])
         warnings[k] = "; ".join(w for w in (padding.describe(), warnings[k]) if w)
     return pictures, targets, warnings, paddings
+
+
+def _target(prediction: Any, targets: list[np.ndarray] | None, k: int,
+            mask_paths: list[Path] | None, shape: tuple[int, ...]) -> tuple[np.ndarray, str]:
+    """The mask (H, W) bool that image ``k`` is fitted to, and its source: the given file,
+    else the segmentation checked before the work, else the network's mask head (its S x S
+    mask resized to the image, thresholded at 0.5)."""
+    import torch.nn.functional as F
+
+    if targets is not None:
+        return targets[k], "file" if mask_paths is not None else "segmentation"
+    mask = F.interpolate(prediction.mask.detach().float().cpu()[:1, None], size=shape[:2],
+                         mode="bilinear", align_corners=False)[0, 0]
+    target = (mask > 0.5).numpy()
+    if not target.any():
+        raise ValueError("the network's mask is empty for this image (nothing to fit); pass "
+                         "a mask (--mask) or --set mask=segmentation")
+    return target, "network"
 
 
 def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
@@ -294,7 +334,7 @@ def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
 
     from sq_mitsuba.evaluation.evaluate import with_fast_path
     from sq_mitsuba.io import atomic_path, atomic_write_json, check_output_folder
-    from sq_mitsuba.learning.refine import refine_pose_and_shape
+    from sq_mitsuba.learning.search import search_and_refine
     from sq_mitsuba.render.silhouette import SilhouetteRenderer, render_assembly
 
     options = options or PredictOptions()
@@ -304,7 +344,8 @@ def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
     paths = [Path(p) for p in images]
     mask_paths = [Path(m) for m in masks] if masks is not None else None
     pictures, targets, warnings, paddings = _check_inputs(paths, camera, mask_paths, options,
-                                                          pad=not explicit_camera)
+                                                          pad=not explicit_camera,
+                                                          predictor=predictor)
     out = check_output_folder(out_dir)
     predictor = with_fast_path(predictor, options.fast)
     out.mkdir(parents=True, exist_ok=True)
@@ -335,20 +376,22 @@ def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
         layers = [(before, NETWORK_COLOUR)]
         outline = None
         if options.refine:
-            assert targets is not None
-            outline = targets[k]
+            outline, record.mask_source = _target(prediction, targets, k, mask_paths,
+                                                  picture.shape)
             tick = time.perf_counter()
-            result = refine_pose_and_shape(assembly, rotation, translation,
-                                           torch.from_numpy(outline)[None], image_camera,
-                                           options.refinement)
+            result = search_and_refine(
+                assembly, rotation, translation, torch.from_numpy(outline)[None], image_camera,
+                getattr(prediction, "rotation_hypotheses", None), options.search,
+                options.refinement)
             record.refine_ms = 1000 * (time.perf_counter() - tick)
+            record.search_ms = 1000 * result.search_seconds
             assembly, rotation, translation = (result.assembly, result.rotation,
                                                result.translation)
             from sq_mitsuba.geometry.rotation import matrix_to_quaternion
 
             quaternion = matrix_to_quaternion(rotation)
-            record.iou_before = float(result.iou_before[0])
-            record.iou_after = float(result.iou_after[0])
+            record.iou_before = float(result.search.score[0])
+            record.iou_after = float(result.iou[0])
             with torch.no_grad():
                 after = render_assembly(assembly, rotation, translation, renderer,
                                         options.level)[0].numpy()
@@ -370,9 +413,11 @@ def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
             "refined": options.refine, "network_ms": round(record.network_ms, 3),
         }
         if options.refine:
-            pose.update(refine_ms=round(record.refine_ms, 3), iou_before=record.iou_before,
-                        iou_after=record.iou_after,
-                        mask=str(mask_paths[k]) if mask_paths is not None else "segmented")
+            pose.update(refine_ms=round(record.refine_ms, 3),
+                        search_ms=round(record.search_ms, 3), search_score=record.iou_before,
+                        iou_after=record.iou_after, mask_source=record.mask_source,
+                        mask=str(mask_paths[k]) if mask_paths is not None
+                        else record.mask_source)
         if padding is not None:
             pose["padded_to"] = [padding.padded_width, padding.padded_height]
         if record.warning:

@@ -4,9 +4,11 @@ target, and eclipses.
 :func:`illumination_study` renders fixed poses of the given models under a sweep of sun phase
 angles (0 to 180 degrees in steps of ``step``), each with and without the Earth in view, plus
 eclipse frames (the sun behind the Earth), then evaluates the model on every one with
-:func:`sq_mitsuba.evaluation.evaluate.evaluate` (with and without test-time refinement by
-default). Every sweep point is an ordinary dataset, rendered by
-:func:`sq_mitsuba.data.spe3r.render_dataset` with scene overrides
+:func:`sq_mitsuba.evaluation.evaluate.evaluate`: the network, the global pose search and the
+search + refinement, both against the mask read from the image itself (the network's mask
+head, or the threshold segmentation for a model without one), by default. Every sweep point
+is an ordinary dataset, rendered by :func:`sq_mitsuba.data.spe3r.render_dataset` with scene
+overrides
 (``sun.phase_deg=[a,a]``, ``earth.probability_in_view=0|1``, ``eclipse.probability=0|1``), so
 the images are exactly what the dataset renderer makes: the same seed and image index draw
 the same pose whatever the lighting (the pose is drawn before the lighting), and a rerun into
@@ -65,7 +67,8 @@ BACKGROUNDS = ("space", "earth", "eclipse")
 
 
 def _study_evaluation() -> EvalOptions:
-    return EvalOptions(split="test", refine=True, baseline=False, figures=False)
+    return EvalOptions(split="test", refine=True, refine_ground_truth=False, baseline=False,
+                       figures=False)
 
 
 @dataclass(frozen=True)

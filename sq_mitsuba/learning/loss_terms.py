@@ -250,7 +250,7 @@ def taper_term(output: NetworkOutput, batch: TrainingBatch, context: LossContext
     return taper_loss(output.assembly)
 
 
-def rotation_grid_term(output: Any, batch: TrainingBatch, context: LossContext) -> Tensor:
+def rotation_grid_term(output: NetworkOutput, batch: TrainingBatch, context: LossContext) -> Tensor:
     """:func:`~sq_mitsuba.learning.losses.rotation_distribution_loss` of
     ``output.rotation_logits`` (every symmetric equivalent right), batch mean."""
     logits = output.rotation_logits
@@ -258,7 +258,7 @@ def rotation_grid_term(output: Any, batch: TrainingBatch, context: LossContext) 
                                       batch.symmetries.to(logits)).mean()
 
 
-def mask_term(output: Any, batch: TrainingBatch, context: LossContext) -> Tensor:
+def mask_term(output: NetworkOutput, batch: TrainingBatch, context: LossContext) -> Tensor:
     """:func:`~sq_mitsuba.learning.losses.mask_loss` of ``output.mask_logits``."""
     return mask_loss(output.mask_logits, batch.mask)
 

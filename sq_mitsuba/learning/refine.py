@@ -5,7 +5,9 @@ pose correction so that the Mitsuba silhouette matches the target's mask; a quad
 keeps the raw parameters near the prediction. Each batch item is refined independently (the
 losses of the items are summed, and Adam's steps are per element), and each item returns the
 best parameters seen, by IoU, the start included: refinement never makes an item worse at the
-refinement resolution.
+refinement resolution. With ``shape = "pose"`` only the pose moves: the assembly stays the
+network's (the default after the global search, :mod:`sq_mitsuba.learning.search`, where
+fitting the outline by deforming the shape was measured to worsen Chamfer-L1).
 
 Convention: the pose correction is ``R = exp([w]_x) R0`` (a rotation vector w applied in the
 camera frame) and ``t = t0 + |t0| dt``, so one learning rate suits rotation (radians) and
@@ -45,6 +47,8 @@ class RefineOptions:
     "Icosphere level of each primitive's mesh (2: 162 vertices)."
     prior_weight: float = non_negative(0.01)
     "Weight of the mean squared change of the raw parameters (keeps the result near the start)."
+    shape: Literal["free", "pose"] = "free"
+    "What moves: 'free' (the pose and every raw shape parameter) or 'pose' (the shape stays)."
     loss: Literal["iou", "mse"] = "iou"
     "Per-item silhouette loss: 'iou' (1 - soft IoU, steady gradients far from the target) or 'mse'."
     patience: int = in_range(1, 10_000, default=15)
@@ -154,10 +158,11 @@ def refine_pose_and_shape(assembly: Assembly, rotation: Tensor, translation: Ten
     translation0 = translation.detach().to(dtype)
     distance = torch.linalg.vector_norm(translation0, dim=-1, keepdim=True)
     raw0 = raw_from_assembly(assembly).to(dtype)
-    raw = raw0.clone().requires_grad_(True)
+    raw = raw0.clone().requires_grad_(options.shape == "free")
     rotation_vector = torch.zeros(batch, 3, dtype=dtype, requires_grad=True)
     shift = torch.zeros(batch, 3, dtype=dtype, requires_grad=True)
-    optimizer = torch.optim.Adam([raw, rotation_vector, shift], lr=options.lr)
+    optimizer = torch.optim.Adam([raw, rotation_vector, shift] if options.shape == "free"
+                                 else [rotation_vector, shift], lr=options.lr)
 
     def pose() -> tuple[Tensor, Tensor]:
         return (torch.linalg.matrix_exp(_skew(rotation_vector)) @ rotation0,

@@ -6,13 +6,16 @@ network's start may converge in fewer steps) on a small dataset rendered for the
 (two generated spacecraft, ``IMAGES`` images each at 128 px, 16 spp, both test models):
 
 - evaluation: :func:`sq_mitsuba.evaluation.evaluate.evaluate` over the split, network and
-  every metric, without figures or baseline (one-off costs), then with ``refine`` (default
-  :class:`~sq_mitsuba.learning.refine.RefineOptions`: at most 50 steps, stopping after 15
-  without gain; against the ground-truth and a segmented mask); per-image time of the loop,
-  images/s its inverse;
-- predict latency per image: the network alone (batch of one, BatchNorm folded), and the
-  network followed by exactly 50 refinement steps (patience 50) against the image's mask;
-  and ``predict_files`` whole (network, overlay silhouette, OBJ, GLB, JSON and PNG writes).
+  every metric, without figures or baseline (one-off costs), then with ``refine`` (the
+  default search + refinement, against a segmented and the ground-truth mask); per-image time
+  of the loop, images/s its inverse;
+- predict latency per image: the network alone (batch of one, BatchNorm folded); the network
+  followed by exactly 50 refinement steps (patience 50) against the image's mask (the
+  refinement alone, as before the search existed); the network and the global pose search
+  (default :class:`~sq_mitsuba.learning.search.SearchOptions`: 4 + 1,024 candidate rotations
+  scored at 32 px, the best 128 again at 64 px); the network and the search + refinement
+  (:func:`~sq_mitsuba.learning.search.search_and_refine` with its defaults); and
+  ``predict_files`` whole (network, overlay silhouette, OBJ, GLB, JSON and PNG writes).
 
 Everything runs on the CPU (Mitsuba's LLVM variant, scipy KD-trees); ``--device`` is not used.
 """
@@ -57,6 +60,12 @@ def run(options: BenchOptions) -> Report:
     from sq_mitsuba.learning.inference import Predictor
     from sq_mitsuba.learning.network import NetworkConfig, SuperquadricNet
     from sq_mitsuba.learning.refine import RefineOptions, refine_pose_and_shape
+    from sq_mitsuba.learning.search import (
+        SearchOptions,
+        pose_candidates,
+        search_and_refine,
+        search_poses,
+    )
 
     torch.set_num_threads(options.threads)
     torch.manual_seed(0)
@@ -85,7 +94,7 @@ def run(options: BenchOptions) -> Report:
             report.timings.append(Timing(
                 name, [1.0 / r for r in rates],
                 note=f"{images} images of {RESOLUTION} px in one batch; network + "
-                     f"{'2 refinements (GT and segmented mask) + ' if refine else ''}"
+                     f"{'2 searches + refinements (segmented and GT mask) + ' if refine else ''}"
                      "11 metrics for each method"))
             report.notes.append(f"{name.split(',')[0]}: median "
                                 f"{sorted(rates)[len(rates) // 2]:.2f} images/s")
@@ -112,6 +121,29 @@ def run(options: BenchOptions) -> Report:
             f"predict: network + {REFINE_STEPS} refinement steps, per image", refined,
             note=f"refinement at {refine_options.resolution} px, level {refine_options.level}, "
                  f"spp {refine_options.spp}; steps taken {sorted(set(steps_taken))}"))
+        search = SearchOptions()
+
+        def predict_and_search() -> None:
+            prediction = predictor.predict(image, camera)
+            search_poses(prediction.assembly, pose_candidates(prediction.rotation, None,
+                                                              search.grid),
+                         prediction.translation, mask, camera, search)
+
+        report.timings.append(Timing(
+            "predict: network + search, per image",
+            time_callable(predict_and_search, max(1, min(options.repeats, 5)), warmup=1),
+            note=f"4 + {search.grid} rotations at {search.coarse_resolution} px, the best "
+                 f"{search.fine} at {search.resolution} px, spp {search.spp}, recentred"))
+        def predict_search_refine() -> None:
+            prediction = predictor.predict(image, camera)
+            search_and_refine(prediction.assembly, prediction.rotation, prediction.translation,
+                              mask, camera)
+
+        report.timings.append(Timing(
+            "predict: network + search + refinement, per image",
+            time_callable(predict_search_refine, max(1, min(options.repeats, 5)), warmup=1),
+            note=f"defaults: the best {search.keep} refined {search.screen_steps} steps each, "
+                 "the best of them to 25 steps (pose only)"))
         path = root / "input.png"
         from PIL import Image
 

@@ -1,0 +1,160 @@
+"""Global pose search by render and compare: batched silhouettes, candidates, search, refinement."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from sq_mitsuba.geometry.assembly import Assembly
+from sq_mitsuba.geometry.camera import Camera
+from sq_mitsuba.geometry.rotation import random_rotations
+from sq_mitsuba.geometry.so3_grid import covering_angle_deg, so3_grid, with_half_turns
+from sq_mitsuba.learning.refine import RefineOptions
+from sq_mitsuba.learning.search import (
+    SearchOptions,
+    pose_candidates,
+    search_and_refine,
+    search_poses,
+)
+from sq_mitsuba.render.silhouette import SilhouetteRenderer, mask_iou, render_assembly
+from sq_mitsuba.render.silhouette_batch import PoseSilhouettes
+
+RESOLUTION = 64
+GRID = 2048
+
+
+def _angle_deg(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    cos = ((a.transpose(-1, -2) @ b).diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2
+    return torch.rad2deg(torch.arccos(cos.clamp(-1, 1)))
+
+
+@pytest.fixture(scope="module")
+def scene():
+    """An assembly without symmetries (three unequal primitives off the axes), three true
+    poses, and the masks an independent renderer (the differentiable one) draws of them."""
+    batch = 3
+    truth = Assembly.from_values(
+        size=torch.tensor([[[0.32, 0.14, 0.10], [0.06, 0.28, 0.05], [0.09, 0.09, 0.20]]] * batch,
+                          dtype=torch.float64),
+        shape=torch.tensor([[[0.3, 0.5], [0.2, 0.2], [0.8, 0.6]]] * batch, dtype=torch.float64),
+        translation=torch.tensor([[[0.0, 0.0, 0.0], [0.20, 0.10, 0.0], [-0.15, 0.05, 0.15]]]
+                                 * batch, dtype=torch.float64))
+    rotation = random_rotations(batch, torch.Generator().manual_seed(3), torch.float64)
+    translation = torch.tensor([[0.05, -0.03, 1.8], [0.0, 0.02, 1.6], [-0.06, 0.04, 2.0]],
+                               dtype=torch.float64)
+    camera = Camera.default(RESOLUTION)
+    with torch.no_grad():
+        masks = render_assembly(truth, rotation, translation,
+                                SilhouetteRenderer(camera, spp=16), level=2) > 0.5
+    return truth, rotation, translation, masks, camera
+
+
+def test_batched_silhouettes_match_the_differentiable_renderer(scene):
+    truth, rotation, translation, _, camera = scene
+    vertices, faces = truth.merged_mesh(2)
+    poses = torch.cat([rotation, so3_grid(5)])
+    places = torch.cat([translation, translation[:1].expand(5, 3)])
+    reference = render_assembly(Assembly(truth.params[:1]), poses, places,
+                                SilhouetteRenderer(camera, spp=64), level=2)
+    for spp in (1, 16):
+        coverage = PoseSilhouettes(camera, spp=spp, max_rays=3 * 64 * 64 * spp).render(
+            vertices[0], faces, poses, places)  # several launches
+        assert coverage.shape == (8, RESOLUTION, RESOLUTION)
+        assert float(mask_iou(coverage, reference.float()).min()) > 0.97
+    behind = PoseSilhouettes(camera).render(vertices[0], faces, rotation[:1],
+                                            torch.tensor([0.0, 0.0, -2.0]))
+    assert float(behind.sum()) == 0.0
+
+
+def test_search_finds_the_pose_from_a_grid_within_its_spacing(scene):
+    """Acceptance: the true pose, found again from the silhouette alone, from a uniform grid
+    (the 'network' rotation is a half turn away from the truth), to within the grid's spacing;
+    the assembly has no symmetry, so no rotation shows the same outline."""
+    truth, rotation, translation, masks, camera = scene
+    network = rotation @ torch.diag(torch.tensor([-1.0, 1.0, -1.0], dtype=torch.float64))
+    off = translation + torch.tensor([0.04, -0.03, 0.0], dtype=torch.float64)
+    candidates = pose_candidates(network, grid=GRID)
+    assert candidates.shape == (3, 4 + GRID, 3, 3)
+    result = search_poses(truth, candidates, off, masks, camera, SearchOptions())
+    nearest = _angle_deg(so3_grid(GRID)[None], rotation[:, None]).amin(dim=1)
+    error = _angle_deg(result.rotation, rotation)
+    spacing = 1.5 * covering_angle_deg(GRID)  # the largest nearest-cell angle measured
+    assert bool((error <= spacing).all()), (error, nearest, spacing)
+    assert bool((error <= nearest + 8.0).all()), (error, nearest)
+    # Recentring found the translation again (the search fits it to the mask), the depth
+    # too when asked to.
+    distance = translation.norm(dim=-1)
+    assert bool(((result.translation - translation).norm(dim=-1) < 0.03 * distance).all())
+    deeper = off + torch.tensor([0.0, 0.0, 0.15], dtype=torch.float64)
+    fitted = search_poses(truth, result.rotation[:, None], deeper, masks, camera,
+                          SearchOptions(fit_depth=True))
+    assert bool(((fitted.translation - translation).norm(dim=-1) < 0.04 * distance).all())
+    # Every candidate has a score; the winner's is the best of the fine pass.
+    assert result.scores.shape == (3, 4 + GRID)
+    assert torch.equal(result.score, result.fine_scores.amax(dim=1))
+    assert torch.equal(result.best(1)[:, 0], result.fine_index.gather(
+        1, result.fine_scores.argmax(1, keepdim=True))[:, 0])
+
+
+def test_search_and_refine_from_hypotheses(scene):
+    """With hypotheses (a near-true one among random ones), the search picks it and the
+    refinement ends at a high IoU; the pose-only refinement leaves the shape as it was."""
+    truth, rotation, translation, masks, camera = scene
+    generator = torch.Generator().manual_seed(5)
+    hypotheses = random_rotations(3 * 6, generator, torch.float64).reshape(3, 6, 3, 3)
+    axis = torch.tensor([[0.0, -0.6, 0.8], [0.6, 0.0, 0.0], [-0.8, 0.0, 0.0]],
+                        dtype=torch.float64)  # the skew matrix of a unit axis
+    tilt = torch.linalg.matrix_exp(0.14 * axis)  # 8 degrees
+    hypotheses[:, 2] = tilt @ rotation
+    network = random_rotations(3, generator, torch.float64)
+    result = search_and_refine(
+        truth, network, translation, masks, camera, hypotheses,
+        SearchOptions(keep=2, screen_steps=2),
+        RefineOptions(steps=4, patience=4, shape="pose"))
+    assert result.search.candidates.shape == (3, 4 + 4 * 6, 3, 3)
+    assert bool((_angle_deg(result.search_rotation, rotation) < 10.0).all())
+    assert bool((result.iou > 0.85).all()), result.iou
+    assert torch.allclose(result.assembly.params, truth.params.double(), atol=1e-3)
+
+
+def test_alternating_rounds_never_lower_the_iou(scene):
+    truth, rotation, translation, masks, camera = scene
+    start = with_half_turns(rotation)[:, 1]  # the true rotation is among its half turns
+    result = search_and_refine(truth, start, translation, masks, camera, None,
+                               SearchOptions(grid=0, keep=1, rounds=2),
+                               RefineOptions(steps=2, patience=2))
+    assert len(result.rounds) == 2 and result.rounds[1] >= result.rounds[0]
+
+
+def test_bad_input_gives_one_line_errors(scene):
+    truth, rotation, translation, masks, camera = scene
+    candidates = pose_candidates(rotation, grid=8)
+
+    def refused(match: str, **changes) -> None:
+        arguments = dict(assembly=truth, candidates=candidates, translation=translation,
+                         masks=masks, camera=camera)
+        arguments.update(changes)
+        with pytest.raises(ValueError, match=match) as error:
+            search_poses(**arguments)
+        assert "\n" not in str(error.value)
+
+    refused(r"masks: size \(32, 32\) differs", masks=masks[:, ::2, ::2])
+    empty = masks.clone()
+    empty[1] = False
+    refused(r"masks: item\(s\) \[1\] are empty", masks=empty)
+    refused("candidates: K = 0", candidates=candidates[:, :0])
+    nan = candidates.clone()
+    nan[0, 3, 0, 0] = float("nan")
+    refused("candidates: contains NaN", candidates=nan)
+    refused("candidates: not rotation matrices", candidates=2 * candidates)
+    refused(r"translation: the target must lie in front", translation=-translation)
+    bad = with_half_turns(rotation)
+    bad[1, 2, 1, 1] = float("nan")
+    for hypotheses, match in ((bad, "hypotheses: contains NaN"),
+                              (bad[:, :0], "hypotheses: K = 0"),
+                              (bad[:2], r"hypotheses: expected shape \(3, K, 3, 3\)")):
+        with pytest.raises(ValueError, match=match) as error:
+            search_and_refine(truth, rotation, translation, masks, camera, hypotheses)
+        assert "\n" not in str(error.value)
+    with pytest.raises(ValueError, match="spp: expected a positive integer"):
+        PoseSilhouettes(camera, spp=0)
