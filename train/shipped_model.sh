@@ -9,7 +9,7 @@
 # Lite0 encoder, spatial latents, rotation distribution head, mask head) for 340 steps (the
 # best.pt of the shipped run: the end of epoch 3 of a 6-epoch schedule), then evaluation on
 # val and test. The shipped file was trained on an H100 (DEVICE=cuda); on 2 CPU cores the
-# same steps take about 25 min of training and 10 min of rendering (eval/MODEL_CARD.md).
+# rendering takes about 10 min and the 340 steps a few minutes (eval/MODEL_CARD.md).
 set -euo pipefail
 WORK=${1:-data/shipped}
 SQ=${SQ:-sq-mitsuba}
