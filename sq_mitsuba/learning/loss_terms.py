@@ -90,7 +90,7 @@ class LossConfig:
     """Weight of each term by name (the names of ``sq_mitsuba.learning.loss_terms``: chamfer,
     occupancy, reprojection, rotation, rotation_6d, rotation_grid, translation, overlap, taper,
     mask). A table in a
-    file lists every term that trains; --set loss.weights.NAME=W changes one."""
+    file lists every term that trains; --set loss.weights.taper=0 changes one."""
     sharpness: float = positive(10.0)
     "Sharpness s of the occupancy sigmoid g = sigmoid(s (1 - f)) (paper Eq. 14)."
     beta: float = positive(1.25)
