@@ -41,7 +41,8 @@ SMALL = ["--set", "refinement.steps=3", "--set", "refinement.patience=3",
 def val_eval(eval_checkpoint, train_dataset, tmp_path_factory):
     out = tmp_path_factory.mktemp("eval") / "tiny" / "val"
     code = main(["eval", "--checkpoint", str(eval_checkpoint), "--data", str(train_dataset),
-                 "--split", "val", "--out", str(out), "--refine", *SMALL])
+                 "--split", "val", "--out", str(out), "--refine", "--set", "mesh_ranking=4",
+                 *SMALL])
     assert code == 0
     return out
 
@@ -90,6 +91,19 @@ def test_per_image_rows_match_the_network_and_the_labels(val_eval, eval_checkpoi
         for metric in ("iou_2d", "iou_3d"):
             assert 0.0 <= float(row[metric]) <= 1.0
         assert float(row["chamfer_l1_paper"]) > float(row["chamfer_l1_occnet"]) > 0
+
+
+def test_mesh_ranking_ranks_each_network_prediction_among_the_splits_models(val_eval):
+    info = json.loads((val_eval / "eval.json").read_text())["mesh_ranking"]
+    assert info["candidates"] == 2 and info["images"] == 4  # val: the two training models
+    rows = read_rows(val_eval / "mesh_ranking.csv")
+    network = {(r["model"], r["index"]) for r in read_rows(val_eval / "per_image.csv")
+               if r["method"] == "network"}
+    assert {(r["model"], r["index"]) for r in rows} == network
+    for row in rows:  # with two candidates: first iff the own mesh is at least as near
+        first = float(row["own_chamfer"]) <= float(row["nearest_other_chamfer"])
+        assert (row["rank"], row["beaten"]) == (("1", "1.0000") if first else ("2", "0.0000"))
+    assert info["top1"] == sum(r["rank"] == "1" for r in rows) / 4
 
 
 def test_baseline_is_the_mean_training_pose(val_eval, train_dataset):

@@ -102,6 +102,20 @@ def test_pose_only_refinement_keeps_the_shape_and_fixes_the_pose(perturbed):
     assert float(torch.rad2deg(torch.arccos(cos.clamp(-1, 1))).mean()) < 10.0  # from 10 deg
 
 
+def test_fixed_depth_keeps_t_z_where_free_depth_turns_size_errors_into_depth(perturbed):
+    # The start's sizes are off by +20 % / -20 %: a free depth moves the assembly away / closer
+    # to match the outline (the depth error a wrong shape causes); a fixed one cannot.
+    _, rotation, translation, masks, camera, start, *_ = perturbed
+    depths = {}
+    for depth in ("free", "fixed"):
+        result = refine_pose_and_shape(start, rotation, translation, masks, camera,
+                                       RefineOptions(steps=20, shape="pose", depth=depth))
+        depths[depth] = result.translation[:, 2] / translation[:, 2]
+    assert torch.equal(depths["fixed"], torch.ones(4, dtype=torch.float64))
+    farther = torch.tensor([1.0, -1.0, 1.0, -1.0], dtype=torch.float64)  # sizes x1.2, x0.8
+    assert bool(((depths["free"] - 1) * farther > 0.02).all()), depths["free"]
+
+
 def test_bad_input_is_refused(perturbed):
     _, rotation, translation, masks, camera, start, *_ = perturbed
     with pytest.raises(ValueError, match="masks: size"):

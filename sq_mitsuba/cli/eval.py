@@ -24,14 +24,17 @@ one; column mask_source), and the same against the ground-truth mask as an upper
 Outputs in --out: per_image.csv (every metric and the label's lighting: phase angle, Earth in
 view, eclipse, visibility), per_model.{csv,md}, summary.{csv,md} (mean ± std and median),
 per_model.png (bars per model, as the paper's Fig. 10), qualitative.png (Fig. 12),
-consistency.png (Fig. 11) and eval.json (settings, images/s). `sq-mitsuba report` collates
-eval folders into the paper's tables.
+consistency.png (Fig. 11) and eval.json (settings, images/s); with --set mesh_ranking=N,
+mesh_ranking.csv: for N network predictions, the rank of the image's own model among every
+model of the split by Chamfer-L1 (is the shape read from the image?). `sq-mitsuba report`
+collates eval folders into the paper's tables.
 
 Without --checkpoint the model shipped with the package is used. A checkpoint that does not
 fit this version's network, an empty split or an unwritable --out is a one-line error before
 any work (exit code 2). Other settings: --set key=value on the eval options, e.g.
 --set refinement.steps=20 --set search.grid=576 --set mask=segmentation
---set refinement.shape=free --set volume_points=20000."""
+--set refinement.shape=free --set refinement.depth=fixed --set volume_points=20000
+--set mesh_ranking=256."""
 
 #: EvalOptions fields exposed as options; the rest are reachable through --set.
 FLAGS = {"split": "--split", "refine": "--refine", "limit": "--limit",

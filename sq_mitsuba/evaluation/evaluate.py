@@ -34,7 +34,11 @@ Files written to the output folder (each atomically):
   primitive), its surface points and the ground-truth mesh (as the paper's Fig. 12);
 - ``consistency.png``: several images of a model with their predicted assemblies in one fixed
   view of the body frame (as the paper's Fig. 11);
-- ``eval.json``: settings, checkpoint, counts, symmetries per model, images/s.
+- ``mesh_ranking.csv`` (``mesh_ranking`` > 0): for that many network predictions, spread
+  evenly, the rank of the image's own model among every model of the split by Chamfer-L1 to
+  the prediction (:mod:`sq_mitsuba.evaluation.mesh_ranking`: is the shape read from the image?);
+- ``eval.json``: settings, checkpoint, counts, symmetries per model, images/s, and the mesh
+  ranking's medians.
 
 Convention: 2D IoU compares the predicted assembly's silhouette at the *predicted* pose with
 the ground-truth mask (for every method, the refined ones included), both at the network's
@@ -89,6 +93,8 @@ COLUMNS = ("model", "index", "filename", "method", *METRICS, *EXTRAS, "mask_sour
 SHOWN = ("chamfer_l1_paper", "chamfer_l1_occnet", "camera_chamfer", "iou_2d", "iou_3d",
          "rotation_error_deg", "rotation_error_sym_deg", "rotation_error_folded_deg",
          "translation_error_rel")
+MESH_RANKING_FILE = "mesh_ranking.csv"
+"""Per ranked image: its own model's rank among the split's meshes (``mesh_ranking`` > 0)."""
 OUTPUT_FILES = ("per_image.csv", "per_model.csv", "per_model.md", "summary.csv", "summary.md",
                 "per_model.png", "qualitative.png", "consistency.png", "eval.json")
 """What :func:`evaluate` writes (the PNGs unless ``figures`` is off)."""
@@ -130,6 +136,8 @@ class EvalOptions:
     "Predict with the batch-norm-folded network (same output up to ~1e-5; faster on CPU)."
     figures: bool = True
     "Draw per_model.png, qualitative.png and consistency.png."
+    mesh_ranking: int = in_range(0, 10_000_000, default=0)
+    "Network predictions ranked by Chamfer-L1 against every model of the split (0: off)."
     qualitative: int = in_range(1, 64, default=6)
     "Rows (images, spread over the split) of the qualitative grid."
     consistency_models: int = in_range(1, 16, default=3)
@@ -609,6 +617,9 @@ def evaluate(predictor: Any, data_root: str | Path, out_dir: str | Path,
     models = _ModelData(dataset, options.volume_points)
     indices = evenly(len(dataset), options.limit)
     wanted = {indices[k] for k in evenly(len(indices), options.qualitative)}
+    ranked = ({indices[k] for k in evenly(len(indices), options.mesh_ranking)}
+              if options.mesh_ranking and len(dataset.models) >= 2 else set())
+    to_rank: list[tuple[int, int, str, Assembly]] = []  # item, model index, model, assembly
     rows: list[dict[str, Any]] = []
     examples: list[dict[str, Any]] = []
     network_seconds = search_seconds = refine_seconds = 0.0
@@ -670,6 +681,9 @@ def evaluate(predictor: Any, data_root: str | Path, out_dir: str | Path,
                             row[name] = ""
                     rows.append(row)
             for k, item in enumerate(chunk):
+                if item in ranked:
+                    to_rank.append((int(batch["index"][k]), model_indices[k], batch["model"][k],
+                                    Assembly(prediction.assembly.params[k:k + 1].detach())))
                 if item in wanted:
                     example = {"image": batch["image"][k, 0], "mask": batch["mask"][k, 0],
                                "model": batch["model"][k], "index": int(batch["index"][k]),
@@ -684,6 +698,13 @@ def evaluate(predictor: Any, data_root: str | Path, out_dir: str | Path,
     loop_seconds = time.perf_counter() - loop_started
     summary = write_tables(rows, out_dir)
     files = [out_dir / name for name in OUTPUT_FILES[:5]]
+    ranking = None
+    if to_rank:
+        from sq_mitsuba.evaluation.mesh_ranking import write_mesh_ranking
+
+        ranking = write_mesh_ranking(dataset, to_rank, out_dir / MESH_RANKING_FILE,
+                                     options.surface_points, options.level, progress)
+        files.append(out_dir / MESH_RANKING_FILE)
     if options.figures:
         from sq_mitsuba.evaluation.figures import (
             plot_consistency,
@@ -719,6 +740,7 @@ def evaluate(predictor: Any, data_root: str | Path, out_dir: str | Path,
         "network_ms_per_image": round(1000 * network_seconds / images, 3),
         "search_ms_per_image": round(1000 * search_seconds / images, 3),
         "search_refine_ms_per_image": round(1000 * refine_seconds / images, 3),
+        "mesh_ranking": ranking,
         "loop_seconds": round(loop_seconds, 3),
         "wall_seconds": round(time.perf_counter() - started, 3),
     })

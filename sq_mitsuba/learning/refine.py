@@ -11,7 +11,9 @@ fitting the outline by deforming the shape was measured to worsen Chamfer-L1).
 
 Convention: the pose correction is ``R = exp([w]_x) R0`` (a rotation vector w applied in the
 camera frame) and ``t = t0 + |t0| dt``, so one learning rate suits rotation (radians) and
-translation (a fraction of the distance). Raw parameters are those of
+translation (a fraction of the distance); with ``depth = "fixed"`` the correction's z component
+stays zero, so t_z is the start's: a silhouette fixes the depth only through the predicted
+shape's size, whose error it would otherwise turn into a depth error. Raw parameters are those of
 :meth:`sq_mitsuba.geometry.assembly.Assembly.from_raw`; :func:`raw_from_assembly` inverts it.
 """
 
@@ -49,6 +51,8 @@ class RefineOptions:
     "Weight of the mean squared change of the raw parameters (keeps the result near the start)."
     shape: Literal["free", "pose"] = "free"
     "What moves: 'free' (the pose and every raw shape parameter) or 'pose' (the shape stays)."
+    depth: Literal["free", "fixed"] = "free"
+    "The translation's depth t_z: 'free', or 'fixed' at the start's (only t_x, t_y move)."
     loss: Literal["iou", "mse"] = "iou"
     "Per-item silhouette loss: 'iou' (1 - soft IoU, steady gradients far from the target) or 'mse'."
     patience: int = in_range(1, 10_000, default=15)
@@ -161,12 +165,14 @@ def refine_pose_and_shape(assembly: Assembly, rotation: Tensor, translation: Ten
     raw = raw0.clone().requires_grad_(options.shape == "free")
     rotation_vector = torch.zeros(batch, 3, dtype=dtype, requires_grad=True)
     shift = torch.zeros(batch, 3, dtype=dtype, requires_grad=True)
+    # Zeroes the z component of the correction when the depth is held.
+    shift_axes = torch.tensor([1.0, 1.0, 0.0 if options.depth == "fixed" else 1.0], dtype=dtype)
     optimizer = torch.optim.Adam([raw, rotation_vector, shift] if options.shape == "free"
                                  else [rotation_vector, shift], lr=options.lr)
 
     def pose() -> tuple[Tensor, Tensor]:
         return (torch.linalg.matrix_exp(_skew(rotation_vector)) @ rotation0,
-                translation0 + distance * shift)
+                translation0 + distance * shift * shift_axes)
 
     best_iou = torch.full((batch,), -1.0, dtype=dtype)
     best_raw, best_rotation, best_translation = raw0.clone(), rotation0.clone(), \
