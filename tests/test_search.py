@@ -117,6 +117,21 @@ def test_search_and_refine_from_hypotheses(scene):
     assert torch.allclose(result.assembly.params, truth.params.double(), atol=1e-3)
 
 
+def test_network_candidates_keep_the_networks_rotation_up_to_a_half_turn(scene):
+    """candidates = "network": the hypotheses (one near the truth) are not searched, so the
+    result is one of the network's rotation's four half turns, refined a few steps."""
+    truth, rotation, translation, masks, camera = scene
+    generator = torch.Generator().manual_seed(6)
+    network = random_rotations(3, generator, torch.float64)
+    result = search_and_refine(
+        truth, network, translation, masks, camera, rotation[:, None],
+        SearchOptions(candidates="network", keep=1), RefineOptions(steps=1, patience=1))
+    assert result.search.candidates.shape == (3, 4, 3, 3)
+    turned = with_half_turns(network)  # (3, 4, 3, 3)
+    closest = _angle_deg(result.search_rotation[:, None].expand_as(turned), turned).amin(dim=1)
+    assert bool((closest < 1e-3).all())
+
+
 def test_alternating_rounds_never_lower_the_iou(scene):
     truth, rotation, translation, masks, camera = scene
     start = with_half_turns(rotation)[:, 1]  # the true rotation is among its half turns

@@ -5,6 +5,7 @@ the network learns (the loss terms fall, silhouettes fit)."""
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import math
 import os
@@ -97,6 +98,11 @@ def test_configs_say_what_they_reproduce():
     assert tiny.loss.enabled() == cpu.loss.enabled() and tiny.augment == cpu.augment
     assert tiny.loss.weights == cpu.loss.weights
     assert (tiny.optim.lr, tiny.optim.eps) == (cpu.optim.lr, cpu.optim.eps)
+    # The shipped model's recipe is cpu_lite0.toml trained longer, nothing else.
+    lite0 = load_train_config(ROOT / "train" / "configs" / "cpu_lite0.toml")
+    shipped = load_train_config(ROOT / "train" / "configs" / "shipped.toml")
+    assert shipped.optim.epochs == 2 * lite0.optim.epochs
+    assert dataclasses.replace(shipped, optim=lite0.optim) == lite0
 
 
 @pytest.mark.slow

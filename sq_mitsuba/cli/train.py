@@ -14,8 +14,8 @@ optionally a mask head, each chosen by name under [network]) on the train split 
 SPE3R-layout dataset, validating on a subset of its val split.
 
 The run is described by a TOML config (train/configs/: the paper's Table 1 (a)-(d) and
-Table 2's M = 4..8, this project's CPU recipe cpu.toml, the shipped model's cpu_lite0.toml,
-tiny.toml for smoke tests), changed
+Table 2's M = 4..8, this project's CPU recipe cpu.toml, cpu_lite0.toml with the network that
+reads the pose, the shipped model's shipped.toml, tiny.toml for smoke tests), changed
 field by field with --set (dotted names, TOML values). A config file may start from another
 with a top-level  base = "other.toml".
 
