@@ -109,7 +109,7 @@ def test_search_and_refine_from_hypotheses(scene):
     network = random_rotations(3, generator, torch.float64)
     result = search_and_refine(
         truth, network, translation, masks, camera, hypotheses,
-        SearchOptions(keep=2, screen_steps=2),
+        SearchOptions(candidates="hypotheses", keep=2, screen_steps=2),
         RefineOptions(steps=4, patience=4, shape="pose"))
     assert result.search.candidates.shape == (3, 4 + 4 * 6, 3, 3)
     assert bool((_angle_deg(result.search_rotation, rotation) < 10.0).all())

@@ -14,9 +14,10 @@ render`) and score every image: Chamfer-L1 (the paper's and the occnet conventio
 2D IoU at the predicted pose, 3D IoU, rotation error (raw, over the model's symmetries and over
 the four half turns of the body frame), translation error, SPEED score and a camera-frame
 Chamfer. The trivial baseline (the mean training assembly at the mean training pose) is scored
-beside it. --refine adds render and compare: a global pose search (the network's rotation and
-hypotheses, or a uniform grid, times the four half turns, scored by Mitsuba silhouettes; row
-'search') and the search followed by refinement (row 'refined'), both against the mask read
+beside it. --refine adds render and compare: a global pose search (the network's rotation, or a
+uniform grid for a network without a rotation distribution head, times the four half turns,
+scored by Mitsuba silhouettes; --set search.candidates=hypotheses adds its top-K hypotheses;
+row 'search') and the search followed by refinement (row 'refined'), both against the mask read
 from the image (the network's mask head, or the threshold segmentation for a model without
 one; column mask_source), and the same against the ground-truth mask as an upper bound (row
 'refined_gt'). Silhouettes cannot tell apart poses with the same outline.

@@ -23,8 +23,9 @@ camera.json). Without --camera, an image of another aspect ratio is padded with 
 camera's (its field of view then lies across the image's longer side; pose.json records the
 camera of the image's own pixels and a warning); with --camera it is an error naming the file.
 
---refine searches the pose globally (the network's rotation and hypotheses, or a uniform grid,
-times the four half turns of the body frame, scored by Mitsuba silhouettes), then refines the
+--refine searches the pose globally (the network's rotation, or a uniform grid for a network
+without a rotation distribution head, times the four half turns of the body frame, scored by
+Mitsuba silhouettes; --set search.candidates=hypotheses adds its top-K hypotheses), then refines the
 best few, against its --mask (one per image, same size, target bright) or, without masks, the
 mask the network predicts (a mask segmented from the image for a model without a mask head;
 --set mask=segmentation forces it); the line printed and pose.json name the mask fitted.

@@ -6,8 +6,9 @@ up to four methods:
 
 - ``network``: the network's prediction;
 - ``search``: the global pose search (:func:`sq_mitsuba.learning.search.search_poses`: the
-  network's rotation and its top-K hypotheses, or a uniform grid, each times the four half
-  turns, scored by Mitsuba silhouettes) against the mask read from the image, with the
+  network's rotation (with ``search.candidates = "hypotheses"`` its top-K hypotheses too), or a
+  uniform grid for a network without them, each times the four half turns, scored by Mitsuba
+  silhouettes) against the mask read from the image, with the
   network's assembly (``refine``);
 - ``refined``: that search followed by refinement of its best few
   (:func:`sq_mitsuba.learning.search.search_and_refine`) against the same mask; the mask is

@@ -11,10 +11,14 @@ the result with the best IoU is returned, with every candidate's score for inspe
 Candidates (:func:`pose_candidates`): the network's rotation and, when the network has a
 rotation-distribution head, its top-K hypotheses, each times the four half turns of the body
 frame (``R @ S``: a principal-axes body frame is fixed only up to them); without hypotheses, a
-uniform grid of SO(3) (:func:`~sq_mitsuba.geometry.so3_grid.so3_grid`) instead; with
-``candidates = "network"``, the network's rotation and its half turns only (the silhouette
-then picks the half turn and the translation, and the rotation stays the network's: while the
-predicted shape is rough, the best outline is often a wrong rotation). Each candidate
+uniform grid of SO(3) (:func:`~sq_mitsuba.geometry.so3_grid.so3_grid`) instead. With
+``candidates = "network"`` (the default) a network with hypotheses keeps its own rotation:
+the candidates are it and its half turns only, and the silhouette picks the half turn and the
+translation; a network without them (a regressed rotation) is searched over the grid either
+way. Measured with the shipped model on 64 test images (folded rotation error, median): the
+network 27 deg; after a search of its hypotheses too, 35 deg (the best outline of a rough
+shape is often a wrong rotation); after a search of its own rotation only, 27 deg; the 2D IoU
+after refinement 0.557 and 0.551, the second in half the time. Each candidate
 keeps the network's translation, shifted (``recentre``) so that its silhouette's centroid is
 the mask's: a wrong rotation also moves the outline's centre, and the score should judge the
 rotation, not the translation. The depth stays the network's unless ``fit_depth``: fitting the
@@ -86,8 +90,8 @@ class SearchOptions:
     "Samples per pixel of the scored silhouettes (1: the pixel centre)."
     grid: int = in_range(0, 100_000, default=1024)
     "Uniform rotations scored when no hypotheses are given (0: the network's rotation only)."
-    candidates: Literal["hypotheses", "network"] = "hypotheses"
-    "Rotations searched, x 4 half turns: 'hypotheses' (or the grid) and the network's; 'network'."
+    candidates: Literal["hypotheses", "network"] = "network"
+    "With hypotheses: search them too ('hypotheses') or the network's rotation only ('network')."
     recentre: bool = True
     "Shift each candidate's translation to put its silhouette's centroid on the mask's."
     fit_depth: bool = False
@@ -431,10 +435,9 @@ def search_and_refine(assembly: Assembly, rotation: Tensor, translation: Tensor,
     refine = refine or SEARCH_REFINEMENT
     validate(search)
     validate(refine)
-    if search.candidates == "network":
-        candidates = pose_candidates(rotation)
-    else:
-        candidates = pose_candidates(rotation, hypotheses, search.grid)
+    candidates = pose_candidates(rotation, hypotheses, search.grid)  # checks the hypotheses
+    if search.candidates == "network" and hypotheses is not None:
+        candidates = candidates[:, :4]  # the network's rotation and its half turns come first
     translation = translation.detach().double().cpu()
     masks = masks.detach().cpu()
     renderers = SearchRenderers(camera, search)
