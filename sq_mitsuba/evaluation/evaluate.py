@@ -209,6 +209,7 @@ def score(assembly: Assembly, rotation: Tensor, translation: Tensor, batch: dict
         translation_error,
         volumetric_iou,
     )
+    from sq_mitsuba.learning.losses import counted_surface_samples
     from sq_mitsuba.render.silhouette import render_assembly
 
     rotation = rotation.detach().double()
@@ -218,9 +219,7 @@ def score(assembly: Assembly, rotation: Tensor, translation: Tensor, batch: dict
     size = rotation.shape[0]
     with torch.no_grad():
         assembly = Assembly(assembly.params.detach().double())
-        points, inside_other = assembly.surface_points_with_mask(level)  # (B, M, V, 3)
-        points = points.reshape(size, -1, 3)
-        keep = ~inside_other.reshape(size, -1)
+        points, keep = counted_surface_samples(assembly, level)  # (B, M * V, 3), (B, M * V)
         # Convention: an assembly whose every point is inside another primitive keeps them all.
         keep[keep.sum(-1) == 0] = True
         gt_points = batch["surface_points"].double()

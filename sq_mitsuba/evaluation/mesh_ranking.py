@@ -35,11 +35,11 @@ __all__ = ["MeshRanking", "OwnMeshRank", "assembly_clouds", "median_rank", "writ
 def assembly_clouds(assembly: Assembly, level: int = 3) -> list[np.ndarray]:
     """Per batch item, the (n_b, 3) float64 surface points of ``assembly`` that count: those
     inside no other primitive (all of them when every point is inside another)."""
+    from sq_mitsuba.learning.losses import counted_surface_samples
+
     with torch.no_grad():
-        points, inside_other = Assembly(assembly.params.detach().double()) \
-            .surface_points_with_mask(level)
-    points = points.reshape(points.shape[0], -1, 3).cpu().numpy()
-    keep = ~inside_other.reshape(points.shape[0], -1).cpu().numpy()
+        points, keep = counted_surface_samples(Assembly(assembly.params.detach().double()), level)
+    points, keep = points.cpu().numpy(), keep.cpu().numpy()
     return [cloud[k] if k.any() else cloud for cloud, k in zip(points, keep, strict=True)]
 
 
