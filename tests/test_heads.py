@@ -142,3 +142,69 @@ def test_legacy_state_dict_names_are_upgraded() -> None:
         "latent_head.to_z_sq.weight", "pose_head.mlp.4.bias", "encoder.stem.conv.weight"]
     new = SuperquadricNet(NetworkConfig(image_size=64)).state_dict()
     assert list(upgrade_state_dict(new)) == list(new)
+
+
+def _small_mask_config(resolution: str) -> NetworkConfig:
+    return NetworkConfig(encoder="efficientnet_lite0", latent="spatial", pose_head="grid",
+                         mask_head=True, mask_resolution=resolution, image_size=64,
+                         rotation_cells=72, num_primitives=3, latent_dim=32, hidden_dim=32,
+                         spatial_channels=16)
+
+
+def test_full_resolution_mask_head_starts_as_the_quarter_head_upsampled() -> None:
+    """A full-resolution head grown from a quarter-resolution network (its weights loaded, the
+    new layers as built) gives that network's mask, bilinearly upsampled, to float rounding;
+    after one optimiser step on a mask loss its mask differs (the correction is not stuck at
+    zero), and every layer of it has a gradient by the second step."""
+    torch.manual_seed(0)
+    quarter = SuperquadricNet(_small_mask_config("quarter")).eval()
+    full = SuperquadricNet(_small_mask_config("full")).eval()
+    missing = full.load_state_dict(quarter.state_dict(), strict=False).missing_keys
+    assert missing and all(name.startswith("mask_head.") for name in missing)
+    images = torch.rand(2, 1, 64, 64, generator=torch.Generator().manual_seed(1))
+    k = torch.tensor([[80.0, 0.0, 32.0], [0.0, 80.0, 32.0], [0.0, 0.0, 1.0]])
+    with torch.no_grad():
+        coarse = quarter(images, k).mask_logits
+        fine = full(images, k).mask_logits
+    assert coarse.shape == (2, 1, 16, 16) and fine.shape == (2, 1, 64, 64)
+    upsampled = torch.nn.functional.interpolate(coarse, size=(64, 64), mode="bilinear",
+                                                align_corners=False)
+    torch.testing.assert_close(fine, upsampled, rtol=0, atol=1e-5)
+    head = full.mask_head
+    optimizer = torch.optim.SGD(head.parameters(), lr=0.1)
+    target = (torch.rand(2, 1, 64, 64) > 0.5).float()
+    for _ in range(2):
+        optimizer.zero_grad()
+        logits = full(images, k).mask_logits
+        torch.nn.functional.binary_cross_entropy_with_logits(logits, target).backward()
+        optimizer.step()
+    silent = [n for n, p in head.named_parameters() if p.grad is None or not p.grad.any()]
+    assert silent == []
+    with torch.no_grad():
+        assert not torch.allclose(full(images, k).mask_logits, fine, atol=1e-4)
+
+
+def test_freeze_except_trains_the_named_part_and_keeps_the_rest_exact() -> None:
+    """With only ``mask_head.`` trainable: no other parameter gets a gradient, the frozen
+    encoder's batch-norm statistics do not move in train mode (it stays in eval mode), and a
+    prefix naming nothing is a one-line error listing the network's parts."""
+    torch.manual_seed(0)
+    net = SuperquadricNet(_small_mask_config("full"))
+    net.freeze_except(("mask_head.",))
+    net.train()
+    assert net.mask_head.training and not net.encoder.training
+    stats = {k: v.clone() for k, v in net.encoder.state_dict().items() if "running" in k}
+    images = torch.rand(3, 1, 64, 64, generator=torch.Generator().manual_seed(2))
+    k = torch.tensor([[80.0, 0.0, 32.0], [0.0, 80.0, 32.0], [0.0, 0.0, 1.0]])
+    out = net(images, k)
+    (out.mask_logits.mean() + out.raw.square().mean()).backward()
+    for name, parameter in net.named_parameters():
+        assert (parameter.grad is not None) == name.startswith("mask_head."), name
+    for key, value in net.encoder.state_dict().items():
+        if key in stats:
+            assert torch.equal(value, stats[key]), key
+    with pytest.raises(ValueError, match=r"trainable: 'mask_hed\.' names no parameter .*"
+                                         r"mask_head"):
+        net.freeze_except(("mask_hed.",))
+    net.freeze_except(())
+    assert all(p.requires_grad for p in net.parameters()) and net.encoder.training

@@ -304,3 +304,44 @@ def test_shipped_model(net, predictor, tmp_path, monkeypatch):
     assert "sq-mitsuba train" in str(info.value) and "\n" not in str(info.value)
     write_checkpoint(shipped, checkpoint_payload(net, CAMERA))
     assert_same(sq_mitsuba.load_model().predict(two_scenes()), predictor.predict(two_scenes()))
+
+
+def test_reading_from_turned_copies_turns_with_the_image(train_dataset):
+    """predict(turns=4) of an image rolled by 90 deg is Rz(90 deg) times that of the image
+    (the four copies are the same four images) up to the half turns of the body frame and the
+    grid's cell mapping (about a cell, 9 deg): over the fixture's test images, by
+    construction and more than the plain network, which is roll-equivariant only as far as
+    training taught it. Its translation
+    and mask are the plain prediction's. Bad ``turns`` and a network without a distribution
+    head are one-line errors, and ``can_turn`` says so beforehand."""
+    from sq_mitsuba.data.spe3r import Spe3rDataset
+    from sq_mitsuba.geometry.metrics import rotation_error_deg
+    from sq_mitsuba.geometry.so3_grid import half_turns
+    from sq_mitsuba.learning.augment import rotate_batch, z_rotation
+
+    shipped = sq_mitsuba.load_model()
+    dataset = Spe3rDataset(train_dataset, "test", num_surface=10, num_occupancy=2)
+    images = torch.stack([dataset[i]["image"] for i in range(len(dataset))]).float()
+    camera = dataset.camera
+    quarter = torch.full((len(images),), math.pi / 2)
+    rolled = rotate_batch(images, quarter)
+    roll = z_rotation(quarter.double())
+    errors = {}
+    for turns in (1, 4):
+        read = shipped.predict(images, camera, turns=turns)
+        read_rolled = shipped.predict(rolled, camera, turns=turns)
+        errors[turns] = rotation_error_deg(read_rolled.rotation.double(),
+                                           roll @ read.rotation.double(), half_turns())
+    assert float(errors[4].median()) < min(15.0, float(errors[1].median())), errors
+    plain = shipped.predict(images, camera)
+    assert torch.equal(read.translation, plain.translation) and torch.equal(read.mask, plain.mask)
+    torch.testing.assert_close(read.rotation_hypotheses[:, 0], read.rotation)
+    assert shipped.can_turn(camera)
+    image = images[:1]
+    for bad in (0, 2.5, True):
+        with pytest.raises(ValueError, match=r"^turns: expected an int in \[1, 360\]"):
+            shipped.predict(image, camera, turns=bad)
+    regressing = Predictor(SuperquadricNet(NetworkConfig(image_size=64)), camera)
+    assert not regressing.can_turn(camera)
+    with pytest.raises(ValueError, match=r"turns: .* needs a rotation-distribution head"):
+        regressing.predict(image, camera, turns=4)

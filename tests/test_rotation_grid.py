@@ -124,3 +124,44 @@ def test_distribution_loss_is_the_cross_entropy_to_the_targets() -> None:
     torch.testing.assert_close(rotation_distribution_loss(peak_true, truth, two_fold),
                                rotation_distribution_loss(peak_flip, truth, two_fold),
                                rtol=0.05, atol=0.0)
+
+
+def test_turned_cells_are_the_nearest_cells_of_the_rolled_grid() -> None:
+    """Against brute force: each cell's image under a camera roll is the grid cell at the
+    smallest angle from Rz @ G; no roll maps every cell to itself."""
+    from sq_mitsuba.learning.augment import z_rotation
+    from sq_mitsuba.learning.rotation_grid import turned_cells
+
+    grid = so3_grid(576)
+    angles = torch.tensor([0.0, 0.7, math.pi], dtype=torch.float64)
+    cells = turned_cells(grid, z_rotation(angles), chunk=100)
+    assert torch.equal(cells[0], torch.arange(576))
+    for k, angle in enumerate(angles):
+        moved = z_rotation(angle[None])[0] @ grid
+        angle_to = rotation_angle(moved[:, None], grid[None])  # (G, G)
+        brute = angle_to.argmin(dim=1)
+        assert torch.equal(cells[k], brute)
+
+
+def test_turned_distributions_multiply_back_in_the_unturned_frame() -> None:
+    """Copies peaked where the roll moves one cell combine to a distribution peaked at that
+    cell; one copy gives its own log-softmax; mismatched shapes are refused."""
+    from sq_mitsuba.learning.augment import z_rotation
+    from sq_mitsuba.learning.rotation_grid import turned_cells, turned_log_probabilities
+
+    grid = so3_grid(576)
+    turns = 4
+    cells = turned_cells(grid, z_rotation(torch.arange(turns) * (2 * math.pi / turns)))
+    generator = torch.Generator().manual_seed(3)
+    noise = torch.randn(turns, 2, 576, generator=generator)
+    truth = torch.tensor([17, 300])
+    logits = noise.clone()
+    for k in range(turns):
+        logits[k, torch.arange(2), cells[k, truth]] += 6.0  # each copy sees the turned pose
+    combined = turned_log_probabilities(logits, cells)
+    assert torch.equal(combined.argmax(dim=-1), truth)
+    torch.testing.assert_close(combined.exp().sum(-1), torch.ones(2))
+    single = turned_log_probabilities(noise[:1], cells[:1])
+    torch.testing.assert_close(single, noise[0].log_softmax(-1))
+    with pytest.raises(ValueError, match="expected logits"):
+        turned_log_probabilities(noise[0], cells)

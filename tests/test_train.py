@@ -9,6 +9,7 @@ import dataclasses
 import json
 import math
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -103,6 +104,12 @@ def test_configs_say_what_they_reproduce():
     shipped = load_train_config(ROOT / "train" / "configs" / "shipped.toml")
     assert shipped.optim.epochs == 2 * lite0.optim.epochs
     assert dataclasses.replace(shipped, optim=lite0.optim) == lite0
+    # Its second stage trains the full-resolution mask head alone, on the same data.
+    mask = load_train_config(ROOT / "train" / "configs" / "shipped_mask.toml")
+    assert mask.optim.trainable == ("mask_head.",) and mask.loss.enabled() == ("mask",)
+    assert mask.network == dataclasses.replace(shipped.network, mask_resolution="full")
+    assert dataclasses.replace(mask, network=shipped.network, loss=shipped.loss,
+                               optim=shipped.optim, validation=shipped.validation) == shipped
 
 
 @pytest.mark.slow
@@ -249,6 +256,43 @@ def test_resume_refuses_another_config_or_dataset(train_dataset, cache_dir, tmp_
     code, err = _cli(base, capsys)  # not resuming: the folder holds a run
     assert code == 2 and "--resume" in err
     assert (out / "last.pt").read_bytes() == before
+
+
+def test_a_new_head_trains_alone_on_a_trained_network(reference_run, train_dataset, cache_dir,
+                                                     tmp_path, capsys):
+    """init_from + optim.trainable (how train/configs/shipped_mask.toml grows the shipped
+    model's mask head): after two steps every weight and statistic outside the mask head is the
+    first run's bit for bit, the mask head moved, and the mask IoU is validated. A file of
+    another network, or a mask metric without a mask head, is a one-line error."""
+    out = tmp_path / "run"
+    start = reference_run / "last.pt"
+    sets = [f"data.cache_dir={cache_dir}", "network.mask_head=true",
+            'network.mask_resolution="full"', f'init_from="{start}"',
+            'optim.trainable=["mask_head."]', "optim.epochs=1", 'validation.metric="mask_iou"',
+            *(f"loss.weights.{name}=0.0" for name in ("chamfer", "reprojection", "translation",
+                                                      "taper")),
+            "loss.weights.mask=1.0"]
+    args = ["train", "--config", str(TINY), "--data", str(train_dataset), "--out", str(out),
+            "--quiet"]
+    code, err = _cli([*args, *(x for item in sets for x in ("--set", item))], capsys)
+    assert code == 0, err
+    before, after = _read_checkpoint(start)["model"], _read_checkpoint(out / "last.pt")["model"]
+    for name, value in after.items():
+        if name.startswith("mask_head."):
+            continue
+        assert torch.equal(value, before[name]), name
+    trained = _read_checkpoint(out / "best.pt")
+    assert trained["best"]["metric"] == "mask_iou"
+    assert 0.0 <= float(_rows(out / "val.csv")[-1]["mask_iou"]) <= 1.0
+    head = {n: v for n, v in after.items() if n.startswith("mask_head.")}
+    assert head and any(v.abs().sum() > 0 for n, v in head.items() if "correction" in n)
+    for extra, message in (("network.num_primitives=3", "init_from: .* has shape"),
+                           ("network.mask_head=false", "validation.metric: 'mask_iou' needs")):
+        code, err = _cli([*args[:-2], str(tmp_path / "refused"), "--quiet",
+                          *(x for item in [*sets, extra] for x in ("--set", item))], capsys)
+        assert code == 2 and err.count("\n") == 1, err
+        assert re.search(message, err), err
+        assert not (tmp_path / "refused").exists()
 
 
 # ------------------------------------------------------------------------ bad input

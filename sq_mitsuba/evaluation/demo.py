@@ -477,6 +477,7 @@ def _predict_and_score(predictor: Any, data: Path, options: DemoOptions,
         label_record,
         open_split,
         score,
+        search_start,
         search_where,
         volume_points,
     )
@@ -505,8 +506,10 @@ def _predict_and_score(predictor: Any, data: Path, options: DemoOptions,
             size = len(chunk)
             prediction = predictor.predict(batch["image"], camera)
             masks, usable, mask_source = image_masks(prediction, batch["image"], "network")
-            refined = search_where(prediction, masks, usable, camera, SearchOptions(),
-                                   refine_options)
+            search = SearchOptions()
+            refined = search_where(search_start(predictor, batch["image"], camera, prediction,
+                                                search.turns),
+                                   masks, usable, camera, search, refine_options)
             candidates = {
                 "network": (prediction.assembly, prediction.rotation, prediction.translation),
                 "refined": refined.refined,
@@ -643,6 +646,7 @@ def _write_page(out: Path, options: DemoOptions, records: Sequence[dict[str, Any
                 wall: float) -> tuple[Path, Path]:
     from sq_mitsuba.evaluation.demo_page import DemoPage, PageImage, write_page
     from sq_mitsuba.evaluation.evaluate import as_number
+    from sq_mitsuba.learning.search import SearchOptions
 
     preset = options.preset
     models = sorted({r["model"] for r in records})
@@ -655,12 +659,14 @@ def _write_page(out: Path, options: DemoOptions, records: Sequence[dict[str, Any
         f"(catalogue seed {options.seed}; the shipped model trains on catalogue seed 0), "
         f"path-traced at {preset.resolution} x {preset.resolution} px in the default space "
         "scene. For each image the network predicts a superquadric assembly and its pose; "
-        "a global search then scores candidate rotations (the network's own for a model with a "
-        "rotation distribution head, a uniform grid of SO(3) for one without, each with the "
-        "four half turns of the body frame) by Mitsuba silhouettes against the mask read "
-        f"from the image ({mask_sources}), and test-time refinement ({preset.refine_steps} "
-        "steps at most) adjusts the best through the differentiable silhouette. Silhouettes "
-        "cannot tell apart poses with the same outline.",
+        "a global search then scores candidate rotations (for a model with a rotation "
+        f"distribution head its own, read again from {SearchOptions().turns} in-plane turns of "
+        "the image; a uniform "
+        "grid of SO(3) for one without; each with the four half turns of the body frame) by "
+        f"Mitsuba silhouettes against the mask read from the image ({mask_sources}), and "
+        f"test-time refinement ({preset.refine_steps} steps at most) adjusts the pose of the "
+        "best through the differentiable silhouette, its rotation held near the search's. "
+        "Silhouettes cannot tell apart poses with the same outline.",
         f"Model: {_shown_model(checkpoint)}. Trivial baseline: "
         f"{baseline_source}.",
         "Silhouettes: red, the network's prediction; green, after refinement; yellow, the "

@@ -120,7 +120,8 @@ class EvalOptions:
     search: SearchOptions = field(default_factory=SearchOptions)
     "Global pose search settings."
     refinement: RefineOptions = field(default_factory=lambda: SEARCH_REFINEMENT)
-    "Refinement after the search (pose only by default: shape changes degraded Chamfer-L1)."
+    """Refinement after the search (by default the pose only, its rotation held near the
+    search's: shape changes degraded Chamfer-L1; see learning.search.SEARCH_REFINEMENT)."""
     baseline: bool = True
     "Also score the trivial baseline (needs the dataset's train split)."
     baseline_images: int = in_range(1, 1_000_000, default=256)
@@ -473,6 +474,17 @@ class _Searched:
     seconds: float
 
 
+def search_start(predictor: Any, images: Tensor, camera: Camera, prediction: Any,
+                 turns: int) -> Any:
+    """The prediction the pose search starts from: ``prediction`` itself, or (``turns`` > 1,
+    for a predictor that can turn these images) the same with its rotation and hypotheses
+    read from ``turns`` in-plane turns of ``images`` (:meth:`Predictor.predict`)."""
+    can_turn = getattr(predictor, "can_turn", None)
+    if turns <= 1 or can_turn is None or not can_turn(camera):
+        return prediction
+    return predictor.predict(images, camera, turns=turns)
+
+
 def search_where(prediction: Any, masks: Tensor, usable: Tensor, camera: Camera,
                  search: SearchOptions, refinement: RefineOptions) -> _Searched:
     """:func:`~sq_mitsuba.learning.search.search_and_refine` of the items where ``usable``
@@ -644,10 +656,14 @@ def evaluate(predictor: Any, data_root: str | Path, out_dir: str | Path,
                 gt_masks = batch["mask"][:, 0] > 0.5
                 masks, usable, mask_source = image_masks(prediction, batch["image"],
                                                           options.mask)
-                searched = search_where(prediction, masks, usable, camera, options.search,
+                tick = time.perf_counter()
+                start = search_start(predictor, batch["image"], camera, prediction,
+                                     options.search.turns)
+                turned_seconds = time.perf_counter() - tick  # the search's start: its cost
+                searched = search_where(start, masks, usable, camera, options.search,
                                         options.refinement)
-                search_seconds += searched.search_seconds
-                refine_seconds += searched.seconds
+                search_seconds += turned_seconds + searched.search_seconds
+                refine_seconds += turned_seconds + searched.seconds
                 mask_iou_gt = mask_iou(masks.double(), gt_masks.double())
                 candidates["search"] = searched.search
                 candidates["refined"] = searched.refined
@@ -657,7 +673,7 @@ def evaluate(predictor: Any, data_root: str | Path, out_dir: str | Path,
                                       "segmentation_iou": mask_iou_gt}
                     sources[method] = mask_source
                 if options.refine_ground_truth:
-                    upper = search_where(prediction, gt_masks, torch.ones(size, dtype=torch.bool),
+                    upper = search_where(start, gt_masks, torch.ones(size, dtype=torch.bool),
                                          camera, options.search, options.refinement)
                     candidates["refined_gt"] = upper.refined
                     extras["refined_gt"] = {"search_score": upper.search_score,

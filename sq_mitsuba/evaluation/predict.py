@@ -332,7 +332,7 @@ def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
     from PIL import Image
     from tqdm import tqdm
 
-    from sq_mitsuba.evaluation.evaluate import with_fast_path
+    from sq_mitsuba.evaluation.evaluate import search_start, with_fast_path
     from sq_mitsuba.io import atomic_path, atomic_write_json, check_output_folder
     from sq_mitsuba.learning.search import search_and_refine
     from sq_mitsuba.render.silhouette import SilhouetteRenderer, render_assembly
@@ -379,9 +379,11 @@ def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
             outline, record.mask_source = _target(prediction, targets, k, mask_paths,
                                                   picture.shape)
             tick = time.perf_counter()
+            start = search_start(predictor, torch.from_numpy(picture).float()[None],
+                                 image_camera, prediction, options.search.turns)
             result = search_and_refine(
-                assembly, rotation, translation, torch.from_numpy(outline)[None], image_camera,
-                getattr(prediction, "rotation_hypotheses", None), options.search,
+                assembly, start.rotation, translation, torch.from_numpy(outline)[None],
+                image_camera, getattr(start, "rotation_hypotheses", None), options.search,
                 options.refinement)
             record.refine_ms = 1000 * (time.perf_counter() - tick)
             record.search_ms = 1000 * result.search_seconds

@@ -196,23 +196,59 @@ class MaskHead(nn.Module):
     from the coarsest, each level is upsampled (bilinear) to the next finer one and added;
     a 3 x 3 conv (ReLU) and a 1 x 1 conv give one logit per stride-4 cell.
 
-    maps -> logits (B, 1, ceil(H / 4), ceil(W / 4)); ``sigmoid`` gives the probability that
-    a cell is the target. The bias starts at the logit of 0.25, about the share of an image
-    the target covers.
+    With ``full_resolution`` the stride-4 logits are upsampled (bilinear) to the input's size
+    and a correction is added that is computed from the stride-4 features and the image itself
+    (two guided steps: features upsampled x 2, concatenated with a 3 x 3 conv of the image at
+    that stride, fused by a 3 x 3 conv). The encoder's finest map is at stride 4, so a thin
+    solar panel or boom narrower than 4 pixels can only be drawn from the image's own pixels.
+    The correction's last layer starts at zero: a head grown from a quarter-resolution one
+    starts as exactly that head's mask, upsampled.
+
+    maps -> logits (B, 1, ceil(H / 4), ceil(W / 4)); with ``full_resolution``,
+    (maps, normalised images (B, C, H, W)) -> logits (B, 1, H, W). ``sigmoid`` gives the
+    probability that a cell is the target. The bias starts at the logit of 0.25, about the
+    share of an image the target covers.
     """
 
-    def __init__(self, pyramid_channels: tuple[int, ...], width: int = 32) -> None:
+    def __init__(self, pyramid_channels: tuple[int, ...], width: int = 32, *,
+                 full_resolution: bool = False, in_channels: int = 1,
+                 guide_width: int = 16) -> None:
         super().__init__()
+        self.full_resolution = full_resolution
         self.lateral = nn.ModuleList(nn.Conv2d(c, width, 1) for c in pyramid_channels[:4])
         self.smooth = nn.Conv2d(width, width, 3, padding=1)
         self.to_logit = nn.Conv2d(width, 1, 1)
         with torch.no_grad():
             self.to_logit.bias.fill_(math.log(0.25 / 0.75))
+        if full_resolution:
+            # Stride 2, then stride 1: image features beside the upsampled mask features.
+            self.image_half = nn.Conv2d(in_channels, guide_width, 3, stride=2, padding=1)
+            self.fuse_half = nn.Conv2d(width + guide_width, guide_width, 3, padding=1)
+            self.image_full = nn.Conv2d(in_channels, guide_width, 3, padding=1)
+            self.fuse_full = nn.Conv2d(2 * guide_width, guide_width, 3, padding=1)
+            self.to_correction = nn.Conv2d(guide_width, 1, 1)
+            with torch.no_grad():
+                self.to_correction.weight.zero_()
+                self.to_correction.bias.zero_()
 
-    def forward(self, maps: list[Tensor]) -> Tensor:
+    def forward(self, maps: list[Tensor], images: Tensor | None = None) -> Tensor:
         x = self.lateral[3](maps[3])
         for level in (2, 1, 0):
             finer = maps[level]
             x = F.interpolate(x, size=finer.shape[-2:], mode="bilinear", align_corners=False)
             x = x + self.lateral[level](finer)
-        return self.to_logit(F.relu(self.smooth(x)))
+        features = F.relu(self.smooth(x))
+        logits = self.to_logit(features)
+        if not self.full_resolution:
+            return logits
+        if images is None:
+            raise ValueError("images: a full-resolution mask head needs the (normalised) images")
+        half = F.relu(self.image_half(images))
+        x = F.interpolate(features, size=half.shape[-2:], mode="bilinear", align_corners=False)
+        x = F.relu(self.fuse_half(torch.cat([x, half], dim=1)))
+        full = F.relu(self.image_full(images))
+        x = F.interpolate(x, size=full.shape[-2:], mode="bilinear", align_corners=False)
+        x = F.relu(self.fuse_full(torch.cat([x, full], dim=1)))
+        coarse = F.interpolate(logits, size=images.shape[-2:], mode="bilinear",
+                               align_corners=False)
+        return coarse + self.to_correction(x)

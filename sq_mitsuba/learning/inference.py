@@ -26,7 +26,8 @@ Convention:
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+import math
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -181,6 +182,8 @@ class Predictor:
         # slower (11 ms), oneDNN graph fusion fails to compile this network.
         self._folded = model.folded(channels_last=True) if self.fast else None
         self._traced: dict[tuple, tuple[torch.nn.Module, tuple[str, ...]]] = {}
+        # turned_cells of the grid per (turns, device), for predict(turns=T).
+        self._turned_cells: dict[tuple, Tensor] = {}
         #: The checkpoint the model came from (set by ``load_model``), for records.
         self.source: Path | None = None
         #: The trivial baseline stored with the checkpoint (set by ``load_model``), or None:
@@ -198,7 +201,8 @@ class Predictor:
         """Superquadrics per predicted assembly (M)."""
         return self.model.config.num_primitives
 
-    def predict(self, images: Tensor | np.ndarray, camera: Camera | None = None) -> Prediction:
+    def predict(self, images: Tensor | np.ndarray, camera: Camera | None = None,
+                turns: int = 1) -> Prediction:
         """Predict assemblies and poses for a batch of images.
 
         Args:
@@ -206,12 +210,19 @@ class Predictor:
                 any H, W (see the module docstring for the resizing).
             camera: intrinsics of these images (default: the predictor's camera); a camera for
                 another size of the same aspect ratio is rescaled.
+            turns: T >= 1; with T > 1 (a distribution head only) the rotation and its
+                hypotheses come from T copies of each image turned in-plane by 360 / T deg
+                steps, their distributions mapped back and multiplied
+                (:func:`~sq_mitsuba.learning.rotation_grid.turned_log_probabilities`): T times
+                the network's cost. The assembly, translation and mask are the unturned
+                image's. Needs a camera whose roll is an image rotation (square pixels, the
+                principal point at the centre).
 
         Returns:
             :class:`Prediction` on the model's device.
 
         Raises:
-            ValueError: naming ``images`` or ``camera``.
+            ValueError: naming ``images``, ``camera`` or ``turns``.
         """
         network = self.model
         x = prepare_images(images, network.config.in_channels)
@@ -219,25 +230,18 @@ class Predictor:
         camera = camera_for(self.camera if camera is None else camera, width, height)
         parameter = next(network.parameters())
         size = self.image_size
+        if type(turns) is not int or turns != 1:  # True == 1, yet not a count
+            self._check_turns(turns, camera.rescaled(size, size))
         x = resize_images(x.to(device=parameter.device, dtype=parameter.dtype), size)
-        matrix = camera.rescaled(size, size).matrix(parameter.dtype, parameter.device)
-        if self._folded is not None:
-            with torch.inference_mode():
-                traced, names = self._traced_network(x, matrix)
-                output = NetworkOutput(**dict(zip(names, traced(x, matrix), strict=True)))
-        else:
-            was_training = network.training
-            if was_training:
-                network.eval()
-            try:
-                with torch.inference_mode():
-                    output = network(x, matrix)
-            finally:
-                if was_training:
-                    network.train()
+        network_camera = camera.rescaled(size, size)
+        matrix = network_camera.matrix(parameter.dtype, parameter.device)
+        output = self._run(x, matrix)
         # Clones made outside inference mode are ordinary tensors, so callers (test-time
         # refinement) can start autograd from them.
         rotation = output.rotation.clone()
+        if turns != 1:
+            rotation, logits = self._turned_rotation(x, matrix, output, turns)
+            output = replace(output, rotation_logits=logits)
         hypotheses, scores = self._hypotheses(output, rotation)
         mask = None
         if output.mask_logits is not None:
@@ -256,6 +260,71 @@ class Predictor:
             rotation_scores=scores,
             mask=mask,
         )
+
+    def can_turn(self, camera: Camera | None = None) -> bool:
+        """Whether ``predict(turns=T > 1)`` runs for images of ``camera`` (default: the
+        predictor's): a distribution head, and a camera whose roll is an image rotation."""
+        camera = self.camera if camera is None else camera
+        try:
+            self._check_turns(2, camera.rescaled(self.image_size, self.image_size))
+        except ValueError:
+            return False
+        return True
+
+    def _check_turns(self, turns: int, camera: Camera) -> None:
+        """One-line ``ValueError`` naming ``turns`` unless ``predict(turns=T)`` can run."""
+        from sq_mitsuba.learning.augment import check_rotation_exact
+
+        if isinstance(turns, bool) or not isinstance(turns, int) or not 1 <= turns <= 360:
+            raise ValueError(f"turns: expected an int in [1, 360], got {turns!r}")
+        if not isinstance(self.model.pose_head, RotationGridPoseHead):
+            raise ValueError("turns: reading the rotation from turned copies needs a "
+                             "rotation-distribution head (network.pose_head = 'grid')")
+        try:
+            check_rotation_exact(camera)
+        except ValueError as error:
+            raise ValueError(f"turns: {error}") from None
+
+    def _run(self, x: Tensor, matrix: Tensor) -> NetworkOutput:
+        """The network (eager, or the traced fast path) on prepared images, in eval mode."""
+        network = self.model
+        if self._folded is not None:
+            with torch.inference_mode():
+                traced, names = self._traced_network(x, matrix)
+                return NetworkOutput(**dict(zip(names, traced(x, matrix), strict=True)))
+        was_training = network.training
+        if was_training:
+            network.eval()
+        try:
+            with torch.inference_mode():
+                return network(x, matrix)
+        finally:
+            if was_training:
+                network.train()
+
+    def _turned_rotation(self, x: Tensor, matrix: Tensor, output: NetworkOutput,
+                         turns: int) -> tuple[Tensor, Tensor]:
+        """Rotation (B, 3, 3) and log-probabilities (B, G) read from ``turns`` in-plane turns
+        of the prepared images ``x`` (``output`` is the unturned copy's)."""
+        from sq_mitsuba.learning.augment import rotate_batch, z_rotation
+        from sq_mitsuba.learning.rotation_grid import turned_cells, turned_log_probabilities
+
+        head = self.model.pose_head
+        angles = torch.arange(turns, dtype=torch.float64) * (2.0 * math.pi / turns)
+        key = (turns, x.device)
+        if key not in self._turned_cells:
+            self._turned_cells[key] = turned_cells(head.grid_rotations(), z_rotation(angles))
+        # Every turned copy of every image in one batch: (T - 1) B images, copy-major.
+        batch = x.shape[0]
+        copies = angles[1:].to(x).repeat_interleave(batch)
+        turned = rotate_batch(x.repeat(turns - 1, 1, 1, 1), copies)
+        turned_logits = self._run(turned, matrix).rotation_logits
+        logits = torch.cat([output.rotation_logits[None],
+                            turned_logits.reshape(turns - 1, batch, -1)])
+        combined = turned_log_probabilities(logits, self._turned_cells[key])
+        with torch.inference_mode():
+            rotation = head.rotation_from_logits(combined.to(output.rotation_logits))
+        return rotation.clone(), combined.clone()
 
     def _hypotheses(self, output: NetworkOutput, rotation: Tensor) -> tuple[Tensor, Tensor]:
         """(B, K, 3, 3) rotation hypotheses and (B, K) scores of a network output."""

@@ -391,7 +391,7 @@ def mask_loss(logits: Tensor, mask: Tensor) -> Tensor:
     """Binary cross-entropy of the mask head's logits against the target's mask.
 
     Args:
-        logits: (B, 1, h, w) the mask head's logits (a quarter of the image's size).
+        logits: (B, 1, h, w) the mask head's logits (a quarter of the image's size, or all of it).
         mask: (B, 1, H, W) in [0, 1], area-averaged to h x w (a soft target at the outline).
 
     Returns:

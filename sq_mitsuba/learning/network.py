@@ -18,7 +18,8 @@ Architecture (each exchangeable part chosen by name in :class:`NetworkConfig`):
       rotation (regressed 6D, or a distribution over a grid of SO(3)) and the raw image
       position (u, v) of the body origin and its depth z, back-projected through K to the
       full translation ``t = z K^-1 [u, v, 1]``.
-    - Mask head (``mask_head``): the target's mask at a quarter of the input size.
+    - Mask head (``mask_head``): the target's mask at a quarter of the input size, or at its
+      full size (``mask_resolution = "full"``: corrected from the image's own pixels).
 
 Convention:
     - Input normalisation happens inside the network: ``(x - input_mean) / input_std`` with
@@ -44,7 +45,7 @@ from __future__ import annotations
 
 import copy
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import torch
@@ -149,7 +150,8 @@ class NetworkOutput:
         translation: (B, 3) body origin in the camera frame, ``depth K^-1 [u, v, 1]``.
         rotation_6d: (B, 6) raw 6D rotation of a regressing pose head, else None.
         rotation_logits: (B, G) scores over the SO(3) grid of a distribution head, else None.
-        mask_logits: (B, 1, ceil(H / 4), ceil(W / 4)) the mask head's logits, else None.
+        mask_logits: (B, 1, ceil(H / 4), ceil(W / 4)) the mask head's logits (B, 1, H, W with
+            ``mask_resolution = "full"``), else None.
     """
 
     raw: Tensor
@@ -244,13 +246,47 @@ class SuperquadricNet(nn.Module):
         self.sq_generator = SuperquadricGenerators(
             config.num_primitives, config.latent_dim, config.hidden_dim)
         self.pose_head = POSE_HEADS[config.pose_head](config)
-        self.mask_head = MaskHead(self.encoder.pyramid_channels) if config.mask_head else None
+        self.mask_head = (MaskHead(self.encoder.pyramid_channels,
+                                   full_resolution=config.mask_resolution == "full",
+                                   in_channels=config.in_channels)
+                          if config.mask_head else None)
         mean, std = config.normalisation()
         self.register_buffer("input_mean", torch.tensor(mean), persistent=False)
         self.register_buffer("input_std", torch.tensor(std), persistent=False)
         # Set by folded(): the encoder stores its weights channels-last, so feed it that way.
         self.channels_last = False
         self._init_last_layers()
+
+    def freeze_except(self, prefixes: Sequence[str]) -> None:
+        """Train only the parameters whose names start with one of ``prefixes`` (e.g.
+        ``("mask_head.",)``); every other parameter gets no gradient, and every module holding
+        only frozen parameters stays in eval mode through :meth:`train` (no batch-norm
+        statistics, no stochastic depth), so the frozen part computes exactly what it did.
+        An empty ``prefixes`` trains everything.
+
+        Raises:
+            ValueError: a prefix that names no parameter.
+        """
+        names = [name for name, _ in self.named_parameters()]
+        for prefix in prefixes:
+            if not any(name.startswith(prefix) for name in names):
+                parts = sorted({name.split(".")[0] for name in names})
+                raise ValueError(f"trainable: {prefix!r} names no parameter of the network "
+                                 f"(its parts: {', '.join(parts)})")
+        for name, parameter in self.named_parameters():
+            parameter.requires_grad_(not prefixes or name.startswith(tuple(prefixes)))
+        self.train(self.training)
+
+    def train(self, mode: bool = True) -> SuperquadricNet:
+        """``nn.Module.train``, except that modules with only frozen parameters stay in eval
+        mode (:meth:`freeze_except`)."""
+        super().train(mode)
+        if mode:
+            for module in self.modules():
+                parameters = list(module.parameters())
+                if parameters and not any(p.requires_grad for p in parameters):
+                    module.eval()
+        return self
 
     @torch.no_grad()
     def _init_last_layers(self) -> None:
@@ -269,12 +305,12 @@ class SuperquadricNet(nn.Module):
         if reset is not None:  # a_u = a_v = 0: image centre; a_z = 0: depth prior
             reset(gain)
 
-    def encode(self, images: Tensor) -> list[Tensor]:
-        """Images (B, C, H, W) in [0, 1] -> the encoder's feature maps (``forward_pyramid``)."""
+    def normalise(self, images: Tensor) -> Tensor:
+        """Images (B, C, H, W) in [0, 1] -> the encoder's input (centred, scaled)."""
         x = (images - self.input_mean) / self.input_std
         if self.channels_last:
             x = x.contiguous(memory_format=torch.channels_last)
-        return self.encoder.forward_pyramid(x)
+        return x
 
     def forward(self, images: Tensor, camera_matrix: Tensor) -> NetworkOutput:
         """Predict the assembly, its pose and (with a mask head) the mask.
@@ -300,7 +336,8 @@ class SuperquadricNet(nn.Module):
                              f"got {got}")
         batch, _, height, width = images.shape
         k = check_camera_matrix(camera_matrix, batch).to(images)
-        maps = self.encode(images)
+        normalised = self.normalise(images)
+        maps = self.encoder.forward_pyramid(normalised)
         z_sq, z_pose = self.latent_head(maps)
         raw = self.sq_generator(z_sq)  # (B, M, 16)
         pose = self.pose_head(z_pose)
@@ -312,7 +349,7 @@ class SuperquadricNet(nn.Module):
         homogeneous = torch.cat([pixel, pixel.new_ones(batch, 1)], dim=-1)[..., None]
         ray = torch.linalg.solve_triangular(k, homogeneous, upper=True)[..., 0]  # K^-1 [u,v,1]
         translation = depth[:, None] * ray
-        mask_logits = None if self.mask_head is None else self.mask_head(maps)
+        mask_logits = None if self.mask_head is None else self.mask_head(maps, normalised)
         return NetworkOutput(raw, pose.rotation, pixel, depth, translation,
                              rotation_6d=pose.rotation_6d,
                              rotation_logits=pose.rotation_logits, mask_logits=mask_logits)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 from sq_mitsuba.config import in_range, positive
 
@@ -41,7 +42,10 @@ class NetworkConfig:
     pose_head: str = "6d"
     "Pose head by name (heads.POSE_HEADS): 6d (regression) or grid (a distribution over SO(3))."
     mask_head: bool = False
-    "Also predict the target's mask (NetworkOutput.mask_logits, a quarter of the input size)."
+    "Also predict the target's mask (NetworkOutput.mask_logits, see mask_resolution)."
+    mask_resolution: Literal["quarter", "full"] = "quarter"
+    """The mask head's output: 'quarter' (a logit per stride-4 cell) or 'full' (the input's
+    size, the stride-4 mask corrected from the image's own pixels; heads.MaskHead)."""
     latent_dim: int = in_range(1, 4096, default=256)
     "Width of each of the two latents z_sq and z_pose."
     hidden_dim: int = in_range(1, 4096, default=256)

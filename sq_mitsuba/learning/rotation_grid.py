@@ -31,7 +31,11 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from sq_mitsuba.geometry.rotation import matrix_to_quaternion, quaternion_to_matrix
-from sq_mitsuba.geometry.so3_grid import covering_angle_deg, super_fibonacci_quaternions
+from sq_mitsuba.geometry.so3_grid import (
+    covering_angle_deg,
+    nearest_grid_index,
+    super_fibonacci_quaternions,
+)
 from sq_mitsuba.learning.heads import POSITION_OUTPUTS, PoseHeadOutput, register_pose_head
 
 if TYPE_CHECKING:
@@ -43,6 +47,8 @@ __all__ = [
     "grid_quaternions",
     "rotation_hypotheses",
     "soft_rotation_targets",
+    "turned_cells",
+    "turned_log_probabilities",
 ]
 
 #: Cells besides the argmax averaged by the local refinement.
@@ -100,16 +106,20 @@ class RotationGridPoseHead(nn.Module):
     def forward(self, z_pose: Tensor) -> PoseHeadOutput:
         h = self.trunk(z_pose)
         logits = self.to_logits(h)
+        return PoseHeadOutput(rotation=self.rotation_from_logits(logits),
+                              position=self.to_position(h), rotation_logits=logits)
+
+    def rotation_from_logits(self, logits: Tensor) -> Tensor:
+        """(B, G) scores over the grid -> (B, 3, 3): the argmax cell refined by its
+        neighbours (the module's convention)."""
         probabilities = logits.softmax(dim=-1)
         best = logits.argmax(dim=-1)  # (B,)
         cells = self.neighbours[best]  # (B, n + 1)
-        q = self.quaternions[cells]  # (B, n + 1, 4)
+        q = self.quaternions[cells].to(logits)  # (B, n + 1, 4)
         q = q * torch.sign((q * q[:, :1]).sum(-1, keepdim=True) + 1e-12)  # align to argmax
         weights = probabilities.gather(1, cells)[..., None]
         mean = (weights * q).sum(dim=1)
-        rotation = quaternion_to_matrix(mean / mean.norm(dim=-1, keepdim=True))
-        return PoseHeadOutput(rotation=rotation, position=self.to_position(h),
-                              rotation_logits=logits)
+        return quaternion_to_matrix(mean / mean.norm(dim=-1, keepdim=True))
 
 
 register_pose_head("grid", RotationGridPoseHead)
@@ -189,3 +199,41 @@ def rotation_hypotheses(logits: Tensor, grid: Tensor, count: int,
         rotations[item] = grid[chosen]
         scores[item, : len(kept)] = probabilities[item, kept]
     return rotations, scores
+
+
+@torch.no_grad()
+def turned_cells(grid: Tensor, turns: Tensor, chunk: int = 1024) -> Tensor:
+    """Where each cell goes when the camera rolls: (G, 3, 3) grid, (T, 3, 3) rotations about
+    the optical axis -> (T, G) long, the cell nearest ``turns[k] @ grid[g]``.
+
+    An image turned in its plane about the principal point shows the pose ``Rz R`` when the
+    original shows ``R`` (:func:`~sq_mitsuba.learning.augment.z_rotation`), so the score of
+    cell g for the original image is the turned image's score of cell ``[k, g]``.
+    """
+    grid = grid.double()
+    moved = (turns.double().to(grid.device)[:, None] @ grid[None]).reshape(-1, 3, 3)
+    # In chunks: the full (T G, G) table of traces would take gigabytes at 4,608 cells.
+    nearest = torch.cat([nearest_grid_index(part, grid) for part in moved.split(chunk)])
+    return nearest.reshape(turns.shape[0], grid.shape[0])
+
+
+def turned_log_probabilities(logits: Tensor, cells: Tensor) -> Tensor:
+    """One distribution from the scores of T turned copies of each image.
+
+    Args:
+        logits: (T, B, G) a distribution head's scores for each copy, copy k turned as row k of
+            ``cells`` says (:func:`turned_cells`; the unturned copy's row is the identity).
+        cells: (T, G) long.
+
+    Returns:
+        (B, G) the sum over copies of their log-probabilities, mapped back to the unturned
+        image's cells, normalised (a product of experts: a cell scores high only where every
+        turned copy agrees).
+    """
+    if logits.dim() != 3 or cells.shape != (logits.shape[0], logits.shape[2]):
+        raise ValueError(f"expected logits (T, B, G) and cells (T, G), got "
+                         f"{tuple(logits.shape)} and {tuple(cells.shape)}")
+    log_p = logits.float().log_softmax(dim=-1)
+    index = cells[:, None, :].expand(-1, logits.shape[1], -1)
+    total = log_p.gather(2, index).sum(dim=0)
+    return total - total.logsumexp(dim=-1, keepdim=True)

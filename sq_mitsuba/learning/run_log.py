@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import csv
 import io
+import math
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -103,7 +104,8 @@ class RunLog:
         self._rewrite(self.val_path, self.val_fields, self.val_rows)
         if self.tensorboard is not None:
             for key in VAL_METRICS:
-                self.tensorboard.add_scalar(f"val/{key}", row[key], int(row["step"]))
+                if math.isfinite(row.get(key, math.nan)):
+                    self.tensorboard.add_scalar(f"val/{key}", row[key], int(row["step"]))
 
     def close(self) -> None:
         self._log.close()
@@ -147,7 +149,9 @@ def plot_curves(rows: Sequence[dict[str, float]], val_rows: Sequence[dict[str, f
     axes[0].set_title("training loss (global batch mean)")
     axes[0].legend(fontsize=7)
     for axis, name in zip(axes[1:], VAL_METRICS, strict=True):
-        axis.plot([r["step"] for r in val_rows], [r[name] for r in val_rows], marker="o")
+        # A run resumed from before a metric existed, or a network without a mask head: NaN.
+        axis.plot([r["step"] for r in val_rows], [r.get(name, np.nan) for r in val_rows],
+                  marker="o")
         axis.set_xlabel("step")
         axis.set_title(f"val {name}")
     figure.tight_layout()

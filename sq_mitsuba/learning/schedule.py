@@ -26,9 +26,10 @@ def cosine_lr_factor(step: int, total_steps: int, warmup_steps: int = 0,
 
 def make_optimizer(model: nn.Module, optim: OptimConfig, total_steps: int
                    ) -> tuple[torch.optim.AdamW, torch.optim.lr_scheduler.LambdaLR]:
-    """AdamW over ``model``'s parameters and its per-step schedule (:func:`cosine_lr_factor`
-    over ``total_steps``)."""
-    optimizer = torch.optim.AdamW(model.parameters(), lr=optim.lr, betas=optim.betas,
+    """AdamW over ``model``'s trainable parameters (``requires_grad``) and its per-step
+    schedule (:func:`cosine_lr_factor` over ``total_steps``)."""
+    parameters = [p for p in model.parameters() if p.requires_grad]
+    optimizer = torch.optim.AdamW(parameters, lr=optim.lr, betas=optim.betas,
                                   eps=optim.eps, weight_decay=optim.weight_decay)
     scheduler = torch.optim.lr_scheduler.LambdaLR(
         optimizer, lambda s: cosine_lr_factor(s, total_steps, optim.warmup_steps,

@@ -18,12 +18,20 @@ translation; a network without them (a regressed rotation) is searched over the 
 way. Measured with the shipped model on 64 test images (folded rotation error, median): the
 network 27 deg; after a search of its hypotheses too, 35 deg (the best outline of a rough
 shape is often a wrong rotation); after a search of its own rotation only, 27 deg; the 2D IoU
-after refinement 0.557 and 0.551, the second in half the time. Each candidate
-keeps the network's translation, shifted (``recentre``) so that its silhouette's centroid is
-the mask's: a wrong rotation also moves the outline's centre, and the score should judge the
-rotation, not the translation. The depth stays the network's unless ``fit_depth``: fitting the
-area also fits the predicted shape's size errors and a partial mask's missing parts
-(measured on the shipped model's test images: relative translation error 0.10 -> 0.28).
+after refinement 0.557 and 0.551, the second in half the time. The network's rotation that
+the search starts from is read from ``turns`` in-plane turns of the image
+(:meth:`~sq_mitsuba.learning.inference.Predictor.predict` with ``turns``; the callers in
+:mod:`sq_mitsuba.evaluation` pass it), not from one: a distribution multiplied over 8 turns
+is 23.6 deg median against 26.7 on those 64 images (38.7 against 42.8 on 400). Neither a
+local search around that rotation nor one with the network's log-probability as a prior
+beat it: the outline of a rough shape pulls the rotation away (eval/MODEL_CARD.md).
+
+Each candidate keeps the network's translation, shifted (``recentre``) so that its
+silhouette's centroid is the mask's: a wrong rotation also moves the outline's centre, and the
+score should judge the rotation, not the translation. The depth stays the network's unless
+``fit_depth``: fitting the area also fits the predicted shape's size errors and a partial
+mask's missing parts (measured on the shipped model's test images: relative translation error
+0.10 -> 0.28).
 
 Limits, plainly: a silhouette cannot tell apart two poses with the same outline (a symmetric
 spacecraft, a pose and its mirror through the viewing axis, a face seen from the front or the
@@ -63,12 +71,16 @@ __all__ = [
     "search_poses",
 ]
 
-#: The refinement after a search, by default: pose only (measured on unknown models: letting the
-#: shape move too fits the outline better but worsens Chamfer-L1, even with a strong prior),
-#: at the network's depth (measured on 64 test images: a free depth raised the 2D IoU by 0.01
-#: and the relative translation error from 0.10 to 0.17, turning the shape's size error into a
-#: depth error), 25 steps at most.
-SEARCH_REFINEMENT = RefineOptions(steps=25, patience=10, shape="pose", depth="fixed")
+#: The refinement after a search, by default, each choice measured on 64 test images of the
+#: shipped model from its own mask (eval/MODEL_CARD.md, "Render and compare"): pose only
+#: (letting the sizes move too lifts the 2D IoU 0.568 -> 0.62 but worsens Chamfer-L1 by 5 %,
+#: or by 1 % at 0.59 under a strong prior; every shape parameter, by 40 %); at the network's
+#: depth (a free depth raised the 2D IoU by 0.01 and the relative translation error from 0.10
+#: to 0.17, turning the shape's size error into a depth error); the rotation held near the
+#: search's by a prior of weight 1 (without it the outline of the rough shape pulls the
+#: rotation from 24 to 34 deg median, for 0.013 of IoU); 25 steps at most.
+SEARCH_REFINEMENT = RefineOptions(steps=25, patience=10, shape="pose", depth="fixed",
+                                  rotation_prior=1.0)
 
 # Depth changes of the recentring step are clamped to this factor either way.
 _DEPTH_CLAMP = 2.0
@@ -90,6 +102,10 @@ class SearchOptions:
     "Samples per pixel of the scored silhouettes (1: the pixel centre)."
     grid: int = in_range(0, 100_000, default=1024)
     "Uniform rotations scored when no hypotheses are given (0: the network's rotation only)."
+    turns: int = in_range(1, 64, default=8)
+    """Read the network's rotation for the candidates from this many in-plane turns of the
+    image (Predictor.predict(turns=T); a distribution head and a camera whose roll is an image
+    rotation, else 1): the candidates' rotation, not the network row's."""
     candidates: Literal["hypotheses", "network"] = "network"
     "With hypotheses: search them too ('hypotheses') or the network's rotation only ('network')."
     recentre: bool = True

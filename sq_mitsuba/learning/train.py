@@ -207,6 +207,14 @@ def _build_network(config: TrainConfig, sources: DataSources) -> nn.Module:
     except Exception as error:  # a hostile or foreign file: torch's long advice is not ours
         raise TrainError(f"network.pretrained: {config.network.pretrained}: cannot be loaded "
                          f"as a weights file ({type(error).__name__})") from None
+    if config.validation.metric == "mask_iou" and model.mask_head is None:
+        raise TrainError("validation.metric: 'mask_iou' needs a mask head (network.mask_head)")
+    if config.init_from is not None:
+        _load_initial_weights(model, config.init_from)
+    try:
+        model.freeze_except(config.optim.trainable)
+    except ValueError as error:
+        raise TrainError(f"optim.{error}") from None
     size = config.network.image_size
     camera = sources.train_set.camera.rescaled(size, size)
     model.eval()  # no statistics updated, no random draw
@@ -217,6 +225,24 @@ def _build_network(config: TrainConfig, sources: DataSources) -> nn.Module:
     except LossTermError as error:
         raise TrainError(str(error)) from None
     return model.train()
+
+
+def _load_initial_weights(model: SuperquadricNet, path: Path) -> None:
+    """``init_from``: the file's weights into ``model``; layers the file lacks stay as built."""
+    try:
+        state = read_checkpoint(path)["model"]
+    except (OSError, ValueError, RuntimeError, KeyError) as error:
+        raise TrainError(f"init_from: {path}: cannot read weights ({error})") from None
+    own = model.state_dict()
+    foreign = sorted(set(state) - set(own))
+    if foreign:
+        raise TrainError(f"init_from: {path}: holds {foreign[0]!r}, which this network lacks "
+                         f"({len(foreign)} such entries): a network of another config")
+    for name, value in state.items():
+        if value.shape != own[name].shape:
+            raise TrainError(f"init_from: {path}: {name} has shape {tuple(value.shape)}, this "
+                             f"network's is {tuple(own[name].shape)}")
+    model.load_state_dict(state, strict=False)
 
 
 def _open_data(run: TrainRun, sources: DataSources, created: bool) -> TrainingData:

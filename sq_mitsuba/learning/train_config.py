@@ -92,6 +92,10 @@ class OptimConfig:
     "Images per step over all processes (each of N processes takes batch_size / N)."
     epochs: int = in_range(1, 100_000, default=50)
     "Passes over the training images; an epoch is ceil(images / batch_size) steps."
+    trainable: tuple[str, ...] = ()
+    """Train only the parameters whose names start with one of these (e.g. ["mask_head."]
+    with init_from: a new head on a trained network); the rest stay as they are, in eval
+    mode. Empty: train everything."""
 
     def __post_init__(self) -> None:
         for index, beta in enumerate(self.betas):
@@ -110,8 +114,9 @@ class ValidationConfig:
     "Validation images, spread evenly over the val split."
     batch_size: int = in_range(1, 4096, default=32)
     "Images per validation batch."
-    metric: Literal["chamfer_l1", "iou_2d", "rotation_error_deg"] = "chamfer_l1"
-    "The metric that picks best.pt (Chamfer and rotation error lower, IoU higher)."
+    metric: Literal["chamfer_l1", "iou_2d", "rotation_error_deg", "mask_iou"] = "chamfer_l1"
+    """The metric that picks best.pt (Chamfer and rotation error lower, the IoUs higher;
+    mask_iou: the mask head's, for a network with one)."""
     level: int = in_range(0, 5, default=3)
     "Icosphere level of the primitive meshes for the validation silhouettes and points."
     spp: int = in_range(1, 1024, default=16)
@@ -146,6 +151,10 @@ class TrainConfig:
     way (see eval/BENCHMARKS.md)."""
     checkpoint_every: int = non_negative(200)
     "Also write last.pt every this many steps (0: only at the end of each epoch)."
+    init_from: Path | None = None
+    """Start from the weights of this checkpoint or exported model (after the seed's
+    initialisation): layers it lacks keep their new weights; a layer of another shape, or one
+    the network lacks, is refused. None: start from the seed (and network.pretrained)."""
 
 
 # ------------------------------------------------------------------------------- files

@@ -1,11 +1,16 @@
-"""Validation during training: mean Chamfer-L1 (the paper's convention), 2D IoU and rotation
-error over a fixed subset of the val split, with the metrics of
-:mod:`sq_mitsuba.geometry.metrics` that evaluation reports too."""
+"""Validation during training: mean Chamfer-L1 (the paper's convention), 2D IoU, rotation
+error and the mask head's IoU over a fixed subset of the val split, with the metrics of
+:mod:`sq_mitsuba.geometry.metrics` that evaluation reports too.
+
+``mask_iou`` is the IoU of the mask head's mask (logits upsampled bilinearly to the image's
+size, probability > 0.5) against the true mask, as ``sq-mitsuba eval`` reports it; NaN for a
+network without a mask head."""
 
 from __future__ import annotations
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 from torch import Tensor, nn
 
 from sq_mitsuba.geometry.assembly import Assembly
@@ -19,8 +24,9 @@ from sq_mitsuba.render.silhouette import SilhouetteRenderer, render_assembly
 __all__ = ["HIGHER_IS_BETTER", "VAL_METRICS", "improves", "validate"]
 
 #: Validation metrics, in ``val.csv`` order.
-VAL_METRICS = ("chamfer_l1", "iou_2d", "rotation_error_deg")
-HIGHER_IS_BETTER = {"chamfer_l1": False, "iou_2d": True, "rotation_error_deg": False}
+VAL_METRICS = ("chamfer_l1", "iou_2d", "rotation_error_deg", "mask_iou")
+HIGHER_IS_BETTER = {"chamfer_l1": False, "iou_2d": True, "rotation_error_deg": False,
+                    "mask_iou": True}
 
 
 def improves(metric: str, value: float, best: dict | None) -> bool:
@@ -33,7 +39,8 @@ def improves(metric: str, value: float, best: dict | None) -> bool:
 def validate(model: nn.Module, cache: ImageCache, points: PointCache, config: TrainConfig,
              camera: Camera, renderer: SilhouetteRenderer, device: torch.device
              ) -> dict[str, float]:
-    """Mean Chamfer-L1, 2D IoU and rotation error (deg) over the cached validation subset."""
+    """Mean Chamfer-L1, 2D IoU, rotation error (deg) and mask IoU over the cached validation
+    subset."""
     cfg = config.validation
     was_training = model.training
     model.eval()
@@ -65,6 +72,16 @@ def validate(model: nn.Module, cache: ImageCache, points: PointCache, config: Tr
                 metrics["iou_2d"].append(mask_iou(silhouettes, batch["mask"][:, 0].double()))
                 metrics["rotation_error_deg"].append(rotation_error_deg(
                     rotation, batch["rotation"].double()))
+                metrics["mask_iou"].append(_mask_head_iou(output.mask_logits, batch["mask"]))
     finally:
         model.train(was_training)
     return {name: float(torch.cat(values).mean()) for name, values in metrics.items()}
+
+
+def _mask_head_iou(logits: Tensor | None, masks: Tensor) -> Tensor:
+    """(B,) IoU of the mask head's mask against ``masks`` (B, 1, H, W); NaN without a head."""
+    if logits is None:
+        return torch.full((masks.shape[0],), float("nan"), dtype=torch.float64)
+    up = F.interpolate(logits.detach().float().cpu(), size=masks.shape[-2:], mode="bilinear",
+                       align_corners=False)
+    return mask_iou((up[:, 0] > 0).double(), (masks[:, 0] > 0.5).double())

@@ -57,6 +57,7 @@ def run(options: BenchOptions) -> Report:
     from sq_mitsuba.data.spe3r import Spe3rDataset
     from sq_mitsuba.evaluation.evaluate import EvalOptions, evaluate
     from sq_mitsuba.evaluation.predict import PredictOptions, predict_files
+    from sq_mitsuba.learning.checkpoint import SHIPPED_MODEL, load_model
     from sq_mitsuba.learning.inference import Predictor
     from sq_mitsuba.learning.network import NetworkConfig, SuperquadricNet
     from sq_mitsuba.learning.refine import RefineOptions, refine_pose_and_shape
@@ -143,7 +144,23 @@ def run(options: BenchOptions) -> Report:
             "predict: network + search + refinement, per image",
             time_callable(predict_search_refine, max(1, min(options.repeats, 5)), warmup=1),
             note=f"defaults: the best {search.keep} refined {search.screen_steps} steps each, "
-                 "the best of them to 25 steps (pose only)"))
+                 "the best of them to 25 steps (pose only, rotation prior 1)"))
+        if SHIPPED_MODEL.is_file():
+            shipped = load_model(fast=True)
+
+            def shipped_turned_search_refine() -> None:
+                plain = shipped.predict(image, camera)
+                start = shipped.predict(image, camera, turns=search.turns)
+                search_and_refine(plain.assembly, start.rotation, plain.translation,
+                                  plain.mask > 0.5, camera, start.rotation_hypotheses)
+
+            report.timings.append(Timing(
+                "predict: shipped model + rotation from turns + search + refinement, per image",
+                time_callable(shipped_turned_search_refine, max(1, min(options.repeats, 5)),
+                              warmup=1),
+                note=f"the shipped model (distribution and mask heads): the network, again on "
+                     f"{search.turns} in-plane turns of the image, then the search of its "
+                     "rotation x 4 half turns against its own mask and the default refinement"))
         path = root / "input.png"
         from PIL import Image
 
