@@ -10,6 +10,7 @@ checkpoint. Example::
     prediction.rotation, prediction.translation     # x_cam = R x_body + t
     prediction.rotation_hypotheses                  # (B, K, 3, 3), best first
     prediction.mask                                 # (B, H, W) in [0, 1], or None
+    predictor.predict(images, turns=8).rotation     # read from 8 in-plane turns (grid head)
 
 Convention:
     - Images are resized to the network's S x S input (``config.image_size``): ``area``
