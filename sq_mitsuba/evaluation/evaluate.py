@@ -220,9 +220,8 @@ def score(assembly: Assembly, rotation: Tensor, translation: Tensor, batch: dict
     size = rotation.shape[0]
     with torch.no_grad():
         assembly = Assembly(assembly.params.detach().double())
-        points, keep = counted_surface_samples(assembly, level)  # (B, M * V, 3), (B, M * V)
-        # Convention: an assembly whose every point is inside another primitive keeps them all.
-        keep[keep.sum(-1) == 0] = True
+        # (B, M * V, 3), (B, M * V); an assembly whose every point is inside another keeps all.
+        points, keep = counted_surface_samples(assembly, level)
         gt_points = batch["surface_points"].double()
         silhouettes = render_assembly(assembly, rotation, translation, renderer, level)
         volume_iou = torch.stack([

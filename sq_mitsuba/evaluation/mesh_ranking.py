@@ -40,7 +40,7 @@ def assembly_clouds(assembly: Assembly, level: int = 3) -> list[np.ndarray]:
     with torch.no_grad():
         points, keep = counted_surface_samples(Assembly(assembly.params.detach().double()), level)
     points, keep = points.cpu().numpy(), keep.cpu().numpy()
-    return [cloud[k] if k.any() else cloud for cloud, k in zip(points, keep, strict=True)]
+    return [cloud[k] for cloud, k in zip(points, keep, strict=True)]
 
 
 @dataclass(frozen=True)

@@ -45,6 +45,7 @@ __all__ = [
     "checkpoint_baseline",
     "checkpoint_payload",
     "load_model",
+    "load_weights",
     "model_from_checkpoint",
     "read_checkpoint",
     "write_checkpoint",
@@ -174,6 +175,37 @@ def read_checkpoint(path: str | os.PathLike[str]) -> dict[str, Any]:
     return payload
 
 
+def load_weights(model: SuperquadricNet, state: Any, where: str = "checkpoint", *,
+                 partial: bool = False) -> None:
+    """A checkpoint's state dict into ``model``, after checking that it fits.
+
+    Checkpoints of the fixed-head layout are upgraded first. With ``partial`` the state may
+    lack some of the network's entries (a head added since: it keeps its initialisation);
+    otherwise every entry must be there.
+
+    Raises:
+        ValueError: ``<where>: weights do not fit config.network (...)`` naming the first
+            missing, unexpected or differently shaped entry.
+    """
+    if not isinstance(state, Mapping):
+        raise ValueError(f"{where}: 'model' must be a state dict")
+    state = upgrade_state_dict(state)  # checkpoints of the fixed-head layout load too
+    own = model.state_dict()
+    missing = [] if partial else sorted(set(own) - set(state))
+    unexpected = sorted(set(state) - set(own))
+    if missing or unexpected:
+        raise ValueError(f"{where}: weights do not fit config.network ({len(missing)} missing, "
+                         f"{len(unexpected)} unexpected; first: "
+                         f"{(missing or unexpected)[0]})")
+    for key in state:
+        value = own[key]
+        if not isinstance(state[key], Tensor) or state[key].shape != value.shape:
+            got = tuple(state[key].shape) if isinstance(state[key], Tensor) else type(state[key])
+            raise ValueError(f"{where}: weights do not fit config.network ({key}: file {got}, "
+                             f"network {tuple(value.shape)})")
+    model.load_state_dict(state, strict=not partial)
+
+
 def model_from_checkpoint(payload: Mapping[str, Any],
                           where: str = "checkpoint") -> tuple[SuperquadricNet, Camera]:
     """The network (eval mode, on the CPU) and dataset camera of a checkpoint dictionary.
@@ -186,23 +218,7 @@ def model_from_checkpoint(payload: Mapping[str, Any],
     """
     config = dataclasses.replace(_network_config(payload, where), pretrained=None)
     model = SuperquadricNet(config)
-    state = payload["model"]
-    if not isinstance(state, Mapping):
-        raise ValueError(f"{where}: 'model' must be a state dict")
-    state = upgrade_state_dict(state)  # checkpoints of the fixed-head layout load too
-    own = model.state_dict()
-    missing = sorted(set(own) - set(state))
-    unexpected = sorted(set(state) - set(own))
-    if missing or unexpected:
-        raise ValueError(f"{where}: weights do not fit config.network ({len(missing)} missing, "
-                         f"{len(unexpected)} unexpected; first: "
-                         f"{(missing or unexpected)[0]})")
-    for key, value in own.items():
-        if not isinstance(state[key], Tensor) or state[key].shape != value.shape:
-            got = tuple(state[key].shape) if isinstance(state[key], Tensor) else type(state[key])
-            raise ValueError(f"{where}: weights do not fit config.network ({key}: file {got}, "
-                             f"network {tuple(value.shape)})")
-    model.load_state_dict(state, strict=True)
+    load_weights(model, payload["model"], where)
     try:
         camera = Camera.from_speed_dict(dict(payload["camera"]))
     except (ValueError, TypeError) as error:

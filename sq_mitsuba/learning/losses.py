@@ -118,13 +118,18 @@ def chamfer_loss(pred_points: Tensor, pred_mask: Tensor | None, target: Tensor) 
 
 def counted_surface_samples(assembly: Assembly, level: int = 3) -> tuple[Tensor, Tensor]:
     """An assembly's dual surface samples (642 per primitive at level 3) as one cloud, with
-    the mask of those that count in a Chamfer loss (not strictly inside another primitive).
+    the mask of those that count in a Chamfer loss or metric (not strictly inside another
+    primitive).
+
+    Convention: an item none of whose samples count keeps them all (as :func:`chamfer_loss`
+    does with any mask), so training, validation and evaluation compare the same cloud.
 
     Returns:
         points (B, M * V, 3) and keep (B, M * V) bool, as :func:`chamfer_loss` takes them.
     """
     points, inside_other = assembly.surface_points_with_mask(level)
-    return points.flatten(1, 2), ~inside_other.flatten(1, 2)
+    keep = ~inside_other.flatten(1, 2)
+    return points.flatten(1, 2), keep | ~keep.any(dim=1, keepdim=True)
 
 
 def surface_chamfer_loss(assembly: Assembly, target: Tensor, level: int = 3) -> Tensor:

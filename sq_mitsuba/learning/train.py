@@ -57,7 +57,7 @@ from sq_mitsuba.config import from_dict, to_dict
 from sq_mitsuba.config import validate as validate_config
 from sq_mitsuba.io import atomic_write_json
 from sq_mitsuba.learning.cache import dataset_fingerprint
-from sq_mitsuba.learning.checkpoint import read_checkpoint
+from sq_mitsuba.learning.checkpoint import load_weights, read_checkpoint
 from sq_mitsuba.learning.data_stream import (
     DataSources,
     TrainingData,
@@ -233,16 +233,10 @@ def _load_initial_weights(model: SuperquadricNet, path: Path) -> None:
         state = read_checkpoint(path)["model"]
     except (OSError, ValueError, RuntimeError, KeyError) as error:
         raise TrainError(f"init_from: {path}: cannot read weights ({error})") from None
-    own = model.state_dict()
-    foreign = sorted(set(state) - set(own))
-    if foreign:
-        raise TrainError(f"init_from: {path}: holds {foreign[0]!r}, which this network lacks "
-                         f"({len(foreign)} such entries): a network of another config")
-    for name, value in state.items():
-        if value.shape != own[name].shape:
-            raise TrainError(f"init_from: {path}: {name} has shape {tuple(value.shape)}, this "
-                             f"network's is {tuple(own[name].shape)}")
-    model.load_state_dict(state, strict=False)
+    try:
+        load_weights(model, state, f"init_from: {path}", partial=True)
+    except ValueError as error:
+        raise TrainError(str(error)) from None
 
 
 def _open_data(run: TrainRun, sources: DataSources, created: bool) -> TrainingData:

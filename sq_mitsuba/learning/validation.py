@@ -17,6 +17,7 @@ from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.metrics import chamfer_l1, mask_iou, rotation_error_deg
 from sq_mitsuba.learning.cache import ImageCache, PointCache
+from sq_mitsuba.learning.losses import counted_surface_samples
 from sq_mitsuba.learning.random_streams import STREAMS, seed_of
 from sq_mitsuba.learning.train_config import TrainConfig
 from sq_mitsuba.render.silhouette import SilhouetteRenderer, render_assembly
@@ -54,17 +55,14 @@ def validate(model: nn.Module, cache: ImageCache, points: PointCache, config: Tr
                 batch = cache.batch(rows)
                 output = model(batch["image"].to(device), k_matrix)
                 assembly = Assembly(output.assembly.params.detach().to("cpu", torch.float64))
-                surface, inside_other = assembly.surface_points_with_mask(cfg.level)
+                surface, keep = counted_surface_samples(assembly, cfg.level)
                 gt = []
                 for row, model_index in zip(rows, batch["model_index"].tolist(), strict=True):
                     rng = np.random.default_rng(seed_of(config.seed, 7, int(
                         cache.dataset_index[row])))
                     gt.append(points.sample(model_index, rng, config.data.num_surface, 2)[0])
-                keep = ~inside_other.flatten(1, 2)
-                keep |= ~keep.any(dim=1, keepdim=True)  # an item keeping none keeps all
                 metrics["chamfer_l1"].append(chamfer_l1(
-                    surface.flatten(1, 2), torch.from_numpy(np.stack(gt)), "paper",
-                    pred_mask=keep))
+                    surface, torch.from_numpy(np.stack(gt)), "paper", pred_mask=keep))
                 rotation = output.rotation.detach().to("cpu", torch.float64)
                 translation = output.translation.detach().to("cpu", torch.float64)
                 silhouettes = render_assembly(assembly, rotation, translation, renderer,
