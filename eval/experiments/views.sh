@@ -9,8 +9,9 @@
 #
 #   eval/experiments/views.sh WORK [VIEWS ...]      (default: 16 40 64)
 #
-# Environment: SQ (default sq-mitsuba), PYTHON (default python3), STEPS (default 510), LIMIT (val and test images per
-# run, spread evenly; default 128), VIEWS_TEST (default 40), DEVICE (default cpu).
+# Environment: SQ (default sq-mitsuba), PYTHON (default python3), STEPS (default 510), LIMIT
+# (val and test images per run, spread evenly; default 128), VIEWS_TEST (default 40), DEVICE
+# (default cpu).
 # Writes WORK/models, WORK/data_<V>, WORK/runs/v<V>/{best.pt,eval_val,eval_test} and
 # WORK/table.md (recipe_table.py). Every step resumes or is skipped when done.
 set -euo pipefail
