@@ -345,3 +345,8 @@ def test_reading_from_turned_copies_turns_with_the_image(train_dataset):
     assert not regressing.can_turn(camera)
     with pytest.raises(ValueError, match=r"turns: .* needs a rotation-distribution head"):
         regressing.predict(image, camera, turns=4)
+    off_centre = Camera(camera.fx, camera.fy, camera.cx + 5.0, camera.cy, camera.width,
+                        camera.height)
+    assert not shipped.can_turn(off_centre)
+    with pytest.raises(ValueError, match=r"^turns: augment\.rotation: needs the principal point"):
+        shipped.predict(image, off_centre, turns=4)

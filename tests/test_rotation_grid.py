@@ -141,6 +141,9 @@ def test_turned_cells_are_the_nearest_cells_of_the_rolled_grid() -> None:
         angle_to = rotation_angle(moved[:, None], grid[None])  # (G, G)
         brute = angle_to.argmin(dim=1)
         assert torch.equal(cells[k], brute)
+    for bad_grid, bad_turns in ((grid, z_rotation(angles)[0]), (grid[:, :2], z_rotation(angles))):
+        with pytest.raises(ValueError, match=r"expected rotations grid \(G, 3, 3\) and turns"):
+            turned_cells(bad_grid, bad_turns)
 
 
 def test_turned_distributions_multiply_back_in_the_unturned_frame() -> None:

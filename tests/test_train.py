@@ -288,7 +288,9 @@ def test_a_new_head_trains_alone_on_a_trained_network(reference_run, train_datas
     assert head and any(v.abs().sum() > 0 for n, v in head.items() if "correction" in n)
     for extra, message in (("network.num_primitives=3",
                             r"init_from: .*: weights do not fit config\.network \(.*: file \("),
-                           ("network.mask_head=false", "validation.metric: 'mask_iou' needs")):
+                           ("network.mask_head=false", "validation.metric: 'mask_iou' needs"),
+                           (f'init_from="{tmp_path / "absent.pt"}"',
+                            r"init_from: .*absent\.pt: cannot read weights")):
         code, err = _cli([*args[:-2], str(tmp_path / "refused"), "--quiet",
                           *(x for item in [*sets, extra] for x in ("--set", item))], capsys)
         assert code == 2 and err.count("\n") == 1, err

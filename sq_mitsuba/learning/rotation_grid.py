@@ -210,6 +210,10 @@ def turned_cells(grid: Tensor, turns: Tensor, chunk: int = 1024) -> Tensor:
     original shows ``R`` (:func:`~sq_mitsuba.learning.augment.z_rotation`), so the score of
     cell g for the original image is the turned image's score of cell ``[k, g]``.
     """
+    if turns.dim() != 3 or turns.shape[1:] != (3, 3) or grid.dim() != 3 or \
+            grid.shape[1:] != (3, 3):
+        raise ValueError(f"expected rotations grid (G, 3, 3) and turns (T, 3, 3), got "
+                         f"{tuple(grid.shape)} and {tuple(turns.shape)}")
     grid = grid.double()
     moved = (turns.double().to(grid.device)[:, None] @ grid[None]).reshape(-1, 3, 3)
     # In chunks: the full (T G, G) table of traces would take gigabytes at 4,608 cells.
