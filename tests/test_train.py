@@ -110,6 +110,12 @@ def test_configs_say_what_they_reproduce():
     assert mask.network == dataclasses.replace(shipped.network, mask_resolution="full")
     assert dataclasses.replace(mask, network=shipped.network, loss=shipped.loss,
                                optim=shipped.optim, validation=shipped.validation) == shipped
+    # Its third stage trains every weight again with the first stage's losses, more gently.
+    finetune = load_train_config(ROOT / "train" / "configs" / "shipped_finetune.toml")
+    assert finetune.network == mask.network and finetune.loss == shipped.loss
+    assert finetune.optim.trainable == () and finetune.optim.lr < shipped.optim.lr
+    assert dataclasses.replace(finetune, network=shipped.network, optim=shipped.optim,
+                               validation=shipped.validation) == shipped
 
 
 @pytest.mark.slow

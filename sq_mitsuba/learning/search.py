@@ -15,10 +15,11 @@ uniform grid of SO(3) (:func:`~sq_mitsuba.geometry.so3_grid.so3_grid`) instead. 
 ``candidates = "network"`` (the default) a network with hypotheses keeps its own rotation:
 the candidates are it and its half turns only, and the silhouette picks the half turn and the
 translation; a network without them (a regressed rotation) is searched over the grid either
-way. Measured with the shipped model on 64 test images (folded rotation error, median): the
-network 27 deg; after a search of its hypotheses too, 35 deg (the best outline of a rough
-shape is often a wrong rotation); after a search of its own rotation only, 27 deg; the 2D IoU
-after refinement 0.557 and 0.551, the second in half the time. The network's rotation that
+way. Measured with the shipped model's second stage (before its third; eval/MODEL_CARD.md)
+on 64 test images (folded rotation error, median): the network 27 deg; after a search of its
+hypotheses too, 35 deg (the best outline of a rough shape is often a wrong rotation); after a
+search of its own rotation only, 27 deg; the 2D IoU after refinement 0.557 and 0.551, the
+second in half the time. The network's rotation that
 the search starts from is read from ``turns`` in-plane turns of the image
 (:meth:`~sq_mitsuba.learning.inference.Predictor.predict` with ``turns``; the callers in
 :mod:`sq_mitsuba.evaluation` pass it), not from one: a distribution multiplied over 8 turns
@@ -72,7 +73,8 @@ __all__ = [
 ]
 
 #: The refinement after a search, by default, each choice measured on 64 test images of the
-#: shipped model from its own mask (eval/MODEL_CARD.md, "Render and compare"): pose only
+#: shipped model's second stage from its own mask (eval/MODEL_CARD.md, "Render and compare"):
+#: pose only
 #: (letting the sizes move too lifts the 2D IoU 0.568 -> 0.62 but worsens Chamfer-L1 by 5 %,
 #: or by 1 % at 0.59 under a strong prior; every shape parameter, by 40 %); at the network's
 #: depth (a free depth raised the 2D IoU by 0.01 and the relative translation error from 0.10
