@@ -19,13 +19,13 @@ way. Measured with the shipped model's second stage (before its third; eval/MODE
 on 64 test images (folded rotation error, median): the network 27 deg; after a search of its
 hypotheses too, 35 deg (the best outline of a rough shape is often a wrong rotation); after a
 search of its own rotation only, 27 deg; the 2D IoU after refinement 0.557 and 0.551, the
-second in half the time. The network's rotation that
-the search starts from is read from ``turns`` in-plane turns of the image
-(:meth:`~sq_mitsuba.learning.inference.Predictor.predict` with ``turns``; the callers in
-:mod:`sq_mitsuba.evaluation` pass it), not from one: a distribution multiplied over 8 turns
-is 23.6 deg median against 26.7 on those 64 images (38.7 against 42.8 on 400). Neither a
-local search around that rotation nor one with the network's log-probability as a prior
-beat it: the outline of a rough shape pulls the rotation away (eval/MODEL_CARD.md).
+second in half the time. The network's rotation that the search starts from is read from
+``turns`` in-plane turns of the image (:meth:`~sq_mitsuba.learning.inference.Predictor.predict`
+with ``turns``; the callers in :mod:`sq_mitsuba.evaluation` pass it), not from one: a
+distribution multiplied over 8 turns is 23.6 deg median against 26.7 on those 64 images (38.7
+against 42.8 on 400). Neither a local search around that rotation nor one with the network's
+log-probability as a prior beat it: the outline of a rough shape pulls the rotation away
+(eval/MODEL_CARD.md).
 
 Each candidate keeps the network's translation, shifted (``recentre``) so that its
 silhouette's centroid is the mask's: a wrong rotation also moves the outline's centre, and the
@@ -74,9 +74,8 @@ __all__ = [
 
 #: The refinement after a search, by default, each choice measured on 64 test images of the
 #: shipped model's second stage from its own mask (eval/MODEL_CARD.md, "Render and compare"):
-#: pose only
-#: (letting the sizes move too lifts the 2D IoU 0.568 -> 0.62 but worsens Chamfer-L1 by 5 %,
-#: or by 1 % at 0.59 under a strong prior; every shape parameter, by 40 %); at the network's
+#: pose only (letting the sizes move too lifts the 2D IoU 0.568 -> 0.62 but worsens Chamfer-L1
+#: by 5 %, or by 1 % at 0.59 under a strong prior; every shape parameter, by 40 %); at the network's
 #: depth (a free depth raised the 2D IoU by 0.01 and the relative translation error from 0.10
 #: to 0.17, turning the shape's size error into a depth error); the rotation held near the
 #: search's by a prior of weight 1 (without it the outline of the rough shape pulls the
