@@ -311,9 +311,10 @@ def test_reading_from_turned_copies_turns_with_the_image(train_dataset):
     (the four copies are the same four images) up to the half turns of the body frame and the
     grid's cell mapping (about a cell, 9 deg): over the fixture's test images, by
     construction and more than the plain network, which is roll-equivariant only as far as
-    training taught it. Its translation
-    and mask are the plain prediction's. Bad ``turns`` and a network without a distribution
-    head are one-line errors, and ``can_turn`` says so beforehand."""
+    training taught it. Its assembly, depth, image position and mask, means over the copies
+    mapped back, are the image's, rolled where they turn with it; ``read_turns`` of the plain
+    prediction reads the same running only the turned copies. Bad ``turns`` and a network without a
+    distribution head are one-line errors, and ``can_turn`` says so beforehand."""
     from sq_mitsuba.data.spe3r import Spe3rDataset
     from sq_mitsuba.geometry.metrics import rotation_error_deg
     from sq_mitsuba.geometry.so3_grid import half_turns
@@ -333,9 +334,41 @@ def test_reading_from_turned_copies_turns_with_the_image(train_dataset):
         errors[turns] = rotation_error_deg(read_rolled.rotation.double(),
                                            roll @ read.rotation.double(), half_turns())
     assert float(errors[4].median()) < min(15.0, float(errors[1].median())), errors
-    plain = shipped.predict(images, camera)
-    assert torch.equal(read.translation, plain.translation) and torch.equal(read.mask, plain.mask)
     torch.testing.assert_close(read.rotation_hypotheses[:, 0], read.rotation)
+    # The rest is the mean over the copies, each mapped back: the rolled image's four copies
+    # are the image's four, so its reading is the image's, rolled (the shape not at all).
+    torch.testing.assert_close(read_rolled.assembly.params, read.assembly.params, atol=1e-4,
+                               rtol=1e-4)
+    torch.testing.assert_close(read_rolled.depth, read.depth, atol=1e-4, rtol=1e-4)
+    centre = torch.tensor([images.shape[-1] / 2, images.shape[-2] / 2])  # of the given images
+    rolled_pixel = (roll[:, :2, :2].float() @ (read.pixel - centre)[..., None])[..., 0] + centre
+    torch.testing.assert_close(read_rolled.pixel, rolled_pixel, atol=1e-3, rtol=0)
+    torch.testing.assert_close(read_rolled.mask, rotate_batch(read.mask[:, None], quarter)[:, 0],
+                               atol=1e-3, rtol=0)
+    plain = shipped.predict(images, camera)
+    assert not torch.equal(read.assembly.params, plain.assembly.params)
+    # read_turns reuses the plain pass: the same reading as predict(turns=4), one pass fewer.
+    passes = []
+    run = shipped._run
+    shipped._run = lambda x, matrix: passes.append(len(x)) or run(x, matrix)
+    try:
+        reused = shipped.read_turns(images, plain, 4, camera)
+    finally:
+        del shipped._run
+    assert passes == [3 * len(images)]  # the three turned copies only
+    for name in ("rotation", "rotation_hypotheses", "rotation_scores",
+                 "rotation_log_probabilities", "translation", "mask"):
+        torch.testing.assert_close(getattr(reused, name), getattr(read, name), atol=1e-5,
+                                   rtol=1e-5, msg=name)
+    torch.testing.assert_close(reused.assembly.params, read.assembly.params)
+    assert torch.allclose(plain.rotation_log_probabilities.logsumexp(-1), torch.zeros(1),
+                          atol=1e-4)
+    with pytest.raises(ValueError, match=r"^prediction: expected this predictor's Prediction"):
+        shipped.read_turns(images[:1], plain, 4, camera)  # another batch's prediction
+    longer_lens = Camera(camera.fx * 1.5, camera.fy * 1.5, camera.cx, camera.cy, camera.width,
+                         camera.height)
+    with pytest.raises(ValueError, match=r"^prediction: .* this camera"):
+        shipped.read_turns(images, plain, 4, longer_lens)  # made with another camera
     assert shipped.can_turn(camera)
     image = images[:1]
     for bad in (0, 2.5, True):
@@ -345,6 +378,9 @@ def test_reading_from_turned_copies_turns_with_the_image(train_dataset):
     assert not regressing.can_turn(camera)
     with pytest.raises(ValueError, match=r"turns: .* needs a rotation-distribution head"):
         regressing.predict(image, camera, turns=4)
+    assert regressing.predict(image, camera).rotation_log_probabilities is None
+    with pytest.raises(ValueError, match=r"turns: .* needs a rotation-distribution head"):
+        regressing.read_turns(image, regressing.predict(image, camera), 4, camera)
     off_centre = Camera(camera.fx, camera.fy, camera.cx + 5.0, camera.cy, camera.width,
                         camera.height)
     assert not shipped.can_turn(off_centre)

@@ -42,7 +42,7 @@ $SQ train --config train/configs/shipped_mask.toml --data "$WORK/data" --out "$W
   --set data.cache_dir="\"$WORK/run/cache\"" $RESUME
 
 # 3c. Every weight trained together again from 3b, with the first stage's losses at a third of
-#     its learning rate (8 epochs, about 20 min on 2 CPU cores), sharing the cache.
+#     its learning rate (16 epochs, about 40 min on 2 CPU cores), sharing the cache.
 RESUME=""
 [ -f "$WORK/run_finetune/last.pt" ] && RESUME="--resume"
 $SQ train --config train/configs/shipped_finetune.toml --data "$WORK/data" \

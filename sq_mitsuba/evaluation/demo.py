@@ -505,11 +505,10 @@ def _predict_and_score(predictor: Any, data: Path, options: DemoOptions,
             batch = collate([dataset[i] for i in chunk])
             size = len(chunk)
             prediction = predictor.predict(batch["image"], camera)
-            masks, usable, mask_source = image_masks(prediction, batch["image"], "network")
             search = SearchOptions()
-            refined = search_where(search_start(predictor, batch["image"], camera, prediction,
-                                                search.turns),
-                                   masks, usable, camera, search, refine_options)
+            start = search_start(predictor, batch["image"], camera, prediction, search.turns)
+            masks, usable, mask_source = image_masks(start, batch["image"], "network")
+            refined = search_where(start, masks, usable, camera, search, refine_options)
             candidates = {
                 "network": (prediction.assembly, prediction.rotation, prediction.translation),
                 "refined": refined.refined,
@@ -661,9 +660,9 @@ def _write_page(out: Path, options: DemoOptions, records: Sequence[dict[str, Any
         "scene. For each image the network predicts a superquadric assembly and its pose; "
         "a global search then scores candidate rotations (for a model with a rotation "
         f"distribution head its own, read again from {SearchOptions().turns} in-plane turns of "
-        "the image; a uniform "
-        "grid of SO(3) for one without; each with the four half turns of the body frame) by "
-        f"Mitsuba silhouettes against the mask read from the image ({mask_sources}), and "
+        "the image, whose means also give the assembly, position and mask the search fits; a "
+        "uniform grid of SO(3) for one without; each with the four half turns of the body "
+        f"frame) by Mitsuba silhouettes against the mask read from the image ({mask_sources}), and "
         f"test-time refinement ({preset.refine_steps} steps at most) adjusts the pose of the "
         "best through the differentiable silhouette, its rotation held near the search's. "
         "Silhouettes cannot tell apart poses with the same outline.",

@@ -475,13 +475,15 @@ class _Searched:
 
 def search_start(predictor: Any, images: Tensor, camera: Camera, prediction: Any,
                  turns: int) -> Any:
-    """The prediction the pose search starts from: ``prediction`` itself, or (``turns`` > 1,
-    for a predictor that can turn these images) the same with its rotation and hypotheses
-    read from ``turns`` in-plane turns of ``images`` (:meth:`Predictor.predict`)."""
+    """The prediction the pose search starts from: ``prediction`` (``predictor``'s for
+    ``images``) itself, or (``turns`` > 1, for a predictor that can turn these images) the
+    same read again from ``turns`` in-plane turns of ``images`` (:meth:`Predictor.read_turns`:
+    the rotation and hypotheses from the copies' product, the assembly, position and mask as
+    their means; the unturned pass is not run again)."""
     can_turn = getattr(predictor, "can_turn", None)
     if turns <= 1 or can_turn is None or not can_turn(camera):
         return prediction
-    return predictor.predict(images, camera, turns=turns)
+    return predictor.read_turns(images, prediction, turns, camera)
 
 
 def search_where(prediction: Any, masks: Tensor, usable: Tensor, camera: Camera,
@@ -653,12 +655,11 @@ def evaluate(predictor: Any, data_root: str | Path, out_dir: str | Path,
             sources: dict[str, str] = {}
             if options.refine:
                 gt_masks = batch["mask"][:, 0] > 0.5
-                masks, usable, mask_source = image_masks(prediction, batch["image"],
-                                                          options.mask)
                 tick = time.perf_counter()
                 start = search_start(predictor, batch["image"], camera, prediction,
                                      options.search.turns)
                 turned_seconds = time.perf_counter() - tick  # the search's start: its cost
+                masks, usable, mask_source = image_masks(start, batch["image"], options.mask)
                 searched = search_where(start, masks, usable, camera, options.search,
                                         options.refinement)
                 search_seconds += turned_seconds + searched.search_seconds

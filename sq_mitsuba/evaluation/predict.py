@@ -376,13 +376,16 @@ def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
         layers = [(before, NETWORK_COLOUR)]
         outline = None
         if options.refine:
-            outline, record.mask_source = _target(prediction, targets, k, mask_paths,
-                                                  picture.shape)
             tick = time.perf_counter()
+            # The search starts from the reading of the turned copies (rotation, shape,
+            # position and mask), when the network can turn this image.
             start = search_start(predictor, torch.from_numpy(picture).float()[None],
                                  image_camera, prediction, options.search.turns)
+            outline, record.mask_source = _target(start, targets, k, mask_paths,
+                                                  picture.shape)
             result = search_and_refine(
-                assembly, start.rotation, translation, torch.from_numpy(outline)[None],
+                start.assembly, start.rotation, start.translation,
+                torch.from_numpy(outline)[None],
                 image_camera, getattr(start, "rotation_hypotheses", None), options.search,
                 options.refinement)
             record.refine_ms = 1000 * (time.perf_counter() - tick)

@@ -11,6 +11,7 @@ checkpoint. Example::
     prediction.rotation_hypotheses                  # (B, K, 3, 3), best first
     prediction.mask                                 # (B, H, W) in [0, 1], or None
     predictor.predict(images, turns=8).rotation     # read from 8 in-plane turns (grid head)
+    predictor.read_turns(images, prediction, 8)     # the same, reusing the unturned pass
 
 Convention:
     - Images are resized to the network's S x S input (``config.image_size``): ``area``
@@ -30,6 +31,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -76,6 +78,9 @@ class Prediction:
             regressing head's single one).
         mask: (B, H, W) the mask head's probability that a pixel of the given images shows
             the target, or None for a network without a mask head.
+        rotation_log_probabilities: (B, G) a distribution head's normalised log-probabilities
+            over its grid of G rotations (read from turned copies where ``rotation`` is), or
+            None for a regressing head.
     """
 
     assembly: Assembly
@@ -88,6 +93,7 @@ class Prediction:
     rotation_hypotheses: Tensor
     rotation_scores: Tensor
     mask: Tensor | None = None
+    rotation_log_probabilities: Tensor | None = None
 
 
 def prepare_images(images: Tensor | np.ndarray, channels: int = 1) -> Tensor:
@@ -150,6 +156,15 @@ def camera_for(camera: Camera, width: int, height: int) -> Camera:
         raise ValueError(f"camera: is for {camera.width} x {camera.height} images, the images are "
                          f"{width} x {height} (another aspect ratio); pass their camera")
     return camera.rescaled(width, height)
+
+
+class _Prepared(NamedTuple):
+    """Images ready for the network, and the size they were given at (for the mask's and
+    the pixel's scale back)."""
+
+    images: Tensor  # (B, C, S, S) on the network's device and dtype
+    height: int
+    width: int
 
 
 class Predictor:
@@ -215,9 +230,10 @@ class Predictor:
                 hypotheses come from T copies of each image turned in-plane by 360 / T deg
                 steps, their distributions mapped back and multiplied
                 (:func:`~sq_mitsuba.learning.rotation_grid.turned_log_probabilities`): T times
-                the network's cost. The assembly, translation and mask are the unturned
-                image's. Needs a camera whose roll is an image rotation (square pixels, the
-                principal point at the centre).
+                the network's cost. The assembly, the image position, the depth and the mask
+                are the means over the T copies, each mapped back to the image (test-time
+                augmentation). Needs a camera whose roll is an image rotation (square pixels,
+                the principal point at the centre).
 
         Returns:
             :class:`Prediction` on the model's device.
@@ -225,30 +241,62 @@ class Predictor:
         Raises:
             ValueError: naming ``images``, ``camera`` or ``turns``.
         """
-        network = self.model
-        x = prepare_images(images, network.config.in_channels)
+        x, camera = self._prepared(images, camera)
+        if type(turns) is not int or turns != 1:  # True == 1, yet not a count
+            self._check_turns(turns, camera.rescaled(self.image_size, self.image_size))
+        prediction = self._predicted(x, camera)
+        return prediction if turns == 1 else self._with_turns(x, prediction, turns)
+
+    def read_turns(self, images: Tensor | np.ndarray, prediction: Prediction, turns: int,
+                   camera: Camera | None = None) -> Prediction:
+        """``prediction`` (this predictor's, for ``images``) read again from ``turns`` in-plane
+        turns of the images: equal to ``predict(images, camera, turns=turns)`` (see there),
+        but the unturned copy is not run again (a caller that needs both readings pays T, not
+        T + 1, network passes).
+
+        Raises:
+            ValueError: naming ``images``, ``camera``, ``turns`` or ``prediction``.
+        """
+        x, camera = self._prepared(images, camera)
+        self._check_turns(turns, camera.rescaled(self.image_size, self.image_size))
+        count = x.images.shape[0]
+        log_p = getattr(prediction, "rotation_log_probabilities", None)
+        if not isinstance(prediction, Prediction) or log_p is None \
+                or tuple(log_p.shape) != (count, self.model.config.rotation_cells) \
+                or prediction.camera != camera:
+            raise ValueError(f"prediction: expected this predictor's Prediction of the {count} "
+                             f"images ({camera.width} x {camera.height} px, this camera), with "
+                             "rotation_log_probabilities")
+        return prediction if turns == 1 else self._with_turns(x, prediction, turns)
+
+    def _prepared(self, images: Tensor | np.ndarray,
+                  camera: Camera | None) -> tuple[_Prepared, Camera]:
+        """Checked images resized to the network's input (B, C, S, S), on its device and
+        dtype, and the camera of the given images."""
+        x = prepare_images(images, self.model.config.in_channels)
         height, width = x.shape[-2:]
         camera = camera_for(self.camera if camera is None else camera, width, height)
-        parameter = next(network.parameters())
+        parameter = next(self.model.parameters())
+        x = x.to(device=parameter.device, dtype=parameter.dtype)
+        return _Prepared(resize_images(x, self.image_size), height, width), camera
+
+    def _predicted(self, x: _Prepared, camera: Camera) -> Prediction:
+        """The unturned network pass on prepared images, as a :class:`Prediction`."""
         size = self.image_size
-        if type(turns) is not int or turns != 1:  # True == 1, yet not a count
-            self._check_turns(turns, camera.rescaled(size, size))
-        x = resize_images(x.to(device=parameter.device, dtype=parameter.dtype), size)
-        network_camera = camera.rescaled(size, size)
-        matrix = network_camera.matrix(parameter.dtype, parameter.device)
-        output = self._run(x, matrix)
+        matrix = camera.rescaled(size, size).matrix(x.images.dtype, x.images.device)
+        output = self._run(x.images, matrix)
         # Clones made outside inference mode are ordinary tensors, so callers (test-time
         # refinement) can start autograd from them.
         rotation = output.rotation.clone()
-        if turns != 1:
-            rotation, logits = self._turned_rotation(x, matrix, output, turns)
-            output = replace(output, rotation_logits=logits)
-        hypotheses, scores = self._hypotheses(output, rotation)
+        hypotheses, scores = self._hypotheses(output.rotation_logits, rotation)
         mask = None
         if output.mask_logits is not None:
-            mask = F.interpolate(output.mask_logits.clone(), size=(height, width),
+            mask = F.interpolate(output.mask_logits.clone(), size=(x.height, x.width),
                                  mode="bilinear", align_corners=False).sigmoid()[:, 0]
-        scale = rotation.new_tensor([width / size, height / size])
+        log_p = None
+        if output.rotation_logits is not None:
+            log_p = output.rotation_logits.float().log_softmax(dim=-1).to(rotation)
+        scale = rotation.new_tensor([x.width / size, x.height / size])
         return Prediction(
             assembly=Assembly.from_raw(output.raw.clone()),
             rotation=rotation,
@@ -260,6 +308,7 @@ class Predictor:
             rotation_hypotheses=hypotheses,
             rotation_scores=scores,
             mask=mask,
+            rotation_log_probabilities=log_p,
         )
 
     def can_turn(self, camera: Camera | None = None) -> bool:
@@ -303,37 +352,91 @@ class Predictor:
             if was_training:
                 network.train()
 
-    def _turned_rotation(self, x: Tensor, matrix: Tensor, output: NetworkOutput,
-                         turns: int) -> tuple[Tensor, Tensor]:
-        """Rotation (B, 3, 3) and log-probabilities (B, G) read from ``turns`` in-plane turns
-        of the prepared images ``x`` (``output`` is the unturned copy's)."""
+    def _with_turns(self, x: _Prepared, prediction: Prediction, turns: int) -> Prediction:
+        """``prediction`` (the unturned pass on ``x``) read again from ``turns`` in-plane turns
+        of the prepared images ``x``: the rotation from the product of the copies'
+        distributions, the rest as means over the copies, each mapped back to the image."""
         from sq_mitsuba.learning.augment import rotate_batch, z_rotation
         from sq_mitsuba.learning.rotation_grid import turned_cells, turned_log_probabilities
 
         head = self.model.pose_head
+        images, size = x.images, self.image_size
         angles = torch.arange(turns, dtype=torch.float64) * (2.0 * math.pi / turns)
-        key = (turns, x.device)
+        key = (turns, images.device)
         if key not in self._turned_cells:
             self._turned_cells[key] = turned_cells(head.grid_rotations(), z_rotation(angles))
         # Every turned copy of every image in one batch: (T - 1) B images, copy-major.
-        batch = x.shape[0]
-        copies = angles[1:].to(x).repeat_interleave(batch)
-        turned = rotate_batch(x.repeat(turns - 1, 1, 1, 1), copies)
-        turned_logits = self._run(turned, matrix).rotation_logits
-        logits = torch.cat([output.rotation_logits[None],
-                            turned_logits.reshape(turns - 1, batch, -1)])
-        combined = turned_log_probabilities(logits, self._turned_cells[key])
+        batch = images.shape[0]
+        copies = angles[1:].to(images).repeat_interleave(batch)
+        turned = rotate_batch(images.repeat(turns - 1, 1, 1, 1), copies)
+        network_camera = prediction.camera.rescaled(size, size)
+        matrix = network_camera.matrix(images.dtype, images.device)
+        output = self._run(turned, matrix)
+
+        def per_copy(value: Tensor) -> Tensor:  # (T - 1) B x ... -> (T - 1, B, ...)
+            return value.clone().reshape(turns - 1, batch, *value.shape[1:])
+
+        log_p = prediction.rotation_log_probabilities
+        logits = torch.cat([log_p.to(output.rotation_logits)[None],
+                            per_copy(output.rotation_logits)])
+        combined = turned_log_probabilities(logits, self._turned_cells[key]).clone()
         with torch.inference_mode():
             rotation = head.rotation_from_logits(combined.to(output.rotation_logits))
-        return rotation.clone(), combined.clone()
+        rotation = rotation.clone().to(prediction.rotation)
+        hypotheses, scores = self._hypotheses(combined, rotation)
 
-    def _hypotheses(self, output: NetworkOutput, rotation: Tensor) -> tuple[Tensor, Tensor]:
-        """(B, K, 3, 3) rotation hypotheses and (B, K) scores of a network output."""
+        # Convention: a point at offset q from the image centre (S / 2, S / 2) lies at
+        # Rz(angle) q in a copy turned by angle (rotate_batch), so q = Rz^T p maps it back.
+        # The assembly is in the body frame and the depth along the optical axis: neither turns.
+        dtype = prediction.rotation.dtype
+        params = torch.cat([prediction.assembly.params[None].to(dtype),
+                            per_copy(Assembly.from_raw(output.raw).params).to(dtype)])
+        scale = prediction.pixel.new_tensor([x.width / size, x.height / size])
+        back = z_rotation(angles[1:]).to(dtype)[:, None, :2, :2]  # (T - 1, 1, 2, 2)
+        offsets = per_copy(output.pixel).to(dtype) - 0.5 * size
+        pixels = torch.cat([prediction.pixel[None] / scale,
+                            (back.transpose(-1, -2) @ offsets[..., None])[..., 0] + 0.5 * size])
+        pixel = pixels.mean(dim=0)
+        depth = torch.cat([prediction.depth[None], per_copy(output.depth).to(dtype)]).mean(0)
+        homogeneous = torch.cat([pixel, pixel.new_ones(batch, 1)], dim=-1)[..., None]
+        ray = torch.linalg.solve_triangular(network_camera.matrix(dtype, pixel.device),
+                                            homogeneous, upper=True)[..., 0]
+        mask = prediction.mask
+        if mask is not None and output.mask_logits is not None:
+            mask = self._turned_mask(mask, output.mask_logits, angles[1:], x)
+        return replace(prediction, assembly=Assembly(params.mean(dim=0)), rotation=rotation,
+                       quaternion=matrix_to_quaternion(rotation), pixel=pixel * scale,
+                       depth=depth, translation=depth[:, None] * ray, mask=mask,
+                       rotation_hypotheses=hypotheses, rotation_scores=scores,
+                       rotation_log_probabilities=combined.to(rotation))
+
+    @staticmethod
+    def _turned_mask(mask: Tensor, turned_logits: Tensor, angles: Tensor,
+                     x: _Prepared) -> Tensor:
+        """The mean over the copies of the mask probability (B, H, W): the unturned copy's
+        ``mask`` with the turned copies' logits ((T - 1) B, 1, s, s) turned back by
+        ``angles`` (T - 1,) and scaled to H x W, where they cover the image (a turned copy
+        leaves the corners out)."""
+        from sq_mitsuba.learning.augment import rotate_batch
+
+        batch, copies = mask.shape[0], len(angles)
+        undo = -angles.to(turned_logits).repeat_interleave(batch)
+        logits = rotate_batch(turned_logits.float(), undo.float())
+        covered = rotate_batch(torch.ones_like(logits), undo.float())
+        logits, covered = (F.interpolate(t, size=(x.height, x.width), mode="bilinear",
+                                         align_corners=False)[:, 0] for t in (logits, covered))
+        covered = covered.clamp(0, 1).reshape(copies, batch, x.height, x.width).to(mask)
+        probability = logits.sigmoid().reshape(copies, batch, x.height, x.width).to(mask)
+        return (mask + (covered * probability).sum(0)) / (1 + covered.sum(0))
+
+    def _hypotheses(self, logits: Tensor | None, rotation: Tensor) -> tuple[Tensor, Tensor]:
+        """(B, K, 3, 3) rotation hypotheses and (B, K) scores from a distribution head's (B, G)
+        scores over its grid (``rotation`` alone for a regressing head: ``logits`` None)."""
         head = self.model.pose_head
-        if output.rotation_logits is None or not isinstance(head, RotationGridPoseHead):
+        if logits is None or not isinstance(head, RotationGridPoseHead):
             return rotation[:, None], rotation.new_ones(rotation.shape[0], 1)
         grid = head.grid_rotations().to(rotation)
-        rotations, scores = rotation_hypotheses(output.rotation_logits.clone(), grid,
+        rotations, scores = rotation_hypotheses(logits.clone(), grid,
                                                 self.hypotheses)
         # The best hypothesis is the head's own rotation (its argmax, refined locally).
         rotations[:, 0] = rotation

@@ -20,12 +20,13 @@ on 64 test images (folded rotation error, median): the network 27 deg; after a s
 hypotheses too, 35 deg (the best outline of a rough shape is often a wrong rotation); after a
 search of its own rotation only, 27 deg; the 2D IoU after refinement 0.557 and 0.551, the
 second in half the time. The network's rotation that the search starts from is read from
-``turns`` in-plane turns of the image (:meth:`~sq_mitsuba.learning.inference.Predictor.predict`
-with ``turns``; the callers in :mod:`sq_mitsuba.evaluation` pass it), not from one: a
-distribution multiplied over 8 turns is 23.6 deg median against 26.7 on those 64 images (38.7
-against 42.8 on 400). Neither a local search around that rotation nor one with the network's
-log-probability as a prior beat it: the outline of a rough shape pulls the rotation away
-(eval/MODEL_CARD.md).
+``turns`` in-plane turns of the image
+(:meth:`~sq_mitsuba.learning.inference.Predictor.read_turns`; the callers in
+:mod:`sq_mitsuba.evaluation` pass it), not from one: a distribution multiplied over 8 turns is
+23.6 deg median against 26.7 on those 64 images (38.7 against 42.8 on 400). The same copies
+give the assembly, the position and the mask the search fits, as means over the copies.
+Neither a local search around that rotation nor one with the network's log-probability as a
+prior beat it: the outline of a rough shape pulls the rotation away (eval/MODEL_CARD.md).
 
 Each candidate keeps the network's translation, shifted (``recentre``) so that its
 silhouette's centroid is the mask's: a wrong rotation also moves the outline's centre, and the
