@@ -175,12 +175,10 @@ def one_drjit_thread():
     """Dr.Jit on one thread for the test: the refinement's backward pass sums silhouette
     gradients with atomic adds, whose rounding depends on how threads interleave (on a busy
     machine), and Adam turns the sign of a near-zero gradient into a full step."""
-    import drjit as dr
+    from sq_mitsuba.learning.training_step import mitsuba_for
 
-    previous = dr.thread_count()
-    dr.set_thread_count(1)
-    yield
-    dr.set_thread_count(previous)
+    with mitsuba_for(torch.device("cpu"), deterministic=True):
+        yield
 
 
 def test_other_aspect_ratio_is_padded_with_black_and_reported_for_the_image(

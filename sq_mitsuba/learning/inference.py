@@ -398,16 +398,13 @@ class Predictor:
                             (back.transpose(-1, -2) @ offsets[..., None])[..., 0] + 0.5 * size])
         pixel = pixels.mean(dim=0)
         depth = torch.cat([prediction.depth[None], per_copy(output.depth).to(dtype)]).mean(0)
-        homogeneous = torch.cat([pixel, pixel.new_ones(batch, 1)], dim=-1)[..., None]
-        ray = torch.linalg.solve_triangular(network_camera.matrix(dtype, pixel.device),
-                                            homogeneous, upper=True)[..., 0]
         mask = prediction.mask
         if mask is not None and output.mask_logits is not None:
             mask = self._turned_mask(mask, output.mask_logits, angles[1:], x)
         return replace(prediction, assembly=Assembly(params.mean(dim=0)), rotation=rotation,
                        quaternion=matrix_to_quaternion(rotation), pixel=pixel * scale,
-                       depth=depth, translation=depth[:, None] * ray, mask=mask,
-                       rotation_hypotheses=hypotheses, rotation_scores=scores,
+                       depth=depth, translation=network_camera.unproject(pixel, depth),
+                       mask=mask, rotation_hypotheses=hypotheses, rotation_scores=scores,
                        rotation_log_probabilities=combined.to(rotation))
 
     @staticmethod
