@@ -2,18 +2,59 @@
 
 Tests run on 2 CPU threads (the reference machine). Fixtures that build Mitsuba scenes are
 session-scoped: the first kernels compile for seconds, later renders reuse them.
+
+Device (in the style of kornia's conftest): ``pytest --device cpu|cuda`` (default ``cpu``)
+chooses the torch device of the tests that take the :func:`device` fixture: the torch code
+that runs on a GPU in training (network forward and backward, the losses, the superquadric and
+rotation maths, the nearest-neighbour gathers, the loss terms). Such a test builds its inputs
+as before (on the CPU, from the same seeds) and moves them and its modules to ``device``, so
+it asserts the same on either device. ``pytest --device cuda`` on a machine without CUDA
+skips those tests, with the reason, and runs the others on the CPU as usual; on the GPU,
+float32 matrix products and convolutions keep full float32 precision (no TF32), so the
+tolerances written for the CPU still hold::
+
+    pytest --device cuda tests/test_network.py tests/test_losses.py
+    pytest --device cuda -m "not slow"        # the inner loop, on the GPU
 """
 
 from __future__ import annotations
 
+import pytest
 import torch
 
 torch.set_num_threads(2)
 
+DEVICES = ("cpu", "cuda")
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption(
+        "--device", action="store", default="cpu", choices=DEVICES,
+        help="torch device of the tests that take the `device` fixture (default: cpu); "
+             "with cuda and no CUDA here, those tests are skipped")
+
+
+def pytest_report_header(config: pytest.Config) -> str:
+    return f"torch device of device-aware tests: {config.getoption('--device')}"
+
+
+@pytest.fixture(scope="session")
+def device(request: pytest.FixtureRequest) -> torch.device:
+    """The ``torch.device`` of ``--device``; skips the test when it is CUDA and none is here."""
+    name = request.config.getoption("--device")
+    if name == "cuda":
+        if not torch.cuda.is_available():
+            why = ("this torch build has no CUDA" if torch.version.cuda is None
+                   else "no CUDA device is visible")
+            pytest.skip(f"--device cuda: CUDA is not available ({why}; torch "
+                        f"{torch.__version__})")
+        # Full float32 precision, as on the CPU: the tests' tolerances assume it.
+        torch.backends.cuda.matmul.allow_tf32 = False
+        torch.backends.cudnn.allow_tf32 = False
+    return torch.device(name)
+
 
 # --- silhouette renderer fixtures (issue 3) -------------------------------------------------
-
-import pytest  # noqa: E402
 
 
 @pytest.fixture(scope="session")
@@ -27,7 +68,7 @@ def off_centre_camera():
 @pytest.fixture(scope="session")
 def precise_renderer(off_centre_camera):
     """High-sample renderer (spp 256, sppp 16) at 128 x 128 for pixel and gradient checks."""
-    from sq_mitsuba.render.silhouette import SilhouetteRenderer
+    from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer
 
     return SilhouetteRenderer(off_centre_camera, spp=256, sppp=16, seed=11)
 
@@ -36,7 +77,7 @@ def precise_renderer(off_centre_camera):
 def renderer64():
     """Default renderer at 64 x 64 with the default camera."""
     from sq_mitsuba.geometry.camera import Camera
-    from sq_mitsuba.render.silhouette import SilhouetteRenderer
+    from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer
 
     return SilhouetteRenderer(Camera.default(64))
 
@@ -93,9 +134,9 @@ def eval_checkpoint(train_dataset, tmp_path_factory):
     with a Chamfer-L2 + SPEED pose loss, written with ``checkpoint_payload`` /
     ``write_checkpoint`` (dataset camera, config name "tiny")."""
     from sq_mitsuba.data.spe3r import Spe3rDataset
-    from sq_mitsuba.learning.checkpoint import checkpoint_payload, write_checkpoint
-    from sq_mitsuba.learning.losses import chamfer_loss, pose_loss
-    from sq_mitsuba.learning.network import NetworkConfig, SuperquadricNet
+    from sq_mitsuba.model.checkpoint import checkpoint_payload, write_checkpoint
+    from sq_mitsuba.model.losses import chamfer_loss, pose_loss
+    from sq_mitsuba.model.network import NetworkConfig, SuperquadricNet
 
     dataset = Spe3rDataset(train_dataset, "train", image_size=64, num_surface=500,
                            num_occupancy=2)

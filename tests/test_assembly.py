@@ -17,7 +17,7 @@ from sq_mitsuba.geometry.superquadric import (
     taper,
     untaper,
 )
-from sq_mitsuba.learning.losses import overlap
+from sq_mitsuba.model.losses import overlap
 
 F64 = torch.float64
 

@@ -24,8 +24,9 @@ from output_checks import error_line, one_torch_thread  # noqa: F401 (autouse fi
 from PIL import Image
 
 from sq_mitsuba.cli import main
-from sq_mitsuba.evaluation.evaluate import METRICS, write_tables
 from sq_mitsuba.evaluation.report import PAPER_TABLES
+from sq_mitsuba.evaluation.scoring import METRICS
+from sq_mitsuba.evaluation.tables import write_tables
 from sq_mitsuba.io import atomic_path, atomic_write_json
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -114,9 +115,9 @@ def test_unusable_checkpoint_is_one_line_naming_it(command, name, bad, train_dat
 @pytest.mark.parametrize("name", ["hostile.pt", "raw.pt", "random.pt"])
 def test_pretrained_weights_that_are_no_weights_are_one_line(name, bad):
     try:  # where the network's ImageNet loader lives
-        from sq_mitsuba.learning.pretrained import load_imagenet_weights
+        from sq_mitsuba.model.pretrained import load_imagenet_weights
     except ImportError:
-        from sq_mitsuba.learning.encoder import load_imagenet_weights
+        from sq_mitsuba.model.encoder import load_imagenet_weights
 
     with pytest.raises(ValueError) as raised:
         load_imagenet_weights(torch.nn.Module(), bad / name)  # the file fails before the model
@@ -352,7 +353,7 @@ def test_study_names_the_library_file_of_a_bad_model(bad, eval_checkpoint, tmp_p
 
 
 def _per_image_text(phase: str) -> str:
-    from sq_mitsuba.evaluation.evaluate import COLUMNS
+    from sq_mitsuba.evaluation.tables import COLUMNS
 
     row = {column: "" for column in COLUMNS}
     row.update({"model": "sat", "index": "3", "method": "network", "phase_angle_deg": phase,
@@ -605,11 +606,11 @@ def test_the_training_loss_renders_without_a_grad_warning(renderer64):
 
 
 def test_the_demo_page_names_the_shipped_model_without_this_machines_path():
-    from sq_mitsuba.evaluation.demo import _shown_model
-    from sq_mitsuba.learning.checkpoint import SHIPPED_MODEL
+    from sq_mitsuba.apps.demo_files import shown_model
+    from sq_mitsuba.model.checkpoint import SHIPPED_MODEL
 
-    shown = _shown_model(str(SHIPPED_MODEL))
-    assert "sq_mitsuba/learning/weights/model.pt" in shown
+    shown = shown_model(str(SHIPPED_MODEL))
+    assert "sq_mitsuba/model/weights/model.pt" in shown
     assert str(SHIPPED_MODEL.parents[2]) not in shown  # the checkout's absolute path
-    assert _shown_model("") == shown
-    assert _shown_model("runs/cpu/best.pt") == "runs/cpu/best.pt"
+    assert shown_model("") == shown
+    assert shown_model("runs/cpu/best.pt") == "runs/cpu/best.pt"

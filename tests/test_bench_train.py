@@ -9,8 +9,8 @@ import pytest
 
 from sq_mitsuba.cli import main
 from sq_mitsuba.config import apply_overrides
-from sq_mitsuba.learning.train import train
-from sq_mitsuba.learning.train_config import load_train_config
+from sq_mitsuba.training.config import load_train_config
+from sq_mitsuba.training.train import train
 
 TINY = Path(__file__).resolve().parents[1] / "train" / "configs" / "tiny.toml"
 
@@ -28,7 +28,7 @@ def test_max_seconds_stops_after_the_step_that_runs_out_and_resume_continues(
 
 
 def test_learning_curves_on_the_tiny_dataset(train_dataset, tmp_path):
-    from sq_mitsuba.evaluation.bench.train import (
+    from sq_mitsuba.bench.train import (
         curves_report,
         learning_curves,
         plot_learning_curves,
@@ -54,7 +54,7 @@ def test_learning_curves_on_the_tiny_dataset(train_dataset, tmp_path):
 
 
 def test_learning_curves_refuse_bad_input(tmp_path):
-    from sq_mitsuba.evaluation.bench.train import learning_curves
+    from sq_mitsuba.bench.train import learning_curves
 
     with pytest.raises(ValueError, match="minutes"):
         learning_curves(tmp_path, tmp_path / "out", minutes=0)
@@ -74,8 +74,8 @@ def test_decomposed_step_applies_the_same_update_as_the_training_step():
     one part per weighted loss term of the registry."""
     import torch
 
-    from sq_mitsuba.evaluation.bench.train import STEP_PARTS, StepBench
-    from sq_mitsuba.learning.training_step import mitsuba_for
+    from sq_mitsuba.bench.train import STEP_PARTS, StepBench
+    from sq_mitsuba.training.step import mitsuba_for
 
     # Adam eps 1e-5: at tiny.toml's 1e-8 a weight whose gradient is near 0 moves by lr times
     # its sign, so the two summation orders' last-bit differences become whole steps.

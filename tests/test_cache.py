@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from sq_mitsuba.data.spe3r import DatasetError, Spe3rDataset
-from sq_mitsuba.learning.cache import dataset_fingerprint, open_image_cache, open_point_cache
+from sq_mitsuba.training.cache import dataset_fingerprint, open_image_cache, open_point_cache
 
 
 def _dataset(root: Path, split: str = "train", size: int = 32) -> Spe3rDataset:

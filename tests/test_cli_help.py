@@ -90,7 +90,7 @@ def test_top_level_help_lists_commands_without_importing_the_fit_library():
     """`sq-mitsuba --help` lists fit from its HELP line without importing learning.fit."""
     code = ("import sys; from sq_mitsuba.cli import main\n"
             "try:\n    main(['--help'])\nexcept SystemExit as e:\n    assert e.code == 0\n"
-            "assert 'sq_mitsuba.learning.fit' not in sys.modules\n")
+            "assert 'sq_mitsuba.inference.fit' not in sys.modules\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True).stdout
     assert "fit superquadrics to masks" in out

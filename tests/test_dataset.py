@@ -36,7 +36,7 @@ from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.rotation import quaternion_to_matrix, rotation_angle
 from sq_mitsuba.io import atomic_path
 from sq_mitsuba.render.scene_config import SceneConfig
-from sq_mitsuba.render.silhouette import SilhouetteRenderer
+from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer
 from sq_mitsuba.render.space import SpaceScene
 
 RESOLUTION, SPP, IMAGES = 128, 4, 3

@@ -1,7 +1,11 @@
 """``sq-mitsuba demo`` end to end at the tiny size on the tiny trained checkpoint: every output
 exists and is well formed, the page links only files that exist and shows the network's own
 prediction, a headless browser loads every picture, and bad input is a one-line error that
-writes nothing."""
+writes nothing.
+
+The end-to-end tests (the tiny demo run, the headless Chromium, the trained checkpoint) are
+marked ``slow``: ``make test-fast`` (``pytest -m "not slow"``) leaves them out and runs only the
+unit tests of the demo's parts; ``make test`` runs them all."""
 
 from __future__ import annotations
 
@@ -22,12 +26,12 @@ import trimesh
 from output_checks import assert_picture, error_line, one_torch_thread  # noqa: F401 (autouse fixture)
 from PIL import Image
 
+from sq_mitsuba.apps.demo import DEMO_CATALOGUE_SEED, MANIFEST, SIZES, DemoSize
 from sq_mitsuba.cli import main
-from sq_mitsuba.evaluation.demo import DEMO_CATALOGUE_SEED, MANIFEST, SIZES, DemoSize
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.rotation import quaternion_to_matrix
-from sq_mitsuba.learning import checkpoint as checkpoint_module
-from sq_mitsuba.learning.checkpoint import load_model
+from sq_mitsuba.inference.loading import load_model
+from sq_mitsuba.model import checkpoint as checkpoint_module
 
 TINY = SIZES["tiny"]
 
@@ -62,7 +66,7 @@ def page_links(path: Path) -> _Links:
 def demo_checkpoint(request):
     """The model the demo tests run: the shipped one when this checkout has it (what
     `make demo` runs), else the tiny trained fixture."""
-    from sq_mitsuba.learning.checkpoint import SHIPPED_MODEL
+    from sq_mitsuba.model.checkpoint import SHIPPED_MODEL
 
     if SHIPPED_MODEL.is_file():
         return SHIPPED_MODEL
@@ -87,7 +91,7 @@ def demo(demo_checkpoint, tmp_path_factory):
     (out.parent / f".{out.name}.new.{dead.pid}.abcd").mkdir()
     printed = io.StringIO()
     with contextlib.redirect_stdout(printed):
-        from sq_mitsuba.learning.checkpoint import SHIPPED_MODEL
+        from sq_mitsuba.model.checkpoint import SHIPPED_MODEL
 
         # No --checkpoint for the shipped model: the demo's default, as `make demo` runs it.
         model = [] if demo_checkpoint == SHIPPED_MODEL else ["--checkpoint", str(demo_checkpoint)]
@@ -105,6 +109,7 @@ def test_presets_are_valid_and_the_seed_is_not_the_training_catalogue():
     assert SIZES["default"] == DemoSize()
 
 
+@pytest.mark.slow
 def test_demo_writes_every_output_well_formed(demo, demo_checkpoint):
     out, printed = demo
     # The earlier demo was replaced as a whole, and nothing is left beside the folder (the
@@ -158,6 +163,7 @@ def _rows(path):
         return list(csv.DictReader(handle))
 
 
+@pytest.mark.slow
 def test_demo_shows_the_networks_own_prediction_of_unseen_models(demo, demo_checkpoint):
     out, _ = demo
     data = out / "data"
@@ -178,7 +184,7 @@ def test_demo_shows_the_networks_own_prediction_of_unseen_models(demo, demo_chec
         assert f"<td>{label}</td>" in html_text and f"<td>{mean:.3f}</td>" in html_text
     # The mask fitted is named: the network's mask head where the model has one (the shipped
     # model), else the threshold segmentation (the tiny trained fixture).
-    from sq_mitsuba.learning.checkpoint import read_checkpoint
+    from sq_mitsuba.model.checkpoint import read_checkpoint
 
     has_head = read_checkpoint(demo_checkpoint)["config"]["network"].get("mask_head", False)
     assert ("mask head" if has_head else "threshold segmentation") in html_text
@@ -261,6 +267,7 @@ def broken_images(chromium: str, page: Path) -> int:
     return int(match[1])
 
 
+@pytest.mark.slow
 def test_the_page_as_a_person_sees_it(demo, chromium, tmp_path):
     out, _ = demo
     shot = tmp_path / "page.png"
@@ -288,6 +295,7 @@ def _listing(root: Path) -> list[str]:
     return sorted(str(p.relative_to(root)) for p in root.rglob("*"))
 
 
+@pytest.mark.slow  # eval_checkpoint: renders a dataset and trains
 @pytest.mark.parametrize("case", ["size", "checkpoint", "out", "foreign", "train"])
 def test_bad_input_is_one_line_and_writes_nothing(case, eval_checkpoint, tmp_path, capsys):
     (tmp_path / "a_file").write_text("not a folder")
@@ -321,6 +329,7 @@ def test_without_a_shipped_model_the_demo_says_so_before_any_work(tmp_path, monk
     assert _listing(tmp_path) == []
 
 
+@pytest.mark.slow
 def test_summary_ignores_nothing_it_should_show(demo):
     # Every metric of the page is finite for every image and method (no blank cells).
     out, _ = demo
@@ -333,7 +342,7 @@ def test_summary_ignores_nothing_it_should_show(demo):
 
 
 def test_page_and_twin_carry_the_same_figures_and_escape_text(tmp_path):
-    from sq_mitsuba.evaluation.demo_page import DemoPage, PageImage, write_page
+    from sq_mitsuba.apps.demo_page import DemoPage, PageImage, write_page
 
     page = DemoPage(
         title="a <b> & c", intro=["x < y | z"], metric_labels={"iou_2d": "2D IoU"},
@@ -356,7 +365,7 @@ def test_page_and_twin_carry_the_same_figures_and_escape_text(tmp_path):
 
 
 def test_a_running_demos_temporary_folder_is_left_alone(tmp_path):
-    from sq_mitsuba.evaluation.demo import remove_stale_staging
+    from sq_mitsuba.apps.demo import remove_stale_staging
 
     out = tmp_path / "demo_output"
     dead = subprocess.Popen(["true"])

@@ -1,5 +1,5 @@
-"""The documentation runs as written: the README's Python snippets execute, its command lines
-and the ``--set`` examples of every ``--help`` parse."""
+"""The documentation runs as written: the Python snippets of the README and of the guides
+under docs/ execute, their command lines and the ``--set`` examples of every ``--help`` parse."""
 
 from __future__ import annotations
 
@@ -18,7 +18,9 @@ from sq_mitsuba.cli._options import SET_CLASS
 from sq_mitsuba.config import apply_overrides
 
 ROOT = Path(__file__).resolve().parents[1]
-README = (ROOT / "README.md").read_text(encoding="utf-8")
+# The README and the guides under docs/, read as one text.
+README = "\n".join(path.read_text(encoding="utf-8")
+                   for path in [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))])
 
 # Each snippet runs in a fresh namespace of one interpreter (one torch import for all), in a
 # folder that holds the run the training section loads (runs/cpu/best.pt).
@@ -128,7 +130,7 @@ def _override_class(path: tuple[str, ...], parser: argparse.ArgumentParser) -> t
     """The config class a command's ``--set`` changes (``train``'s is its TrainConfig, the
     ``study`` group's help is its subcommand's)."""
     if path == ("train",):
-        from sq_mitsuba.learning.train_config import TrainConfig
+        from sq_mitsuba.training.config import TrainConfig
 
         return TrainConfig
     if path == ("study",):

@@ -1,5 +1,8 @@
 """EfficientNet-B0 encoder: architecture size, shapes, gradients, stochastic depth, ImageNet
-weight loading (torchvision and timm namings), BatchNorm folding, input checks."""
+weight loading (torchvision and timm namings), BatchNorm folding, input checks.
+
+The tests that take ``device`` run on ``pytest --device`` (conftest.py): the model is built
+and its inputs drawn on the CPU from the same seeds, then moved."""
 
 from __future__ import annotations
 
@@ -7,8 +10,8 @@ import pytest
 import torch
 from torch import Tensor, nn
 
-from sq_mitsuba.learning.encoder import EfficientNetB0, StochasticDepth, fold_batchnorm
-from sq_mitsuba.learning.pretrained import load_imagenet_weights
+from sq_mitsuba.model.encoder import EfficientNetB0, StochasticDepth, fold_batchnorm
+from sq_mitsuba.model.pretrained import load_imagenet_weights
 
 # (expand ratio, repeats) of the 7 B0 stages, from the published stage table.
 B0_STAGES = ((1, 1), (6, 2), (6, 2), (6, 3), (6, 3), (6, 4), (6, 1))
@@ -104,10 +107,10 @@ def test_parameter_count_matches_torchvision_efficientnet_b0() -> None:
 
 @pytest.mark.parametrize("channels", [1, 3])
 @pytest.mark.parametrize("size", [128, 96])
-def test_output_shapes(channels: int, size: int) -> None:
-    model = EfficientNetB0(in_channels=channels).eval()
+def test_output_shapes(channels: int, size: int, device: torch.device) -> None:
+    model = EfficientNetB0(in_channels=channels).eval().to(device)
     with torch.no_grad():
-        features = model(_images(2, channels, size))
+        features = model(_images(2, channels, size).to(device))
     assert features.shape == (2, 1280)
     assert torch.isfinite(features).all()
 
@@ -121,10 +124,10 @@ def test_classifier_gives_logits() -> None:
     assert features.shape == (2, 1280)
 
 
-def test_gradients_reach_every_parameter_in_train_mode() -> None:
+def test_gradients_reach_every_parameter_in_train_mode(device: torch.device) -> None:
     torch.manual_seed(0)
     model = EfficientNetB0(in_channels=1, num_classes=4, drop_connect_rate=0.0).train()
-    logits = model(_images(2, 1, 64))
+    logits = model.to(device)(_images(2, 1, 64).to(device))
     (logits * torch.randn_like(logits)).sum().backward()
     for name, parameter in model.named_parameters():
         assert parameter.grad is not None, name

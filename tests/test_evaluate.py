@@ -19,16 +19,14 @@ from scipy.spatial.transform import Rotation
 
 from sq_mitsuba.cli import main
 from sq_mitsuba.data.spe3r import Spe3rDataset
-from sq_mitsuba.evaluation.evaluate import COLUMNS, METRICS, OUTPUT_FILES
+from sq_mitsuba.evaluation.evaluate import OUTPUT_FILES
 from sq_mitsuba.evaluation.report import PAPER_TABLES
-from sq_mitsuba.learning import checkpoint as checkpoint_module
-from sq_mitsuba.learning.checkpoint import (
-    checkpoint_payload,
-    load_model,
-    read_checkpoint,
-    write_checkpoint,
-)
-from sq_mitsuba.learning.network import NetworkConfig, SuperquadricNet
+from sq_mitsuba.evaluation.scoring import METRICS
+from sq_mitsuba.evaluation.tables import COLUMNS
+from sq_mitsuba.inference.loading import load_model
+from sq_mitsuba.model import checkpoint as checkpoint_module
+from sq_mitsuba.model.checkpoint import checkpoint_payload, read_checkpoint, write_checkpoint
+from sq_mitsuba.model.network import NetworkConfig, SuperquadricNet
 
 #: Small settings: few refinement steps and points (the defaults are for real evaluations).
 SMALL = ["--set", "refinement.steps=3", "--set", "refinement.patience=3",
@@ -251,25 +249,3 @@ def test_without_checkpoint_and_no_shipped_model_is_one_clear_line(train_dataset
     line = error_line(capsys)
     assert "no trained model is shipped" in line and "sq-mitsuba train" in line
     assert not (tmp_path / "out").exists()
-
-
-def test_image_masks_prefer_the_networks_mask_head():
-    """The mask fitted: the prediction's mask head when it has one (thresholded at 0.5), else
-    the threshold segmentation of the image; an empty mask is not usable."""
-    from types import SimpleNamespace
-
-    from sq_mitsuba.evaluation.evaluate import image_masks
-
-    images = torch.zeros(2, 1, 16, 16)
-    images[0, 0, 4:9, 5:12] = 0.8  # a lit target; image 1 is black (nothing to segment)
-    head = torch.zeros(2, 16, 16)
-    head[:, 2:6, 3:7] = 0.9
-    head[1] = 0.2  # the head sees nothing in image 1
-    masks, usable, source = image_masks(SimpleNamespace(mask=head), images, "network")
-    assert source == "network" and usable.tolist() == [True, False]
-    assert torch.equal(masks, head > 0.5)
-    for prediction, wanted in ((SimpleNamespace(), "network"),
-                               (SimpleNamespace(mask=head), "segmentation")):
-        masks, usable, source = image_masks(prediction, images, wanted)
-        assert source == "segmentation" and usable.tolist() == [True, False]
-        assert int(masks[0].sum()) == 5 * 7 and not bool(masks[1].any())

@@ -10,8 +10,9 @@ from output_checks import error_line, one_torch_thread  # noqa: F401
 from PIL import Image
 
 from sq_mitsuba.cli import main
-from sq_mitsuba.evaluation.evaluate import baseline_prediction
-from sq_mitsuba.learning.checkpoint import SHIPPED_MODEL, load_model, read_checkpoint
+from sq_mitsuba.evaluation.scoring import baseline_prediction
+from sq_mitsuba.inference.loading import load_model
+from sq_mitsuba.model.checkpoint import SHIPPED_MODEL, read_checkpoint
 
 
 @pytest.fixture(scope="module")

@@ -9,9 +9,9 @@ from sq_mitsuba.evaluation.figures import plot_fit
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.rotation import random_rotations
-from sq_mitsuba.learning.fit import default_raw, fit_assembly, resize_masks
-from sq_mitsuba.learning.losses import silhouette_loss
-from sq_mitsuba.render.silhouette import SilhouetteRenderer, mask_iou, render_assembly
+from sq_mitsuba.inference.fit import default_raw, fit_assembly, resize_masks
+from sq_mitsuba.model.losses import silhouette_loss
+from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer, mask_iou, render_assembly
 
 
 def _target_views(views: int = 3, resolution: int = 64, seed: int = 3):
@@ -101,7 +101,7 @@ def test_fit_bad_input():
 
 def test_fit_options_defaults_bounds_and_keyword_overrides():
     from sq_mitsuba.config import ConfigError, field_docs, from_dict
-    from sq_mitsuba.learning.fit import FitOptions
+    from sq_mitsuba.inference.fit import FitOptions
 
     options = FitOptions()
     assert (options.num_primitives, options.steps, options.resolution, options.lr,
@@ -121,7 +121,7 @@ def test_fit_options_defaults_bounds_and_keyword_overrides():
 
 
 def test_options_object_and_keywords_fit_identically():
-    from sq_mitsuba.learning.fit import FitOptions
+    from sq_mitsuba.inference.fit import FitOptions
 
     masks, camera, rotations, translations = _target_views(views=1, resolution=32)
     by_keywords = fit_assembly(masks, camera, rotations, translations, num_primitives=1,
@@ -135,7 +135,7 @@ def test_options_object_and_keywords_fit_identically():
 
 
 def test_resolution_beyond_the_machine_memory_is_refused_with_the_estimate():
-    from sq_mitsuba.learning.fit import (
+    from sq_mitsuba.inference.fit import (
         RENDER_BYTES_PER_PIXEL,
         VIEW_BYTES_PER_PIXEL,
         _physical_memory,

@@ -1,5 +1,7 @@
 """The network's exchangeable parts: Lite0 against its reference implementation, latent, pose
-and mask heads by name, the shipped model's numbers across the change of layout."""
+and mask heads by name, the shipped model's numbers across the change of layout.
+
+The tests that take ``device`` run on ``pytest --device`` (conftest.py)."""
 
 from __future__ import annotations
 
@@ -11,10 +13,10 @@ import pytest
 import torch
 
 import sq_mitsuba
-from sq_mitsuba.learning.encoder import EfficientNet
-from sq_mitsuba.learning.heads import POSE_HEADS
-from sq_mitsuba.learning.network import NetworkConfig, SuperquadricNet, upgrade_state_dict
-from sq_mitsuba.learning.pretrained import (
+from sq_mitsuba.model.encoder import EfficientNet
+from sq_mitsuba.model.heads import POSE_HEADS
+from sq_mitsuba.model.network import NetworkConfig, SuperquadricNet, upgrade_state_dict
+from sq_mitsuba.model.pretrained import (
     installed_lite0_weights,
     load_imagenet_weights,
     resolve_pretrained,
@@ -69,23 +71,24 @@ def test_imagenet_names_the_lite0_file_only() -> None:
 
 @pytest.mark.parametrize("latent", ["pooled", "spatial"])
 @pytest.mark.parametrize("pose_head", ["6d", "grid"])
-def test_every_head_combination_runs_and_trains(latent: str, pose_head: str) -> None:
+def test_every_head_combination_runs_and_trains(latent: str, pose_head: str,
+                                                device: torch.device) -> None:
     config = NetworkConfig(encoder="efficientnet_lite0", latent=latent, pose_head=pose_head,
                            mask_head=True, image_size=64, rotation_cells=72, num_primitives=3,
                            latent_dim=32, hidden_dim=32, spatial_channels=16)
-    net = SuperquadricNet(config)
-    images = torch.rand(2, 1, 64, 64, generator=torch.Generator().manual_seed(2))
-    k = torch.tensor([[80.0, 0.0, 32.0], [0.0, 80.0, 32.0], [0.0, 0.0, 1.0]])
+    net = SuperquadricNet(config).to(device)
+    images = torch.rand(2, 1, 64, 64, generator=torch.Generator().manual_seed(2)).to(device)
+    k = torch.tensor([[80.0, 0.0, 32.0], [0.0, 80.0, 32.0], [0.0, 0.0, 1.0]], device=device)
     out = net(images, k)
     assert out.raw.shape == (2, 3, 16) and out.rotation.shape == (2, 3, 3)
     assert out.mask_logits is not None and out.mask_logits.shape == (2, 1, 16, 16)
     assert (out.rotation_6d is not None) == (pose_head == "6d")
     assert (out.rotation_logits is not None) == (pose_head == "grid")
-    eye = torch.eye(3).expand(2, 3, 3)
+    eye = torch.eye(3, device=device).expand(2, 3, 3)
     torch.testing.assert_close(out.rotation @ out.rotation.transpose(1, 2), eye,
                                atol=1e-5, rtol=0)
     # Another input size runs (the spatial head pools to its grid).
-    assert net(torch.rand(1, 1, 100, 100), k).raw.shape == (1, 3, 16)
+    assert net(torch.rand(1, 1, 100, 100).to(device), k).raw.shape == (1, 3, 16)
     # Every parameter gets a gradient from the outputs the losses read.
     loss = out.raw.square().mean() + out.translation.square().mean() + out.mask_logits.mean()
     loss = loss + (out.rotation_6d.square().mean() if out.rotation_6d is not None
@@ -109,8 +112,8 @@ def test_a_checkpoint_of_the_fixed_head_layout_loads_and_predicts_the_same(tmp_p
     (At the change itself the previous shipped model's predictions on a fixed image were
     compared with those of the commit before it: equal bit for bit, eager and fast paths.)"""
     from sq_mitsuba.geometry.camera import Camera
-    from sq_mitsuba.learning.checkpoint import checkpoint_payload, write_checkpoint
-    from sq_mitsuba.learning.inference import Predictor
+    from sq_mitsuba.inference.predictor import Predictor
+    from sq_mitsuba.model.checkpoint import checkpoint_payload, write_checkpoint
 
     torch.manual_seed(3)
     net = SuperquadricNet(NetworkConfig(image_size=64, num_primitives=3)).eval()

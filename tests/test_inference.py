@@ -16,15 +16,11 @@ import sq_mitsuba
 from sq_mitsuba.config import to_dict
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.rotation import quaternion_to_matrix
-from sq_mitsuba.learning import checkpoint
-from sq_mitsuba.learning.checkpoint import (
-    checkpoint_payload,
-    load_model,
-    read_checkpoint,
-    write_checkpoint,
-)
-from sq_mitsuba.learning.inference import Prediction, Predictor
-from sq_mitsuba.learning.network import NetworkConfig, SuperquadricNet
+from sq_mitsuba.inference.loading import load_model
+from sq_mitsuba.inference.predictor import Prediction, Predictor
+from sq_mitsuba.model import checkpoint
+from sq_mitsuba.model.checkpoint import checkpoint_payload, read_checkpoint, write_checkpoint
+from sq_mitsuba.model.network import NetworkConfig, SuperquadricNet
 
 SIZE = 64
 CAMERA = Camera.default(SIZE)
@@ -316,9 +312,9 @@ def test_reading_from_turned_copies_turns_with_the_image(train_dataset):
     prediction reads the same running only the turned copies. Bad ``turns`` and a network without a
     distribution head are one-line errors, and ``can_turn`` says so beforehand."""
     from sq_mitsuba.data.spe3r import Spe3rDataset
+    from sq_mitsuba.geometry.image_turns import rotate_batch, z_rotation
     from sq_mitsuba.geometry.metrics import rotation_error_deg
     from sq_mitsuba.geometry.so3_grid import half_turns
-    from sq_mitsuba.learning.augment import rotate_batch, z_rotation
 
     shipped = sq_mitsuba.load_model()
     dataset = Spe3rDataset(train_dataset, "test", num_surface=10, num_occupancy=2)

@@ -1,9 +1,12 @@
 """The folder tree is the architecture: every import points down the layer order.
 
 Order, lowest first: the shared utilities at the top level (``checks``, ``config``, ``inputs``,
-``io``, ``llvm``, ``outputs``), then ``geometry``, ``render``, ``data``, ``learning``,
-``evaluation``, ``cli``. A module may import its own layer and the layers below it, never one
-above. Imports inside functions count too (the project defers heavy imports into functions).
+``io``, ``llvm``, ``outputs``), then ``geometry``, ``render``, ``data``, ``model``, then
+``training`` and ``inference`` side by side (neither imports the other: a trained network
+needs nothing of the trainer, and the trainer nothing of test time), then ``evaluation``,
+``apps``, ``bench``, ``cli``. A module may import its own layer and the layers below it, never
+one above or beside. Imports inside functions count too (the project defers heavy imports into
+functions).
 """
 
 from __future__ import annotations
@@ -16,25 +19,37 @@ import sq_mitsuba
 
 PACKAGE = Path(sq_mitsuba.__file__).resolve().parent
 UTILITIES = ("checks", "config", "inputs", "io", "llvm", "outputs")
-LAYERS = ("utilities", "geometry", "render", "data", "learning", "evaluation", "cli")
+# One tuple per rank, lowest first; the layers of one rank may not import each other.
+RANKS = (("utilities",), ("geometry",), ("render",), ("data",), ("model",),
+         ("training", "inference"), ("evaluation",), ("apps",), ("bench",), ("cli",))
+LAYERS = tuple(name for rank in RANKS for name in rank)
+#: Most modules a package folder may hold (``__init__`` included): a longer list is a sign
+#: that the folder does several jobs.
+MAX_MODULES = 15
 # The package root re-exports the inference API and runs the CLI: it sits on top.
 TOP = ("__init__", "__main__")
 
 
-def layer_of(module: str) -> int | None:
-    """Rank in :data:`LAYERS` of a dotted ``sq_mitsuba...`` module name (None: not ours)."""
+def layer_of(module: str) -> str | None:
+    """The layer (a name of :data:`LAYERS`, or "top") of a dotted ``sq_mitsuba...`` module
+    name (None: not ours)."""
     parts = module.split(".")
     if parts[0] != "sq_mitsuba":
         return None
     if len(parts) == 1 or parts[1] in TOP:
-        return len(LAYERS)
-    if parts[1] in UTILITIES:
-        return 0
-    if parts[1] == "scenes":  # package data, imports nothing
-        return 0
+        return "top"
+    if parts[1] in UTILITIES or parts[1] == "scenes":  # scenes: package data, imports nothing
+        return "utilities"
     if parts[1] not in LAYERS:
         raise AssertionError(f"{module}: not in a layer folder; layers are {LAYERS}")
-    return LAYERS.index(parts[1])
+    return parts[1]
+
+
+def rank_of(layer: str) -> int:
+    """Position of ``layer`` in :data:`RANKS` (the package root above them all)."""
+    if layer == "top":
+        return len(RANKS)
+    return next(k for k, names in enumerate(RANKS) if layer in names)
 
 
 def module_name(path: Path, root: Path) -> str:
@@ -74,15 +89,17 @@ def layer_violations(root: Path) -> list[str]:
         own = layer_of(module)
         tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
         for line, target in imported_modules(tree, module, path.name == "__init__.py"):
-            rank = layer_of(target)
-            if rank is not None and own is not None and rank > own:
+            layer = layer_of(target)
+            if layer is None or own is None or layer == own:
+                continue
+            if rank_of(layer) >= rank_of(own):
                 problems.append(f"{path.relative_to(root.parent)}:{line}: {module} "
-                                f"({_name(own)}) imports {target} ({_name(rank)})")
+                                f"({_name(own)}) imports {target} ({_name(layer)})")
     return problems
 
 
-def _name(rank: int) -> str:
-    return LAYERS[rank] if rank < len(LAYERS) else "package root"
+def _name(layer: str) -> str:
+    return "package root" if layer == "top" else layer
 
 
 def test_every_import_points_down():
@@ -101,11 +118,21 @@ def test_a_planted_upward_import_is_caught(tmp_path):
     planted.write_text("def late():\n    from sq_mitsuba.render.backend import mitsuba\n"
                        "    return mitsuba\n")
     relative = copy / "render" / "planted_relative.py"
-    relative.write_text("from ..learning import fit\n")
+    relative.write_text("from ..inference import fit\n")
+    beside = copy / "training" / "planted_beside.py"
+    beside.write_text("from sq_mitsuba.inference.search import search_poses\n")
     problems = layer_violations(copy)
-    assert len(problems) == 2, problems
+    assert len(problems) == 3, problems
     assert "geometry/planted.py:2" in problems[0] and "(render)" in problems[0]
-    assert "render/planted_relative.py:1" in problems[1] and "(learning)" in problems[1]
+    assert "render/planted_relative.py:1" in problems[1] and "(inference)" in problems[1]
+    assert "training/planted_beside.py:1" in problems[2] and "(inference)" in problems[2]
+
+
+def test_no_package_folder_holds_more_than_fifteen_modules():
+    crowded = {str(folder.relative_to(PACKAGE.parent)): count
+               for folder in [PACKAGE, *(p for p in PACKAGE.rglob("*") if p.is_dir())]
+               if (count := len(list(folder.glob("*.py")))) > MAX_MODULES}
+    assert crowded == {}
 
 
 def test_shared_utilities_import_nothing_of_the_project():
@@ -212,19 +239,22 @@ def test_a_planted_import_cycle_is_caught(tmp_path):
 # ------------------------------------------------------------------------ private names
 
 
+LEARNING = ("sq_mitsuba.model", "sq_mitsuba.training", "sq_mitsuba.inference")
+
+
 def private_learning_imports(paths: list[Path]) -> list[str]:
-    """One line per import of a ``_private`` name of ``sq_mitsuba.learning`` in ``paths``."""
+    """One line per import of a ``_private`` name of the model, training or inference layers
+    in ``paths``."""
     problems = []
     for path in paths:
         tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
         for node in ast.walk(tree):
-            if isinstance(node, ast.ImportFrom) and (node.module or "").startswith(
-                    "sq_mitsuba.learning"):
+            if isinstance(node, ast.ImportFrom) and (node.module or "").startswith(LEARNING):
                 problems += [f"{path}:{node.lineno}: {node.module}.{alias.name}"
                              for alias in node.names if alias.name.startswith("_")]
             elif isinstance(node, ast.Import):
                 problems += [f"{path}:{node.lineno}: {alias.name}" for alias in node.names
-                             if alias.name.startswith("sq_mitsuba.learning") and any(
+                             if alias.name.startswith(LEARNING) and any(
                                  part.startswith("_") and part != "__init__"
                                  for part in alias.name.split("."))]
     return problems
@@ -233,8 +263,9 @@ def private_learning_imports(paths: list[Path]) -> list[str]:
 def test_nothing_outside_learning_imports_its_private_names():
     """The training step, the trainer and the losses are public: the benchmark, the CLI,
     evaluation and the experiments under eval/ use them by their public names."""
-    outside = [p for p in sorted(PACKAGE.rglob("*.py")) if "learning" not in p.relative_to(
-        PACKAGE).parts]
+    own = {"model", "training", "inference"}
+    outside = [p for p in sorted(PACKAGE.rglob("*.py")) if not own & set(p.relative_to(
+        PACKAGE).parts)]
     experiments = sorted((PACKAGE.parent / "eval").rglob("*.py"))
     assert experiments, "eval/ scripts not found"
     assert private_learning_imports(outside + experiments) == []
@@ -242,12 +273,13 @@ def test_nothing_outside_learning_imports_its_private_names():
 
 def test_a_planted_private_import_is_caught(tmp_path):
     planted = tmp_path / "bench.py"
-    planted.write_text("def f():\n    from sq_mitsuba.learning.train import _loop, train\n")
+    planted.write_text("def f():\n    from sq_mitsuba.training.train import _loop, train\n")
     assert private_learning_imports([planted]) == [
-        f"{planted}:2: sq_mitsuba.learning.train._loop"]
+        f"{planted}:2: sq_mitsuba.training.train._loop"]
 
 
-def test_no_file_in_learning_is_over_500_lines():
-    long = {p.name: n for p in (PACKAGE / "learning").glob("*.py")
+def test_no_file_in_the_learning_layers_is_over_500_lines():
+    long = {str(p.relative_to(PACKAGE)): n for layer in ("model", "training", "inference")
+            for p in (PACKAGE / layer).rglob("*.py")
             if (n := len(p.read_text(encoding="utf-8").splitlines())) > 500}
     assert long == {}

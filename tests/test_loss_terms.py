@@ -1,6 +1,8 @@
 """The loss-term registry: a term added by one function and one entry trains, logs and is
 timed with no other edit; unknown or unfeedable terms are one-line errors before any work; the
-terms equal the loss functions they wrap; bad inputs to ``train`` leave nothing behind."""
+terms equal the loss functions they wrap; bad inputs to ``train`` leave nothing behind.
+
+The tests that take ``device`` run on ``pytest --device`` (conftest.py)."""
 
 from __future__ import annotations
 
@@ -14,8 +16,10 @@ import torch
 
 from sq_mitsuba.cli import main
 from sq_mitsuba.config import apply_overrides
-from sq_mitsuba.learning.batch import TrainingBatch
-from sq_mitsuba.learning.loss_terms import (
+from sq_mitsuba.model.losses import pose_loss, rotation_6d_loss, taper_loss
+from sq_mitsuba.training.batch import TrainingBatch
+from sq_mitsuba.training.config import load_train_config
+from sq_mitsuba.training.loss_terms import (
     LOSS_TERMS,
     LossConfig,
     LossContext,
@@ -23,9 +27,7 @@ from sq_mitsuba.learning.loss_terms import (
     register_term,
     total_loss,
 )
-from sq_mitsuba.learning.losses import pose_loss, rotation_6d_loss, taper_loss
-from sq_mitsuba.learning.train import train
-from sq_mitsuba.learning.train_config import load_train_config
+from sq_mitsuba.training.train import train
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ROOT / "train" / "configs" / "tiny.toml"
@@ -68,8 +70,8 @@ def test_a_term_added_through_the_registry_trains_logs_and_is_timed(
         shown = {t: float(row[t]) for t in config.loss.enabled()}
         total = sum(config.loss.weights[t] * v for t, v in shown.items())
         assert float(row["loss"]) == pytest.approx(total, rel=1e-5)  # weighted into the loss
-    from sq_mitsuba.evaluation.bench.train import StepBench
-    from sq_mitsuba.learning.training_step import mitsuba_for
+    from sq_mitsuba.bench.train import StepBench
+    from sq_mitsuba.training.step import mitsuba_for
 
     with mitsuba_for(torch.device("cpu"), True):
         bench = StepBench(apply_overrides(config, ["loss.weights.reprojection=0"]))
@@ -104,15 +106,15 @@ def test_a_term_the_network_cannot_feed_is_refused_before_work(toy_terms, train_
     assert not out.exists()
 
 
-def test_terms_equal_the_losses_they_wrap():
-    from sq_mitsuba.learning.network import NetworkConfig, SuperquadricNet
+def test_terms_equal_the_losses_they_wrap(device):
+    from sq_mitsuba.model.network import NetworkConfig, SuperquadricNet
 
     torch.manual_seed(0)
     network = SuperquadricNet(NetworkConfig(image_size=32, num_primitives=2, latent_dim=16,
-                                            hidden_dim=16)).eval()
-    k = torch.tensor([[40.0, 0, 16], [0, 40.0, 16], [0, 0, 1]])
+                                            hidden_dim=16)).eval().to(device)
+    k = torch.tensor([[40.0, 0, 16], [0, 40.0, 16], [0, 0, 1]], device=device)
     with torch.no_grad():
-        output = network(torch.rand(3, 1, 32, 32), k)
+        output = network(torch.rand(3, 1, 32, 32).to(device), k)
     rotation = torch.linalg.qr(torch.randn(3, 3, 3)).Q
     rotation = rotation * torch.linalg.det(rotation)[:, None, None]
     translation = torch.tensor([[0.1, 0.0, 3.0], [0.0, 0.2, 4.0], [-0.1, 0.1, 5.0]])
@@ -120,7 +122,8 @@ def test_terms_equal_the_losses_they_wrap():
     symmetries = torch.stack([torch.eye(3), flip])[None].expand(3, -1, -1, -1)
     batch = TrainingBatch(torch.rand(3, 1, 32, 32), torch.zeros(3, 1, 32, 32), rotation,
                           translation, torch.arange(3), torch.rand(3, 10, 3),
-                          torch.rand(3, 12, 3), torch.zeros(3, 12), symmetries)
+                          torch.rand(3, 12, 3), torch.zeros(3, 12), symmetries).to(device)
+    rotation, translation, symmetries = batch.rotation, batch.translation, batch.symmetries
     loss = LossConfig(weights={"rotation": 2.0, "rotation_6d": 0.5, "translation": 3.0,
                                "taper": 1.0})
     terms = compute_terms(output, batch, LossContext(loss))

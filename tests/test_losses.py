@@ -1,6 +1,10 @@
 """Training losses against independent references: dense pairwise Chamfer, brute-force
 occupancy through the per-primitive superquadric functions, the silhouette renderer's own
-images, finite differences, quaternion angles and hand-computed values."""
+images, finite differences, quaternion angles and hand-computed values.
+
+The tests that take ``device`` run on ``pytest --device`` (conftest.py): inputs are drawn on
+the CPU from the same seeds, then moved. The reprojection loss renders with Mitsuba's LLVM
+variant and stays on the CPU."""
 
 from __future__ import annotations
 
@@ -20,8 +24,7 @@ from sq_mitsuba.geometry.rotation import (
     rotation_6d_to_matrix,
 )
 from sq_mitsuba.geometry.superquadric import inside_outside_dual
-from sq_mitsuba.learning.loss_terms import PUBLISHED_WEIGHTS, LossConfig, total_loss
-from sq_mitsuba.learning.losses import (
+from sq_mitsuba.model.losses import (
     chamfer_loss,
     occupancy_loss,
     pose_loss,
@@ -30,7 +33,8 @@ from sq_mitsuba.learning.losses import (
     surface_chamfer_loss,
     taper_loss,
 )
-from sq_mitsuba.render.silhouette import SilhouetteRenderer, render_assembly
+from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer, render_assembly
+from sq_mitsuba.training.loss_terms import PUBLISHED_WEIGHTS, LossConfig, total_loss
 
 # ------------------------------------------------------------------------------- Chamfer
 
@@ -39,24 +43,24 @@ def dense_chamfer(pred: torch.Tensor, keep: torch.Tensor | None, target: torch.T
     """Reference: every pairwise squared distance, min per row and per column."""
     squared = ((pred[:, :, None] - target[:, None]) ** 2).sum(-1)  # (B, N, K)
     if keep is None:
-        keep = torch.ones(pred.shape[:2], dtype=torch.bool)
+        keep = torch.ones(pred.shape[:2], dtype=torch.bool, device=pred.device)
     forward = squared.min(dim=2).values
     forward = (forward * keep).sum(1) / keep.sum(1)
     backward = squared.masked_fill(~keep[:, :, None], math.inf).min(dim=1).values.mean(1)
     return (forward + backward).mean()
 
 
-def clouds(batch=3, count=40, targets=30, seed=0):
+def clouds(batch=3, count=40, targets=30, seed=0, device="cpu"):
     generator = torch.Generator().manual_seed(seed)
     pred = torch.rand(batch, count, 3, generator=generator, dtype=torch.float64)
     target = torch.rand(batch, targets, 3, generator=generator, dtype=torch.float64)
     keep = torch.rand(batch, count, generator=generator) > 0.3
-    return pred, keep, target
+    return pred.to(device), keep.to(device), target.to(device)
 
 
 @pytest.mark.parametrize("masked", [False, True])
-def test_chamfer_matches_dense_reference_value_and_gradient(masked):
-    pred, keep, target = clouds()
+def test_chamfer_matches_dense_reference_value_and_gradient(masked, device):
+    pred, keep, target = clouds(device=device)
     keep = keep if masked else None
     pred_a, target_a = pred.clone().requires_grad_(), target.clone().requires_grad_()
     pred_b, target_b = pred.clone().requires_grad_(), target.clone().requires_grad_()
@@ -73,16 +77,16 @@ def test_chamfer_matches_dense_reference_value_and_gradient(masked):
         assert float(pred_a.grad[keep].abs().max()) > 0.0
 
 
-def test_chamfer_gradcheck():
-    pred, keep, target = clouds(batch=2, count=12, targets=9, seed=1)
+def test_chamfer_gradcheck(device):
+    pred, keep, target = clouds(batch=2, count=12, targets=9, seed=1, device=device)
     pred.requires_grad_()
     target.requires_grad_()
     assert torch.autograd.gradcheck(lambda p, t: chamfer_loss(p, keep, t), (pred, target),
                                     eps=1e-7, atol=1e-6)
 
 
-def test_chamfer_ignores_masked_points_and_keeps_all_of_an_empty_item():
-    pred, keep, target = clouds(batch=2)
+def test_chamfer_ignores_masked_points_and_keeps_all_of_an_empty_item(device):
+    pred, keep, target = clouds(batch=2, device=device)
     moved = pred.clone()
     moved[~keep] += 100.0  # points that do not count can go anywhere
     assert float(chamfer_loss(moved, keep, target)) == pytest.approx(
@@ -101,13 +105,14 @@ def test_chamfer_of_identical_clouds_is_zero_and_known_for_a_shift():
     assert float(chamfer_loss(a, None, b)) == pytest.approx(0.18, rel=1e-12)
 
 
-def test_surface_chamfer_matches_metrics_chamfer_l2():
-    from sq_mitsuba.evaluation.metrics import chamfer_l2
+def test_surface_chamfer_matches_metrics_chamfer_l2(device):
+    from sq_mitsuba.geometry.metrics import chamfer_l2
 
     generator = torch.Generator().manual_seed(4)
     raw = 0.8 * torch.randn(2, 3, 16, generator=generator, dtype=torch.float64)
-    assembly = Assembly.from_raw(raw)
-    target = 0.4 * torch.rand(2, 500, 3, generator=generator, dtype=torch.float64) - 0.2
+    assembly = Assembly.from_raw(raw.to(device))
+    target = (0.4 * torch.rand(2, 500, 3, generator=generator, dtype=torch.float64) - 0.2
+              ).to(device)
     points, inside = assembly.surface_points_with_mask(level=2)
     assert bool(inside.any())  # the test exercises the mask
     expected = chamfer_l2(points.flatten(1, 2), target,
@@ -149,18 +154,18 @@ def brute_force_occupancy_loss(assembly, points, labels, sharpness, balance):
     return torch.stack(per_item).mean()
 
 
-def occupancy_setup(seed=2):
+def occupancy_setup(seed=2, device="cpu"):
     generator = torch.Generator().manual_seed(seed)
     raw = 0.8 * torch.randn(3, 4, 16, generator=generator, dtype=torch.float64)
     points = torch.rand(3, 400, 3, generator=generator, dtype=torch.float64) - 0.5
     labels = torch.rand(3, 400, generator=generator) < 0.35  # unbalanced on purpose
     labels[2] = False  # an item with outside points only
-    return raw, points, labels
+    return raw.to(device), points.to(device), labels.to(device)
 
 
 @pytest.mark.parametrize("balance", [True, False])
-def test_occupancy_loss_matches_brute_force(balance):
-    raw, points, labels = occupancy_setup()
+def test_occupancy_loss_matches_brute_force(balance, device):
+    raw, points, labels = occupancy_setup(device=device)
     raw_a, raw_b = raw.clone().requires_grad_(), raw.clone().requires_grad_()
     ours = occupancy_loss(Assembly.from_raw(raw_a), points, labels, 10.0, balance)
     reference = brute_force_occupancy_loss(Assembly.from_raw(raw_b), points, labels, 10.0,
@@ -172,9 +177,9 @@ def test_occupancy_loss_matches_brute_force(balance):
     assert float(raw_a.grad.abs().sum()) > 0
 
 
-def test_occupancy_balance_equals_plain_mean_for_balanced_labels():
-    raw, points, _ = occupancy_setup(seed=5)
-    labels = torch.zeros(3, 400, dtype=torch.bool)
+def test_occupancy_balance_equals_plain_mean_for_balanced_labels(device):
+    raw, points, _ = occupancy_setup(seed=5, device=device)
+    labels = torch.zeros(3, 400, dtype=torch.bool, device=device)
     labels[:, ::2] = True
     assembly = Assembly.from_raw(raw)
     balanced = occupancy_loss(assembly, points, labels, balance=True)
@@ -185,12 +190,11 @@ def test_occupancy_balance_equals_plain_mean_for_balanced_labels():
         float(balanced), rel=1e-12)
 
 
-def test_occupancy_loss_prefers_the_right_labels():
-    sphere = Assembly.from_values(torch.full((1, 1, 3), 0.3, dtype=torch.float64),
-                                  torch.ones(1, 1, 2, dtype=torch.float64))
-    points = torch.tensor([[[0.0, 0, 0], [0.1, 0.1, 0], [0.45, 0, 0], [0, 0.4, 0.3]]],
-                          dtype=torch.float64)
-    right = torch.tensor([[True, True, False, False]])
+def test_occupancy_loss_prefers_the_right_labels(device):
+    on = {"dtype": torch.float64, "device": device}
+    sphere = Assembly.from_values(torch.full((1, 1, 3), 0.3, **on), torch.ones(1, 1, 2, **on))
+    points = torch.tensor([[[0.0, 0, 0], [0.1, 0.1, 0], [0.45, 0, 0], [0, 0.4, 0.3]]], **on)
+    right = torch.tensor([[True, True, False, False]], device=device)
     assert float(occupancy_loss(sphere, points, right)) < 0.1
     assert float(occupancy_loss(sphere, points, ~right)) > 2.0
 
@@ -330,35 +334,36 @@ def test_reprojection_bad_input(renderer64):
 # ---------------------------------------------------------------------------------- pose
 
 
-def half_turn(axis):
+def half_turn(axis, device="cpu"):
     matrix = -torch.eye(3, dtype=torch.float64)
     matrix[axis, axis] = 1.0
-    return matrix
+    return matrix.to(device)
 
 
-def test_pose_loss_without_symmetries_is_the_speed_error():
+def test_pose_loss_without_symmetries_is_the_speed_error(device):
     generator = torch.Generator().manual_seed(8)
     pred, true = random_rotations(5, generator, torch.float64), random_rotations(
         5, generator, torch.float64)
     t_true = torch.randn(5, 3, generator=generator, dtype=torch.float64) + 5
     t_pred = t_true + 0.3 * torch.randn(5, 3, generator=generator, dtype=torch.float64)
+    pred, true, t_true, t_pred = (t.to(device) for t in (pred, true, t_true, t_pred))
     rotation_term, translation_term = pose_loss(pred, t_pred, true, t_true)
     expected = quaternion_angle(matrix_to_quaternion(pred), matrix_to_quaternion(true))
     assert torch.allclose(rotation_term, expected, atol=1e-9)
     assert torch.allclose(translation_term, (t_true - t_pred).norm(dim=1) / t_true.norm(dim=1))
-    identity_only = torch.eye(3, dtype=torch.float64).expand(5, 1, 3, 3)
+    identity_only = torch.eye(3, dtype=torch.float64, device=device).expand(5, 1, 3, 3)
     assert torch.allclose(pose_loss(pred, t_pred, true, t_true, identity_only)[0],
                           rotation_term, atol=1e-12)
 
 
 @pytest.mark.parametrize("group", ["z", "xyz"])
-def test_pose_loss_is_invariant_under_the_model_symmetries(group):
+def test_pose_loss_is_invariant_under_the_model_symmetries(group, device):
     members = [torch.eye(3, dtype=torch.float64)] + [half_turn("xyz".index(a)) for a in group]
-    symmetries = torch.stack(members)  # a group: {I, Rz} or {I, Rx, Ry, Rz}
+    symmetries = torch.stack(members).to(device)  # a group: {I, Rz} or {I, Rx, Ry, Rz}
     generator = torch.Generator().manual_seed(9)
-    pred, true = random_rotations(4, generator, torch.float64), random_rotations(
-        4, generator, torch.float64)
-    t = torch.tensor([[0.0, 0.0, 8.0]], dtype=torch.float64).expand(4, 3)
+    pred, true = random_rotations(4, generator, torch.float64, device), random_rotations(
+        4, generator, torch.float64, device)
+    t = torch.tensor([[0.0, 0.0, 8.0]], dtype=torch.float64, device=device).expand(4, 3)
     reference, _ = pose_loss(pred, t, true, t, symmetries[None].expand(4, -1, -1, -1))
     raw, _ = pose_loss(pred, t, true, t)
     assert bool((reference <= raw + 1e-12).all())
@@ -369,19 +374,20 @@ def test_pose_loss_is_invariant_under_the_model_symmetries(group):
         zero, _ = pose_loss(true @ member, t, true, t, symmetries)
         assert float(zero.abs().max()) < 1e-6
     if group == "z":  # a half turn that is not a symmetry of the model is still an error
-        off, _ = pose_loss(true @ half_turn(0), t, true, t, symmetries)
+        off, _ = pose_loss(true @ half_turn(0, device), t, true, t, symmetries)
         assert torch.allclose(off, torch.full_like(off, math.pi), atol=1e-6)
 
 
-def test_rotation_6d_loss_regresses_the_raw_output_onto_the_target_rows():
+def test_rotation_6d_loss_regresses_the_raw_output_onto_the_target_rows(device):
     """The 6D regression compares the raw network output with the first two rows of R_true S
     (the rows rotation_6d_to_matrix keeps), minimised over the symmetries, with its gradient
     on the raw output."""
     from sq_mitsuba.geometry.rotation import rotation_6d_to_matrix
 
     generator = torch.Generator().manual_seed(15)
-    true = random_rotations(5, generator, torch.float64)
-    raw = torch.randn(5, 6, generator=generator, dtype=torch.float64, requires_grad=True)
+    true = random_rotations(5, generator, torch.float64, device)
+    raw = torch.randn(5, 6, generator=generator, dtype=torch.float64).to(device)
+    raw.requires_grad_()
     value = rotation_6d_loss(raw, true)
     expected = (raw - true[:, :2].reshape(5, 6)).square().sum(-1)
     assert torch.allclose(value, expected, atol=1e-12)
@@ -390,8 +396,8 @@ def test_rotation_6d_loss_regresses_the_raw_output_onto_the_target_rows():
     assert torch.allclose(rotation_6d_to_matrix(rows), true, atol=1e-12)
     assert float(rotation_6d_loss(rows, true).abs().max()) < 1e-24
     # Symmetries: the turned target is as good as the target itself.
-    symmetries = torch.stack([torch.eye(3, dtype=torch.float64), half_turn(0)])
-    turned = rotation_6d_loss(rows, true @ half_turn(0), symmetries)
+    symmetries = torch.stack([torch.eye(3, dtype=torch.float64), half_turn(0)]).to(device)
+    turned = rotation_6d_loss(rows, true @ half_turn(0, device), symmetries)
     assert float(turned.abs().max()) < 1e-24
     value.sum().backward()
     assert torch.allclose(raw.grad, 2 * (raw - rows).detach(), atol=1e-12)
@@ -400,11 +406,12 @@ def test_rotation_6d_loss_regresses_the_raw_output_onto_the_target_rows():
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_pose_loss_gradient_is_finite_at_zero_error(dtype):
-    true = random_rotations(3, torch.Generator().manual_seed(10), dtype)
+def test_pose_loss_gradient_is_finite_at_zero_error(dtype, device):
+    true = random_rotations(3, torch.Generator().manual_seed(10), dtype, device)
     d6 = true[:, :2, :].reshape(3, 6).clone().requires_grad_()
-    t = torch.tensor([[0.1, -0.2, 6.0]], dtype=dtype).expand(3, 3).clone().requires_grad_()
-    symmetries = torch.stack([torch.eye(3, dtype=dtype), half_turn(2).to(dtype)])
+    t = torch.tensor([[0.1, -0.2, 6.0]], dtype=dtype, device=device).expand(3, 3).clone(
+        ).requires_grad_()
+    symmetries = torch.stack([torch.eye(3, dtype=dtype), half_turn(2).to(dtype)]).to(device)
     rotation_term, translation_term = pose_loss(rotation_6d_to_matrix(d6), t, true,
                                                 t.detach(), symmetries)
     (rotation_term.sum() + translation_term.sum()).backward()
@@ -413,7 +420,7 @@ def test_pose_loss_gradient_is_finite_at_zero_error(dtype):
     # Near zero the angle grows like the rotation's size: gradients stay bounded.
     d6.grad = None
     nudged = d6.detach() + 1e-4 * torch.randn(3, 6, generator=torch.Generator().manual_seed(1),
-                                              dtype=dtype)
+                                              dtype=dtype).to(device)
     nudged.requires_grad_()
     rotation_term, _ = pose_loss(rotation_6d_to_matrix(nudged), t.detach(), true, t.detach())
     rotation_term.sum().backward()

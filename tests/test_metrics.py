@@ -1,4 +1,6 @@
-"""Evaluation metrics against their definitions: brute force in float64, hand-made examples."""
+"""Evaluation metrics against their definitions: brute force in float64, hand-made examples.
+
+The tests that take ``device`` run on ``pytest --device`` (conftest.py)."""
 
 from __future__ import annotations
 
@@ -7,7 +9,7 @@ import math
 import pytest
 import torch
 
-from sq_mitsuba.evaluation.metrics import (
+from sq_mitsuba.geometry.metrics import (
     camera_frame_chamfer,
     chamfer_l1,
     chamfer_l2,
@@ -93,18 +95,19 @@ def test_masks_select_points():
         chamfer_l1(pred, gt, pred_mask=torch.ones(2, 2, dtype=torch.bool))
 
 
-def test_symmetry_aware_rotation_error_of_r_s_is_zero():
+def test_symmetry_aware_rotation_error_of_r_s_is_zero(device):
+    on = {"dtype": torch.float64, "device": device}
     generator = torch.Generator().manual_seed(2)
-    rotation = random_rotations(4, generator, torch.float64)
-    half_turn_z = torch.diag(torch.tensor([-1.0, -1.0, 1.0], dtype=torch.float64))
-    symmetries = torch.stack([torch.eye(3, dtype=torch.float64), half_turn_z])
+    rotation = random_rotations(4, generator, torch.float64, device)
+    half_turn_z = torch.diag(torch.tensor([-1.0, -1.0, 1.0], **on))
+    symmetries = torch.stack([torch.eye(3, **on), half_turn_z])
     flipped = rotation @ half_turn_z
     raw = rotation_error_deg(flipped, rotation)
-    assert torch.allclose(raw, torch.full((4,), 180.0, dtype=torch.float64), atol=1e-6)
+    assert torch.allclose(raw, torch.full((4,), 180.0, **on), atol=1e-6)
     aware = rotation_error_deg(flipped, rotation, symmetries)
-    assert torch.allclose(aware, torch.zeros(4, dtype=torch.float64), atol=1e-5)
+    assert torch.allclose(aware, torch.zeros(4, **on), atol=1e-5)
     # Per-model symmetry sets (B, S, 3, 3): a model without the symmetry keeps the raw error.
-    per_model = torch.stack([symmetries, torch.stack([torch.eye(3, dtype=torch.float64)] * 2)] * 2)
+    per_model = torch.stack([symmetries, torch.stack([torch.eye(3, **on)] * 2)] * 2)
     mixed = rotation_error_deg(flipped, rotation, per_model)
     assert mixed[0] < 1e-5 and mixed[1] == pytest.approx(180.0, abs=1e-6)
 
@@ -125,14 +128,14 @@ def test_camera_frame_chamfer_sees_pose_errors_and_is_blind_to_symmetries():
     assert 0.0 < float(shifted) <= 0.1 + 1e-12
 
 
-def test_volumetric_iou_and_translation_error_by_hand():
-    pred = torch.tensor([[True, True, False, False]])
-    gt = torch.tensor([[True, False, True, False]])
+def test_volumetric_iou_and_translation_error_by_hand(device):
+    pred = torch.tensor([[True, True, False, False]], device=device)
+    gt = torch.tensor([[True, False, True, False]], device=device)
     assert float(volumetric_iou(pred, gt)) == pytest.approx(1 / 3)
-    assert float(volumetric_iou(torch.zeros(1, 3, dtype=torch.bool),
-                                torch.zeros(1, 3, dtype=torch.bool))) == 1.0
-    t_true = torch.tensor([[0.0, 0.0, 2.0]])
-    t_pred = torch.tensor([[0.3, 0.0, 2.4]])
+    assert float(volumetric_iou(torch.zeros(1, 3, dtype=torch.bool, device=device),
+                                torch.zeros(1, 3, dtype=torch.bool, device=device))) == 1.0
+    t_true = torch.tensor([[0.0, 0.0, 2.0]], device=device)
+    t_pred = torch.tensor([[0.3, 0.0, 2.4]], device=device)
     assert float(translation_error(t_pred, t_true)) == pytest.approx(0.5)
     assert float(translation_error(t_pred, t_true, relative=True)) == pytest.approx(0.25)
     with pytest.raises(ValueError, match="convention"):

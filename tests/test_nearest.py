@@ -1,4 +1,7 @@
-"""The nearest-neighbour core of the Chamfer distances against brute force, in float64."""
+"""The nearest-neighbour core of the Chamfer distances against brute force, in float64.
+
+The tests that take ``device`` run on ``pytest --device`` (conftest.py): the KD-tree search
+runs on the CPU, its indices come back on the clouds' device."""
 
 from __future__ import annotations
 
@@ -21,11 +24,11 @@ def test_nearest_neighbours_match_brute_force(p):
 
 
 @pytest.mark.parametrize("p", [1.0, 2.0])
-def test_matched_indices_respect_the_mask_both_ways(p):
+def test_matched_indices_respect_the_mask_both_ways(p, device):
     gen = torch.Generator().manual_seed(1)
-    a = torch.randn(3, 40, 3, generator=gen, dtype=torch.float64)
-    b = torch.randn(3, 60, 3, generator=gen, dtype=torch.float64)
-    keep = torch.rand(3, 40, generator=gen) > 0.4
+    a = torch.randn(3, 40, 3, generator=gen, dtype=torch.float64).to(device)
+    b = torch.randn(3, 60, 3, generator=gen, dtype=torch.float64).to(device)
+    keep = (torch.rand(3, 40, generator=gen) > 0.4).to(device)
     a_to_b, b_to_a = matched_indices(a, keep, b, p)
     for item in range(3):
         dense = torch.cdist(a[item], b[item], p=p)  # (40, 60)
@@ -36,11 +39,13 @@ def test_matched_indices_respect_the_mask_both_ways(p):
         assert torch.equal(b_to_a[item], masked.argmin(0))
 
 
-def test_gathered_differences_value_and_gradient():
+def test_gathered_differences_value_and_gradient(device):
     gen = torch.Generator().manual_seed(2)
-    source = torch.randn(2, 5, 3, generator=gen, dtype=torch.float64, requires_grad=True)
-    target = torch.randn(2, 7, 3, generator=gen, dtype=torch.float64, requires_grad=True)
-    index = torch.randint(0, 7, (2, 5), generator=gen)
+    source = torch.randn(2, 5, 3, generator=gen, dtype=torch.float64).to(device)
+    target = torch.randn(2, 7, 3, generator=gen, dtype=torch.float64).to(device)
+    source.requires_grad_()
+    target.requires_grad_()
+    index = torch.randint(0, 7, (2, 5), generator=gen).to(device)
     differences = gathered_differences(source, target, index)
     expected = torch.stack([source[b] - target[b][index[b]] for b in range(2)])
     assert torch.equal(differences, expected)

@@ -79,9 +79,8 @@ def test_wheel_ships_the_scenes_and_every_module(wheel):
         assert "sq-mitsuba = sq_mitsuba.cli:main" in archive.read(entry_points).decode()
 
 
-def test_wheel_ships_the_trained_model_when_present(wheel):
-    shipped = PACKAGE / "learning" / "weights" / "model.pt"
-    if not shipped.is_file():
-        pytest.skip("no shipped model in this checkout")
+def test_wheel_ships_the_trained_model(wheel):
+    shipped = PACKAGE / "model" / "weights" / "model.pt"
+    assert shipped.is_file(), "the shipped model is part of the repository"
     with zipfile.ZipFile(wheel) as archive:
-        assert archive.read("sq_mitsuba/learning/weights/model.pt") == shipped.read_bytes()
+        assert archive.read("sq_mitsuba/model/weights/model.pt") == shipped.read_bytes()

@@ -10,8 +10,8 @@ from pathlib import Path
 import pytest
 
 from sq_mitsuba import llvm
+from sq_mitsuba.bench import BenchOptions, Report, Timing, write_report
 from sq_mitsuba.cli import main
-from sq_mitsuba.evaluation.bench import BenchOptions, Report, Timing, write_report
 from sq_mitsuba.io import atomic_path, atomic_write_json
 
 
@@ -181,7 +181,7 @@ def test_cli_errors_are_one_line(capsys):
 def test_benchmarks_are_recorded_in_the_repository_eval_folder():
     from pathlib import Path
 
-    from sq_mitsuba.evaluation import bench
+    from sq_mitsuba import bench
 
     repository = Path(__file__).resolve().parents[1]
     assert bench.BENCHMARKS_MD == repository / "eval" / "BENCHMARKS.md"

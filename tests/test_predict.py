@@ -13,11 +13,11 @@ import trimesh
 from output_checks import assert_picture, error_line, one_torch_thread  # noqa: F401 (autouse fixture)
 from PIL import Image
 
+from sq_mitsuba.apps.predict import OUTPUT_SUFFIXES
 from sq_mitsuba.cli import main
-from sq_mitsuba.evaluation.predict import OUTPUT_SUFFIXES
 from sq_mitsuba.geometry.assembly import Assembly
-from sq_mitsuba.learning import checkpoint as checkpoint_module
-from sq_mitsuba.learning.checkpoint import load_model
+from sq_mitsuba.inference.loading import load_model
+from sq_mitsuba.model import checkpoint as checkpoint_module
 
 SMALL_REFINE = ["--set", "refinement.steps=4", "--set", "refinement.patience=4",
                 "--set", "search.grid=128", "--set", "search.screen_steps=2"]
@@ -175,7 +175,7 @@ def one_drjit_thread():
     """Dr.Jit on one thread for the test: the refinement's backward pass sums silhouette
     gradients with atomic adds, whose rounding depends on how threads interleave (on a busy
     machine), and Adam turns the sign of a near-zero gradient into a full step."""
-    from sq_mitsuba.learning.training_step import mitsuba_for
+    from sq_mitsuba.training.step import mitsuba_for
 
     with mitsuba_for(torch.device("cpu"), deterministic=True):
         yield
@@ -213,7 +213,7 @@ def test_other_aspect_ratio_is_padded_with_black_and_reported_for_the_image(
 
 @pytest.mark.parametrize("size", [(64, 48), (48, 64), (63, 20), (20, 63), (64, 64)])
 def test_padding_gives_the_cameras_aspect_ratio_and_keeps_its_pixels(size):
-    from sq_mitsuba.evaluation.predict import padded_camera, padding_to_aspect
+    from sq_mitsuba.apps.padding import padded_camera, padding_to_aspect
     from sq_mitsuba.geometry.camera import Camera
 
     width, height = size

@@ -8,7 +8,7 @@ import torch
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.render.preview import render_face_ids
-from sq_mitsuba.render.silhouette import SilhouetteRenderer, render_assembly
+from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer, render_assembly
 
 
 def test_face_ids_cover_the_silhouette_and_name_the_primitives():

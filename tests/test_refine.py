@@ -11,12 +11,12 @@ from sq_mitsuba.config import ConfigError, from_dict
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.rotation import random_rotations
-from sq_mitsuba.learning.refine import (
+from sq_mitsuba.inference.refine import (
     RefineOptions,
     raw_from_assembly,
     refine_pose_and_shape,
 )
-from sq_mitsuba.render.silhouette import SilhouetteRenderer, mask_iou, render_assembly
+from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer, mask_iou, render_assembly
 
 RESOLUTION = 64
 

@@ -7,9 +7,10 @@ import csv
 import numpy as np
 import pytest
 
-from sq_mitsuba.evaluation.evaluate import METRICS, mean_rotation, summarise, write_tables
 from sq_mitsuba.evaluation.report import PAPER_TABLES, read_eval_folder, write_report
-from sq_mitsuba.geometry.rotation import random_rotations
+from sq_mitsuba.evaluation.scoring import METRICS
+from sq_mitsuba.evaluation.tables import summarise, write_tables
+from sq_mitsuba.geometry.rotation import mean_rotation, random_rotations
 from sq_mitsuba.io import atomic_write_json
 
 

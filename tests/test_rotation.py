@@ -1,4 +1,7 @@
-"""Rotations: round trips, uniformity of random rotations, angle metrics and the SPEED score."""
+"""Rotations: round trips, uniformity of random rotations, angle metrics and the SPEED score.
+
+The tests that take ``device`` run on ``pytest --device`` (conftest.py): inputs are drawn on
+the CPU from the same seeds, then moved."""
 
 from __future__ import annotations
 
@@ -7,7 +10,7 @@ import math
 import pytest
 import torch
 
-from sq_mitsuba.evaluation.metrics import rotation_angle_deg, speed_score
+from sq_mitsuba.geometry.metrics import rotation_angle_deg, speed_score
 from sq_mitsuba.geometry.rotation import (
     matrix_to_quaternion,
     matrix_to_rotation_6d,
@@ -28,15 +31,15 @@ def axis_angle_matrix(axis: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
     x, y, z = axis.unbind(-1)
     zero = torch.zeros_like(x)
     k = torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], -1).reshape(*x.shape, 3, 3)
-    eye = torch.eye(3, dtype=axis.dtype)
+    eye = torch.eye(3, dtype=axis.dtype, device=axis.device)
     s, c = torch.sin(angle)[..., None, None], torch.cos(angle)[..., None, None]
     return eye + s * k + (1 - c) * k @ k
 
 
-def test_quaternion_to_matrix_matches_rodrigues():
+def test_quaternion_to_matrix_matches_rodrigues(device):
     gen = torch.Generator().manual_seed(0)
-    axis = torch.randn(500, 3, generator=gen, dtype=F64)
-    angle = torch.rand(500, generator=gen, dtype=F64) * math.pi
+    axis = torch.randn(500, 3, generator=gen, dtype=F64).to(device)
+    angle = (torch.rand(500, generator=gen, dtype=F64) * math.pi).to(device)
     unit = axis / axis.norm(dim=-1, keepdim=True)
     q = torch.cat([torch.cos(angle / 2)[:, None], torch.sin(angle / 2)[:, None] * unit], -1)
     torch.testing.assert_close(quaternion_to_matrix(q), axis_angle_matrix(axis, angle))
@@ -44,11 +47,12 @@ def test_quaternion_to_matrix_matches_rodrigues():
     torch.testing.assert_close(quaternion_to_matrix(3.0 * q), axis_angle_matrix(axis, angle))
 
 
-def test_quaternion_matrix_round_trip_up_to_sign():
+def test_quaternion_matrix_round_trip_up_to_sign(device):
     q = random_quaternions(2000, torch.Generator().manual_seed(1), dtype=F64)
     # Include near-180-degree rotations (w ~ 0) and the identity.
     q[:3] = torch.tensor([[0.0, 1.0, 0.0, 0.0], [1e-9, 0.0, 0.6, 0.8], [1.0, 0.0, 0.0, 0.0]],
                          dtype=F64)
+    q = q.to(device)
     q = q / q.norm(dim=-1, keepdim=True)
     back = matrix_to_quaternion(quaternion_to_matrix(q))
     sign = torch.sign((back * q).sum(-1, keepdim=True))
@@ -56,55 +60,57 @@ def test_quaternion_matrix_round_trip_up_to_sign():
     assert (back[:, 0] >= 0).all()
 
 
-def test_6d_round_trip():
-    rotations = random_rotations(1000, torch.Generator().manual_seed(2), dtype=F64)
+def test_6d_round_trip(device):
+    rotations = random_rotations(1000, torch.Generator().manual_seed(2), dtype=F64,
+                                 device=device)
     d6 = matrix_to_rotation_6d(rotations)
     torch.testing.assert_close(rotation_6d_to_matrix(d6), rotations)
     torch.testing.assert_close(matrix_to_rotation_6d(rotation_6d_to_matrix(d6)), d6)
     # Arbitrary 6D vectors give proper rotations.
     raw = torch.randn(1000, 6, generator=torch.Generator().manual_seed(3), dtype=F64)
-    matrix = rotation_6d_to_matrix(raw)
-    torch.testing.assert_close(matrix @ matrix.transpose(-1, -2), torch.eye(3, dtype=F64)
-                               .expand(1000, 3, 3))
-    torch.testing.assert_close(torch.linalg.det(matrix), torch.ones(1000, dtype=F64))
+    matrix = rotation_6d_to_matrix(raw.to(device))
+    torch.testing.assert_close(matrix @ matrix.transpose(-1, -2), torch.eye(
+        3, dtype=F64, device=device).expand(1000, 3, 3))
+    torch.testing.assert_close(torch.linalg.det(matrix), torch.ones(1000, dtype=F64,
+                                                                    device=device))
 
 
-def test_6d_gradcheck():
-    raw = torch.randn(4, 6, generator=torch.Generator().manual_seed(4), dtype=F64,
-                      requires_grad=True)
+def test_6d_gradcheck(device):
+    raw = torch.randn(4, 6, generator=torch.Generator().manual_seed(4), dtype=F64
+                      ).to(device).requires_grad_()
     assert torch.autograd.gradcheck(rotation_6d_to_matrix, (raw,))
 
 
-def test_random_rotations_are_uniform():
+def test_random_rotations_are_uniform(device):
     n = 100_000
-    rotations = random_rotations(n, torch.Generator().manual_seed(5), dtype=F64)
+    rotations = random_rotations(n, torch.Generator().manual_seed(5), dtype=F64, device=device)
     # Haar measure: E[R] = 0 (each entry has variance 1/3, so the mean's std is ~0.0018).
     assert rotations.mean(0).abs().max().item() < 0.01
     # The angle of a uniform rotation has density (1 - cos t) / pi on [0, pi].
-    angles = rotation_angle(torch.eye(3, dtype=F64), rotations)
-    edges = torch.linspace(0, math.pi, 21, dtype=F64)
+    angles = rotation_angle(torch.eye(3, dtype=F64, device=device), rotations)
+    edges = torch.linspace(0, math.pi, 21, dtype=F64, device=device)
     observed = torch.histc(angles, bins=20, min=0, max=math.pi) / n
     cdf = (edges - torch.sin(edges)) / math.pi
     expected = cdf[1:] - cdf[:-1]
     assert (observed - expected).abs().max().item() < 0.005
     # Same generator seed, same rotations.
-    again = random_rotations(10, torch.Generator().manual_seed(5), dtype=F64)
+    again = random_rotations(10, torch.Generator().manual_seed(5), dtype=F64, device=device)
     torch.testing.assert_close(again, rotations[:10])
 
 
-def test_rotation_angle_matches_constructed_angles():
+def test_rotation_angle_matches_constructed_angles(device):
     gen = torch.Generator().manual_seed(6)
-    axis = torch.randn(300, 3, generator=gen, dtype=F64)
-    angle = torch.linspace(0, math.pi, 300, dtype=F64)
-    base = random_rotations(300, gen, dtype=F64)
+    axis = torch.randn(300, 3, generator=gen, dtype=F64).to(device)
+    angle = torch.linspace(0, math.pi, 300, dtype=F64, device=device)
+    base = random_rotations(300, gen, dtype=F64, device=device)
     rotated = base @ axis_angle_matrix(axis, angle)
     torch.testing.assert_close(rotation_angle(base, rotated), angle, atol=1e-7, rtol=0)
     torch.testing.assert_close(rotation_angle_deg(base, rotated), torch.rad2deg(angle),
                                atol=1e-5, rtol=0)
 
 
-def test_rotation_angle_gradient_finite_at_zero():
-    rotation = random_rotations(1, torch.Generator().manual_seed(7), dtype=F64)
+def test_rotation_angle_gradient_finite_at_zero(device):
+    rotation = random_rotations(1, torch.Generator().manual_seed(7), dtype=F64, device=device)
     raw = matrix_to_rotation_6d(rotation).clone().requires_grad_()
     angle = rotation_angle(rotation, rotation_6d_to_matrix(raw))
     (grad,) = torch.autograd.grad(angle.sum(), raw)
@@ -112,18 +118,19 @@ def test_rotation_angle_gradient_finite_at_zero():
     assert torch.isfinite(grad).all()
 
 
-def test_speed_score_against_hand_values():
-    q_true = torch.tensor([[1.0, 0.0, 0.0, 0.0]], dtype=F64)
+def test_speed_score_against_hand_values(device):
+    on = {"dtype": F64, "device": device}
+    q_true = torch.tensor([[1.0, 0.0, 0.0, 0.0]], **on)
     half = math.radians(30) / 2
-    q_pred = torch.tensor([[math.cos(half), 0.0, 0.0, math.sin(half)]], dtype=F64)
-    t_true = torch.tensor([[0.0, 0.0, 10.0]], dtype=F64)
-    t_pred = torch.tensor([[0.3, 0.4, 10.0]], dtype=F64)
+    q_pred = torch.tensor([[math.cos(half), 0.0, 0.0, math.sin(half)]], **on)
+    t_true = torch.tensor([[0.0, 0.0, 10.0]], **on)
+    t_pred = torch.tensor([[0.3, 0.4, 10.0]], **on)
     score = speed_score(q_pred, q_true, t_pred, t_true)
-    torch.testing.assert_close(score.rotation, torch.tensor([math.radians(30)], dtype=F64))
-    torch.testing.assert_close(score.translation, torch.tensor([0.05], dtype=F64))
+    torch.testing.assert_close(score.rotation, torch.tensor([math.radians(30)], **on))
+    torch.testing.assert_close(score.translation, torch.tensor([0.05], **on))
     torch.testing.assert_close(score.total, score.rotation + score.translation)
     # q and -q are the same attitude.
-    torch.testing.assert_close(quaternion_angle(-q_pred, q_pred), torch.zeros(1, dtype=F64),
+    torch.testing.assert_close(quaternion_angle(-q_pred, q_pred), torch.zeros(1, **on),
                                atol=1e-6, rtol=0)
 
 

@@ -15,8 +15,8 @@ from sq_mitsuba.geometry.so3_grid import (
     nearest_grid_index,
     so3_grid,
 )
-from sq_mitsuba.learning.network import NetworkConfig
-from sq_mitsuba.learning.rotation_grid import (
+from sq_mitsuba.model.network import NetworkConfig
+from sq_mitsuba.model.rotation_grid import (
     RotationGridPoseHead,
     rotation_hypotheses,
     soft_rotation_targets,
@@ -102,8 +102,8 @@ def test_hypotheses_are_distinct_modes_best_first() -> None:
 def test_distribution_loss_is_the_cross_entropy_to_the_targets() -> None:
     """Its value against an independent computation; a peak on the truth scores lower than
     one a half turn away on an asymmetric model and the same on a two-fold symmetric one."""
-    from sq_mitsuba.learning.losses import rotation_distribution_loss
-    from sq_mitsuba.learning.rotation_grid import grid_quaternions
+    from sq_mitsuba.model.losses import rotation_distribution_loss
+    from sq_mitsuba.model.rotation_grid import grid_quaternions
 
     cells = grid_quaternions(576)
     truth = random_rotations(2, generator=torch.Generator().manual_seed(4))
@@ -129,8 +129,8 @@ def test_distribution_loss_is_the_cross_entropy_to_the_targets() -> None:
 def test_turned_cells_are_the_nearest_cells_of_the_rolled_grid() -> None:
     """Against brute force: each cell's image under a camera roll is the grid cell at the
     smallest angle from Rz @ G; no roll maps every cell to itself."""
-    from sq_mitsuba.learning.augment import z_rotation
-    from sq_mitsuba.learning.rotation_grid import turned_cells
+    from sq_mitsuba.geometry.image_turns import z_rotation
+    from sq_mitsuba.model.rotation_grid import turned_cells
 
     grid = so3_grid(576)
     angles = torch.tensor([0.0, 0.7, math.pi], dtype=torch.float64)
@@ -149,8 +149,8 @@ def test_turned_cells_are_the_nearest_cells_of_the_rolled_grid() -> None:
 def test_turned_distributions_multiply_back_in_the_unturned_frame() -> None:
     """Copies peaked where the roll moves one cell combine to a distribution peaked at that
     cell; one copy gives its own log-softmax; mismatched shapes are refused."""
-    from sq_mitsuba.learning.augment import z_rotation
-    from sq_mitsuba.learning.rotation_grid import turned_cells, turned_log_probabilities
+    from sq_mitsuba.geometry.image_turns import z_rotation
+    from sq_mitsuba.model.rotation_grid import turned_cells, turned_log_probabilities
 
     grid = so3_grid(576)
     turns = 4

@@ -9,7 +9,7 @@ import torch
 from sq_mitsuba.data.segmentation import segment_target
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.camera import Camera
-from sq_mitsuba.render.silhouette import SilhouetteRenderer, render_assembly
+from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer, render_assembly
 
 
 @pytest.fixture(scope="module")

@@ -13,7 +13,7 @@ from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.rotation import random_rotations
 from sq_mitsuba.render.backend import count_kernels
-from sq_mitsuba.render.silhouette import SilhouetteRenderer, render_assembly
+from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer, render_assembly
 
 
 def sphere_area(centre: torch.Tensor, radius: torch.Tensor, focal: float) -> torch.Tensor:
@@ -366,7 +366,7 @@ def test_backward_restores_the_topology_of_its_forward_pass(unit_sphere):
 
 def test_reseed_restarts_the_sample_sequence(unit_sphere):
     from sq_mitsuba.geometry.camera import Camera
-    from sq_mitsuba.render.silhouette import SilhouetteRenderer
+    from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer
 
     vertices, faces = unit_sphere
     posed = (0.3 * vertices + torch.tensor([0.0, 0.0, 2.0], dtype=torch.float64))[None].float()

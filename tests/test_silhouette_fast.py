@@ -13,9 +13,9 @@ import torch
 
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.camera import Camera
-from sq_mitsuba.learning.losses import mask_mse, soft_iou_loss
-from sq_mitsuba.render.silhouette import SilhouetteRenderer
-from sq_mitsuba.render.silhouette_workers import WorkerError
+from sq_mitsuba.model.losses import mask_mse, soft_iou_loss
+from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer
+from sq_mitsuba.render.silhouette.workers import WorkerError
 
 
 @contextlib.contextmanager

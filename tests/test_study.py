@@ -11,9 +11,10 @@ import pytest
 from output_checks import assert_picture, error_line, one_torch_thread, read_rows  # noqa: F401 (autouse fixture)
 
 from sq_mitsuba.cli import main
-from sq_mitsuba.evaluation.evaluate import METRICS, EvalOptions, evaluate
+from sq_mitsuba.evaluation.evaluate import EvalOptions, evaluate
+from sq_mitsuba.evaluation.scoring import METRICS
 from sq_mitsuba.evaluation.study import sweep_points
-from sq_mitsuba.learning.checkpoint import load_model
+from sq_mitsuba.inference.loading import load_model
 
 
 def test_sweep_points():

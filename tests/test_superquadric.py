@@ -1,4 +1,7 @@
-"""Superquadric math: dual forms against closed forms, primal forms and finite differences."""
+"""Superquadric math: dual forms against closed forms, primal forms and finite differences.
+
+The tests that take ``device`` run on ``pytest --device`` (conftest.py): inputs are drawn on
+the CPU from the same seeds, then moved."""
 
 from __future__ import annotations
 
@@ -22,8 +25,10 @@ from sq_mitsuba.geometry.superquadric import (
 F64 = torch.float64
 
 
-def random_parameters(count: int, dtype: torch.dtype, seed: int = 0):
-    """Sizes in [0.05, 0.5], shapes in [0, 1]^2 with exact 0 and 1 on either axis, tapers."""
+def random_parameters(count: int, dtype: torch.dtype, seed: int = 0,
+                      device: torch.device | str = "cpu"):
+    """Sizes in [0.05, 0.5], shapes in [0, 1]^2 with exact 0 and 1 on either axis, tapers
+    (drawn on the CPU, then moved to ``device``)."""
     gen = torch.Generator().manual_seed(seed)
     size = 0.05 + 0.45 * torch.rand(count, 3, generator=gen, dtype=F64)
     shape = torch.rand(count, 2, generator=gen, dtype=F64)
@@ -35,13 +40,13 @@ def random_parameters(count: int, dtype: torch.dtype, seed: int = 0):
     shape[104:154, 0] = 1.0
     shape[154:204, 1] = 1.0
     taper_ = 0.9 * (2 * torch.rand(count, 2, generator=gen, dtype=F64) - 1)
-    return size.to(dtype), shape.to(dtype), taper_.to(dtype)
+    return tuple(t.to(dtype=dtype, device=device) for t in (size, shape, taper_))
 
 
 @pytest.mark.parametrize(("dtype", "tolerance"), [(torch.float64, 1e-6), (torch.float32, 1e-4)])
-def test_dual_samples_satisfy_dual_function(dtype, tolerance):
-    size, shape, taper_ = random_parameters(1000, dtype)
-    eta, omega = icosphere_angles(3, dtype)
+def test_dual_samples_satisfy_dual_function(dtype, tolerance, device):
+    size, shape, taper_ = random_parameters(1000, dtype, device=device)
+    eta, omega = icosphere_angles(3, dtype, device)
     points = surface_points_dual(eta, omega, size, shape)  # (1000, 642, 3)
     tapered = taper(points, taper_, size)
     f = inside_outside_dual(untaper(tapered, taper_, size), size, shape)
@@ -107,22 +112,22 @@ def test_dual_and_primal_surfaces_are_close():
         assert nearest.max() / scale[0] < 0.2
 
 
-def test_unit_shape_is_the_ellipsoid_for_both_functions():
+def test_unit_shape_is_the_ellipsoid_for_both_functions(device):
     gen = torch.Generator().manual_seed(3)
-    size = 0.1 + torch.rand(5, 3, generator=gen, dtype=F64)
-    shape = torch.ones(5, 2, dtype=F64)
-    points = torch.randn(5, 1000, 3, generator=gen, dtype=F64)
+    size = (0.1 + torch.rand(5, 3, generator=gen, dtype=F64)).to(device)
+    shape = torch.ones(5, 2, dtype=F64, device=device)
+    points = torch.randn(5, 1000, 3, generator=gen, dtype=F64).to(device)
     ellipsoid = ((points / size[:, None]) ** 2).sum(-1)  # Eq. 10
     torch.testing.assert_close(inside_outside(points, size, shape), ellipsoid)
     # The dual function is homogeneous of degree 1: its square is the ellipsoid's form.
     torch.testing.assert_close(inside_outside_dual(points, size, shape) ** 2, ellipsoid)
 
 
-def test_zero_shape_dual_is_the_box():
+def test_zero_shape_dual_is_the_box(device):
     gen = torch.Generator().manual_seed(4)
-    size = torch.tensor([[0.5, 0.3, 0.2]], dtype=F64)
-    points = (2 * torch.rand(1, 100_000, 3, generator=gen, dtype=F64) - 1) * 0.8
-    f = inside_outside_dual(points, size, torch.zeros(1, 2, dtype=F64))
+    size = torch.tensor([[0.5, 0.3, 0.2]], dtype=F64, device=device)
+    points = ((2 * torch.rand(1, 100_000, 3, generator=gen, dtype=F64) - 1) * 0.8).to(device)
+    f = inside_outside_dual(points, size, torch.zeros(1, 2, dtype=F64, device=device))
     box = (points.abs() / size[:, None]).amax(-1)
     outside_shell = ((points.abs() - size[:, None]).abs() > 1e-3).all(-1)
     assert outside_shell.sum() > 90_000
@@ -130,20 +135,21 @@ def test_zero_shape_dual_is_the_box():
     torch.testing.assert_close(f, box)
 
 
-def test_primal_and_dual_classify_alike():
+def test_primal_and_dual_classify_alike(device):
     gen = torch.Generator().manual_seed(5)
     size = 0.1 + 0.4 * torch.rand(50, 3, generator=gen, dtype=F64)
     shape = 0.2 + 0.8 * torch.rand(50, 2, generator=gen, dtype=F64)
     points = (2 * torch.rand(50, 4000, 3, generator=gen, dtype=F64) - 1) * size[:, None] * 1.3
+    size, shape, points = size.to(device), shape.to(device), points.to(device)
     agree = (inside_outside(points, size, shape) < 1) == (inside_outside_dual(points, size, shape)
                                                           < 1)
     assert agree.double().mean().item() >= 0.97
 
 
-def test_dual_function_is_positively_homogeneous():
+def test_dual_function_is_positively_homogeneous(device):
     gen = torch.Generator().manual_seed(6)
-    size, shape, _ = random_parameters(300, F64, seed=6)
-    points = torch.randn(300, 50, 3, generator=gen, dtype=F64)
+    size, shape, _ = random_parameters(300, F64, seed=6, device=device)
+    points = torch.randn(300, 50, 3, generator=gen, dtype=F64).to(device)
     torch.testing.assert_close(inside_outside_dual(2.5 * points, size, shape),
                                2.5 * inside_outside_dual(points, size, shape))
 
@@ -157,22 +163,22 @@ def test_fexp_is_signed_power():
 # ------------------------------------------------------------------------------ gradients
 
 
-def generic_inputs(seed: int = 7):
+def generic_inputs(seed: int = 7, device: torch.device | str = "cpu"):
     gen = torch.Generator().manual_seed(seed)
     points = 0.3 * torch.randn(2, 6, 3, generator=gen, dtype=F64)
     size = 0.1 + 0.4 * torch.rand(2, 3, generator=gen, dtype=F64)
     shape = 0.1 + 0.8 * torch.rand(2, 2, generator=gen, dtype=F64)
     taper_ = 0.8 * (2 * torch.rand(2, 2, generator=gen, dtype=F64) - 1)
-    return [t.requires_grad_() for t in (points, size, shape, taper_)]
+    return [t.to(device).requires_grad_() for t in (points, size, shape, taper_)]
 
 
-def test_gradcheck_inside_outside_dual():
-    points, size, shape, _ = generic_inputs()
+def test_gradcheck_inside_outside_dual(device):
+    points, size, shape, _ = generic_inputs(device=device)
     assert torch.autograd.gradcheck(inside_outside_dual, (points, size, shape))
 
 
-def test_gradcheck_inside_outside_dual_with_taper():
-    points, size, shape, taper_ = generic_inputs(8)
+def test_gradcheck_inside_outside_dual_with_taper(device):
+    points, size, shape, taper_ = generic_inputs(8, device)
 
     def tapered_field(p, a, e, k):
         return inside_outside_dual(untaper(p, k, a), a, e)
@@ -180,11 +186,11 @@ def test_gradcheck_inside_outside_dual_with_taper():
     assert torch.autograd.gradcheck(tapered_field, (points, size, shape, taper_))
 
 
-def test_gradcheck_surface_points_dual_and_taper():
-    _, size, shape, taper_ = generic_inputs(9)
+def test_gradcheck_surface_points_dual_and_taper(device):
+    _, size, shape, taper_ = generic_inputs(9, device)
     gen = torch.Generator().manual_seed(9)
-    eta = (torch.rand(2, 8, generator=gen, dtype=F64) - 0.5) * math.pi
-    omega = (torch.rand(2, 8, generator=gen, dtype=F64) - 0.5) * 2 * math.pi
+    eta = ((torch.rand(2, 8, generator=gen, dtype=F64) - 0.5) * math.pi).to(device)
+    omega = ((torch.rand(2, 8, generator=gen, dtype=F64) - 0.5) * 2 * math.pi).to(device)
     eta.requires_grad_()
     omega.requires_grad_()
 
@@ -194,9 +200,9 @@ def test_gradcheck_surface_points_dual_and_taper():
     assert torch.autograd.gradcheck(sampled, (eta, omega, size, shape, taper_))
 
 
-def test_hand_derived_backward_matches_autograd_of_the_formula():
+def test_hand_derived_backward_matches_autograd_of_the_formula(device):
     """The fused backward against autograd of the plain formula (float64, generic points)."""
-    points, size, shape, _ = generic_inputs(10)
+    points, size, shape, _ = generic_inputs(10, device)
 
     def formula(p, a, e):
         e_dual = (2 - e)[..., None, :]
@@ -211,7 +217,7 @@ def test_hand_derived_backward_matches_autograd_of_the_formula():
         zb = p[..., 2] / (a[..., 2] * g[..., 0])
         return phi(phi(xb, yb, e_dual[..., 1]), zb, e_dual[..., 0])
 
-    weights = torch.randn(2, 6, dtype=F64)
+    weights = torch.randn(2, 6, dtype=F64).to(device)
     ours = torch.autograd.grad((inside_outside_dual(points, size, shape) * weights).sum(),
                                (points, size, shape))
     reference = torch.autograd.grad((formula(points, size, shape) * weights).sum(),
@@ -230,10 +236,10 @@ def special_points() -> torch.Tensor:
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("shape_value", [(0.0, 0.0), (0.0, 1.0), (1.0, 0.0), (0.5, 0.0)])
-def test_dual_function_finite_at_zero_shape_and_special_points(dtype, shape_value):
-    points = special_points().to(dtype).requires_grad_()
-    size = torch.tensor([[0.3, 0.2, 0.1]], dtype=dtype, requires_grad=True)
-    shape = torch.tensor([shape_value], dtype=dtype, requires_grad=True)
+def test_dual_function_finite_at_zero_shape_and_special_points(dtype, shape_value, device):
+    points = special_points().to(dtype=dtype, device=device).requires_grad_()
+    size = torch.tensor([[0.3, 0.2, 0.1]], dtype=dtype, device=device, requires_grad=True)
+    shape = torch.tensor([shape_value], dtype=dtype, device=device, requires_grad=True)
     f = inside_outside_dual(points, size, shape)
     grads = torch.autograd.grad(f.sum(), (points, size, shape))
     assert torch.isfinite(f).all()
@@ -241,15 +247,15 @@ def test_dual_function_finite_at_zero_shape_and_special_points(dtype, shape_valu
 
 
 @pytest.mark.parametrize("shape_value", [(0.0, 0.0), (0.0, 1.0), (1.0, 0.0)])
-def test_dual_samples_finite_at_zero_shape(shape_value):
-    eta, omega = icosphere_angles(3, F64)
+def test_dual_samples_finite_at_zero_shape(shape_value, device):
+    eta, omega = icosphere_angles(3, F64, device)
     # Add the poles, the equator and the quarter angles where cos or sin vanish.
     specials = torch.tensor([-math.pi / 2, -math.pi / 4, 0.0, math.pi / 4, math.pi / 2],
-                            dtype=F64)
+                            dtype=F64, device=device)
     eta = torch.cat([eta, specials]).requires_grad_()
     omega = torch.cat([omega, 2 * specials]).requires_grad_()
-    size = torch.tensor([[0.3, 0.2, 0.1]], dtype=F64, requires_grad=True)
-    shape = torch.tensor([shape_value], dtype=F64, requires_grad=True)
+    size = torch.tensor([[0.3, 0.2, 0.1]], dtype=F64, device=device, requires_grad=True)
+    shape = torch.tensor([shape_value], dtype=F64, device=device, requires_grad=True)
     points = surface_points_dual(eta, omega, size, shape)
     grads = torch.autograd.grad(points.sum(), (eta, omega, size, shape))
     assert torch.isfinite(points).all()
@@ -274,10 +280,11 @@ def test_primal_function_breaks_down_at_zero_shape():
 # ------------------------------------------------------------------------------ taper
 
 
-def test_untaper_inverts_taper_inside_the_slab():
+def test_untaper_inverts_taper_inside_the_slab(device):
     gen = torch.Generator().manual_seed(11)
     size, _, taper_ = random_parameters(100, F64, seed=11)
     points = (2 * torch.rand(100, 500, 3, generator=gen, dtype=F64) - 1) * size[:, None]
+    size, taper_, points = size.to(device), taper_.to(device), points.to(device)
     torch.testing.assert_close(untaper(taper(points, taper_, size), taper_, size), points)
     torch.testing.assert_close(taper(untaper(points, taper_, size), taper_, size), points)
 

@@ -11,13 +11,13 @@ import torch
 from torch import Tensor, nn
 
 import sq_mitsuba
+from sq_mitsuba.apps.export import export_model
 from sq_mitsuba.config import apply_overrides
-from sq_mitsuba.evaluation.export import export_model
 from sq_mitsuba.geometry.rotation import random_rotations
-from sq_mitsuba.learning.heads import POSE_HEADS, PoseHeadOutput, pose_mlp, register_pose_head
-from sq_mitsuba.learning.network_config import NetworkConfig
-from sq_mitsuba.learning.train import train
-from sq_mitsuba.learning.train_config import load_train_config
+from sq_mitsuba.model.heads import POSE_HEADS, PoseHeadOutput, pose_mlp, register_pose_head
+from sq_mitsuba.model.network_config import NetworkConfig
+from sq_mitsuba.training.config import load_train_config
+from sq_mitsuba.training.train import train
 
 TINY = Path(__file__).resolve().parents[1] / "train" / "configs" / "tiny.toml"
 

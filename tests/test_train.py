@@ -23,9 +23,9 @@ import torch
 
 from sq_mitsuba.cli import main
 from sq_mitsuba.config import apply_overrides, from_dict, to_dict
-from sq_mitsuba.learning.loss_terms import LOSS_TERMS
-from sq_mitsuba.learning.train import cosine_lr_factor, train
-from sq_mitsuba.learning.train_config import TrainConfig, load_train_config
+from sq_mitsuba.training.config import TrainConfig, load_train_config
+from sq_mitsuba.training.loss_terms import LOSS_TERMS
+from sq_mitsuba.training.train import cosine_lr_factor, train
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = sorted((ROOT / "train" / "configs").glob("*.toml"))
@@ -42,7 +42,7 @@ def _rows(path: Path) -> list[dict[str, str]]:
 
 
 def _read_checkpoint(path: Path) -> dict:
-    from sq_mitsuba.learning.checkpoint import read_checkpoint
+    from sq_mitsuba.model.checkpoint import read_checkpoint
 
     return read_checkpoint(path)
 
@@ -400,8 +400,8 @@ def test_channels_last_training_step_matches_channels_first():
     both formats agree with a float64 reference to the same float32 rounding."""
     import copy
 
-    from sq_mitsuba.learning.network import NetworkConfig, SuperquadricNet
-    from sq_mitsuba.learning.training_step import to_channels_last
+    from sq_mitsuba.model.network import NetworkConfig, SuperquadricNet
+    from sq_mitsuba.training.step import to_channels_last
 
     torch.manual_seed(0)
     reference = SuperquadricNet(NetworkConfig(image_size=64, drop_connect_rate=0.0)).double()
@@ -467,7 +467,7 @@ def test_torchrun_two_processes_match_one(train_dataset, cache_dir, tmp_path):
     a, b = _read_checkpoint(tmp_path / "one" / "last.pt"), _read_checkpoint(
         tmp_path / "two" / "last.pt")
     assert a["world_size"] == 1 and b["world_size"] == 2
-    from sq_mitsuba.learning.network import SuperquadricNet
+    from sq_mitsuba.model.network import SuperquadricNet
 
     torch.manual_seed(42)  # tiny.toml's seed: the initialisation of both runs
     start = SuperquadricNet(load_train_config(TINY).network).state_dict()
@@ -527,8 +527,8 @@ def _occupancy_floor(root: Path, primitives: int, sharpness: float) -> float:
     smooth occupancy of a superquadric cannot reach 0 at the near-surface points."""
     from sq_mitsuba.data.spe3r import Spe3rDataset
     from sq_mitsuba.geometry.assembly import Assembly
-    from sq_mitsuba.learning.fit import default_raw
-    from sq_mitsuba.learning.losses import occupancy_loss
+    from sq_mitsuba.inference.fit import default_raw
+    from sq_mitsuba.model.losses import occupancy_loss
 
     dataset = Spe3rDataset(root, "train", image_size=32, num_surface=1, num_occupancy=1024)
     items = [dataset[i] for i in range(8)]
@@ -582,8 +582,8 @@ def test_reprojection_alone_fits_the_silhouettes(one_spacecraft, cache_dir, tmp_
     """
     from sq_mitsuba.data.spe3r import Spe3rDataset
     from sq_mitsuba.geometry.assembly import Assembly
-    from sq_mitsuba.learning.network import SuperquadricNet
-    from sq_mitsuba.render.silhouette import SilhouetteRenderer, mask_iou, render_assembly
+    from sq_mitsuba.model.network import SuperquadricNet
+    from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer, mask_iou, render_assembly
 
     weights = dict.fromkeys(("chamfer", "occupancy", "rotation_6d", "translation", "overlap",
                              "taper"), 0.0)
@@ -623,7 +623,7 @@ def test_checkpoint_records_everything(reference_run, train_dataset):
                 "dataset", "git", "step"):
         assert key in checkpoint, key
     assert set(checkpoint["rng"]) >= {"torch", "numpy", "python"}
-    from sq_mitsuba.learning.cache import dataset_fingerprint
+    from sq_mitsuba.training.cache import dataset_fingerprint
 
     assert checkpoint["dataset"]["fingerprint"] == dataset_fingerprint(train_dataset)
     assert checkpoint["data_order"]["step"] == checkpoint["step"] == 12

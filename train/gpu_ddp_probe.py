@@ -12,7 +12,7 @@ broadcasts, checkpoint gathering, barriers) is the trainer's own code.
 Usage: python train/gpu_ddp_probe.py sq-mitsuba-train-arguments...
   e.g. python train/gpu_ddp_probe.py --config train/configs/a.toml --data DS --out RUN
        --max-steps 10 --quiet
-Patches the ``distributed`` property of :class:`sq_mitsuba.learning.distributed.World`; a
+Patches the ``distributed`` property of :class:`sq_mitsuba.training.distributed.World`; a
 probe, not a product.
 """
 
@@ -38,7 +38,7 @@ def main() -> int:
 
     dist.init_process_group = init_one
 
-    from sq_mitsuba.learning.distributed import World
+    from sq_mitsuba.training.distributed import World
 
     World.distributed = property(lambda self: self.owns_group or self.size > 1)
     from sq_mitsuba.cli import main as cli_main

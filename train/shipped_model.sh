@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Reproduces the model shipped in sq_mitsuba/learning/weights/model.pt (see eval/MODEL_CARD.md),
+# Reproduces the model shipped in sq_mitsuba/model/weights/model.pt (see eval/MODEL_CARD.md),
 # end to end. Every step resumes: run it again after an interruption.
 #
 #   train/shipped_model.sh [WORK_DIR]      (default: data/shipped)
@@ -51,7 +51,7 @@ $SQ train --config train/configs/shipped_finetune.toml --data "$WORK/data" \
 
 # 4. The inference checkpoint the package ships: half precision, with the trivial baseline.
 $SQ export --checkpoint "$WORK/run_finetune/best.pt" --data "$WORK/data" \
-  --out sq_mitsuba/learning/weights/model.pt
+  --out sq_mitsuba/model/weights/model.pt
 
 # 5. Evaluation of the shipped file (eval/MODEL_CARD.md): val and test, the network alone,
 #    with 256 of its predictions ranked against every model's mesh of the split, then with the

@@ -31,13 +31,13 @@ import torch
 from shape_capacity import fit_to_points, paper_chamfer
 
 from sq_mitsuba.data.spe3r import Spe3rDataset
-from sq_mitsuba.evaluation.evaluate import collate, evenly
+from sq_mitsuba.evaluation.split import collate, evenly
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.metrics import mask_iou
-from sq_mitsuba.learning.checkpoint import load_model
-from sq_mitsuba.learning.losses import soft_iou_loss, surface_chamfer_loss
-from sq_mitsuba.learning.refine import raw_from_assembly
-from sq_mitsuba.render.silhouette import (
+from sq_mitsuba.inference.loading import load_model
+from sq_mitsuba.inference.refine import raw_from_assembly
+from sq_mitsuba.model.losses import soft_iou_loss, surface_chamfer_loss
+from sq_mitsuba.render.silhouette.renderer import (
     SilhouetteRenderer,
     render_assembly,
     render_assembly_loss,

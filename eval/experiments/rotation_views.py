@@ -1,7 +1,7 @@
 """Does the rotation generalise to new views of one model, and how does that grow with views?
 
-The model card's "views per model" test: ``cpu.toml`` trained by the real trainer
-(:func:`sq_mitsuba.learning.train.train`) on the pose loss alone (the rotation term ``--term``
+The "views per model" test of eval/experiments/README.md: ``cpu.toml`` trained by the real trainer
+(:func:`sq_mitsuba.training.train.train`) on the pose loss alone (the rotation term ``--term``
 and the translation term, weight 1 each; no shape term, no augmentation, no validation) on the
 first ``--views`` training images of a one-model dataset, and scored by the median rotation
 error on the first 400 training images used and on every val image (new views of the same
@@ -34,10 +34,10 @@ import torch
 from sq_mitsuba.config import apply_overrides
 from sq_mitsuba.data.spe3r import Spe3rDataset
 from sq_mitsuba.geometry.metrics import rotation_error_deg
-from sq_mitsuba.learning.checkpoint import read_checkpoint
-from sq_mitsuba.learning.network import SuperquadricNet
-from sq_mitsuba.learning.train import train
-from sq_mitsuba.learning.train_config import load_train_config
+from sq_mitsuba.model.checkpoint import read_checkpoint
+from sq_mitsuba.model.network import SuperquadricNet
+from sq_mitsuba.training.config import load_train_config
+from sq_mitsuba.training.train import train
 
 CONFIG = Path(__file__).resolve().parents[2] / "train" / "configs" / "cpu.toml"
 ROTATION_TERMS = ("rotation_6d", "rotation")

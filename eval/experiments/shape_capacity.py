@@ -35,13 +35,13 @@ import torch
 from sq_mitsuba.data.spe3r import Spe3rDataset
 from sq_mitsuba.geometry.assembly import FIELDS, Assembly
 from sq_mitsuba.geometry.metrics import chamfer_l1
-from sq_mitsuba.learning.checkpoint import load_model
-from sq_mitsuba.learning.losses import (
+from sq_mitsuba.inference.loading import load_model
+from sq_mitsuba.inference.refine import raw_from_assembly
+from sq_mitsuba.model.losses import (
     counted_surface_samples,
     occupancy_loss,
     surface_chamfer_loss,
 )
-from sq_mitsuba.learning.refine import raw_from_assembly
 
 BOX_LIKE = 0.3
 """Shape exponents below this count as box-like (1: ellipsoid, 0.1: nearly a box)."""

@@ -14,11 +14,21 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import pkgutil
 import sys
+import traceback
 from collections.abc import Sequence
 
 EXIT_ERROR = 2
+#: Exit code of an unexpected exception (a bug): reported in one line, with the hint below.
+EXIT_INTERNAL = 1
+EXIT_INTERRUPTED = 130
+#: The global flag (before the command) and the environment variable that show tracebacks.
+TRACEBACK_FLAG = "--traceback"
+TRACEBACK_ENV = "SQ_MITSUBA_TRACEBACK"
+TRACEBACK_HINT = (f"rerun with 'sq-mitsuba {TRACEBACK_FLAG} ...' (or {TRACEBACK_ENV}=1) "
+                  "for the traceback")
 #: Commands whose ``--out`` is all or nothing (:func:`sq_mitsuba.outputs.all_or_nothing`): a
 #: folder, or one file; stray temporary files go at start-up, a failed run's output with it.
 ALL_OR_NOTHING = {"eval": "folder", "predict": "folder", "fit": "folder", "report": "folder",
@@ -46,7 +56,15 @@ def build_parser(command: str | None = None, listing: bool = False) -> argparse.
     parser = argparse.ArgumentParser(
         prog="sq-mitsuba",
         description="Superquadric abstraction of spacecraft from single images, with Mitsuba 3.",
+        epilog=(f"Errors are one line: bad input exits with code {EXIT_ERROR}, an internal "
+                f"error (a bug) with code {EXIT_INTERNAL}. To see the full traceback instead, "
+                f"give {TRACEBACK_FLAG} before the command (sq-mitsuba {TRACEBACK_FLAG} fit "
+                f"...) or set the environment variable {TRACEBACK_ENV}=1."),
     )
+    parser.add_argument(
+        TRACEBACK_FLAG, action="store_true",
+        help="on an error, raise it with its full traceback instead of printing one line "
+             f"(also: {TRACEBACK_ENV}=1)")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name in command_names():
         if command is not None and name != command:
@@ -69,24 +87,46 @@ def _one_line(error: BaseException) -> str:
     return "; ".join(lines) or type(error).__name__
 
 
+def traceback_from_environment() -> bool:
+    """Whether ``SQ_MITSUBA_TRACEBACK`` asks for tracebacks (set, and not 0/false/no/off)."""
+    value = os.environ.get(TRACEBACK_ENV, "").strip().lower()
+    return value not in ("", "0", "false", "no", "off")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
+    """Run ``sq-mitsuba argv``; returns the exit code (see the module docstring for errors)."""
     argv = sys.argv[1:] if argv is None else list(argv)
-    command = argv[0] if argv and argv[0] in command_names() else None
+    # The command is the first word after the global options (only --traceback).
+    first = next((i for i, word in enumerate(argv) if word != TRACEBACK_FLAG), len(argv))
+    command = argv[first] if first < len(argv) and argv[first] in command_names() else None
     args = build_parser(command, listing=True).parse_args(argv)
     if not hasattr(args, "func"):  # a listed-only command was reached some other way
         args = build_parser(args.command).parse_args(argv)
+    show_traceback = args.traceback or traceback_from_environment()
     from sq_mitsuba.outputs import all_or_nothing
 
     kind = ALL_OR_NOTHING.get(args.command)
     try:
         with all_or_nothing(getattr(args, "out", None) if kind else None, kind == "file"):
             return int(args.func(args) or 0)
-    except (CLIError, ValueError, FileNotFoundError, PermissionError, OSError) as error:
+    except (CLIError, ValueError, OSError) as error:
+        if show_traceback:
+            raise
         print(f"sq-mitsuba {args.command}: error: {_one_line(error)}", file=sys.stderr)
         return EXIT_ERROR
     except KeyboardInterrupt:
+        if show_traceback:
+            traceback.print_exc()
         print(f"sq-mitsuba {args.command}: interrupted", file=sys.stderr)
-        return 130
+        return EXIT_INTERRUPTED
+    except Exception as error:  # a bug: still one line, but named as such, and how to see more
+        if show_traceback:
+            raise
+        name, detail = type(error).__name__, _one_line(error)
+        what = name if detail == name else f"{name}: {detail}"
+        print(f"sq-mitsuba {args.command}: internal error: {what} ({TRACEBACK_HINT})",
+              file=sys.stderr)
+        return EXIT_INTERNAL
 
 
 if __name__ == "__main__":

@@ -5,9 +5,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+import sq_mitsuba.bench as bench
 from sq_mitsuba.cli import CLIError
 from sq_mitsuba.cli._options import add_config_options, config_from_args
-from sq_mitsuba.evaluation import bench
 
 FLAGS = {"repeats": "--repeats", "warmup": "--warmup", "threads": "--threads",
          "device": "--device"}
@@ -50,7 +50,7 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def _curves(args: argparse.Namespace) -> int:
-    from sq_mitsuba.evaluation.bench.train import run_curves
+    from sq_mitsuba.bench.train import run_curves
 
     for flag, value in (("--data", args.data), ("--minutes", args.minutes),
                         ("--out", args.out)):

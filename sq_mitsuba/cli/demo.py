@@ -50,8 +50,8 @@ FLAGS = {"seed": "--seed", "train": "--train"}
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     # Imported here: it imports torch, which `sq-mitsuba --help` does without (see HELP).
+    from sq_mitsuba.apps.demo import SIZES, DemoOptions, describe_sizes
     from sq_mitsuba.config import field_docs
-    from sq_mitsuba.evaluation.demo import SIZES, DemoOptions, describe_sizes
 
     parser = subparsers.add_parser(
         "demo", help=HELP, description=DESCRIPTION.format(sizes=describe_sizes()),
@@ -71,7 +71,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from sq_mitsuba.evaluation.demo import SIZES, DemoOptions, run_demo
+    from sq_mitsuba.apps.demo import SIZES, DemoOptions, run_demo
 
     if args.size not in SIZES:
         raise CLIError(f"--size: expected one of {', '.join(SIZES)}, got {args.size!r}")

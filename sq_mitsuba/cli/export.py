@@ -13,7 +13,7 @@ Write an inference checkpoint from a training checkpoint (RUN/best.pt): the conf
 dataset camera and the weights (half precision unless --no-half), the trivial baseline
 computed with those weights over training images of --data (skipped without --data), and a
 record of the run it came from; no optimiser, scheduler or RNG state. The shipped model
-(sq_mitsuba/learning/weights/model.pt) is such a file. Written atomically; a corrupt or
+(sq_mitsuba/model/weights/model.pt) is such a file. Written atomically; a corrupt or
 mismatched checkpoint, or a dataset without training images, is a one-line error (exit 2)
 before anything is written."""
 
@@ -21,7 +21,7 @@ FLAGS = {"half": "--half", "baseline_images": "--baseline-images"}
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    from sq_mitsuba.evaluation.export import ExportOptions
+    from sq_mitsuba.apps.export import ExportOptions
 
     parser = subparsers.add_parser("export", help=HELP, description=DESCRIPTION,
                                    formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -36,7 +36,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from sq_mitsuba.evaluation.export import ExportOptions, export_model
+    from sq_mitsuba.apps.export import ExportOptions, export_model
 
     path = export_model(args.checkpoint, args.data, args.out,
                         config_from_args(ExportOptions, args))

@@ -41,7 +41,7 @@ FLAGS = {"num_primitives": "--primitives", "steps": "--steps", "resolution": "--
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     # Imported here: it imports torch, which `sq-mitsuba --help` does without (see HELP).
-    from sq_mitsuba.learning.fit import FitOptions
+    from sq_mitsuba.inference.fit import FitOptions
 
     parser = subparsers.add_parser(
         "fit", help=HELP,
@@ -62,8 +62,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from sq_mitsuba.evaluation.fit_run import run_fit
-    from sq_mitsuba.learning.fit import FitOptions
+    from sq_mitsuba.apps.fit_run import run_fit
+    from sq_mitsuba.inference.fit import FitOptions
 
     options = config_from_args(FitOptions, args)
     run = run_fit(args.masks, args.poses, args.out, options, camera=args.camera,

@@ -37,7 +37,7 @@ FLAGS = {"refine": "--refine", "level": "--level", "fast": "--fast"}
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    from sq_mitsuba.evaluation.predict import PredictOptions
+    from sq_mitsuba.apps.predict import PredictOptions
 
     parser = subparsers.add_parser("predict", help=HELP, description=DESCRIPTION,
                                    formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -51,7 +51,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                              "checkpoint's camera, rescaled to each image)")
     parser.add_argument("--mask", nargs="+", type=Path, default=None, metavar="MASK",
                         help="with --refine: one mask per image, in the same order "
-                             "(default: a mask segmented from each image)")
+                             "(default: the network's mask, or one segmented from each image "
+                             "for a model without a mask head)")
     add_config_options(parser, PredictOptions, FLAGS)
     add_set_option(parser, "predict options", "refinement.steps=20")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -59,7 +60,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from sq_mitsuba.evaluation.predict import PredictOptions, predict_images
+    from sq_mitsuba.apps.predict import PredictOptions, predict_images
 
     options = config_from_args(PredictOptions, args)
     records = predict_images(args.images, args.out, args.checkpoint, args.camera, args.mask,

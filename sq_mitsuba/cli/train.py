@@ -37,7 +37,7 @@ Fields (--set key=value) and their defaults:
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     from sq_mitsuba.config import describe
-    from sq_mitsuba.learning.train_config import TrainConfig
+    from sq_mitsuba.training.config import TrainConfig
 
     parser = subparsers.add_parser(
         "train", help=HELP,
@@ -64,8 +64,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def _run(args: argparse.Namespace) -> int:
     from sq_mitsuba.config import ConfigError, apply_overrides, from_dict
-    from sq_mitsuba.learning.train import train
-    from sq_mitsuba.learning.train_config import TrainConfig, load_train_config
+    from sq_mitsuba.training.config import TrainConfig, load_train_config
+    from sq_mitsuba.training.train import train
 
     if args.max_steps is not None and args.max_steps < 0:
         raise CLIError(f"--max-steps: expected >= 0, got {args.max_steps}")
@@ -95,7 +95,7 @@ def _run(args: argparse.Namespace) -> int:
 
 def _checkpoint_config(out: Path, from_dict: object, config_class: type) -> object:
     """The config recorded in ``out/last.pt`` (for --resume --set without --config)."""
-    from sq_mitsuba.learning.checkpoint import read_checkpoint
+    from sq_mitsuba.model.checkpoint import read_checkpoint
 
     path = out / "last.pt"
     if not path.is_file():

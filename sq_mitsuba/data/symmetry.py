@@ -1,7 +1,7 @@
 """Half-turn symmetries of a model: which body-frame rotations map its surface onto itself.
 
 A rotation S with ``S(model) = model`` makes the poses R and R S show the same image, so a pose
-loss or error must not tell them apart (:func:`sq_mitsuba.learning.losses.pose_loss`,
+loss or error must not tell them apart (:func:`sq_mitsuba.model.losses.pose_loss`,
 :func:`sq_mitsuba.geometry.metrics.rotation_error_deg`). Processed models are principal-axis
 aligned (extents x >= y >= z, centre of mass at the origin), so the candidates are the half
 turns about the body axes x, y and z; each is tested by the Chamfer distance between the
@@ -235,7 +235,7 @@ def stack_symmetries(sets: Sequence[Any]) -> np.ndarray:
     """Per-model symmetry sets (S_i, 3, 3) -> one (B, S_max, 3, 3) array.
 
     Shorter sets are padded with identities, which change no minimum over the set (the
-    identity is always a member), so :func:`sq_mitsuba.learning.losses.pose_loss` can take
+    identity is always a member), so :func:`sq_mitsuba.model.losses.pose_loss` can take
     a batch of models with different symmetries.
     """
     arrays = [_check_matrices(s, f"sets[{i}]") for i, s in enumerate(sets)]

@@ -12,8 +12,8 @@ import torch
 from torch import Tensor
 
 from sq_mitsuba.evaluation.methods import METHODS
-from sq_mitsuba.learning.fit import FitResult
-from sq_mitsuba.render.silhouette import mask_iou
+from sq_mitsuba.inference.fit import FitResult
+from sq_mitsuba.render.silhouette.renderer import mask_iou
 
 
 def plot_fit(result: FitResult, path: str | Path, title: str | None = None) -> Path:
@@ -177,7 +177,7 @@ def plot_qualitative(examples: Sequence[dict], dataset, camera, figure_camera, r
     """
     from sq_mitsuba.data.spe3r import load_model
     from sq_mitsuba.io import save_figure
-    from sq_mitsuba.render.silhouette import render_assembly
+    from sq_mitsuba.render.silhouette.renderer import render_assembly
 
     plt = _pyplot()
     first = examples[0] if examples else {}
@@ -261,7 +261,7 @@ def plot_consistency(dataset, views: Sequence[Sequence[int]], predictor, camera,
 
     Args:
         views: per model shown, dataset item indices of its images.
-        predictor: the :class:`~sq_mitsuba.learning.inference.Predictor`; camera: intrinsics
+        predictor: the :class:`~sq_mitsuba.inference.predictor.Predictor`; camera: intrinsics
             of the dataset's S x S images; figure_camera: of the ray-cast pictures.
     """
     from sq_mitsuba.io import save_figure

@@ -35,7 +35,7 @@ __all__ = ["MeshRanking", "OwnMeshRank", "assembly_clouds", "median_rank", "writ
 def assembly_clouds(assembly: Assembly, level: int = 3) -> list[np.ndarray]:
     """Per batch item, the (n_b, 3) float64 surface points of ``assembly`` that count: those
     inside no other primitive (all of them when every point is inside another)."""
-    from sq_mitsuba.learning.losses import counted_surface_samples
+    from sq_mitsuba.model.losses import counted_surface_samples
 
     with torch.no_grad():
         points, keep = counted_surface_samples(Assembly(assembly.params.detach().double()), level)

@@ -50,15 +50,9 @@ from typing import Any, Literal
 
 from sq_mitsuba.config import apply_overrides, in_range, to_dict, validate
 from sq_mitsuba.data.spe3r import RenderOptions
-from sq_mitsuba.evaluation.evaluate import (
-    METRICS,
-    SHOWN,
-    EvalOptions,
-    csv_text,
-    format_stats,
-    markdown_table,
-    summarise,
-)
+from sq_mitsuba.evaluation.evaluate import EvalOptions
+from sq_mitsuba.evaluation.scoring import METRICS
+from sq_mitsuba.evaluation.tables import SHOWN, csv_text, format_stats, markdown_table, summarise
 from sq_mitsuba.inputs import finite_number, read_csv_table
 from sq_mitsuba.io import atomic_write_json, atomic_write_text
 
@@ -194,7 +188,7 @@ def write_group_tables(table: Sequence[dict[str, Any]], out_dir: Path, stem: str
 def _choose_models(models_dir: Path, options: StudyOptions) -> list[str]:
     from sq_mitsuba.data.spe3r.layout import DatasetError, load_model, read_splits
     from sq_mitsuba.data.spe3r.writer import find_models
-    from sq_mitsuba.evaluation.evaluate import evenly
+    from sq_mitsuba.evaluation.split import evenly
 
     names = find_models(models_dir)
     if options.split != "all":
@@ -242,9 +236,10 @@ def illumination_study(checkpoint: str | Path | None, models_dir: str | Path,
     from tqdm import tqdm
 
     from sq_mitsuba.data.spe3r import render_dataset
-    from sq_mitsuba.evaluation.evaluate import check_predictor, evaluate, with_fast_path
+    from sq_mitsuba.evaluation.evaluate import evaluate
+    from sq_mitsuba.evaluation.split import check_predictor
+    from sq_mitsuba.inference.loading import load_model, with_fast_path
     from sq_mitsuba.io import check_output_folder
-    from sq_mitsuba.learning.checkpoint import load_model
 
     options = options or StudyOptions()
     validate(options)
@@ -286,7 +281,7 @@ def illumination_study(checkpoint: str | Path | None, models_dir: str | Path,
                          "phase_set_deg": "" if point.phase_deg is None else point.phase_deg,
                          "phase_deg": phase, **row})
     _eclipse_at_mean_phase(rows)
-    from sq_mitsuba.evaluation.evaluate import COLUMNS
+    from sq_mitsuba.evaluation.tables import COLUMNS
 
     columns = ["point", "background", "phase_set_deg", *COLUMNS]
     atomic_write_text(out_dir / "per_image.csv",
@@ -326,7 +321,7 @@ def read_per_image(path: Path) -> list[dict[str, Any]]:
     """Rows of an evaluation's ``per_image.csv``; a one-line error naming the file when it is
     missing, empty, cut short or has no lighting record (:func:`sq_mitsuba.inputs.
     read_csv_table`)."""
-    from sq_mitsuba.evaluation.evaluate import LIGHTING
+    from sq_mitsuba.evaluation.tables import LIGHTING
 
     return read_csv_table(path, ("model", "method", *METRICS, *LIGHTING))
 

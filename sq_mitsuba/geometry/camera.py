@@ -6,7 +6,7 @@ Mitsuba's film and SPEED's ``camera.json`` (``ccx = Nu / 2``). ``u`` runs right 
 down along y: ``u = fx x / z + cx``, ``v = fy y / z + cy``.
 
 The conversion to a Mitsuba sensor lives in the rendering layer
-(:mod:`sq_mitsuba.render.silhouette`); nothing here imports Mitsuba.
+(:mod:`sq_mitsuba.render.silhouette.renderer`); nothing here imports Mitsuba.
 """
 
 from __future__ import annotations

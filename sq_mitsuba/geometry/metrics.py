@@ -17,7 +17,7 @@ Chamfer conventions (both reported, always named, because published numbers mix 
 
 Nearest neighbours come from a KD-tree per batch item
 (:func:`sq_mitsuba.geometry.nearest.nearest_neighbours`), exact for both norms; metrics
-carry no gradient (the training loss lives in :mod:`sq_mitsuba.learning.losses`).
+carry no gradient (the training loss lives in :mod:`sq_mitsuba.model.losses`).
 """
 
 from __future__ import annotations

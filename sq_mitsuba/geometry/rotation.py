@@ -23,6 +23,7 @@ from sq_mitsuba.checks import check_tensor
 __all__ = [
     "matrix_to_quaternion",
     "matrix_to_rotation_6d",
+    "mean_rotation",
     "quaternion_angle",
     "quaternion_to_matrix",
     "random_quaternions",
@@ -180,3 +181,11 @@ def quaternion_angle(quaternion_a: Tensor, quaternion_b: Tensor) -> Tensor:
     check_tensor("quaternion_b", quaternion_b, (4,))
     dot = (F.normalize(quaternion_a, dim=-1) * F.normalize(quaternion_b, dim=-1)).sum(-1)
     return 2.0 * torch.arccos(dot.abs().clamp_max(1.0))
+
+
+def mean_rotation(rotations: Tensor) -> Tensor:
+    """Chordal L2 mean (3, 3), float64, of rotations (N, 3, 3): the arithmetic mean projected
+    onto SO(3) by SVD (the rotation nearest to it in the Frobenius norm)."""
+    u, _, vh = torch.linalg.svd(rotations.double().mean(0))
+    d = torch.sign(torch.linalg.det(u @ vh))
+    return u @ torch.diag(torch.stack([torch.ones_like(d), torch.ones_like(d), d])) @ vh

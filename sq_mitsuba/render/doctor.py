@@ -28,7 +28,7 @@ def render_self_test(resolution: int = 64) -> str:
 
     from sq_mitsuba.geometry.camera import Camera
     from sq_mitsuba.geometry.icosphere import icosphere
-    from sq_mitsuba.render.silhouette import SilhouetteRenderer
+    from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer
 
     camera = Camera.default(resolution)
     vertices, faces = icosphere(3)

@@ -6,11 +6,11 @@ two-sided (any tag can belong to a thin part). The sun is a ``directional`` emit
 solar irradiance; the Earth a sphere with a procedural albedo texture, drawn at
 ``render_distance`` and scaled to keep its true angular size; the stars an environment map.
 The camera is the dataset camera at the origin (OpenCV frame,
-:func:`sq_mitsuba.render.silhouette.sensor_dict`); poses move the vertices.
+:func:`sq_mitsuba.render.silhouette.renderer.sensor_dict`); poses move the vertices.
 
 A second, tiny scene renders the mask of the target alone: black meshes before a constant
 white environment, seen by one visibility test per sample (the ``target_coverage`` integrator
-of :mod:`sq_mitsuba.render.silhouette_integrator`, what ``path`` with ``max_depth=1`` renders,
+of :mod:`sq_mitsuba.render.silhouette.integrator`, what ``path`` with ``max_depth=1`` renders,
 three times faster), so the image is 1 - coverage; the mask is coverage >= 0.5, estimated
 with stratified samples. With ``with_depth`` the same pass also gives the target's depth (for
 EXR output).
@@ -34,9 +34,9 @@ from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.frames import orthonormal_basis
 from sq_mitsuba.render.backend import mitsuba
 from sq_mitsuba.render.scene_config import ExposureConfig, Frame, SceneConfig, scenes_dir
-from sq_mitsuba.render.silhouette import sensor_dict
-from sq_mitsuba.render.silhouette_integrator import COVERAGE_PLUGIN
-from sq_mitsuba.render.silhouette_integrator import register as register_integrators
+from sq_mitsuba.render.silhouette.integrator import COVERAGE_PLUGIN
+from sq_mitsuba.render.silhouette.integrator import register as register_integrators
+from sq_mitsuba.render.silhouette.renderer import sensor_dict
 
 # Stratified samples estimate edge coverage with far less noise than independent ones.
 MASK_SAMPLER = "stratified"

@@ -14,8 +14,8 @@ What :func:`check_dataset` reports as a problem (each one line naming the file):
   camera's size, masks binary (ours); images or masks that no label names; EXR files where the
   manifest says there are some;
 - masks against the mesh: for ``per_model`` images per model, the mesh posed by the label is
-  rendered by :class:`~sq_mitsuba.render.silhouette.SilhouetteRenderer` (another renderer than
-  the one that wrote the masks) and compared with the stored mask.
+  rendered by :class:`~sq_mitsuba.render.silhouette.renderer.SilhouetteRenderer` (another
+  renderer than the one that wrote the masks) and compared with the stored mask.
 
 Convention (the IoU threshold across resolutions): a mask pixel is ``coverage >= 0.5`` of a
 Monte Carlo estimate, so a pixel that an edge crosses near its middle can legitimately go
@@ -282,7 +282,7 @@ def check_dataset(root: str | Path, options: CheckOptions | None = None, *,
     """
     from tqdm import tqdm
 
-    from sq_mitsuba.render.silhouette import SilhouetteRenderer
+    from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer
 
     if fields.get("per_model", 0) is None:
         fields["per_model"] = 0

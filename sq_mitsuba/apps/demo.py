@@ -1,0 +1,534 @@
+"""``sq-mitsuba demo``: one image in, a superquadric assembly and a pose out, on spacecraft the
+model never saw, as a web page.
+
+:func:`run_demo` goes through the whole product in one call:
+
+1. generate a few procedural spacecraft from a catalogue seed disjoint from training
+   (:attr:`DemoOptions.seed`; the shipped model trains on catalogue seed 0), every one of them
+   a test model;
+2. path-trace a few images of each in the default space scene (the ``sq-mitsuba dataset
+   render`` writer), with masks and pose labels;
+3. predict each image with the network (the shipped model, or a checkpoint), search its pose
+   globally and refine it at test time through the renderer against the mask read from the
+   image (the network's mask head, or the threshold segmentation for a model without one; the
+   rows name it), and score the network, the searched and refined prediction and the trivial
+   baseline with the evaluation's own
+   :func:`~sq_mitsuba.evaluation.scoring.score` (every metric of ``sq-mitsuba eval``);
+4. write a page, ``index.html`` and its Markdown twin ``index.md``
+   (:mod:`sq_mitsuba.apps.demo_page`), with the pictures, metrics and the files of each
+   predicted assembly (assembly JSON, GLB, pose JSON, as ``sq-mitsuba predict`` writes them).
+
+With ``train`` the model is first trained from scratch at a small size (a small library of the
+training catalogue, a small dataset, ``train/configs/tiny.toml`` with the overrides of
+:class:`DemoTraining`), and the page shows its training curves.
+
+Output folder (``out``)::
+
+    index.html, index.md          the page and its Markdown twin
+    demo.json                     settings, checkpoint, baseline source, counts, wall time
+    per_image.csv, summary.{csv,md}, per_model.{csv,md}   every metric (evaluate's tables)
+    images/<stem>.{network,refined,assembly,truth}.png    pictures of each image
+    assemblies/<stem>.{network,refined}.{assembly.json,glb}, <stem>.pose.json
+    models/                       the generated spacecraft (model library)
+    data/                         the rendered dataset (SPE3R layout: images, masks, labels)
+    train/                        with ``train``: its library, dataset and run folder
+
+Convention: the folder is replaced as a whole. Everything is written into a temporary folder
+beside ``out`` (``.<name>.new.<pid>.*``), which is renamed over it at the end, so a failed or
+interrupted run leaves the previous demo as it was; a run killed before it could delete its
+temporary folder leaves it behind, and the next demo into ``out`` deletes it. ``out`` must be
+absent, empty, or a previous demo (holding ``demo.json``): the demo never deletes a folder it
+did not write.
+
+Convention: as in ``sq-mitsuba eval``, the network sees each image resized to its input size;
+refinement, the 2D IoU and the other metrics work at that size; the pictures of the page are
+drawn at the rendered resolution.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from sq_mitsuba.apps.demo_files import (
+    MANIFEST,
+    METHOD_LABELS,
+    PAGE_METRICS,
+    write_demo_page,
+    write_outputs,
+)
+from sq_mitsuba.config import in_range, to_dict, validate
+from sq_mitsuba.geometry.assembly import Assembly
+
+#: Catalogue seed of the demo's spacecraft: any seed but the training catalogue's (0).
+DEMO_CATALOGUE_SEED = 20261122
+
+@dataclass(frozen=True)
+class DemoSize:
+    """How much a demo renders and refines."""
+
+    models: int = in_range(1, 64, default=5)
+    "Spacecraft generated."
+    images: int = in_range(1, 64, default=3)
+    "Images rendered per spacecraft."
+    resolution: int = in_range(32, 1024, default=256)
+    "Side in pixels of the rendered images (and of the page's pictures)."
+    spp: int = in_range(1, 1024, default=64)
+    "Path-tracing samples per pixel of the images."
+    refine_steps: int = in_range(1, 1000, default=50)
+    "Test-time refinement steps at most (about 40 ms per image and step on 2 cores)."
+
+
+#: The sizes of ``--size``: tiny for CI (seconds), small, default (minutes on 2 cores).
+SIZES: dict[str, DemoSize] = {
+    "tiny": DemoSize(models=2, images=1, resolution=128, spp=16, refine_steps=8),
+    "small": DemoSize(models=3, images=2, resolution=256, spp=32, refine_steps=30),
+    "default": DemoSize(),
+}
+
+
+@dataclass(frozen=True)
+class DemoTraining:
+    """The small training run of ``sq-mitsuba demo --train`` (from scratch, on the CPU)."""
+
+    models: int = in_range(2, 10_000, default=24)
+    "Spacecraft of the training library (the first of the training catalogue)."
+    catalogue_seed: int = in_range(0, 2**32 - 1, default=0)
+    "Catalogue seed of the training library (0: the shipped model's catalogue)."
+    images_per_model: int = in_range(1, 10_000, default=24)
+    "Images rendered per training spacecraft."
+    resolution: int = in_range(32, 1024, default=64)
+    "Side in pixels of the training images."
+    spp: int = in_range(1, 1024, default=16)
+    "Path-tracing samples per pixel of the training images."
+    config: str = "tiny.toml"
+    "Training config, a file of the repository's train/configs/ (not installed with the package)."
+    overrides: tuple[str, ...] = ("network.image_size=64", "optim.epochs=6",
+                                  "optim.batch_size=8", "checkpoint_every=0",
+                                  "validation.images=16", "validation.batch_size=16")
+    "Changes to that config (dotted key=value, as `sq-mitsuba train --set`)."
+
+
+@dataclass(frozen=True)
+class DemoOptions:
+    """Settings of ``sq-mitsuba demo``."""
+
+    size: Literal["tiny", "small", "default"] = "default"
+    """Preset: tiny (2 spacecraft x 1 image at 128 px, 8 refinement steps; for CI), small
+    (3 x 2 at 256 px) or default (5 x 3 at 256 px, 50 steps)."""
+    seed: int = in_range(0, 2**32 - 1, default=DEMO_CATALOGUE_SEED)
+    """Catalogue seed of the demo's spacecraft (and seed of their images); the shipped model
+    trained on catalogue seed 0, so these are spacecraft it never saw."""
+    points: int = in_range(1000, 2_000_000, default=20_000)
+    "Points per sample set of each spacecraft (surface, uniform, near): Chamfer and 3D IoU."
+    surface_points: int = in_range(1, 1_000_000, default=2500)
+    "Ground-truth surface points per image for the Chamfer distances."
+    batch_size: int = in_range(1, 1024, default=8)
+    "Images per network and refinement batch."
+    level: int = in_range(0, 5, default=3)
+    "Icosphere level of the primitive meshes for points, silhouettes, pictures and GLB files."
+    silhouette_spp: int = in_range(1, 1024, default=32)
+    "Samples per pixel of the silhouettes scored by the 2D IoU."
+    overlay_spp: int = in_range(1, 1024, default=16)
+    "Samples per pixel of the silhouettes drawn on the page."
+    baseline_images: int = in_range(1, 1_000_000, default=256)
+    "Images whose mean prediction and mean pose make the baseline, when it is computed here."
+    train: bool = False
+    """First train a small model from scratch (library, dataset, training; measured 2.6-5.8
+    minutes in all on 2 cores) and demonstrate it instead of the shipped one."""
+    training: DemoTraining = field(default_factory=DemoTraining)
+    "The training run of --train."
+
+    @property
+    def preset(self) -> DemoSize:
+        """The :class:`DemoSize` of :attr:`size`."""
+        return SIZES[self.size]
+
+
+@dataclass
+class DemoResult:
+    """What :func:`run_demo` did.
+
+    Attributes:
+        out_dir: the output folder; page: its index.html; markdown: index.md.
+        images, models: images and spacecraft shown.
+        summary: {method: {metric: (mean, std, median)}} over the images.
+        checkpoint: the model demonstrated; baseline: where the baseline came from.
+        wall_seconds: the whole run, checks to the last rename.
+    """
+
+    out_dir: Path
+    page: Path
+    markdown: Path
+    images: int
+    models: int
+    summary: dict[str, dict[str, tuple[float, float, float]]]
+    checkpoint: str
+    baseline: str
+    wall_seconds: float
+    stages: dict[str, float] = field(default_factory=dict)
+
+    def describe(self) -> str:
+        """A few lines: the main numbers, then where to look and the wall time."""
+        lines = []
+        for method, label in METHOD_LABELS.items():
+            stats = self.summary.get(method)
+            if stats is not None:
+                lines.append(f"  {label}: " + ", ".join(
+                    f"{PAGE_METRICS[m]} {stats[m][0]:.3f}" for m in
+                    ("chamfer_l1_paper", "iou_2d", "rotation_error_folded_deg")))
+        lines.append(f"demo of {self.images} image(s) of {self.models} unseen spacecraft done "
+                     f"in {self.wall_seconds:.0f} s (wall); open {self.page}")
+        return "\n".join(lines)
+
+
+# ------------------------------------------------------------------------------ checks
+
+
+def repository_config(name: str) -> Path:
+    """``train/configs/<name>`` of the repository this package is installed from (editable).
+
+    Raises:
+        FileNotFoundError: the repository's train/configs/ is not there (a non-editable
+            install ships no training configs).
+    """
+    configs = Path(__file__).resolve().parents[2] / "train" / "configs"
+    path = configs / name
+    if not path.is_file():
+        raise FileNotFoundError(
+            f"--train needs the training config {path}, which is not there: train/configs/ "
+            "is part of the repository, not of the installed package; run the demo from a "
+            "checkout installed with `pip install -e .` (make setup)")
+    return path
+
+
+def check_demo_folder(out: Path) -> None:
+    """``out`` may be absent, an empty folder, or a previous demo; its parent writable.
+
+    Raises:
+        ValueError: ``out`` is a file, a folder that holds something else (the demo replaces
+            its output folder as a whole and must not delete what it did not write), or not
+            writable.
+    """
+    from sq_mitsuba.io import check_output_folder
+
+    check_output_folder(out)
+    if out.is_dir() and any(out.iterdir()) and not (out / MANIFEST).is_file():
+        raise ValueError(f"out {out}: holds files but no {MANIFEST}, so it is not a demo's "
+                         "output, and the demo replaces its folder as a whole; choose another "
+                         "--out or an empty folder")
+    # The new demo is written beside `out` and renamed over it: the parent must take files.
+    check_output_folder(out.absolute().parent)
+
+
+# ------------------------------------------------------------------------------ driver
+
+
+def run_demo(options: DemoOptions | None = None, out_dir: str | Path = "demo_output",
+             checkpoint: str | Path | None = None, progress: bool = True) -> DemoResult:
+    """Run the demo (see the module docstring) into ``out_dir``.
+
+    Every input is checked before any work: the options, the output folder, and the model
+    (``checkpoint``, or the shipped model when None; with ``options.train``, the training
+    config instead, and ``checkpoint`` must be None).
+
+    Raises:
+        FileNotFoundError: no shipped model and no ``checkpoint``; a missing checkpoint file;
+            with ``train``, a missing training config.
+        ValueError: bad options, an unusable output folder or checkpoint.
+    """
+    from sq_mitsuba.evaluation.split import check_predictor
+    from sq_mitsuba.inference.loading import load_model
+
+    started = time.perf_counter()
+    options = options or DemoOptions()
+    validate(options)
+    out_dir = Path(out_dir)
+    check_demo_folder(out_dir)
+    predictor = training_config = None
+    if options.train:
+        if checkpoint is not None:
+            raise ValueError("checkpoint: --train trains its own model; leave out --checkpoint")
+        training_config = _training_config(options.training)
+    else:
+        predictor = load_model(checkpoint)
+        check_predictor(predictor)
+    out_dir.absolute().parent.mkdir(parents=True, exist_ok=True)
+    remove_stale_staging(out_dir)
+    staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.new.{os.getpid()}.",
+                                    dir=out_dir.absolute().parent))
+    try:
+        result = _build(options, staging, predictor, training_config, progress, started)
+        _swap(staging, out_dir)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    result.out_dir = out_dir
+    result.page = out_dir / result.page.name
+    result.markdown = out_dir / result.markdown.name
+    result.wall_seconds = time.perf_counter() - started
+    return result
+
+
+def remove_stale_staging(out_dir: Path) -> list[Path]:
+    """Delete the temporary folders of earlier demos into ``out_dir`` whose process is gone
+    (killed before it could clean up: ``.<name>.new.<pid>.*`` beside ``out_dir``); a running
+    demo's folder stays. Returns the folders deleted."""
+    removed = []
+    for path in out_dir.absolute().parent.glob(f".{out_dir.name}.new.*.*"):
+        pid = path.name[len(f".{out_dir.name}.new."):].split(".")[0]
+        if not pid.isdigit() or not path.is_dir():
+            continue
+        try:
+            os.kill(int(pid), 0)
+        except ProcessLookupError:
+            shutil.rmtree(path, ignore_errors=True)
+            removed.append(path)
+        except PermissionError:  # another user's live process
+            continue
+    return removed
+
+
+def _training_config(training: DemoTraining) -> Any:
+    from sq_mitsuba.config import apply_overrides
+    from sq_mitsuba.training.config import load_train_config
+
+    config = load_train_config(repository_config(training.config))
+    return apply_overrides(config, list(training.overrides))
+
+
+def _swap(staging: Path, out_dir: Path) -> None:
+    """Rename ``staging`` over ``out_dir`` (the old one is removed only once the new one is in
+    place)."""
+    old = None
+    if out_dir.exists():
+        old = out_dir.absolute().parent / f".{out_dir.name}.old.{os.getpid()}"
+        if old.exists():
+            shutil.rmtree(old)
+        os.rename(out_dir, old)
+    try:
+        os.rename(staging, out_dir)
+    except BaseException:
+        if old is not None:
+            os.rename(old, out_dir)
+        raise
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
+
+
+def _build(options: DemoOptions, out: Path, predictor: Any, training_config: Any,
+           progress: bool, started: float) -> DemoResult:
+    """Every stage, into the (new, empty) folder ``out``."""
+    from sq_mitsuba.data.library import GenerateOptions, generate_library
+    from sq_mitsuba.data.spe3r import RenderOptions, render_dataset
+    from sq_mitsuba.data.spe3r.layout import write_splits
+    from sq_mitsuba.evaluation.scoring import baseline_prediction
+    from sq_mitsuba.evaluation.tables import write_tables
+    from sq_mitsuba.inference.loading import with_fast_path
+    from sq_mitsuba.io import atomic_write_json
+
+    stages: dict[str, float] = {}
+    preset = options.preset
+    curves = None
+    baseline_source = ""
+    baseline = None
+    if training_config is not None:
+        tick = time.perf_counter()
+        predictor, curves, run_data = _train(options.training, training_config, out / "train",
+                                             options.points, progress)
+        stages["train"] = time.perf_counter() - tick
+        predictor = with_fast_path(predictor, True)
+        baseline = baseline_prediction(predictor, run_data, options.baseline_images,
+                                       options.batch_size)
+        baseline_source = ("the mean prediction over this run's training images, at the mean "
+                           "pose of their labels")
+    elif predictor.baseline is not None:
+        baseline = predictor.baseline
+        baseline_source = ("stored with the checkpoint: the mean prediction over its training "
+                           "images, at the mean pose of their labels")
+
+    tick = time.perf_counter()
+    library = out / "models"
+    summary = generate_library(GenerateOptions(out=library, count=preset.models,
+                                               seed=options.seed, points=options.points),
+                               progress=progress)
+    if summary.failures:
+        name, reason = next(iter(summary.failures.items()))
+        raise ValueError(f"spacecraft {name} could not be generated: {reason}")
+    # Every demo spacecraft is new to the model: all of them are test models.
+    write_splits(library, [(name, "test") for name in sorted(summary.written)])
+    stages["generate"] = time.perf_counter() - tick
+
+    tick = time.perf_counter()
+    data = out / "data"
+    rendered = render_dataset(library, data, RenderOptions(
+        images_per_model=preset.images, seed=options.seed, resolution=preset.resolution,
+        spp=preset.spp), progress=progress)
+    if rendered.failures:
+        name, reason = next(iter(rendered.failures.items()))
+        raise ValueError(f"images of {name} could not be rendered: {reason}")
+    stages["render"] = time.perf_counter() - tick
+
+    # BatchNorm folded once (about a second): the same predictions up to ~1e-5, faster.
+    fast = with_fast_path(predictor, True)
+    if baseline is None:
+        baseline = baseline_prediction(fast, data, options.baseline_images,
+                                       options.batch_size, split="test")
+        baseline_source = ("the checkpoint stores none, so it was computed here: the mean "
+                           "prediction over the demo's own images at the mean pose of their "
+                           "labels (a floor that has seen the true poses, so a generous one)")
+    tick = time.perf_counter()
+    records, rows = _predict_and_score(fast, data, options, baseline, progress)
+    stages["predict, refine, score"] = time.perf_counter() - tick
+
+    tick = time.perf_counter()
+    write_outputs(records, data, out, options, progress)
+    table = write_tables(rows, out)
+    stages["pictures and files"] = time.perf_counter() - tick
+    if curves is not None:
+        shutil.copyfile(curves, out / "images" / "training_curves.png")
+    checkpoint = str(getattr(predictor, "source", None) or "")
+    if training_config is not None:
+        checkpoint = str(Path("train") / "run" / Path(checkpoint).name)
+    wall = time.perf_counter() - started
+    record = {
+        "options": to_dict(options), "checkpoint": checkpoint, "baseline": baseline_source,
+        "network": {"image_size": predictor.image_size,
+                    "num_primitives": predictor.num_primitives},
+        "images": len(records), "models": sorted({r["model"] for r in records}),
+        "stage_seconds": {k: round(v, 2) for k, v in stages.items()},
+        "wall_seconds_before_page": round(wall, 2),
+    }
+    atomic_write_json(out / MANIFEST, record)
+    page, markdown = write_demo_page(out, options, records, table, checkpoint, baseline_source,
+                                 curves is not None, stages, wall)
+    return DemoResult(out, page, markdown, len(records), len(record["models"]), table,
+                      checkpoint, baseline_source, wall, stages)
+
+
+def _train(training: DemoTraining, config: Any, root: Path, points: int,
+           progress: bool) -> tuple[Any, Path | None, Path]:
+    """Library, dataset and training run of ``--train`` under ``root``; returns the
+    predictor of the run's best checkpoint (else its last), its curves.png (None when it
+    drew none) and the dataset folder."""
+    from sq_mitsuba.data.library import GenerateOptions, generate_library
+    from sq_mitsuba.data.spe3r import RenderOptions, render_dataset
+    from sq_mitsuba.inference.loading import load_model
+    from sq_mitsuba.training.train import CURVES_FILE, train
+
+    library = root / "models"
+    summary = generate_library(GenerateOptions(out=library, count=training.models,
+                                               seed=training.catalogue_seed, points=points),
+                               progress=progress)
+    if summary.failures:
+        name, reason = next(iter(summary.failures.items()))
+        raise ValueError(f"training spacecraft {name} could not be generated: {reason}")
+    data = root / "data"
+    rendered = render_dataset(library, data, RenderOptions(
+        images_per_model=training.images_per_model, seed=training.catalogue_seed,
+        resolution=training.resolution, spp=training.spp), progress=progress)
+    if rendered.failures:
+        name, reason = next(iter(rendered.failures.items()))
+        raise ValueError(f"training images of {name} could not be rendered: {reason}")
+    result = train(config, data, root / "run", progress=progress)
+    checkpoint = result.best_checkpoint or result.last_checkpoint
+    if checkpoint is None:
+        raise ValueError(f"{root / 'run'}: training wrote no checkpoint")
+    curves = root / "run" / CURVES_FILE
+    # Drawn at each validation: a run without val images (too few per model) has none.
+    return load_model(checkpoint), curves if curves.is_file() else None, data
+
+
+def _predict_and_score(predictor: Any, data: Path, options: DemoOptions,
+                       baseline: tuple[Tensor, Tensor, Tensor], progress: bool
+                       ) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """Predict, refine and score every image of the demo dataset.
+
+    Returns:
+        records: per image, the dataset item, its model and index, and per method a tuple
+            (assembly of batch size 1, rotation (3, 3), translation (3,)), plus the
+            refinement's IoUs; rows: the ``per_image.csv`` rows (one per image and method).
+    """
+    from tqdm import tqdm
+
+    from sq_mitsuba.data.symmetry import model_symmetries
+    from sq_mitsuba.evaluation.scoring import score, volume_points
+    from sq_mitsuba.evaluation.split import collate, open_split
+    from sq_mitsuba.evaluation.tables import label_record
+    from sq_mitsuba.inference.search import SEARCH_REFINEMENT
+    from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer
+
+    dataset = open_split(data, "test", predictor.image_size, options.surface_points)
+    camera = dataset.camera.rescaled(predictor.image_size, predictor.image_size)
+    renderer = SilhouetteRenderer(camera, spp=options.silhouette_spp)
+    refine_options = replace(SEARCH_REFINEMENT, steps=options.preset.refine_steps)
+    symmetries: dict[int, Tensor] = {}
+    volumes: dict[int, tuple[Tensor, Tensor]] = {}
+    for index, model in enumerate(dataset.models):
+        symmetries[index] = torch.as_tensor(np.asarray(model_symmetries(data / model)),
+                                            dtype=torch.float64)
+        volumes[index] = volume_points(data / model, options.points)
+    base_assembly = Assembly.from_raw(baseline[0].double())
+    records: list[dict[str, Any]] = []
+    rows: list[dict[str, Any]] = []
+    with tqdm(total=len(dataset), unit="img", disable=not progress, dynamic_ncols=True,
+              desc="predict, refine, score") as bar:
+        for start in range(0, len(dataset), options.batch_size):
+            chunk = list(range(start, min(start + options.batch_size, len(dataset))))
+            batch = collate([dataset[i] for i in chunk])
+            size = len(chunk)
+            refined = predictor.predict(batch["image"], camera, refine=True,
+                                        refinement=refine_options)
+            prediction, fit = refined.network, refined.fit
+            candidates = {
+                "network": (prediction.assembly, prediction.rotation, prediction.translation),
+                "refined": (refined.assembly, refined.rotation, refined.translation),
+                "baseline": (Assembly(base_assembly.params.expand(size, -1, -1)),
+                             baseline[1].double().expand(size, -1, -1),
+                             baseline[2].double().expand(size, -1)),
+            }
+            model_indices = [int(m) for m in batch["model_index"]]
+            for method, (assembly, rotation, translation) in candidates.items():
+                metrics = score(assembly, rotation, translation, batch, renderer,
+                                [symmetries[m] for m in model_indices],
+                                [volumes[m] for m in model_indices], options.level)
+                if method == "refined":
+                    metrics["search_score"] = fit.search_score
+                    metrics["refine_iou_after"] = fit.iou
+                for k, item in enumerate(chunk):
+                    row = {"model": batch["model"][k], "index": int(batch["index"][k]),
+                           "method": method, **label_record(dataset.items[item][2]),
+                           "mask_source": fit.mask_source if method == "refined" else ""}
+                    row.update({name: float(value[k]) for name, value in metrics.items()})
+                    rows.append(row)
+            for k, item in enumerate(chunk):
+                record = {"item": item, "model": batch["model"][k],
+                          "index": int(batch["index"][k]),
+                          "filename": dataset.items[item][2]["filename"],
+                          "gt_rotation": batch["rotation"][k].double(),
+                          "gt_translation": batch["translation"][k].double()}
+                for method, (assembly, rotation, translation) in candidates.items():
+                    record[method] = (Assembly(assembly.params[k:k + 1].detach().double()),
+                                      rotation[k].detach().double(),
+                                      translation[k].detach().double())
+                record["metrics"] = {
+                    row["method"]: row for row in rows[-len(candidates) * size:]
+                    if row["model"] == record["model"] and row["index"] == record["index"]}
+                records.append(record)
+            bar.update(size)
+    return records, rows
+
+
+def describe_sizes() -> str:
+    """One line per preset, for the command's help."""
+    return "\n".join(f"  {name}: {s.models} spacecraft x {s.images} image(s) at {s.resolution} "
+                     f"px, {s.refine_steps} refinement steps" for name, s in SIZES.items())

@@ -1,0 +1,551 @@
+"""``sq-mitsuba bench train``: CPU training throughput and inference latency; learning curves.
+
+Training (batch 32, each config at its own input size): ``train/configs/a.toml`` (the paper's
+settings: 128 px, Chamfer on level-3 primitives, every item rendered at 128 px) and
+``train/configs/cpu.toml`` (this project's CPU recipe: 96 px input, reprojection on 8 of 32
+items at 64 px). The step is the training loop's own
+(:func:`~sq_mitsuba.training.step.training_step`: forward, loss terms, backward,
+gradient clipping, AdamW step, one Dr.Jit thread per process and the config's render workers)
+on synthetic in-memory batches of the right shapes, so no dataset is needed:
+
+- images: Mitsuba silhouettes of random M = 5 assemblies at random poses, drawn once, with a
+  random grey level and noise; masks: those silhouettes;
+- ground truth: per item ``data.num_surface`` surface points drawn from the level-4 surface
+  samples of its assembly, and ``data.num_occupancy`` occupancy points half inside, half
+  outside, drawn from 20,000 uniform points of a box labelled by the assembly's
+  inside-outside function, as the training data's point cache draws them; then the config's
+  augmentation.
+
+A second, decomposed pass over the same step times its parts: data (point draws and
+augmentation), encoder (network forward, then backward from the output gradients), each
+weighted loss term of the registry (:data:`~sq_mitsuba.training.loss_terms.LOSS_TERMS`; its
+forward + backward to the network outputs), and the update (gradient clipping, AdamW).
+
+Inference (128 px): :class:`~sq_mitsuba.inference.predictor.Predictor` at batch 1 and 32,
+eager (``fast=False``) and the fast path (``fast=True``), on one intra-op thread too, and the
+shipped model (its own input size) on the same images.
+
+:func:`learning_curves` (``sq-mitsuba bench curves``) trains several configs for the same
+wall-clock budget each on a real dataset and plots held-out Chamfer-L1 against training time.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import statistics
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from sq_mitsuba.bench import BENCHMARKS_MD, BenchOptions, Report, Timing, load_average
+from sq_mitsuba.training.batch import TrainingBatch
+
+BATCH = 32
+INPUT = 128
+CONFIG_DIR = Path(__file__).resolve().parents[2] / "train" / "configs"
+#: Training throughput targets (images/s) of the configs measured.
+TARGETS = {"a": 20.0, "cpu": 40.0}
+INFERENCE_TARGET_S = 0.005
+REPROJECTION_TARGET_S = 0.010
+#: Parts of the decomposed step besides the loss terms (which the registry names).
+STEP_PARTS = ("data", "encoder", "update")
+_DEPTH = 2.0  # camera distance (m) of the synthetic poses: a unit-size model fills the frame
+
+
+def load_config(name: str) -> Any:
+    """``train/configs/<name>.toml`` as a TrainConfig (bases resolved)."""
+    from sq_mitsuba.training.config import load_train_config
+
+    return load_train_config(CONFIG_DIR / f"{name}.toml")
+
+
+# ------------------------------------------------------------------------------ synthetic data
+
+
+class SyntheticData:
+    """In-memory batches of the training loop's shapes (see the module docstring).
+
+    Args:
+        config: the TrainConfig whose sizes, point counts and augmentation the batches follow.
+        batch: items per batch.
+        models: distinct random assemblies the items cycle through.
+        seed: of every random draw.
+    """
+
+    def __init__(self, config: Any, batch: int = BATCH, models: int = 4, seed: int = 0) -> None:
+        from sq_mitsuba.geometry.assembly import Assembly
+        from sq_mitsuba.geometry.camera import Camera
+        from sq_mitsuba.geometry.rotation import random_rotations
+        from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer, render_assembly
+
+        self.config = config
+        size = config.network.image_size
+        self.camera = Camera.default(size)
+        generator = torch.Generator().manual_seed(seed)
+        truth = Assembly.from_raw(torch.randn(models, 5, 16, generator=generator) * 0.7)
+        with torch.no_grad():
+            self.surface = truth.surface_points(4).flatten(1, 2).numpy()  # (models, 12810, 3)
+            box = torch.rand(models, 20_000, 3, generator=generator) * 1.4 - 0.7
+            inside = truth.inside_outside(box).amin(dim=1) < 1.0
+        self.box, self.inside = box.numpy(), inside.numpy()
+        self.model_index = torch.arange(batch) % models
+        self.rotation = random_rotations(batch, generator=generator)
+        self.translation = torch.zeros(batch, 3)
+        self.translation[:, 2] = _DEPTH
+        renderer = SilhouetteRenderer(self.camera, spp=4)
+        with torch.no_grad():
+            masks = render_assembly(Assembly(truth.params[self.model_index]), self.rotation,
+                                    self.translation, renderer, 2)
+        self.mask = (masks > 0.5).float()[:, None]
+        grey = 0.3 + 0.6 * torch.rand(batch, 1, 1, 1, generator=generator)
+        noise = 0.03 * torch.randn(self.mask.shape, generator=generator)
+        self.image = (self.mask * grey + noise).clamp(0, 1)
+
+    def batch(self, step: int) -> TrainingBatch:
+        """Step ``step``'s batch, as the training loop's data stream makes them."""
+        from sq_mitsuba.training.augment import augment_batch
+
+        cfg = self.config
+        generators = [np.random.default_rng([7, step, j]) for j in range(len(self.image))]
+        surface, points, labels = [], [], []
+        for j, model in enumerate(self.model_index.tolist()):
+            rng = generators[j]
+            surface.append(self.surface[model][rng.choice(len(self.surface[model]),
+                                                          cfg.data.num_surface)])
+            inside = np.flatnonzero(self.inside[model])
+            outside = np.flatnonzero(~self.inside[model])
+            want_in = min(cfg.data.num_occupancy // 2, len(inside))
+            rows = np.concatenate([rng.choice(inside, want_in, replace=False),
+                                   rng.choice(outside, cfg.data.num_occupancy - want_in,
+                                              replace=len(outside) < cfg.data.num_occupancy)])
+            points.append(self.box[model][rows])
+            labels.append(np.concatenate([np.ones(want_in, np.float32),
+                                          np.zeros(len(rows) - want_in, np.float32)]))
+        image, mask, rotation, translation = self.image, self.mask, self.rotation, \
+            self.translation
+        if cfg.augment.enabled:
+            image, mask, rotation, translation = augment_batch(
+                image, mask, rotation, translation, cfg.augment, generators, self.camera)
+        return TrainingBatch(
+            image=image, mask=mask, rotation=rotation, translation=translation,
+            model_index=self.model_index, surface_points=torch.from_numpy(np.stack(surface)),
+            occupancy_points=torch.from_numpy(np.stack(points)),
+            occupancy_labels=torch.from_numpy(np.stack(labels)),
+            symmetries=torch.eye(3).expand(len(self.image), 1, 3, 3))
+
+
+# ------------------------------------------------------------------------------ training step
+
+
+class StepBench:
+    """One config's network, optimiser and renderer, as the training loop builds them, on
+    :class:`SyntheticData`."""
+
+    def __init__(self, config: Any) -> None:
+        from sq_mitsuba.model.network import SuperquadricNet
+        from sq_mitsuba.training.schedule import make_optimizer
+        from sq_mitsuba.training.step import reprojection_renderer, to_channels_last
+
+        self.config = config
+        self.data = SyntheticData(config)
+        torch.manual_seed(config.seed)
+        self.model = SuperquadricNet(config.network).train()
+        if config.channels_last:
+            to_channels_last(self.model)
+        self.optimizer, _ = make_optimizer(self.model, config.optim, 1)
+        self.k_matrix = self.data.camera.matrix()
+        self.renderer = reprojection_renderer(config, self.data.camera, torch.device("cpu"))
+
+    def close(self) -> None:
+        """Stop the renderer's worker processes."""
+        if self.renderer is not None:
+            self.renderer.close()
+
+    def context(self, step: int) -> Any:
+        """Step ``step``'s loss context (renderer reseeded, subset generator seeded)."""
+        from sq_mitsuba.training.step import loss_context
+
+        return loss_context(self.config, self.renderer, step)
+
+    def step(self, step: int) -> None:
+        """One training step exactly as the loop runs it (without logging)."""
+        from sq_mitsuba.training.step import NotFiniteError, training_step
+
+        try:
+            training_step(self.model, self.optimizer, self.data.batch(step), self.k_matrix,
+                          self.context(step), self.config.optim.grad_clip)
+        except NotFiniteError as error:
+            raise RuntimeError(f"bench train: step {step}: {error}") from None
+
+    def timed_parts(self, step: int) -> dict[str, float]:
+        """The same step cut into parts, each timed (seconds): ``data``, ``encoder``, each
+        weighted loss term by name, ``update``. The terms are back-propagated one at a time
+        to detached network outputs, whose gradients then run the encoder's backward pass;
+        the update equals :meth:`step`'s up to float summation order."""
+        from sq_mitsuba.checks import value_checks
+        from sq_mitsuba.training.loss_terms import compute_terms, enabled_terms, total_loss
+        from sq_mitsuba.training.step import gradient_norm
+
+        cfg = self.config
+        names = enabled_terms(cfg.loss)
+        times = dict.fromkeys((*STEP_PARTS[:2], *names, STEP_PARTS[2]), 0.0)
+        start = time.perf_counter()
+        batch = self.data.batch(step)
+        times["data"] = time.perf_counter() - start
+        self.optimizer.zero_grad(set_to_none=True)
+        context = self.context(step)
+        with value_checks(False):
+            start = time.perf_counter()
+            output = self.model(batch.image, self.k_matrix)
+            forward_s = time.perf_counter() - start
+            pairs = {f.name: getattr(output, f.name) for f in dataclasses.fields(output)
+                     if isinstance(getattr(output, f.name), torch.Tensor)
+                     and getattr(output, f.name).requires_grad}
+            leaves = dataclasses.replace(output, **{name: value.detach().requires_grad_(True)
+                                                    for name, value in pairs.items()})
+            for name in names:
+                start = time.perf_counter()
+                terms = compute_terms(leaves, batch, context, (name,))
+                total_loss(terms, {name: cfg.loss.weights[name]}).backward()
+                times[name] += time.perf_counter() - start
+        start = time.perf_counter()
+        grads = [(pairs[name], getattr(leaves, name).grad) for name in pairs
+                 if getattr(leaves, name).grad is not None]
+        torch.autograd.backward([o for o, _ in grads], [g for _, g in grads])
+        times["encoder"] = forward_s + time.perf_counter() - start
+        start = time.perf_counter()
+        gradient_norm(self.model, cfg.optim.grad_clip)
+        self.optimizer.step()
+        times["update"] += time.perf_counter() - start
+        return times
+
+
+def _train_figures(report: Report, name: str, repeats: int, overrides: Sequence[str] = ()
+                   ) -> dict[str, float]:
+    """Rows and notes of config ``name`` with ``--set`` style ``overrides`` (a comparison row,
+    without target); returns the median seconds of each part (:meth:`StepBench.timed_parts`)."""
+    from sq_mitsuba.config import apply_overrides
+    from sq_mitsuba.training.step import mitsuba_for
+
+    config = apply_overrides(load_config(name), overrides)
+    suffix = "".join(f", {o}" for o in overrides)
+    label = f"{name}.toml{suffix}"
+    target = None if overrides else TARGETS[name]
+    size = config.network.image_size
+    with mitsuba_for(torch.device("cpu"), config.reprojection.deterministic):
+        trainer = StepBench(config)
+        try:
+            trainer.step(0)  # warm-up: Dr.Jit kernels, workers, allocator, AdamW state
+            steps = []
+            for step in range(1, repeats + 1):
+                start = time.perf_counter()
+                trainer.step(step)
+                steps.append(time.perf_counter() - start)
+            parts = [trainer.timed_parts(repeats + 1 + i) for i in range(repeats)]
+        finally:
+            trainer.close()
+        workers = 0 if trainer.renderer is None else trainer.renderer.workers
+    rep = config.reprojection
+    rendered = BATCH if rep.items is None else min(rep.items, BATCH)
+    rate = BATCH / statistics.median(steps)
+    wanted = "" if target is None else f" (target >= {target:.0f})"
+    report.timings.append(Timing(
+        f"train step, {label}, per image", [s / BATCH for s in steps],
+        None if target is None else 1 / target,
+        note=f"batch {BATCH}, {size} px input, {rate:.1f} images/s{wanted}; reprojection "
+             f"{rendered} of {BATCH} items at {rep.resolution or size} px, level {rep.level}, "
+             f"spp {rep.spp}, {workers or 'no'} render workers; channels-last "
+             f"{'on' if config.channels_last else 'off'}"))
+    medians = {p: statistics.median(t[p] for t in parts) for p in parts[0]}
+    whole = sum(medians.values())
+    shares = ", ".join(f"{p} {1e3 * medians[p]:.0f} ms ({100 * medians[p] / whole:.0f} %)"
+                       for p in medians)
+    report.notes.append(
+        f"{label} step parts (median of {repeats} decomposed steps, sum "
+        f"{1e3 * whole:.0f} ms vs {1e3 * statistics.median(steps):.0f} ms for the real step): "
+        f"{shares} (each weighted loss term by name; update = gradient clipping, AdamW); "
+        f"1-minute load "
+        f"average after it: {load_average():.2f}")
+    if name == "a":
+        report.timings.append(Timing(
+            f"reprojection forward + backward, 128 x 128, level 3, spp 16, per image{suffix}",
+            [t["reprojection"] / rendered for t in parts],
+            None if overrides else REPROJECTION_TARGET_S,
+            note=f"a.toml's reprojection part of the decomposed step / items rendered (one "
+                 f"Dr.Jit thread per process, {workers or 'no'} worker processes, as in "
+                 f"training)"))
+    return medians
+
+
+# ------------------------------------------------------------------------------ inference
+
+
+def _interleaved(calls: dict[str, Callable[[], object]], repeats: int, warmup: int
+                 ) -> dict[str, list[float]]:
+    """Seconds of each call, the calls alternating so that load changes hit all alike."""
+    for _ in range(warmup):
+        for fn in calls.values():
+            fn()
+    samples: dict[str, list[float]] = {name: [] for name in calls}
+    for _ in range(repeats):
+        for name, fn in calls.items():
+            start = time.perf_counter()
+            fn()
+            samples[name].append(time.perf_counter() - start)
+    return samples
+
+
+def _inference_figures(report: Report, options: BenchOptions) -> None:
+    from sq_mitsuba.geometry.camera import Camera
+    from sq_mitsuba.inference.predictor import Predictor
+    from sq_mitsuba.model.network import NetworkConfig, SuperquadricNet
+
+    torch.manual_seed(0)
+    network = SuperquadricNet(NetworkConfig(image_size=INPUT)).eval()
+    with torch.no_grad():  # a fresh network's last layers hide the image: perturb every weight
+        for value in network.parameters():
+            value.add_(0.05 * torch.randn_like(value))
+        for name, value in network.named_buffers():
+            if name.endswith("running_var"):
+                value.uniform_(0.5, 2.0)
+    camera = Camera.default(INPUT)
+    eager, fast = Predictor(network, camera), Predictor(network, camera, fast=True)
+    one, many = torch.rand(1, INPUT, INPUT), torch.rand(BATCH, INPUT, INPUT)
+    with torch.no_grad():
+        deviation = float((fast.predict(one).rotation - eager.predict(one).rotation
+                           ).abs().max())
+
+    def in_threads(threads: int, fn: Callable[[], object]) -> Callable[[], object]:
+        def call() -> object:
+            previous = torch.get_num_threads()
+            torch.set_num_threads(threads)
+            try:
+                return fn()
+            finally:
+                torch.set_num_threads(previous)
+        return call
+
+    threads = options.threads
+    calls = {
+        "eager": lambda: eager.predict(one),
+        "fast": lambda: fast.predict(one),
+        "fast, 1 thread": in_threads(1, lambda: fast.predict(one)),
+    }
+    notes = {
+        "eager": "Predictor(fast=False)",
+        "fast": f"Predictor(fast=True): BatchNorm folded, channels_last, TorchScript trace + "
+                f"freeze, inference_mode; largest rotation difference from eager "
+                f"{deviation:.1e}",
+        "fast, 1 thread": "the same with torch.set_num_threads(1)",
+    }
+    from sq_mitsuba.inference.loading import load_model
+    from sq_mitsuba.model.checkpoint import SHIPPED_MODEL
+
+    if SHIPPED_MODEL.is_file():
+        shipped = load_model(fast=True)
+        label = f"shipped model ({shipped.image_size} px network), fast"
+        calls[label] = lambda: shipped.predict(one)
+        notes[label] = (f"sq_mitsuba.load_model(fast=True) on the same {INPUT} px image, "
+                        f"resized to its input")
+    if threads == 1:
+        del calls["fast, 1 thread"]
+    samples = _interleaved(calls, max(5, options.repeats), max(2, options.warmup))
+    for name, values in samples.items():
+        target = INFERENCE_TARGET_S if "fast" in name else None
+        used = 1 if "1 thread" in name else threads
+        report.timings.append(Timing(
+            f"predict latency, batch 1, {INPUT} px: {name}", values, target,
+            note=f"{used} thread(s); {notes[name]}"))
+    batches = _interleaved({"eager": lambda: eager.predict(many),
+                            "fast": lambda: fast.predict(many)},
+                           max(1, min(options.repeats, 3)), 1)
+    for name, values in batches.items():
+        report.timings.append(Timing(
+            f"predict, batch {BATCH}, {INPUT} px: {name}, per image",
+            [v / BATCH for v in values],
+            note=f"{BATCH / statistics.median(values):.0f} images/s, {threads} thread(s)"))
+    report.notes.append(f"inference: 1-minute load average after it: {load_average():.2f}")
+
+
+def run(options: BenchOptions) -> Report:
+    torch.set_num_threads(options.threads)
+    report = Report("train", options=options)
+    repeats = max(1, min(options.repeats, 5))  # each repeat is a training step of 32 images
+    report.notes.append(f"load average at the start: {load_average():.2f} on "
+                        f"{os.cpu_count()} cores (above ~2, other processes inflate these "
+                        "timings)")
+    for name in ("a", "cpu"):
+        _train_figures(report, name, repeats)
+    # What the render workers and channels-last buy, each measured in the same run.
+    _train_figures(report, "a", repeats, ("reprojection.workers=0",))
+    _train_figures(report, "cpu", repeats, ("channels_last=false",))
+    _inference_figures(report, options)
+    report.notes.append(
+        "training on synthetic in-memory batches (random assemblies' silhouettes and "
+        "analytic surface/occupancy samples, see the module docstring): no image decoding, "
+        "which the training cache makes a memory copy; the network is randomly initialised")
+    return report
+
+
+# ------------------------------------------------------------------------------ learning curves
+
+
+#: Configs of :func:`learning_curves`: label -> (config file stem, ``--set`` overrides).
+CURVE_CONFIGS: dict[str, tuple[str, tuple[str, ...]]] = {
+    "a": ("a", ()),
+    "cpu": ("cpu", ()),
+    "cpu, no augmentation": ("cpu", ("augment.probability=0",)),
+}
+CURVES_PNG = BENCHMARKS_MD.parent / "figures" / "learning_curves.png"
+
+
+@dataclasses.dataclass
+class Curve:
+    """Held-out Chamfer-L1 of one config against its training time."""
+
+    label: str
+    seconds: list[float] = dataclasses.field(default_factory=list)
+    "Training wall time (s, steps only) at each validation."
+    steps: list[int] = dataclasses.field(default_factory=list)
+    chamfer_l1: list[float] = dataclasses.field(default_factory=list)
+    "Mean Chamfer-L1 (paper convention) over the validation images."
+    images_per_second: float = float("nan")
+
+
+def learning_curves(data_root: str | Path, out_dir: str | Path, minutes: float,
+                    labels: Sequence[str] | None = None, points: int = 4,
+                    val_images: int = 64, progress: bool = True,
+                    configs: dict[str, Any] | None = None) -> list[Curve]:
+    """Train each config for ``minutes`` of wall time, one after the other, validating
+    held-out Chamfer-L1 ``points`` times (after each of ``points`` equal time slices).
+
+    Each config trains in ``out_dir/<label>/`` with :func:`~sq_mitsuba.training.train.train`
+    (``max_seconds`` per slice, resumed between slices, so one uninterrupted schedule); after
+    each slice its ``last.pt`` is scored by :func:`~sq_mitsuba.evaluation.evaluate.evaluate`
+    on ``val_images`` images of the val split (no refinement, baseline or figures). The
+    validations are not counted in the training time.
+
+    Args:
+        data_root: SPE3R-layout dataset (train and val splits).
+        out_dir: created; one run folder per config.
+        minutes: training budget of each config.
+        labels: keys of :data:`CURVE_CONFIGS` (default: all three).
+        configs: label -> TrainConfig, instead of :data:`CURVE_CONFIGS` (tests).
+
+    Returns:
+        One :class:`Curve` per config, in order.
+    """
+    from sq_mitsuba.config import apply_overrides
+    from sq_mitsuba.evaluation.evaluate import EvalOptions, evaluate_checkpoint
+    from sq_mitsuba.training.train import train
+
+    if not minutes > 0:
+        raise ValueError(f"minutes: expected > 0, got {minutes}")
+    if points < 1:
+        raise ValueError(f"points: expected >= 1, got {points}")
+    if configs is None:
+        labels = list(CURVE_CONFIGS) if labels is None else list(labels)
+        for label in labels:
+            if label not in CURVE_CONFIGS:
+                raise ValueError(f"configs: unknown {label!r}; choose from {list(CURVE_CONFIGS)}")
+        configs = {}
+        for label in labels:
+            stem, overrides = CURVE_CONFIGS[label]
+            configs[label] = apply_overrides(load_config(stem), list(overrides))
+    data_root, out_dir = Path(data_root), Path(out_dir)
+    if not data_root.is_dir():
+        raise ValueError(f"{data_root}: dataset folder not found")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    curves = []
+    for label, config in configs.items():
+        run_dir = out_dir / label.replace(",", "").replace(" ", "_")
+        curve = Curve(label)
+        trained, images, timed = 0.0, 0, 0.0
+        for index in range(points):
+            result = train(config, data_root, run_dir, resume=index > 0, progress=progress,
+                           max_seconds=60.0 * minutes / points)
+            trained += result.train_seconds
+            if result.images_per_second == result.images_per_second:
+                done = len(result.losses) - 1
+                images += done * config.optim.batch_size
+                timed += done * config.optim.batch_size / result.images_per_second
+            scored = evaluate_checkpoint(
+                run_dir / "last.pt", data_root, run_dir / f"val_{index}",
+                EvalOptions(split="val", limit=val_images, baseline=False, figures=False),
+                progress=False)
+            method = next(iter(scored.summary))
+            curve.seconds.append(trained)
+            curve.steps.append(result.steps)
+            curve.chamfer_l1.append(scored.summary[method]["chamfer_l1_paper"][0])
+            if result.steps >= result.total_steps:
+                break
+        curve.images_per_second = images / timed if timed > 0 else float("nan")
+        curves.append(curve)
+    return curves
+
+
+def plot_learning_curves(curves: Sequence[Curve], path: Path = CURVES_PNG) -> Path:
+    """Held-out Chamfer-L1 against training minutes, one line per config, as a PNG."""
+    from matplotlib.figure import Figure
+
+    from sq_mitsuba.io import atomic_path
+
+    figure = Figure(figsize=(6, 4))
+    axis = figure.subplots()
+    for curve in curves:
+        axis.plot([s / 60 for s in curve.seconds], curve.chamfer_l1, marker="o",
+                  label=f"{curve.label} ({curve.images_per_second:.1f} images/s)")
+    axis.set_xlabel("training wall time (min)")
+    axis.set_ylabel("val Chamfer-L1 (paper convention)")
+    axis.set_title("held-out Chamfer-L1 at equal training time")
+    axis.legend(fontsize=8)
+    figure.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp:
+        figure.savefig(tmp, dpi=100, format="png")
+    return path
+
+
+def curves_report(curves: Sequence[Curve], minutes: float, data_root: Path,
+                  figure: Path | None = None) -> str:
+    """The ``curves`` section of BENCHMARKS.md: a table of every validation."""
+    import datetime as _dt
+    import platform
+
+    lines = ["### `sq-mitsuba bench curves`", "",
+             f"Measured {_dt.date.today().isoformat()} on {platform.node() or 'host'} "
+             f"({os.cpu_count()} cores, torch {torch.__version__}): {minutes:g} min of training "
+             f"per config on {data_root}; 1-minute load average at the end "
+             f"{load_average():.2f}.", "",
+             "| config | images/s | training min | steps | val Chamfer-L1 |",
+             "|---|---:|---:|---:|---:|"]
+    for curve in curves:
+        for seconds, steps, value in zip(curve.seconds, curve.steps, curve.chamfer_l1,
+                                         strict=True):
+            lines.append(f"| {curve.label} | {curve.images_per_second:.1f} | "
+                         f"{seconds / 60:.2f} | {steps} | {value:.4f} |")
+    if figure is not None:
+        lines += ["", f"Figure: `{figure.relative_to(BENCHMARKS_MD.parent)}`"
+                  if figure.is_relative_to(BENCHMARKS_MD.parent) else f"Figure: `{figure}`"]
+    return "\n".join(lines) + "\n"
+
+
+def run_curves(data_root: str | Path, out_dir: str | Path, minutes: float,
+               labels: Sequence[str] | None = None, write: bool = False,
+               figure: Path = CURVES_PNG, benchmarks: Path = BENCHMARKS_MD,
+               progress: bool = True) -> str:
+    """:func:`learning_curves`, its figure, and its table (recorded in ``benchmarks``
+    between ``<!-- bench:curves:start/end -->`` with ``write``); returns the table."""
+    from sq_mitsuba.bench import write_section
+
+    curves = learning_curves(data_root, out_dir, minutes, labels, progress=progress)
+    plot_learning_curves(curves, figure)
+    text = curves_report(curves, minutes, Path(data_root), figure)
+    if write:
+        write_section("curves", text, benchmarks)
+    return text

@@ -1,0 +1,23 @@
+"""Inference layer: a trained network at test time. The predictor (:mod:`.predictor`), loaded from
+a checkpoint by :func:`load_model` (:mod:`.loading`); the render-and-compare pose search
+(:mod:`.search`), the refinement of pose and shape against a mask (:mod:`.refine`), the fit of
+an assembly to masks seen from known poses (:mod:`.fit`), and the one pipeline that joins them
+(:mod:`.pipeline`, ``Predictor.predict(images, refine=True)``). Imports the model layer and
+those below it; never the training layer.
+
+``Predictor``, ``Prediction`` and ``load_model`` are importable from here, loaded on first use.
+"""
+
+from __future__ import annotations
+
+from importlib import import_module
+from typing import Any
+
+_PUBLIC = {"Predictor": "predictor", "Prediction": "predictor", "load_model": "loading"}
+__all__ = sorted(_PUBLIC)
+
+
+def __getattr__(name: str) -> Any:
+    if name in _PUBLIC:
+        return getattr(import_module(f"{__name__}.{_PUBLIC[name]}"), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

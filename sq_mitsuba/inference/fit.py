@@ -1,0 +1,270 @@
+"""Test-time fitting: an assembly of superquadrics fitted to binary masks seen from known poses.
+
+Analysis by synthesis: Adam moves the raw (unconstrained) parameters of M primitives, squashed
+by :meth:`Assembly.from_raw`, so that their Mitsuba silhouettes at the given poses match the
+masks; the losses of all views are summed into one backward pass per step. The settings are
+a :class:`FitOptions` (the ``sq-mitsuba fit`` options and their defaults come from it).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from sq_mitsuba.checks import check_tensor
+from sq_mitsuba.config import bounds, in_range, positive, validate
+from sq_mitsuba.geometry.assembly import NUM_PARAMS, Assembly
+from sq_mitsuba.geometry.camera import Camera
+from sq_mitsuba.model.losses import silhouette_loss
+from sq_mitsuba.render.silhouette.renderer import (
+    DEFAULT_SPP,
+    SilhouetteRenderer,
+    mask_iou,
+    render_assembly,
+    render_assembly_loss,
+)
+
+# Raw 6D rotation of the identity (first two rows of I); Assembly.from_raw keeps 6D as is.
+_IDENTITY_6D = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0)
+
+#: Bytes per pixel of one silhouette render and its backward pass (Dr.Jit LLVM on the CPU;
+#: measured growth 60-75 B/px from 512 x 512 to 2048 x 2048 at spp 16, independent of spp,
+#: because the renderer runs one view at a time and does not store samples).
+RENDER_BYTES_PER_PIXEL = 80
+#: Bytes per pixel and view that a fit keeps at its resolution: float64 targets, the step's
+#: coverage and three snapshots, and the figure's overlays.
+VIEW_BYTES_PER_PIXEL = 6 * 8
+
+
+@dataclass(frozen=True)
+class FitOptions:
+    """Settings of :func:`fit_assembly` (test-time fitting of M superquadrics to masks)."""
+
+    num_primitives: int = in_range(1, 64, default=1)
+    "Number of superquadrics M."
+    steps: int = in_range(1, 1_000_000, default=150)
+    "Adam steps."
+    resolution: int = in_range(8, None, default=64)
+    "Width in pixels of the fitted silhouettes (the height keeps the masks' aspect)."
+    lr: float = positive(0.05)
+    "Adam learning rate on the raw parameters."
+    loss: Literal["mse", "iou"] = "mse"
+    "Per-view loss, summed over views: 'mse' (the paper's) or 'iou' (1 - soft IoU)."
+    spp: int = in_range(1, 4096, default=DEFAULT_SPP)
+    "Samples per pixel of the rendered silhouettes (forward pass)."
+    sppp: int | None = field(default=None, metadata=bounds(1, 4096))
+    "Silhouette samples per pixel of the backward pass (None: a fixed budget per image)."
+    seed: int = in_range(0, 2**31 - 1, default=0)
+    "Seed of the start spread (M > 1) and of the renderer's samples."
+    level: int = in_range(0, 5, default=3)
+    "Icosphere level of each primitive's mesh (3: 642 vertices)."
+
+
+def fit_memory_bytes(views: int, width: int, height: int) -> int:
+    """Rough memory (bytes) a fit of ``views`` masks at ``width`` x ``height`` pixels needs."""
+    return width * height * (RENDER_BYTES_PER_PIXEL + views * VIEW_BYTES_PER_PIXEL)
+
+
+def _physical_memory() -> int | None:
+    """Bytes of RAM of this machine, or None where the OS does not say."""
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (AttributeError, ValueError, OSError):
+        return None
+
+
+def _bytes_text(count: float) -> str:
+    for unit in ("B", "KB", "MB", "GB", "TB"):
+        if count < 1000 or unit == "TB":
+            return f"{count:.3g} {unit}" if unit != "B" else f"{count:.0f} B"
+        count /= 1000
+    raise AssertionError("unreachable")
+
+
+def check_fit_memory(views: int, camera: Camera, resolution: int) -> None:
+    """``ValueError`` (with the estimate) when fitting at ``resolution`` needs more memory
+    than this machine has (see :func:`fit_memory_bytes`)."""
+    height = max(1, round(camera.height * resolution / camera.width))
+    need = fit_memory_bytes(views, resolution, height)
+    have = _physical_memory()
+    if have is not None and need > have:
+        raise ValueError(f"resolution: {resolution} ({resolution} x {height} px, {views} "
+                         f"view(s)) needs about {_bytes_text(need)} of memory, more than this "
+                         f"machine's {_bytes_text(have)}")
+
+
+@dataclass
+class FitResult:
+    """What :func:`fit_assembly` found.
+
+    Attributes:
+        assembly: the fitted assembly, batch size 1, detached.
+        raw: its raw parameters (1, M, 16).
+        targets: the masks at the fitting resolution (V, h, w) in [0, 1].
+        losses: total loss per step (steps,).
+        ious: IoU per step and view (steps, V), of the silhouettes the step rendered.
+        snapshots: (step, silhouettes (V, h, w)) at the start, middle and end; the last one
+            renders the final parameters.
+        final_iou: IoU per view (V,) of the final parameters (both images thresholded at 0.5).
+        options: the settings of the fit.
+    """
+
+    assembly: Assembly
+    raw: Tensor
+    targets: Tensor
+    losses: list[float] = field(default_factory=list)
+    ious: list[list[float]] = field(default_factory=list)
+    snapshots: list[tuple[int, Tensor]] = field(default_factory=list)
+    final_iou: Tensor | None = None
+    options: FitOptions = field(default_factory=FitOptions)
+
+    @property
+    def mean_iou(self) -> float:
+        return float(self.final_iou.mean()) if self.final_iou is not None else float("nan")
+
+
+def default_raw(num_primitives: int, generator: torch.Generator | None = None,
+                spread: float = 0.3) -> Tensor:
+    """Raw parameters (1, M, 16) of the default start: identical blobs (size 0.255, shape
+    0.5, no taper, identity rotation), centred for M = 1 and otherwise spread by normal raw
+    translations of std ``spread`` so that the primitives do not receive identical
+    gradients."""
+    raw = torch.zeros(1, num_primitives, NUM_PARAMS, dtype=torch.float64)
+    raw[..., 8:14] = torch.tensor(_IDENTITY_6D, dtype=torch.float64)
+    if num_primitives > 1:
+        raw[..., 5:8] = spread * torch.randn(1, num_primitives, 3, generator=generator,
+                                             dtype=torch.float64)
+    return raw
+
+
+def resize_masks(masks: Tensor, height: int, width: int) -> Tensor:
+    """Masks (V, H, W) averaged down (area) or up (nearest) to (V, height, width) in [0, 1]."""
+    masks = masks.to(torch.float64)[:, None]
+    if masks.shape[-2:] == (height, width):
+        return masks[:, 0]
+    mode = "area" if height <= masks.shape[-2] else "nearest"
+    return F.interpolate(masks, size=(height, width), mode=mode)[:, 0].clamp(0, 1)
+
+
+def fit_assembly(
+    masks: Tensor,
+    camera: Camera,
+    rotations: Tensor,
+    translations: Tensor,
+    options: FitOptions | None = None,
+    *,
+    init_raw: Tensor | None = None,
+    progress: bool = False,
+    callback: Callable[[int, float, Tensor], None] | None = None,
+    **overrides: Any,
+) -> FitResult:
+    """Fit an assembly of ``options.num_primitives`` superquadrics to binary masks with known
+    poses.
+
+    Args:
+        masks: (V, H, W) masks of V views (bool or float in [0, 1]) at ``camera``'s resolution.
+        camera: intrinsics of the masks (rescaled internally to ``options.resolution`` pixels
+            wide).
+        rotations: (V, 3, 3) body-to-camera rotations; translations: (V, 3), OpenCV frame:
+            ``x_cam = R x_body + t``.
+        options: a :class:`FitOptions` (default settings when None).
+        init_raw: (1, M, 16) raw start instead of :func:`default_raw`.
+        progress: show a tqdm progress bar.
+        callback: called as ``callback(step, loss, coverage)`` after each step.
+        overrides: fields of :class:`FitOptions` replacing those of ``options``
+            (``fit_assembly(..., num_primitives=2, steps=50)``).
+
+    Returns:
+        A :class:`FitResult`.
+
+    Raises:
+        ValueError: bad tensors, a bad option (a ``ConfigError`` naming the field), or a
+            resolution that needs more memory than the machine has (see
+            :func:`check_fit_memory`); all before any rendering.
+    """
+    options = options if options is not None else FitOptions()
+    if not isinstance(options, FitOptions):
+        raise ValueError(f"options: expected FitOptions, got {type(options).__name__}")
+    unknown = sorted(set(overrides) - {f.name for f in dataclasses.fields(FitOptions)})
+    if unknown:
+        raise TypeError(f"fit_assembly: unknown option(s) {', '.join(unknown)}")
+    options = dataclasses.replace(options, **overrides)
+    validate(options)
+    check_tensor("masks", masks, (None, None), min_dims=3, floating=False)
+    if masks.dim() != 3 or masks.shape[0] < 1:
+        raise ValueError(f"masks: expected shape (V, H, W), got {tuple(masks.shape)}")
+    if tuple(masks.shape[1:]) != (camera.height, camera.width):
+        raise ValueError(f"masks: size {tuple(masks.shape[1:])} differs from the camera's "
+                         f"{(camera.height, camera.width)} (height, width)")
+    views = masks.shape[0]
+    check_tensor("rotations", rotations, (3, 3), min_dims=3)
+    check_tensor("translations", translations, (3,), min_dims=2)
+    if rotations.shape != (views, 3, 3) or translations.shape != (views, 3):
+        raise ValueError(f"rotations, translations: expected ({views}, 3, 3) and ({views}, 3) "
+                         f"for {views} masks, got {tuple(rotations.shape)} and "
+                         f"{tuple(translations.shape)}")
+    if bool((translations[:, 2] <= 0).any()):
+        raise ValueError("translations: the object must lie in front of the camera (t_z > 0)")
+    check_fit_memory(views, camera, options.resolution)
+    num_primitives, steps, loss, level = (options.num_primitives, options.steps, options.loss,
+                                          options.level)
+
+    fit_camera = camera.rescaled(options.resolution)
+    targets = resize_masks(masks, fit_camera.height, fit_camera.width)
+    rotations = rotations.to(torch.float64)
+    translations = translations.to(torch.float64)
+    generator = torch.Generator().manual_seed(options.seed)
+    if init_raw is None:
+        raw = default_raw(num_primitives, generator)
+    else:
+        check_tensor("init_raw", init_raw, (num_primitives, NUM_PARAMS), min_dims=3)
+        raw = init_raw.detach().to(torch.float64).clone()
+    raw.requires_grad_(True)
+    renderer = SilhouetteRenderer(fit_camera, spp=options.spp, sppp=options.sppp,
+                                  seed=options.seed)
+    optimizer = torch.optim.Adam([raw], lr=options.lr)
+    result = FitResult(assembly=Assembly.from_raw(raw.detach()), raw=raw.detach(),
+                       targets=targets, options=options)
+    middle = steps // 2
+
+    iterator: Sequence[int] | object = range(steps)
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(range(steps), desc="fit", unit="step", leave=True)
+        iterator = bar
+    for step in iterator:  # type: ignore[union-attr]
+        optimizer.zero_grad(set_to_none=True)
+        # One BVH rebuild per view: each view's loss is back-propagated right after its render.
+        total, coverage = render_assembly_loss(
+            Assembly.from_raw(raw), rotations, translations, renderer,
+            lambda view, i: silhouette_loss(view[None], targets[i, None].to(view.dtype), loss),
+            level)
+        total.backward()
+        optimizer.step()
+        with torch.no_grad():
+            ious = mask_iou(coverage, targets)
+        result.losses.append(float(total.detach()))
+        result.ious.append([float(v) for v in ious])
+        if step in (0, middle):
+            result.snapshots.append((step, coverage.detach().clone()))
+        if bar is not None:
+            bar.set_postfix(loss=f"{float(total.detach()):.4f}", iou=f"{float(ious.mean()):.3f}")
+        if callback is not None:
+            callback(step, float(total.detach()), coverage.detach())
+
+    final = Assembly.from_raw(raw.detach())
+    with torch.no_grad():
+        coverage = render_assembly(final, rotations, translations, renderer, level)
+    result.snapshots.append((steps, coverage))
+    result.assembly, result.raw = final, raw.detach().clone()
+    result.final_iou = mask_iou(coverage, targets)
+    return result

@@ -1,0 +1,116 @@
+"""What the predictor returns: :class:`Prediction` (assemblies and poses of a batch of images)
+and, for a prediction fitted to the images' masks, :class:`Fit` (what was fitted).
+
+Convention: poses map body to camera in the OpenCV frame (x right, y down, z forward),
+``x_cam = R x_body + t``; quaternions are scalar-first with w >= 0; pixels are continuous
+(the centre of pixel (i, j) is (j + 0.5, i + 0.5) in (u, v)).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from torch import Tensor
+
+from sq_mitsuba.geometry.assembly import Assembly
+from sq_mitsuba.geometry.camera import Camera
+
+__all__ = ["MASK_SOURCES", "Fit", "MaskChoice", "Prediction"]
+
+#: Where the mask a prediction was fitted to came from: the network's mask head, the threshold
+#: segmentation of the image (:func:`sq_mitsuba.data.segmentation.segment_target`), or the
+#: caller (a mask file, the ground truth).
+MASK_SOURCES = ("network", "segmentation", "given")
+#: The mask a prediction is fitted to: "network" (the mask head; the segmentation for a network
+#: without one), "segmentation", or the masks themselves, (B, H, W) bool or float in [0, 1]
+#: (above 0.5 is the target), a tensor or numpy array; None: "network".
+MaskChoice = str | Tensor | np.ndarray | None
+
+
+@dataclass(frozen=True)
+class Fit:
+    """What :meth:`~sq_mitsuba.inference.predictor.Predictor.refine` fitted, for B images.
+
+    Items without a target in their mask (``fitted`` False) are not searched: their pose is
+    the search's start and their scores are NaN.
+
+    Attributes:
+        mask: (B, H, W) bool, the mask each image was fitted to, at the images' size.
+        mask_source: one of :data:`MASK_SOURCES`.
+        fitted: (B,) bool, whether the item was searched and refined.
+        start: the reading the search started from: the network's, or its means over turned
+            copies of the images (``turns``).
+        turns: the in-plane turns ``start`` was read from (1: the network's one pass).
+        search_rotation: (B, 3, 3) and search_translation: (B, 3), the search's best pose
+            (before the refinement).
+        search_score: (B,) its soft IoU against the mask at the search resolution.
+        candidates: (B, N, 3, 3) every rotation the search scored, and candidate_scores:
+            (B, N) their soft IoUs at the coarse resolution (NaN rows where not fitted).
+        iou: (B,) the IoU after refinement at the refinement resolution.
+        turns_seconds, search_seconds, seconds: wall time of reading the turned copies, of
+            the search, and of the whole fit (the turned copies included).
+    """
+
+    mask: Tensor
+    mask_source: str
+    fitted: Tensor
+    start: Prediction
+    turns: int
+    search_rotation: Tensor
+    search_translation: Tensor
+    search_score: Tensor
+    candidates: Tensor
+    candidate_scores: Tensor
+    iou: Tensor
+    turns_seconds: float = 0.0
+    search_seconds: float = 0.0
+    seconds: float = 0.0
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """What :meth:`~sq_mitsuba.inference.predictor.Predictor.predict` returns for a batch of B
+    images: the network's reading, or (``refine=True``) the pose searched and refined against
+    each image's mask, with the network's own reading in ``network``.
+
+    Tensors are ordinary tensors without gradient (computed under ``torch.inference_mode``,
+    then copied out of it), so they may start an autograd computation such as refinement.
+
+    Attributes:
+        assembly: the B assemblies of M superquadrics, in the body frame.
+        rotation: (B, 3, 3) body -> camera rotation.
+        translation: (B, 3) body origin in the camera frame (metres).
+        quaternion: (B, 4) ``rotation`` as (w, x, y, z), w >= 0.
+        pixel: (B, 2) image position (u, v) of the body origin, in pixels of the given images.
+        depth: (B,) camera-frame z of the body origin (``translation[:, 2]``).
+        camera: intrinsics of the given images (after any rescaling of the camera passed in).
+        rotation_hypotheses: (B, K, 3, 3) distinct candidate rotations, best first: the modes
+            of a distribution head (K = the predictor's ``hypotheses``), or ``rotation``
+            alone (K = 1) for a regressing head.
+        rotation_scores: (B, K) the network's probability of each hypothesis (1 for a
+            regressing head's single one).
+        mask: (B, H, W) the mask head's probability that a pixel of the given images shows
+            the target, or None for a network without a mask head.
+        rotation_log_probabilities: (B, G) a distribution head's normalised log-probabilities
+            over its grid of G rotations (read from turned copies where ``rotation`` is), or
+            None for a regressing head.
+        network: the network's own reading of the images (one pass, no turned copies) when
+            this prediction was fitted to the images' masks; None when it is that reading.
+        fit: what was fitted (:class:`Fit`: the masks, the search's candidates and scores, the
+            IoU after refinement), or None for the network's reading.
+    """
+
+    assembly: Assembly
+    rotation: Tensor
+    translation: Tensor
+    quaternion: Tensor
+    pixel: Tensor
+    depth: Tensor
+    camera: Camera
+    rotation_hypotheses: Tensor
+    rotation_scores: Tensor
+    mask: Tensor | None = None
+    rotation_log_probabilities: Tensor | None = None
+    network: Prediction | None = None
+    fit: Fit | None = None

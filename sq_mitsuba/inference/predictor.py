@@ -1,0 +1,450 @@
+"""Inference API: images of any size in, superquadric assemblies and camera-frame poses out.
+
+:class:`Predictor` wraps a trained :class:`~sq_mitsuba.model.network.SuperquadricNet` and
+the camera the images were taken with; :func:`sq_mitsuba.load_model` builds one from a
+checkpoint. Example::
+
+    predictor = sq_mitsuba.load_model("run/checkpoint.pt")
+    prediction = predictor.predict(images)          # (B, H, W) uint8 or float in [0, 1]
+    prediction.assembly.export("item0.glb", item=0)
+    prediction.rotation, prediction.translation     # x_cam = R x_body + t
+    prediction.rotation_hypotheses                  # (B, K, 3, 3), best first
+    prediction.mask                                 # (B, H, W) in [0, 1], or None
+    predictor.predict(images, turns=8).rotation     # read from 8 in-plane turns (grid head)
+    predictor.read_turns(images, prediction, 8)     # the same, reusing the unturned pass
+    fitted = predictor.predict(images, refine=True)  # pose searched and refined to the mask
+    fitted.network, fitted.fit.iou                  # the network's reading; what was fitted
+
+Convention:
+    - Images are resized to the network's S x S input (``config.image_size``): ``area``
+      (box average) when both sides shrink, bilinear (``align_corners=False``) when both grow,
+      antialiased bilinear otherwise. Pixel edges scale with the image, so the intrinsics
+      follow by :meth:`~sq_mitsuba.geometry.camera.Camera.rescaled`; a non-square image is
+      stretched to S x S and its intrinsics stretch with it, so the pose stays consistent
+      (though the network was trained on unstretched squares).
+    - A camera for another image size with the same aspect ratio is taken to have the same
+      field of view and is rescaled to the images' size first.
+    - Poses map body to camera in the OpenCV frame (x right, y down, z forward):
+      ``x_cam = R x_body + t``; quaternions are scalar-first with w >= 0.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import fields, replace
+from pathlib import Path
+from typing import TYPE_CHECKING, NamedTuple
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from sq_mitsuba.geometry.assembly import Assembly
+from sq_mitsuba.geometry.camera import Camera
+from sq_mitsuba.geometry.rotation import matrix_to_quaternion
+from sq_mitsuba.inference.images import camera_for, prepare_images, resize_images
+from sq_mitsuba.inference.prediction import Fit, MaskChoice, Prediction
+from sq_mitsuba.model.network import NetworkOutput, SuperquadricNet
+from sq_mitsuba.model.rotation_grid import RotationGridPoseHead, rotation_hypotheses
+
+if TYPE_CHECKING:  # the search and refinement load Mitsuba's bridge: imported when used
+    from sq_mitsuba.inference.refine import RefineOptions
+    from sq_mitsuba.inference.search import SearchOptions
+
+__all__ = ["Prediction", "Predictor", "prepare_images"]
+
+# Traces of the fast path kept per Predictor (one per input shape seen, oldest dropped).
+_TRACES_KEPT = 4
+# Runs of a new trace before it is used (the profiling executor optimises on the second).
+_TRACE_WARMUP_RUNS = 2
+#: Rotation hypotheses a Predictor gives per image by default (distribution heads).
+DEFAULT_HYPOTHESES = 8
+
+
+class _Prepared(NamedTuple):
+    """Images ready for the network, and the size they were given at (for the mask's and
+    the pixel's scale back)."""
+
+    images: Tensor  # (B, C, S, S) on the network's device and dtype
+    height: int
+    width: int
+
+
+class Predictor:
+    """A trained network and its camera, ready to predict.
+
+    Args:
+        model: the network; used in eval mode (its own mode is restored after each call).
+        camera: intrinsics of the images :meth:`predict` gets by default (the dataset camera).
+        fast: predict with a BatchNorm-folded, channels-last copy of the network, traced and
+            frozen by TorchScript once per input shape (the same output up to ~1e-5 relative;
+            faster on CPU; the first call at a new batch size or device takes about a
+            second). The copy is a snapshot of the weights now.
+        hypotheses: K, the rotation hypotheses per image of a distribution head.
+    """
+
+    def __init__(self, model: SuperquadricNet, camera: Camera, fast: bool = False,
+                 hypotheses: int = DEFAULT_HYPOTHESES) -> None:
+        if not isinstance(model, SuperquadricNet):
+            raise ValueError(f"model: expected a SuperquadricNet, got {type(model).__name__}")
+        if not isinstance(camera, Camera):
+            raise ValueError(f"camera: expected a Camera, got {type(camera).__name__}")
+        if isinstance(hypotheses, bool) or not isinstance(hypotheses, int) or hypotheses < 1:
+            raise ValueError(f"hypotheses: expected an int >= 1, got {hypotheses!r}")
+        self.model = model
+        self.camera = camera
+        self.fast = bool(fast)
+        self.hypotheses = hypotheses
+        # Measured (`sq-mitsuba bench train`, batch 1, quiet 2-core EPYC): TorchScript's trace +
+        # freeze of the folded network takes 6.2 ms at 96 px against 8.7 ms eager (the eager
+        # time is mostly Python's per-module overhead at batch 1); optimize_for_inference was
+        # slower (11 ms), oneDNN graph fusion fails to compile this network.
+        self._folded = model.folded(channels_last=True) if self.fast else None
+        self._traced: dict[tuple, tuple[torch.nn.Module, tuple[str, ...]]] = {}
+        # turned_cells of the grid per (turns, device), for predict(turns=T).
+        self._turned_cells: dict[tuple, Tensor] = {}
+        #: The checkpoint the model came from (set by ``load_model``), for records.
+        self.source: Path | None = None
+        #: The trivial baseline stored with the checkpoint (set by ``load_model``), or None:
+        #: the mean raw output (1, M, 16) of the network over training images, with the mean
+        #: rotation (1, 3, 3) and translation (1, 3) of their labels.
+        self.baseline: tuple[Tensor, Tensor, Tensor] | None = None
+
+    @property
+    def image_size(self) -> int:
+        """Side S of the network's square input."""
+        return self.model.config.image_size
+
+    @property
+    def num_primitives(self) -> int:
+        """Superquadrics per predicted assembly (M)."""
+        return self.model.config.num_primitives
+
+    def predict(self, images: Tensor | np.ndarray, camera: Camera | None = None, *,
+                turns: int | None = None, refine: bool = False, mask: MaskChoice = None,
+                search: SearchOptions | None = None,
+                refinement: RefineOptions | None = None) -> Prediction:
+        """Predict assemblies and poses for a batch of images.
+
+        Args:
+            images: (B, H, W) or (B, 1, H, W) (C = ``in_channels``), uint8 or float in [0, 1],
+                any H, W (see the module docstring for the resizing).
+            camera: intrinsics of these images (default: the predictor's camera); a camera for
+                another size of the same aspect ratio is rescaled.
+            turns: T >= 1; with T > 1 (a distribution head only) the rotation and its
+                hypotheses come from T copies of each image turned in-plane by 360 / T deg
+                steps, their distributions mapped back and multiplied
+                (:func:`~sq_mitsuba.model.rotation_grid.turned_log_probabilities`): T times
+                the network's cost. The assembly, the image position, the depth and the mask
+                are the means over the T copies, each mapped back to the image (test-time
+                augmentation). Needs a camera whose roll is an image rotation (square pixels,
+                the principal point at the centre). None: 1, or with ``refine`` the search's
+                ``turns`` (8 by default) where this network and camera can turn, else 1.
+            refine: fit the pose to each image's mask: the turned copies' reading, the global
+                pose search by render and compare and the refinement through Mitsuba
+                silhouettes (:mod:`~sq_mitsuba.inference.pipeline`; about half a second per
+                image on 2 CPU cores). The result's ``network`` is the network's own reading,
+                its ``fit`` what was fitted.
+            mask: with ``refine``, the mask to fit: "network" (default: the mask head, or the
+                segmentation for a network without one), "segmentation" (the threshold
+                segmentation of the image), or masks (B, H, W) bool or float in [0, 1].
+            search, refinement: with ``refine``, the search's and the refinement's settings
+                (defaults: :class:`~sq_mitsuba.inference.search.SearchOptions` and
+                :data:`~sq_mitsuba.inference.search.SEARCH_REFINEMENT`).
+
+        Returns:
+            :class:`Prediction` on the model's device (fitted: the pose and assembly float64,
+            on the CPU).
+
+        Raises:
+            ValueError: naming ``images``, ``camera``, ``turns``, ``refine`` or ``mask``.
+        """
+        if not isinstance(refine, bool):
+            raise ValueError(f"refine: expected True or False, got {refine!r}")
+        if not refine:
+            unused = [name for name, value in (("mask", mask), ("search", search),
+                                               ("refinement", refinement)) if value is not None]
+            if unused:
+                raise ValueError(f"{unused[0]}: only used with refine=True")
+        x, camera = self._prepared(images, camera)
+        if turns is not None and (type(turns) is not int or turns != 1):  # True == 1, no count
+            self._check_turns(turns, camera.rescaled(self.image_size, self.image_size))
+        network = self._predicted(x, camera)
+        if refine:
+            return self.refine(images, network, camera, turns=turns, mask=mask, search=search,
+                               refinement=refinement)
+        return network if turns is None or turns == 1 else self._with_turns(x, network, turns)
+
+    def refine(self, images: Tensor | np.ndarray, network: Prediction,
+               camera: Camera | None = None, *, turns: int | None = None,
+               mask: MaskChoice = None, search: SearchOptions | None = None,
+               refinement: RefineOptions | None = None, reuse: Fit | None = None) -> Prediction:
+        """``predict(images, camera, refine=True, ...)`` for a caller that holds the network's
+        reading already: ``network`` (this predictor's ``predict(images, camera)``) searched and
+        refined against each image's mask; the network is not run again (but for the turned
+        copies).
+
+        Args:
+            reuse: an earlier fit of the same images and reading (its ``fit``), whose turned
+                copies are reused: to fit another mask (the ground truth's, say) at the cost of
+                the search alone.
+            The others: see :meth:`predict`.
+
+        Raises:
+            ValueError: naming ``images``, ``camera``, ``turns``, ``mask`` or ``network``.
+        """
+        from sq_mitsuba.inference.pipeline import fit_prediction
+
+        checked = prepare_images(images, self.model.config.in_channels)
+        camera = camera_for(self.camera if camera is None else camera, checked.shape[-1],
+                            checked.shape[-2])
+        if not isinstance(network, Prediction) or network.fit is not None \
+                or network.camera != camera or network.rotation.shape[0] != checked.shape[0]:
+            raise ValueError(f"network: expected this predictor's own reading of the "
+                             f"{checked.shape[0]} images ({camera.width} x {camera.height} px, "
+                             "this camera)")
+        return fit_prediction(self, checked, network, turns=turns, mask=mask, search=search,
+                              refinement=refinement, reuse=reuse)
+
+    def read_turns(self, images: Tensor | np.ndarray, prediction: Prediction, turns: int,
+                   camera: Camera | None = None) -> Prediction:
+        """``prediction`` (this predictor's, for ``images``) read again from ``turns`` in-plane
+        turns of the images: equal to ``predict(images, camera, turns=turns)`` (see there),
+        but the unturned copy is not run again (a caller that needs both readings pays T, not
+        T + 1, network passes).
+
+        Raises:
+            ValueError: naming ``images``, ``camera``, ``turns`` or ``prediction``.
+        """
+        x, camera = self._prepared(images, camera)
+        self._check_turns(turns, camera.rescaled(self.image_size, self.image_size))
+        count = x.images.shape[0]
+        log_p = getattr(prediction, "rotation_log_probabilities", None)
+        if not isinstance(prediction, Prediction) or log_p is None \
+                or tuple(log_p.shape) != (count, self.model.config.rotation_cells) \
+                or prediction.camera != camera:
+            raise ValueError(f"prediction: expected this predictor's Prediction of the {count} "
+                             f"images ({camera.width} x {camera.height} px, this camera), with "
+                             "rotation_log_probabilities")
+        return prediction if turns == 1 else self._with_turns(x, prediction, turns)
+
+    def _prepared(self, images: Tensor | np.ndarray,
+                  camera: Camera | None) -> tuple[_Prepared, Camera]:
+        """Checked images resized to the network's input (B, C, S, S), on its device and
+        dtype, and the camera of the given images."""
+        x = prepare_images(images, self.model.config.in_channels)
+        height, width = x.shape[-2:]
+        camera = camera_for(self.camera if camera is None else camera, width, height)
+        parameter = next(self.model.parameters())
+        x = x.to(device=parameter.device, dtype=parameter.dtype)
+        return _Prepared(resize_images(x, self.image_size), height, width), camera
+
+    def _predicted(self, x: _Prepared, camera: Camera) -> Prediction:
+        """The unturned network pass on prepared images, as a :class:`Prediction`."""
+        size = self.image_size
+        matrix = camera.rescaled(size, size).matrix(x.images.dtype, x.images.device)
+        output = self._run(x.images, matrix)
+        # Clones made outside inference mode are ordinary tensors, so callers (test-time
+        # refinement) can start autograd from them.
+        rotation = output.rotation.clone()
+        hypotheses, scores = self._hypotheses(output.rotation_logits, rotation)
+        mask = None
+        if output.mask_logits is not None:
+            mask = F.interpolate(output.mask_logits.clone(), size=(x.height, x.width),
+                                 mode="bilinear", align_corners=False).sigmoid()[:, 0]
+        log_p = None
+        if output.rotation_logits is not None:
+            log_p = output.rotation_logits.float().log_softmax(dim=-1).to(rotation)
+        scale = rotation.new_tensor([x.width / size, x.height / size])
+        return Prediction(
+            assembly=Assembly.from_raw(output.raw.clone()),
+            rotation=rotation,
+            translation=output.translation.clone(),
+            quaternion=matrix_to_quaternion(rotation),
+            pixel=output.pixel.clone() * scale,
+            depth=output.depth.clone(),
+            camera=camera,
+            rotation_hypotheses=hypotheses,
+            rotation_scores=scores,
+            mask=mask,
+            rotation_log_probabilities=log_p,
+        )
+
+    def can_turn(self, camera: Camera | None = None) -> bool:
+        """Whether ``predict(turns=T > 1)`` runs for images of ``camera`` (default: the
+        predictor's): a distribution head, and a camera whose roll is an image rotation."""
+        camera = self.camera if camera is None else camera
+        try:
+            self._check_turns(2, camera.rescaled(self.image_size, self.image_size))
+        except ValueError:
+            return False
+        return True
+
+    def _check_turns(self, turns: int, camera: Camera) -> None:
+        """One-line ``ValueError`` naming ``turns`` unless ``predict(turns=T)`` can run."""
+        from sq_mitsuba.geometry.image_turns import check_rotation_exact
+
+        if isinstance(turns, bool) or not isinstance(turns, int) or not 1 <= turns <= 360:
+            raise ValueError(f"turns: expected an int in [1, 360], got {turns!r}")
+        if not isinstance(self.model.pose_head, RotationGridPoseHead):
+            raise ValueError("turns: reading the rotation from turned copies needs a "
+                             "rotation-distribution head (network.pose_head = 'grid')")
+        try:
+            check_rotation_exact(camera)
+        except ValueError as error:
+            raise ValueError(f"turns: {error}") from None
+
+    def _run(self, x: Tensor, matrix: Tensor) -> NetworkOutput:
+        """The network (eager, or the traced fast path) on prepared images, in eval mode."""
+        network = self.model
+        if self._folded is not None:
+            with torch.inference_mode():
+                traced, names = self._traced_network(x, matrix)
+                return NetworkOutput(**dict(zip(names, traced(x, matrix), strict=True)))
+        was_training = network.training
+        if was_training:
+            network.eval()
+        try:
+            with torch.inference_mode():
+                return network(x, matrix)
+        finally:
+            if was_training:
+                network.train()
+
+    def _with_turns(self, x: _Prepared, prediction: Prediction, turns: int) -> Prediction:
+        """``prediction`` (the unturned pass on ``x``) read again from ``turns`` in-plane turns
+        of the prepared images ``x``: the rotation from the product of the copies'
+        distributions, the rest as means over the copies, each mapped back to the image."""
+        from sq_mitsuba.geometry.image_turns import rotate_batch, z_rotation
+        from sq_mitsuba.model.rotation_grid import turned_cells, turned_log_probabilities
+
+        head = self.model.pose_head
+        images, size = x.images, self.image_size
+        angles = torch.arange(turns, dtype=torch.float64) * (2.0 * math.pi / turns)
+        key = (turns, images.device)
+        if key not in self._turned_cells:
+            self._turned_cells[key] = turned_cells(head.grid_rotations(), z_rotation(angles))
+        # Every turned copy of every image in one batch: (T - 1) B images, copy-major.
+        batch = images.shape[0]
+        copies = angles[1:].to(images).repeat_interleave(batch)
+        turned = rotate_batch(images.repeat(turns - 1, 1, 1, 1), copies)
+        network_camera = prediction.camera.rescaled(size, size)
+        matrix = network_camera.matrix(images.dtype, images.device)
+        output = self._run(turned, matrix)
+
+        def per_copy(value: Tensor) -> Tensor:  # (T - 1) B x ... -> (T - 1, B, ...)
+            return value.clone().reshape(turns - 1, batch, *value.shape[1:])
+
+        log_p = prediction.rotation_log_probabilities
+        logits = torch.cat([log_p.to(output.rotation_logits)[None],
+                            per_copy(output.rotation_logits)])
+        combined = turned_log_probabilities(logits, self._turned_cells[key]).clone()
+        with torch.inference_mode():
+            rotation = head.rotation_from_logits(combined.to(output.rotation_logits))
+        rotation = rotation.clone().to(prediction.rotation)
+        hypotheses, scores = self._hypotheses(combined, rotation)
+
+        # Convention: a point at offset q from the image centre (S / 2, S / 2) lies at
+        # Rz(angle) q in a copy turned by angle (rotate_batch), so q = Rz^T p maps it back.
+        # The assembly is in the body frame and the depth along the optical axis: neither turns.
+        dtype = prediction.rotation.dtype
+        params = torch.cat([prediction.assembly.params[None].to(dtype),
+                            per_copy(Assembly.from_raw(output.raw).params).to(dtype)])
+        scale = prediction.pixel.new_tensor([x.width / size, x.height / size])
+        back = z_rotation(angles[1:]).to(dtype)[:, None, :2, :2]  # (T - 1, 1, 2, 2)
+        offsets = per_copy(output.pixel).to(dtype) - 0.5 * size
+        pixels = torch.cat([prediction.pixel[None] / scale,
+                            (back.transpose(-1, -2) @ offsets[..., None])[..., 0] + 0.5 * size])
+        pixel = pixels.mean(dim=0)
+        depth = torch.cat([prediction.depth[None], per_copy(output.depth).to(dtype)]).mean(0)
+        mask = prediction.mask
+        if mask is not None and output.mask_logits is not None:
+            mask = self._turned_mask(mask, output.mask_logits, angles[1:], x)
+        return replace(prediction, assembly=Assembly(params.mean(dim=0)), rotation=rotation,
+                       quaternion=matrix_to_quaternion(rotation), pixel=pixel * scale,
+                       depth=depth, translation=network_camera.unproject(pixel, depth),
+                       mask=mask, rotation_hypotheses=hypotheses, rotation_scores=scores,
+                       rotation_log_probabilities=combined.to(rotation))
+
+    @staticmethod
+    def _turned_mask(mask: Tensor, turned_logits: Tensor, angles: Tensor,
+                     x: _Prepared) -> Tensor:
+        """The mean over the copies of the mask probability (B, H, W): the unturned copy's
+        ``mask`` with the turned copies' logits ((T - 1) B, 1, s, s) turned back by
+        ``angles`` (T - 1,) and scaled to H x W, where they cover the image (a turned copy
+        leaves the corners out)."""
+        from sq_mitsuba.geometry.image_turns import rotate_batch
+
+        batch, copies = mask.shape[0], len(angles)
+        undo = -angles.to(turned_logits).repeat_interleave(batch)
+        logits = rotate_batch(turned_logits.float(), undo.float())
+        covered = rotate_batch(torch.ones_like(logits), undo.float())
+        logits, covered = (F.interpolate(t, size=(x.height, x.width), mode="bilinear",
+                                         align_corners=False)[:, 0] for t in (logits, covered))
+        covered = covered.clamp(0, 1).reshape(copies, batch, x.height, x.width).to(mask)
+        probability = logits.sigmoid().reshape(copies, batch, x.height, x.width).to(mask)
+        return (mask + (covered * probability).sum(0)) / (1 + covered.sum(0))
+
+    def _hypotheses(self, logits: Tensor | None, rotation: Tensor) -> tuple[Tensor, Tensor]:
+        """(B, K, 3, 3) rotation hypotheses and (B, K) scores from a distribution head's (B, G)
+        scores over its grid (``rotation`` alone for a regressing head: ``logits`` None)."""
+        head = self.model.pose_head
+        if logits is None or not isinstance(head, RotationGridPoseHead):
+            return rotation[:, None], rotation.new_ones(rotation.shape[0], 1)
+        grid = head.grid_rotations().to(rotation)
+        rotations, scores = rotation_hypotheses(logits.clone(), grid,
+                                                self.hypotheses)
+        # The best hypothesis is the head's own rotation (its argmax, refined locally).
+        rotations[:, 0] = rotation
+        return rotations, scores.to(rotation)
+
+    def _traced_network(self, images: Tensor,
+                        matrix: Tensor) -> tuple[torch.nn.Module, tuple[str, ...]]:
+        """The folded network traced and frozen for inputs like these (cached per shape, dtype
+        and device: a trace may fix the batch size), and the names of the
+        :class:`NetworkOutput` fields whose tensors it returns."""
+        key = (tuple(images.shape), tuple(matrix.shape), images.dtype, images.device)
+        cached = self._traced.get(key)
+        if cached is None:
+            import warnings
+
+            module = OutputTuple(self._folded).eval()
+            with torch.no_grad():
+                module(images, matrix)  # sets module.names
+            # torch 2.13 (pinned) marks TorchScript deprecated; should a later torch drop it,
+            # the eager folded network runs instead (the same outputs, ~2.5 ms slower).
+            try:
+                with torch.no_grad(), warnings.catch_warnings():
+                    warnings.simplefilter("ignore", torch.jit.TracerWarning)
+                    warnings.simplefilter("ignore", DeprecationWarning)
+                    traced = torch.jit.freeze(torch.jit.trace(module, (images, matrix),
+                                                              check_trace=False))
+                    # TorchScript's profiling executor records shapes on the first run and
+                    # builds the optimised graph on the second; run both here, so that the
+                    # first prediction a caller times is the steady-state one.
+                    for _ in range(_TRACE_WARMUP_RUNS):
+                        traced(images, matrix)
+            except Exception:  # any failure to trace leaves the eager network, never an error
+                traced = module
+            if len(self._traced) >= _TRACES_KEPT:
+                self._traced.pop(next(iter(self._traced)))  # the oldest
+            cached = self._traced[key] = (traced, module.names)
+        return cached
+
+
+class OutputTuple(torch.nn.Module):
+    """``network``'s :class:`NetworkOutput` as a tuple of its tensors (TorchScript traces
+    tuples, not dataclasses): the fields that are not None, in field order; ``names`` (set by
+    the first call) says which."""
+
+    def __init__(self, network: torch.nn.Module) -> None:
+        super().__init__()
+        self.network = network
+        self.names: tuple[str, ...] = ()
+
+    def forward(self, images: Tensor, matrix: Tensor) -> tuple[Tensor, ...]:
+        out = self.network(images, matrix)
+        present = [f.name for f in fields(out) if getattr(out, f.name) is not None]
+        self.names = tuple(present)
+        return tuple(getattr(out, name) for name in present)

@@ -1,0 +1,251 @@
+"""Checkpoint files: write atomically, read safely, rebuild the network and camera they hold.
+
+A checkpoint is a ``torch.save`` of one dictionary::
+
+    {
+        "format": "sq_mitsuba.checkpoint",
+        "version": 1,
+        "config": {...},   # to_dict of the training config; its "network" entry is the
+                           # NetworkConfig as a dict
+        "model": {...},    # SuperquadricNet.state_dict()
+        "camera": {...},   # Camera.to_speed_dict() of the dataset camera
+        "baseline": {...}, # optional: the trivial baseline ("raw" (1, M, 16), "rotation"
+                           # (1, 3, 3), "translation" (1, 3)), see checkpoint_baseline
+        ...                # anything else the training adds (optimiser state, step, metrics)
+    }
+
+Every value must load with ``torch.load(weights_only=True)``: dicts, lists, tuples, strings,
+numbers, booleans, None and tensors (:func:`write_checkpoint` refuses anything else before it
+writes). Files are read with ``weights_only=True`` only, so a checkpoint cannot run code.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from collections import OrderedDict
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from sq_mitsuba.config import ConfigError, from_dict, to_dict
+from sq_mitsuba.geometry.camera import Camera
+from sq_mitsuba.inputs import check_finite_tensors, load_torch_file
+from sq_mitsuba.io import atomic_path
+from sq_mitsuba.model.network import NetworkConfig, SuperquadricNet, upgrade_state_dict
+
+__all__ = [
+    "FORMAT",
+    "SHIPPED_MODEL",
+    "VERSION",
+    "checkpoint_baseline",
+    "checkpoint_payload",
+    "load_weights",
+    "model_from_checkpoint",
+    "read_checkpoint",
+    "write_checkpoint",
+]
+
+FORMAT = "sq_mitsuba.checkpoint"
+VERSION = 1
+#: The model shipped as package data, loaded by ``load_model()`` without a path.
+SHIPPED_MODEL = Path(__file__).resolve().parent / "weights" / "model.pt"
+_REQUIRED = ("config", "model", "camera")
+# Exact types: numpy scalars subclass float but weights_only loading refuses them.
+_SCALARS = (str, int, float, bool, type(None))
+
+
+def _check_loadable(value: Any, where: str) -> None:
+    """Refuse values that ``torch.load(weights_only=True)`` would not read back."""
+    if type(value) in _SCALARS or isinstance(value, Tensor):
+        return
+    if type(value) in (dict, OrderedDict):
+        for key, item in value.items():
+            if not isinstance(key, str | int):
+                raise ValueError(f"{where}: keys must be strings or integers, got {key!r}")
+            _check_loadable(item, f"{where}.{key}")
+        return
+    if isinstance(value, list | tuple) and type(value) in (list, tuple):
+        for index, item in enumerate(value):
+            _check_loadable(item, f"{where}[{index}]")
+        return
+    raise ValueError(f"{where}: {type(value).__name__} cannot be read back with weights_only=True "
+                     "(use dicts, lists, strings, numbers, None and tensors)")
+
+
+def _network_config(payload: Mapping[str, Any], where: str) -> NetworkConfig:
+    config = payload.get("config")
+    if not isinstance(config, Mapping) or not isinstance(config.get("network"), Mapping):
+        raise ValueError(f"{where}: 'config' must be a dict with a 'network' dict")
+    try:
+        return from_dict(NetworkConfig, config["network"], "config.network")
+    except ConfigError as error:
+        raise ValueError(f"{where}: {error}") from None
+
+
+def checkpoint_payload(model: SuperquadricNet, camera: Camera,
+                       config: Mapping[str, Any] | None = None, **extra: Any) -> dict[str, Any]:
+    """A checkpoint dictionary for ``model`` (weights copied to the CPU) and ``camera``.
+
+    Args:
+        model: the network.
+        camera: the dataset camera (the predictor's default camera).
+        config: ``to_dict`` of the training config; its ``network`` entry is replaced by
+            ``model.config`` (default: ``{"network": to_dict(model.config)}``).
+        extra: further entries (e.g. ``step=1000``).
+    """
+    network = to_dict(model.config)
+    state = {key: value.detach().cpu().clone() for key, value in model.state_dict().items()}
+    return {
+        "format": FORMAT,
+        "version": VERSION,
+        "config": {**dict(config or {}), "network": network},
+        "model": state,
+        "camera": camera.to_speed_dict(),
+        **extra,
+    }
+
+
+def write_checkpoint(path: str | os.PathLike[str], payload: dict[str, Any]) -> Path:
+    """Save ``payload`` to ``path`` atomically (temporary file, then rename).
+
+    ``format`` and ``version`` are filled in when missing. Everything is checked before the
+    file is touched.
+
+    Raises:
+        ValueError: naming ``payload`` (or the bad entry): another format or version, a missing
+            ``config`` / ``model`` / ``camera``, a network config that does not parse, or a value
+            ``weights_only`` loading would refuse.
+    """
+    path = Path(path)
+    if not isinstance(payload, dict):
+        raise ValueError(f"payload: expected a dict, got {type(payload).__name__}")
+    payload = {"format": FORMAT, "version": VERSION, **payload}
+    if payload["format"] != FORMAT or payload["version"] != VERSION:
+        raise ValueError(f"payload: format {payload['format']!r} version {payload['version']!r};"
+                         f" expected {FORMAT!r} version {VERSION}")
+    for key in _REQUIRED:
+        if key not in payload:
+            raise ValueError(f"payload: missing {key!r} (required: {', '.join(_REQUIRED)})")
+    if not isinstance(payload["model"], Mapping) or not all(
+            isinstance(v, Tensor) for v in payload["model"].values()):
+        raise ValueError("payload.model: expected a state dict of tensors")
+    if not isinstance(payload["camera"], Mapping):
+        raise ValueError("payload.camera: expected Camera.to_speed_dict()")
+    try:
+        Camera.from_speed_dict(dict(payload["camera"]))
+    except ValueError as error:
+        raise ValueError(f"payload.camera: {error}") from None
+    _network_config(payload, "payload")
+    _check_loadable({k: v for k, v in payload.items() if k != "model"}, "payload")
+    payload["model"] = dict(payload["model"])  # an OrderedDict loads too, but keep it plain
+    with atomic_path(path) as tmp:
+        torch.save(payload, tmp)
+    return path
+
+
+def read_checkpoint(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """Load a checkpoint written by :func:`write_checkpoint` (``weights_only=True``, on CPU).
+
+    Raises:
+        FileNotFoundError: ``checkpoint: no such file <path>``.
+        ValueError: ``<path>: ...`` for a corrupt, random or hostile file, another format or a
+            newer version, or weights holding NaN or infinities (a run that diverged).
+    """
+    path = Path(path)
+    payload = load_torch_file(path, "checkpoint")
+    if not isinstance(payload, dict) or payload.get("format") != FORMAT:
+        found = payload.get("format") if isinstance(payload, dict) else type(payload).__name__
+        raise ValueError(f"{path}: not an sq_mitsuba checkpoint (format {found!r}, "
+                         f"expected {FORMAT!r})")
+    version = payload.get("version")
+    if isinstance(version, bool) or not isinstance(version, int) or not 1 <= version <= VERSION:
+        raise ValueError(f"{path}: checkpoint version {version!r} is not one this sq_mitsuba "
+                         f"reads (1 to {VERSION})")
+    missing = [key for key in _REQUIRED if key not in payload]
+    if missing:
+        raise ValueError(f"{path}: checkpoint lacks {', '.join(map(repr, missing))}")
+    if isinstance(payload["model"], Mapping):
+        check_finite_tensors(payload["model"], str(path))
+    return payload
+
+
+def load_weights(model: SuperquadricNet, state: Any, where: str = "checkpoint", *,
+                 partial: bool = False) -> None:
+    """A checkpoint's state dict into ``model``, after checking that it fits.
+
+    Checkpoints of the fixed-head layout are upgraded first. With ``partial`` the state may
+    lack some of the network's entries (a head added since: it keeps its initialisation);
+    otherwise every entry must be there.
+
+    Raises:
+        ValueError: ``<where>: weights do not fit config.network (...)`` naming the first
+            missing, unexpected or differently shaped entry.
+    """
+    if not isinstance(state, Mapping):
+        raise ValueError(f"{where}: 'model' must be a state dict")
+    state = upgrade_state_dict(state)  # checkpoints of the fixed-head layout load too
+    own = model.state_dict()
+    missing = [] if partial else sorted(set(own) - set(state))
+    unexpected = sorted(set(state) - set(own))
+    if missing or unexpected:
+        raise ValueError(f"{where}: weights do not fit config.network ({len(missing)} missing, "
+                         f"{len(unexpected)} unexpected; first: "
+                         f"{(missing or unexpected)[0]})")
+    for key in state:
+        value = own[key]
+        if not isinstance(state[key], Tensor) or state[key].shape != value.shape:
+            got = tuple(state[key].shape) if isinstance(state[key], Tensor) else type(state[key])
+            raise ValueError(f"{where}: weights do not fit config.network ({key}: file {got}, "
+                             f"network {tuple(value.shape)})")
+    model.load_state_dict(state, strict=not partial)
+
+
+def model_from_checkpoint(payload: Mapping[str, Any],
+                          where: str = "checkpoint") -> tuple[SuperquadricNet, Camera]:
+    """The network (eval mode, on the CPU) and dataset camera of a checkpoint dictionary.
+
+    The ImageNet file named by ``config.network.pretrained`` is not read: the checkpoint's
+    weights replace it.
+
+    Raises:
+        ValueError: ``<where>: ...`` when the config, weights or camera do not fit.
+    """
+    config = dataclasses.replace(_network_config(payload, where), pretrained=None)
+    model = SuperquadricNet(config)
+    load_weights(model, payload["model"], where)
+    try:
+        camera = Camera.from_speed_dict(dict(payload["camera"]))
+    except (ValueError, TypeError) as error:
+        raise ValueError(f"{where}: camera: {error}") from None
+    return model.eval(), camera
+
+
+def checkpoint_baseline(payload: Mapping[str, Any],
+                        where: str = "checkpoint") -> tuple[Tensor, Tensor, Tensor] | None:
+    """The trivial baseline stored in a checkpoint, or None when it holds none.
+
+    Returns:
+        raw (1, M, 16), rotation (1, 3, 3), translation (1, 3), all float64.
+
+    Raises:
+        ValueError: ``<where>: baseline ...`` when the entry is malformed.
+    """
+    entry = payload.get("baseline")
+    if entry is None:
+        return None
+    shapes = {"raw": (1, _network_config(payload, where).num_primitives, 16),
+              "rotation": (1, 3, 3), "translation": (1, 3)}
+    if not isinstance(entry, Mapping) or set(entry) != set(shapes):
+        raise ValueError(f"{where}: baseline must hold exactly {sorted(shapes)}")
+    values = []
+    for key, shape in shapes.items():
+        value = entry[key]
+        if not isinstance(value, Tensor) or tuple(value.shape) != shape:
+            raise ValueError(f"{where}: baseline {key}: expected a tensor of shape {shape}")
+        values.append(value.double())
+    check_finite_tensors({f"baseline.{key}": value for key, value in entry.items()}, where)
+    return values[0], values[1], values[2]

@@ -1,0 +1,388 @@
+"""The superquadric network: encoder, latents, M superquadric generators, pose and mask heads.
+
+``images (B, C, S, S) in [0, 1]`` and the intrinsics ``K`` of those S x S pixels go in; the
+raw parameters of an assembly of M superquadrics, its pose in the camera frame and (with a
+mask head) the target's mask come out, as one :class:`NetworkOutput`.
+
+Architecture (each exchangeable part chosen by name in :class:`NetworkConfig`):
+    - Encoder (``encoder``): EfficientNet-B0 (the paper's) or EfficientNet-Lite0
+      (:mod:`~sq_mitsuba.model.encoder`), optionally from ImageNet weights
+      (``pretrained``); it gives feature maps at strides 4, 8, 16 and 32.
+    - Latent head (``latent``, :data:`~sq_mitsuba.model.heads.LATENT_HEADS`): the maps ->
+      two latents z_sq and z_pose, pooled (the paper's figure) or spatial (the authors' code).
+    - G_sq: M three-layer MLPs (latent -> hidden -> hidden -> 16, SiLU between layers), run as
+      ONE batched operation over a (M, in, out) weight tensor (:class:`GroupedLinear`), giving
+      ``raw`` (B, M, 16), squashed into valid parameters by
+      :meth:`~sq_mitsuba.geometry.assembly.Assembly.from_raw`.
+    - Pose head (``pose_head``, :data:`~sq_mitsuba.model.heads.POSE_HEADS`): z_pose -> a
+      rotation (regressed 6D, or a distribution over a grid of SO(3)) and the raw image
+      position (u, v) of the body origin and its depth z, back-projected through K to the
+      full translation ``t = z K^-1 [u, v, 1]``.
+    - Mask head (``mask_head``): the target's mask at a quarter of the input size, or at its
+      full size (``mask_resolution = "full"``: corrected from the image's own pixels).
+
+Convention:
+    - Input normalisation happens inside the network: ``(x - input_mean) / input_std`` with
+      the encoder's statistics by default (B0: ImageNet's channel statistics averaged over
+      RGB; Lite0: 0.498 / 0.502, TensorFlow's 127 / 128), so callers pass [0, 1] images and
+      ImageNet weights (whose grey stem sums the RGB filters) see what they were trained on.
+    - Pose: body to camera, OpenCV camera frame, ``x_cam = R x_body + t``.
+    - Image position: ``u = W / 2 (1 + pixel_extent tanh(a_u))``, ``v`` likewise with H; it is
+      measured from the image centre, not the principal point, because the encoder sees where
+      the target lies in the image; the principal point enters only through K^-1.
+    - Depth: ``z = depth_prior * (f / S) / prior_focal_ratio * softplus(a_z) / ln 2`` with
+      ``f / S = sqrt(fx fy / (W H))``, the focal length in image widths. A target of a given
+      size in pixels lies proportionally farther from a longer lens, so scaling the depth with
+      the focal length keeps one set of weights right for any camera, and ``a_z = 0`` gives the
+      typical depth ``depth_prior`` at the dataset camera.
+    - Initial prediction (last layers: small weights, chosen biases): M primitives of semi-axes
+      0.255 (raw size 0), shape 0.5, identity rotation, no taper, centres spread on a sphere of
+      radius ``init_spread`` around the origin; pose rotation near identity, origin near the
+      image centre at the typical depth.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from sq_mitsuba.config import validate
+from sq_mitsuba.geometry.assembly import NUM_PARAMS, Assembly, ParameterRanges
+from sq_mitsuba.model import rotation_grid  # noqa: F401  (registers the "grid" pose head)
+from sq_mitsuba.model.encoder import EfficientNet, fold_batchnorm
+from sq_mitsuba.model.heads import LATENT_HEADS, POSE_HEADS, MaskHead
+from sq_mitsuba.model.network_config import ENCODERS, NetworkConfig
+from sq_mitsuba.model.pretrained import load_imagenet_weights, resolve_pretrained
+
+__all__ = [
+    "ENCODERS",
+    "GroupedLinear",
+    "NetworkConfig",
+    "NetworkOutput",
+    "SuperquadricGenerators",
+    "SuperquadricNet",
+    "check_camera_matrix",
+    "upgrade_state_dict",
+]
+
+_IDENTITY_6D = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0)
+_LN2 = math.log(2.0)
+
+# --- the batched generators ---------------------------------------------------------------
+
+
+class GroupedLinear(nn.Module):
+    """M independent linear layers applied as one batched matrix product.
+
+    (M, B, in_features) -> (M, B, out_features), ``y[m] = x[m] @ weight[m] + bias[m]``. A
+    (B, in_features) input is shared by all M layers. Initialised as ``nn.Linear``:
+    U(-1/sqrt(in), 1/sqrt(in)) for weights and biases.
+
+    Attributes:
+        weight: (M, in_features, out_features), so ``weight[m]`` is ``nn.Linear.weight.T``.
+        bias: (M, out_features).
+    """
+
+    def __init__(self, groups: int, in_features: int, out_features: int) -> None:
+        super().__init__()
+        self.weight = nn.Parameter(torch.empty(groups, in_features, out_features))
+        self.bias = nn.Parameter(torch.empty(groups, out_features))
+        bound = 1.0 / math.sqrt(in_features)
+        nn.init.uniform_(self.weight, -bound, bound)
+        nn.init.uniform_(self.bias, -bound, bound)
+
+    def forward(self, x: Tensor) -> Tensor:
+        """(M, B, in) or shared (B, in) -> (M, B, out)."""
+        if x.dim() == 2:
+            groups, out = self.weight.shape[0], self.weight.shape[2]
+            # A shared input is one matmul against all M weight matrices side by side.
+            flat = self.weight.permute(1, 0, 2).reshape(x.shape[1], groups * out)
+            y = (x @ flat).view(x.shape[0], groups, out).transpose(0, 1)
+            return y + self.bias[:, None, :]
+        return torch.baddbmm(self.bias[:, None, :], x, self.weight)
+
+    def extra_repr(self) -> str:
+        groups, fan_in, fan_out = self.weight.shape
+        return f"groups={groups}, in_features={fan_in}, out_features={fan_out}"
+
+
+class SuperquadricGenerators(nn.Module):
+    """G_sq: M three-layer MLPs evaluated together: z_sq (B, latent) -> raw (B, M, 16).
+
+    Layer k of primitive m is ``layers[k].weight[m]`` / ``.bias[m]``; SiLU follows the first
+    two layers.
+    """
+
+    def __init__(self, num_primitives: int, latent_dim: int, hidden_dim: int) -> None:
+        super().__init__()
+        self.layers = nn.ModuleList([
+            GroupedLinear(num_primitives, latent_dim, hidden_dim),
+            GroupedLinear(num_primitives, hidden_dim, hidden_dim),
+            GroupedLinear(num_primitives, hidden_dim, NUM_PARAMS),
+        ])
+
+    def forward(self, z_sq: Tensor) -> Tensor:
+        """(B, latent_dim) -> (B, M, 16)."""
+        h = F.silu(self.layers[0](z_sq))
+        h = F.silu(self.layers[1](h))
+        return self.layers[2](h).transpose(0, 1)
+
+
+
+# --- the network ----------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class NetworkOutput:
+    """What :meth:`SuperquadricNet.forward` returns (B items, M primitives).
+
+    Attributes:
+        raw: (B, M, 16) unconstrained assembly parameters (see :attr:`assembly`).
+        rotation: (B, 3, 3) body -> camera rotation (orthonormal, det 1).
+        pixel: (B, 2) image position (u, v) of the body origin, in pixels of the input.
+        depth: (B,) camera-frame z of the body origin, metres, > 0.
+        translation: (B, 3) body origin in the camera frame, ``depth K^-1 [u, v, 1]``.
+        rotation_6d: (B, 6) raw 6D rotation of a regressing pose head, else None.
+        rotation_logits: (B, G) scores over the SO(3) grid of a distribution head, else None.
+        mask_logits: (B, 1, ceil(H / 4), ceil(W / 4)) the mask head's logits (B, 1, H, W with
+            ``mask_resolution = "full"``), else None.
+    """
+
+    raw: Tensor
+    rotation: Tensor
+    pixel: Tensor
+    depth: Tensor
+    translation: Tensor
+    rotation_6d: Tensor | None = None
+    rotation_logits: Tensor | None = None
+    mask_logits: Tensor | None = None
+
+    @property
+    def assembly(self) -> Assembly:
+        """``Assembly.from_raw(raw)`` with the default :class:`ParameterRanges`."""
+        return Assembly.from_raw(self.raw, ParameterRanges())
+
+def _sphere_directions(count: int) -> Tensor:
+    """``count`` unit vectors spread evenly on the sphere (Fibonacci lattice), (count, 3)."""
+    k = torch.arange(count, dtype=torch.float64) + 0.5
+    z = 1.0 - 2.0 * k / count
+    radius = torch.sqrt((1.0 - z * z).clamp_min(0.0))
+    phi = math.pi * (3.0 - math.sqrt(5.0)) * k
+    return torch.stack([radius * torch.cos(phi), radius * torch.sin(phi), z], dim=-1)
+
+
+def check_camera_matrix(camera_matrix: Tensor, batch: int) -> Tensor:
+    """Validate intrinsics (3, 3) or (batch, 3, 3) and return them as (batch, 3, 3).
+
+    K must be finite, upper triangular with positive focal lengths and last row (0, 0, 1).
+    """
+    if not isinstance(camera_matrix, Tensor) or not camera_matrix.is_floating_point():
+        got = camera_matrix.dtype if isinstance(camera_matrix, Tensor) else type(camera_matrix)
+        raise ValueError(f"camera_matrix: expected a floating-point tensor, got {got}")
+    if camera_matrix.shape not in ((3, 3), (batch, 3, 3)):
+        raise ValueError(f"camera_matrix: expected shape (3, 3) or ({batch}, 3, 3), "
+                         f"got {tuple(camera_matrix.shape)}")
+    k = camera_matrix.expand(batch, 3, 3)
+    with torch.no_grad():
+        if not bool(torch.isfinite(k).all()):
+            raise ValueError("camera_matrix: contains NaN or infinite values")
+        last = k[:, 2] - k.new_tensor([0.0, 0.0, 1.0])
+        if bool(last.abs().amax() > 0) or bool(k[:, 1, 0].abs().amax() > 0):
+            raise ValueError("camera_matrix: expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]]")
+        if bool((k[:, 0, 0] <= 0).any()) or bool((k[:, 1, 1] <= 0).any()):
+            raise ValueError("camera_matrix: focal lengths must be > 0")
+    return k
+
+
+
+def _check_names(config: NetworkConfig) -> None:
+    """Raise ValueError (one line) for an unknown encoder, head or normalisation."""
+    for field, registry in (("encoder", ENCODERS), ("latent", LATENT_HEADS),
+                            ("pose_head", POSE_HEADS)):
+        value = getattr(config, field)
+        if value not in registry:
+            raise ValueError(f"network.{field}: unknown {value!r}; "
+                             f"expected one of {', '.join(sorted(registry))}")
+    if config.input_std is not None and not config.input_std > 0:
+        raise ValueError(f"network.input_std: expected > 0, got {config.input_std}")
+
+
+class SuperquadricNet(nn.Module):
+    """Images and intrinsics -> assembly, pose and mask (:class:`NetworkOutput`).
+
+    Args:
+        config: a :class:`NetworkConfig`; ``config.pretrained`` (if set) is loaded into the
+            encoder here.
+
+    Attributes:
+        config: the config.
+        encoder: :class:`~sq_mitsuba.model.encoder.EfficientNet` of ``config.encoder``.
+        latent_head: ``LATENT_HEADS[config.latent]``: feature maps -> z_sq, z_pose.
+        sq_generator: :class:`SuperquadricGenerators`.
+        pose_head: ``POSE_HEADS[config.pose_head]``: z_pose -> rotation and raw position.
+        mask_head: :class:`~sq_mitsuba.model.heads.MaskHead` or None.
+    """
+
+    def __init__(self, config: NetworkConfig | None = None) -> None:
+        super().__init__()
+        config = NetworkConfig() if config is None else config
+        validate(config)
+        _check_names(config)
+        self.config = config
+        variant = ENCODERS[config.encoder][0]
+        self.encoder = EfficientNet(config.in_channels, None, config.drop_connect_rate, variant)
+        if config.pretrained is not None:
+            load_imagenet_weights(self.encoder, resolve_pretrained(config.pretrained, variant))
+        channels = (*self.encoder.pyramid_channels, self.encoder.num_features)
+        self.latent_head = LATENT_HEADS[config.latent](config, channels)
+        if not getattr(self.latent_head, "uses_head_map", True):
+            self.encoder.head = None  # unused: no parameter without a gradient (DDP)
+        self.sq_generator = SuperquadricGenerators(
+            config.num_primitives, config.latent_dim, config.hidden_dim)
+        self.pose_head = POSE_HEADS[config.pose_head](config)
+        self.mask_head = (MaskHead(self.encoder.pyramid_channels,
+                                   full_resolution=config.mask_resolution == "full",
+                                   in_channels=config.in_channels)
+                          if config.mask_head else None)
+        mean, std = config.normalisation()
+        self.register_buffer("input_mean", torch.tensor(mean), persistent=False)
+        self.register_buffer("input_std", torch.tensor(std), persistent=False)
+        # Set by folded(): the encoder stores its weights channels-last, so feed it that way.
+        self.channels_last = False
+        self._init_last_layers()
+
+    def freeze_except(self, prefixes: Sequence[str]) -> None:
+        """Train only the parameters whose names start with one of ``prefixes`` (e.g.
+        ``("mask_head.",)``); every other parameter gets no gradient, and every module holding
+        only frozen parameters stays in eval mode through :meth:`train` (no batch-norm
+        statistics, no stochastic depth), so the frozen part computes exactly what it did.
+        An empty ``prefixes`` trains everything.
+
+        Raises:
+            ValueError: a prefix that names no parameter.
+        """
+        names = [name for name, _ in self.named_parameters()]
+        for prefix in prefixes:
+            if not any(name.startswith(prefix) for name in names):
+                parts = sorted({name.split(".")[0] for name in names})
+                raise ValueError(f"trainable: {prefix!r} names no parameter of the network "
+                                 f"(its parts: {', '.join(parts)})")
+        for name, parameter in self.named_parameters():
+            parameter.requires_grad_(not prefixes or name.startswith(tuple(prefixes)))
+        self.train(self.training)
+
+    def train(self, mode: bool = True) -> SuperquadricNet:
+        """``nn.Module.train``, except that modules with only frozen parameters stay in eval
+        mode (:meth:`freeze_except`)."""
+        super().train(mode)
+        if mode:
+            for module in self.modules():
+                parameters = list(module.parameters())
+                if parameters and not any(p.requires_grad for p in parameters):
+                    module.eval()
+        return self
+
+    @torch.no_grad()
+    def _init_last_layers(self) -> None:
+        """Small last-layer weights, biases that give a sane initial prediction (module doc)."""
+        gain = self.config.init_gain
+        last_sq = self.sq_generator.layers[2]
+        last_sq.weight.mul_(gain)
+        bias = torch.zeros(self.config.num_primitives, NUM_PARAMS, dtype=torch.float64)
+        bias[:, 8:14] = torch.tensor(_IDENTITY_6D, dtype=torch.float64)
+        if self.config.num_primitives > 1:
+            # Raw translation r gives translation_scale tanh(r): invert for the wanted centres.
+            centres = self.config.init_spread * _sphere_directions(self.config.num_primitives)
+            bias[:, 5:8] = torch.atanh(centres / ParameterRanges().translation_scale)
+        last_sq.bias.copy_(bias)
+        reset = getattr(self.pose_head, "reset_last_layer", None)
+        if reset is not None:  # a_u = a_v = 0: image centre; a_z = 0: depth prior
+            reset(gain)
+
+    def normalise(self, images: Tensor) -> Tensor:
+        """Images (B, C, H, W) in [0, 1] -> the encoder's input (centred, scaled)."""
+        x = (images - self.input_mean) / self.input_std
+        if self.channels_last:
+            x = x.contiguous(memory_format=torch.channels_last)
+        return x
+
+    def forward(self, images: Tensor, camera_matrix: Tensor) -> NetworkOutput:
+        """Predict the assembly, its pose and (with a mask head) the mask.
+
+        Args:
+            images: (B, in_channels, H, W) floating point in [0, 1] (normalised inside); H = W =
+                ``config.image_size`` in training and in :class:`~sq_mitsuba.inference.predictor.
+                Predictor`, though any size runs.
+            camera_matrix: intrinsics K (3, 3) or (B, 3, 3) in pixels of these H x W images.
+
+        Returns:
+            :class:`NetworkOutput`.
+
+        Raises:
+            ValueError: wrong shape or dtype of ``images``; bad ``camera_matrix``.
+        """
+        channels = self.config.in_channels
+        if (not isinstance(images, Tensor) or images.dim() != 4 or images.shape[1] != channels
+                or not images.is_floating_point()):
+            got = (f"{tuple(images.shape)} {images.dtype}" if isinstance(images, Tensor)
+                   else type(images).__name__)
+            raise ValueError(f"images: expected a floating-point tensor (B, {channels}, H, W), "
+                             f"got {got}")
+        batch, _, height, width = images.shape
+        k = check_camera_matrix(camera_matrix, batch).to(images)
+        normalised = self.normalise(images)
+        maps = self.encoder.forward_pyramid(normalised)
+        z_sq, z_pose = self.latent_head(maps)
+        raw = self.sq_generator(z_sq)  # (B, M, 16)
+        pose = self.pose_head(z_pose)
+        size = images.new_tensor([width, height])
+        pixel = 0.5 * size * (1.0 + self.config.pixel_extent * torch.tanh(pose.position[:, :2]))
+        focal_ratio = torch.sqrt(k[:, 0, 0] * k[:, 1, 1] / (width * height))  # (B,)
+        depth_scale = self.config.depth_prior / self.config.prior_focal_ratio / _LN2
+        depth = depth_scale * focal_ratio * F.softplus(pose.position[:, 2])
+        homogeneous = torch.cat([pixel, pixel.new_ones(batch, 1)], dim=-1)[..., None]
+        ray = torch.linalg.solve_triangular(k, homogeneous, upper=True)[..., 0]  # K^-1 [u,v,1]
+        translation = depth[:, None] * ray
+        mask_logits = None if self.mask_head is None else self.mask_head(maps, normalised)
+        return NetworkOutput(raw, pose.rotation, pixel, depth, translation,
+                             rotation_6d=pose.rotation_6d,
+                             rotation_logits=pose.rotation_logits, mask_logits=mask_logits)
+
+    def folded(self, channels_last: bool = True) -> SuperquadricNet:
+        """Inference copy: eval mode, no gradients, encoder BatchNorm folded into its convs.
+
+        Equal to ``self.eval()``'s output up to float rounding (~1e-5 relative in float32).
+        The copy is a snapshot: later training of ``self`` does not reach it.
+        """
+        fast = copy.deepcopy(self)
+        fast.encoder = fold_batchnorm(self.encoder, channels_last=channels_last)
+        fast.channels_last = channels_last
+        return fast.eval().requires_grad_(False)
+
+
+#: Module paths before the heads were exchangeable -> today's (checkpoints of that layout,
+#: the shipped model's included, load through :func:`upgrade_state_dict`).
+_LEGACY_PREFIXES = (
+    ("to_z_sq.", "latent_head.to_z_sq."),
+    ("to_z_pose.", "latent_head.to_z_pose."),
+    ("pose_generator.", "pose_head.mlp."),
+)
+
+
+def upgrade_state_dict(state: Mapping[str, Tensor]) -> dict[str, Tensor]:
+    """A state dict of the fixed-head layout (one pooled latent pair, one 6D pose MLP) in
+    today's module names; a state dict already in today's names is returned unchanged."""
+    upgraded = {}
+    for key, value in state.items():
+        for old, new in _LEGACY_PREFIXES:
+            if key.startswith(old):
+                key = new + key[len(old):]
+                break
+        upgraded[key] = value
+    return upgraded

@@ -1,0 +1,82 @@
+"""The network's configuration: which encoder and heads, their sizes, initialisation.
+
+:class:`NetworkConfig` names the exchangeable parts of
+:class:`~sq_mitsuba.model.network.SuperquadricNet` (encoder, latent head, pose head, mask
+head), looked up in :data:`ENCODERS` and the registries of :mod:`sq_mitsuba.model.heads`
+when the network is built.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+from sq_mitsuba.config import in_range, positive
+
+__all__ = ["DEFAULT_FOCAL_RATIO", "ENCODERS", "NetworkConfig"]
+
+#: Focal length over image width of the project's default camera (SPEED's field of view):
+#: 0.0176 m / 5.86 um / 1920 px.
+DEFAULT_FOCAL_RATIO = 0.0176 / 5.86e-6 / 1920
+
+#: Encoder name -> (EfficientNet variant, default input mean, default input std).
+ENCODERS: dict[str, tuple[str, float, float]] = {
+    "efficientnet_b0": ("b0", 0.449, 0.226),
+    "efficientnet_lite0": ("lite0", 0.498, 0.502),
+}
+
+
+@dataclass(frozen=True)
+class NetworkConfig:
+    """Shape and initialisation of :class:`SuperquadricNet`."""
+
+    in_channels: int = in_range(1, 4, default=1)
+    "Channels of the input images (1: the grey renders of this project)."
+    num_primitives: int = in_range(1, 64, default=5)
+    "Superquadrics per assembly (M)."
+    encoder: str = "efficientnet_b0"
+    "Encoder by name (ENCODERS): efficientnet_b0 (the paper's) or efficientnet_lite0."
+    latent: str = "pooled"
+    "Latent head by name (heads.LATENT_HEADS): pooled (global average) or spatial."
+    pose_head: str = "6d"
+    "Pose head by name (heads.POSE_HEADS): 6d (regression) or grid (a distribution over SO(3))."
+    mask_head: bool = False
+    "Also predict the target's mask (NetworkOutput.mask_logits, see mask_resolution)."
+    mask_resolution: Literal["quarter", "full"] = "quarter"
+    """The mask head's output: 'quarter' (a logit per stride-4 cell) or 'full' (the input's
+    size, the stride-4 mask corrected from the image's own pixels; heads.MaskHead)."""
+    latent_dim: int = in_range(1, 4096, default=256)
+    "Width of each of the two latents z_sq and z_pose."
+    hidden_dim: int = in_range(1, 4096, default=256)
+    "Width of the two hidden layers of every generator MLP."
+    spatial_channels: int = in_range(1, 4096, default=128)
+    "Channels of the spatial latent head's grid-wide convolution (the authors' 128)."
+    rotation_cells: int = in_range(8, 100_000, default=4608)
+    "Cells of the grid pose head's SO(3) grid (4,608: about 9 deg apart)."
+    image_size: int = in_range(32, 1024, default=128)
+    "Side S in pixels of the square images the network is trained on (the predictor resizes to it)."
+    drop_connect_rate: float = in_range(0.0, 1.0, high_inclusive=False, default=0.2)
+    "Stochastic-depth rate of the encoder (block k of 16 drops with rate * k / 16)."
+    pretrained: Path | None = None
+    "ImageNet weights for the encoder: 'imagenet' (the installed Lite0 file) or a path."
+    input_mean: float | None = None
+    "Subtracted from the [0, 1] input (None: the encoder's, see ENCODERS)."
+    input_std: float | None = None
+    "Divides the centred input (None: the encoder's, see ENCODERS)."
+    depth_prior: float = positive(1.8)
+    "Depth in metres predicted at a_z = 0 for a camera of focal ratio prior_focal_ratio."
+    prior_focal_ratio: float = positive(DEFAULT_FOCAL_RATIO)
+    "Focal length over image width at which depth_prior holds (the default camera's, 1.564)."
+    pixel_extent: float = in_range(0.1, 2.0, default=1.0)
+    "Largest distance of the predicted image position from the centre, in half image sides."
+    init_spread: float = in_range(0.0, 0.45, default=0.25)
+    "Distance from the origin of the initial primitive centres (models are unit size)."
+    init_gain: float = in_range(0.0, 1.0, default=0.01)
+    "Scale of the last layers' initial weights (small: the initial prediction is the biases')."
+
+    def normalisation(self) -> tuple[float, float]:
+        """(mean, std) subtracted from and dividing the [0, 1] input."""
+        _, mean, std = ENCODERS[self.encoder]
+        return (mean if self.input_mean is None else self.input_mean,
+                std if self.input_std is None else self.input_std)

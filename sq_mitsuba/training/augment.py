@@ -1,0 +1,209 @@
+"""Training augmentation that keeps every label exact: batched torch, per-item parameters.
+
+Five kinds, each switched on separately in :class:`AugmentConfig` (all off in the paper's
+configurations) and applied to an item with probability ``probability``:
+
+- ``rotation``: in-plane rotation of the image and the mask about the principal point by an
+  angle theta, with the pose rotated to match: ``R' = Rz R``, ``t' = Rz t``, where ``Rz`` turns
+  the camera frame by theta about its optical axis (z). The body frame, and so the shape
+  labels (surface and occupancy points), are untouched.
+- ``brightness``: exposure jitter, the image multiplied by a factor (clipped to [0, 1]).
+- ``gamma``: ``image ** gamma``.
+- ``blur``: Gaussian blur of a random width (a slightly defocused or moving camera).
+- ``noise``: additive Gaussian sensor noise of a random standard deviation (clipped), last, as
+  a sensor adds it after the optics.
+
+Only the rotation moves pixels of the mask; the photometric kinds change the image alone, so
+the mask and the pose stay exact.
+
+Convention: the rotation is exact only when the principal point is the image centre and ``fx =
+fy`` (square pixels), as for the project's default camera and SPEED's: then turning the camera
+about its optical axis maps pixel offsets from the centre by the same 2D rotation.
+:func:`~sq_mitsuba.geometry.image_turns.check_rotation_exact` refuses other cameras (the
+photometric kinds work with any). A positive theta turns image content clockwise on screen (x
+right, y down): a point at pixel offset (dx, dy) from the centre moves to ``(cos dx - sin dy,
+sin dx + cos dy)``. Parts of the image that leave the frame are lost and the corners that enter
+it are black (empty space), and the mask is cropped alike, exactly as a render at the new pose
+would be. Resampling is bilinear; the rotated mask is a coverage fraction in [0, 1] at object
+edges.
+
+Every random draw of an item comes from its own ``numpy.random.Generator``, so an item is
+augmented the same whatever batch or process it lands in (distributed training splits batches).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from sq_mitsuba.checks import check_tensor
+from sq_mitsuba.config import in_range
+from sq_mitsuba.geometry.camera import Camera
+from sq_mitsuba.geometry.image_turns import check_rotation_exact, rotate_batch, z_rotation
+
+__all__ = ["KINDS", "AugmentConfig", "augment_batch"]
+
+#: The kinds of augmentation, in the order they are applied.
+KINDS = ("rotation", "brightness", "gamma", "blur", "noise")
+
+
+@dataclass(frozen=True)
+class AugmentConfig:
+    """Label-preserving augmentation of training images (all off: the paper trains without)."""
+
+    rotation: bool = False
+    "In-plane rotation about the principal point, the pose rotated to match."
+    max_rotation_deg: float = in_range(0, 180, default=180.0)
+    "Rotation angles are uniform in [-max_rotation_deg, max_rotation_deg]."
+    brightness: bool = False
+    "Exposure jitter: the image multiplied by a factor."
+    brightness_range: tuple[float, float] = (0.6, 1.5)
+    "Exposure factors are log-uniform in this range."
+    gamma: bool = False
+    "Gamma jitter: image ** gamma."
+    gamma_range: tuple[float, float] = (0.7, 1.4)
+    "Gamma values are log-uniform in this range."
+    noise: bool = False
+    "Additive Gaussian sensor noise."
+    noise_std: tuple[float, float] = (0.0, 0.03)
+    "The noise standard deviation (image units) is uniform in this range."
+    blur: bool = False
+    "Gaussian blur."
+    blur_sigma: tuple[float, float] = (0.3, 1.2)
+    "The blur's standard deviation in pixels of the network input is uniform in this range."
+    probability: float = in_range(0, 1, default=0.5)
+    "Probability that a switched-on kind is applied to an item."
+
+    def __post_init__(self) -> None:
+        for name, low_limit in (("brightness_range", 0.0), ("gamma_range", 0.0),
+                                ("noise_std", None), ("blur_sigma", None)):
+            low, high = getattr(self, name)
+            if low > high:
+                raise ValueError(f"{name}: low {low} is above high {high}")
+            if low_limit is not None and low <= low_limit:
+                raise ValueError(f"{name}: values must be > 0, got {low}")
+            if low < 0:
+                raise ValueError(f"{name}: values must be >= 0, got {low}")
+
+    @property
+    def enabled(self) -> bool:
+        """Whether any kind is switched on (and can fire)."""
+        return self.probability > 0 and any(getattr(self, kind) for kind in KINDS)
+
+
+def _gaussian_blur(images: Tensor, sigmas: Tensor) -> Tensor:
+    """Per-item Gaussian blur (reflect padding) of images (B, C, H, W) with widths (B,) px;
+    items with sigma 0 are returned unchanged."""
+    batch, channels = images.shape[:2]
+    radius = max(1, math.ceil(3 * float(sigmas.max())))
+    offsets = torch.arange(-radius, radius + 1, dtype=images.dtype, device=images.device)
+    safe = sigmas.clamp_min(1e-6).to(images.dtype)[:, None]
+    kernel = torch.exp(-0.5 * (offsets[None] / safe) ** 2)
+    kernel = kernel / kernel.sum(-1, keepdim=True)  # (B, K)
+    identity = (offsets == 0).to(images.dtype)[None].expand_as(kernel)
+    kernel = torch.where((sigmas > 0)[:, None], kernel, identity)
+    kernel = kernel.repeat_interleave(channels, dim=0)  # (B * C, K)
+    flat = images.reshape(1, batch * channels, *images.shape[2:])
+    flat = F.pad(flat, (radius, radius, radius, radius), mode="reflect")
+    flat = F.conv2d(flat, kernel[:, None, None, :], groups=batch * channels)
+    flat = F.conv2d(flat, kernel[:, None, :, None], groups=batch * channels)
+    return flat.reshape(images.shape)
+
+
+def _log_uniform(rng: np.random.Generator, bounds: tuple[float, float]) -> float:
+    return math.exp(rng.uniform(math.log(bounds[0]), math.log(bounds[1])))
+
+
+def augment_batch(images: Tensor, masks: Tensor, rotations: Tensor, translations: Tensor,
+                  config: AugmentConfig, generators: list[np.random.Generator],
+                  camera: Camera | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Augment a batch; labels stay exact (see the module docstring).
+
+    Args:
+        images: (B, C, S, S) in [0, 1].
+        masks: (B, 1, S, S) in [0, 1].
+        rotations: (B, 3, 3) body-to-camera rotations; translations: (B, 3).
+        config: which kinds and how strong.
+        generators: one numpy Generator per item; each item draws its parameters from its own.
+        camera: intrinsics at S x S, checked with :func:`check_rotation_exact` when the
+            rotation is on (None: assume the default camera, centred and square).
+
+    Returns:
+        (images, masks, rotations, translations), new tensors of the same shapes and dtypes.
+    """
+    check_tensor("images", images, (None, None, None), min_dims=4)
+    batch = images.shape[0]
+    if images.dim() != 4 or images.shape[-1] != images.shape[-2]:
+        raise ValueError(f"images: expected (B, C, S, S), got {tuple(images.shape)}")
+    if masks.shape != (batch, 1, *images.shape[-2:]):
+        raise ValueError(f"masks: expected {(batch, 1, *images.shape[-2:])}, got "
+                         f"{tuple(masks.shape)}")
+    check_tensor("rotations", rotations, (3, 3), min_dims=3)
+    check_tensor("translations", translations, (3,), min_dims=2)
+    if rotations.shape[0] != batch or translations.shape[0] != batch:
+        raise ValueError(f"rotations, translations: expected {batch} items, got "
+                         f"{rotations.shape[0]} and {translations.shape[0]}")
+    if len(generators) != batch:
+        raise ValueError(f"generators: expected {batch} (one per item), got {len(generators)}")
+    if not config.enabled:
+        return images, masks, rotations, translations
+    if config.rotation and camera is not None:
+        check_rotation_exact(camera)
+
+    # Draw every item's parameters first, in a fixed order per item, so that the draws of one
+    # kind do not depend on whether another kind fired.
+    p = config.probability
+    params = {kind: np.zeros(batch) for kind in KINDS}
+    noise_seeds = np.zeros(batch, dtype=np.int64)
+    for i, rng in enumerate(generators):
+        fire = rng.random(len(KINDS)) < p
+        angle = math.radians(rng.uniform(-config.max_rotation_deg, config.max_rotation_deg))
+        factor = _log_uniform(rng, config.brightness_range)
+        gamma = _log_uniform(rng, config.gamma_range)
+        std = rng.uniform(*config.noise_std)
+        sigma = rng.uniform(*config.blur_sigma)
+        noise_seeds[i] = int(rng.integers(0, 2**62))
+        values = {"rotation": angle, "brightness": factor, "gamma": gamma, "noise": std,
+                  "blur": sigma}
+        neutral = {"rotation": 0.0, "brightness": 1.0, "gamma": 1.0, "noise": 0.0, "blur": 0.0}
+        for k, kind in enumerate(KINDS):
+            on = getattr(config, kind) and bool(fire[k])
+            params[kind][i] = values[kind] if on else neutral[kind]
+
+    dtype, device = images.dtype, images.device
+    images, masks = images.clone(), masks.clone()
+    rotations, translations = rotations.clone(), translations.clone()
+
+    angles = torch.as_tensor(params["rotation"], dtype=torch.float64, device=device)
+    turned = angles != 0
+    if bool(turned.any()):
+        idx = torch.nonzero(turned).flatten()
+        images[idx] = rotate_batch(images[idx], angles[idx]).to(dtype)
+        masks[idx] = rotate_batch(masks[idx], angles[idx]).to(masks.dtype).clamp(0, 1)
+        rz = z_rotation(angles[idx])
+        rotations[idx] = (rz @ rotations[idx].to(torch.float64)).to(rotations.dtype)
+        translations[idx] = (rz @ translations[idx].to(torch.float64)[..., None])[..., 0].to(
+            translations.dtype)
+
+    factor = torch.as_tensor(params["brightness"], dtype=dtype, device=device)
+    images = (images * factor[:, None, None, None]).clamp(0, 1)
+    gamma = torch.as_tensor(params["gamma"], dtype=dtype, device=device)
+    if bool((gamma != 1).any()):
+        images = images.clamp_min(0) ** gamma[:, None, None, None]
+    sigmas = torch.as_tensor(params["blur"], dtype=dtype, device=device)
+    if bool((sigmas > 0).any()):
+        images = _gaussian_blur(images, sigmas)
+    stds = params["noise"]
+    if bool((stds > 0).any()):
+        noise = torch.zeros_like(images)
+        for i in np.flatnonzero(stds > 0):
+            gen = torch.Generator().manual_seed(int(noise_seeds[i]))
+            noise[i] = float(stds[i]) * torch.randn(images.shape[1:], generator=gen,
+                                                    dtype=dtype).to(device)
+        images = (images + noise).clamp(0, 1)
+    return images, masks, rotations, translations

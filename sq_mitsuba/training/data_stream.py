@@ -1,0 +1,230 @@
+"""The training data: the dataset opened and checked, decoded once into caches, and served as
+an endless stream of batches (:class:`~sq_mitsuba.training.batch.TrainingBatch`).
+
+Convention: the training data are an endless stream of per-epoch permutations of the training
+images (epoch e's permutation drawn from the seed and e); step s takes the next
+``batch_size`` images of it, and an epoch is ceil(images / batch_size) steps. Under
+``torchrun`` process r of N takes the r-th of N equal slices of each step's batch. Every
+per-item random draw (points, augmentation) comes from (seed, step, position in the batch)
+(:mod:`sq_mitsuba.training.random_streams`), so the stream can restart at any step.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import shutil
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from sq_mitsuba.data.spe3r import Spe3rDataset
+from sq_mitsuba.geometry.camera import Camera
+from sq_mitsuba.geometry.image_turns import check_rotation_exact
+from sq_mitsuba.training.augment import augment_batch
+from sq_mitsuba.training.batch import TrainingBatch
+from sq_mitsuba.training.cache import ImageCache, PointCache, open_image_cache, open_point_cache
+from sq_mitsuba.training.config import TrainConfig
+from sq_mitsuba.training.distributed import World, broadcast_object
+from sq_mitsuba.training.random_streams import STREAMS, seed_of
+from sq_mitsuba.training.run.state import TrainError, TrainRun
+
+__all__ = ["DataSources", "TrainingData", "TrainingStream", "evenly", "open_datasets",
+           "open_training_data", "symmetry_table"]
+
+
+class TrainingStream:
+    """Batches of the training stream from the caches (see the module docstring)."""
+
+    def __init__(self, images: ImageCache, points: PointCache, keep: np.ndarray,
+                 config: TrainConfig, camera: Camera, symmetries: Tensor) -> None:
+        self.images, self.points = images, points
+        self.keep = keep  # cache rows that train, (N,)
+        self.config = config
+        self.camera = camera
+        self.symmetries = symmetries  # (models, S, 3, 3)
+        self.batch_size = config.optim.batch_size
+        self.steps_per_epoch = math.ceil(len(keep) / self.batch_size)
+        self._order: dict[int, np.ndarray] = {}
+
+    def __len__(self) -> int:
+        return len(self.keep)
+
+    def _permutation(self, epoch: int) -> np.ndarray:
+        if epoch not in self._order:
+            rng = np.random.default_rng(seed_of(self.config.seed, STREAMS["order"], epoch))
+            self._order = {epoch: rng.permutation(len(self.keep))}  # keep one epoch
+        return self._order[epoch]
+
+    def rows(self, step: int) -> np.ndarray:
+        """Cache rows (batch_size,) of the global batch of ``step``."""
+        n = len(self.keep)
+        positions = step * self.batch_size + np.arange(self.batch_size)
+        out = np.empty(self.batch_size, dtype=np.int64)
+        for epoch in np.unique(positions // n):
+            where = positions // n == epoch
+            out[where] = self.keep[self._permutation(int(epoch))[positions[where] % n]]
+        return out
+
+    def batch(self, step: int, world: World) -> TrainingBatch:
+        """This process's slice of step ``step``'s batch, with points and augmentation."""
+        local = self.batch_size // world.size
+        start = world.rank * local
+        rows = self.rows(step)[start:start + local]
+        cached = self.images.batch(rows)
+        cfg = self.config
+        generators = [np.random.default_rng(seed_of(cfg.seed, STREAMS["item"], step, j))
+                      for j in range(start, start + local)]
+        surface, occupancy, labels = [], [], []
+        for k, model in enumerate(cached["model_index"].tolist()):
+            s, o, lab = self.points.sample(model, generators[k], cfg.data.num_surface,
+                                           cfg.data.num_occupancy)
+            surface.append(s)
+            occupancy.append(o)
+            labels.append(lab)
+        image, mask = cached["image"], cached["mask"]
+        rotation, translation = cached["rotation"], cached["translation"]
+        if cfg.augment.enabled:
+            image, mask, rotation, translation = augment_batch(
+                image, mask, rotation, translation, cfg.augment, generators, self.camera)
+        return TrainingBatch(
+            image=image, mask=mask, rotation=rotation, translation=translation,
+            model_index=cached["model_index"],
+            surface_points=torch.from_numpy(np.stack(surface)),
+            occupancy_points=torch.from_numpy(np.stack(occupancy)),
+            occupancy_labels=torch.from_numpy(np.stack(labels)),
+            symmetries=self.symmetries[cached["model_index"]])
+
+
+def symmetry_table(root: Path, models: Sequence[str]) -> Tensor:
+    """(models, S, 3, 3) body-frame symmetries per model, padded with identities (identity
+    alone where the symmetry module or a model's analysis is unavailable)."""
+    try:
+        from sq_mitsuba.data.symmetry import model_symmetries
+    except ImportError:
+        model_symmetries = None
+    sets = []
+    for model in models:
+        matrices = torch.eye(3, dtype=torch.float32)[None]
+        if model_symmetries is not None:
+            with contextlib.suppress(OSError, ValueError):
+                matrices = torch.as_tensor(np.asarray(model_symmetries(root / model)),
+                                           dtype=torch.float32).reshape(-1, 3, 3)
+        sets.append(matrices)
+    width = max(len(s) for s in sets)
+    table = torch.eye(3).repeat(len(sets), width, 1, 1)
+    for i, matrices in enumerate(sets):
+        table[i, :len(matrices)] = matrices
+    return table
+
+
+def evenly(count: int, limit: int) -> list[int]:
+    """At most ``limit`` indices of ``range(count)`` spread evenly, first and last included."""
+    if limit >= count:
+        return list(range(count))
+    return sorted({int(i) for i in np.linspace(0, count - 1, limit).round()})
+
+
+@dataclass
+class DataSources:
+    """The dataset's splits, opened and checked but not yet decoded (no file written)."""
+
+    train_set: Spe3rDataset
+    val_set: Spe3rDataset
+    val_indices: list[int]
+    "The val images that validate (spread evenly; empty when validation is off)."
+
+
+def open_datasets(config: TrainConfig, data_root: Path) -> DataSources:
+    """The train and val splits of ``data_root`` at the network's input size; one-line errors
+    for a missing folder or an empty train split (the dataset's own for bad labels)."""
+    if not data_root.is_dir():
+        raise TrainError(f"{data_root}: dataset folder not found")
+    size = config.network.image_size
+    train_set = Spe3rDataset(data_root, "train", image_size=size, num_surface=1,
+                             num_occupancy=2, seed=config.seed)
+    if len(train_set) == 0:
+        raise TrainError(f"{data_root}: the train split has no images")
+    val_set = Spe3rDataset(data_root, "val", image_size=size, num_surface=1, num_occupancy=2,
+                           seed=config.seed)
+    val_indices = evenly(len(val_set), config.validation.images) if config.validation.every \
+        else []
+    if config.augment.enabled and config.augment.rotation:
+        check_rotation_exact(train_set.camera.rescaled(size, size))
+    return DataSources(train_set, val_set, val_indices)
+
+
+@dataclass
+class TrainingData:
+    """Everything the loop reads of the data."""
+
+    stream: TrainingStream
+    points: PointCache
+    "Surface and occupancy points of every training model."
+    val_images: ImageCache | None
+    "The validation images (rank 0, when validation is on and the val split has images)."
+    validating: bool
+    "Whether validations run (on rank 0; the other ranks receive the metrics)."
+    dataset_camera: Camera
+    "The dataset's camera (what checkpoints record)."
+    camera: Camera
+    "The camera at the network's input size."
+
+
+def _build_caches(run: TrainRun, sources: DataSources, cache_root: Path) -> None:
+    """Decode the splits into the caches (rank 0), removing a cache folder this call created
+    when decoding fails (a corrupt image), so that nothing half-built stays behind."""
+    created = not cache_root.exists()
+    try:
+        open_point_cache(sources.train_set, cache_root, run.fingerprint, run.progress)
+        open_image_cache(sources.train_set, "train", cache_root, run.fingerprint,
+                         progress=run.progress)
+        if sources.val_indices:
+            open_image_cache(sources.val_set, "val", cache_root, run.fingerprint,
+                             sources.val_indices, progress=run.progress)
+    except BaseException:
+        if created:
+            shutil.rmtree(cache_root, ignore_errors=True)
+        raise
+
+
+def open_training_data(run: TrainRun, sources: DataSources) -> TrainingData:
+    """The caches of ``sources`` (rank 0 builds them, the others wait and open them) and the
+    stream of training batches over them."""
+    cfg = run.config
+    cache_root = cfg.data.cache_dir or run.out_dir / "cache"
+    error = None
+    if run.world.main:
+        try:
+            _build_caches(run, sources, cache_root)
+        except ValueError as exc:
+            error = str(exc)
+    error = broadcast_object(error, run.world)
+    if error is not None:
+        raise TrainError(error)
+    train_set = sources.train_set
+    points = open_point_cache(train_set, cache_root, run.fingerprint)
+    images = open_image_cache(train_set, "train", cache_root, run.fingerprint)
+    # Validation runs on rank 0 only; the others receive its metrics.
+    val_images = (open_image_cache(sources.val_set, "val", cache_root, run.fingerprint,
+                                   sources.val_indices)
+                  if sources.val_indices and run.world.main else None)
+    keep = np.arange(len(images))
+    if cfg.data.min_visibility > 0:
+        visible = np.isnan(images.visibility) | (images.visibility >= cfg.data.min_visibility)
+        keep = keep[visible]
+        if len(keep) == 0:
+            raise TrainError(f"data.min_visibility: no training image has target_visibility >= "
+                             f"{cfg.data.min_visibility}")
+    if cfg.data.train_images is not None:
+        keep = keep[:cfg.data.train_images]
+    size = cfg.network.image_size
+    camera = train_set.camera.rescaled(size, size)
+    stream = TrainingStream(images, points, keep, cfg, camera,
+                            symmetry_table(run.data_root, train_set.models))
+    return TrainingData(stream, points, val_images, bool(sources.val_indices), train_set.camera,
+                        camera)

@@ -1,0 +1,170 @@
+"""The run folder: its files, the checks before a run starts, and the checkpoints it writes.
+
+A run folder holds ``config.json``, ``log.csv``, ``val.csv``, ``curves.png``, ``last.pt`` and
+``best.pt`` (see :mod:`sq_mitsuba.training.train`). Checkpoints (written atomically by
+:func:`~sq_mitsuba.model.checkpoint.write_checkpoint`) hold the config, the model,
+optimiser and scheduler states, the RNG states (torch, numpy, python; per process in a
+distributed run), the data-order state, the dataset fingerprint and the git commit.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from sq_mitsuba.config import to_dict
+from sq_mitsuba.model.checkpoint import read_checkpoint, write_checkpoint
+from sq_mitsuba.training.cache import manifest_hash
+from sq_mitsuba.training.distributed import unwrap
+from sq_mitsuba.training.run.state import TrainError, TrainRun
+
+__all__ = [
+    "BEST",
+    "CONFIG_FILE",
+    "CURVES_FILE",
+    "LAST",
+    "LOG_FILE",
+    "RESUME_FREE",
+    "VAL_FILE",
+    "check_out_dir",
+    "config_difference",
+    "git_commit",
+    "not_finite_error",
+    "remove_stale_temporaries",
+    "save_checkpoint",
+]
+
+LOG_FILE, VAL_FILE, CURVES_FILE = "log.csv", "val.csv", "curves.png"
+LAST, BEST, CONFIG_FILE = "last.pt", "best.pt", "config.json"
+CHECKPOINT_FORMAT, CHECKPOINT_VERSION = "sq_mitsuba.checkpoint", 1
+#: Config fields that may differ between a checkpoint and the run that resumes it.
+RESUME_FREE = frozenset({"data.cache_dir", "reprojection.workers"})
+
+
+def _nearest_existing(path: Path) -> Path:
+    path = path.absolute()
+    while not path.exists() and path != path.parent:
+        path = path.parent
+    return path
+
+
+def check_out_dir(out_dir: Path, resume: bool) -> None:
+    """Refuse (one line) a run folder that cannot be written, or (without ``resume``) one that
+    holds a run, or (with it) one without ``last.pt``. Creates nothing."""
+    existing = _nearest_existing(out_dir)
+    if existing != out_dir.absolute() and not existing.is_dir():
+        raise TrainError(f"{out_dir}: output folder is not writable ({existing} is a file)")
+    if existing.is_dir() and not os.access(existing, os.W_OK | os.X_OK):
+        raise TrainError(f"{out_dir}: output folder is not writable (permission denied on "
+                         f"{existing})")
+    if resume and not (out_dir / LAST).is_file():
+        raise TrainError(f"{out_dir}: nothing to resume (no {LAST})")
+    if not resume and any((out_dir / name).exists() for name in (LAST, LOG_FILE)):
+        raise TrainError(f"{out_dir}: already holds a training run; resume it (--resume) or "
+                         "choose another output folder")
+
+
+def remove_stale_temporaries(out_dir: Path) -> list[Path]:
+    """Delete the temporary files an earlier run killed mid-write left in ``out_dir`` (the
+    ``.NAME.*.tmp.SUFFIX`` files of :func:`sq_mitsuba.io.atomic_path`); returns them."""
+    removed = []
+    for path in sorted(out_dir.glob(".*.tmp*")) if out_dir.is_dir() else []:
+        if path.is_file() and ".tmp" in path.name:
+            path.unlink(missing_ok=True)
+            removed.append(path)
+    return removed
+
+
+def git_commit() -> dict[str, Any]:
+    """The source's git commit and whether the work tree differs from it (None outside git)."""
+    root = Path(__file__).resolve().parents[3]
+    try:
+        commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True,
+                                text=True, timeout=10, check=True).stdout.strip()
+        status = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"],
+                                cwd=root, capture_output=True, text=True, timeout=10,
+                                check=True).stdout
+    except (OSError, subprocess.SubprocessError):
+        return {"commit": None, "dirty": None}
+    return {"commit": commit, "dirty": bool(status.strip())}
+
+
+def _flatten(data: Any, prefix: str = "") -> dict[str, Any]:
+    if isinstance(data, dict):
+        out: dict[str, Any] = {}
+        for key, value in data.items():
+            out.update(_flatten(value, f"{prefix}{key}."))
+        return out
+    return {prefix[:-1]: data}
+
+
+def config_difference(old: dict[str, Any], new: dict[str, Any]) -> str | None:
+    """The first field (dotted) where two ``to_dict`` configs differ, as ``field: a vs b``."""
+    a, b = _flatten(old), _flatten(new)
+    for key in sorted(set(a) | set(b)):
+        if key in RESUME_FREE:
+            continue
+        if a.get(key, "<absent>") != b.get(key, "<absent>"):
+            return (f"{key} = {a.get(key, '<absent>')!r} in the checkpoint, "
+                    f"{b.get(key, '<absent>')!r} in this run")
+    return None
+
+
+def save_checkpoint(path: Path, run: TrainRun, step: int, *, model: nn.Module,
+                    optimizer: torch.optim.Optimizer, scheduler: Any, steps_per_epoch: int,
+                    total_steps: int, train_images: int, rng: dict[str, Any],
+                    best: dict[str, Any] | None, validation: list[dict[str, float]],
+                    camera: dict[str, Any], git: dict[str, Any]) -> None:
+    """Write the checkpoint of ``run`` after ``step`` steps to ``path`` (atomically).
+
+    Args:
+        rng: :func:`~sq_mitsuba.training.random_streams.rng_state` of this process, with
+            ``ranks`` (every process's) in a distributed run.
+        best, validation: the best validation so far and every validation.
+        camera: the dataset camera's ``to_speed_dict``.
+        git: :func:`git_commit`.
+    """
+    cfg = run.config
+    images_seen = step * cfg.optim.batch_size
+    write_checkpoint(path, {
+        "format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION,
+        "config": to_dict(cfg), "model": _state_dict(model), "camera": camera,
+        "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
+        "step": step, "epoch": step // steps_per_epoch, "total_steps": total_steps,
+        "steps_per_epoch": steps_per_epoch, "rng": rng,
+        "data_order": {"scheme": "epoch-permutations", "seed": cfg.seed, "step": step,
+                       "images_seen": images_seen, "epoch": images_seen // train_images,
+                       "offset": images_seen % train_images, "train_images": train_images},
+        "dataset": {"root": str(run.data_root), "fingerprint": run.fingerprint,
+                    "manifest_sha256": manifest_hash(run.data_root),
+                    "train_images": train_images},
+        "git": git, "best": best, "validation": validation, "world_size": run.world.size,
+    })
+
+
+def _state_dict(model: nn.Module) -> dict[str, Tensor]:
+    return {k: v.detach().cpu().clone() for k, v in unwrap(model).state_dict().items()}
+
+
+def not_finite_error(step: int, terms: dict[str, Tensor], out_dir: Path) -> TrainError:
+    """The error that stops a run at a step whose loss or gradient is not finite."""
+    shown = ", ".join(f"{k}={float(v.detach()):.4g}" for k, v in terms.items())
+    last = out_dir / LAST
+    kept = (f"the last checkpoint, {last} (step {checkpoint_step(last)}), is intact"
+            if last.is_file() else "no checkpoint was written yet")
+    return TrainError(f"step {step + 1}: the loss or its gradient is not finite "
+                      f"({shown or 'non-finite network output'}); stopped without applying "
+                      f"the step; {kept}")
+
+
+def checkpoint_step(path: Path) -> int | str:
+    try:
+        return int(read_checkpoint(path)["step"])
+    except Exception:  # only for a message
+        return "?"
+

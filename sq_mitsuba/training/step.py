@@ -1,0 +1,216 @@
+"""One training step, public: the network's forward pass, the weighted loss terms, the
+backward pass and the optimiser's update (:func:`training_step`), and what it needs set up
+(the renderer of the reprojection term, channels-last weights, Mitsuba's variant and threads).
+
+The training loop (:mod:`sq_mitsuba.training.train`), ``sq-mitsuba bench train`` and any
+experiment call these, so they time and run exactly what training runs.
+
+Convention: on the CPU, a step's losses are bit-identical between runs (and so between a run
+and its resumption). That needs every float sum to run in a fixed order: Mitsuba's backward
+pass adds vertex gradients atomically in thread order, and training amplifies such
+differences, so with ``reprojection.deterministic`` (the default) Dr.Jit renders on one thread
+during training (:func:`mitsuba_for`). The cores are used instead by ``reprojection.workers``
+processes that share a step's rendered items, each on one thread: an item's samples depend on
+(seed, step, item) alone, so any number of workers gives the same losses bit for bit, and a run
+may resume with another. Torch's CPU kernels are deterministic at a fixed thread count; a
+resumed run must use the same one.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from sq_mitsuba.checks import value_checks
+from sq_mitsuba.geometry.camera import Camera
+from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer
+from sq_mitsuba.training.batch import TrainingBatch
+from sq_mitsuba.training.config import TrainConfig
+from sq_mitsuba.training.distributed import World, any_rank
+from sq_mitsuba.training.loss_terms import LossContext, compute_terms, total_loss
+from sq_mitsuba.training.random_streams import STREAMS, seed_of
+from sq_mitsuba.training.run.state import TrainError
+
+__all__ = [
+    "NotFiniteError",
+    "StepResult",
+    "forward_loss",
+    "gradient_norm",
+    "loss_context",
+    "mitsuba_for",
+    "outputs_finite",
+    "render_workers",
+    "reprojection_renderer",
+    "to_channels_last",
+    "training_step",
+]
+
+
+class NotFiniteError(TrainError):
+    """A step whose loss or gradient is not finite (the update was not applied)."""
+
+    def __init__(self, terms: dict[str, Tensor]) -> None:
+        shown = ", ".join(f"{k}={float(v.detach()):.4g}" for k, v in terms.items())
+        super().__init__(f"the loss or its gradient is not finite "
+                         f"({shown or 'non-finite network output'})")
+        self.terms = terms
+
+
+@dataclass
+class StepResult:
+    """What one :func:`training_step` did (this process's values)."""
+
+    loss: Tensor
+    "The weighted total, a detached scalar."
+    terms: dict[str, Tensor]
+    "Each weighted term, detached scalars, in registry order."
+    grad_norm: float
+    "The gradient's global L2 norm before clipping."
+
+
+def outputs_finite(output: Any) -> bool:
+    """Whether every floating tensor field of a network output is finite."""
+    for item in dataclasses.fields(output):
+        value = getattr(output, item.name)
+        if isinstance(value, Tensor) and value.is_floating_point() and not bool(
+                torch.isfinite(value).all()):
+            return False
+    return True
+
+
+def forward_loss(model: nn.Module, batch: TrainingBatch, k_matrix: Tensor,
+                 context: LossContext) -> tuple[dict[str, Tensor], Tensor | None]:
+    """The forward half of a training step: the network on ``batch.image`` and the weighted
+    loss of its output (every term ``context.loss`` weighs, see
+    :mod:`sq_mitsuba.training.loss_terms`).
+
+    Args:
+        model: the network (or its DistributedDataParallel wrapper), in training mode.
+        batch: this process's batch, on the model's device.
+        k_matrix: (3, 3) intrinsics at the network's input size.
+        context: the loss's settings, renderer and subset generator for this step
+            (:func:`loss_context`).
+
+    Returns:
+        (terms, loss): each weighted term and their weighted sum, scalars; ({}, None) when
+        the network's outputs are not finite.
+    """
+    output = model(batch.image, k_matrix)
+    if not outputs_finite(output):
+        return {}, None
+    terms = compute_terms(output, batch, context)
+    return terms, total_loss(terms, context.loss)
+
+
+def gradient_norm(model: nn.Module, grad_clip: float | None) -> float:
+    """Norm of the gradient of every parameter, before clipping it to ``grad_clip`` (None:
+    no clipping)."""
+    if grad_clip is not None:
+        return float(nn.utils.clip_grad_norm_(model.parameters(), grad_clip))
+    return float(torch.linalg.vector_norm(torch.stack([
+        p.grad.norm() for p in model.parameters() if p.grad is not None])))
+
+
+def training_step(model: nn.Module, optimizer: torch.optim.Optimizer, batch: TrainingBatch,
+                  k_matrix: Tensor, context: LossContext, grad_clip: float | None,
+                  world: World | None = None) -> StepResult:
+    """One optimiser step: :func:`forward_loss`, backward, gradient clipping, update.
+
+    The inputs are checked once, where the data are cached; the per-call NaN scans of the
+    geometry and loss functions are switched off here and replaced by one check of the outputs
+    and one of the loss and of the gradient norm. In a distributed run (``world``) every
+    process agrees on them before the backward pass (whose gradient all-reduce would wait
+    forever for a process that skipped it) and again after it.
+
+    Raises:
+        NotFiniteError: the loss or the gradient is not finite; the update was not applied.
+    """
+    world = World() if world is None else world
+    with value_checks(False):
+        terms, loss = forward_loss(model, batch, k_matrix, context)
+        finite = loss is not None and bool(torch.isfinite(loss))
+    if any_rank(not finite, world):
+        raise NotFiniteError(terms)
+    assert loss is not None
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    norm = gradient_norm(model, grad_clip)
+    if any_rank(not math.isfinite(norm), world):
+        raise NotFiniteError({**terms, "gradient norm": torch.tensor(norm)})
+    optimizer.step()
+    return StepResult(loss.detach(), {k: v.detach() for k, v in terms.items()}, norm)
+
+
+def loss_context(config: TrainConfig, renderer: SilhouetteRenderer | None, step: int,
+                 world: World | None = None) -> LossContext:
+    """The loss context of step ``step``: the renderer restarted at the step's samples and the
+    reprojection subset's generator seeded from the step (so a resumed step repeats)."""
+    world = World() if world is None else world
+    generator = torch.Generator().manual_seed(
+        seed_of(config.seed, STREAMS["subset"], step, world.rank))
+    if renderer is not None:
+        # Item j of this process is item rank * local + j of the global batch.
+        local = config.optim.batch_size // world.size
+        renderer.reseed(seed_of(config.seed, STREAMS["render"], step) + 7919 * world.rank * local)
+    return LossContext(config.loss, config.reprojection, renderer, generator)
+
+
+def to_channels_last(model: nn.Module) -> None:
+    """Store ``model``'s 4-D weights channels-last and have it feed its encoder that way."""
+    model.to(memory_format=torch.channels_last)
+    if hasattr(model, "channels_last"):
+        model.channels_last = True
+
+
+def render_workers(requested: int | None, device: torch.device, processes: int = 1) -> int:
+    """Worker processes for the reprojection renderer (see ``ReprojectionConfig.workers``).
+
+    Args:
+        requested: the config's value; None picks one per CPU core available to this process,
+            divided among ``processes`` training processes (0 when that leaves one).
+        device: the training device; CUDA renders in the training process (0).
+        processes: training processes on this machine (torchrun's world size).
+    """
+    from sq_mitsuba.render.silhouette.workers import default_worker_count
+
+    if device.type != "cpu":
+        return 0
+    return default_worker_count(processes) if requested is None else requested
+
+
+def reprojection_renderer(config: TrainConfig, dataset_camera: Camera, device: torch.device,
+                          processes: int = 1) -> SilhouetteRenderer | None:
+    """The reprojection term's renderer (``reprojection.resolution``, spp, workers), or None
+    when the term is off."""
+    if not config.loss.weights.get("reprojection", 0.0):
+        return None
+    rep = config.reprojection
+    side = rep.resolution or config.network.image_size
+    return SilhouetteRenderer(dataset_camera.rescaled(side, side), spp=rep.spp, sppp=rep.sppp,
+                              workers=render_workers(rep.workers, device, processes))
+
+
+@contextlib.contextmanager
+def mitsuba_for(device: torch.device, deterministic: bool) -> Iterator[None]:
+    """Mitsuba's variant for ``device``; on the CPU with ``deterministic``, one Dr.Jit thread
+    inside the block (restored after), so that gradient sums do not depend on thread timing."""
+    from sq_mitsuba.render.backend import mitsuba
+
+    mitsuba("cuda_ad_mono" if device.type == "cuda" else None)
+    import drjit as dr
+
+    previous = dr.thread_count()
+    if deterministic and device.type == "cpu":
+        dr.set_thread_count(1)
+    try:
+        yield
+    finally:
+        if dr.thread_count() != previous:
+            dr.set_thread_count(previous)

@@ -1,0 +1,438 @@
+"""Training of :class:`~sq_mitsuba.model.network.SuperquadricNet`: :func:`train`, the loop.
+
+:func:`train` runs one training job described by a :class:`TrainConfig` on an SPE3R-layout
+dataset and writes into a run folder:
+
+- ``config.json``: the resolved config (written once, when the run starts);
+- ``log.csv``: one row per step: step, epoch, learning rate, total loss and each loss term (the
+  mean over the global batch), gradient norm before clipping, images/s
+  (:mod:`sq_mitsuba.training.run.log`);
+- ``val.csv``: one row per validation: mean Chamfer-L1 (the paper's convention), 2D IoU (the
+  predicted assembly's Mitsuba silhouette at the predicted pose against the mask) and rotation
+  error in degrees, over a fixed subset (:mod:`sq_mitsuba.training.validation`);
+- ``curves.png``: loss terms and validation metrics, refreshed at each validation;
+- ``last.pt`` (the latest state) and ``best.pt`` (best validation ``validation.metric``),
+  written atomically (:mod:`sq_mitsuba.training.run.folder`);
+- TensorBoard events in ``tensorboard/`` when the ``tensorboard`` package is importable;
+- ``cache/``: the decoded training data (:mod:`sq_mitsuba.training.cache`), unless
+  ``data.cache_dir`` points elsewhere.
+
+The trainer's parts, each a module of :mod:`sq_mitsuba.training`: the data stream
+(:mod:`~sq_mitsuba.training.data_stream`, batches typed by
+:class:`~sq_mitsuba.training.batch.TrainingBatch`), the loss terms
+(:mod:`~sq_mitsuba.training.loss_terms`), one step (:mod:`~sq_mitsuba.training.step`),
+the schedule (:mod:`~sq_mitsuba.training.schedule`), random streams
+(:mod:`~sq_mitsuba.training.random_streams`), distributed set-up
+(:mod:`~sq_mitsuba.training.distributed`), the run folder and its records; they share one
+:class:`~sq_mitsuba.training.run.state.TrainRun`.
+
+``resume=True`` continues from ``last.pt`` exactly: the data order and every per-item random
+draw are pure functions of (seed, step, position in the batch), and the renderer's sample
+sequence restarts from a seed of the step, so the steps after a resume repeat an uninterrupted
+run's (on the CPU bit for bit, tested; see :mod:`~sq_mitsuba.training.step`).
+
+Errors (one line, :class:`TrainError` or the dataset's ``DatasetError``, both ``ValueError``),
+all before any file is written unless said: an unwritable run folder or a run folder that
+already holds a run (without ``resume``); a dataset that does not open; a network that cannot
+be built (``network.pretrained`` unreadable) or cannot feed a weighted loss term; a corrupt
+image while the cache is built (naming the file; the new run folder and cache are removed); a
+checkpoint of another config or dataset on resume (naming the first difference); a loss or
+gradient that is not finite (the step is not applied and the last checkpoint stays as it was).
+Temporary files an earlier run left when killed mid-write are removed when the next starts.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+import time
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import nn
+
+from sq_mitsuba.config import from_dict, to_dict
+from sq_mitsuba.config import validate as validate_config
+from sq_mitsuba.io import atomic_write_json
+from sq_mitsuba.model.checkpoint import load_weights, read_checkpoint
+from sq_mitsuba.model.network import SuperquadricNet
+from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer
+from sq_mitsuba.training.cache import dataset_fingerprint
+from sq_mitsuba.training.config import TrainConfig
+from sq_mitsuba.training.data_stream import (
+    DataSources,
+    TrainingData,
+    open_datasets,
+    open_training_data,
+)
+from sq_mitsuba.training.distributed import (
+    all_mean,
+    barrier,
+    broadcast_object,
+    start_distributed,
+    unwrap,
+    wrap_model,
+)
+from sq_mitsuba.training.loss_terms import LOSS_TERMS, LossTermError, check_terms
+from sq_mitsuba.training.random_streams import STREAMS, rng_state, seed_of, set_rng_state
+from sq_mitsuba.training.run.folder import (
+    BEST,
+    CONFIG_FILE,
+    CURVES_FILE,
+    LAST,
+    check_out_dir,
+    config_difference,
+    git_commit,
+    not_finite_error,
+    remove_stale_temporaries,
+    save_checkpoint,
+)
+from sq_mitsuba.training.run.log import RunLog, plot_curves
+from sq_mitsuba.training.run.state import TrainError, TrainResult, TrainRun
+from sq_mitsuba.training.schedule import cosine_lr_factor, make_optimizer
+from sq_mitsuba.training.step import (
+    NotFiniteError,
+    loss_context,
+    mitsuba_for,
+    reprojection_renderer,
+    to_channels_last,
+    training_step,
+)
+from sq_mitsuba.training.validation import improves, validate
+
+__all__ = [
+    "CURVES_FILE",
+    "TrainError",
+    "TrainResult",
+    "cosine_lr_factor",
+    "train",
+]
+
+
+def train(config: TrainConfig | None, data_root: str | Path, out_dir: str | Path, *,
+          resume: bool = False, max_steps: int | None = None, progress: bool = True,
+          max_seconds: float | None = None) -> TrainResult:
+    """Train (or resume) a run; see the module docstring for what it writes.
+
+    Args:
+        config: the run's config; None takes the checkpoint's when resuming, else the
+            defaults. Resuming with a config that differs (other than in ``data.cache_dir``
+            and ``reprojection.workers``) is refused, naming the first differing field.
+        data_root: SPE3R-layout dataset (``train`` split for training, ``val`` for validation).
+        out_dir: run folder (created; must not hold a run unless ``resume``).
+        resume: continue from ``out_dir/last.pt``.
+        max_steps: stop after this many steps in total (the schedule still spans every epoch;
+            a later ``resume`` continues); None: run to the end.
+        progress: show a progress bar (rank 0).
+        max_seconds: stop after the first step that ends this many seconds (wall clock,
+            validations and checkpoints included) after the first step started, writing
+            ``last.pt`` (a later ``resume`` continues); None: no time limit.
+
+    Returns:
+        A :class:`TrainResult`.
+
+    Raises:
+        TrainError, DatasetError (both ``ValueError``): see the module docstring.
+    """
+    data_root, out_dir = Path(data_root), Path(out_dir)
+    if max_steps is not None and max_steps < 0:
+        raise TrainError(f"max_steps: expected >= 0, got {max_steps}")
+    if max_seconds is not None and not max_seconds > 0:
+        raise TrainError(f"max_seconds: expected > 0, got {max_seconds}")
+    # Checks before any work and before anything is written: the run folder, the
+    # checkpoint, the config, the dataset, the network.
+    if int(os.environ.get("RANK", "0")) == 0:
+        check_out_dir(out_dir, resume)
+    checkpoint = _read_resumed(out_dir) if resume else None
+    if config is None:
+        config = TrainConfig() if checkpoint is None else from_dict(TrainConfig,
+                                                                    checkpoint["config"])
+    validate_config(config)
+    sources = open_datasets(config, data_root)
+    fingerprint = dataset_fingerprint(data_root)
+    if checkpoint is not None:
+        _check_resumable(checkpoint, config, fingerprint, out_dir, data_root)
+    model = _build_network(config, sources)
+    device = _device_of(config)
+    world = start_distributed(device)
+    run = TrainRun(config, data_root, out_dir, fingerprint, device, world, checkpoint,
+                   max_steps, max_seconds, progress)
+    created = not out_dir.exists()
+    try:
+        if world.main:
+            out_dir.mkdir(parents=True, exist_ok=True)
+            remove_stale_temporaries(out_dir)
+        if config.optim.batch_size % world.size:
+            raise TrainError(f"optim.batch_size: {config.optim.batch_size} does not split "
+                             f"over {world.size} processes")
+        with mitsuba_for(device, config.reprojection.deterministic):
+            data = _open_data(run, sources, created)
+            return _Loop(run, data, model).run()
+    finally:
+        if world.owns_group:
+            import torch.distributed as dist
+
+            dist.destroy_process_group()
+
+
+def _read_resumed(out_dir: Path) -> dict[str, Any]:
+    try:
+        return read_checkpoint(out_dir / LAST)
+    except (OSError, ValueError, RuntimeError) as error:
+        raise TrainError(f"{out_dir / LAST}: cannot read checkpoint ({error})") from None
+
+
+def _check_resumable(checkpoint: dict[str, Any], config: TrainConfig, fingerprint: str,
+                     out_dir: Path, data_root: Path) -> None:
+    difference = config_difference(checkpoint["config"], to_dict(config))
+    if difference is not None:
+        raise TrainError(f"{out_dir / LAST}: the checkpoint is of another config: {difference}")
+    recorded = checkpoint.get("dataset", {}).get("fingerprint")
+    if recorded != fingerprint:
+        raise TrainError(f"{out_dir / LAST}: the checkpoint was trained on another dataset "
+                         f"({checkpoint.get('dataset', {}).get('root')}, fingerprint "
+                         f"{str(recorded)[:12]}), {data_root} has {fingerprint[:12]}")
+
+
+def _build_network(config: TrainConfig, sources: DataSources) -> nn.Module:
+    """The network, initialised from the seed (every process alike), after checking that it
+    can be built (``network.pretrained`` loads) and feeds every weighted loss term."""
+    torch.manual_seed(config.seed)
+    try:
+        model = SuperquadricNet(config.network)
+    except ValueError as error:
+        raise TrainError(" ".join(str(error).split())) from None
+    except Exception as error:  # a hostile or foreign file: torch's long advice is not ours
+        raise TrainError(f"network.pretrained: {config.network.pretrained}: cannot be loaded "
+                         f"as a weights file ({type(error).__name__})") from None
+    if config.validation.metric == "mask_iou" and model.mask_head is None:
+        raise TrainError("validation.metric: 'mask_iou' needs a mask head (network.mask_head)")
+    if config.init_from is not None:
+        _load_initial_weights(model, config.init_from)
+    try:
+        model.freeze_except(config.optim.trainable)
+    except ValueError as error:
+        raise TrainError(f"optim.{error}") from None
+    size = config.network.image_size
+    camera = sources.train_set.camera.rescaled(size, size)
+    model.eval()  # no statistics updated, no random draw
+    with torch.no_grad():
+        probe = model(torch.zeros(1, config.network.in_channels, size, size), camera.matrix())
+    try:
+        check_terms(config.loss, probe)
+    except LossTermError as error:
+        raise TrainError(str(error)) from None
+    return model.train()
+
+
+def _load_initial_weights(model: SuperquadricNet, path: Path) -> None:
+    """``init_from``: the file's weights into ``model``; layers the file lacks stay as built."""
+    try:
+        state = read_checkpoint(path)["model"]
+    except (OSError, ValueError, RuntimeError, KeyError) as error:
+        raise TrainError(f"init_from: {path}: cannot read weights ({error})") from None
+    try:
+        load_weights(model, state, f"init_from: {path}", partial=True)
+    except ValueError as error:
+        raise TrainError(str(error)) from None
+
+
+def _open_data(run: TrainRun, sources: DataSources, created: bool) -> TrainingData:
+    """The caches and the stream; a run folder this call created goes again when they fail."""
+    try:
+        return open_training_data(run, sources)
+    except BaseException:
+        if created and run.world.main and not (run.out_dir / LAST).exists():
+            shutil.rmtree(run.out_dir, ignore_errors=True)
+        raise
+
+
+def _device_of(config: TrainConfig) -> torch.device:
+    if config.device == "cuda" or (config.device == "auto" and torch.cuda.is_available()):
+        if not torch.cuda.is_available():
+            raise TrainError("device: 'cuda' asked for, but torch sees no CUDA device")
+        return torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
+    return torch.device("cpu")
+
+
+class _Loop:
+    """The loop of one :func:`train` call: model, optimiser and schedule, renderers, log."""
+
+    def __init__(self, run: TrainRun, data: TrainingData, network: nn.Module) -> None:
+        cfg, world, checkpoint = run.config, run.world, run.checkpoint
+        self.run_state, self.data = run, data
+        self.steps_per_epoch = data.stream.steps_per_epoch
+        self.total_steps = cfg.optim.epochs * self.steps_per_epoch
+        if checkpoint is not None:
+            network.load_state_dict(checkpoint["model"])
+        network.to(run.device).train()
+        if cfg.channels_last:
+            to_channels_last(network)
+        self.model = wrap_model(network, run.device, world)
+        self.optimizer, self.scheduler = make_optimizer(self.model, cfg.optim,
+                                                        self.total_steps)
+        self.best: dict[str, Any] | None = None
+        self.history: list[dict[str, float]] = []
+        if checkpoint is not None:
+            self.optimizer.load_state_dict(checkpoint["optimizer"])
+            self.scheduler.load_state_dict(checkpoint["scheduler"])
+            self.best = checkpoint.get("best")
+            self.history = list(checkpoint.get("validation", []))
+            rng = checkpoint["rng"]
+            ranks = rng.get("ranks")
+            set_rng_state(ranks[world.rank] if ranks and len(ranks) == world.size else rng)
+        else:
+            torch.manual_seed(seed_of(cfg.seed, STREAMS["torch"], world.rank))
+        self.renderer = reprojection_renderer(cfg, data.dataset_camera, run.device, world.size)
+        self.val_renderer = (SilhouetteRenderer(data.camera, spp=cfg.validation.spp)
+                             if data.val_images is not None and world.main else None)
+        self.log: RunLog | None = None
+        if world.main:
+            if checkpoint is None:
+                atomic_write_json(run.out_dir / CONFIG_FILE, to_dict(cfg))
+            self.log = RunLog(run.out_dir, run.start_step if checkpoint is not None else None)
+        self.git = git_commit()
+        self.k_matrix = data.camera.matrix(device=run.device)
+
+    # ------------------------------------------------------------------ checkpoints
+
+    def save(self, name: str, step: int) -> None:
+        """Write ``name`` (last.pt or best.pt) after ``step`` steps (rank 0; every process
+        contributes its RNG state)."""
+        run = self.run_state
+        rng = rng_state()
+        if run.world.distributed:
+            import torch.distributed as dist
+
+            states: list[Any] = [None] * run.world.size
+            dist.all_gather_object(states, rng)
+            rng = {**rng, "ranks": states}
+        if not run.world.main:
+            return
+        save_checkpoint(run.out_dir / name, run, step, model=self.model,
+                        optimizer=self.optimizer, scheduler=self.scheduler,
+                        steps_per_epoch=self.steps_per_epoch, total_steps=self.total_steps,
+                        train_images=len(self.data.stream), rng=rng, best=self.best,
+                        validation=self.history,
+                        camera=self.data.dataset_camera.to_speed_dict(), git=self.git)
+
+    # ------------------------------------------------------------------ the loop
+
+    def run(self) -> TrainResult:
+        run, cfg = self.run_state, self.run_state.config
+        out_dir, world = run.out_dir, run.world
+        start_step = run.start_step
+        result = TrainResult(out_dir, start_step, self.total_steps,
+                             out_dir / LAST if run.checkpoint is not None else None,
+                             out_dir / BEST if (out_dir / BEST).is_file() else None,
+                             validation=self.history)
+        end_step = self.total_steps if run.max_steps is None else min(self.total_steps,
+                                                                     run.max_steps)
+        bar = None
+        if run.progress and world.main:
+            from tqdm import tqdm
+
+            bar = tqdm(total=end_step, initial=start_step, unit="step", desc="train",
+                       dynamic_ncols=True)
+        timed_images, timed_seconds = 0, 0.0
+        stop_at = None if run.max_seconds is None else time.perf_counter() + run.max_seconds
+        try:
+            for step in range(start_step, end_step):
+                row, seconds = self._step(step)
+                result.train_seconds += seconds
+                if step > start_step:  # the first step compiles kernels and fills caches
+                    timed_images += cfg.optim.batch_size
+                    timed_seconds += seconds
+                done = step + 1
+                result.steps = done
+                result.losses.append(row["loss"])
+                if self.log is not None:
+                    self.log.step(row)
+                if bar is not None:
+                    shown = {name[:5]: f"{row[name]:.3g}" for name in LOSS_TERMS if name in row}
+                    bar.set_postfix(loss=f"{row['loss']:.4g}", **shown,
+                                    img_s=f"{row['images_per_s']:.1f}")
+                    bar.update(1)
+                epoch_end = done % self.steps_per_epoch == 0
+                if epoch_end and self._validates(done):
+                    self._validate(done, result)
+                # Every process stops at the same step (rank 0's clock decides).
+                out_of_time = stop_at is not None and done < end_step and bool(
+                    broadcast_object(time.perf_counter() >= stop_at, world))
+                if epoch_end or done == end_step or out_of_time or (
+                        cfg.checkpoint_every and done % cfg.checkpoint_every == 0):
+                    self.save(LAST, done)
+                    result.last_checkpoint = out_dir / LAST
+                    barrier(world)
+                if out_of_time:
+                    break
+        finally:
+            self._close(bar)
+        result.validation = self.history
+        if timed_seconds > 0:
+            result.images_per_second = timed_images / timed_seconds
+        return result
+
+    def _step(self, step: int) -> tuple[dict[str, float], float]:
+        """Run step ``step``; its log row and its wall time."""
+        run, cfg = self.run_state, self.run_state.config
+        tick = time.perf_counter()
+        batch = self.data.stream.batch(step, run.world).to(run.device)
+        context = loss_context(cfg, self.renderer, step, run.world)
+        try:
+            outcome = training_step(self.model, self.optimizer, batch, self.k_matrix, context,
+                                    cfg.optim.grad_clip, run.world)
+        except NotFiniteError as error:
+            raise not_finite_error(step, error.terms, run.out_dir) from None
+        lr = self.optimizer.param_groups[0]["lr"]
+        self.scheduler.step()
+        names = list(outcome.terms)
+        values = all_mean(torch.tensor([float(outcome.loss)]
+                                       + [float(outcome.terms[t]) for t in names],
+                                       dtype=torch.float64), run.world)
+        seconds = time.perf_counter() - tick
+        row = {"step": step + 1, "epoch": step // self.steps_per_epoch, "lr": lr,
+               "loss": float(values[0]), "grad_norm": outcome.grad_norm,
+               "images_per_s": cfg.optim.batch_size / seconds}
+        row.update({name: float(values[i + 1]) for i, name in enumerate(names)})
+        return row, seconds
+
+    def _validates(self, done: int) -> bool:
+        cfg = self.run_state.config.validation
+        epoch = (done - 1) // self.steps_per_epoch
+        return bool(cfg.every and self.data.validating and (
+            (epoch + 1) % cfg.every == 0 or done == self.total_steps))
+
+    def _validate(self, done: int, result: TrainResult) -> None:
+        run, cfg = self.run_state, self.run_state.config
+        metrics = None
+        if run.world.main:
+            assert self.data.val_images is not None and self.val_renderer is not None
+            metrics = validate(unwrap(self.model), self.data.val_images, self.data.points, cfg,
+                               self.data.camera, self.val_renderer, run.device)
+        metrics = broadcast_object(metrics, run.world)
+        entry = {"step": done, "epoch": (done - 1) // self.steps_per_epoch, **metrics}
+        self.history.append(entry)
+        if self.log is not None:
+            self.log.validation(entry)
+            plot_curves(self.log.rows, self.log.val_rows, run.out_dir / CURVES_FILE)
+        name = cfg.validation.metric
+        if improves(name, metrics[name], self.best):
+            self.best = {"metric": name, "value": metrics[name], "step": done}
+            self.save(BEST, done)
+            result.best_checkpoint = run.out_dir / BEST
+
+    def _close(self, bar: Any) -> None:
+        if bar is not None:
+            bar.close()
+        if self.renderer is not None:
+            self.renderer.close()
+        log, out_dir = self.log, self.run_state.out_dir
+        if log is not None:
+            if log.rows and not (out_dir / CURVES_FILE).is_file():
+                with contextlib.suppress(Exception):
+                    plot_curves(log.rows, log.val_rows, out_dir / CURVES_FILE)
+            log.close()
+

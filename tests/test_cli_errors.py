@@ -1,0 +1,157 @@
+"""How ``sq-mitsuba`` reports errors: bad input in one line (exit 2), a bug in one line naming it
+an internal error (exit 1) with the hint to rerun with ``--traceback``, and with ``--traceback``
+(before the command) or ``SQ_MITSUBA_TRACEBACK=1`` the exception itself, traceback and all."""
+
+from __future__ import annotations
+
+import importlib
+import os
+import subprocess
+import sys
+
+import pytest
+from output_checks import error_line
+
+from sq_mitsuba.cli import EXIT_ERROR, EXIT_INTERNAL, TRACEBACK_ENV, main
+
+
+def _report(tmp_path, *options):
+    """``sq-mitsuba [options] report <missing folder> --out <tmp>/out``: a real bad input."""
+    return [*options, "report", str(tmp_path / "not_an_eval"), "--out", str(tmp_path / "out")]
+
+
+@pytest.fixture
+def no_env_traceback(monkeypatch):
+    """The tests' own setting of SQ_MITSUBA_TRACEBACK, whatever the shell running them has."""
+    monkeypatch.delenv(TRACEBACK_ENV, raising=False)
+
+
+def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys, no_env_traceback):
+    assert main(_report(tmp_path)) == EXIT_ERROR == 2
+    line = error_line(capsys)
+    assert line.startswith("sq-mitsuba report: error: ") and "not_an_eval" in line
+    assert "Traceback" not in line and "internal error" not in line
+    assert not (tmp_path / "out").exists()
+
+
+def test_traceback_flag_raises_the_bad_input_error(tmp_path, capsys, no_env_traceback):
+    with pytest.raises(FileNotFoundError, match="not_an_eval"):
+        main(_report(tmp_path, "--traceback"))
+    assert capsys.readouterr().err == ""  # the exception, not the one line as well
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("value", ["1", "yes", "true"])
+def test_environment_variable_raises_the_bad_input_error(value, tmp_path, monkeypatch):
+    monkeypatch.setenv(TRACEBACK_ENV, value)
+    with pytest.raises(FileNotFoundError, match="not_an_eval"):
+        main(_report(tmp_path))
+
+
+@pytest.mark.parametrize("value", ["", "0", "false", "no"])
+def test_environment_variable_off_keeps_the_one_line(value, tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv(TRACEBACK_ENV, value)
+    assert main(_report(tmp_path)) == EXIT_ERROR
+    assert "not_an_eval" in error_line(capsys)
+
+
+def _doctor():
+    """The module of ``sq-mitsuba doctor``, whose ``_run`` the tests replace by a bug."""
+    return importlib.import_module("sq_mitsuba.cli.doctor")
+
+
+def _raise_bug(args):
+    raise RuntimeError("step 3 of the bug\nsecond line")
+
+
+@pytest.mark.parametrize("error", [RuntimeError("a bug"), KeyError("key"), TypeError()])
+def test_internal_error_is_one_line_exit_1_with_the_hint(error, monkeypatch, capsys,
+                                                         no_env_traceback):
+    def broken(args):
+        raise error
+
+    monkeypatch.setattr(_doctor(), "_run", broken)
+    assert main(["doctor"]) == EXIT_INTERNAL == 1
+    line = error_line(capsys)
+    name = type(error).__name__
+    assert line.startswith(f"sq-mitsuba doctor: internal error: {name}"), line
+    assert "--traceback" in line and TRACEBACK_ENV in line
+    if str(error):
+        assert str(error) in line
+    else:
+        assert f"{name}:" not in line  # no empty message after the name
+
+
+def test_internal_error_message_is_joined_into_one_line(monkeypatch, capsys, no_env_traceback):
+    monkeypatch.setattr(_doctor(), "_run", _raise_bug)
+    assert main(["doctor"]) == EXIT_INTERNAL
+    assert "RuntimeError: step 3 of the bug; second line" in error_line(capsys)
+
+
+def test_internal_error_with_traceback_propagates(monkeypatch, capsys, no_env_traceback):
+    monkeypatch.setattr(_doctor(), "_run", _raise_bug)
+    with pytest.raises(RuntimeError, match="step 3 of the bug"):
+        main(["--traceback", "doctor"])
+    monkeypatch.setenv(TRACEBACK_ENV, "1")
+    with pytest.raises(RuntimeError, match="step 3 of the bug"):
+        main(["doctor"])
+    assert capsys.readouterr().err == ""
+
+
+def test_internal_error_still_removes_the_failed_runs_output(tmp_path, monkeypatch, capsys,
+                                                            no_env_traceback):
+    def half_done(args):
+        args.out.mkdir(parents=True)
+        (args.out / "report.md").write_text("half")
+        raise KeyError("missing column")
+
+    monkeypatch.setattr(importlib.import_module("sq_mitsuba.cli.report"), "_run", half_done)
+    argv = ["report", str(tmp_path), "--out", str(tmp_path / "new" / "out")]
+    assert main(argv) == 1
+    assert "internal error: KeyError: 'missing column'" in error_line(capsys)
+    assert not (tmp_path / "new").exists()
+    with pytest.raises(KeyError, match="missing column"):  # and so does --traceback
+        main(["--traceback", *argv])
+    assert not (tmp_path / "new").exists()
+
+
+def test_interrupt_stays_exit_130(monkeypatch, capsys, no_env_traceback):
+    def interrupted(args):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(_doctor(), "_run", interrupted)
+    assert main(["doctor"]) == 130
+    assert error_line(capsys) == "sq-mitsuba doctor: interrupted"
+    assert main(["--traceback", "doctor"]) == 130  # with the traceback printed above
+    err = capsys.readouterr().err
+    assert "Traceback" in err and err.strip().endswith("sq-mitsuba doctor: interrupted")
+
+
+def test_traceback_flag_goes_before_the_command(tmp_path, capsys):
+    with pytest.raises(SystemExit) as stop:
+        main([*_report(tmp_path), "--traceback"])
+    assert stop.value.code == 2
+    assert "unrecognized arguments: --traceback" in capsys.readouterr().err
+
+
+def test_top_level_help_documents_the_traceback_switches(capsys):
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    out = " ".join(capsys.readouterr().out.split())
+    assert "--traceback" in out and f"{TRACEBACK_ENV}=1" in out
+    assert "internal error" in out
+
+
+def test_a_process_prints_pythons_traceback_with_the_flag(tmp_path):
+    """End to end, as the console script runs ``main``: exit 2 with one line, and with
+    --traceback Python's own report of the uncaught exception (exit 1)."""
+    code = "import sys; from sq_mitsuba.cli import main; sys.exit(main(sys.argv[1:]))"
+    env_free = {k: v for k, v in os.environ.items() if k != TRACEBACK_ENV}
+    plain = subprocess.run([sys.executable, "-c", code, *_report(tmp_path)],
+                           capture_output=True, text=True, env=env_free)
+    assert plain.returncode == 2 and plain.stderr.count("\n") == 1, plain.stderr
+    loud = subprocess.run([sys.executable, "-c", code, *_report(tmp_path, "--traceback")],
+                          capture_output=True, text=True, env=env_free)
+    assert loud.returncode == 1
+    assert loud.stderr.startswith("Traceback (most recent call last):")
+    assert loud.stderr.strip().splitlines()[-1].startswith("FileNotFoundError: ")
