@@ -17,8 +17,7 @@ access. ``load_model().predict(images, refine=True)`` runs the whole shipped pat
 """
 
 from sq_mitsuba.llvm import configure_llvm
-
-__version__ = "0.1.0"
+from sq_mitsuba.version import __version__
 
 configure_llvm(required=False)
 

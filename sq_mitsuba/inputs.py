@@ -138,6 +138,12 @@ def _torch_reason(error: BaseException) -> str:
         cause = detail[0] if detail else "an object other than tensors and plain values"
         return (f"refused by the safe loader, which reads tensors and plain values only: "
                 f"{_one_line(cause)}")
+    if (lines and ("PytorchStreamReader" in lines[0] or "miniz" in lines[0])) or (
+            isinstance(error, OSError) and error.errno == 22):  # EINVAL
+        # torch's zip reader: "failed finding central directory. This is an internal miniz
+        # error. If you are seeing this error...", or a seek past the end ("[Errno 22]
+        # Invalid argument"): the file is cut short or damaged.
+        return "corrupt or truncated: not a valid .pt file"
     text = f"{type(error).__name__}: {lines[0]}" if lines else type(error).__name__
     return _one_line(text) if "weights_only" not in text else type(error).__name__
 

@@ -11,19 +11,48 @@
   atomic writes replace whole or not at all.
 
 A run interrupted with Ctrl-C keeps what it wrote (``study illumination`` resumes its renders).
-One folder takes one run at a time: a second run into it would see the first one's temporary
-files as strays.
+
+One output takes one run at a time (a second run into it would see the first one's temporary
+files as strays, and the two would mix their files): :func:`output_lock` holds an exclusive
+lock on the output for the length of a run, and :func:`all_or_nothing` takes it first, so
+every command that writes its ``--out`` through it refuses to start while another process
+writes there.
+
+The lock (:func:`output_lock`): ``fcntl.flock`` on a lock file, :data:`LOCK_NAME` inside the
+output folder (``.<name>.sq-mitsuba.lock`` beside an output file), created with the folder
+when needed and holding the holder's process id and command (for the message only).
+
+- Taken without waiting: a run that finds the output locked stops at once with one line
+  (:class:`OutputBusyError`, a ``ValueError``: exit code 2) naming the output and the process
+  that holds it, before any work.
+- Released on any exit: the lock file is deleted when the block ends (success, error, Ctrl-C),
+  and folders the lock created are removed again when they are still empty.
+- Stale locks cannot block: the kernel drops a ``flock`` when its process dies, however it
+  dies (``kill -9`` included), so a lock file a killed run left behind is simply taken over.
+  No process id is ever compared.
+- Re-entrant within one process (a command that locks its output and then calls a library
+  function that locks the same output); another process is always refused.
+- Where the lock file cannot be created (a file in the way, a folder that cannot be written),
+  the block runs unlocked: the command then stops with its own one-line error about the
+  output.
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
+import os
 import re
 import shutil
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 
-__all__ = ["TEMPORARY_NAME", "all_or_nothing", "remove_stray_temporaries"]
+__all__ = ["LOCK_NAME", "TEMPORARY_NAME", "OutputBusyError", "all_or_nothing", "lock_path",
+           "output_lock", "remove_stray_temporaries"]
+
+#: The lock file of :func:`output_lock` inside an output folder.
+LOCK_NAME = ".sq-mitsuba.lock"
 
 #: The name of a temporary file of :func:`sq_mitsuba.io.atomic_path`: ``.<stem>.`` then
 #: ``tempfile``'s eight random characters, then ``.tmp<suffix>``.
@@ -58,29 +87,181 @@ def _first_missing(path: Path) -> Path | None:
     return missing
 
 
+# ----------------------------------------------------------------------------- the lock
+
+
+class OutputBusyError(ValueError):
+    """Another process holds the lock on the output: one line naming the output and it."""
+
+
+#: Locks this process holds: lock file -> (open descriptor, depth).
+_HELD: dict[Path, list[int]] = {}
+
+
+def lock_path(out: str | Path, file: bool = False) -> Path:
+    """The lock file of the output ``out``: ``out/.sq-mitsuba.lock`` for a folder,
+    ``.<name>.sq-mitsuba.lock`` beside it for a file (``file``)."""
+    out = Path(out)
+    return out.parent / f".{out.name}{LOCK_NAME}" if file else out / LOCK_NAME
+
+
+def _holder(path: Path) -> str:
+    """Who holds the lock file ``path``, from what it records (for the message)."""
+    try:
+        text = path.read_text(encoding="utf-8").split()
+    except OSError:
+        text = []
+    if text and text[0].isdigit():
+        command = " ".join(text[1:])
+        return f"process {text[0]}" + (f", {command}" if command else "")
+    return "another process"
+
+
+def _command_name() -> str:
+    name = Path(sys.argv[0]).name if sys.argv and sys.argv[0] else "python"
+    if name in ("__main__.py", "-m", "-c"):  # python -m sq_mitsuba
+        name = "sq-mitsuba"
+    words = [name, *(w for w in sys.argv[1:3] if not w.startswith("-"))]
+    return " ".join(words)[:120]
+
+
+def _acquire(path: Path, out: Path, command: str | None) -> int:
+    """Open and ``flock`` the lock file ``path`` without waiting; its descriptor."""
+    import fcntl
+
+    for _ in range(100):
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        except FileNotFoundError:  # a failed run's cleanup removed the folder: make it again
+            path.parent.mkdir(parents=True, exist_ok=True)
+            continue
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as error:
+            os.close(fd)
+            if error.errno not in (errno.EAGAIN, errno.EACCES, errno.EWOULDBLOCK):
+                raise
+            where = "folder" if path.parent == out else "file"
+            raise OutputBusyError(
+                f"{out}: another run is writing into this {where} ({_holder(path)}); wait "
+                f"for it to finish, or choose another output") from None
+        # The holder before us may have deleted the file between our open and our lock:
+        # then we hold a lock on a file no one else can find; start again.
+        try:
+            same = os.path.samestat(os.fstat(fd), os.stat(path))
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
+        os.close(fd)
+    else:
+        raise OSError(errno.EAGAIN, "the lock file keeps disappearing", str(path))
+    os.ftruncate(fd, 0)
+    os.write(fd, f"{os.getpid()} {command or _command_name()}\n".encode())
+    return fd
+
+
 @contextlib.contextmanager
-def all_or_nothing(out: str | Path | None, file: bool = False) -> Iterator[None]:
+def output_lock(out: str | Path, file: bool = False, command: str | None = None
+                ) -> Iterator[Path]:
+    """Hold the lock on the output ``out`` for the block (see the module docstring).
+
+    Args:
+        out: the output folder (created, with its parents, when missing), or with ``file``
+            the output file (its folder is created).
+        file: ``out`` is one file.
+        command: what runs, for the message another run prints (default: the command line's
+            first words).
+
+    Yields:
+        The output folder (``out``, or its parent with ``file``).
+
+    Raises:
+        OutputBusyError: another process holds the lock (a ``ValueError``, one line); raised
+            before anything is created or changed except folders a concurrent run also made.
+    """
+    out = Path(out)
+    folder = out.parent if file else out
+    path = lock_path(out, file)
+    key = path.resolve()
+    if key in _HELD:  # this process holds it already: re-entrant
+        _HELD[key][1] += 1
+        try:
+            yield folder
+        finally:
+            _HELD[key][1] -= 1
+        return
+    created = _first_missing(folder)
+    fd = None
+    try:
+        if not (folder.exists() and not folder.is_dir()):
+            folder.mkdir(parents=True, exist_ok=True)
+            fd = _acquire(path, out, command)
+    except OutputBusyError:
+        _remove_empty(created, folder)
+        raise
+    except OSError:  # no lock file can be made here: the command reports its own error
+        pass
+    if fd is None:  # runs unlocked (see the module docstring)
+        _remove_empty(created, folder)
+        yield folder
+        return
+    _HELD[key] = [fd, 1]
+    try:
+        yield folder
+    finally:
+        del _HELD[key]
+        with contextlib.suppress(OSError):  # gone already (the folder removed by a cleanup)
+            if os.path.samestat(os.fstat(fd), os.stat(path)):
+                path.unlink()
+        os.close(fd)  # releases the lock
+        _remove_empty(created, folder)
+
+
+def _remove_empty(created: Path | None, folder: Path) -> None:
+    """Remove ``folder`` and its parents up to ``created`` while they are empty."""
+    if created is None:
+        return
+    for candidate in (folder, *folder.parents):
+        try:
+            candidate.rmdir()
+        except OSError:  # not empty (another run's, or output written), or gone
+            return
+        if candidate == created:
+            return
+
+
+# ----------------------------------------------------------------------------- all or nothing
+
+
+@contextlib.contextmanager
+def all_or_nothing(out: str | Path | None, file: bool = False, lock: bool = True,
+                   command: str | None = None) -> Iterator[None]:
     """Run the block as a command writing into ``out`` (see the module docstring).
 
     Args:
         out: the output folder; None: no cleanup.
         file: ``out`` is one output file instead (its stray temporaries lie beside it).
+        lock: hold :func:`output_lock` on ``out`` for the block, taken first (another run
+            into ``out`` is refused with :class:`OutputBusyError` before anything else).
+        command: the command, for the message another run prints.
     """
     if out is None:
         yield
         return
     out = Path(out)
-    created = _first_missing(out)
-    before = set(out.iterdir()) if out.is_dir() and not file else None
-    if file:
-        remove_stray_temporaries(out.parent, of=out.name)
-    else:
-        remove_stray_temporaries(out)
-    try:
-        yield
-    except Exception:
-        _remove_added(out, created, before)
-        raise
+    created = _first_missing(out)  # before the lock makes the folder
+    with output_lock(out, file, command) if lock else contextlib.nullcontext():
+        before = set(out.iterdir()) if out.is_dir() and not file else None
+        if file:
+            remove_stray_temporaries(out.parent, of=out.name)
+        else:
+            remove_stray_temporaries(out)
+        try:
+            yield
+        except Exception:
+            _remove_added(out, created, before)
+            raise
 
 
 def _remove_added(out: Path, created: Path | None, before: set[Path] | None) -> None:

@@ -101,7 +101,7 @@ def test_internal_error_with_traceback_propagates(monkeypatch, capsys, no_env_tr
 def test_internal_error_still_removes_the_failed_runs_output(tmp_path, monkeypatch, capsys,
                                                             no_env_traceback):
     def half_done(args):
-        args.out.mkdir(parents=True)
+        args.out.mkdir(parents=True, exist_ok=True)  # the output lock may have made it
         (args.out / "report.md").write_text("half")
         raise KeyError("missing column")
 

@@ -107,3 +107,70 @@ def test_top_level_help_imports_neither_torch_nor_mitsuba():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True).stdout
     assert out.splitlines()[-1] == "HEAVY []"
+
+
+def test_version_prints_the_package_version(capsys):
+    from sq_mitsuba import __version__
+
+    with pytest.raises(SystemExit) as stop:
+        main(["--version"])
+    assert stop.value.code == 0
+    assert capsys.readouterr().out == f"sq-mitsuba {__version__}\n"
+
+
+def _leaf_fields(config_class: type, prefix: str = "") -> list[str]:
+    """Dotted names of every field ``--set`` can change (nested configs walked into)."""
+    import dataclasses
+    import typing
+
+    names = []
+    hints = typing.get_type_hints(config_class)
+    for item in dataclasses.fields(config_class):
+        annotation = hints[item.name]
+        members = [a for a in typing.get_args(annotation) if a is not type(None)]
+        if len(members) == 1 and typing.get_origin(annotation) is not None:
+            annotation = members[0]
+        if dataclasses.is_dataclass(annotation):
+            names += _leaf_fields(annotation, f"{prefix}{item.name}.")
+        else:
+            names.append(f"{prefix}{item.name}")
+    return names
+
+
+SET_PARSERS = [(path, parser) for path, parser in PARSERS
+               if parser.get_default("_set_class") is not None]
+
+
+def test_some_commands_have_set():
+    assert {path for path, _ in SET_PARSERS} >= {("eval",), ("predict",), ("fit",)}
+
+
+@pytest.mark.parametrize(("path", "parser"), SET_PARSERS,
+                         ids=[" ".join(path) for path, _ in SET_PARSERS])
+def test_set_help_lists_every_settable_field(path, parser):
+    """`--set` help names every field (a nested config's as `name.{a, b}`)."""
+    config_class = parser.get_default("_set_class")
+    text = " ".join(_help_of_option(parser, "--set").split())
+    listed = text.split("Fields: ", 1)[1]
+    words = set(listed.replace("{", " ").replace("}", " ").replace(",", " ").split())
+    for name in _leaf_fields(config_class):
+        *outer, leaf = name.split(".")
+        assert all(f"{part}.{{" in listed for part in outer), (name, listed)
+        assert leaf in words or f"{leaf}.KEY" in words, (name, listed)
+
+
+def _parser_of(*path: str) -> argparse.ArgumentParser:
+    return dict(PARSERS)[path]
+
+
+def test_help_texts_say_what_a_user_needs():
+    top = _subparsers(build_parser())
+    assert "issues" not in (top["bench"].description or "")
+    bench_help = next(a for a in build_parser()._actions
+                      if isinstance(a, argparse._SubParsersAction))._choices_actions
+    bench_line = next(a.help for a in bench_help if a.dest == "bench")
+    assert "issues" not in bench_line and "time" in bench_line
+    half = " ".join(_help_of_option(_parser_of("export"), "--half").split())
+    assert "module note" not in half and "half the file size" in half
+    preview = _parser_of("models", "preview").description or ""
+    assert "contact_sheet.png" in preview and "suffix" in preview

@@ -49,13 +49,45 @@ def test_import_batch_continues_past_bad_files(tmp_path, capsys) -> None:
     code = main(["models", "import", str(empty), str(good), str(nan), "--out", str(out),
                  "--points", "500"])
     assert code == 1
-    err = capsys.readouterr().err
+    captured = capsys.readouterr()
+    err = captured.err
     assert "2 failed" in err and "empty.obj" in err and "nan.obj" in err
+    # Only the written import is reported with its name; the failed ones only as failures.
+    assert "good.stl -> good" in captured.out and "empty.obj ->" not in captured.out
+    assert "nan.obj ->" not in captured.out
     assert sorted(p.name for p in out.iterdir()) == ["good"]
     card = json.loads((out / "good" / "models" / "model_card.json").read_text())
     assert card["extents"] == [1.0, 0.66666667, 0.33333333]
 
 
+def test_a_folder_given_as_a_mesh_is_named_a_folder(tmp_path, capsys) -> None:
+    folder = tmp_path / "meshes.obj"
+    folder.mkdir()
+    assert main(["models", "import", str(folder), "--out", str(tmp_path / "lib")]) != 0
+    assert "is a folder" in capsys.readouterr().err
+
+
 def test_bad_arguments_exit_2(tmp_path) -> None:
     assert main(["models", "generate", "--count", "0", "--out", str(tmp_path)]) == 2
     assert main(["models", "preview", str(tmp_path)]) == 2
+
+
+def test_composed_generator_keeps_the_held_out_families_apart(tmp_path) -> None:
+    from sq_mitsuba.data.spacecraft import HELD_OUT_FAMILIES
+
+    training, held_out = tmp_path / "training", tmp_path / "held_out"
+    for out, families in ((training, "training"), (held_out, "held-out")):
+        assert main(["models", "generate", "--generator", "composed", "--families", families,
+                     "--count", "5", "--seed", "3", "--points", "500", "--out", str(out)]
+                    ) == 0
+    rows = {path: [line.split(",") for line in (path / "splits.csv").read_text().split()]
+            for path in (training, held_out)}
+    family = {name: name.split("_", 1)[1] for rows_ in rows.values() for name, _ in rows_}
+    assert len(rows[training]) == len(rows[held_out]) == 5
+    assert all(name.startswith("cs") for name in family)
+    assert not any(family[name] in HELD_OUT_FAMILIES for name, _ in rows[training])
+    assert all(family[name] in HELD_OUT_FAMILIES and split == "test"
+               for name, split in rows[held_out])
+    # The archetype catalogue has no held-out families to choose.
+    assert main(["models", "generate", "--families", "held-out", "--count", "2",
+                 "--out", str(tmp_path / "x")]) == 2

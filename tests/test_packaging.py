@@ -84,3 +84,12 @@ def test_wheel_ships_the_trained_model(wheel):
     assert shipped.is_file(), "the shipped model is part of the repository"
     with zipfile.ZipFile(wheel) as archive:
         assert archive.read("sq_mitsuba/model/weights/model.pt") == shipped.read_bytes()
+
+
+def test_the_version_is_the_one_pyproject_declares():
+    import tomllib
+
+    import sq_mitsuba
+
+    declared = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["version"]
+    assert sq_mitsuba.__version__ == declared

@@ -58,10 +58,67 @@ def test_report_holds_ours_and_the_papers_numbers_with_the_best_in_bold(tmp_path
     assert "0.137 ± 0.081" in report  # paper Table 2, M = 8, test Chamfer-L1
     good = read_eval_folder(tmp_path / "good" / "val")["summary"]["network"]["chamfer_l1_paper"]
     assert f"{good[0]:.3f} ± {good[1]:.3f}" in report
-    # The "bad" run is 5 worse everywhere: the paper's value is the best Chamfer in Table 1.
-    assert "**0.054 ± 0.026**" in report
+    # Ours and the paper's are not ranked together: the best of our rows in bold (the "bad"
+    # run is 5 worse everywhere), the best of the paper's rows in italics.
+    ours, paper = _column(report, "Table 1", 1)
+    assert _bold(ours) == [_best(ours, min)]
+    assert "| paper (a) chamfer + reprojection | *0.054 ± 0.026* |" in report
+    assert [cell for cell in paper if cell.startswith("*")] == ["*0.054 ± 0.026*"]
+    assert "**0.054 ± 0.026**" not in report
+    assert "**bold**: the best of our rows" in report
     assert "Not directly comparable" in report
-    assert (tmp_path / "report" / "report.csv").stat().st_size > 0
+    text = (tmp_path / "report" / "report.csv").read_text()
+    assert "*" not in text and f'"{good[0]:.3f} ± {good[1]:.3f}"' in text
+
+
+def _mean(cell: str) -> float:
+    return float(cell.strip("*").split(" ± ")[0])
+
+
+def _bold(cells: list[str]) -> list[str]:
+    return [cell for cell in cells if cell.startswith("**")]
+
+
+def _best(cells: list[str], pick) -> str:
+    """The cell of ``pick``'s mean (min or max), as bold."""
+    return f"**{pick(cells, key=_mean).strip('*')}**"
+
+
+def _column(report: str, table: str, index: int) -> tuple[list[str], list[str]]:
+    """Cells of column ``index`` of ``table`` in report.md: our rows', the paper's rows'."""
+    section = report.split(f"## {table}")[1].split("## ")[0]
+    rows = [line.strip("|").split(" | ") for line in section.splitlines()
+            if line.startswith("| ") and not line.startswith("| run ")]
+    ours = [r[index].strip() for r in rows if not r[0].strip().startswith("paper")]
+    paper = [r[index].strip() for r in rows if r[0].strip().startswith("paper")]
+    return ours, paper
+
+
+def test_report_bolds_among_our_rows_even_where_the_paper_is_better(tmp_path):
+    """Our runs far worse than the paper's: still the best of ours in bold, never a paper
+    value."""
+    for run, offset in (("a", 10.0), ("b", 20.0)):
+        _eval_folder(tmp_path / run / "val", "val", run, offset)
+    report = write_report([tmp_path / "a" / "val", tmp_path / "b" / "val"],
+                          tmp_path / "report").read_text()
+    for index in (1, 2):  # val Chamfer-L1 and E_R, lower is better
+        ours, paper = _column(report, "Table 1", index)
+        assert _bold(ours) == [_best(ours, min)]
+        assert not any(c.startswith("**") for c in paper)
+    ours, _ = _column(report, "Table 1", 3)  # val IoU, higher is better
+    assert _bold(ours) == [_best(ours, max)]
+
+
+def test_report_labels_a_run_as_its_eval_json_records(tmp_path):
+    _eval_folder(tmp_path / "folder_name" / "val", "val", "config (a), 16 epochs", 0.0)
+    report = write_report([tmp_path / "folder_name" / "val"], tmp_path / "report").read_text()
+    assert "| config (a), 16 epochs |" in report and "folder_name" not in report
+    # An eval.json without a label: the checkpoint's run folder, as `sq-mitsuba eval` names it.
+    folder = tmp_path / "other" / "test"
+    _eval_folder(folder, "test", "x", 0.0)
+    atomic_write_json(folder / "eval.json", {"split": "test", "num_primitives": 5,
+                                             "checkpoint": "/runs/stage3/best.pt"})
+    assert read_eval_folder(folder)["label"] == "stage3"
 
 
 def test_report_refuses_a_folder_that_is_not_an_evaluation(tmp_path):

@@ -146,3 +146,19 @@ def test_speed_score_against_hand_values(device):
 def test_bad_input_names_the_argument(call, name):
     with pytest.raises(ValueError, match=name):
         call()
+
+
+def test_axis_angle_matches_the_quaternion_of_the_same_turn():
+    """Reference: the quaternion (cos(a/2), sin(a/2) n) of a turn by a about the axis n."""
+    from sq_mitsuba.geometry.rotation import axis_angle_to_matrix
+
+    generator = torch.Generator().manual_seed(0)
+    axes = torch.randn(16, 3, generator=generator, dtype=torch.float64)
+    axes = axes / axes.norm(dim=1, keepdim=True)
+    angles = torch.rand(16, generator=generator, dtype=torch.float64) * 3.1
+    quaternions = torch.cat([torch.cos(angles / 2)[:, None],
+                             torch.sin(angles / 2)[:, None] * axes], dim=1)
+    torch.testing.assert_close(axis_angle_to_matrix(axes * angles[:, None]),
+                               quaternion_to_matrix(quaternions))
+    torch.testing.assert_close(axis_angle_to_matrix(torch.zeros(3, dtype=torch.float64)),
+                               torch.eye(3, dtype=torch.float64))

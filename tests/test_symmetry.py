@@ -119,7 +119,9 @@ def write_samples(model_dir, points):
 
 def test_model_symmetries_computes_writes_and_reads(tmp_path):
     write_samples(tmp_path / "m", boxes_points(ONLY_Z))
-    matrices = model_symmetries(tmp_path / "m")
+    matrices = model_symmetries(tmp_path / "m")  # reading a model writes nothing beside it
+    assert not (tmp_path / "m" / "models" / SYMMETRIES_FILE).exists()
+    assert np.array_equal(model_symmetries(tmp_path / "m", write=True), matrices)
     assert matrices.shape == (2, 3, 3)
     assert np.array_equal(matrices[0], np.eye(3)) and np.array_equal(matrices[1], HALF_TURNS["z"])
     path = tmp_path / "m" / "models" / SYMMETRIES_FILE
@@ -139,7 +141,7 @@ def test_model_symmetries_from_the_mesh_without_samples(tmp_path):
                         np.zeros(len(mesh.faces), dtype=np.int16))
     (tmp_path / "m" / "models").mkdir(parents=True)
     (tmp_path / "m" / "models" / "model_normalized.obj").write_text(obj_text(tagged))
-    assert model_symmetries(tmp_path / "m").shape == (4, 3, 3)
+    assert model_symmetries(tmp_path / "m", write=True).shape == (4, 3, 3)
     assert (tmp_path / "m" / "models" / SYMMETRIES_FILE).is_file()
 
 
@@ -170,8 +172,13 @@ def test_model_symmetries_missing_folder_and_bad_points(tmp_path):
         detect_symmetries(boxes_points(BOX, 2000), threshold=-1)
     write_samples(tmp_path / "few", boxes_points(BOX, 200))
     with pytest.raises(ValueError, match="surface_points"):
-        model_symmetries(tmp_path / "few")
+        model_symmetries(tmp_path / "few", write=True)
     assert not (tmp_path / "few" / "models" / SYMMETRIES_FILE).exists()
+    points = boxes_points(BOX, 2000)
+    points[3] = np.nan
+    write_samples(tmp_path / "nan", points)
+    with pytest.raises(ValueError, match=r"samples\.npz: surface_points: 1 of 2000 points"):
+        model_symmetries(tmp_path / "nan")
 
 
 def test_stack_symmetries_pads_with_identity():

@@ -66,8 +66,35 @@ def _exported_state(state: dict[str, torch.Tensor], half: bool) -> dict[str, tor
     return out
 
 
+def _trained_on(payload: dict[str, Any]) -> dict[str, Any]:
+    """The training dataset a checkpoint records (a training checkpoint's ``dataset``, an
+    exported one's ``source.dataset``); empty when it records none."""
+    record = payload.get("dataset")
+    if not isinstance(record, dict):
+        source = payload.get("source")
+        record = source.get("dataset") if isinstance(source, dict) else None
+    return record if isinstance(record, dict) else {}
+
+
+def baseline_data_note(payload: dict[str, Any], data_root: Path) -> str | None:
+    """One line when ``data_root`` is not the dataset the checkpoint was trained on (by the
+    content fingerprint it records), else None."""
+    from sq_mitsuba.training.cache import dataset_fingerprint
+
+    recorded = _trained_on(payload).get("fingerprint")
+    if not isinstance(recorded, str):
+        return (f"the checkpoint records no training dataset: the baseline describes "
+                f"{data_root}, which may not be the one it was trained on")
+    if dataset_fingerprint(data_root) == recorded:
+        return None
+    return (f"{data_root} is not the dataset the checkpoint was trained on "
+            f"({_trained_on(payload).get('root')}, fingerprint {recorded[:12]}): the "
+            f"baseline describes {data_root}")
+
+
 def export_model(checkpoint: str | Path, data_root: str | Path | None, out: str | Path,
-                 options: ExportOptions | None = None) -> Path:
+                 options: ExportOptions | None = None, notes: list[str] | None = None
+                 ) -> Path:
     """Write an inference checkpoint for ``checkpoint`` to ``out`` (atomically).
 
     Args:
@@ -76,14 +103,19 @@ def export_model(checkpoint: str | Path, data_root: str | Path | None, out: str 
             baseline is stored.
         out: the file to write; its folder is created.
         options: see :class:`ExportOptions`.
+        notes: gets the lines worth saying (the CLI prints them): which images the
+            baseline describes, and that ``data_root`` is not the checkpoint's training
+            dataset (by the fingerprint the checkpoint records) when it is not.
 
     Returns:
         ``out`` as a Path.
 
     Raises:
         ValueError / FileNotFoundError: a corrupt or mismatched checkpoint (or one whose
-            weights are not finite), ``out`` a folder, or a dataset without training images;
-            checked before ``out`` is touched.
+            weights are not finite), ``out`` a folder, a dataset without training images
+            (or whose training images or points cannot be read), or ``data_root`` given for
+            a checkpoint that stores a baseline already (it would be replaced; without
+            ``data_root`` it is kept); checked before ``out`` is touched.
     """
     options = options or ExportOptions()
     validate(options)
@@ -94,6 +126,20 @@ def export_model(checkpoint: str | Path, data_root: str | Path | None, out: str 
     payload = read_checkpoint(checkpoint)
     model_from_checkpoint(payload, str(checkpoint))  # refuse a mismatched file early
     check_output_folder(out.parent)
+    notes = notes if notes is not None else []
+    if data_root is not None:
+        from sq_mitsuba.data.spe3r import Spe3rDataset
+
+        data_root = Path(data_root)
+        if payload.get("baseline") is not None:
+            raise ValueError(f"{checkpoint}: stores a baseline already, which --data "
+                             f"{data_root} would replace; export without --data to keep it")
+        train = Spe3rDataset(data_root, "train", image_size=8, num_surface=1, num_occupancy=2)
+        if len(train):
+            train.check()  # images and points read by the baseline: refused before work
+        note = baseline_data_note(payload, data_root)
+        if note is not None:
+            notes.append(note)
     exported: dict[str, Any] = {
         "format": FORMAT,
         "version": VERSION,
@@ -113,4 +159,11 @@ def export_model(checkpoint: str | Path, data_root: str | Path | None, out: str 
             options.batch_size)
         exported["baseline"] = {"raw": raw.float(), "rotation": rotation.float(),
                                 "translation": translation.float()}
+        exported["source"]["baseline_data"] = str(data_root)
+        notes.append(f"baseline: the mean prediction and pose over "
+                     f"{min(options.baseline_images, len(train))} training images of "
+                     f"{data_root}")
+    elif payload.get("baseline") is not None:
+        exported["baseline"] = payload["baseline"]  # kept, not silently dropped
+        notes.append(f"baseline: kept from {checkpoint}")
     return write_checkpoint(out, exported)

@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from sq_mitsuba.config import config_hash, to_dict, validate
-from sq_mitsuba.data.masks import read_label_poses, read_masks
+from sq_mitsuba.data.masks import check_not_folder, read_label_poses, read_masks
 from sq_mitsuba.evaluation.figures import plot_fit
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.rotation import quaternion_to_matrix
@@ -30,6 +30,13 @@ from sq_mitsuba.io import atomic_write_json, check_output_folder
 
 OUTPUT_FILES = ("assembly.json", "assembly.glb", "fit.png", "fit_log.json")
 """What :func:`run_fit` writes into its output folder."""
+
+#: Radius (m) of a ball about the body origin that holds any fitted assembly: each primitive
+#: has semi-axes up to 0.5, widened across by the taper up to 1.9 times (so within
+#: sqrt(2 x 0.95^2 + 0.5^2) = 1.44 of its centre), and its centre lies up to 0.5 from the
+#: origin along each axis (0.87 away; :class:`~sq_mitsuba.geometry.assembly.ParameterRanges`):
+#: 2.31, rounded up.
+ASSEMBLY_REACH_M = 2.5
 
 
 @dataclass
@@ -112,6 +119,7 @@ def run_fit(masks: Sequence[str | Path], poses: str | Path, out: str | Path,
     out = check_output_folder(out)
     # Cheap checks first: files present, a label per mask; then the images are decoded.
     for path in mask_paths:
+        check_not_folder(path, "mask")
         if not path.is_file():
             raise FileNotFoundError(f"mask {path}: no such file")
     quaternions, translations = read_label_poses(poses, mask_paths)
@@ -125,6 +133,7 @@ def run_fit(masks: Sequence[str | Path], poses: str | Path, out: str | Path,
     if camera_path is None:
         fit_camera = Camera.default(width).rescaled(width, height)
     else:
+        check_not_folder(camera_path, "camera")
         if not camera_path.is_file():
             raise FileNotFoundError(f"camera {camera_path}: no such file")
         try:
@@ -137,6 +146,7 @@ def run_fit(masks: Sequence[str | Path], poses: str | Path, out: str | Path,
             raise ValueError(f"camera {camera_path}: {fit_camera.width} x {fit_camera.height} "
                              f"px, but the masks ({mask_paths[0]}, ...) are {width} x "
                              f"{height}")
+    _check_depths(mask_paths, images, translations, fit_camera, poses)
     rotations = quaternion_to_matrix(quaternions / quaternions.norm(dim=-1, keepdim=True))
 
     # fit_assembly checks the tensors and the memory the resolution needs before rendering.
@@ -153,4 +163,26 @@ def run_fit(masks: Sequence[str | Path], poses: str | Path, out: str | Path,
     return FitRun(result=result, out=out, masks=mask_paths)
 
 
-__all__ = ["OUTPUT_FILES", "FitRun", "fit_log", "run_fit"]
+def _check_depths(mask_paths: list[Path], masks: Any, translations: Any, camera: Camera,
+                  poses: Path) -> None:
+    """Refuse a pose whose depth puts the object so far that no assembly (within
+    :data:`ASSEMBLY_REACH_M` of its origin) can span its mask: one line naming the labels
+    file and the mask (a depth in millimetres, or a typo, would fit noise)."""
+    focal = max(camera.fx, camera.fy)
+    for k, path in enumerate(mask_paths):
+        rows = masks[k].any(dim=1).nonzero()
+        columns = masks[k].any(dim=0).nonzero()
+        extent = max(int(rows[-1] - rows[0]), int(columns[-1] - columns[0])) + 1
+        depth = float(translations[k, 2])
+        if depth <= ASSEMBLY_REACH_M:
+            continue
+        widest = 2 * ASSEMBLY_REACH_M * focal / (depth - ASSEMBLY_REACH_M)
+        if widest < extent:
+            raise ValueError(f"labels {poses}: the pose of {path.name!r} puts the object at "
+                             f"z = {depth:g} m, where an assembly (at most "
+                             f"{2 * ASSEMBLY_REACH_M:.2f} m across) spans at most "
+                             f"{widest:.3g} px, but its mask spans {extent} px (a depth in "
+                             "other units than metres?)")
+
+
+__all__ = ["ASSEMBLY_REACH_M", "OUTPUT_FILES", "FitRun", "fit_log", "run_fit"]

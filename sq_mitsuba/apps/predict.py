@@ -28,6 +28,16 @@ padding) with ``padded_to`` and a warning. A crop keeps the camera frame, so the
 no change. An explicit ``camera`` of another aspect ratio is a one-line error naming the
 file instead.
 
+Target (``min_target``): every image gets the predictor's target-present score
+(``Prediction.target_score``: the mask head's most confident pixel, or the segmentation for a
+model without one, and 0 for an image of noise; see
+:func:`sq_mitsuba.inference.images.target_scores`). Convention: an image scoring below
+``min_target`` (0.92) shows no target: it is not refined, and its outputs are
+``<stem>.pose.json`` alone, with ``"target": false``, its score and no pose (files of that
+stem left by an earlier run are removed, so the folder does not hold a pose of nothing); the
+printed line says "no target", and the command still succeeds (exit code 0).
+``--set min_target=0`` takes every image for a target.
+
 Refinement (``refine``): the shipped path of ``Predictor.predict(images, refine=True)``
 (:mod:`sq_mitsuba.inference.pipeline`: the turned copies' reading, a global pose search, then
 refinement of its best few), against a mask: the given masks (one
@@ -38,7 +48,9 @@ per image, same size; bright = target, converted and thresholded as
 the mask fitted. Silhouettes cannot tell apart poses with the same outline.
 
 Every input is read and checked before the first prediction: a bad one is a one-line error
-naming the file, and nothing is written.
+naming the file, and nothing is written. What the network's reading decides (a target whose
+mask cannot be segmented or is empty) is checked after the network's pass over every image,
+and every file is written only once all images are done: a failure writes nothing.
 """
 
 from __future__ import annotations
@@ -54,6 +66,7 @@ import torch
 from sq_mitsuba.apps.overlay import NETWORK_COLOUR, REFINED_COLOUR, overlay_image
 from sq_mitsuba.apps.padding import MAX_PADDING_GROWTH, Padding, padded_camera, padding_to_aspect
 from sq_mitsuba.config import in_range, validate
+from sq_mitsuba.inference.images import DEFAULT_MIN_TARGET
 from sq_mitsuba.inference.refine import RefineOptions
 from sq_mitsuba.inference.search import SEARCH_REFINEMENT, SearchOptions
 
@@ -66,9 +79,14 @@ class PredictOptions:
     """Settings of ``sq-mitsuba predict``."""
 
     refine: bool = False
-    "Search the pose and refine it at test time against a mask (given, or read from the image)."
+    ("Search the pose and refine it at test time against a mask: --mask, else the network's "
+     "mask head (the image's segmentation for a model without one)")
     mask: Literal["network", "segmentation"] = "network"
-    "Without --mask: the network's mask head (segmentation for a model without one)."
+    ("Without --mask, the mask to refine against: 'network' (the network's mask head; the "
+     "image's segmentation for a model without one) or 'segmentation'")
+    min_target: float = in_range(0.0, 1.0, default=DEFAULT_MIN_TARGET)
+    ("Target-present score from which an image shows a target; below it: 'no target', only "
+     "pose.json written (0: every image)")
     search: SearchOptions = field(default_factory=SearchOptions)
     "Global pose search settings."
     refinement: RefineOptions = field(default_factory=lambda: SEARCH_REFINEMENT)
@@ -90,9 +108,12 @@ class PredictRecord:
         network_ms: the network's time for this image (after one untimed warm-up call on
             the first image); refine_ms: the search and refinement's (0 when not refined),
             search_ms: the search's part of it.
-        iou_before, iou_after: the search's best soft IoU (search resolution) and the
-            refinement's IoU (refinement resolution) against the mask; mask_source: the mask
-            fitted ("file", "network" or "segmentation"); warning: the segmentation's, if any.
+        iou_before, iou_after: the search's best soft IoU (at ``search_resolution`` px) and
+            the refinement's IoU (at ``refine_resolution`` px) against the mask; mask_source:
+            the mask fitted ("file", "network" or "segmentation"); warning: the
+            segmentation's, if any.
+        target, target_score, min_target: whether the image shows a target (its score at
+            least ``min_target``; see the module docstring).
     """
 
     image: Path
@@ -104,14 +125,25 @@ class PredictRecord:
     iou_before: float | None = None
     iou_after: float | None = None
     warning: str | None = None
+    target: bool = True
+    target_score: float = 1.0
+    min_target: float = DEFAULT_MIN_TARGET
+    search_resolution: int = 0
+    refine_resolution: int = 0
 
     def describe(self) -> str:
-        """One line: the image, its times and (when refined) the IoUs."""
-        text = f"{self.image}: network {self.network_ms:.1f} ms"
+        """One line: the image, whether it shows a target, its times and (when refined) what
+        the search and the refinement scored."""
+        if not self.target:
+            return (f"{self.image}: no target (target score {self.target_score:.3f} < "
+                    f"min_target {self.min_target:g}); wrote its pose.json only")
+        text = (f"{self.image}: target score {self.target_score:.3f}, network "
+                f"{self.network_ms:.1f} ms")
         if self.iou_before is not None:
             text += (f", searched and refined in {self.refine_ms:.0f} ms against the "
-                     f"{self.mask_source} mask (IoU {self.iou_before:.3f} -> "
-                     f"{self.iou_after:.3f})")
+                     f"{self.mask_source} mask (the search's soft IoU "
+                     f"{self.iou_before:.3f} at {self.search_resolution} px, the refined "
+                     f"IoU {self.iou_after:.3f} at {self.refine_resolution} px)")
         return text + (f"; warning: {self.warning}" if self.warning else "")
 
 
@@ -130,13 +162,25 @@ def has_mask_head(predictor: Any) -> bool:
                 or getattr(config, "mask_head", False))
 
 
+def check_unique_stems(paths: list[Path]) -> None:
+    """One-line ``ValueError`` naming ``images`` when two inputs share a stem (their output
+    files, named by the stem, would overwrite each other)."""
+    stems = [p.stem for p in paths]
+    if len(set(stems)) != len(stems):
+        twice = sorted({s for s in stems if stems.count(s) > 1})
+        raise ValueError(f"images: several inputs are named {twice[0]!r} (without suffix); "
+                         "their outputs would overwrite each other")
+
+
 def _check_inputs(paths: list[Path], camera: Any, masks: list[Path] | None,
                   options: PredictOptions, pad: bool, predictor: Any = None
-                  ) -> tuple[list[np.ndarray], list[np.ndarray] | None, list[str | None],
-                             list[Padding | None]]:
+                  ) -> tuple[list[np.ndarray], list[np.ndarray | str] | None,
+                             list[str | None], list[Padding | None]]:
     """Read every image (and mask) and check them; returns the pictures and targets (padded
     to the camera's aspect ratio where ``pad`` allows and an image needs it), a warning and a
-    :class:`Padding` (or None) per image."""
+    :class:`Padding` (or None) per image. A target that cannot be segmented is the error
+    message instead of a mask: an error only for an image that shows a target (known after
+    the network's pass)."""
     from sq_mitsuba.data.masks import read_gray_image, read_mask
     from sq_mitsuba.data.segmentation import segment_target
 
@@ -146,11 +190,7 @@ def _check_inputs(paths: list[Path], camera: Any, masks: list[Path] | None,
         raise ValueError("masks: only used with refinement (--refine)")
     if masks is not None and len(masks) != len(paths):
         raise ValueError(f"masks: {len(masks)} given for {len(paths)} images (one per image)")
-    stems = [p.stem for p in paths]
-    if len(set(stems)) != len(stems):
-        twice = sorted({s for s in stems if stems.count(s) > 1})
-        raise ValueError(f"images: several inputs are named {twice[0]!r} (without suffix); "
-                         "their outputs would overwrite each other")
+    check_unique_stems(paths)
     pictures, paddings = [], []
     for path in paths:
         picture = read_gray_image(path)
@@ -184,15 +224,16 @@ def _check_inputs(paths: list[Path], camera: Any, masks: list[Path] | None,
             try:
                 segmentation = segment_target(picture)
             except ValueError as error:
-                raise ValueError(f"image {path}: cannot segment the target for refinement "
-                                 f"({error}); pass a mask (--mask)") from None
+                targets.append(f"image {path}: cannot segment the target for refinement "
+                               f"({error}); pass a mask (--mask)")
+                continue
             targets.append(segmentation.mask)
             warnings[k] = segmentation.warning
     for k, padding in enumerate(paddings):
         if padding is None:
             continue
         pictures[k] = padding.pad(pictures[k])
-        if targets is not None:
+        if targets is not None and not isinstance(targets[k], str):
             targets[k] = padding.pad(targets[k])
         warnings[k] = "; ".join(w for w in (padding.describe(), warnings[k]) if w)
     return pictures, targets, warnings, paddings
@@ -217,11 +258,10 @@ def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
     Returns:
         One :class:`PredictRecord` per image, in order.
     """
-    from PIL import Image
     from tqdm import tqdm
 
     from sq_mitsuba.inference.loading import with_fast_path
-    from sq_mitsuba.io import atomic_path, atomic_write_json, check_output_folder
+    from sq_mitsuba.io import check_output_folder
     from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer, render_assembly
 
     options = options or PredictOptions()
@@ -234,26 +274,50 @@ def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
                                                           pad=not explicit_camera,
                                                           predictor=predictor)
     out = check_output_folder(out_dir)
-    predictor = with_fast_path(predictor, options.fast)
-    out.mkdir(parents=True, exist_ok=True)
+    predictor = with_fast_path(predictor, options.fast, min_target=options.min_target)
     # One untimed call first: the first run of a network sets up its kernels (~1 s), which
     # would otherwise count against the first image.
     predictor.predict(torch.from_numpy(pictures[0]).float()[None],
                       padded_camera(camera, pictures[0].shape[1], pictures[0].shape[0]))
-    renderers: dict[Any, Any] = {}
-    records = []
-    for k, (path, picture) in enumerate(tqdm(list(zip(paths, pictures, strict=True)),
-                                             desc="predict", unit="img",
-                                             disable=not progress)):
+    # The network's pass over every image first (milliseconds each): what it decides (which
+    # images show a target, and so which need their mask) is checked before the search.
+    readings = []
+    for k, (path, picture) in enumerate(zip(paths, pictures, strict=True)):
         image_camera = padded_camera(camera, picture.shape[1], picture.shape[0])
-        padding = paddings[k]
-        if image_camera not in renderers:
-            renderers[image_camera] = SilhouetteRenderer(image_camera, spp=options.overlay_spp)
-        renderer = renderers[image_camera]
         tick = time.perf_counter()
         prediction = predictor.predict(torch.from_numpy(picture).float()[None], image_camera)
         record = PredictRecord(path, [], 1000 * (time.perf_counter() - tick),
-                               warning=warnings[k])
+                               warning=warnings[k], target=bool(prediction.target[0]),
+                               target_score=float(prediction.target_score[0]),
+                               min_target=predictor.min_target)
+        if record.target and options.refine and targets is not None \
+                and isinstance(targets[k], str):
+            raise ValueError(targets[k])  # a target to refine, but no mask to refine against
+        readings.append((image_camera, prediction, record))
+    outputs: list[tuple[PredictRecord, dict[str, Any], Any, np.ndarray | None]] = []
+    renderers: dict[Any, Any] = {}
+    for k, (path, picture) in enumerate(tqdm(list(zip(paths, pictures, strict=True)),
+                                             desc="predict", unit="img",
+                                             disable=not progress)):
+        image_camera, prediction, record = readings[k]
+        padding = paddings[k]
+        own_camera = image_camera if padding is None else padding.crop_camera(image_camera)
+        pose: dict[str, Any] = {
+            "image": str(path), "width": own_camera.width, "height": own_camera.height,
+            "image_mode": _image_mode(path), "target": record.target,
+            "target_score": record.target_score, "min_target": record.min_target,
+        }
+        if not record.target:
+            pose.update(camera=own_camera.to_speed_dict(),
+                        checkpoint=str(getattr(predictor, "source", None) or ""),
+                        refined=False, network_ms=round(record.network_ms, 3))
+            if padding is not None:
+                pose["padded_to"] = [padding.padded_width, padding.padded_height]
+            outputs.append((record, pose, None, None))
+            continue
+        if image_camera not in renderers:
+            renderers[image_camera] = SilhouetteRenderer(image_camera, spp=options.overlay_spp)
+        renderer = renderers[image_camera]
         assembly, rotation, translation = (prediction.assembly, prediction.rotation,
                                            prediction.translation)
         quaternion = prediction.quaternion
@@ -273,8 +337,9 @@ def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
                 search=options.search, refinement=options.refinement)
             fit = fitted.fit
             if not bool(fit.fitted[0]):
-                raise ValueError(f"image {path}: the network's mask is empty (nothing to fit); "
-                                 "pass a mask (--mask) or --set mask=segmentation")
+                raise ValueError(f"image {path}: the network's mask of it is empty (no pixel "
+                                 "above 0.5 after the turned copies' mean), nothing to refine "
+                                 "against; pass a mask (--mask) or --set mask=segmentation")
             record.mask_source = ("file" if mask_paths is not None else "segmentation") \
                 if given else fit.mask_source
             outline = fit.mask[0].numpy()
@@ -285,18 +350,13 @@ def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
             quaternion = fitted.quaternion
             record.iou_before = float(fit.search_score[0])
             record.iou_after = float(fit.iou[0])
+            record.search_resolution = options.search.resolution
+            record.refine_resolution = options.refinement.resolution
             with torch.no_grad():
                 after = render_assembly(assembly, rotation, translation, renderer,
                                         options.level)[0].numpy()
             layers.append((after, REFINED_COLOUR))
-        stem = out / path.stem
-        record.files.append(assembly.save(Path(f"{stem}.assembly.json")))
-        record.files.append(assembly.export(Path(f"{stem}.obj"), level=options.level))
-        record.files.append(assembly.export(Path(f"{stem}.glb"), level=options.level))
-        own_camera = image_camera if padding is None else padding.crop_camera(image_camera)
-        pose = {
-            "image": str(path), "width": own_camera.width, "height": own_camera.height,
-            "image_mode": _image_mode(path),
+        pose.update({
             "q_vbs2tango": [float(v) for v in quaternion[0]],
             "r_Vo2To_vbs": [float(v) for v in translation[0]],
             "convention": "x_cam = R(q) x_body + r; OpenCV camera frame (x right, y down, "
@@ -304,28 +364,54 @@ def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
             "camera": own_camera.to_speed_dict(),
             "checkpoint": str(getattr(predictor, "source", None) or ""),
             "refined": options.refine, "network_ms": round(record.network_ms, 3),
-        }
+        })
         if options.refine:
             pose.update(refine_ms=round(record.refine_ms, 3),
                         search_ms=round(record.search_ms, 3), search_score=record.iou_before,
-                        iou_after=record.iou_after, mask_source=record.mask_source,
+                        search_resolution=record.search_resolution,
+                        iou_after=record.iou_after,
+                        refine_resolution=record.refine_resolution,
+                        mask_source=record.mask_source,
                         mask=str(mask_paths[k]) if mask_paths is not None
                         else record.mask_source)
         if padding is not None:
             pose["padded_to"] = [padding.padded_width, padding.padded_height]
         if record.warning:
             pose["warning"] = record.warning
-        atomic_write_json(Path(f"{stem}.pose.json"), pose)
-        record.files.append(Path(f"{stem}.pose.json"))
+        overlay = overlay_image(picture, layers, outline)
+        if padding is not None:
+            overlay = padding.crop(overlay)
+        outputs.append((record, pose, assembly, overlay))
+    out.mkdir(parents=True, exist_ok=True)
+    return [_write_outputs(out / record.image.stem, record, pose, assembly, overlay,
+                           options.level) for record, pose, assembly, overlay in outputs]
+
+
+def _write_outputs(stem: Path, record: PredictRecord, pose: dict[str, Any], assembly: Any,
+                   overlay: np.ndarray | None, level: int) -> PredictRecord:
+    """Write one image's files (:data:`OUTPUT_SUFFIXES`; its pose.json alone, and the stem's
+    other files of an earlier run removed, for an image without a target)."""
+    from PIL import Image
+
+    from sq_mitsuba.io import atomic_path, atomic_write_json
+
+    files = record.files
+    if assembly is None:
+        for suffix in OUTPUT_SUFFIXES:
+            if suffix != ".pose.json":
+                Path(f"{stem}{suffix}").unlink(missing_ok=True)
+    else:
+        files.append(assembly.save(Path(f"{stem}.assembly.json")))
+        files.append(assembly.export(Path(f"{stem}.obj"), level=level))
+        files.append(assembly.export(Path(f"{stem}.glb"), level=level))
+    atomic_write_json(Path(f"{stem}.pose.json"), pose)
+    files.append(Path(f"{stem}.pose.json"))
+    if overlay is not None:
         overlay_path = Path(f"{stem}.overlay.png")
         with atomic_path(overlay_path) as tmp:
-            overlay = overlay_image(picture, layers, outline)
-            if padding is not None:
-                overlay = padding.crop(overlay)
             Image.fromarray(overlay, "RGB").save(tmp, format="PNG")
-        record.files.append(overlay_path)
-        records.append(record)
-    return records
+        files.append(overlay_path)
+    return record
 
 
 def predict_images(images: list[str | Path], out_dir: str | Path,
@@ -341,8 +427,11 @@ def predict_images(images: list[str | Path], out_dir: str | Path,
 
     options = options or PredictOptions()
     validate(options)
+    from sq_mitsuba.data.masks import check_not_folder
+
     image_camera = None
     if camera is not None:
+        check_not_folder(camera, "camera")
         try:
             image_camera = Camera.load(camera)
         except FileNotFoundError:

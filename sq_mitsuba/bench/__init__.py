@@ -37,7 +37,40 @@ class BenchOptions:
     threads: int = in_range(1, 1024, default=2)
     "Torch CPU threads (2: the reference machine)."
     device: str = "cpu"
-    "Torch device of the suites that use one (cpu or cuda)."
+    "Torch device of the suites that use one (cpu, cuda or cuda:N)."
+
+    def __post_init__(self) -> None:
+        if not _DEVICE.fullmatch(self.device):
+            raise ValueError(f"device: {self.device!r} is not a device; expected cpu, cuda or "
+                             "cuda:N")
+
+
+#: The device names of :class:`BenchOptions`: the CPU, or a CUDA GPU (by index).
+_DEVICE = re.compile(r"cpu|cuda(:[0-9]+)?")
+
+
+def check_device(name: str) -> None:
+    """Raise ``ValueError`` (``device: ...``, one line) unless ``name`` is a device this torch
+    can use: ``cpu``, or ``cuda`` / ``cuda:N`` with CUDA available and GPU ``N`` present.
+    Checked before any suite runs, so that a bad ``--device`` is bad input, not a failure
+    halfway through."""
+    if not _DEVICE.fullmatch(name):
+        raise ValueError(f"device: {name!r} is not a device; expected cpu, cuda or cuda:N")
+    if name == "cpu":
+        return
+    import torch
+
+    if torch.version.cuda is None:
+        raise ValueError(f"device: {name!r}: CUDA is not available in this torch build "
+                         f"(torch {torch.__version__}); use cpu")
+    if not torch.cuda.is_available():
+        raise ValueError(f"device: {name!r}: CUDA is not available (torch "
+                         f"{torch.__version__} sees no CUDA GPU); use cpu")
+    index = int(name.partition(":")[2] or 0)
+    if index >= torch.cuda.device_count():
+        raise ValueError(f"device: {name!r}: no such GPU; torch sees "
+                         f"{torch.cuda.device_count()} (cuda:0 to "
+                         f"cuda:{torch.cuda.device_count() - 1})")
 
 
 @dataclass
@@ -154,6 +187,7 @@ def available_suites() -> list[str]:
 def run_suite(name: str, options: BenchOptions) -> Report:
     if name not in available_suites():
         raise ValueError(f"unknown benchmark suite {name!r}; choose from {available_suites()}")
+    check_device(options.device)
     module = importlib.import_module(f"{__name__}.{name}")
     return module.run(options)
 
@@ -170,6 +204,7 @@ def run_suites(names: Sequence[str], options: BenchOptions, write: bool = False,
         if name not in available_suites():
             raise ValueError(f"unknown benchmark suite {name!r}; choose from "
                              f"{available_suites()}")
+    check_device(options.device)
     torch.set_num_threads(options.threads)
     for name in names:
         report = run_suite(name, options)

@@ -18,7 +18,10 @@ import os
 import pkgutil
 import sys
 import traceback
+import warnings
 from collections.abc import Sequence
+
+from sq_mitsuba.version import __version__
 
 EXIT_ERROR = 2
 #: Exit code of an unexpected exception (a bug): reported in one line, with the hint below.
@@ -61,6 +64,8 @@ def build_parser(command: str | None = None, listing: bool = False) -> argparse.
                 f"give {TRACEBACK_FLAG} before the command (sq-mitsuba {TRACEBACK_FLAG} fit "
                 f"...) or set the environment variable {TRACEBACK_ENV}=1."),
     )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}",
+                        help="print the package version and exit")
     parser.add_argument(
         TRACEBACK_FLAG, action="store_true",
         help="on an error, raise it with its full traceback instead of printing one line "
@@ -87,6 +92,36 @@ def _one_line(error: BaseException) -> str:
     return "; ".join(lines) or type(error).__name__
 
 
+def interrupted(error: BaseException) -> bool:
+    """Whether ``error`` is a Ctrl-C in disguise: a ``KeyboardInterrupt`` in its chain of causes
+    and contexts. Raised inside Dr.Jit or Mitsuba (Python code run from C++), one comes out as
+    a ``RuntimeError`` caused by it (``drjit.switch(): encountered an exception``, or
+    ``@drjit.syntax`` "could not be compiled" followed by a page of generated code), and an
+    error raised while handling it carries it as context."""
+    seen: set[int] = set()
+    while error is not None and id(error) not in seen:
+        if isinstance(error, KeyboardInterrupt):
+            return True
+        seen.add(id(error))
+        error = error.__cause__ or error.__context__
+    return False
+
+
+def _warning_printer(command: str):
+    """A ``warnings.showwarning`` that prints a warning as one line, ``sq-mitsuba COMMAND:
+    warning: ...``, without Python's file, line number and source line."""
+
+    def show(message, category, filename, lineno, file=None, line=None) -> None:
+        text = _one_line(message) if isinstance(message, Warning) else " ".join(
+            str(message).split())
+        try:
+            print(f"sq-mitsuba {command}: warning: {text}", file=file or sys.stderr)
+        except OSError:  # no stderr to write to: as Python's own does, say nothing
+            pass
+
+    return show
+
+
 def traceback_from_environment() -> bool:
     """Whether ``SQ_MITSUBA_TRACEBACK`` asks for tracebacks (set, and not 0/false/no/off)."""
     value = os.environ.get(TRACEBACK_ENV, "").strip().lower()
@@ -107,21 +142,23 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     kind = ALL_OR_NOTHING.get(args.command)
     try:
-        with all_or_nothing(getattr(args, "out", None) if kind else None, kind == "file"):
+        with warnings.catch_warnings(), all_or_nothing(getattr(args, "out", None) if kind
+                                                       else None, kind == "file"):
+            if not show_traceback:  # warnings as one line each (--traceback: Python's own)
+                warnings.showwarning = _warning_printer(args.command)
             return int(args.func(args) or 0)
-    except (CLIError, ValueError, OSError) as error:
+    except (KeyboardInterrupt, Exception) as error:
+        if interrupted(error):  # Ctrl-C, also when Dr.Jit disguised it: one line, exit 130
+            if show_traceback:
+                traceback.print_exc()
+            print(f"sq-mitsuba {args.command}: interrupted", file=sys.stderr)
+            return EXIT_INTERRUPTED
         if show_traceback:
             raise
-        print(f"sq-mitsuba {args.command}: error: {_one_line(error)}", file=sys.stderr)
-        return EXIT_ERROR
-    except KeyboardInterrupt:
-        if show_traceback:
-            traceback.print_exc()
-        print(f"sq-mitsuba {args.command}: interrupted", file=sys.stderr)
-        return EXIT_INTERRUPTED
-    except Exception as error:  # a bug: still one line, but named as such, and how to see more
-        if show_traceback:
-            raise
+        if isinstance(error, CLIError | ValueError | OSError):  # bad input
+            print(f"sq-mitsuba {args.command}: error: {_one_line(error)}", file=sys.stderr)
+            return EXIT_ERROR
+        # A bug: still one line, but named as such, and how to see more.
         name, detail = type(error).__name__, _one_line(error)
         what = name if detail == name else f"{name}: {detail}"
         print(f"sq-mitsuba {args.command}: internal error: {what} ({TRACEBACK_HINT})",

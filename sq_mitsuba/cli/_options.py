@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import types
 import typing
 from collections.abc import Mapping
 from pathlib import Path
@@ -42,7 +43,7 @@ def _option_kwargs(annotation: Any, default: Any) -> dict[str, Any]:
         kind = args[0]
         return {"type": kind, "nargs": "+" if len(args) == 2 and args[1] is Ellipsis
                 else len(args)}
-    if origin in (typing.Union, getattr(__import__("types"), "UnionType", None)):
+    if origin in (typing.Union, types.UnionType):
         members = [a for a in args if a is not type(None)]
         return _option_kwargs(members[0], default) if len(members) == 1 else {"type": str}
     if annotation in (int, float, str, Path):
@@ -52,16 +53,17 @@ def _option_kwargs(annotation: Any, default: Any) -> dict[str, Any]:
 
 def add_config_options(parser: argparse.ArgumentParser, config_class: type,
                        flags: Mapping[str, str], metavars: Mapping[str, str] | None = None,
-                       ) -> None:
+                       helps: Mapping[str, str] | None = None) -> None:
     """Add one option per ``field: flag`` of ``flags``; default and help come from
-    ``config_class`` (its default instance and its field docstrings)."""
+    ``config_class`` (its default instance and its field docstrings; ``helps`` replaces the
+    docstring of a field whose wording is for readers of the code, not of ``--help``)."""
     defaults = config_class()
     hints = typing.get_type_hints(config_class)
     docs = field_docs(config_class)
     for name, flag in flags.items():
         default = getattr(defaults, name)
         shown = list(default) if isinstance(default, tuple) else default
-        help_text = docs.get(name, "").rstrip(".")
+        help_text = (helps or {}).get(name, docs.get(name, "")).rstrip(".")
         kwargs = _option_kwargs(hints[name], default)
         if metavars and name in metavars:
             kwargs["metavar"] = metavars[name]
@@ -93,8 +95,29 @@ def add_set_option(parser: argparse.ArgumentParser, what: str, example: str | No
     parser.add_argument("--set", dest="overrides", action="append", default=[],
                         metavar="KEY=VALUE",
                         help=f"override a field of the {what} (dotted, e.g. {example}); "
-                             "repeatable")
+                             f"repeatable. Fields: {settable_fields(config_class)}")
     parser.set_defaults(**{SET_CLASS: config_class})
+
+
+def settable_fields(config_class: type) -> str:
+    """The fields ``--set`` can change, for its help: ``a, b, c.{d, e}, f.KEY`` (a nested
+    config's fields in braces, a ``dict`` field's entries as ``.KEY``)."""
+    hints = typing.get_type_hints(config_class)
+    parts = []
+    for item in dataclasses.fields(config_class):
+        if not item.init:
+            continue
+        annotation = hints[item.name]
+        if typing.get_origin(annotation) in (typing.Union, types.UnionType):
+            members = [a for a in typing.get_args(annotation) if a is not type(None)]
+            annotation = members[0] if len(members) == 1 else annotation
+        if dataclasses.is_dataclass(annotation):
+            parts.append(f"{item.name}.{{{settable_fields(annotation)}}}")
+        elif typing.get_origin(annotation) is dict:
+            parts.append(f"{item.name}.KEY")
+        else:
+            parts.append(item.name)
+    return ", ".join(parts)
 
 
 def config_from_args(config_class: type, args: argparse.Namespace, base: Any = None,

@@ -16,7 +16,8 @@ FLAGS = {"repeats": "--repeats", "warmup": "--warmup", "threads": "--threads",
 def register(subparsers: argparse._SubParsersAction) -> None:
     suites = bench.available_suites()
     parser = subparsers.add_parser(
-        "bench", help="measure the speed figures named in the issues",
+        "bench", help="time the library's costly steps (rendering, geometry, data, training, "
+                      "evaluation)",
         description="Run benchmark suites; --write records them in eval/BENCHMARKS.md. "
                     "'curves' trains configs for equal wall time on --data and plots held-out "
                     "Chamfer-L1 against time (eval/figures/learning_curves.png).")
@@ -39,9 +40,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _run(args: argparse.Namespace) -> int:
+    options = config_from_args(bench.BenchOptions, args)
+    try:  # before any suite starts: a device torch cannot use is bad input
+        bench.check_device(options.device)
+    except ValueError as error:
+        raise CLIError(f"--{error}") from None
     if args.suite == "curves":
         return _curves(args)
-    options = config_from_args(bench.BenchOptions, args)
     for report in bench.run_suites([args.suite], options, write=args.write):
         print(report.to_markdown())
         if args.write:

@@ -74,7 +74,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "preview", help="contact sheet of images with mask outlines and pose axes")
     preview.add_argument("root", type=Path, help="dataset folder")
     preview.add_argument("--out", type=Path, default=None, metavar="PNG",
-                         help="PNG to write (default ROOT/preview.png)")
+                         help="PNG to write (default ROOT_preview.png beside the dataset "
+                              "folder, which is only read)")
     add_config_options(preview, PreviewOptions, PREVIEW_FLAGS)
     preview.set_defaults(func=_preview)
 

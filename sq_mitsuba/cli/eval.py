@@ -31,8 +31,12 @@ model among every model of the split by Chamfer-L1 (is the shape read from the i
 `sq-mitsuba report` collates eval folders into the paper's tables.
 
 Without --checkpoint the model shipped with the package is used. A checkpoint that does not
-fit this version's network, an empty split or an unwritable --out is a one-line error before
-any work (exit code 2). Other settings: --set key=value on the eval options, e.g.
+fit this version's network, an empty split, a samples.npz that lacks an array or holds NaN,
+images of another size than camera.json says, an unwritable --out or one inside --data (the
+dataset is only read), or an --out another run is writing into, is a one-line error before
+any work (exit code 2). Rerunning into an earlier --out removes the outputs this run does not
+write (e.g. the figures after --no-figures). Other settings: --set key=value on the eval
+options, e.g.
 --set refinement.steps=20 --set search.grid=576 --set mask=segmentation
 --set refinement.shape=free --set refinement.depth=fixed --set volume_points=20000
 --set mesh_ranking=256."""

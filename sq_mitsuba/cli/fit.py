@@ -22,7 +22,9 @@ Inputs:
   --poses    SPE3R-style labels.json: a list of {"filename": ..., "q_vbs2tango_true": [w, x,
              y, z], "r_Vo2To_vbs_true": [x, y, z]}; a mask takes the entry whose filename has
              the same stem (img000001.png <- img000001.jpg). The pose maps body to camera
-             (OpenCV frame: x right, y down, z forward): x_cam = R(q) x_body + r.
+             (OpenCV frame: x right, y down, z forward): x_cam = R(q) x_body + r; q must be
+             a unit quaternion (norm 1 within 1e-3), r in metres, in front of the camera
+             and near enough for an assembly (at most 5 m across) to span the mask.
   --camera   SPEED-style camera.json (Nu, Nv, cameraMatrix in pixels); default: the project's
              default camera (SPEED field of view) at the masks' size.
 

@@ -18,14 +18,30 @@ A model's train/test split depends only on its name and the seed (7 test models 
 at least one in any catalogue of two or more), so --count 6 and --count 64 agree on the
 first six. Generating into an existing library merges: OUT/splits.csv keeps the rows of
 other models and gets one row per model written; models that fail are listed with their
-reason in OUT/failures.json (removed again when they succeed) and get no row.
+reason in OUT/failures.json (removed again when they succeed) and get no row. A model is
+never replaced by another spacecraft of the same name (catalogues of other seeds reuse names
+such as sc000_twin_wing): such a batch is refused before any work, naming the folder. One
+batch at a time per OUT: a second one started while another writes there stops at once.
+With --generator composed the models come from the compositional families (Earth observers,
+relays, deep-space and solar-electric probes, observatories, small satellites, stations...),
+named cs<i:05d>_<family>; three families are held out of training for good
+(planetary_orbiter, infrared_observatory, module_stack): --families training leaves them out,
+--families held-out makes only them (all marked test), for a leave-family-out evaluation.
 Exit code 1 when some model failed, 2 on bad options (nothing written)."""
 
 IMPORT_DESCRIPTION = """\
 Import mesh files, each into its own new folder OUT/<name>/models/: the name is the file's
 stem, or <stem>_2, <stem>_3, ... when that name is already in OUT or was given to an earlier
-file of the batch; nothing is overwritten, and each file's name is printed.
-Exit code 1 when some file failed, 2 on bad options or missing files (nothing written)."""
+file of the batch; nothing is overwritten, and each file's name is printed. One batch at a
+time per OUT. Exit code 1 when some file failed, 2 on bad options or missing files (nothing
+written)."""
+
+PREVIEW_DESCRIPTION = """\
+Render every model of a library (ROOT/<model>/models/model_normalized.obj, with the per-face
+materials of its samples.npz) with Mitsuba, one grey tile per model from a fixed three-quarter
+view, labelled with the model's name, into one grid image: ROOT/contact_sheet.png, or --out
+(PNG, JPEG, TIFF or BMP, as its suffix says). --limit renders the first models by name. The
+options and the sheet's size are checked before anything is rendered (exit code 2)."""
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -42,7 +58,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                          description=GENERATE_DESCRIPTION,
                          formatter_class=argparse.RawDescriptionHelpFormatter)
     add_config_options(gen, GenerateOptions, {"count": "--count", "seed": "--seed",
-                                              "out": "--out", "points": "--points"},
+                                              "out": "--out", "points": "--points",
+                                              "generator": "--generator",
+                                              "families": "--families"},
                        metavars={"out": "DIR"})
     gen.set_defaults(func=_generate)
 
@@ -57,7 +75,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                        metavars={"out": "DIR"})
     imp.set_defaults(func=_import)
 
-    pre = sub.add_parser("preview", help="contact sheet of a model library, rendered with Mitsuba")
+    pre = sub.add_parser("preview", help="contact sheet of a model library, rendered with Mitsuba",
+                         description=PREVIEW_DESCRIPTION)
     pre.add_argument("root", type=Path, help="library root (holds <model>/models/)")
     add_config_options(pre, ContactSheetOptions, {"out": "--out", "size": "--size",
                                                   "spp": "--spp", "columns": "--columns",

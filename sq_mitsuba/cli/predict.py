@@ -16,6 +16,13 @@ r_Vo2To_vbs in metres: x_cam = R(q) x_body + r, OpenCV camera frame) and <stem>.
 (the network's silhouette in red; refined, in green; the mask's outline in yellow). Prints
 the milliseconds per image.
 
+Target: every image gets a target-present score (the mask head's most confident pixel, or
+the image's segmentation for a model without a mask head; 0 for an image of noise). An image
+scoring below --set min_target (0.92) shows no target (a black frame, noise, the Earth
+alone): the line printed says "no target", only <stem>.pose.json is written, with "target":
+false and no pose (other files of that stem are removed), and it is not refined; the command
+still succeeds. pose.json records "target", "target_score" and "min_target" for every image.
+
 Images: any size; RGB and palette images are converted to grey (luminance), an alpha channel
 composites them on black, 16-bit images keep their range. The camera is the checkpoint's
 (the dataset's), rescaled to each image, unless --camera gives the images' own (SPEED-style
@@ -25,13 +32,22 @@ camera of the image's own pixels and a warning); with --camera it is an error na
 
 --refine searches the pose globally (the network's rotation, or a uniform grid for a network
 without a rotation distribution head, times the four half turns of the body frame, scored by
-Mitsuba silhouettes; --set search.candidates=hypotheses adds its top-K hypotheses), then refines the
-best few, against its --mask (one per image, same size, target bright) or, without masks, the
-mask the network predicts (a mask segmented from the image for a model without a mask head;
---set mask=segmentation forces it); the line printed and pose.json name the mask fitted.
+Mitsuba silhouettes; --set search.candidates=hypotheses adds its top-K hypotheses), then
+refines the best few, against its --mask (one per image, same size, target bright) or,
+without --mask, the network's mask head (the image's segmentation for a model without a mask
+head; --set mask=segmentation forces it); the line printed and pose.json name the mask
+fitted, the search's soft IoU (search_score, at search.resolution px) and the refined IoU
+(iou_after, at refinement.resolution px).
 Silhouettes cannot tell apart poses with the same outline. Every input is
 checked before the first prediction (a bad one is a one-line error, exit code 2, nothing
-written). Without --checkpoint the model shipped with the package is used."""
+written). Without --checkpoint the model shipped with the package is used.
+
+--sequence: the images are N >= 2 frames of one spacecraft (one size; --ordered when in the
+order they were taken): one assembly and every pose (Predictor.predict_sequence: each frame
+by the --refine path, the half turns resolved across frames, then one shape and N poses
+fitted to every frame's mask at once). Writes sequence.assembly.json, sequence.glb,
+sequence.png (the assembly from six sides) and per frame <stem>.pose.json (its pose of that
+assembly) and <stem>.overlay.png (its own fit in red, the shared assembly in green)."""
 
 FLAGS = {"refine": "--refine", "level": "--level", "fast": "--fast"}
 
@@ -51,17 +67,52 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                              "checkpoint's camera, rescaled to each image)")
     parser.add_argument("--mask", nargs="+", type=Path, default=None, metavar="MASK",
                         help="with --refine: one mask per image, in the same order "
-                             "(default: the network's mask, or one segmented from each image "
-                             "for a model without a mask head)")
+                             "(default, without --mask: the network's mask head, or the "
+                             "image's segmentation for a model without one; --set "
+                             "mask=segmentation forces the segmentation)")
+    parser.add_argument("--sequence", action="store_true",
+                        help="the images are frames of one spacecraft: one assembly, every "
+                             "pose (default: each image alone)")
+    parser.add_argument("--ordered", action="store_true",
+                        help="with --sequence: the frames are in the order they were taken "
+                             "(default: any order)")
     add_config_options(parser, PredictOptions, FLAGS)
     add_set_option(parser, "predict options", "refinement.steps=20")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.set_defaults(func=_run)
 
 
+def check_conflicts(args: argparse.Namespace) -> None:
+    """Refuse a field set twice: by its option and by ``--set`` (``--no-refine --set
+    refine=true``), or by two ``--set`` of one key; one line naming both."""
+    from sq_mitsuba.apps.predict import PredictOptions
+    from sq_mitsuba.cli import CLIError
+
+    defaults = PredictOptions()
+    seen: dict[str, str] = {}
+    for name, flag in FLAGS.items():
+        if hasattr(args, name):
+            boolean = isinstance(getattr(defaults, name), bool)
+            seen[name] = f"{flag} / --no-{flag[2:]}" if boolean else flag
+    for override in getattr(args, "overrides", None) or []:
+        key = override.split("=", 1)[0].strip()
+        for earlier_key, earlier in seen.items():
+            if key == earlier_key or key.startswith(f"{earlier_key}.") \
+                    or earlier_key.startswith(f"{key}."):
+                raise CLIError(f"--set {override}: {earlier_key} is also given by {earlier}; "
+                               "give it once")
+        seen[key] = f"--set {override}"
+
+
 def _run(args: argparse.Namespace) -> int:
     from sq_mitsuba.apps.predict import PredictOptions, predict_images
+    from sq_mitsuba.cli import CLIError
 
+    check_conflicts(args)
+    if args.ordered and not args.sequence:
+        raise CLIError("--ordered: only with --sequence")
+    if args.sequence:
+        return _run_sequence(args)
     options = config_from_args(PredictOptions, args)
     records = predict_images(args.images, args.out, args.checkpoint, args.camera, args.mask,
                              options, progress=not args.quiet)
@@ -72,5 +123,25 @@ def _run(args: argparse.Namespace) -> int:
     if options.refine:
         line += (f", search {sum(r.search_ms for r in records) / len(records):.0f} ms, search + "
                  f"refinement {sum(r.refine_ms for r in records) / len(records):.0f} ms")
-    print(f"{line}; wrote {len(records) * 5} files to {args.out}")
+    absent = sum(not r.target for r in records)
+    if absent:
+        line += f"; {absent} without a target"
+    print(f"{line}; wrote {sum(len(r.files) for r in records)} files to {args.out}")
+    return 0
+
+
+def _run_sequence(args: argparse.Namespace) -> int:
+    from sq_mitsuba.apps.predict_sequence import predict_sequence_files
+    from sq_mitsuba.cli import CLIError
+    from sq_mitsuba.geometry.camera import Camera
+    from sq_mitsuba.inference.loading import load_model
+
+    unused = [flag for flag, given in (("--mask", args.mask), ("--refine", getattr(
+        args, "refine", None)), ("--set", getattr(args, "overrides", None))) if given]
+    if unused:
+        raise CLIError(f"{unused[0]}: not used with --sequence (every frame is refined)")
+    camera = Camera.load(args.camera) if args.camera is not None else None
+    record = predict_sequence_files(args.images, args.out, load_model(args.checkpoint),
+                                    camera, ordered=args.ordered)
+    print(f"{record.describe()}; wrote {len(record.files)} files to {args.out}")
     return 0

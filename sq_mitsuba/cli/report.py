@@ -13,7 +13,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "report", help="collate evaluations into the paper's Tables 1 and 2",
         description="Collate folders written by `sq-mitsuba eval` (one split of one run each) "
                     "into report.md and report.csv in the layout of the paper's Tables 1 and "
-                    "2, with the paper's published numbers beside ours and the best in bold.")
+                    "2, with the paper's published numbers beside ours: in each column the "
+                    "best of our rows in bold and, apart, the best of the paper's rows in "
+                    "italics. A run's row is labelled as its eval.json records (sq-mitsuba "
+                    "eval --label).")
     parser.add_argument("folders", nargs="+", type=Path, metavar="EVAL_DIR",
                         help="evaluation folders (holding eval.json and summary.csv)")
     parser.add_argument("--out", type=Path, required=True, metavar="DIR",

@@ -20,8 +20,11 @@ field by field with --set (dotted names, TOML values). A config file may start f
 with a top-level  base = "other.toml".
 
 Writes into --out: config.json, log.csv (one row per step), val.csv, curves.png (refreshed at
-each validation), last.pt and best.pt (atomic checkpoints), tensorboard/ when tensorboard is
-installed, and cache/ (the training images decoded once, unless data.cache_dir is set).
+each validation), last.pt and best.pt (atomic checkpoints; best.pt is the last state, and the
+run says so, when it stops before the first validation), tensorboard/ when tensorboard is
+installed, and cache/ (the training images decoded once, and the models' symmetries, unless
+data.cache_dir is set). The dataset is only read. One run at a time per --out: a second run
+into a folder another run is writing stops with one line (exit code 2).
 
 --resume continues the run in --out from last.pt exactly where it stopped (same config and
 dataset required; the config defaults to the checkpoint's). A corrupt image stops the cache
@@ -90,6 +93,8 @@ def _run(args: argparse.Namespace) -> int:
                 f"{last['iou_2d']:.3f}, rotation error {last['rotation_error_deg']:.1f} deg")
     print(f"trained {result.steps}/{result.total_steps} steps{rate}{best}; wrote "
           f"{result.out_dir}")
+    for note in result.notes:
+        print(f"note: {note}")
     return 0
 
 

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from sq_mitsuba.config import in_range, validate
-from sq_mitsuba.data.mesh_io import read_tagged_obj
+from sq_mitsuba.data.mesh_io import SAMPLES_FILE, read_tagged_obj
 from sq_mitsuba.io import atomic_path
 
 LABEL_HEIGHT = 14
@@ -23,7 +23,7 @@ class ContactSheetOptions:
     """How ``sq-mitsuba models preview`` renders a library."""
 
     out: Path | None = None
-    "PNG path; None means ROOT/contact_sheet.png."
+    "Image to write, PNG, JPEG, TIFF or BMP by its suffix; None means ROOT/contact_sheet.png."
     size: int = in_range(16, 1024, default=160)
     "Tile side in pixels."
     spp: int = in_range(1, 4096, default=64)
@@ -33,13 +33,34 @@ class ContactSheetOptions:
     limit: int | None = in_range(1, 100_000, default=None)
     "Render only the first LIMIT models by name; None means all."
 
+    def __post_init__(self) -> None:
+        if self.out is not None:
+            image_format(self.out)
+
+
+#: Image formats of a contact sheet, by the suffix of its path (lower case).
+FORMATS = {".png": "PNG", ".jpg": "JPEG", ".jpeg": "JPEG", ".tif": "TIFF", ".tiff": "TIFF",
+           ".bmp": "BMP"}
+
+
+def image_format(path: str | Path) -> str:
+    """PIL's format name for an image written to ``path``, from its suffix; ``ValueError``
+    (``out: ...``) for a suffix that names none of :data:`FORMATS`, so that a sheet is never
+    written in a format its name does not say."""
+    suffix = Path(path).suffix.lower()
+    if suffix not in FORMATS:
+        shown = f"suffix {Path(path).suffix!r}" if suffix else "no suffix"
+        raise ValueError(f"out: {str(path)!r} has {shown}; expected an image file name ending "
+                         f"in {', '.join(FORMATS)}")
+    return FORMATS[suffix]
+
 
 @dataclass(frozen=True)
 class ContactSheet:
     """A written contact sheet."""
 
     path: Path
-    """The PNG."""
+    """The image."""
     models: int
     """How many models it shows."""
 
@@ -49,8 +70,23 @@ def library_models(root: str | Path) -> list[Path]:
     return sorted(Path(root).glob("*/models/model_normalized.obj"))
 
 
+def _check_samples(path: Path) -> None:
+    """``ValueError`` (one line) unless ``path`` is absent or an ``.npz`` archive whose
+    ``face_material`` (if any) numpy reads: not numpy's own message, which for a file that is
+    no archive advises loading it "unsafely" with ``allow_pickle``."""
+    if not path.is_file():
+        return
+    try:
+        with np.load(path) as archive:
+            if "face_material" in archive.files:
+                np.asarray(archive["face_material"])
+    except Exception:  # numpy, zipfile and zlib raise many kinds for damaged archives
+        raise ValueError(f"{path}: corrupt or truncated: not a valid .npz file") from None
+
+
 def contact_sheet(root: str | Path, options: ContactSheetOptions | None = None) -> ContactSheet:
-    """Render the models of a library into one labelled PNG grid (written atomically).
+    """Render the models of a library into one labelled grid image (written atomically, in
+    the format its suffix names: PNG, JPEG, TIFF or BMP).
 
     Each model is drawn with its per-face materials (from ``samples.npz`` beside the OBJ, see
     :func:`sq_mitsuba.data.mesh_io.read_tagged_obj`). Options and the sheet's size are checked
@@ -69,6 +105,7 @@ def contact_sheet(root: str | Path, options: ContactSheetOptions | None = None) 
     validate(options)
     root = Path(root)
     out = options.out or root / "contact_sheet.png"
+    fmt = image_format(out)
     files = library_models(root)[:options.limit]
     if not files:
         raise ValueError(f"{root}: no <model>/models/model_normalized.obj found")
@@ -80,6 +117,8 @@ def contact_sheet(root: str | Path, options: ContactSheetOptions | None = None) 
         raise ValueError(f"size: {len(files)} models of {tile} px in {columns} columns make a "
                          f"{width} x {height} sheet, over {MAX_SHEET_PIXELS // 2**20} "
                          "megapixels; lower the size or set a limit")
+    for obj in files:  # before any render: an archive numpy cannot read stops the sheet
+        _check_samples(obj.parent / SAMPLES_FILE)
     sheet = Image.new("L", (width, height), color=0)
     draw = ImageDraw.Draw(sheet)
     for k, obj in enumerate(files):
@@ -89,5 +128,5 @@ def contact_sheet(root: str | Path, options: ContactSheetOptions | None = None) 
         sheet.paste(Image.fromarray((image * 255 + 0.5).astype(np.uint8), "L"), (x, y))
         draw.text((x + 3, y + tile + 1), obj.parent.parent.name[:28], fill=220)
     with atomic_path(out) as tmp:
-        sheet.save(tmp, format="PNG")
+        sheet.save(tmp, format=fmt)
     return ContactSheet(Path(out), len(files))

@@ -27,7 +27,12 @@ import torch
 
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.frames import orthonormal_basis
-from sq_mitsuba.geometry.rotation import quaternion_to_matrix, random_quaternions
+from sq_mitsuba.geometry.rotation import (
+    axis_angle_to_matrix,
+    matrix_to_quaternion,
+    quaternion_to_matrix,
+    random_quaternions,
+)
 from sq_mitsuba.render.scene_config import Frame, PoseConfig, SceneConfig, SunConfig
 
 _SUN_TRIES, _EARTH_TRIES = 5, 100
@@ -195,3 +200,53 @@ def sample_frame(vertices: np.ndarray, camera: Camera, config: SceneConfig, data
         star_rotation=tuple(_random_rotation(rng).reshape(-1).tolist()),
         eclipse=bool(eclipse),
     )
+
+
+def sample_pass_frame(vertices: np.ndarray, camera: Camera, config: SceneConfig,
+                      dataset_seed: int, model: str, index: int, frames_per_pass: int,
+                      tumble_deg: tuple[float, float] = (3.0, 15.0),
+                      approach: tuple[float, float] = (0.0, 0.2)) -> Frame:
+    """Image ``index`` of ``model`` when its images are passes of ``frames_per_pass`` frames:
+    frame ``k = index % frames_per_pass`` of pass ``p = index // frames_per_pass``.
+
+    A pass starts from the frame :func:`sample_frame` draws for image ``p * frames_per_pass``
+    (pose, sun, Earth and stars). Along the pass the target tumbles about an axis drawn
+    uniformly on the sphere at a rate drawn from ``tumble_deg`` (degrees per frame), and the
+    camera approaches along its line of sight from ``1 + a`` times the start distance to the
+    start distance (``a`` drawn from ``approach``), so the last frame is framed as the start
+    frame was; the sun, the Earth and the stars keep their directions in the camera frame
+    (an inertially pointed camera), and the phase angle follows the target's direction.
+
+    Convention: ``R_k = Rot(axis, k * rate) R_0``, the tumble about an axis fixed in the camera
+    frame; so the relative rotation between frames i and j is ``R_j R_i^T = Rot(axis,
+    (j - i) * rate)``.
+    """
+    if frames_per_pass < 1:
+        raise ValueError(f"frames_per_pass: expected >= 1, got {frames_per_pass}")
+    first = (index // frames_per_pass) * frames_per_pass
+    step = index - first
+    start = sample_frame(vertices, camera, config, dataset_seed, model, first)
+    rng = np.random.default_rng([frame_seed(dataset_seed, model, first), 0x9A55])
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    rate = math.radians(rng.uniform(*tumble_deg))
+    closing = rng.uniform(*approach)
+    angle = step * rate
+    turn = axis_angle_to_matrix(torch.from_numpy(axis * angle)).numpy()
+    rotation = turn @ start.rotation
+    quaternion = matrix_to_quaternion(torch.from_numpy(rotation))
+    remaining = (frames_per_pass - 1 - step) / max(frames_per_pass - 1, 1)
+    translation = np.asarray(start.translation) * (1.0 + closing * remaining)
+    to_camera = -translation / np.linalg.norm(translation)
+    phase = math.degrees(math.acos(float(np.clip(np.asarray(start.sun_direction) @ to_camera,
+                                                 -1, 1))))
+    return Frame(
+        index=index, seed=start.seed,
+        quaternion=tuple(float(v) for v in quaternion),
+        translation=tuple(float(v) for v in translation),
+        sun_direction=start.sun_direction, phase_angle_deg=phase,
+        earth_direction=start.earth_direction,
+        earth_angular_radius_deg=start.earth_angular_radius_deg,
+        earth_altitude_km=start.earth_altitude_km, earth_in_view=start.earth_in_view,
+        earth_rotation=start.earth_rotation, star_rotation=start.star_rotation,
+        eclipse=start.eclipse)

@@ -15,6 +15,19 @@ Each model lands in ``<root>/<model>/models/`` (see
 Both files are rewritten atomically after every model, so an interrupted batch leaves them
 consistent with the model folders on disk.
 
+One batch at a time per library: ``generate`` and ``import`` hold the library's lock
+(:func:`sq_mitsuba.outputs.output_lock`) from before they read ``splits.csv`` to their end,
+so a second batch started into the same library stops at once with one line, and two
+batches never merge their bookkeeping over each other (the lock dies with its process,
+``kill -9`` included).
+
+Convention: a model is never replaced by another spacecraft of the same name. Catalogue
+names are ``sc<index>_<archetype>``, so the catalogues of two seeds share names for other
+spacecraft: ``generate`` refuses, before building anything, a batch in which a model of the
+library has the name of an entry but another archetype or model seed (from its
+``model_card.json``; a model without a readable card, or an imported one, counts as
+another), naming the folder. Generating the same entry again rebuilds the same spacecraft.
+
 Imported models are named after their file (:func:`model_name_for`). Convention: the name is
 the file's stem, or ``<stem>_2``, ``<stem>_3``, ... when the stem is already an entry of the
 output folder or was given to an earlier file of the same batch; nothing is overwritten.
@@ -55,6 +68,7 @@ from sq_mitsuba.data.spacecraft.generator import (
     catalogue,
 )
 from sq_mitsuba.io import atomic_write_json, check_output_folder, read_json
+from sq_mitsuba.outputs import output_lock
 
 SPLITS_FILE = "splits.csv"
 FAILURES_FILE = "failures.json"
@@ -78,6 +92,12 @@ class GenerateOptions:
     "Catalogue seed, 0 <= SEED < 2**32; it fixes every model's name, shape and split."
     points: int = in_range(1, MAX_POINTS, default=DEFAULT_POINTS)
     "Points per sample set: surface, uniform, near."
+    generator: Literal["archetypes", "composed"] = "archetypes"
+    """The 14 archetype recipes (the shipped model's catalogue), or the compositional families
+    (data/spacecraft/families.py; models named cs<i:05d>_<family>)."""
+    families: Literal["all", "training", "held-out"] = "all"
+    """With the composed generator: every family, the training families only, or the held-out
+    families only (never trained on: the leave-family-out test)."""
 
 
 def machine_memory_bytes() -> int:
@@ -148,8 +168,9 @@ class LibrarySummary:
         return not self.failures
 
     def text(self) -> str:
-        """The report: each import's name, then how many models were written where."""
-        lines = [f"{path} -> {name}" for path, name in self.names]
+        """The report: each written import's name, then how many models were written where
+        (a failed import is listed by :meth:`failure_text` instead)."""
+        lines = [f"{path} -> {name}" for path, name in self.names if name in self.written]
         lines.append(f"{len(self.written)} model(s) written to {self.out}")
         return "\n".join(lines)
 
@@ -253,10 +274,66 @@ def generate_library(options: GenerateOptions | None = None,
     validate(options)
     root = Path(options.out)
     _check_root(root)
+    with output_lock(root, command="sq-mitsuba models generate"):
+        return _generate_locked(root, options, progress)
+
+
+def same_spacecraft_problem(root: Path, entry: CatalogueEntry) -> str | None:
+    """Why generating ``entry`` into the library ``root`` would replace another spacecraft
+    of the same name (None: there is no model of that name, or it is this entry's own
+    spacecraft: same archetype and model seed, so generating it again gives it again)."""
+    folder = root / entry.name
+    if not (folder / "models").exists():  # no model there (a file in the way fails the model)
+        return None
+    card_path = folder / "models" / "model_card.json"
+    wanted = (f"model {entry.name} of catalogue seed {entry.catalogue_seed} is "
+              f"{entry.archetype} seed {entry.seed}")
+    try:
+        card = read_json(card_path)
+    except (OSError, ValueError):
+        return (f"{folder}: holds a model of this name without a readable model_card.json, "
+                f"so it cannot be told apart from another spacecraft ({wanted})")
+    if not isinstance(card, dict):
+        card = {}
+    if card.get("source") != "procedural":
+        return (f"{folder}: holds a model of this name from {card.get('source')!r}, not a "
+                f"generated one ({wanted})")
+    if (card.get("archetype"), card.get("seed")) != (entry.archetype, entry.seed):
+        return (f"{folder}: holds another spacecraft of this name ({card.get('archetype')} "
+                f"seed {card.get('seed')}, catalogue seed {card.get('catalogue_seed')}); "
+                f"{wanted}")
+    return None
+
+
+def _generate_locked(root: Path, options: GenerateOptions, progress: bool) -> LibrarySummary:
+    """:func:`generate_library` under the library's lock."""
     splits = read_library_splits(root)
     failures = read_failures(root)
+    if options.generator == "composed":
+        from sq_mitsuba.data.spacecraft import (
+            HELD_OUT_FAMILIES,
+            TRAINING_FAMILIES,
+            composed_catalogue,
+        )
+
+        families = {"all": None, "training": TRAINING_FAMILIES,
+                    "held-out": HELD_OUT_FAMILIES}[options.families]
+        entries = composed_catalogue(options.count, options.seed, families)
+    elif options.families != "all":
+        raise ValueError("families: only with --generator composed (the archetypes have no "
+                         "held-out families)")
+    else:
+        entries = catalogue(options.count, options.seed)
+    clashes = [problem for entry in entries
+               if (problem := same_spacecraft_problem(root, entry)) is not None]
+    if clashes:
+        more = f" (and {len(clashes) - 1} more model(s) of this library)" \
+            if len(clashes) > 1 else ""
+        raise ValueError(f"{clashes[0]}{more}; nothing generated: a model is never replaced "
+                         "by another spacecraft of the same name (generate into another "
+                         "--out, or remove those folders)")
     summary = LibrarySummary(root)
-    for entry in _progress(catalogue(options.count, options.seed), "models", "model", progress):
+    for entry in _progress(entries, "models", "model", progress):
         try:
             generate_model(entry, root, points=options.points)
         except Exception as error:  # one bad model must not stop the batch
@@ -335,6 +412,8 @@ def import_models(paths: Sequence[str | Path], options: ImportOptions | None = N
     if not paths:
         raise ValueError("meshes: no files given")
     for path in map(Path, paths):
+        if path.is_dir():
+            raise ValueError(f"{path}: is a folder, not a mesh file")
         if not path.is_file():
             raise FileNotFoundError(f"{path}: no such file")
         if path.suffix.lower() not in MESH_SUFFIXES:
@@ -342,6 +421,13 @@ def import_models(paths: Sequence[str | Path], options: ImportOptions | None = N
                              f"expected one of {', '.join(MESH_SUFFIXES)}")
     root = Path(options.out)
     _check_root(root)
+    with output_lock(root, command="sq-mitsuba models import"):  # names picked under it
+        return _import_locked(paths, root, options, progress)
+
+
+def _import_locked(paths: Sequence[str | Path], root: Path, options: ImportOptions,
+                   progress: bool) -> LibrarySummary:
+    """:func:`import_models` under the library's lock."""
     names = import_names(paths, root)
     summary = LibrarySummary(root, names=[(str(p), n) for p, n in zip(paths, names, strict=True)])
     for path, name in _progress(list(zip(map(Path, paths), names, strict=True)), "import",

@@ -26,6 +26,9 @@ from sq_mitsuba.inputs import open_image
 from sq_mitsuba.io import read_json
 
 QUATERNION_KEY = "q_vbs2tango_true"
+#: Largest difference of a label quaternion's norm from 1 (as the dataset's labels): beyond
+#: it, the label is not a rotation (a typo, another convention), and is refused.
+QUATERNION_NORM_TOLERANCE = 1e-3
 TRANSLATION_KEY = "r_Vo2To_vbs_true"
 
 #: Largest value of each PIL mode read as one gray channel (the threshold is half of it).
@@ -59,18 +62,34 @@ def _one_line(error: BaseException) -> str:
     return " ".join(str(error).split()) or type(error).__name__
 
 
+def check_not_folder(path: str | Path, what: str) -> None:
+    """A one-line ``IsADirectoryError`` (``<what> <path>: is a folder, not a file``) when
+    ``path`` is a folder: given where a file is expected, it is not "no such file"."""
+    if Path(path).is_dir():
+        raise IsADirectoryError(f"{what} {path}: is a folder, not a file")
+
+
 def read_gray_image(path: str | Path, what: str = "image") -> np.ndarray:
     """One image (H, W) as float64 in [0, 1], converted as the module docstring says: colour
     images become luminance, alpha composites on black, 16-bit images keep their range.
 
     Raises:
-        FileNotFoundError: ``path`` does not exist.
-        ValueError: not an image, a corrupt or truncated one, or one outside the size bounds
-            of :func:`sq_mitsuba.inputs.open_image` (at least 8 x 8 px); one line naming
-            ``what`` and ``path``.
+        FileNotFoundError: ``path`` does not exist; IsADirectoryError: it is a folder.
+        ValueError: not an image, a corrupt or truncated one, one of several frames (an
+            animated GIF, a multi-page TIFF: which frame is meant is not guessed), or one
+            outside the size bounds of :func:`sq_mitsuba.inputs.open_image` (at least 8 x 8
+            px); one line naming ``what`` and ``path``.
     """
+    from PIL import Image
+
     path = Path(path)
+    check_not_folder(path, what)
     image = open_image(path, what)
+    with Image.open(path) as opened:
+        frames = getattr(opened, "n_frames", 1)
+    if frames > 1:
+        raise ValueError(f"{what} {path}: holds {frames} frames (an animation or a multi-page "
+                         "file); save the one frame to use as an image of its own")
     gray, top = _gray(image, path)
     if gray.ndim != 2:
         raise ValueError(f"{what} {path}: expected one image channel, got shape {gray.shape}")
@@ -145,16 +164,18 @@ def read_label_poses(labels_path: str | Path, names: Sequence[str | Path]
 
     Returns:
         (quaternions (V, 4), translations (V, 3)) float64, body to camera; quaternions are
-        scalar-first and returned as stored (not normalised).
+        scalar-first, unit within :data:`QUATERNION_NORM_TOLERANCE`, and returned as stored
+        (not normalised).
 
     Raises:
         FileNotFoundError: no ``labels_path``.
         ValueError: malformed JSON, an entry without ``filename``, two entries with one stem,
-            no entry for a name, or an entry whose quaternion is not 4 finite numbers with a
-            non-zero norm or whose translation is not 3 finite numbers; one line naming the
-            file and the entry (index and filename).
+            no entry for a name, or an entry whose quaternion is not 4 finite numbers of norm
+            1 or whose translation is not 3 finite numbers; one line naming the file and the
+            entry (index and filename).
     """
     labels_path = Path(labels_path)
+    check_not_folder(labels_path, "labels")
     if not labels_path.is_file():
         raise FileNotFoundError(f"labels {labels_path}: no such file")
     labels = read_json(labels_path)
@@ -179,8 +200,12 @@ def read_label_poses(labels_path: str | Path, names: Sequence[str | Path]
         index, entry = by_stem[stem]
         where = f"labels {labels_path}: entry {index} ({entry['filename']!r})"
         q = _numbers(entry, QUATERNION_KEY, 4, where)
-        if math.hypot(*q) < 1e-8:
+        norm = math.hypot(*q)
+        if norm < 1e-8:
             raise ValueError(f"{where}: {QUATERNION_KEY} has zero norm")
+        if abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE:
+            raise ValueError(f"{where}: {QUATERNION_KEY} has norm {norm:.6g}, not 1 (within "
+                             f"{QUATERNION_NORM_TOLERANCE:g}): not a rotation quaternion")
         quaternions.append(q)
         translations.append(_numbers(entry, TRANSLATION_KEY, 3, where))
     return (torch.tensor(quaternions, dtype=torch.float64),

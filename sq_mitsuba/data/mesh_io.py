@@ -52,8 +52,16 @@ def read_obj(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Vertices, triangles (polygons fanned) and per-face material indices of an OBJ.
 
     ``usemtl`` names that are material tags are kept; anything else reads as aluminium.
+
+    Raises:
+        FileNotFoundError: no such file; IsADirectoryError: ``<path>: is a folder, not a
+            mesh file``; ValueError: no triangles.
     """
     path = Path(path)
+    if path.is_dir():
+        raise IsADirectoryError(f"{path}: is a folder, not a mesh file")
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no such file")
     vertices, faces, tags = [], [], []
     current = MATERIALS.index("aluminium")
     with open(path, encoding="utf-8", errors="replace") as handle:

@@ -74,6 +74,8 @@ def load_mesh(path: str | Path) -> TaggedMesh:
     import trimesh
 
     path = Path(path)
+    if path.is_dir():
+        raise MeshError(f"{path}: is a folder, not a mesh file")
     if not path.is_file():
         raise MeshError(f"{path}: no such file")
     if path.suffix.lower() not in MESH_SUFFIXES:

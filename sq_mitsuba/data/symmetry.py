@@ -163,51 +163,88 @@ def _check_matrices(matrices: Any, where: str) -> np.ndarray:
     return array
 
 
+def _source_of(model_dir: Path) -> Path:
+    """The file a model's surface points come from: samples.npz, else the mesh."""
+    from sq_mitsuba.data.spe3r.layout import MESH_FILE, MODELS, SAMPLES_FILE
+
+    samples_path = model_dir / MODELS / SAMPLES_FILE
+    return samples_path if samples_path.is_file() else model_dir / MODELS / MESH_FILE
+
+
 def _surface_points_of(model_dir: Path) -> np.ndarray:
     """The model's surface points: samples.npz, or 100,000 samples of its mesh."""
     from sq_mitsuba.data.mesh_processing import sample_triangles
-    from sq_mitsuba.data.spe3r.layout import MODELS, SAMPLES_FILE, DatasetError, load_model
+    from sq_mitsuba.data.spe3r.layout import MODELS, SAMPLES_FILE, load_model, read_samples
 
     samples_path = model_dir / MODELS / SAMPLES_FILE
     if samples_path.is_file():
-        try:
-            with np.load(samples_path) as samples:
-                return np.asarray(samples["surface_points"], dtype=np.float64)
-        except Exception as error:  # numpy raises several kinds on corrupt archives
-            raise DatasetError(f"{samples_path}: cannot read surface_points ({error})") from None
+        points = read_samples(samples_path, ("surface_points",))["surface_points"]
+        return np.asarray(points, dtype=np.float64)
     vertices, faces, _ = load_model(model_dir)
     points, _ = sample_triangles(vertices, faces, DEFAULT_MAX_POINTS, np.random.default_rng(0))
     return points
 
 
-def model_symmetries(model_dir: str | Path) -> np.ndarray:
+def _read_record(path: Path) -> np.ndarray:
+    data = read_json(path)
+    if not isinstance(data, dict) or data.get("format") != JSON_FORMAT:
+        raise ValueError(f"{path}: not a symmetries file (format != {JSON_FORMAT!r})")
+    return _check_matrices(data.get("matrices"), f"{path}: matrices")
+
+
+def _cache_file(cache_dir: Path, model_dir: Path, source: Path) -> Path:
+    """The cache file of a model's symmetries: named by the model and a digest of the file
+    its points come from (and of the threshold), so an edited model gets a new one."""
+    import hashlib
+
+    digest = hashlib.sha256(f"{JSON_VERSION}:{DEFAULT_THRESHOLD}:{source.name}:".encode())
+    with open(source, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return Path(cache_dir) / f"{model_dir.name}-{digest.hexdigest()[:16]}.json"
+
+
+def model_symmetries(model_dir: str | Path, cache_dir: str | Path | None = None,
+                     write: bool = False) -> np.ndarray:
     """Symmetries (S, 3, 3) of the model in ``model_dir`` (a folder of the SPE3R layout).
 
-    Reads ``<model_dir>/models/symmetries.json`` when present (the record: delete it to
-    recompute). Otherwise detects them (:func:`detect_symmetries`, default threshold) from
-    the surface points of ``models/samples.npz``, or from points sampled on
-    ``models/model_normalized.obj`` when there is none, and writes the file atomically:
+    Reads ``<model_dir>/models/symmetries.json`` when present (a record that came with the
+    model: delete it to recompute), else ``cache_dir``'s record of the model when there is
+    one. Otherwise detects them (:func:`detect_symmetries`, default threshold) from the
+    surface points of ``models/samples.npz``, or from points sampled on
+    ``models/model_normalized.obj`` when there is none, and writes the record atomically:
     ``{"matrices": [...], "threshold": t, "distances": {"x": d, "y": d, "z": d},
-    "floor": f, "points": n, ...}``. A folder that cannot be written to still gets its
-    symmetries (with a warning).
+    "floor": f, "points": n, ...}``.
+
+    Convention: reading a model never changes its folder. The record goes to ``cache_dir``
+    (e.g. a training run's cache), as ``<model>-<digest>.json`` with the digest of the file
+    the points come from, so an edited model is analysed again; into the model folder only
+    with ``write`` (for whoever owns that folder, e.g. a library being built); nowhere
+    without either. A record that cannot be written is skipped (with a warning): the
+    symmetries are returned all the same.
 
     Raises:
         FileNotFoundError: no ``models`` folder.
-        ValueError: a malformed symmetries file, unreadable samples, a missing or unusable
-            mesh where there are no samples, or too few points (the message names the file
-            or the points).
+        ValueError: a malformed symmetries file in the model folder, unreadable samples (a
+            missing array, NaN), a missing or unusable mesh where there are no samples, or
+            too few points (the message names the file or the points).
     """
     from sq_mitsuba.data.spe3r.layout import MODELS
 
     model_dir = Path(model_dir)
     path = model_dir / MODELS / SYMMETRIES_FILE
     if path.is_file():
-        data = read_json(path)
-        if not isinstance(data, dict) or data.get("format") != JSON_FORMAT:
-            raise ValueError(f"{path}: not a symmetries file (format != {JSON_FORMAT!r})")
-        return _check_matrices(data.get("matrices"), f"{path}: matrices")
+        return _read_record(path)
     if not (model_dir / MODELS).is_dir():
         raise FileNotFoundError(f"{model_dir / MODELS}: missing")
+    cached = None
+    if cache_dir is not None and _source_of(model_dir).is_file():
+        cached = _cache_file(Path(cache_dir), model_dir, _source_of(model_dir))
+        if cached.is_file():
+            try:
+                return _read_record(cached)
+            except ValueError:  # a damaged cache file: analyse again and replace it
+                pass
     points = _surface_points_of(model_dir)
     distances = symmetry_distances(points)
     matrices = [np.eye(3)] + [HALF_TURNS[a] for a in HALF_TURNS
@@ -224,10 +261,11 @@ def model_symmetries(model_dir: str | Path) -> np.ndarray:
         "metric": "occnet Chamfer between halves A and S B minus that of A and B, "
                   "over the longest side",
     }
-    try:
-        atomic_write_json(path, record)
-    except OSError as error:
-        warnings.warn(f"{path}: not written ({error})", stacklevel=2)
+    for target in ([path] if write else []) + ([cached] if cached is not None else []):
+        try:
+            atomic_write_json(target, record)
+        except OSError as error:
+            warnings.warn(f"{target}: not written ({error})", stacklevel=2)
     return np.stack(matrices)
 
 

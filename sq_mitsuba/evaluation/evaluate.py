@@ -42,6 +42,15 @@ Files written to the output folder (each atomically):
 - ``eval.json``: settings, checkpoint, counts, symmetries per model, images/s, and the mesh
   ranking's medians.
 
+The folder holds one evaluation: the files of this list that an earlier run into it wrote and
+this one does not (the figures after ``figures = False``, a mesh ranking) are removed once it
+has written its own. It lies outside the dataset, which evaluation only reads, and takes one
+run at a time (:func:`sq_mitsuba.outputs.output_lock`; another run into it is refused in one
+line before any work).
+
+Timing: the network's first call sets up its kernels; it is made once, untimed, on the first
+batch before the timed call, so ``network_ms_per_image`` is the warm figure.
+
 Convention: 2D IoU compares the predicted assembly's silhouette at the *predicted* pose with
 the ground-truth mask (for every method, the refined ones included), both at the network's
 input resolution and thresholded at 0.5. Chamfer distances use the assembly's surface points
@@ -168,28 +177,57 @@ def evaluate(predictor: Any, data_root: str | Path, out_dir: str | Path,
     dataset split and write the files listed in the module docstring.
 
     Every input is checked before the work starts: the network's input channels, the dataset
-    and split (not empty), the train split when the baseline is on, and the output folder.
+    and split (not empty, images of ``camera.json``'s size, readable finite points), the train
+    split when the baseline is on, and the output folder (writable, outside the dataset, not
+    locked by another run).
 
     Args:
         label: the run's name in ``eval.json`` (the report's row label; default: the
             checkpoint's folder name).
     """
-    from tqdm import tqdm
-
-    from sq_mitsuba.geometry.metrics import mask_iou
-    from sq_mitsuba.inference.loading import with_fast_path
     from sq_mitsuba.io import check_output_folder
-    from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer
+    from sq_mitsuba.outputs import output_lock
 
     options = options or EvalOptions()
     validate(options)
     check_predictor(predictor)
     data_root, out_dir = Path(data_root), Path(out_dir)
     check_output_folder(out_dir)
+    check_outside_data(out_dir, data_root)
+    with output_lock(out_dir, command="sq-mitsuba eval"):  # re-entrant: the CLI holds it
+        return _evaluate(predictor, data_root, out_dir, options, progress, label)
+
+
+def check_outside_data(out_dir: Path, data_root: Path) -> None:
+    """Refuse an output folder that is the dataset folder or lies inside it (an evaluation
+    only reads its dataset)."""
+    out, data = out_dir.resolve(), data_root.resolve()
+    if out == data or data in out.parents:
+        raise ValueError(f"out {out_dir}: inside the dataset folder {data_root}, which "
+                         "evaluation only reads; choose an output folder outside it")
+
+
+def _evaluate(predictor: Any, data_root: Path, out_dir: Path, options: EvalOptions,
+              progress: bool, label: str | None) -> EvalResult:
+    """:func:`evaluate` once the options and the output folder are checked and locked."""
+    from tqdm import tqdm
+
+    from sq_mitsuba.data.spe3r import Spe3rDataset
+    from sq_mitsuba.geometry.metrics import mask_iou
+    from sq_mitsuba.inference.loading import with_fast_path
+    from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer
+
     image_size = predictor.image_size
     dataset = open_split(data_root, options.split, image_size, options.surface_points)
+    if options.baseline:  # its images are read too: refused now, not after the split's work
+        train_split = Spe3rDataset(data_root, "train", image_size=image_size, num_surface=1,
+                                   num_occupancy=2)
+        if len(train_split):
+            train_split.check()
     camera = dataset.camera.rescaled(image_size, image_size)
-    predictor = with_fast_path(predictor, options.fast)
+    # Every image of a dataset shows its target: the evaluation fits each one, whatever its
+    # target-present score (min_target 0), so that the methods are scored on the same images.
+    predictor = with_fast_path(predictor, options.fast, min_target=0.0)
     started = time.perf_counter()
     baseline = None
     if options.baseline:
@@ -206,14 +244,29 @@ def evaluate(predictor: Any, data_root: str | Path, out_dir: str | Path,
     to_rank: list[tuple[int, int, str, Assembly]] = []  # item, model index, model, assembly
     rows: list[dict[str, Any]] = []
     examples: list[dict[str, Any]] = []
-    network_seconds = search_seconds = refine_seconds = 0.0
+    network_seconds = search_seconds = refine_seconds = warmup_seconds = 0.0
+    batches = -(-len(indices) // options.batch_size)
     loop_started = time.perf_counter()
     with tqdm(total=len(indices), unit="img", disable=not progress, dynamic_ncols=True,
               desc=f"eval {options.split}") as bar:
-        for start in range(0, len(indices), options.batch_size):
+        for number, start in enumerate(range(0, len(indices), options.batch_size), start=1):
             chunk = indices[start:start + options.batch_size]
+
+            def stage(name: str, number: int = number, size: int = len(chunk)) -> None:
+                # The bar counts images once a batch is scored; between, it names the batch
+                # (images in it) and the stage it is at.
+                bar.set_postfix_str(f"batch {number}/{batches} ({size} img): {name}")
+
+            stage("reading")
             batch = collate([dataset[i] for i in chunk])
             size = len(chunk)
+            stage("network")
+            if number == 1:
+                # One untimed call first: the first run of a network sets up its kernels (over
+                # a second on a CPU), which would otherwise count as network time.
+                tick = time.perf_counter()
+                predictor.predict(batch["image"], camera)
+                warmup_seconds = time.perf_counter() - tick
             tick = time.perf_counter()
             prediction = predictor.predict(batch["image"], camera)
             network_seconds += time.perf_counter() - tick
@@ -225,6 +278,7 @@ def evaluate(predictor: Any, data_root: str | Path, out_dir: str | Path,
             extras: dict[str, dict[str, Tensor]] = {}
             sources: dict[str, str] = {}
             if options.refine:
+                stage("search and refinement")
                 gt_masks = batch["mask"][:, 0] > 0.5
                 fitted = predictor.refine(batch["image"], prediction, camera, mask=options.mask,
                                           search=options.search,
@@ -254,6 +308,7 @@ def evaluate(predictor: Any, data_root: str | Path, out_dir: str | Path,
                 candidates["baseline"] = (Assembly(baseline[0].params.expand(size, -1, -1)),
                                           baseline[1].expand(size, -1, -1),
                                           baseline[2].expand(size, -1))
+            stage("scoring")
             for method, (assembly, rotation, translation) in candidates.items():
                 metrics = score(assembly, rotation, translation, batch, renderer, symmetries,
                                 volumes, options.level)
@@ -281,8 +336,9 @@ def evaluate(predictor: Any, data_root: str | Path, out_dir: str | Path,
                                            translation[k].detach())
                     examples.append(example)
             bar.update(size)
-            bar.set_postfix(img_s=f"{bar.n / (time.perf_counter() - loop_started):.2f}")
-    loop_seconds = time.perf_counter() - loop_started
+            bar.set_postfix_str(f"batch {number}/{batches} done, "
+                                f"{bar.n / (time.perf_counter() - loop_started):.2f} img/s")
+    loop_seconds = time.perf_counter() - loop_started - warmup_seconds
     summary = write_tables(rows, out_dir)
     files = [out_dir / name for name in OUTPUT_FILES[:5]]
     ranking = None
@@ -332,8 +388,23 @@ def evaluate(predictor: Any, data_root: str | Path, out_dir: str | Path,
         "wall_seconds": round(time.perf_counter() - started, 3),
     })
     files.append(out_dir / "eval.json")
+    remove_stale_outputs(out_dir, files)
     return EvalResult(rows, summary, images, images_per_second,
                       1000 * network_seconds / images, out_dir, files)
+
+
+def remove_stale_outputs(out_dir: Path, written: list[Path]) -> list[Path]:
+    """Delete the files an earlier evaluation into ``out_dir`` wrote that this one did not
+    (figures after ``--no-figures``, a mesh ranking it did not make), so that the folder
+    holds one evaluation's outputs only; returns them."""
+    kept = {path.name for path in written}
+    removed = []
+    for name in (*OUTPUT_FILES, MESH_RANKING_FILE):
+        path = out_dir / name
+        if name not in kept and path.is_file():
+            path.unlink()
+            removed.append(path)
+    return removed
 
 
 def _default_label(predictor: Any) -> str:

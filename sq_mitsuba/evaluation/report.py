@@ -2,10 +2,14 @@
 
 Each folder written by :func:`sq_mitsuba.evaluation.evaluate.evaluate` holds ``eval.json``
 (split, label, number of primitives) and ``summary.csv`` (mean, std, median per method and
-metric). A run is identified by its label (the training config's name unless given); its
-``val`` and ``test`` folders fill one row; Table 2 (number of primitives) shows each run's M.
-The paper's published rows (``eval/paper_tables.toml``) are printed beside ours, the best value
-of each column in bold, with a note on what is not comparable. Inputs are read strictly: a
+metric). A run is identified by the label its ``eval.json`` records (``sq-mitsuba eval
+--label``; by default the checkpoint's folder name), or, for an ``eval.json`` without one, the
+folder name of the checkpoint it records, else of the evaluation folder's parent; its ``val``
+and ``test`` folders fill one row; Table 2 (number of primitives) shows each run's M. The
+paper's published rows (``eval/paper_tables.toml``) are printed beside ours, with a note on
+what is not comparable. Ours and the paper's are not ranked together: in each column the best
+of our rows is in bold and the best of the paper's rows in italics (each only where there are
+two rows or more to choose from). Inputs are read strictly: a
 folder, summary or paper table that is missing, empty, cut short, malformed or holds NaN where
 a number is due is a one-line error naming the file, before anything is written.
 """
@@ -89,7 +93,17 @@ def read_eval_folder(folder: str | Path) -> dict[str, Any]:
             raise ValueError(f"{path}: no {method} row for {missing[0]} (cut short, or not "
                              "written by `sq-mitsuba eval`?)")
     return {"folder": folder, "split": info["split"], "info": info, "summary": summary,
-            "label": label or folder.parent.name or folder.name}
+            "label": label or _checkpoint_name(info) or folder.parent.name or folder.name}
+
+
+def _checkpoint_name(info: dict[str, Any]) -> str | None:
+    """The folder name of the checkpoint an ``eval.json`` records (a training run's output
+    folder: what ``sq-mitsuba eval`` labels a run by default), or None."""
+    checkpoint = info.get("checkpoint")
+    if not isinstance(checkpoint, str) or not checkpoint.strip():
+        return None
+    path = Path(checkpoint)
+    return path.parent.name or path.stem or None
 
 
 def _cell(text: str, where: str, required: bool) -> float | None:
@@ -142,7 +156,8 @@ def read_paper_tables(path: str | Path) -> tuple[list[dict], list[dict]]:
                 raise ValueError(f"{at}: expected the keys {sorted(keys)}, got {got}")
             if not isinstance(entry["label"], str) or not entry["label"].strip():
                 raise ValueError(f"{at}.label: expected a name, got {entry['label']!r}")
-            row: dict[str, Any] = {"label": f"paper {entry['label']}", "M": None}
+            row: dict[str, Any] = {"label": f"paper {entry['label']}", "M": None,
+                                   "paper": True}
             if table == "table2":
                 m = entry["primitives"]
                 if isinstance(m, bool) or not isinstance(m, int) or m < 1:
@@ -169,7 +184,8 @@ def _our_rows(folders: list[dict[str, Any]]) -> list[dict]:
         for method, metrics in folder["summary"].items():
             label = folder["label"] if method == "network" else f"{folder['label']} ({method})"
             row = rows.setdefault((label, method), {"label": label, "val": {}, "test": {},
-                                                    "M": folder["info"].get("num_primitives")})
+                                                    "M": folder["info"].get("num_primitives"),
+                                                    "paper": False})
             split = folder["split"]
             if metrics and any(key in row[split] for _, key, _, _ in COLUMNS):
                 raise ValueError(f"{folder['folder']}: a second {split} evaluation of the run "
@@ -180,29 +196,46 @@ def _our_rows(folders: list[dict[str, Any]]) -> list[dict]:
     return list(rows.values())
 
 
-def _table(rows: list[dict], with_m: bool) -> tuple[list[str], list[list[str]]]:
-    """Header and cells of a table of ``rows``; ``with_m``: a column of each run's M."""
+#: How the best value of a column is marked in report.md, among our rows and the paper's.
+EMPHASIS = {False: "**", True: "*"}
+BEST_NOTE = ("In each column, **bold**: the best of our rows; *italics*: the best of the "
+             "paper's rows (the two groups are not ranked together).")
+
+
+def _table(rows: list[dict], with_m: bool
+           ) -> tuple[list[str], list[list[str]], list[list[str]]]:
+    """Header, plain cells and Markdown cells of a table of ``rows``; ``with_m``: a column of
+    each run's M. The Markdown marks the best value of each column among our rows and, apart,
+    among the paper's (:data:`EMPHASIS`), where a group has two values or more."""
     header = ["run", *(["M"] if with_m else [])] + [
         f"{split} {title}" for split in ("val", "test") for _, _, title, _ in COLUMNS]
-    best: dict[tuple[str, str], float] = {}
-    for split in ("val", "test"):
-        for _, key, _, lower in COLUMNS:
-            values = [r[split][key][0] for r in rows if key in r[split]]
-            if values:
-                best[(split, key)] = min(values) if lower else max(values)
-    body = []
+    best: dict[tuple[bool, str, str], float] = {}
+    for paper in (False, True):
+        group = [r for r in rows if r.get("paper", False) == paper]
+        for split in ("val", "test"):
+            for _, key, _, lower in COLUMNS:
+                values = [r[split][key][0] for r in group if key in r[split]]
+                if len(values) > 1:
+                    best[(paper, split, key)] = min(values) if lower else max(values)
+    plain, marked = [], []
     for row in rows:
+        paper = row.get("paper", False)
         cells = [row["label"], *([str(row["M"])] if with_m else [])]
+        marks = list(cells)
         for split in ("val", "test"):
             for _, key, _, _ in COLUMNS:
                 if key not in row[split]:
                     cells.append("–")
+                    marks.append("–")
                     continue
                 mean, std = row[split][key]
                 text = f"{mean:.3f} ± {std:.3f}"
-                cells.append(f"**{text}**" if best.get((split, key)) == mean else text)
-        body.append(cells)
-    return header, body
+                cells.append(text)
+                emphasis = EMPHASIS[paper] if best.get((paper, split, key)) == mean else ""
+                marks.append(f"{emphasis}{text}{emphasis}")
+        plain.append(cells)
+        marked.append(marks)
+    return header, plain, marked
 
 
 def write_report(folders: list[str | Path], out_dir: str | Path,
@@ -230,19 +263,18 @@ def write_report(folders: list[str | Path], out_dir: str | Path,
     sections = [("Table 1: loss configurations", ours + table1, False),
                 ("Table 2: number of primitives M (configuration (a))", ours + table2, True)]
     for title, rows, with_m in sections:
-        header, body = _table(rows, with_m)
+        header, body, marked = _table(rows, with_m)
         lines += [f"## {title}", "", "| " + " | ".join(header) + " |",
                   "|" + "---|" * len(header)]
-        lines += ["| " + " | ".join(cells) + " |" for cells in body]
+        lines += ["| " + " | ".join(cells) + " |" for cells in marked]
         lines.append("")
-        for row, cells in zip(rows, body, strict=True):
-            plain = [c.replace("**", "") for c in cells]
+        for row, plain in zip(rows, body, strict=True):
             m = "" if row["M"] is None else str(row["M"])
             csv_rows.append([title, plain[0], m, *plain[2 if with_m else 1:]])
     if not table1 and not table2:
         lines += ["The paper's numbers were not found (eval/paper_tables.toml is part of a "
                   "source checkout; --paper names another copy).", ""]
-    lines += [NOT_COMPARABLE, ""]
+    lines += [BEST_NOTE, "", NOT_COMPARABLE, ""]
     markdown = out_dir / "report.md"
     atomic_write_text(markdown, "\n".join(lines))
     header = ["table", *_table([], True)[0]]

@@ -42,7 +42,9 @@ def check_predictor(predictor: Any) -> None:
 
 def open_split(data_root: str | Path, split: str, image_size: int, surface_points: int) -> Any:
     """The :class:`~sq_mitsuba.data.spe3r.Spe3rDataset` of ``split`` at ``image_size``, with
-    ``surface_points`` per item; a one-line error when it is missing or empty."""
+    ``surface_points`` per item; a one-line error when it is missing or empty, or when
+    :meth:`~sq_mitsuba.data.spe3r.Spe3rDataset.check` refuses it (images of another size
+    than ``camera.json``'s, a ``samples.npz`` missing an array or holding NaN)."""
     from sq_mitsuba.data.spe3r import Spe3rDataset
 
     dataset = Spe3rDataset(data_root, split, image_size=image_size,
@@ -53,4 +55,5 @@ def open_split(data_root: str | Path, split: str, image_size: int, surface_point
         skipped = f"; left out: {', '.join(dataset.skipped)}" if dataset.skipped else ""
         raise ValueError(f"{data_root}: the {split!r} split is empty (splits.csv lists no "
                          f"{where}{skipped})")
+    dataset.check()  # images of camera.json's size, readable finite points: before any work
     return dataset

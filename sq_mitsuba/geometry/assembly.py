@@ -23,6 +23,9 @@ from __future__ import annotations
 
 import json
 import math
+import operator
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -199,10 +202,34 @@ class Assembly:
         return self.params[..., FIELDS["taper"]]
 
     def __getitem__(self, index: int | slice) -> Assembly:
-        """The sub-batch ``params[index]`` (an int keeps the batch dim)."""
-        if isinstance(index, int):
-            index = slice(index, index + 1 if index != -1 else None)
+        """The sub-batch ``params[index]`` (an int keeps the batch dim).
+
+        Raises:
+            IndexError: an int index outside the batch, naming it and the batch size.
+        """
+        if not isinstance(index, slice):
+            try:
+                index = operator.index(index)
+            except TypeError:
+                raise TypeError(f"index: expected an int or a slice, got "
+                                f"{type(index).__name__}") from None
+            position = self._item(index, "index")
+            index = slice(position, position + 1)
         return Assembly(self.params[index])
+
+    def _item(self, item: int, name: str = "item") -> int:
+        """Batch item ``item`` (negative counts from the end) as an index in [0, B), or a
+        one-line ``IndexError`` naming ``name``, the item and the batch size."""
+        if isinstance(item, bool):
+            raise TypeError(f"{name}: expected an int, got {item!r}")
+        try:
+            item = operator.index(item)
+        except TypeError:
+            raise TypeError(f"{name}: expected an int, got {type(item).__name__}") from None
+        if not -self.batch_size <= item < self.batch_size:
+            raise IndexError(f"{name}: {item} is out of range for an assembly batch of "
+                             f"{self.batch_size}")
+        return item % self.batch_size
 
     def __repr__(self) -> str:
         return (f"Assembly(batch_size={self.batch_size}, num_primitives={self.num_primitives}, "
@@ -302,7 +329,9 @@ class Assembly:
         """A ``trimesh.Scene`` with one watertight mesh per primitive of batch item ``item``."""
         import trimesh
 
-        vertices, faces = self.meshes(level)
+        item = self._item(item)
+        vertices, faces = self[item].meshes(level)
+        item = 0
         vertices = vertices[item].detach().cpu().double().numpy()
         faces = faces.cpu().numpy()
         scene = trimesh.Scene()
@@ -316,17 +345,20 @@ class Assembly:
         """Write batch item ``item`` as a mesh file (.obj, .ply, .stl, .glb, .gltf), atomically.
 
         GLB/glTF keep one mesh per primitive; OBJ, PLY and STL hold the merged mesh.
+
+        Raises:
+            ValueError: ``path: ...`` for another suffix; OSError: ``<path>: ...`` when the
+                file cannot be written (naming ``path``, not the temporary file).
+            IndexError: naming ``item`` outside the batch.
         """
         path = Path(path)
         suffix = path.suffix.lower()
         if suffix not in MESH_SUFFIXES:
             raise ValueError(f"path: unsupported mesh format {suffix!r} "
                              f"(choose one of {', '.join(MESH_SUFFIXES)})")
-        if not -self.batch_size <= item < self.batch_size:
-            raise ValueError(f"item: {item} out of range for batch size {self.batch_size}")
         scene = self.to_trimesh_scene(item, level)
         target = scene if suffix in (".glb", ".gltf") else scene.to_geometry()
-        with atomic_path(path) as tmp:
+        with _naming(path), atomic_path(path) as tmp:
             target.export(tmp, file_type=suffix[1:])
         return path
 
@@ -335,8 +367,11 @@ class Assembly:
 
         Values are stored as exact decimal forms of the tensor's floats, so
         :meth:`from_dict` rebuilds the identical tensor.
+
+        Raises:
+            IndexError: naming ``item`` outside the batch.
         """
-        values = self.params[item].detach().cpu()
+        values = self.params[self._item(item)].detach().cpu()
         primitives = [
             {name: [float(v) for v in row[columns]] for name, columns in FIELDS.items()}
             for row in values
@@ -355,9 +390,18 @@ class Assembly:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any], device: str | torch.device = "cpu") -> Assembly:
-        """Inverse of :meth:`to_dict`: an assembly with batch size 1."""
+        """Inverse of :meth:`to_dict`: an assembly with batch size 1.
+
+        Raises:
+            ValueError: another format, a version other than :data:`JSON_VERSION` (one line
+                naming ``version``), or fields that are not numbers of a valid assembly.
+        """
         if not isinstance(data, dict) or data.get("format") != JSON_FORMAT:
             raise ValueError(f"not an assembly description (format != {JSON_FORMAT!r})")
+        version = data.get("version")
+        if isinstance(version, bool) or version != JSON_VERSION:
+            raise ValueError(f"version: {version!r} is not an assembly format version this "
+                             f"sq_mitsuba reads ({JSON_VERSION})")
         dtype = _DTYPES.get(data.get("dtype", "float32"))
         if dtype is None:
             raise ValueError(f"dtype: unsupported {data.get('dtype')!r}")
@@ -379,9 +423,23 @@ class Assembly:
         return cls(torch.tensor([rows], dtype=torch.float64).to(dtype=dtype, device=device))
 
     def save(self, path: str | Path, item: int = 0) -> Path:
-        """Write :meth:`to_dict` as JSON, atomically."""
-        atomic_write_text(path, json.dumps(self.to_dict(item), indent=2) + "\n")
-        return Path(path)
+        """Write :meth:`to_dict` of batch item ``item`` as JSON, atomically.
+
+        Raises:
+            ValueError: ``path: ...`` unless it ends in ``.json`` (a mesh is written by
+                :meth:`export`); OSError: ``<path>: ...`` when it cannot be written.
+            IndexError: naming ``item`` outside the batch.
+        """
+        path = Path(path)
+        if path.suffix.lower() != ".json":
+            hint = (f"; {path.suffix} is a mesh format: use export()"
+                    if path.suffix.lower() in MESH_SUFFIXES else "")
+            raise ValueError(f"path: {path} is not a .json file (save writes the assembly's "
+                             f"JSON description{hint})")
+        text = json.dumps(self.to_dict(item), indent=2) + "\n"
+        with _naming(path):
+            atomic_write_text(path, text)
+        return path
 
     @classmethod
     def load(cls, path: str | Path, device: str | torch.device = "cpu") -> Assembly:
@@ -392,6 +450,17 @@ class Assembly:
             return cls.from_dict(data, device)
         except ValueError as error:
             raise ValueError(f"{path}: {error}") from None
+
+
+@contextmanager
+def _naming(path: Path) -> Iterator[None]:
+    """Turn an ``OSError`` of writing ``path`` (which names the temporary file, or nothing)
+    into one line naming ``path``."""
+    try:
+        yield
+    except OSError as error:
+        reason = error.strerror or " ".join(str(error).split()) or type(error).__name__
+        raise type(error)(f"{path}: cannot write ({reason})") from None
 
 
 class _AssemblyInsideOutside(torch.autograd.Function):

@@ -79,24 +79,61 @@ class Camera:
         or, without a matrix, ``fx``, ``fy`` in metres with the pixel pitch ``ppx``, ``ppy``
         and principal point ``ccx``, ``ccy``.
 
-        The description must be consistent (:func:`sq_mitsuba.inputs.check_camera_intrinsics`:
-        images of at least 8 x 8 px, a matrix that fits ``Nu`` x ``Nv``); ``where`` (the file)
-        starts the one-line ``ValueError`` otherwise."""
+        The description must be one this pinhole camera is: JSON numbers (not strings), whole
+        ``Nu`` and ``Nv``, a matrix ``[[fx, 0, cx], [0, fy, cy], [0, 0, 1]]`` (no skew, a last
+        row of ``[0, 0, 1]``), ``distCoeffs``, if given, all zero (SPEED's are; a lens
+        distortion is not modelled: undistort such images first), and consistent
+        (:func:`sq_mitsuba.inputs.check_camera_intrinsics`: images of at least 8 x 8 px, a
+        matrix that fits ``Nu`` x ``Nv``); ``where`` (the file) starts the one-line
+        ``ValueError`` otherwise."""
+        if not isinstance(data, dict):
+            raise ValueError(f"{where}: not a SPEED-style camera description (expected a JSON "
+                             f"object, got {type(data).__name__})")
+        missing = [key for key in ("Nu", "Nv") if key not in data]
+        if "cameraMatrix" not in data:
+            missing += [key for key in ("fx", "fy", "ppx", "ppy") if key not in data]
+        if missing:
+            raise ValueError(f"{where}: not a SPEED-style camera description (no "
+                             f"{', '.join(map(repr, missing))})")
+        width = _whole(data["Nu"], f"{where}: Nu")
+        height = _whole(data["Nv"], f"{where}: Nv")
+        if "cameraMatrix" in data:
+            matrix = data["cameraMatrix"]
+            if not isinstance(matrix, list | tuple) or len(matrix) != 3 or not all(
+                    isinstance(row, list | tuple) and len(row) == 3 for row in matrix):
+                raise ValueError(f"{where}: cameraMatrix must be 3 rows of 3 numbers, got "
+                                 f"{_shown(matrix)}")
+            values = [[_number(v, f"{where}: cameraMatrix[{i}][{j}]") for j, v in
+                       enumerate(row)] for i, row in enumerate(matrix)]
+            for (i, j), what in (((0, 1), "the skew"), ((1, 0), "an entry below fx")):
+                if values[i][j] != 0.0:
+                    raise ValueError(f"{where}: cameraMatrix[{i}][{j}] ({what}) is "
+                                     f"{values[i][j]:g}; a pinhole camera without skew has 0")
+            if values[2] != [0.0, 0.0, 1.0]:
+                raise ValueError(f"{where}: cameraMatrix's last row is {_shown(matrix[2])}; "
+                                 "an intrinsic matrix's is [0, 0, 1] (divide the matrix by "
+                                 "its [2][2] entry)")
+            fx, fy, cx, cy = values[0][0], values[1][1], values[0][2], values[1][2]
+        else:
+            fx = _number(data["fx"], f"{where}: fx") / _number(data["ppx"], f"{where}: ppx")
+            fy = _number(data["fy"], f"{where}: fy") / _number(data["ppy"], f"{where}: ppy")
+            cx = _number(data.get("ccx", width / 2), f"{where}: ccx")
+            cy = _number(data.get("ccy", height / 2), f"{where}: ccy")
+        if "distCoeffs" in data:
+            coefficients = data["distCoeffs"]
+            if not isinstance(coefficients, list | tuple):
+                raise ValueError(f"{where}: distCoeffs must be a list of numbers, got "
+                                 f"{_shown(coefficients)}")
+            numbers = [_number(v, f"{where}: distCoeffs[{k}]")
+                       for k, v in enumerate(coefficients)]
+            if any(v != 0.0 for v in numbers):
+                raise ValueError(f"{where}: distCoeffs {_shown(coefficients)} describe a lens "
+                                 "distortion, which sq_mitsuba does not model; undistort the "
+                                 "images first (e.g. cv2.undistort) and give zeros")
         try:
-            width, height = int(data["Nu"]), int(data["Nv"])
-            if "cameraMatrix" in data:
-                matrix = data["cameraMatrix"]
-                fx, fy = float(matrix[0][0]), float(matrix[1][1])
-                cx, cy = float(matrix[0][2]), float(matrix[1][2])
-            else:
-                fx = float(data["fx"]) / float(data["ppx"])
-                fy = float(data["fy"]) / float(data["ppy"])
-                cx = float(data.get("ccx", width / 2))
-                cy = float(data.get("ccy", height / 2))
-        except (KeyError, TypeError, IndexError, ValueError) as error:
-            raise ValueError(f"{where}: not a SPEED-style camera description ({error!r})") \
-                from None
-        camera = cls(fx, fy, cx, cy, width, height)
+            camera = cls(fx, fy, cx, cy, width, height)
+        except ValueError as error:
+            raise ValueError(f"{where}: {error}") from None
         check_camera_intrinsics(width, height, camera.fx, camera.fy, cx, cy, where)
         return camera
 
@@ -175,3 +212,28 @@ class Camera:
                               torch.arange(self.width, dtype=dtype, device=device) + 0.5,
                               indexing="ij")
         return torch.stack((u, v), dim=-1)
+
+
+def _shown(value: Any) -> str:
+    """``repr(value)``, cut to 60 characters."""
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _number(value: Any, where: str) -> float:
+    """A JSON number as a finite float, or a one-line ``ValueError`` starting with ``where``
+    (a string such as ``"400"`` is refused, not converted)."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        kind = " (a string: write the number without quotes)" if isinstance(value, str) else ""
+        raise ValueError(f"{where} must be a number, got {_shown(value)}{kind}")
+    if not math.isfinite(value):
+        raise ValueError(f"{where} must be finite, got {value!r}")
+    return float(value)
+
+
+def _whole(value: Any, where: str) -> int:
+    """A JSON number that is a whole count of pixels (``256`` or ``256.0``, not ``256.5``)."""
+    number = _number(value, where)
+    if number != int(number):
+        raise ValueError(f"{where} must be a whole number of pixels, got {value!r}")
+    return int(number)

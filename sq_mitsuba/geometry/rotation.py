@@ -21,6 +21,7 @@ from torch.nn import functional as F
 from sq_mitsuba.checks import check_tensor
 
 __all__ = [
+    "axis_angle_to_matrix",
     "matrix_to_quaternion",
     "matrix_to_rotation_6d",
     "mean_rotation",
@@ -189,3 +190,14 @@ def mean_rotation(rotations: Tensor) -> Tensor:
     u, _, vh = torch.linalg.svd(rotations.double().mean(0))
     d = torch.sign(torch.linalg.det(u @ vh))
     return u @ torch.diag(torch.stack([torch.ones_like(d), torch.ones_like(d), d])) @ vh
+
+
+def axis_angle_to_matrix(rotation_vector: Tensor) -> Tensor:
+    """Rotation vectors (..., 3) (axis times angle, radians) -> rotation matrices (..., 3, 3),
+    by the exponential of their skew-symmetric matrices (differentiable, exact at 0)."""
+    w = rotation_vector
+    zero = torch.zeros_like(w[..., 0])
+    skew = torch.stack([torch.stack([zero, -w[..., 2], w[..., 1]], -1),
+                        torch.stack([w[..., 2], zero, -w[..., 0]], -1),
+                        torch.stack([-w[..., 1], w[..., 0], zero], -1)], -2)
+    return torch.linalg.matrix_exp(skew)

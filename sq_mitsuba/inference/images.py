@@ -19,10 +19,22 @@ from torch import Tensor
 
 from sq_mitsuba.geometry.camera import Camera
 
-__all__ = ["camera_for", "prepare_images", "resize_images"]
+__all__ = ["DEFAULT_MIN_TARGET", "camera_for", "neighbour_correlation", "prepare_images",
+           "resize_images", "target_scores"]
 
 # Relative aspect-ratio difference below which a camera of another size is rescaled.
 _ASPECT_TOLERANCE = 1e-3
+
+#: The target-present score from which an image counts as showing a target (see
+#: :func:`target_scores`): the default ``min_target`` of the predictor and of ``predict``.
+DEFAULT_MIN_TARGET = 0.92
+# Linear ramps (value at score 0, value at score 1) of the target-present evidence; measured,
+# see target_scores.
+_CORRELATION_RAMP = (0.04, 0.10)  # neighbour_correlation
+_BRIGHT_RAMP = (0.05, 0.15)  # 99.5th percentile of the grey image
+_BORDER_RAMP = (0.05, 0.01)  # share of the image border the segmented mask covers
+# Largest side at which neighbour_correlation measures an image (larger: block means).
+_CORRELATION_SIDE = 512
 
 
 def prepare_images(images: Tensor | np.ndarray, channels: int = 1) -> Tensor:
@@ -30,22 +42,38 @@ def prepare_images(images: Tensor | np.ndarray, channels: int = 1) -> Tensor:
 
     Args:
         images: (B, H, W) (when ``channels`` is 1) or (B, C, H, W); uint8 (0..255) or floating
-            point in [0, 1]; a torch tensor or a numpy array.
+            point in [0, 1]; a torch tensor or a numpy array (read-only arrays, such as
+            ``np.asarray(PIL.Image.open(path))``, are copied; a tensor's autograd history is
+            not followed). Each image between :data:`~sq_mitsuba.inputs.MIN_IMAGE_SIDE` px a
+            side and :data:`~sq_mitsuba.inputs.MAX_IMAGE_PIXELS` pixels, the bounds of an
+            image file (``sq-mitsuba predict``).
         channels: the C the network expects.
 
     Raises:
-        ValueError: naming ``images``: wrong type, shape or dtype, NaN or values outside [0, 1].
+        ValueError: naming ``images``: wrong type, shape, size or dtype, a meta tensor, NaN
+            or values outside [0, 1].
     """
+    from sq_mitsuba.inputs import check_image_size
+
     if isinstance(images, np.ndarray):
+        if images.dtype != np.uint8 and images.dtype.kind != "f":
+            raise ValueError(f"images: expected uint8 or floating point, got {images.dtype}")
+        if not images.dtype.isnative or not images.flags.writeable:
+            # torch reads neither another byte order nor (without a warning) read-only memory.
+            images = images.astype(images.dtype.newbyteorder("="), copy=True)
         images = torch.from_numpy(images)
     if not isinstance(images, Tensor):
         raise ValueError(f"images: expected a torch.Tensor or numpy array, "
                          f"got {type(images).__name__}")
+    if images.is_meta:
+        raise ValueError("images: a meta tensor (no values); give the images themselves")
+    images = images.detach()
     if images.dim() == 3 and channels == 1:
         images = images[:, None]
     expected = "(B, H, W) or (B, 1, H, W)" if channels == 1 else f"(B, {channels}, H, W)"
     if images.dim() != 4 or images.shape[1] != channels or images.numel() == 0:
         raise ValueError(f"images: expected shape {expected}, got {tuple(images.shape)}")
+    check_image_size(images.shape[-1], images.shape[-2], "images")
     if images.dtype == torch.uint8:
         return images.float() / 255.0
     if not images.is_floating_point():
@@ -85,3 +113,114 @@ def camera_for(camera: Camera, width: int, height: int) -> Camera:
         raise ValueError(f"camera: is for {camera.width} x {camera.height} images, the images are "
                          f"{width} x {height} (another aspect ratio); pass their camera")
     return camera.rescaled(width, height)
+
+
+def _ramp(value: Tensor, zero: float, one: float) -> Tensor:
+    """``value`` mapped linearly from ``zero`` (0) to ``one`` (1), clipped to [0, 1]."""
+    return ((value - zero) / (one - zero)).clamp(0.0, 1.0)
+
+
+def neighbour_correlation(images: Tensor) -> Tensor:
+    """(B,) the correlation of neighbouring pixels of images (B, C, H, W) (grey, horizontal
+    and vertical pairs together), or 1 for an image of one grey level (no noise to measure).
+
+    A picture of anything has strongly correlated neighbours (a space scene: 0.2 to 0.97,
+    lower for a grainy render or a barely lit target); per-pixel noise has none (|r| < 0.04).
+    An image larger than 512 px is measured on its means over k x k blocks (k the smallest
+    integer that brings it to 512 px or less), which keep both so.
+    """
+    grey = images.detach().float().mean(dim=1, keepdim=True)
+    factor = -(-max(grey.shape[-2:]) // _CORRELATION_SIDE)
+    if factor > 1:  # block means: white noise stays white, a picture stays a picture
+        grey = F.avg_pool2d(grey, factor, stride=factor, ceil_mode=False)
+    grey = grey[:, 0]
+    first = torch.cat([grey[..., :, :-1].flatten(1), grey[..., :-1, :].flatten(1)], dim=1)
+    second = torch.cat([grey[..., :, 1:].flatten(1), grey[..., 1:, :].flatten(1)], dim=1)
+    first = first - first.mean(dim=1, keepdim=True)
+    second = second - second.mean(dim=1, keepdim=True)
+    scale = (first.square().mean(dim=1) * second.square().mean(dim=1)).sqrt()
+    covariance = (first * second).mean(dim=1)
+    flat = scale <= 1e-12
+    return torch.where(flat, torch.ones_like(scale), covariance / scale.clamp_min(1e-12))
+
+
+def target_scores(network_input: Tensor, mask_logits: Tensor | None,
+                  images: Tensor | None = None) -> Tensor:
+    """(B,) the target-present score in [0, 1]: how sure the predictor is that each image
+    shows a target (a spacecraft) at all.
+
+    Args:
+        network_input: (B, C, S, S) the images as the network takes them.
+        mask_logits: (B, 1, h, w) the network's mask head's logits, or None without one.
+        images: (B, C, H, W) the images at their own size (default: ``network_input``), for
+            the noise test.
+
+    The score is the weaker of two pieces of evidence:
+
+    - the target's: with a mask head, its probability at its most confident pixel; without
+      one, the threshold segmentation of the network's input
+      (:func:`~sq_mitsuba.data.segmentation.segment_target`), scored by the weaker of its
+      brightness (the 99.5th percentile: 0 up to 0.05, 1 from 0.15) and of how little of
+      the image border its mask covers (1 up to 1 %, 0 from 5 %: a target lies within the
+      image, the Earth's limb and noise cross the border); 0 where nothing is segmented;
+    - that the image is a picture and not noise: its :func:`neighbour_correlation` at its
+      own size, 0 up to 0.04, 1 from 0.10 (the mask head never saw noise, and fires on it).
+
+    Convention: an image shows a target when its score is at least ``min_target``
+    (:data:`DEFAULT_MIN_TARGET`, 0.92); below it, nothing is fitted to it. 0.92 is the
+    midpoint in log-odds between the highest score of an image without a target (0.889, the
+    Earth alone) and the lowest of a spacecraft (0.944, before the Earth) measured below.
+
+    Measured (the project's renderer, :class:`~sq_mitsuba.render.space.SpaceScene`: 20
+    spacecraft of catalogue seed 11, which the shipped model never saw, in the default space
+    scene; "alone" is the same frame with the target moved behind the camera): the lowest and
+    highest score, and the share at or above 0.92, of the shipped model (96 px input, mask
+    head) on images rendered as it was trained (96 px, 16 samples per pixel) and at 256 px,
+    16 spp (then downsampled: finer), and of the segmentation (a network without a mask head)
+    on the 256 px images at 64 px:
+
+    =======================================  ===  ================  ================  =========
+    images                                     n  head, 96 px       head, 256 px      segment.
+    =======================================  ===  ================  ================  =========
+    spacecraft, the Earth out of view         60  0.990-1 (100%)    0.987-1 (100%)    1 (100%)
+    spacecraft before the Earth               60  0.974-1 (100%)    0.944-1 (100%)    0-1 (28%)
+    spacecraft in eclipse (earthshine only)   40  0.035-1 (68%)     0.046-1 (75%)     0-1 (8%)
+    spacecraft 2.5-4 x farther than trained   72                    0.520-1 (96%)     0-1 (42%)
+    the Earth alone                           60  0.002-0.889 (0%)  0.001-0.842 (0%)  0 (0%)
+    stars alone                               20  0.004-0.180 (0%)  0.007-0.261 (0%)  0 (0%)
+    =======================================  ===  ================  ================  =========
+
+    Black and one-grey images (6, up to 1,024 px) score at most 0.260. Noise (256 images:
+    uniform, 5 levels; Gaussian, means 0 to 0.5, sd 0.02 to 0.5; sparse bright pixels; each
+    at 48 to 512 px) scores 0: alone, the mask head's most confident pixel exceeds 0.9 on 71
+    of them (up to 0.997), but their neighbour correlation is at most 0.037, against 0.18 for
+    the grainiest spacecraft image (64 px, 4 spp) and 0.45 at 96 px, 16 spp.
+
+    So every spacecraft rendered as in training is a target and nothing else is; a much
+    farther spacecraft may fall below (3 of 72), and so do a third of the eclipsed ones
+    (barely lit). Limits: the mask head also fires on a grainy Earth (rendered at 64 px with
+    4 spp, 16 of 60 Earth-alone frames score 0.92 or more); without a mask head the
+    segmentation cannot tell a target before the Earth from the Earth (both cross the
+    border): such images score 0.
+    """
+    count = network_input.shape[0]
+    picture = _ramp(neighbour_correlation(network_input if images is None else images),
+                    *_CORRELATION_RAMP).cpu()
+    if mask_logits is not None:
+        evidence = mask_logits.detach().float().flatten(1).amax(dim=1).sigmoid().cpu()
+    else:
+        from sq_mitsuba.data.segmentation import segment_target
+
+        evidence = torch.zeros(count)
+        grey = network_input.detach().float().mean(dim=1).cpu()
+        for k in range(count):
+            image = grey[k].double().numpy()
+            try:
+                mask = segment_target(image).mask
+            except ValueError:  # nothing bright: no target
+                continue
+            border = np.concatenate([mask[0], mask[-1], mask[:, 0], mask[:, -1]]).mean()
+            bright = float(np.percentile(image, 99.5))
+            evidence[k] = min(float(_ramp(torch.tensor(bright), *_BRIGHT_RAMP)),
+                              float(_ramp(torch.tensor(border), *_BORDER_RAMP)))
+    return torch.minimum(evidence, picture)

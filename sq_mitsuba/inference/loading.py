@@ -8,14 +8,46 @@ from pathlib import Path
 
 import torch
 
-from sq_mitsuba.inference.predictor import Predictor
+from sq_mitsuba.inference.images import DEFAULT_MIN_TARGET
+from sq_mitsuba.inference.predictor import Predictor, check_min_target
 from sq_mitsuba.model import checkpoint
 
-__all__ = ["load_model", "with_fast_path"]
+__all__ = ["check_device", "load_model", "with_fast_path"]
+
+
+def check_device(device: str | torch.device) -> torch.device:
+    """``device`` as a ``torch.device`` that this torch can use, or a one-line ``ValueError``
+    naming ``device`` (an unknown name, CUDA on a torch without it or a machine without a
+    GPU, a GPU index past the last, or the meta device)."""
+    try:
+        parsed = torch.device(device)
+    except (RuntimeError, TypeError, ValueError):
+        raise ValueError(f"device: {device!r} is not a torch device (e.g. 'cpu', 'cuda', "
+                         "'cuda:1')") from None
+    if parsed.type == "meta":
+        raise ValueError("device: 'meta' tensors hold no values; predict on 'cpu' or 'cuda'")
+    if parsed.type == "cuda":
+        if not torch.cuda.is_available():
+            why = ("this torch build has no CUDA" if torch.version.cuda is None
+                   else "no CUDA device is visible")
+            raise ValueError(f"device: {str(parsed)!r} is not available ({why}, torch "
+                             f"{torch.__version__}); use device='cpu'")
+        if parsed.index is not None and parsed.index >= torch.cuda.device_count():
+            raise ValueError(f"device: {str(parsed)!r} is not available (this machine has "
+                             f"{torch.cuda.device_count()} CUDA device(s))")
+        return parsed
+    if parsed.type != "cpu":
+        try:
+            torch.empty(1, device=parsed)
+        except Exception as error:  # each backend fails in its own way (RuntimeError, ...)
+            reason = " ".join(str(error).split())[:120] or type(error).__name__
+            raise ValueError(f"device: {str(parsed)!r} is not available ({reason})") from None
+    return parsed
 
 
 def load_model(path: str | os.PathLike[str] | None = None, *, fast: bool = False,
-               device: str | torch.device = "cpu") -> Predictor:
+               device: str | torch.device = "cpu",
+               min_target: float = DEFAULT_MIN_TARGET) -> Predictor:
     """A :class:`Predictor` from a checkpoint, with the dataset camera as its default camera.
 
     Args:
@@ -23,11 +55,20 @@ def load_model(path: str | os.PathLike[str] | None = None, *, fast: bool = False
             (``sq_mitsuba/model/weights/model.pt``).
         fast: predict with BatchNorm folded into the convolutions (see :class:`Predictor`).
         device: where the network runs.
+        min_target: the target-present score from which an image shows a target (see
+            :class:`Predictor`).
 
     Raises:
         FileNotFoundError: no such file, or no shipped model (saying how to get one).
-        ValueError: ``<path>: ...`` for a corrupt or mismatched checkpoint.
+        ValueError: ``<path>: ...`` for a corrupt or mismatched checkpoint; naming ``path``
+            (an empty one), ``device`` (one this torch cannot use) or ``min_target``; all
+            checked before the checkpoint is read.
     """
+    if isinstance(path, str | os.PathLike) and not os.fspath(path):
+        raise ValueError("path: empty; give a checkpoint file, or None for the model shipped "
+                         "with sq_mitsuba")
+    device = check_device(device)
+    min_target = check_min_target(min_target)
     if path is None:
         if not checkpoint.SHIPPED_MODEL.is_file():
             raise FileNotFoundError(
@@ -38,19 +79,29 @@ def load_model(path: str | os.PathLike[str] | None = None, *, fast: bool = False
     path = Path(path)
     payload = checkpoint.read_checkpoint(path)
     model, camera = checkpoint.model_from_checkpoint(payload, str(path))
-    predictor = Predictor(model.to(device), camera, fast=fast)
+    predictor = Predictor(model.to(device), camera, fast=fast, min_target=min_target)
     predictor.source = path
     predictor.baseline = checkpoint.checkpoint_baseline(payload, str(path))
     return predictor
 
 
-def with_fast_path(predictor: Predictor, fast: bool) -> Predictor:
-    """``predictor``, or, when ``fast`` and it has none, a copy predicting with the
-    BatchNorm-folded network (folding takes about a second: done once the inputs are
-    checked)."""
-    if not fast or predictor.fast:
+def with_fast_path(predictor: Predictor, fast: bool, *,
+                   min_target: float | None = None) -> Predictor:
+    """``predictor``, or a copy: predicting with the BatchNorm-folded network when ``fast``
+    and it has none (folding takes about a second: done once the inputs are checked), with
+    the threshold ``min_target`` when given and another than its own."""
+    min_target = predictor.min_target if min_target is None else check_min_target(min_target)
+    folds = fast and not predictor.fast
+    if not folds and min_target == predictor.min_target:
         return predictor
-    folded = Predictor(predictor.model, predictor.camera, fast=True)
+    if not folds:  # the same network and fast path, another threshold
+        import copy
+
+        changed = copy.copy(predictor)
+        changed.min_target = min_target
+        return changed
+    folded = Predictor(predictor.model, predictor.camera, fast=True,
+                       hypotheses=predictor.hypotheses, min_target=min_target)
     folded.source = predictor.source
     folded.baseline = predictor.baseline
     return folded

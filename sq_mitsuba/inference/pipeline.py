@@ -12,8 +12,9 @@ holds the network's reading) runs, for a batch of B images:
    segmentation of the image (:func:`~sq_mitsuba.data.segmentation.segment_target`), or one
    the caller gives;
 4. the global pose search and the refinement against that mask
-   (:func:`~sq_mitsuba.inference.search.search_and_refine`), items with an empty mask left
-   at the search's start with NaN scores.
+   (:func:`~sq_mitsuba.inference.search.search_and_refine`), items with an empty mask, or
+   (but for a mask the caller gives) an image without a target (``Prediction.target``),
+   left at the search's start with NaN scores.
 
 The evaluation (``eval --refine``), ``predict --refine``, the demo, the illumination study and
 ``bench eval`` all call it; nothing else strings these steps together.
@@ -90,7 +91,9 @@ def masks_to_fit(start: Prediction, images: Tensor, mask: MaskChoice
     if isinstance(mask, np.ndarray):
         if mask.dtype == object:
             raise ValueError("mask: expected a bool or float array, got dtype object")
-        mask = torch.from_numpy(np.ascontiguousarray(mask))
+        # A copy where needed: torch reads neither strided nor (without a warning) read-only.
+        mask = torch.from_numpy(np.array(mask, order="C", copy=True if not mask.flags.writeable
+                                         else None))
     if not isinstance(mask, Tensor):
         raise ValueError(f"mask: expected 'network', 'segmentation', a tensor or an array, got "
                          f"{type(mask).__name__}")
@@ -158,6 +161,8 @@ def fit_prediction(predictor: Any, images: Tensor, network: Prediction, *,
         start, turns = reuse.start, reuse.turns
     turns_seconds = time.perf_counter() - started
     masks, usable, source = masks_to_fit(start, images, mask)
+    if source != "given" and network.target is not None:
+        usable = usable & network.target.detach().cpu()  # no target: nothing to search for
 
     params = start.assembly.params.detach().double().cpu()
     rotation = start.rotation.detach().double().cpu()

@@ -32,13 +32,16 @@ MaskChoice = str | Tensor | np.ndarray | None
 class Fit:
     """What :meth:`~sq_mitsuba.inference.predictor.Predictor.refine` fitted, for B images.
 
-    Items without a target in their mask (``fitted`` False) are not searched: their pose is
-    the search's start and their scores are NaN.
+    Items not fitted (``fitted`` False: the image shows no target by its ``target_score``, or
+    its mask is empty) are not searched: their pose is the search's start and their scores
+    are NaN. A mask the caller gives is fitted whatever the target score.
 
     Attributes:
         mask: (B, H, W) bool, the mask each image was fitted to, at the images' size.
         mask_source: one of :data:`MASK_SOURCES`.
-        fitted: (B,) bool, whether the item was searched and refined.
+        fitted: (B,) bool, whether the item was searched and refined: its mask has a target,
+            and (for the network's mask or the segmentation) the image shows a target
+            (``Prediction.target``).
         start: the reading the search started from: the network's, or its means over turned
             copies of the images (``turns``).
         turns: the in-plane turns ``start`` was read from (1: the network's one pass).
@@ -99,6 +102,18 @@ class Prediction:
             this prediction was fitted to the images' masks; None when it is that reading.
         fit: what was fitted (:class:`Fit`: the masks, the search's candidates and scores, the
             IoU after refinement), or None for the network's reading.
+        target_score: (B,) in [0, 1], how sure the predictor is that each image shows a
+            target at all (:func:`~sq_mitsuba.inference.images.target_scores`: the mask
+            head's most confident pixel, or the segmentation's for a network without a mask
+            head, and 0 for an image of noise); from the network's one pass, also when the
+            rest is read from turned copies.
+        target: (B,) bool, ``target_score >= min_target`` (the predictor's threshold, 0.92 by
+            default): the images that show a target. The others' assembly and pose are the
+            network's output for an image without one, meaningless; ``refine`` does not fit
+            them.
+        fingerprint: (B, C, 8, 8) the network's input averaged over 8 x 8 blocks, with which
+            ``read_turns`` and ``refine`` check that they are given the images this reading
+            was made from.
     """
 
     assembly: Assembly
@@ -114,3 +129,6 @@ class Prediction:
     rotation_log_probabilities: Tensor | None = None
     network: Prediction | None = None
     fit: Fit | None = None
+    target_score: Tensor | None = None
+    target: Tensor | None = None
+    fingerprint: Tensor | None = None

@@ -10,6 +10,7 @@ checkpoint. Example::
     prediction.rotation, prediction.translation     # x_cam = R x_body + t
     prediction.rotation_hypotheses                  # (B, K, 3, 3), best first
     prediction.mask                                 # (B, H, W) in [0, 1], or None
+    prediction.target, prediction.target_score      # (B,) does each image show a target?
     predictor.predict(images, turns=8).rotation     # read from 8 in-plane turns (grid head)
     predictor.read_turns(images, prediction, 8)     # the same, reusing the unturned pass
     fitted = predictor.predict(images, refine=True)  # pose searched and refined to the mask
@@ -26,12 +27,16 @@ Convention:
       field of view and is rescaled to the images' size first.
     - Poses map body to camera in the OpenCV frame (x right, y down, z forward):
       ``x_cam = R x_body + t``; quaternions are scalar-first with w >= 0.
+    - Every image gets a target-present score (``Prediction.target_score``, see
+      :func:`~sq_mitsuba.inference.images.target_scores`); an image scoring below the
+      predictor's ``min_target`` shows no target (``Prediction.target`` False): its assembly
+      and pose mean nothing, and ``refine`` does not fit it.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import fields, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, NamedTuple
 
@@ -43,8 +48,15 @@ from torch import Tensor
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.rotation import matrix_to_quaternion
-from sq_mitsuba.inference.images import camera_for, prepare_images, resize_images
+from sq_mitsuba.inference.images import (
+    DEFAULT_MIN_TARGET,
+    camera_for,
+    prepare_images,
+    resize_images,
+    target_scores,
+)
 from sq_mitsuba.inference.prediction import Fit, MaskChoice, Prediction
+from sq_mitsuba.inference.traced import TracedNetwork
 from sq_mitsuba.model.network import NetworkOutput, SuperquadricNet
 from sq_mitsuba.model.rotation_grid import RotationGridPoseHead, rotation_hypotheses
 
@@ -54,12 +66,13 @@ if TYPE_CHECKING:  # the search and refinement load Mitsuba's bridge: imported w
 
 __all__ = ["Prediction", "Predictor", "prepare_images"]
 
-# Traces of the fast path kept per Predictor (one per input shape seen, oldest dropped).
-_TRACES_KEPT = 4
-# Runs of a new trace before it is used (the profiling executor optimises on the second).
-_TRACE_WARMUP_RUNS = 2
 #: Rotation hypotheses a Predictor gives per image by default (distribution heads).
 DEFAULT_HYPOTHESES = 8
+# Side of Prediction.fingerprint (blocks of the network input), and the largest difference
+# of a block's mean at which two inputs are the same images (a fifth of an 8-bit grey level:
+# the same pixels given as uint8 or float differ by rounding, 1e-7).
+_FINGERPRINT_SIDE = 8
+_FINGERPRINT_TOLERANCE = 1e-3
 
 
 class _Prepared(NamedTuple):
@@ -69,6 +82,7 @@ class _Prepared(NamedTuple):
     images: Tensor  # (B, C, S, S) on the network's device and dtype
     height: int
     width: int
+    checked: Tensor  # (B, C, H, W) float in [0, 1], the images at their own size
 
 
 class Predictor:
@@ -82,26 +96,28 @@ class Predictor:
             faster on CPU; the first call at a new batch size or device takes about a
             second). The copy is a snapshot of the weights now.
         hypotheses: K, the rotation hypotheses per image of a distribution head.
+        min_target: the target-present score from which an image shows a target
+            (``Prediction.target``; see :func:`~sq_mitsuba.inference.images.target_scores`
+            for how the default, 0.92, was chosen); 0 takes every image for one.
     """
 
     def __init__(self, model: SuperquadricNet, camera: Camera, fast: bool = False,
-                 hypotheses: int = DEFAULT_HYPOTHESES) -> None:
+                 hypotheses: int = DEFAULT_HYPOTHESES,
+                 min_target: float = DEFAULT_MIN_TARGET) -> None:
         if not isinstance(model, SuperquadricNet):
             raise ValueError(f"model: expected a SuperquadricNet, got {type(model).__name__}")
         if not isinstance(camera, Camera):
             raise ValueError(f"camera: expected a Camera, got {type(camera).__name__}")
         if isinstance(hypotheses, bool) or not isinstance(hypotheses, int) or hypotheses < 1:
             raise ValueError(f"hypotheses: expected an int >= 1, got {hypotheses!r}")
+        self.min_target = check_min_target(min_target)
         self.model = model
         self.camera = camera
         self.fast = bool(fast)
         self.hypotheses = hypotheses
-        # Measured (`sq-mitsuba bench train`, batch 1, quiet 2-core EPYC): TorchScript's trace +
-        # freeze of the folded network takes 6.2 ms at 96 px against 8.7 ms eager (the eager
-        # time is mostly Python's per-module overhead at batch 1); optimize_for_inference was
-        # slower (11 ms), oneDNN graph fusion fails to compile this network.
+        # The fast path (inference/traced.py says why TorchScript: measured faster at batch 1).
         self._folded = model.folded(channels_last=True) if self.fast else None
-        self._traced: dict[tuple, tuple[torch.nn.Module, tuple[str, ...]]] = {}
+        self._traced = TracedNetwork(self._folded) if self._folded is not None else None
         # turned_cells of the grid per (turns, device), for predict(turns=T).
         self._turned_cells: dict[tuple, Tensor] = {}
         #: The checkpoint the model came from (set by ``load_model``), for records.
@@ -172,8 +188,10 @@ class Predictor:
             self._check_turns(turns, camera.rescaled(self.image_size, self.image_size))
         network = self._predicted(x, camera)
         if refine:
-            return self.refine(images, network, camera, turns=turns, mask=mask, search=search,
-                               refinement=refinement)
+            from sq_mitsuba.inference.pipeline import fit_prediction
+
+            return fit_prediction(self, x.checked, network, turns=turns, mask=mask,
+                                  search=search, refinement=refinement)
         return network if turns is None or turns == 1 else self._with_turns(x, network, turns)
 
     def refine(self, images: Tensor | np.ndarray, network: Prediction,
@@ -196,16 +214,33 @@ class Predictor:
         """
         from sq_mitsuba.inference.pipeline import fit_prediction
 
-        checked = prepare_images(images, self.model.config.in_channels)
-        camera = camera_for(self.camera if camera is None else camera, checked.shape[-1],
-                            checked.shape[-2])
+        x, camera = self._prepared(images, camera)
+        count = x.images.shape[0]
         if not isinstance(network, Prediction) or network.fit is not None \
-                or network.camera != camera or network.rotation.shape[0] != checked.shape[0]:
+                or network.camera != camera or network.rotation.shape[0] != count:
             raise ValueError(f"network: expected this predictor's own reading of the "
-                             f"{checked.shape[0]} images ({camera.width} x {camera.height} px, "
+                             f"{count} images ({camera.width} x {camera.height} px, "
                              "this camera)")
-        return fit_prediction(self, checked, network, turns=turns, mask=mask, search=search,
+        if not self._same_images(network, x):
+            raise ValueError(f"network: a reading of other images than these {count} (its "
+                             "fingerprint differs); read these with predict(images)")
+        return fit_prediction(self, x.checked, network, turns=turns, mask=mask, search=search,
                               refinement=refinement, reuse=reuse)
+
+    def predict_sequence(self, images: Tensor | np.ndarray, camera: Camera | None = None,
+                         **kwargs: object) -> object:
+        """One assembly and every pose from N >= 2 images of the same spacecraft: each frame
+        read by the shipped path, the half turns resolved across frames, then one shape and N
+        poses fitted to every frame's mask at once
+        (:func:`~sq_mitsuba.inference.sequence.predict_sequence`, which documents the keyword
+        arguments: ``relative_rotations``, ``mask``, ``options``, ``search``, ``refinement``).
+
+        Returns:
+            A :class:`~sq_mitsuba.inference.sequence.SequencePrediction`.
+        """
+        from sq_mitsuba.inference.sequence import predict_sequence
+
+        return predict_sequence(self, images, camera, **kwargs)
 
     def read_turns(self, images: Tensor | np.ndarray, prediction: Prediction, turns: int,
                    camera: Camera | None = None) -> Prediction:
@@ -227,6 +262,9 @@ class Predictor:
             raise ValueError(f"prediction: expected this predictor's Prediction of the {count} "
                              f"images ({camera.width} x {camera.height} px, this camera), with "
                              "rotation_log_probabilities")
+        if not self._same_images(prediction, x):
+            raise ValueError(f"prediction: a reading of other images than these {count} (its "
+                             "fingerprint differs); read these with predict(images)")
         return prediction if turns == 1 else self._with_turns(x, prediction, turns)
 
     def _prepared(self, images: Tensor | np.ndarray,
@@ -237,8 +275,24 @@ class Predictor:
         height, width = x.shape[-2:]
         camera = camera_for(self.camera if camera is None else camera, width, height)
         parameter = next(self.model.parameters())
-        x = x.to(device=parameter.device, dtype=parameter.dtype)
-        return _Prepared(resize_images(x, self.image_size), height, width), camera
+        resized = resize_images(x.to(device=parameter.device, dtype=parameter.dtype),
+                                self.image_size)
+        return _Prepared(resized, height, width, x), camera
+
+    @staticmethod
+    def _fingerprint(x: _Prepared) -> Tensor:
+        """(B, C, 8, 8) the network input averaged over 8 x 8 blocks, float32 on the CPU."""
+        return F.adaptive_avg_pool2d(x.images.detach().float(), _FINGERPRINT_SIDE).cpu()
+
+    def _same_images(self, prediction: Prediction, x: _Prepared) -> bool:
+        """Whether ``prediction`` was read from the images ``x`` (by its fingerprint; True for
+        a Prediction without one)."""
+        stored = prediction.fingerprint
+        if stored is None:
+            return True
+        mine = self._fingerprint(x)
+        return tuple(stored.shape) == tuple(mine.shape) and \
+            float((stored.float().cpu() - mine).abs().max()) <= _FINGERPRINT_TOLERANCE
 
     def _predicted(self, x: _Prepared, camera: Camera) -> Prediction:
         """The unturned network pass on prepared images, as a :class:`Prediction`."""
@@ -257,6 +311,7 @@ class Predictor:
         if output.rotation_logits is not None:
             log_p = output.rotation_logits.float().log_softmax(dim=-1).to(rotation)
         scale = rotation.new_tensor([x.width / size, x.height / size])
+        score = target_scores(x.images, output.mask_logits, x.checked).to(rotation)
         return Prediction(
             assembly=Assembly.from_raw(output.raw.clone()),
             rotation=rotation,
@@ -269,6 +324,9 @@ class Predictor:
             rotation_scores=scores,
             mask=mask,
             rotation_log_probabilities=log_p,
+            target_score=score,
+            target=score >= self.min_target,
+            fingerprint=self._fingerprint(x),
         )
 
     def can_turn(self, camera: Camera | None = None) -> bool:
@@ -298,10 +356,9 @@ class Predictor:
     def _run(self, x: Tensor, matrix: Tensor) -> NetworkOutput:
         """The network (eager, or the traced fast path) on prepared images, in eval mode."""
         network = self.model
-        if self._folded is not None:
+        if self._traced is not None:
             with torch.inference_mode():
-                traced, names = self._traced_network(x, matrix)
-                return NetworkOutput(**dict(zip(names, traced(x, matrix), strict=True)))
+                return self._traced(x, matrix)
         was_training = network.training
         if was_training:
             network.eval()
@@ -399,52 +456,10 @@ class Predictor:
         rotations[:, 0] = rotation
         return rotations, scores.to(rotation)
 
-    def _traced_network(self, images: Tensor,
-                        matrix: Tensor) -> tuple[torch.nn.Module, tuple[str, ...]]:
-        """The folded network traced and frozen for inputs like these (cached per shape, dtype
-        and device: a trace may fix the batch size), and the names of the
-        :class:`NetworkOutput` fields whose tensors it returns."""
-        key = (tuple(images.shape), tuple(matrix.shape), images.dtype, images.device)
-        cached = self._traced.get(key)
-        if cached is None:
-            import warnings
 
-            module = OutputTuple(self._folded).eval()
-            with torch.no_grad():
-                module(images, matrix)  # sets module.names
-            # torch 2.13 (pinned) marks TorchScript deprecated; should a later torch drop it,
-            # the eager folded network runs instead (the same outputs, ~2.5 ms slower).
-            try:
-                with torch.no_grad(), warnings.catch_warnings():
-                    warnings.simplefilter("ignore", torch.jit.TracerWarning)
-                    warnings.simplefilter("ignore", DeprecationWarning)
-                    traced = torch.jit.freeze(torch.jit.trace(module, (images, matrix),
-                                                              check_trace=False))
-                    # TorchScript's profiling executor records shapes on the first run and
-                    # builds the optimised graph on the second; run both here, so that the
-                    # first prediction a caller times is the steady-state one.
-                    for _ in range(_TRACE_WARMUP_RUNS):
-                        traced(images, matrix)
-            except Exception:  # any failure to trace leaves the eager network, never an error
-                traced = module
-            if len(self._traced) >= _TRACES_KEPT:
-                self._traced.pop(next(iter(self._traced)))  # the oldest
-            cached = self._traced[key] = (traced, module.names)
-        return cached
-
-
-class OutputTuple(torch.nn.Module):
-    """``network``'s :class:`NetworkOutput` as a tuple of its tensors (TorchScript traces
-    tuples, not dataclasses): the fields that are not None, in field order; ``names`` (set by
-    the first call) says which."""
-
-    def __init__(self, network: torch.nn.Module) -> None:
-        super().__init__()
-        self.network = network
-        self.names: tuple[str, ...] = ()
-
-    def forward(self, images: Tensor, matrix: Tensor) -> tuple[Tensor, ...]:
-        out = self.network(images, matrix)
-        present = [f.name for f in fields(out) if getattr(out, f.name) is not None]
-        self.names = tuple(present)
-        return tuple(getattr(out, name) for name in present)
+def check_min_target(min_target: float) -> float:
+    """``min_target`` as a float, or a one-line ``ValueError`` naming it unless in [0, 1]."""
+    if isinstance(min_target, bool) or not isinstance(min_target, int | float) \
+            or not 0.0 <= min_target <= 1.0:
+        raise ValueError(f"min_target: expected a number in [0, 1], got {min_target!r}")
+    return float(min_target)

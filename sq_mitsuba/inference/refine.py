@@ -29,6 +29,7 @@ from sq_mitsuba.checks import check_tensor
 from sq_mitsuba.config import in_range, non_negative, positive, validate
 from sq_mitsuba.geometry.assembly import FIELDS, Assembly, ParameterRanges
 from sq_mitsuba.geometry.camera import Camera
+from sq_mitsuba.geometry.rotation import axis_angle_to_matrix
 from sq_mitsuba.model.losses import silhouette_loss
 
 # Keeps squashed values strictly inside their open ranges before the inverse squash.
@@ -134,13 +135,6 @@ def _seen_fraction(assembly: Assembly, rotation: Tensor, translation: Tensor) ->
     return 1.0 - along.square()
 
 
-def _skew(w: Tensor) -> Tensor:
-    zero = torch.zeros_like(w[..., 0])
-    return torch.stack([torch.stack([zero, -w[..., 2], w[..., 1]], -1),
-                        torch.stack([w[..., 2], zero, -w[..., 0]], -1),
-                        torch.stack([-w[..., 1], w[..., 0], zero], -1)], -2)
-
-
 def refine_pose_and_shape(assembly: Assembly, rotation: Tensor, translation: Tensor,
                           masks: Tensor, camera: Camera,
                           options: RefineOptions | None = None) -> RefineResult:
@@ -211,7 +205,7 @@ def refine_pose_and_shape(assembly: Assembly, rotation: Tensor, translation: Ten
         return raw0 + change * free_fields
 
     def pose() -> tuple[Tensor, Tensor]:
-        return (torch.linalg.matrix_exp(_skew(rotation_vector)) @ rotation0,
+        return (axis_angle_to_matrix(rotation_vector) @ rotation0,
                 translation0 + distance * shift * shift_axes)
 
     best_iou = torch.full((batch,), -1.0, dtype=dtype)

@@ -10,6 +10,9 @@ from __future__ import annotations
 
 import contextlib
 import os
+import signal
+import sys
+import threading
 from collections.abc import Iterator
 from pathlib import Path
 from types import ModuleType
@@ -40,8 +43,61 @@ def _backend_works(variant: str) -> bool:
     return bool(dr.has_backend(backend))
 
 
+_deferring = False
+"""Whether an :func:`interrupts_deferred` block is running (inner blocks then do nothing)."""
+
+
+@contextlib.contextmanager
+def interrupts_deferred() -> Iterator[None]:
+    """Hold Ctrl-C (SIGINT) back while the block runs; act on it when the block ends.
+
+    Dr.Jit and Mitsuba run Python code from C++: module initialisation (``import drjit``,
+    ``import mitsuba``), ``@dr.syntax`` functions compiled when Mitsuba's AD integrators are
+    imported, the callables of ``dr.switch`` and symbolic loops while a render is traced, Python
+    plugins built by ``load_dict``. A ``KeyboardInterrupt`` raised in there does not come out
+    as one: it comes out as a ``RuntimeError`` (``drjit.switch(): encountered an exception``,
+    or ``@drjit.syntax`` "could not be compiled", with a page of generated code), as an
+    ``ImportError`` / ``NameError`` / ``SystemError`` of a half-initialised extension, or as a
+    C++ ``terminate`` that aborts the process. Inside this block Ctrl-C only sets a flag; at
+    its end the previous handler runs (Python's raises ``KeyboardInterrupt`` there, in Python
+    code), so an interruption waits for the Dr.Jit call in progress (one render) and is then
+    a plain ``KeyboardInterrupt``.
+
+    Only in the main thread (the only one that receives Python's signals) and only when the
+    handler in place is a Python one; nested blocks defer to the outermost.
+    """
+    global _deferring
+    previous = (signal.getsignal(signal.SIGINT)
+                if not _deferring and threading.current_thread() is threading.main_thread()
+                else None)
+    if previous is None or previous is signal.SIG_IGN:
+        yield
+        return
+    received: list[int] = []
+
+    def hold(signum: int, frame: object) -> None:
+        received.append(signum)
+
+    signal.signal(signal.SIGINT, hold)
+    _deferring = True
+    try:
+        yield
+    finally:
+        _deferring = False
+        signal.signal(signal.SIGINT, previous)
+        if received:
+            if callable(previous):
+                previous(signal.SIGINT, None)  # Python's own raises KeyboardInterrupt
+            else:  # SIG_DFL: end as the signal would have
+                signal.raise_signal(signal.SIGINT)
+
+
 def mitsuba(variant: str | None = None) -> ModuleType:
     """The ``mitsuba`` module with a working variant set (idempotent).
+
+    Importing Mitsuba and Dr.Jit and setting the variant hold Ctrl-C back until done (see
+    :func:`interrupts_deferred`): interrupted half-way, their extensions fail in ways that are
+    not a ``KeyboardInterrupt``.
 
     Args:
         variant: force a variant (e.g. ``"llvm_ad_mono"``); default: ``$SQ_MITSUBA_VARIANT`` or
@@ -50,6 +106,15 @@ def mitsuba(variant: str | None = None) -> ModuleType:
     Raises:
         BackendError: no variant can run (one line saying what to install).
     """
+    mi = sys.modules.get("mitsuba")
+    current = mi.variant() if mi is not None and hasattr(mi, "variant") else None
+    if current is not None and (variant or os.environ.get(VARIANT_ENV)) in (None, current):
+        return mi  # the common case, set up already: nothing to hold back
+    with interrupts_deferred():
+        return _set_up(variant)
+
+
+def _set_up(variant: str | None) -> ModuleType:
     _configure_cache()
     requested = variant or os.environ.get(VARIANT_ENV)
     if requested is None or requested.startswith("llvm"):
@@ -76,8 +141,6 @@ def mitsuba(variant: str | None = None) -> ModuleType:
 
 def active_variant() -> str | None:
     """The variant set in this process, or None (does not import Mitsuba)."""
-    import sys
-
     mi = sys.modules.get("mitsuba")
     return None if mi is None else mi.variant()
 

@@ -17,6 +17,10 @@ dataset fingerprint (:func:`dataset_fingerprint`) hashes the dataset manifest
 (``dataset.json``) where there is one, ``camera.json``, ``splits.csv`` and every
 ``labels.json``: a re-rendered or edited dataset gets a new cache.
 
+Beside them, ``symmetries/`` keeps each training model's half-turn symmetries
+(:func:`sq_mitsuba.data.symmetry.model_symmetries` with ``cache_dir``, one record per model
+and content digest): the dataset itself is only read.
+
 Decoding goes through :class:`~sq_mitsuba.data.spe3r.Spe3rDataset` itself (same resize), so the
 cache holds exactly the pixels the dataset would give. A corrupt or missing image stops the
 build with the dataset's one-line error naming the file; nothing is left half-written.

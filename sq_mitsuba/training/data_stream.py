@@ -100,9 +100,10 @@ class TrainingStream:
             symmetries=self.symmetries[cached["model_index"]])
 
 
-def symmetry_table(root: Path, models: Sequence[str]) -> Tensor:
+def symmetry_table(root: Path, models: Sequence[str], cache_dir: Path | None = None) -> Tensor:
     """(models, S, 3, 3) body-frame symmetries per model, padded with identities (identity
-    alone where the symmetry module or a model's analysis is unavailable)."""
+    alone where the symmetry module or a model's analysis is unavailable). The analysis of
+    each model is kept in ``cache_dir`` (never in the dataset, which is only read)."""
     try:
         from sq_mitsuba.data.symmetry import model_symmetries
     except ImportError:
@@ -112,8 +113,9 @@ def symmetry_table(root: Path, models: Sequence[str]) -> Tensor:
         matrices = torch.eye(3, dtype=torch.float32)[None]
         if model_symmetries is not None:
             with contextlib.suppress(OSError, ValueError):
-                matrices = torch.as_tensor(np.asarray(model_symmetries(root / model)),
-                                           dtype=torch.float32).reshape(-1, 3, 3)
+                matrices = torch.as_tensor(
+                    np.asarray(model_symmetries(root / model, cache_dir=cache_dir)),
+                    dtype=torch.float32).reshape(-1, 3, 3)
         sets.append(matrices)
     width = max(len(s) for s in sets)
     table = torch.eye(3).repeat(len(sets), width, 1, 1)
@@ -149,6 +151,9 @@ def open_datasets(config: TrainConfig, data_root: Path) -> DataSources:
                              num_occupancy=2, seed=config.seed)
     if len(train_set) == 0:
         raise TrainError(f"{data_root}: the train split has no images")
+    # Images of camera.json's size, readable finite points: refused here, before any work,
+    # not at the cache build or a step later (the val split holds the same models).
+    train_set.check()
     val_set = Spe3rDataset(data_root, "val", image_size=size, num_surface=1, num_occupancy=2,
                            seed=config.seed)
     val_indices = evenly(len(val_set), config.validation.images) if config.validation.every \
@@ -225,6 +230,7 @@ def open_training_data(run: TrainRun, sources: DataSources) -> TrainingData:
     size = cfg.network.image_size
     camera = train_set.camera.rescaled(size, size)
     stream = TrainingStream(images, points, keep, cfg, camera,
-                            symmetry_table(run.data_root, train_set.models))
+                            symmetry_table(run.data_root, train_set.models,
+                                           Path(cache_root) / "symmetries"))
     return TrainingData(stream, points, val_images, bool(sources.val_indices), train_set.camera,
                         camera)

@@ -11,8 +11,10 @@ dataset and writes into a run folder:
   predicted assembly's Mitsuba silhouette at the predicted pose against the mask) and rotation
   error in degrees, over a fixed subset (:mod:`sq_mitsuba.training.validation`);
 - ``curves.png``: loss terms and validation metrics, refreshed at each validation;
-- ``last.pt`` (the latest state) and ``best.pt`` (best validation ``validation.metric``),
-  written atomically (:mod:`sq_mitsuba.training.run.folder`);
+- ``last.pt`` (the latest state) and ``best.pt`` (best validation ``validation.metric``;
+  the last state, said in :attr:`TrainResult.notes`, when the call ends before any
+  validation has run, so ``RUN/best.pt`` always exists), written atomically
+  (:mod:`sq_mitsuba.training.run.folder`);
 - TensorBoard events in ``tensorboard/`` when the ``tensorboard`` package is importable;
 - ``cache/``: the decoded training data (:mod:`sq_mitsuba.training.cache`), unless
   ``data.cache_dir`` points elsewhere.
@@ -31,9 +33,18 @@ draw are pure functions of (seed, step, position in the batch), and the renderer
 sequence restarts from a seed of the step, so the steps after a resume repeat an uninterrupted
 run's (on the CPU bit for bit, tested; see :mod:`~sq_mitsuba.training.step`).
 
+One run at a time per run folder: rank 0 holds :func:`sq_mitsuba.outputs.output_lock` on it
+for the whole call, so a second run started into the same folder stops at once with one line
+(``OutputBusyError``) and writes nothing; the lock dies with its process (``kill -9``
+included), so a killed run never blocks the next. Reading the dataset changes nothing in it:
+the models' symmetries are kept in the cache folder, not beside the models.
+
 Errors (one line, :class:`TrainError` or the dataset's ``DatasetError``, both ``ValueError``),
-all before any file is written unless said: an unwritable run folder or a run folder that
-already holds a run (without ``resume``); a dataset that does not open; a network that cannot
+all before any file is written unless said (a run folder this call created goes again): an
+unwritable run folder or a run folder that already holds a run (without ``resume``), or that
+another run is writing into; a dataset that does not open, whose images are not of
+``camera.json``'s size, or whose ``samples.npz`` lacks an array or holds NaN (naming the file,
+:meth:`Spe3rDataset.check <sq_mitsuba.data.spe3r.Spe3rDataset.check>`); a network that cannot
 be built (``network.pretrained`` unreadable) or cannot feed a weighted loss term; a corrupt
 image while the cache is built (naming the file; the new run folder and cache are removed); a
 checkpoint of another config or dataset on resume (naming the first difference); a loss or
@@ -58,6 +69,7 @@ from sq_mitsuba.config import validate as validate_config
 from sq_mitsuba.io import atomic_write_json
 from sq_mitsuba.model.checkpoint import load_weights, read_checkpoint
 from sq_mitsuba.model.network import SuperquadricNet
+from sq_mitsuba.outputs import output_lock
 from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer
 from sq_mitsuba.training.cache import dataset_fingerprint
 from sq_mitsuba.training.config import TrainConfig
@@ -141,9 +153,27 @@ def train(config: TrainConfig | None, data_root: str | Path, out_dir: str | Path
         raise TrainError(f"max_steps: expected >= 0, got {max_steps}")
     if max_seconds is not None and not max_seconds > 0:
         raise TrainError(f"max_seconds: expected > 0, got {max_seconds}")
-    # Checks before any work and before anything is written: the run folder, the
-    # checkpoint, the config, the dataset, the network.
-    if int(os.environ.get("RANK", "0")) == 0:
+    main_process = int(os.environ.get("RANK", "0")) == 0
+    if main_process:
+        check_out_dir(out_dir, resume)
+    created = not out_dir.exists()
+    # One run at a time in a run folder: rank 0 holds its lock from here to the end (a second
+    # run into it stops with one line; the lock goes with the process, kill -9 included), and
+    # every check below sees the folder as no other run will change it.
+    with output_lock(out_dir, command="sq-mitsuba train") if main_process else \
+            contextlib.nullcontext():
+        return _train(config, data_root, out_dir, resume, max_steps, progress, max_seconds,
+                      created, main_process)
+
+
+def _train(config: TrainConfig | None, data_root: Path, out_dir: Path, resume: bool,
+           max_steps: int | None, progress: bool, max_seconds: float | None, created: bool,
+           main_process: bool) -> TrainResult:
+    """:func:`train` under the run folder's lock (rank 0)."""
+    # Checks before any work and before anything is written: the run folder (again, under
+    # the lock: a run that ended meanwhile), the checkpoint, the config, the dataset, the
+    # network.
+    if main_process:
         check_out_dir(out_dir, resume)
     checkpoint = _read_resumed(out_dir) if resume else None
     if config is None:
@@ -159,7 +189,6 @@ def train(config: TrainConfig | None, data_root: str | Path, out_dir: str | Path
     world = start_distributed(device)
     run = TrainRun(config, data_root, out_dir, fingerprint, device, world, checkpoint,
                    max_steps, max_seconds, progress)
-    created = not out_dir.exists()
     try:
         if world.main:
             out_dir.mkdir(parents=True, exist_ok=True)
@@ -370,6 +399,13 @@ class _Loop:
                     break
         finally:
             self._close(bar)
+        if self.best is None and result.steps > start_step:
+            # No validation has run (stopped before the first, validation off, or an empty
+            # val split): best.pt is the latest state, so RUN/best.pt always exists.
+            self.save(BEST, result.steps)
+            result.best_checkpoint = out_dir / BEST
+            result.notes.append(f"no validation has run yet: {BEST} holds the last state "
+                                f"(step {result.steps})")
         result.validation = self.history
         if timed_seconds > 0:
             result.images_per_second = timed_images / timed_seconds

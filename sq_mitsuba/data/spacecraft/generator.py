@@ -22,7 +22,8 @@ import numpy as np
 
 from sq_mitsuba.data.mesh_io import TaggedMesh
 from sq_mitsuba.data.mesh_processing import union_solids
-from sq_mitsuba.data.spacecraft.archetypes import ARCHETYPES
+from sq_mitsuba.data.spacecraft.archetypes import ARCHETYPES, Recipe
+from sq_mitsuba.data.spacecraft.families import FAMILIES, HELD_OUT_FAMILIES
 from sq_mitsuba.data.spacecraft.parts import Part
 from sq_mitsuba.render.materials import MATERIALS, material_index
 
@@ -37,6 +38,13 @@ SPLIT_BLOCK = 64
 """Model numbers are split in blocks of this many; each holds 7 test models."""
 TEST_STRATA = (0, 2, 12, 23, 33, 43, 54, 64)
 """Stratum boundaries within a block: one test model in each of the 7 strata."""
+
+
+RECIPES: dict[str, Recipe] = {**ARCHETYPES, **FAMILIES}
+"""Every recipe :func:`generate_spacecraft` builds: the 14 archetypes of :func:`catalogue`
+and the families of the compositional generator (:func:`composed_catalogue`)."""
+if len(RECIPES) != len(ARCHETYPES) + len(FAMILIES):  # pragma: no cover - a naming mistake
+    raise ImportError(f"archetype and family names overlap: {set(ARCHETYPES) & set(FAMILIES)}")
 
 
 @dataclass
@@ -71,7 +79,35 @@ def union_parts(parts: Sequence[Part]) -> TaggedMesh:
     for part in parts:
         if part.solid.is_empty() or part.solid.status() != manifold3d.Error.NoError:
             raise ValueError(f"part {part.kind!r}: not a valid closed solid")
-    return union_solids([p.solid for p in parts], [material_index(p.material) for p in parts])
+    mesh = union_solids([p.solid for p in parts], [material_index(p.material) for p in parts])
+    return fill_cavities(mesh)
+
+
+def fill_cavities(mesh: TaggedMesh) -> TaggedMesh:
+    """``mesh`` without enclosed cavities: the closed shells of negative signed volume (voids
+    that several overlapping parts can close off inside the solid, invisible from outside)
+    are dropped, so the solid is filled there. A mesh of one shell is returned as it is."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    faces = mesh.faces
+    n = len(mesh.vertices)
+    rows = np.concatenate([faces[:, 0], faces[:, 1]])
+    cols = np.concatenate([faces[:, 1], faces[:, 2]])
+    graph = coo_matrix((np.ones(len(rows), dtype=np.int8), (rows, cols)), shape=(n, n))
+    count, labels = connected_components(graph, directed=False)
+    if count == 1:
+        return mesh
+    tri = mesh.vertices[faces]
+    six_volume = np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2]))
+    shell = labels[faces[:, 0]]
+    volumes = np.bincount(shell, weights=six_volume, minlength=count)
+    keep = volumes[shell] > 0
+    if keep.all():
+        return mesh
+    used, inverse = np.unique(faces[keep], return_inverse=True)
+    return TaggedMesh(mesh.vertices[used], inverse.reshape(-1, 3).astype(np.int64),
+                      mesh.face_material[keep])
 
 
 def parts_extent(parts: Sequence[Part]) -> np.ndarray:
@@ -85,14 +121,15 @@ def generate_spacecraft(seed: int, archetype: str, name: str | None = None) -> S
 
     Args:
         seed: non-negative integer seed of the recipe's random numbers.
-        archetype: one of :data:`ARCHETYPES`.
+        archetype: one of :data:`ARCHETYPES` or a family of :data:`FAMILIES` (the
+            compositional generator), i.e. a key of :data:`RECIPES`.
         name: model name (default ``"<archetype>_<seed>"``).
     """
-    if archetype not in ARCHETYPES:
-        raise ValueError(f"archetype: unknown {archetype!r}; choose from {sorted(ARCHETYPES)}")
+    if archetype not in RECIPES:
+        raise ValueError(f"archetype: unknown {archetype!r}; choose from {sorted(RECIPES)}")
     if int(seed) < 0:
         raise ValueError(f"seed: expected a non-negative integer, got {seed}")
-    recipe = ARCHETYPES[archetype]
+    recipe = RECIPES[archetype]
     probe = recipe(np.random.default_rng(int(seed)), 0.02)
     thin = THIN_FRACTION * float(parts_extent(probe).max())
     parts = recipe(np.random.default_rng(int(seed)), thin)
@@ -170,3 +207,67 @@ def catalogue(count: int, seed: int) -> list[CatalogueEntry]:
     model_seeds = np.random.SeedSequence(seed).generate_state(count, dtype=np.uint32)
     return [CatalogueEntry(f"sc{i:03d}_{order[i]}", order[i], int(model_seeds[i]),
                            catalogue_split(seed, i), seed) for i in range(count)]
+
+
+COMPOSED_PREFIX = "cs"
+"""Name prefix of the compositional catalogue's models (``cs<i:05d>_<family>``), apart from
+the archetype catalogue's ``sc<i:03d>_<archetype>``."""
+
+
+def composed_catalogue(count: int, seed: int, families: Sequence[str] | None = None,
+                       ) -> list[CatalogueEntry]:
+    """``count`` models of the compositional generator (:data:`FAMILIES`), as catalogue entries.
+
+    The catalogue is one stream of models per ``seed``: position ``i`` of the stream holds a
+    family from seeded permutations of all :data:`FAMILIES` (each permutation shows every
+    family once) and a model seed; its model is named ``cs<i:05d>_<family>``. ``families``
+    keeps only the models of those families (default: all), in stream order, so a model's
+    name, family, seed and split are a function of ``(seed, i)`` alone, whichever families
+    are asked for and whatever ``count``: ``composed_catalogue(n, s, f)`` is the first ``n``
+    entries of ``composed_catalogue(m, s, f)`` for ``m >= n``, and a training library
+    (``families=TRAINING_FAMILIES``) and a held-out one (``HELD_OUT_FAMILIES``) generated
+    from the same seed never give one name to two models.
+
+    Split: models of the :data:`HELD_OUT_FAMILIES` are ``"test"`` (``splits.csv`` holds only
+    ``train`` and ``test``; :func:`is_held_out` tells them from the in-family test models);
+    the others follow :func:`catalogue_split` of their position (7 test positions in every
+    block of 64).
+
+    Args:
+        count: number of models, ``1 <= count <= MAX_CATALOGUE_COUNT``.
+        seed: catalogue seed, ``0 <= seed <= MAX_CATALOGUE_SEED``.
+        families: names from :data:`FAMILIES` to keep (None: all).
+    """
+    if isinstance(count, bool) or int(count) != count or not 1 <= count <= MAX_CATALOGUE_COUNT:
+        raise ValueError(f"count: expected an integer in [1, {MAX_CATALOGUE_COUNT}], got {count}")
+    seed = _check_catalogue_seed(seed)
+    names = sorted(FAMILIES)
+    wanted = set(names) if families is None else set(families)
+    unknown = wanted - set(names)
+    if unknown or not wanted:
+        raise ValueError(f"families: unknown {sorted(unknown)}; choose from {names}")
+    rng = np.random.default_rng([seed, 0xC0, 0x5E])
+    # Every permutation holds each wanted family once: this many positions hold ``count``.
+    length = -(-int(count) // len(wanted)) * len(names)
+    order: list[str] = []
+    while len(order) < length:
+        order += [names[i] for i in rng.permutation(len(names))]
+    model_seeds = np.random.SeedSequence([seed, 0xC05E]).generate_state(length, dtype=np.uint32)
+    entries = []
+    for i in range(length):
+        family = order[i]
+        if family not in wanted:
+            continue
+        split = "test" if family in HELD_OUT_FAMILIES else catalogue_split(seed, i)
+        entries.append(CatalogueEntry(f"{COMPOSED_PREFIX}{i:05d}_{family}", family,
+                                      int(model_seeds[i]), split, seed))
+        if len(entries) == count:
+            break
+    return entries
+
+
+def is_held_out(entry: CatalogueEntry | str) -> bool:
+    """Whether a catalogue entry (or a family name) belongs to :data:`HELD_OUT_FAMILIES`."""
+    family = entry if isinstance(entry, str) else entry.archetype
+    return family in HELD_OUT_FAMILIES
+

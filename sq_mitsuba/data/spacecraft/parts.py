@@ -370,3 +370,139 @@ def lander_leg(height: float, splay: float, radius: float) -> list[Part]:
     return [Part("landing_leg", "aluminium", rod((0, 0, 0), foot, radius)),
             Part("footpad", "aluminium",
                  transform_solid(prism(16, radius * 3.5, radius * 1.2), None, foot))]
+
+
+# ------------------------------------------------------ parts of the compositional generator
+
+def circular_wing(radius: float, thin: float, yoke: float = 0.3, sides: int = 14,
+                  yoke_radius: float = 0.03, embed: float | None = None) -> list[Part]:
+    """A round (UltraFlex-like) array along +x: a yoke, then a disc of cells facing +z.
+
+    The disc (``sides``-gon of circumradius ``radius``) is centred at ``yoke + radius``; the
+    yoke runs from ``embed`` behind the origin a fifth of the radius into the disc, and a hub
+    at the disc's centre carries the gores' ribs (one rib along the yoke's line).
+    """
+    embed = 3 * yoke_radius if embed is None else embed
+    centre = yoke + radius
+    disc = transform_solid(prism(sides, radius, thin), None, (centre, 0, 0))
+    hub = transform_solid(prism(12, radius * 0.08, thin * 3), None, (centre, 0, 0))
+    return [Part("yoke", "aluminium", rod((-embed, 0, 0), (yoke + 0.2 * radius, 0, 0),
+                                          yoke_radius)),
+            Part("solar_panel", "solar_cell", disc),
+            Part("array_hub", "aluminium", hub),
+            Part("panel_hinge", "aluminium",
+                 rod((yoke + 0.1 * radius, 0, 0), (centre, 0, 0), yoke_radius * 0.8, 6))]
+
+
+def rtg(length: float, radius: float, fins: int = 6) -> list[Part]:
+    """A radioisotope generator along z, centred at the origin: a finned dark cylinder."""
+    core = prism(12, radius, length)
+    parts = [Part("rtg", "dark_composite", core)]
+    fin = box((radius * 0.9, radius * 0.14, length * 0.9), (radius * 1.3, 0, 0))
+    for k in range(fins):
+        parts.append(Part("rtg_fin", "dark_composite",
+                          transform_solid(fin, rotation_about((0, 0, 1), 360 * k / fins))))
+    return parts
+
+
+def flat_panel(kind: str, material: str, width: float, height: float, thickness: float,
+               ) -> list[Part]:
+    """A flat plate (radiator, phased array, sunshade) in the x-y plane, centred at origin."""
+    return [Part(kind, material, box((width, height, thickness)))]
+
+
+def pressurised_module(radius: float, length: float, material: str = "white_paint",
+                       cone: float = 0.25) -> list[Part]:
+    """A pressurised module along z, centred at the origin: a cylinder with tapered end cones
+    (``cone`` of the length each) and a docking ring at each end."""
+    body_len = length * (1 - 2 * cone)
+    parts = [Part("module", material, prism(CIRCLE_SEGMENTS, radius, body_len))]
+    for sign in (1, -1):
+        frustum = prism(CIRCLE_SEGMENTS, radius, length * cone * 1.02, radius * 0.55)
+        if sign < 0:
+            frustum = transform_solid(frustum, rotation_about((1, 0, 0), 180))
+        parts.append(Part("module_cone", material, transform_solid(
+            frustum, None, (0, 0, sign * (body_len / 2 + length * cone / 2 - 0.01 * length)))))
+        parts.append(Part("docking_ring", "aluminium", transform_solid(
+            prism(16, radius * 0.45, length * 0.06), None,
+            (0, 0, sign * (length / 2 + 0.01 * length)))))
+    return parts
+
+
+def node_module(radius: float, length: float, material: str = "white_paint") -> list[Part]:
+    """A node along z, centred at the origin, with a docking port stub on +-x and +-y."""
+    parts = [Part("node", material, prism(16, radius, length))]
+    for k in range(4):
+        stub = transform_solid(prism(16, radius * 0.45, radius * 0.5), frame_z_to((1, 0, 0)),
+                               (radius * 1.1, 0, 0))
+        parts.append(Part("docking_port", "aluminium",
+                          transform_solid(stub, rotation_about((0, 0, 1), 90 * k))))
+    return parts
+
+
+def capsule(radius: float, height: float, thin: float) -> list[Part]:
+    """A crew or cargo capsule: a cone frustum from its heat shield at the origin up along
+    +z, the heat shield a flat disc reaching a tenth of the height behind the origin."""
+    cone = transform_solid(prism(CIRCLE_SEGMENTS, radius, height, radius * 0.4), None,
+                           (0, 0, height / 2))
+    shield = transform_solid(prism(CIRCLE_SEGMENTS, radius * 1.02, max(thin, 0.1 * height)),
+                             None, (0, 0, 0))
+    hatch = transform_solid(prism(16, radius * 0.25, height * 0.12), None, (0, 0, height))
+    return [Part("capsule", "white_paint", cone), Part("heat_shield", "dark_composite", shield),
+            Part("docking_port", "aluminium", hatch)]
+
+
+def segmented_mirror(segment: float, rings: int, focal: float, thin: float) -> list[Part]:
+    """A segmented primary mirror opening towards +z, vertex at the origin: hexagonal
+    segments (circumradius ``segment``) on ``rings`` rings of a hexagonal grid around an
+    empty centre, each sunk to the paraboloid of ``focal`` length, on a backplane."""
+    pitch = segment * np.sqrt(3)  # centre-to-centre distance of touching flat-topped hexes
+    cells = []
+    for q in range(-rings, rings + 1):
+        for r in range(-rings, rings + 1):
+            s = -q - r
+            if max(abs(q), abs(r), abs(s)) == 0 or max(abs(q), abs(r), abs(s)) > rings:
+                continue
+            x = pitch * (q + r / 2)
+            y = pitch * r * np.sqrt(3) / 2
+            cells.append((x, y))
+    parts = []
+    thick = max(2 * thin, segment * 0.12)
+    for x, y in cells:  # columns from the backplane up to the paraboloid, 4 % wider than
+        z = (x * x + y * y) / (4 * focal)  # the pitch, so neighbours overlap
+        hexagon = transform_solid(prism(6, segment * 1.04, z + thick), None, (x, y, z / 2))
+        parts.append(Part("mirror_segment", "gold_mli", hexagon))
+    reach = pitch * rings
+    parts.append(Part("mirror_backplane", "dark_composite",
+                      box((reach * 1.2, reach * 0.9, thick * 2), (0, 0, -thick))))
+    return parts
+
+
+def layered_shield(length: float, width: float, layers: int, gap: float, thin: float,
+                   ) -> list[Part]:
+    """A layered sunshield of ``layers`` hexagonal (kite-like) membranes in x-y planes,
+    stacked from the origin towards -z ``gap`` apart, joined by posts through all layers."""
+    h, w = length / 2, width / 2
+    outline = [(h, 0.0), (h * 0.35, w), (-h * 0.35, w), (-h, 0.0), (-h * 0.35, -w),
+               (h * 0.35, -w)]
+    membrane = Solid.extrude(manifold3d.CrossSection([outline]), float(thin))
+    parts = []
+    for k in range(layers):
+        scale = 1.0 - 0.04 * k
+        layer = membrane.scale((scale, scale, 1.0)).translate((0.0, 0.0, -k * gap - thin / 2))
+        parts.append(Part("sunshield", "silver_mli", layer))
+    depth = (layers - 1) * gap + 2 * thin
+    for x, y in ((0.0, 0.0), (h * 0.6, 0.0), (-h * 0.6, 0.0), (0.0, w * 0.6), (0.0, -w * 0.6)):
+        parts.append(Part("sunshield_post", "aluminium",
+                          rod((x, y, thin), (x, y, -depth), max(thin, 0.02 * width), 6)))
+    return parts
+
+
+def ion_thruster(radius: float, length: float) -> list[Part]:
+    """A gridded ion thruster: its exit plane ``length`` below the origin (exhaust towards -z),
+    its body reaching 0.4 of the length behind the origin into the mounting."""
+    body = transform_solid(prism(CIRCLE_SEGMENTS, radius, 1.4 * length, radius * 0.8), None,
+                           (0, 0, -0.3 * length))
+    grid = transform_solid(prism(CIRCLE_SEGMENTS, radius * 0.92, length * 0.1), None,
+                           (0, 0, -length))
+    return [Part("ion_thruster", "aluminium", body), Part("ion_grid", "dark_composite", grid)]

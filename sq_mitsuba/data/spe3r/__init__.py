@@ -16,14 +16,17 @@ from sq_mitsuba.data.spe3r.layout import (
     MASKS,
     MESH_FILE,
     MODELS,
+    SAMPLE_ARRAYS,
     SAMPLES_FILE,
     VALIDATION_INDICES,
     DatasetError,
+    check_model_points,
     dataset_models,
     is_validation,
     label_problem,
     load_model,
     read_manifest,
+    read_samples,
     read_splits,
     validation_indices,
 )
@@ -39,9 +42,10 @@ from sq_mitsuba.data.spe3r.writer import (
 
 __all__ = [
     "FAILURES", "IMAGES", "MANIFEST", "MASKS", "MESH_FILE", "MODELS", "SAMPLES_FILE",
-    "VALIDATION_INDICES", "CheckOptions", "CheckReport", "DatasetError", "MissingModelWarning",
-    "PreviewOptions", "RenderOptions", "RenderSummary", "Spe3rDataset", "check_dataset",
-    "dataset_models", "estimate_render_memory", "is_validation", "label_problem", "load_model",
-    "preview_dataset", "read_manifest", "read_splits", "render_dataset", "render_image",
-    "render_model", "validation_indices",
+    "SAMPLE_ARRAYS", "VALIDATION_INDICES", "CheckOptions", "CheckReport", "DatasetError",
+    "MissingModelWarning", "PreviewOptions", "RenderOptions", "RenderSummary", "Spe3rDataset",
+    "check_dataset", "check_model_points", "dataset_models", "estimate_render_memory",
+    "is_validation", "label_problem", "load_model", "preview_dataset", "read_manifest",
+    "read_samples", "read_splits", "render_dataset", "render_image", "render_model",
+    "validation_indices",
 ]

@@ -4,8 +4,11 @@ What :func:`check_dataset` reports as a problem (each one line naming the file):
 
 - bookkeeping: a missing or unreadable ``camera.json`` / ``splits.csv``; where there is a
   manifest (``dataset.json``, our datasets), a camera that differs from it, a model count or
-  ``labels.json`` that differs from what it records, rendering not finished, a failed model
-  still in ``splits.csv``;
+  ``labels.json`` that differs from what it records, rendering not finished (reported also
+  when the stopped render left no ``splits.csv``), a failed model still in ``splits.csv``;
+- model points, as training and evaluation read them: a ``samples.npz`` that cannot be read,
+  lacks one of the arrays they need or holds NaN or infinite points; a missing one in our
+  datasets (the render copies it), or, without one, a missing mesh;
 - stray files anywhere in the folder: temporary files of atomic writes (``*.tmp*``, left by a
   kill), empty (0-byte) files, ``.progress`` folders of models in ``splits.csv`` (unfinished);
 - labels, per entry: not an object, a missing or bad file name, a quaternion or translation
@@ -49,8 +52,11 @@ from sq_mitsuba.data.spe3r.layout import (
     FAILURES,
     IMAGES,
     MASKS,
+    MODELS,
     PROGRESS,
+    SAMPLES_FILE,
     DatasetError,
+    check_model_points,
     label_problem,
     load_model,
     read_image,
@@ -196,9 +202,6 @@ def _check_bookkeeping(root: Path, camera: Camera, splits: dict[str, str],
         report.notes.append("no dataset.json: settings and image counts unknown (the SPE3R "
                             "release, or another tool); files and labels checked only")
         return failed
-    if manifest.get("state") != "complete":
-        report.problems.append(f"dataset.json: state {manifest.get('state')!r}: rendering has "
-                               f"not finished (run the render command again)")
     if manifest["settings"].get("camera") != camera.to_speed_dict() and \
             Camera.from_speed_dict(manifest["settings"]["camera"]) != camera:
         report.problems.append("camera.json: differs from the camera in dataset.json")
@@ -273,12 +276,29 @@ def _check_files(root: Path, model: str, labels: list[Any], camera: Camera,
     return masks
 
 
+def _check_points(model_dir: Path, ours: bool, report: CheckReport) -> None:
+    """The model's points, as training and evaluation read them: ``samples.npz`` with every
+    array they need, finite (ours always have one: the render copies it), else the mesh."""
+    samples = model_dir / MODELS / SAMPLES_FILE
+    if ours and not samples.is_file():
+        report.problems.append(f"{model_dir.name}/{MODELS}/{SAMPLES_FILE}: missing (the "
+                               f"render copies it from the model library)")
+        return
+    try:
+        check_model_points(model_dir)
+    except DatasetError as error:
+        report.problems.append(str(error).replace(f"{model_dir.parent}/", "", 1))
+
+
 def check_dataset(root: str | Path, options: CheckOptions | None = None, *,
                   progress: bool = True, **fields: Any) -> CheckReport:
     """Validate a dataset (see the module docstring); problems are collected, not raised.
 
     ``options`` (default :class:`CheckOptions`) or its fields as keywords (``per_model=None``
-    means all, as 0 does). Raises ``ValueError`` for bad options only, before any work.
+    means all, as 0 does). Raises, before any work, ``ValueError`` for bad options,
+    ``FileNotFoundError`` for a ``root`` that does not exist and :class:`DatasetError` for one
+    that is not a folder (bad input, not a dataset with problems). Reads only: the dataset
+    is left as it was.
     """
     from tqdm import tqdm
 
@@ -289,15 +309,27 @@ def check_dataset(root: str | Path, options: CheckOptions | None = None, *,
     options = CheckOptions(**{**_fields_of(options), **fields})
     root = Path(root)
     report = CheckReport()
+    if not root.exists():
+        raise FileNotFoundError(f"{root}: no such folder")
     if not root.is_dir():
-        report.problems.append(f"{root}: not a folder")
+        raise DatasetError(f"{root}: not a folder (expected a dataset folder)")
+    try:
+        manifest = read_manifest(root)
+    except (OSError, ValueError) as error:
+        report.problems.append(str(error))
         return report
+    unfinished = manifest is not None and manifest.get("state") != "complete"
+    if unfinished:
+        # A stopped render leaves no splits.csv (the last model to finish writes it): say why.
+        report.problems.append(f"dataset.json: state {manifest.get('state')!r}: rendering has "
+                               f"not finished (run the render command again)")
     try:
         camera = Camera.load(root / "camera.json")
         splits = read_splits(root / "splits.csv")
-        manifest = read_manifest(root)
     except FileNotFoundError as error:
-        report.problems.append(f"{error.filename}: missing")
+        why = " (written when rendering finishes)" if unfinished and \
+            Path(str(error.filename)).name == "splits.csv" else ""
+        report.problems.append(f"{error.filename}: missing{why}")
         return report
     except (OSError, ValueError) as error:
         report.problems.append(str(error))
@@ -340,6 +372,7 @@ def check_dataset(root: str | Path, options: CheckOptions | None = None, *,
                 if digest.hexdigest() != entry["labels_sha256"]:
                     report.problems.append(f"{model}/labels.json: changed since dataset.json "
                                            f"was written (sha256 differs)")
+        _check_points(root / model, ours, report)
         chosen = _chosen(len(labels), options.per_model)
         masks = _check_files(root, model, labels, camera, ours, exr, chosen, report)
         if not masks:

@@ -15,6 +15,7 @@ from sq_mitsuba.data.spe3r.layout import (
     MASKS,
     DatasetError,
     balanced_occupancy,
+    check_model_points,
     is_validation,
     label_problem,
     model_points,
@@ -118,6 +119,34 @@ class Spe3rDataset(torch.utils.data.Dataset):
             if candidate.is_file():
                 return candidate
         raise DatasetError(f"{path}: missing")
+
+    def check(self, points: bool = True) -> None:
+        """Refuse, before any work, what would stop a run over this split part-way: an image
+        of another size than ``camera.json`` describes (the first image of each model, read
+        from its header) and, with ``points``, a model whose points cannot be read
+        (``samples.npz`` missing an array, holding NaN, unreadable; see
+        :func:`~sq_mitsuba.data.spe3r.layout.read_samples`). One-line :class:`DatasetError`
+        naming the file. Reads each samples file once and keeps nothing."""
+        first: dict[int, dict[str, Any]] = {}
+        for model_index, _, label in self.items:
+            first.setdefault(model_index, label)
+        for model_index, label in sorted(first.items()):
+            model = self.models[model_index]
+            path = self._image_path(model, IMAGES, label["filename"])
+            try:
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+                    with Image.open(path) as image:
+                        width, height = image.size
+            except (OSError, SyntaxError, ValueError) as error:  # PIL's kinds of bad file
+                raise DatasetError(f"{path}: cannot read image ({error})") from None
+            if (width, height) != (self.camera.width, self.camera.height):
+                raise DatasetError(
+                    f"{self.root / 'camera.json'}: describes {self.camera.width} x "
+                    f"{self.camera.height} px images, but {path} is {width} x {height} px "
+                    "(a camera.json of another resolution?)")
+            if points:
+                check_model_points(self.root / model)
 
     def model_points(self, model_index: int) -> dict[str, np.ndarray]:
         """Surface and labelled occupancy points of a model (from samples.npz, or the mesh)."""

@@ -274,16 +274,93 @@ def balanced_occupancy(points: np.ndarray, inside: np.ndarray, count: int,
     return points[chosen], inside[chosen]
 
 
-def model_points(model_dir: Path) -> dict[str, np.ndarray]:
+#: The point sets of ``samples.npz`` that training and evaluation read: name -> the array's
+#: kind ("points": (N, 3) finite numbers; "inside": (N,) flags of the points set named).
+SAMPLE_ARRAYS: dict[str, str] = {
+    "surface_points": "points",
+    "uniform_points": "points",
+    "uniform_inside": "uniform_points",
+    "near_points": "points",
+    "near_inside": "near_points",
+}
+
+
+def read_samples(path: Path, keys: Iterable[str] = tuple(SAMPLE_ARRAYS)
+                 ) -> dict[str, np.ndarray]:
+    """The arrays ``keys`` (of :data:`SAMPLE_ARRAYS`) of a model's ``samples.npz``, checked.
+
+    Point sets must be (N, 3) with N >= 1 and hold finite numbers only; inside flags must have
+    one entry per point of their set (read along where not asked for). Every failure is a
+    one-line :class:`DatasetError` naming the file and the array: an unreadable archive, a
+    missing array (the message lists those it holds), a wrong shape, NaN or infinite values.
+    """
+    path = Path(path)
+    wanted = list(dict.fromkeys(keys))
+    for key in list(wanted):
+        kind = SAMPLE_ARRAYS.get(key)
+        if kind is None:
+            raise ValueError(f"keys: {key!r} is not one of {', '.join(SAMPLE_ARRAYS)}")
+        if kind != "points" and kind not in wanted:
+            wanted.append(kind)
+    if not path.is_file():
+        raise DatasetError(f"{path}: missing")
+    arrays: dict[str, np.ndarray] = {}
+    try:
+        with np.load(path) as samples:
+            missing = [key for key in wanted if key not in samples.files]
+            if missing:
+                held = ", ".join(samples.files) or "no arrays"
+                raise DatasetError(f"{path}: no array {missing[0]!r} (needed for the model's "
+                                   f"points; the file holds {held})")
+            for key in wanted:
+                arrays[key] = np.asarray(samples[key])
+    except DatasetError:
+        raise
+    except Exception as error:  # numpy raises several kinds on corrupt archives
+        raise DatasetError(f"{path}: cannot read ({' '.join(str(error).split())})") from None
+    for key in wanted:
+        array, kind = arrays[key], SAMPLE_ARRAYS[key]
+        if kind == "points":
+            if array.ndim != 2 or array.shape[1:] != (3,) or len(array) == 0 or \
+                    not np.issubdtype(array.dtype, np.number):
+                raise DatasetError(f"{path}: {key}: expected (N, 3) numbers with N >= 1, got "
+                                   f"shape {array.shape} of {array.dtype}")
+            finite = np.isfinite(array).all(axis=1)
+            if not finite.all():
+                raise DatasetError(f"{path}: {key}: {int((~finite).sum())} of {len(array)} "
+                                   "points hold NaN or infinite values")
+        elif array.shape != (len(arrays[kind]),):
+            raise DatasetError(f"{path}: {key}: expected one flag per point of {kind} "
+                               f"({len(arrays[kind])}), got shape {array.shape}")
+    return {key: arrays[key] for key in wanted}
+
+
+def check_model_points(model_dir: Path, keys: Iterable[str] = tuple(SAMPLE_ARRAYS)) -> None:
+    """Refuse, before any work, a model whose points cannot be read: a ``samples.npz`` that
+    :func:`read_samples` refuses, or, without one, a missing mesh (what the points are then
+    sampled from). One-line :class:`DatasetError` naming the file."""
     samples_path = model_dir / MODELS / SAMPLES_FILE
     if samples_path.is_file():
-        with np.load(samples_path) as samples:
-            return {
-                "surface": samples["surface_points"],
-                "points": np.concatenate([samples["uniform_points"], samples["near_points"]]),
-                "inside": np.concatenate([samples["uniform_inside"],
-                                          samples["near_inside"]]).astype(bool),
-            }
+        read_samples(samples_path, keys)
+        return
+    mesh_path = model_dir / MODELS / MESH_FILE
+    if not mesh_path.is_file():
+        raise DatasetError(f"{mesh_path}: missing (and no {SAMPLES_FILE} beside it to read "
+                           "the model's points from)")
+
+
+def model_points(model_dir: Path) -> dict[str, np.ndarray]:
+    """Surface points and labelled occupancy points of a model: ``samples.npz`` (checked by
+    :func:`read_samples`), or, without one (the SPE3R release), samples of its mesh."""
+    samples_path = model_dir / MODELS / SAMPLES_FILE
+    if samples_path.is_file():
+        samples = read_samples(samples_path)
+        return {
+            "surface": samples["surface_points"],
+            "points": np.concatenate([samples["uniform_points"], samples["near_points"]]),
+            "inside": np.concatenate([samples["uniform_inside"],
+                                      samples["near_inside"]]).astype(bool),
+        }
     # SPE3R release or imported data without our samples: sample the mesh once.
     import trimesh
 

@@ -36,11 +36,21 @@ class PreviewOptions:
         validate(self)
 
 
+def default_preview_path(root: str | Path) -> Path:
+    """Where ``dataset preview ROOT`` writes without ``--out``: ``<ROOT>_preview.png`` beside
+    the dataset folder (not inside it: reading a dataset leaves it as it was)."""
+    root = Path(root)
+    if not root.name or root.name == "..":
+        root = root.resolve()
+    return root.parent / f"{root.name}_preview.png"
+
+
 def preview_dataset(root: str | Path, out: str | Path | None = None,
                     options: PreviewOptions | None = None, *, count: int | None = None,
                     axis_length: float | None = None) -> Path:
-    """Contact sheet PNG (default ``root/preview.png``): images with the mask outline and the
-    pose's body axes drawn. ``count`` and ``axis_length`` override ``options``' fields.
+    """Contact sheet PNG (default :func:`default_preview_path`, beside the dataset folder:
+    reading a dataset never changes it): images with the mask outline and the pose's body
+    axes drawn. ``count`` and ``axis_length`` override ``options``' fields.
 
     The body axes x, y, z (red, green, blue, ``axis_length`` metres) are projected with the
     label pose and ``camera.json``; they start at the model origin (its centre of mass).
@@ -52,7 +62,7 @@ def preview_dataset(root: str | Path, out: str | Path | None = None,
                                 **overrides})
     count, axis_length = options.count, options.axis_length
     root = Path(root)
-    out = Path(out) if out is not None else root / "preview.png"
+    out = Path(out) if out is not None else default_preview_path(root)
     for required in ("camera.json", "splits.csv"):
         if not (root / required).is_file():
             raise DatasetError(f"{root / required}: missing")

@@ -36,7 +36,7 @@ from torch import Tensor
 
 from sq_mitsuba.checks import check_tensor
 from sq_mitsuba.geometry.camera import Camera
-from sq_mitsuba.render.backend import mitsuba
+from sq_mitsuba.render.backend import interrupts_deferred, mitsuba
 
 __all__ = ["PoseSilhouettes"]
 
@@ -106,15 +106,18 @@ class PoseSilhouettes:
         if tuple(translation.shape) != (count, 3):
             raise ValueError(f"translation: expected shape ({count}, 3) or (3,), got "
                              f"{tuple(translation.shape)}")
-        self._load(vertices, faces)
+        with interrupts_deferred():  # Ctrl-C waits for Mitsuba (see interrupts_deferred)
+            self._load(vertices, faces)
         self._calls += 1
         pixels = self.camera.height * self.camera.width
         per_launch = max(1, self.max_rays // (pixels * self.spp))
         rotation = rotation.detach().to("cpu", torch.float64)
         translation = translation.detach().to("cpu", torch.float64)
-        images = [self._launch(rotation[start:start + per_launch],
-                               translation[start:start + per_launch])
-                  for start in range(0, count, per_launch)]
+        images = []
+        for start in range(0, count, per_launch):
+            with interrupts_deferred():
+                images.append(self._launch(rotation[start:start + per_launch],
+                                           translation[start:start + per_launch]))
         return torch.cat(images).reshape(count, self.camera.height, self.camera.width)
 
     # ------------------------------------------------------------------ internals

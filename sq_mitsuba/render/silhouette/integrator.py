@@ -28,7 +28,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from sq_mitsuba.render.backend import mitsuba
+from sq_mitsuba.render.backend import interrupts_deferred, mitsuba
 
 PLUGIN = "silhouette_projective"
 COVERAGE_PLUGIN = "target_coverage"
@@ -43,7 +43,11 @@ def register() -> None:
         return
     mi = mitsuba()
     import drjit as dr
-    from mitsuba.ad.integrators.prb_projective import PathProjectiveIntegrator
+
+    # Importing Mitsuba's AD integrators compiles their @dr.syntax functions: Ctrl-C there
+    # would come out as a RuntimeError holding the generated code (see interrupts_deferred).
+    with interrupts_deferred():
+        from mitsuba.ad.integrators.prb_projective import PathProjectiveIntegrator
 
     def environment_radiance(scene: Any, ray: Any, escaped: Any) -> Any:
         """The environment's radiance (Spectrum) along ``ray`` where ``escaped``, else 0."""

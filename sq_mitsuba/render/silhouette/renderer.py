@@ -18,6 +18,11 @@ Each item costs one vertex update (a BVH rebuild) in the forward pass and one in
 pass; the backward pass runs the items in reverse so that the last item, still in the scene,
 needs none.
 
+Convention: Ctrl-C waits for the Mitsuba call in progress (a scene build, a vertex update,
+one item's render or backward pass) and then raises ``KeyboardInterrupt`` as usual
+(:func:`~sq_mitsuba.render.backend.interrupts_deferred`): raised inside Dr.Jit, it would come
+out as some other error, or abort the process.
+
 Convention: :meth:`SilhouetteRenderer.render_target_loss` (how training's reprojection loss
 renders) can spread its items over worker processes (``workers``), each rendering on one Dr.Jit
 thread. An item draws its samples from ``(seed, call, item)`` alone, so the pooled result
@@ -40,7 +45,7 @@ from torch import Tensor
 from sq_mitsuba.checks import check_tensor
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.metrics import mask_iou  # noqa: F401  (re-exported for callers)
-from sq_mitsuba.render.backend import mitsuba
+from sq_mitsuba.render.backend import interrupts_deferred, mitsuba
 from sq_mitsuba.render.silhouette.integrator import register as register_integrator
 from sq_mitsuba.render.silhouette.workers import SilhouetteWorkers, WorkerError
 
@@ -285,6 +290,10 @@ class SilhouetteRenderer:
             self._build_scene(num_vertices, faces)
 
     def _build_scene(self, num_vertices: int, faces: np.ndarray) -> None:
+        with interrupts_deferred():  # Ctrl-C waits for Mitsuba (see interrupts_deferred)
+            self._build_scene_now(num_vertices, faces)
+
+    def _build_scene_now(self, num_vertices: int, faces: np.ndarray) -> None:
         mi = self._mi
         if self.integrator == "silhouette_projective":
             register_integrator()
@@ -336,11 +345,12 @@ class SilhouetteRenderer:
         array = vertices.detach().to("cpu", torch.float32)
         if self._y_stretch != 1.0:
             array = array * array.new_tensor([1.0, self._y_stretch, 1.0])
-        values = mi.Float(np.ascontiguousarray(array.numpy()).ravel())
-        if requires_grad:
-            dr.enable_grad(values)
-        self._params[VERTEX_KEY] = values
-        self._params.update()
+        with interrupts_deferred():
+            values = mi.Float(np.ascontiguousarray(array.numpy()).ravel())
+            if requires_grad:
+                dr.enable_grad(values)
+            self._params[VERTEX_KEY] = values
+            self._params.update()
         self._loaded, self._loaded_vertices = token, values
         return values
 
@@ -374,11 +384,12 @@ class SilhouetteRenderer:
         mi = self._mi
         import drjit as dr
 
-        grad_in = mi.TensorXf(np.ascontiguousarray(grad_image.numpy()[..., None]))
-        self._integrator.render_backward(self._scene, self._params, grad_in, sensor=0,
-                                         seed=self._seed(call, item, True), spp=0)
-        grad = np.array(dr.grad(values), dtype=np.float32).reshape(-1, 3)
-        dr.clear_grad(values)
+        with interrupts_deferred():
+            grad_in = mi.TensorXf(np.ascontiguousarray(grad_image.numpy()[..., None]))
+            self._integrator.render_backward(self._scene, self._params, grad_in, sensor=0,
+                                             seed=self._seed(call, item, True), spp=0)
+            grad = np.array(dr.grad(values), dtype=np.float32).reshape(-1, 3)
+            dr.clear_grad(values)
         # A rare silhouette sample with a degenerate Jacobian can give NaN; it carries no
         # information, so it counts as zero.
         grad_vertices = torch.from_numpy(np.nan_to_num(grad, nan=0.0, posinf=0.0, neginf=0.0))
@@ -390,11 +401,12 @@ class SilhouetteRenderer:
         """Coverage (H, W) float32 of the item whose vertices are loaded."""
         import drjit as dr
 
-        with dr.suspend_grad():
+        with interrupts_deferred(), dr.suspend_grad():
             image = self._integrator.render(self._scene, sensor=0,
                                             seed=self._seed(call, item, False), spp=self.spp,
                                             develop=True)
-        coverage = 1.0 - torch.from_numpy(np.array(image, dtype=np.float32)[..., 0])
+            image = np.array(image, dtype=np.float32)
+        coverage = 1.0 - torch.from_numpy(image[..., 0])
         return coverage.clamp_(0.0, 1.0)
 
     def render_loss(self, vertices: Tensor, faces: Tensor,

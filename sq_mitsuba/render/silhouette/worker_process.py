@@ -6,6 +6,7 @@ requests over the socket ``FD`` until told to stop (see the pool's module for th
 from __future__ import annotations
 
 import os
+import signal
 import sys
 from multiprocessing.connection import Connection
 
@@ -57,5 +58,8 @@ def serve(connection: Connection) -> None:
 
 
 if __name__ == "__main__":
+    # Ctrl-C in a terminal reaches the whole process group: the parent handles it (and closes
+    # the pool); a worker that raised KeyboardInterrupt would print its own traceback.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     serve(Connection(int(sys.argv[1])))
     os._exit(0)  # skip interpreter teardown of Dr.Jit's thread pool

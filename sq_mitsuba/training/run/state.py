@@ -68,3 +68,5 @@ class TrainResult:
     "Mean training throughput of this call (after its first step, which compiles kernels)."
     train_seconds: float = 0.0
     "Wall time of this call's steps (validation, checkpoints and set-up excluded)."
+    notes: list[str] = field(default_factory=list)
+    "What the run wants said (one line each), e.g. that best.pt is the last state."

@@ -1,0 +1,176 @@
+"""Quality against the number of frames: one assembly and every pose from passes of N frames.
+
+Renders one pass of ``--frames`` frames of each of ``--models`` spacecraft of a catalogue seed
+the shipped model never trained on (default 4242; it trained on seed 0), in the default space
+scene (:func:`sq_mitsuba.data.frames.sample_pass_frame`: the target tumbling about a random
+axis, the camera approaching), then scores, for N in ``--counts``, the first N frames of each
+pass: the single-image shipped path (``Predictor.predict(refine=True)``, each frame alone)
+against ``Predictor.predict_sequence`` (one assembly, N poses), with the metrics of
+``sq-mitsuba eval`` (:func:`sq_mitsuba.evaluation.scoring.score`) per frame, and the error of
+the relative rotations between consecutive frames. Writes ``sequence_passes.csv`` (one row per
+model, N, method and frame), prints the table of medians and means, and draws
+``sequence_passes.png`` (quality against N).
+
+    .venv/bin/python eval/experiments/sequence_passes.py --out /tmp/passes
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+import sq_mitsuba
+from sq_mitsuba.data.frames import sample_pass_frame
+from sq_mitsuba.data.library import generate_model
+from sq_mitsuba.data.spacecraft import catalogue
+from sq_mitsuba.data.spe3r.layout import MODELS, SAMPLES_FILE, load_model
+from sq_mitsuba.data.symmetry import model_symmetries
+from sq_mitsuba.evaluation.scoring import score, volume_points
+from sq_mitsuba.geometry.assembly import Assembly
+from sq_mitsuba.geometry.camera import Camera
+from sq_mitsuba.geometry.metrics import rotation_error_deg
+from sq_mitsuba.geometry.rotation import matrix_to_quaternion
+from sq_mitsuba.render.scene_config import SceneConfig
+from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer
+from sq_mitsuba.render.space import SpaceScene
+
+SHOWN = ("chamfer_l1_paper", "camera_chamfer", "iou_2d", "rotation_error_folded_deg",
+         "relative_rotation_deg")
+
+
+def render_pass(model_dir: Path, camera: Camera, frames: int, seed: int, spp: int) -> dict:
+    """Images (N, H, W) float, masks (N, H, W), rotations (N, 3, 3), translations (N, 3)."""
+    vertices, faces, tags = load_model(model_dir)
+    config = SceneConfig()
+    scene = SpaceScene(vertices, faces, tags, camera, config, spp=spp, dataset_seed=seed)
+    images, masks, rotations, translations = [], [], [], []
+    for index in range(frames):
+        frame = sample_pass_frame(vertices, camera, config, seed, model_dir.name, index, frames)
+        result = scene.render(frame)
+        images.append(result.image_8bit())
+        masks.append(result.mask > 127)
+        rotations.append(frame.rotation)
+        translations.append(np.asarray(frame.translation))
+    return {"image": torch.from_numpy(np.stack(images)),
+            "mask": torch.from_numpy(np.stack(masks)),
+            "rotation": torch.from_numpy(np.stack(rotations)),
+            "translation": torch.from_numpy(np.stack(translations))}
+
+
+def relative_errors(rotation: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
+    """Per frame k >= 1: the angle between the estimated and true rotation from frame k - 1 to
+    frame k (NaN for frame 0)."""
+    errors = [float("nan")]
+    for k in range(1, len(rotation)):
+        estimate = rotation[k] @ rotation[k - 1].T
+        true = truth[k] @ truth[k - 1].T
+        errors.append(float(rotation_error_deg(estimate[None], true[None])[0]))
+    return torch.tensor(errors, dtype=torch.float64)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--models", type=int, default=6)
+    parser.add_argument("--catalogue-seed", type=int, default=4242)
+    parser.add_argument("--frames", type=int, default=8)
+    parser.add_argument("--counts", type=int, nargs="+", default=[1, 2, 4, 8])
+    parser.add_argument("--resolution", type=int, default=256)
+    parser.add_argument("--spp", type=int, default=16)
+    parser.add_argument("--seed", type=int, default=7)
+    args = parser.parse_args()
+    args.out.mkdir(parents=True, exist_ok=True)
+    torch.manual_seed(0)
+    predictor = sq_mitsuba.load_model(fast=True)
+    camera = Camera.default(args.resolution)
+    renderer = SilhouetteRenderer(camera, spp=4)
+    library = args.out / "models"
+    rows = []
+    for entry in catalogue(args.models, args.catalogue_seed):
+        model_dir = library / entry.name
+        if not (model_dir / MODELS / SAMPLES_FILE).is_file():
+            generate_model(entry, library, points=20_000)
+        shot = render_pass(model_dir, camera, args.frames, args.seed, args.spp)
+        with np.load(model_dir / MODELS / SAMPLES_FILE) as samples:
+            surface = torch.from_numpy(samples["surface_points"][:2500]).double()
+        symmetry = torch.as_tensor(np.asarray(model_symmetries(model_dir)), dtype=torch.float64)
+        volume = volume_points(model_dir, 20_000)
+        for count in args.counts:
+            images = shot["image"][:count]
+            batch = {"mask": shot["mask"][:count, None].double(),
+                     "rotation": shot["rotation"][:count].double(),
+                     "translation": shot["translation"][:count].double(),
+                     "surface_points": surface.expand(count, -1, -1)}
+            batch["quaternion"] = matrix_to_quaternion(batch["rotation"])
+            tick = time.perf_counter()
+            single = predictor.predict(images, camera, refine=True)
+            single_seconds = time.perf_counter() - tick
+            methods = {"single": (single.assembly, single.rotation.double(),
+                                  single.translation.double(), single_seconds)}
+            if count >= 2:
+                tick = time.perf_counter()
+                sequence = predictor.predict_sequence(images, camera, ordered=True)
+                methods["sequence"] = (Assembly(sequence.assembly.params.expand(count, -1, -1)),
+                                       sequence.rotation, sequence.translation,
+                                       time.perf_counter() - tick)
+            for method, (assembly, rotation, translation, seconds) in methods.items():
+                metrics = score(assembly, rotation, translation, batch, renderer,
+                                [symmetry] * count, [volume] * count, level=2)
+                metrics["relative_rotation_deg"] = relative_errors(rotation, batch["rotation"])
+                for k in range(count):
+                    rows.append({"model": entry.name, "frames": count, "method": method,
+                                 "frame": k, "seconds_per_frame": seconds / count,
+                                 **{name: float(value[k]) for name, value in metrics.items()}})
+            print(entry.name, count, {m: f"{v[3] / count:.2f} s/frame" for m, v in
+                                      methods.items()}, flush=True)
+    with open(args.out / "sequence_passes.csv", "w", newline="") as file:
+        writer = csv.DictWriter(file, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    summary = {}
+    for count in args.counts:
+        for method in ("single", "sequence"):
+            chosen = [r for r in rows if r["frames"] == count and r["method"] == method]
+            if not chosen:
+                continue
+            stats = {name: (float(np.nanmean([r[name] for r in chosen])),
+                            float(np.nanmedian([r[name] for r in chosen])))
+                     for name in (*SHOWN, "seconds_per_frame")}
+            summary[(count, method)] = stats
+            print(f"N={count:2d} {method:8s} " + "  ".join(
+                f"{name} {mean:.3f}/{median:.3f}" for name, (mean, median) in stats.items()))
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figure, axes = plt.subplots(1, 4, figsize=(15, 3.4))
+    panels = [("chamfer_l1_paper", "body-frame Chamfer-L1 (mean)"),
+              ("iou_2d", "2D IoU (mean)"),
+              ("rotation_error_folded_deg", "folded rotation (median, deg)"),
+              ("relative_rotation_deg", "relative rotation (median, deg)")]
+    for axis, (name, label) in zip(axes, panels, strict=True):
+        which = 1 if "median" in label else 0
+        for method, colour in (("single", "tab:red"), ("sequence", "tab:green")):
+            counts = [c for c in args.counts if (c, method) in summary]
+            axis.plot(counts, [summary[(c, method)][name][which] for c in counts], "o-",
+                      color=colour, label=method)
+        axis.set_xscale("log", base=2)
+        axis.set_xticks(args.counts, [str(c) for c in args.counts])
+        axis.set_xlabel("frames N")
+        axis.set_title(label, fontsize=9)
+        axis.grid(alpha=0.3)
+    axes[0].legend()
+    figure.suptitle(f"{args.models} unseen spacecraft (catalogue seed {args.catalogue_seed}), "
+                    f"one pass each, {args.resolution} px", fontsize=10)
+    figure.tight_layout()
+    figure.savefig(args.out / "sequence_passes.png", dpi=110)
+
+
+if __name__ == "__main__":
+    main()

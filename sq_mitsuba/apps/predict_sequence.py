@@ -1,0 +1,162 @@
+"""``sq-mitsuba predict IMAGES... --sequence``: N images of one spacecraft in, one assembly and
+every pose out (``Predictor.predict_sequence``).
+
+Files written to the output folder (each atomically; the folder is all or nothing):
+
+- ``sequence.assembly.json`` and ``sequence.glb``: the shared assembly in its body frame;
+- ``<image stem>.pose.json`` per frame: the frame's pose of that assembly, in the layout
+  ``sq-mitsuba predict`` writes (``q_vbs2tango``, ``r_Vo2To_vbs``, convention, camera), with
+  the frame's IoU after the joint fit and the half turn that carried its own reading;
+- ``<image stem>.overlay.png`` per frame: the image with the frame's own fitted silhouette
+  (red), the shared assembly's at the frame's pose (green) and the mask's outline (yellow);
+- ``sequence.png``: the shared assembly from six sides (one colour per primitive).
+
+Every image is read and checked before the work: one size for all, at least two, no name
+twice.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+__all__ = ["SequenceRecord", "predict_sequence_files"]
+
+#: The views of ``sequence.png``: (label, body -> camera rotation), the assembly at the centre.
+_SIDES = (("+x", (0.0, -90.0)), ("-x", (0.0, 90.0)), ("+y", (90.0, 0.0)), ("-y", (-90.0, 0.0)),
+          ("+z", (0.0, 180.0)), ("-z", (0.0, 0.0)))
+
+
+@dataclass
+class SequenceRecord:
+    """What :func:`predict_sequence_files` did: the files, the frames' IoUs and the time."""
+
+    files: list[Path] = field(default_factory=list)
+    iou: list[float] = field(default_factory=list)
+    frame_iou: list[float] = field(default_factory=list)
+    seconds: float = 0.0
+
+    def describe(self) -> str:
+        count = len(self.iou)
+        return (f"{count} frames: one assembly, {count} poses in {self.seconds:.1f} s "
+                f"({self.seconds / max(count, 1):.2f} s per frame); silhouette IoU against the "
+                f"masks {np.mean(self.frame_iou):.3f} (each frame alone) -> "
+                f"{np.mean(self.iou):.3f} (one shape, all frames)")
+
+
+def _side_rotation(pitch_deg: float, yaw_deg: float) -> torch.Tensor:
+    pitch, yaw = math.radians(pitch_deg), math.radians(yaw_deg)
+    about_x = torch.tensor([[1, 0, 0], [0, math.cos(pitch), -math.sin(pitch)],
+                            [0, math.sin(pitch), math.cos(pitch)]], dtype=torch.float64)
+    about_y = torch.tensor([[math.cos(yaw), 0, math.sin(yaw)], [0, 1, 0],
+                            [-math.sin(yaw), 0, math.cos(yaw)]], dtype=torch.float64)
+    return about_x @ about_y
+
+
+def _sides_picture(assembly: Any, path: Path) -> Path:
+    """The assembly from six sides, side by side, as a PNG."""
+    from PIL import Image, ImageDraw
+
+    from sq_mitsuba.evaluation.figures import assembly_picture
+    from sq_mitsuba.geometry.camera import Camera
+    from sq_mitsuba.io import atomic_path
+
+    camera = Camera.default(192)
+    translation = torch.tensor([0.0, 0.0, 2.2], dtype=torch.float64)
+    tiles = []
+    for label, (pitch, yaw) in _SIDES:
+        picture = assembly_picture(assembly, _side_rotation(pitch, yaw), translation, camera)
+        tile = Image.fromarray((np.clip(picture, 0, 1) * 255 + 0.5).astype(np.uint8), "RGB")
+        ImageDraw.Draw(tile).text((6, 4), f"seen from {label}", fill=(230, 230, 230))
+        tiles.append(tile)
+    sheet = Image.new("RGB", (camera.width * len(tiles), camera.height))
+    for k, tile in enumerate(tiles):
+        sheet.paste(tile, (k * camera.width, 0))
+    with atomic_path(path) as tmp:
+        sheet.save(tmp, format="PNG")
+    return path
+
+
+def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
+                           camera: Any = None, relative_rotations: Any = None,
+                           options: Any = None, ordered: bool = False) -> SequenceRecord:
+    """Predict one assembly and every pose from ``images`` (frames of one spacecraft) and write
+    the files of the module docstring into ``out_dir``.
+
+    Raises:
+        ValueError: one line naming the image or argument: fewer than two images, sizes that
+            differ, a name twice, an unreadable image, a frame without a target.
+    """
+    from PIL import Image
+
+    from sq_mitsuba.apps.overlay import NETWORK_COLOUR, REFINED_COLOUR, overlay_image
+    from sq_mitsuba.apps.predict import check_unique_stems
+    from sq_mitsuba.data.masks import read_gray_image
+    from sq_mitsuba.geometry.assembly import Assembly
+    from sq_mitsuba.inference.loading import with_fast_path
+    from sq_mitsuba.io import atomic_path, atomic_write_json, check_output_folder
+    from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer, render_assembly
+
+    paths = [Path(p) for p in images]
+    if len(paths) < 2:
+        raise ValueError(f"images: a sequence needs at least 2 images, got {len(paths)}")
+    check_unique_stems(paths)
+    pictures = [read_gray_image(p) for p in paths]
+    for path, picture in zip(paths[1:], pictures[1:], strict=True):
+        if picture.shape != pictures[0].shape:
+            raise ValueError(f"image {path}: {picture.shape[1]} x {picture.shape[0]} px, the "
+                             f"first frame {paths[0]} is {pictures[0].shape[1]} x "
+                             f"{pictures[0].shape[0]} px (a sequence has one size)")
+    out = check_output_folder(out_dir)
+    predictor = with_fast_path(predictor, True)
+    record = SequenceRecord()
+    started = time.perf_counter()
+    frames = torch.from_numpy(np.stack(pictures)).float()
+    kwargs = {} if options is None else {"options": options}
+    result = predictor.predict_sequence(frames, camera, relative_rotations=relative_rotations,
+                                        ordered=ordered, **kwargs)
+    record.seconds = time.perf_counter() - started
+    record.iou = [float(v) for v in result.iou]
+    record.frame_iou = [float(v) for v in result.frame_iou]
+    out.mkdir(parents=True, exist_ok=True)
+    record.files.append(result.assembly.save(out / "sequence.assembly.json"))
+    record.files.append(result.assembly.export(out / "sequence.glb"))
+    record.files.append(_sides_picture(result.assembly, out / "sequence.png"))
+    own = result.frames
+    image_camera = own.camera
+    renderer = SilhouetteRenderer(image_camera, spp=4)
+    count = len(paths)
+    with torch.no_grad():
+        shared = render_assembly(Assembly(result.assembly.params.expand(count, -1, -1)),
+                                 result.rotation, result.translation, renderer, 3).numpy()
+        alone = render_assembly(Assembly(own.assembly.params.double()), own.rotation.double(),
+                                own.translation.double(), renderer, 3).numpy()
+    for k, (path, picture) in enumerate(zip(paths, pictures, strict=True)):
+        pose = {
+            "image": str(path), "width": image_camera.width, "height": image_camera.height,
+            "q_vbs2tango": [float(v) for v in result.quaternion[k]],
+            "r_Vo2To_vbs": [float(v) for v in result.translation[k]],
+            "convention": "x_cam = R(q) x_body + r; OpenCV camera frame (x right, y down, "
+                          "z forward); q = (w, x, y, z); metres; the body frame of "
+                          "sequence.assembly.json",
+            "camera": image_camera.to_speed_dict(),
+            "checkpoint": str(getattr(predictor, "source", None) or ""),
+            "sequence": {"frame": k, "frames": count, "reference": result.reference,
+                         "iou": record.iou[k], "frame_iou": record.frame_iou[k],
+                         "half_turn": [[float(v) for v in row] for row in result.half_turns[k]],
+                         "mask_source": own.fit.mask_source},
+        }
+        atomic_write_json(out / f"{path.stem}.pose.json", pose)
+        record.files.append(out / f"{path.stem}.pose.json")
+        overlay = overlay_image(picture, [(alone[k], NETWORK_COLOUR), (shared[k], REFINED_COLOUR)],
+                                own.fit.mask[k].numpy())
+        with atomic_path(out / f"{path.stem}.overlay.png") as tmp:
+            Image.fromarray(overlay, "RGB").save(tmp, format="PNG")
+        record.files.append(out / f"{path.stem}.overlay.png")
+    return record

@@ -1,0 +1,496 @@
+"""Issue 35 (the API's part): a target-present score, and bad input refused in one line naming
+the argument or file, before any work, with nothing half-written and no warning leaking.
+
+References: the target-present score is checked against images whose content is known by
+construction (the fixture's rendered spacecraft, the Earth rendered alone by the project's
+renderer with the target moved behind the camera, black frames and noise); the errors against
+the argument or file they must name."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import subprocess
+import sys
+import warnings
+
+import numpy as np
+import pytest
+import torch
+from output_checks import error_line, one_torch_thread  # noqa: F401 (autouse fixture)
+from PIL import Image
+
+import sq_mitsuba
+from sq_mitsuba.cli import main
+from sq_mitsuba.geometry.assembly import Assembly
+from sq_mitsuba.geometry.camera import Camera
+from sq_mitsuba.inference.images import DEFAULT_MIN_TARGET, prepare_images
+from sq_mitsuba.inference.loading import load_model
+from sq_mitsuba.inference.refine import RefineOptions
+from sq_mitsuba.inference.search import SEARCH_REFINEMENT, SearchOptions
+
+SEARCH = SearchOptions(grid=128, screen_steps=2)
+REFINEMENT = dataclasses.replace(SEARCH_REFINEMENT, steps=4, patience=4)
+SMALL = ["--set", "refinement.steps=4", "--set", "refinement.patience=4",
+         "--set", "search.grid=128", "--set", "search.screen_steps=2"]
+assert isinstance(REFINEMENT, RefineOptions)
+
+
+def _test_model(root):
+    return next(line.split(",")[0] for line in (root / "splits.csv").read_text().splitlines()
+                if line.endswith(",test"))
+
+
+@pytest.fixture(scope="module")
+def scenes(train_dataset):
+    """64 px images whose content is known, uint8 (N, 64, 64) each:
+
+    - ``spacecraft``: the fixture's test model, every image (some with the Earth behind);
+    - ``lit``: those of them with the Earth out of view and the target well lit (what a
+      threshold segmentation can find);
+    - ``black``; ``noise``: uniform in [0, 1], Gaussian noise (mean 0, sd 0.3; mean 0.1,
+      sd 0.2) and sparse bright pixels, on which the mask head alone fires;
+    - ``earth`` (96 px): the Earth alone, rendered with the project's renderer as the shipped
+      model's training images were (96 px, 16 spp): the test model's frames with the Earth
+      in view, the target moved behind the camera.
+    """
+    from sq_mitsuba.config import apply_overrides
+    from sq_mitsuba.data.frames import sample_frame
+    from sq_mitsuba.data.spe3r import RenderOptions
+    from sq_mitsuba.data.spe3r.layout import load_model as load_mesh
+    from sq_mitsuba.render.space import SpaceScene
+
+    model = _test_model(train_dataset)
+    labels = json.loads((train_dataset / model / "labels.json").read_text())
+    spacecraft = np.stack([np.asarray(Image.open(train_dataset / model / "images" /
+                                                 label["filename"])) for label in labels])
+    lit = spacecraft[[not label["earth_in_view"] and label["target_visibility"] >= 0.15
+                      for label in labels]]
+    rng = np.random.default_rng(0)
+    sparse = (rng.random((64, 64)) < 0.2) * rng.uniform(0.3, 1.0, (64, 64))
+    noise = np.stack([rng.uniform(0, 1, (64, 64)), np.clip(rng.normal(0, 0.3, (64, 64)), 0, 1),
+                      np.clip(rng.normal(0.1, 0.2, (64, 64)), 0, 1), sparse])
+    vertices, faces, tags = load_mesh(train_dataset / model)
+    config = apply_overrides(RenderOptions().scene, ("earth.probability_in_view=1",
+                                                     "eclipse.probability=0"))
+    camera = Camera.default(96)
+    scene = SpaceScene(vertices, faces, tags, camera, config, spp=16, dataset_seed=5)
+    earth = []
+    for index in range(5):
+        frame = sample_frame(vertices, camera, config, 5, model, index)
+        assert frame.earth_in_view
+        alone = scene.render(dataclasses.replace(frame, translation=(0.0, 0.0, -50.0)))
+        assert not alone.mask.any()  # nothing of the target in view
+        earth.append(alone.image_8bit())
+    earth = np.stack(earth)
+    assert (earth.reshape(len(earth), -1).max(1) > 100).sum() >= 3  # mostly a lit Earth
+    return {"spacecraft": spacecraft, "lit": lit, "black": np.zeros((1, 64, 64), np.uint8),
+            "noise": (noise * 255).round().astype(np.uint8), "earth": earth}
+
+
+@pytest.fixture(scope="module")
+def shipped():
+    return sq_mitsuba.load_model()
+
+
+# --- item 8: the target-present score -----------------------------------------------------
+
+
+def test_the_mask_heads_score_tells_spacecraft_from_black_noise_and_the_earth(scenes, shipped):
+    """The shipped model (mask head): every spacecraft image, the Earth behind or not, is a
+    target; black, noise and the Earth alone are not, each by a margin."""
+    scores = {name: shipped.predict(images).target_score for name, images in scenes.items()}
+    for name, score in scores.items():
+        assert score.shape == (len(scenes[name]),) and score.dtype.is_floating_point
+        assert bool(((score >= 0) & (score <= 1)).all()), name
+    assert float(scores["spacecraft"].min()) >= 0.95, scores["spacecraft"]
+    for name in ("black", "noise", "earth"):
+        assert float(scores[name].max()) <= 0.85, (name, scores[name])
+    prediction = shipped.predict(np.concatenate([scenes["spacecraft"][:2], scenes["black"],
+                                                 scenes["noise"]]))
+    assert prediction.target.tolist() == [True, True] + [False] * 5
+    torch.testing.assert_close(prediction.target, prediction.target_score >= 0.92)
+    assert not bool(shipped.predict(scenes["earth"]).target.any())
+    # The noise term decides the noise: the mask head alone fires on it (upsampled 64 -> 96
+    # px, the noise forms blobs), so a score from the mask head alone would call it a target.
+    with torch.inference_mode():
+        x = torch.nn.functional.interpolate(torch.from_numpy(scenes["noise"])[:, None].float()
+                                            / 255, size=(96, 96), mode="bilinear")
+        logits = shipped.model.eval()(x, shipped.camera.rescaled(96, 96).matrix()).mask_logits
+    assert float(logits.flatten(1).amax(1).sigmoid().max()) > 0.95
+
+
+def test_without_a_mask_head_the_segmentation_scores_the_target(scenes, eval_checkpoint):
+    """A network without a mask head falls back on the image's segmentation: the lit
+    spacecraft are targets, black, noise and the Earth alone are not."""
+    predictor = load_model(eval_checkpoint)
+    assert predictor.model.mask_head is None
+    assert len(scenes["lit"]) >= 3
+    assert bool(predictor.predict(scenes["lit"]).target.all())
+    for name in ("black", "noise", "earth"):
+        prediction = predictor.predict(scenes[name])
+        assert not bool(prediction.target.any()), (name, prediction.target_score)
+        assert float(prediction.target_score.max()) <= 0.5, name
+
+
+def test_min_target_is_the_threshold_and_the_turned_reading_keeps_the_score(scenes, shipped,
+                                                                           eval_checkpoint):
+    from sq_mitsuba.inference.predictor import Predictor
+
+    assert shipped.min_target == DEFAULT_MIN_TARGET == 0.92
+    everything = Predictor(shipped.model, shipped.camera, min_target=0.0)
+    assert bool(everything.predict(scenes["black"]).target.all())
+    images = np.concatenate([scenes["spacecraft"][:1], scenes["black"]])
+    plain = shipped.predict(images)
+    turned = shipped.predict(images, turns=4)
+    torch.testing.assert_close(turned.target_score, plain.target_score)
+    assert turned.target.tolist() == plain.target.tolist() == [True, False]
+    for bad in (1.5, -0.1, float("nan"), True, "0.5"):
+        with pytest.raises(ValueError, match=r"^min_target: expected a number in \[0, 1\]"):
+            Predictor(shipped.model, shipped.camera, min_target=bad)
+    with pytest.raises(ValueError, match=r"^min_target: "):
+        load_model(eval_checkpoint, min_target=2)
+
+
+def test_refine_does_not_search_an_image_without_a_target(scenes, eval_checkpoint):
+    """With refine=True an image without a target is not fitted (its scores NaN, its pose the
+    start), the spacecraft beside it is; a mask the caller gives is fitted whatever the
+    score (the caller says where the target is)."""
+    predictor = load_model(eval_checkpoint)
+    images = np.concatenate([scenes["lit"][:1], scenes["black"], scenes["noise"][:1]])
+    fitted = predictor.predict(images, refine=True, search=SEARCH, refinement=REFINEMENT)
+    assert fitted.target.tolist() == [True, False, False]
+    assert fitted.fit.fitted.tolist() == [True, False, False]
+    assert not math.isnan(float(fitted.fit.iou[0]))
+    assert all(math.isnan(float(v)) for v in fitted.fit.iou[1:])
+    torch.testing.assert_close(fitted.rotation[1], fitted.fit.start.rotation[1].double())
+    given = torch.zeros(2, 64, 64, dtype=torch.bool)
+    given[:, 20:44, 20:44] = True
+    again = predictor.predict(images[:2], refine=True, mask=given, search=SEARCH,
+                              refinement=REFINEMENT)
+    assert again.fit.mask_source == "given" and again.fit.fitted.tolist() == [True, True]
+
+
+def test_predict_reports_no_target_and_writes_its_pose_json_alone(scenes, eval_checkpoint,
+                                                                  tmp_path, capsys):
+    folder = tmp_path / "in"
+    folder.mkdir()
+    Image.fromarray(scenes["lit"][0]).save(folder / "craft.png")
+    for name in ("black", "earth"):
+        Image.fromarray(scenes[name][0]).save(folder / f"{name}.png")
+    Image.fromarray(scenes["noise"][0]).save(folder / "noise.png")
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "black.obj").write_text("a mesh of an earlier run")  # stale: must not stay
+    args = ["predict", *(str(folder / f"{n}.png") for n in ("craft", "black", "noise", "earth")),
+            "--checkpoint", str(eval_checkpoint), "--out", str(out), "--quiet"]
+    assert main(args) == 0
+    printed = capsys.readouterr().out.splitlines()
+    assert "target score" in printed[0] and "no target" not in printed[0]
+    for line, name in zip(printed[1:4], ("black", "noise", "earth"), strict=True):
+        assert line.startswith(str(folder / f"{name}.png")) and "no target" in line, line
+    assert "3 without a target" in printed[-1] and "wrote 8 files" in printed[-1], printed
+    craft = json.loads((out / "craft.pose.json").read_text())
+    assert craft["target"] is True and craft["target_score"] >= 0.92
+    assert craft["min_target"] == 0.92 and len(craft["q_vbs2tango"]) == 4
+    for name in ("black", "noise", "earth"):
+        pose = json.loads((out / f"{name}.pose.json").read_text())
+        assert pose["target"] is False and pose["target_score"] < 0.92
+        assert "q_vbs2tango" not in pose and "r_Vo2To_vbs" not in pose
+        assert sorted(p.name for p in out.iterdir() if p.stem.startswith(name)) == \
+            [f"{name}.pose.json"]
+    # min_target=0 takes every image for a target.
+    everything = tmp_path / "everything"
+    assert main([*args[:-3], "--out", str(everything), "--set", "min_target=0", "--quiet"]) == 0
+    assert json.loads((everything / "black.pose.json").read_text())["target"] is True
+    assert (everything / "black.glb").is_file()
+
+
+# --- minors: predict --refine, prepare_images ---------------------------------------------
+
+
+def test_an_empty_network_mask_names_the_image_and_writes_nothing(scenes, tmp_path, capsys):
+    """The shipped model taking every image for a target (min_target=0): a black image's
+    mask is empty; the error names it, after the spacecraft before it was refined, and
+    nothing is written."""
+    Image.fromarray(scenes["spacecraft"][0]).save(tmp_path / "craft.png")
+    Image.fromarray(scenes["black"][0]).save(tmp_path / "black.png")
+    out = tmp_path / "out"
+    assert main(["predict", str(tmp_path / "craft.png"), str(tmp_path / "black.png"), "--out",
+                 str(out), "--refine", "--set", "min_target=0", *SMALL, "--quiet"]) == 2
+    line = error_line(capsys)
+    assert f"error: image {tmp_path / 'black.png'}: the network's mask of it is empty" in line, \
+        line
+    assert not out.exists()
+
+
+def test_predict_refine_says_what_each_score_is(scenes, eval_checkpoint, tmp_path, capsys):
+    Image.fromarray(scenes["lit"][0]).save(tmp_path / "craft.png")
+    assert main(["predict", str(tmp_path / "craft.png"), "--checkpoint", str(eval_checkpoint),
+                 "--out", str(tmp_path / "out"), "--refine", *SMALL, "--quiet"]) == 0
+    line = capsys.readouterr().out.splitlines()[0]
+    pose = json.loads((tmp_path / "out" / "craft.pose.json").read_text())
+    assert f"the search's soft IoU {pose['search_score']:.3f} at 64 px" in line, line
+    assert f"the refined IoU {pose['iou_after']:.3f} at 64 px" in line, line
+    assert pose["search_resolution"] == 64 and pose["refine_resolution"] == 64
+
+
+def test_the_mask_option_help_agrees_with_the_description():
+    """Without --mask: the network's mask head, or the segmentation for a model without one
+    (the --mask help, the --refine help, the description and PredictOptions say the same)."""
+    import argparse
+
+    from sq_mitsuba.cli.predict import DESCRIPTION, register
+
+    parser = argparse.ArgumentParser()
+    register(parser.add_subparsers())
+    command = parser._subparsers._group_actions[0].choices["predict"]
+    helps = {action.dest: " ".join(action.help.split()) for action in command._actions
+             if action.help}
+    description = " ".join(DESCRIPTION.split())
+    assert "without --mask, the network's mask head (the image's segmentation for a model " \
+           "without a mask head" in description
+    assert "(default, without --mask: the network's mask head, or the image's segmentation " \
+           "for a model without one" in helps["mask"]
+    assert "--mask, else the network's mask head (the image's segmentation for a model " \
+           "without one)" in helps["refine"]
+    assert "read from the image" not in helps["refine"]
+
+
+@pytest.mark.parametrize(("images", "message"), [
+    (torch.zeros(1, 1, 1, dtype=torch.uint8),
+     r"^images: 1 x 1 px is below the smallest image size, 8 x 8 px$"),
+    (torch.zeros(1, 1, 1, dtype=torch.uint8).expand(1, 12000, 12000),
+     r"^images: 12000 x 12000 px is above the largest image size"),
+    (np.zeros((1, 16, 16), dtype=object), r"^images: expected uint8 or floating point, got "
+                                          r"object$"),
+    (torch.zeros(1, 16, 16, device="meta"), r"^images: a meta tensor \(no values\)"),
+])
+def test_the_api_refuses_what_the_cli_refuses_naming_images(eval_checkpoint, images, message):
+    predictor = load_model(eval_checkpoint)
+    with pytest.raises(ValueError, match=message) as info:
+        predictor.predict(images)
+    assert "\n" not in str(info.value)
+
+
+def test_read_only_arrays_and_grad_tensors_predict_without_warnings(eval_checkpoint, tmp_path):
+    """``np.asarray(Image.open(path))`` is read-only (torch warns once per process about such
+    arrays, so a fresh interpreter checks it), as images and as masks to fit; a tensor that
+    requires grad is detached; another byte order is converted."""
+    image = (np.arange(64 * 64) % 251).astype(np.uint8).reshape(64, 64)
+    Image.fromarray(image).save(tmp_path / "photo.png")
+    code = ("import numpy as np, torch; from PIL import Image; import sq_mitsuba; "
+            f"p = sq_mitsuba.load_model({str(eval_checkpoint)!r}); "
+            f"a = np.asarray(Image.open({str(tmp_path / 'photo.png')!r}))[None]; "
+            "assert not a.flags.writeable; p.predict(a); "
+            "t = torch.rand(1, 64, 64, requires_grad=True); p.predict(t); "
+            "p.predict(np.zeros((1, 64, 64), '>f4')); "
+            "from types import SimpleNamespace; "
+            "from sq_mitsuba.inference.pipeline import masks_to_fit; "
+            "m = np.asarray(Image.open("
+            f"{str(tmp_path / 'photo.png')!r}"
+            "))[None] > 100; m.flags.writeable = False; "
+            "masks_to_fit(SimpleNamespace(mask=None), torch.zeros(1, 1, 64, 64), m); print('ok')")
+    run = subprocess.run([sys.executable, "-W", "error", "-c", code], capture_output=True,
+                         text=True, timeout=300)
+    assert run.returncode == 0 and run.stdout.strip() == "ok", run.stderr[-2000:]
+    predictor = load_model(eval_checkpoint)
+    grad = torch.from_numpy(image / 255.0).float()[None].requires_grad_(True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        prediction = predictor.predict(grad)
+    assert not prediction.translation.requires_grad
+    torch.testing.assert_close(prepare_images(grad), torch.from_numpy(image / 255.0).float()
+                               [None, None])
+
+
+def test_load_model_names_an_empty_path_and_an_unusable_device(eval_checkpoint):
+    with pytest.raises(ValueError, match=r"^path: empty; give a checkpoint file, or None"):
+        load_model("")
+    with pytest.raises(ValueError, match=r"^device: 'cudax' is not a torch device"):
+        load_model(eval_checkpoint, device="cudax")
+    with pytest.raises(ValueError, match=r"^device: 'meta' tensors hold no values"):
+        load_model(eval_checkpoint, device="meta")
+    if torch.cuda.is_available():
+        with pytest.raises(ValueError, match=r"^device: 'cuda:99' is not available"):
+            load_model(eval_checkpoint, device="cuda:99")
+    else:
+        with pytest.raises(ValueError, match=r"^device: 'cuda' is not available \(") as info:
+            load_model(eval_checkpoint, device="cuda")
+        assert "\n" not in str(info.value) and "device='cpu'" in str(info.value)
+
+
+# --- minors: Assembly -------------------------------------------------------------------
+
+
+@pytest.fixture
+def assembly():
+    return Assembly.from_values(torch.full((1, 2, 3), 0.2), torch.full((1, 2, 2), 0.5))
+
+
+def test_assembly_index_and_item_out_of_range_are_one_line_index_errors(assembly, tmp_path):
+    with pytest.raises(IndexError, match=r"^index: 5 is out of range for an assembly batch "
+                                         r"of 1$"):
+        assembly[5]
+    assert assembly[-1].batch_size == 1 and assembly[np.int64(0)].batch_size == 1
+    assert [a.batch_size for a in Assembly(assembly.params.repeat(3, 1, 1))] == [1, 1, 1]
+    for call in (lambda: assembly.save(tmp_path / "a.json", item=3),
+                 lambda: assembly.export(tmp_path / "a.glb", item=3),
+                 lambda: assembly.to_dict(item=-2)):
+        with pytest.raises(IndexError, match=r"^item: -?\d is out of range for an assembly "
+                                             r"batch of 1$"):
+            call()
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_assembly_files_refuse_unknown_versions_and_suffixes(assembly, tmp_path):
+    path = assembly.save(tmp_path / "a.json")
+    data = json.loads(path.read_text())
+    for version in (99, None, "1", True):
+        data["version"] = version
+        path.write_text(json.dumps(data))
+        with pytest.raises(ValueError, match=rf"^{path}: version: {version!r} is not an "
+                                             "assembly format version"):
+            Assembly.load(path)
+    with pytest.raises(ValueError, match=r"path: .*s\.glb is not a \.json file .*use "
+                                         r"export\(\)"):
+        assembly.save(tmp_path / "s.glb")
+    assert not (tmp_path / "s.glb").exists()
+
+
+def test_assembly_write_errors_name_the_target_not_the_temporary_file(assembly, tmp_path):
+    (tmp_path / "file").write_text("not a folder")
+    for write, name in ((assembly.export, "m.glb"), (assembly.save, "m.json")):
+        target = tmp_path / "file" / name
+        with pytest.raises(OSError) as info:
+            write(target)
+        text = str(info.value)
+        assert text.startswith(f"{target}: cannot write (") and ".tmp" not in text, text
+
+
+# --- minors: files, cameras, conflicting options ------------------------------------------
+
+
+def test_a_folder_is_reported_as_a_folder(eval_checkpoint, tmp_path, capsys):
+    from sq_mitsuba.data.masks import read_gray_image
+    from sq_mitsuba.data.mesh_io import read_obj
+
+    folder = tmp_path / "photos.png"
+    folder.mkdir()
+    with pytest.raises(IsADirectoryError, match=f"^image {folder}: is a folder, not a file$"):
+        read_gray_image(folder)
+    with pytest.raises(IsADirectoryError, match=f"^{folder}: is a folder, not a mesh file$"):
+        read_obj(folder)
+    out = tmp_path / "out"
+    assert main(["predict", str(folder), "--checkpoint", str(eval_checkpoint), "--out",
+                 str(out), "--quiet"]) == 2
+    assert f"image {folder}: is a folder" in error_line(capsys)
+    assert not out.exists()
+
+
+def test_a_multi_frame_gif_is_refused(eval_checkpoint, tmp_path, capsys):
+    frames = [Image.fromarray(np.full((32, 32), level, np.uint8)) for level in (0, 200)]
+    gif = tmp_path / "movie.gif"
+    frames[0].save(gif, save_all=True, append_images=frames[1:])
+    out = tmp_path / "out"
+    assert main(["predict", str(gif), "--checkpoint", str(eval_checkpoint), "--out", str(out),
+                 "--quiet"]) == 2
+    assert f"image {gif}: holds 2 frames" in error_line(capsys)
+    assert not out.exists()
+
+
+SPEED = {"Nu": 256, "Nv": 256, "ppx": 5.86e-6, "ppy": 5.86e-6, "fx": 0.0176, "fy": 0.0176,
+         "cameraMatrix": [[400.0, 0.0, 128.0], [0.0, 400.0, 128.0], [0.0, 0.0, 1.0]],
+         "distCoeffs": [0, 0, 0, 0, 0]}
+
+
+@pytest.mark.parametrize(("change", "message"), [
+    ({"cameraMatrix": [[400.0, 2.0, 128.0], [0.0, 400.0, 128.0], [0.0, 0.0, 1.0]]},
+     r"cameraMatrix\[0\]\[1\] \(the skew\) is 2"),
+    ({"distCoeffs": [-0.22, 0.51, 0.0, 0.0, -0.13]}, r"distCoeffs .* describe a lens "
+                                                     "distortion"),
+    ({"cameraMatrix": [[400.0, 0.0, 128.0], [0.0, 400.0, 128.0], [0.0, 0.0, 2.0]]},
+     r"cameraMatrix's last row is \[0.0, 0.0, 2.0\]; an intrinsic matrix's is \[0, 0, 1\]"),
+    ({"cameraMatrix": [["400", 0.0, 128.0], [0.0, 400.0, 128.0], [0.0, 0.0, 1.0]]},
+     r"cameraMatrix\[0\]\[0\] must be a number, got '400' \(a string"),
+    ({"Nu": 256.5}, r"Nu must be a whole number of pixels, got 256.5"),
+    ({"Nv": "256"}, r"Nv must be a number, got '256' \(a string"),
+])
+def test_predict_refuses_a_camera_it_would_misread(eval_checkpoint, tmp_path, capsys, change,
+                                                   message):
+    camera = tmp_path / "camera.json"
+    camera.write_text(json.dumps({**SPEED, **change}))
+    with pytest.raises(ValueError, match=f"^{camera}: {message}"):
+        Camera.load(camera)
+    image = tmp_path / "image.png"
+    Image.fromarray(np.zeros((256, 256), np.uint8)).save(image)
+    out = tmp_path / "out"
+    assert main(["predict", str(image), "--checkpoint", str(eval_checkpoint), "--camera",
+                 str(camera), "--out", str(out), "--quiet"]) == 2
+    line = error_line(capsys)
+    assert str(camera) in line and "\n" not in line
+    assert not out.exists()
+
+
+def test_a_zero_distortion_and_whole_float_sizes_are_fine():
+    camera = Camera.from_speed_dict({**SPEED, "Nu": 256.0, "distCoeffs": [0.0] * 5})
+    assert camera == Camera(400.0, 400.0, 128.0, 128.0, 256, 256)
+
+
+@pytest.mark.parametrize(("extra", "needle"), [
+    (["--no-refine", "--set", "refine=true"], "--set refine=true: refine is also given by "
+                                              "--refine / --no-refine; give it once"),
+    (["--level", "2", "--set", "level=3"], "--set level=3: level is also given by --level"),
+    (["--set", "search.grid=64", "--set", "search.grid=128"],
+     "--set search.grid=128: search.grid is also given by --set search.grid=64"),
+])
+def test_predict_refuses_an_option_given_twice(eval_checkpoint, tmp_path, capsys, extra,
+                                               needle):
+    image = tmp_path / "image.png"
+    Image.fromarray(np.zeros((64, 64), np.uint8)).save(image)
+    out = tmp_path / "out"
+    assert main(["predict", str(image), "--checkpoint", str(eval_checkpoint), "--out",
+                 str(out), *extra, "--quiet"]) == 2
+    assert needle in error_line(capsys)
+    assert not out.exists()
+
+
+@pytest.mark.parametrize(("quaternion", "translation", "needle"), [
+    ([2.0, 0.0, 0.0, 0.0], [0.0, 0.0, 2.0], "q_vbs2tango_true has norm 2, not 1"),
+    ([1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1e9], "puts the object at z = 1e+09 m"),
+])
+def test_fit_refuses_a_pose_that_is_not_one(tmp_path, capsys, quaternion, translation, needle):
+    mask = np.zeros((48, 48), np.uint8)
+    mask[14:34, 10:38] = 255
+    Image.fromarray(mask).save(tmp_path / "img000000.png")
+    labels = tmp_path / "labels.json"
+    labels.write_text(json.dumps([{"filename": "img000000.jpg", "q_vbs2tango_true": quaternion,
+                                   "r_Vo2To_vbs_true": translation}]))
+    out = tmp_path / "out"
+    assert main(["fit", "--masks", str(tmp_path / "img000000.png"), "--poses", str(labels),
+                 "--out", str(out), "--quiet"]) == 2
+    line = error_line(capsys)
+    assert str(labels) in line and "img000000" in line and needle in line, line
+    assert not out.exists()
+
+
+# --- minors: a reading of other images ----------------------------------------------------
+
+
+def test_read_turns_and_refine_refuse_a_reading_of_other_images(scenes, shipped,
+                                                                eval_checkpoint):
+    """The prediction stores a fingerprint of the network's input (8 x 8 block means), so
+    ``read_turns`` and ``refine`` tell a reading of other images of the same shape and camera;
+    the same pixels as uint8 or float are the same images."""
+    images, other = scenes["spacecraft"][:2], scenes["spacecraft"][2:4]
+    reading = shipped.predict(images)
+    assert reading.fingerprint.shape == (2, 1, 8, 8)
+    shipped.read_turns(images.astype(np.float32) / 255, reading, 2)  # the same images
+    with pytest.raises(ValueError, match=r"^prediction: a reading of other images than these "
+                                         r"2 \(its fingerprint differs\)"):
+        shipped.read_turns(other, reading, 2)
+    tiny = load_model(eval_checkpoint)
+    network = tiny.predict(other)
+    with pytest.raises(ValueError, match=r"^network: a reading of other images than these 2"):
+        tiny.refine(images, network)

@@ -1,0 +1,466 @@
+"""Issue 35, the data side: what a new user and 585 bad inputs found, reproduced with the real
+commands on the tiny session dataset (copied before it is damaged).
+
+- bad data (a ``samples.npz`` lacking an array or holding NaN, a ``camera.json`` of another
+  resolution) is one line naming the file, exit code 2, before any work, nothing left behind;
+- one run at a time per output (train, eval, ``models generate``), with a lock that a killed
+  run does not leave held, and no model replaced by another spacecraft of the same name;
+- reading a dataset (train, eval, ``dataset check``, ``dataset preview``) leaves its folder
+  byte for byte as it was;
+- the minors: ``dataset check`` finds what eval would fail on and says a stopped render has
+  not finished, eval refuses an output inside its dataset and leaves no stale outputs of an
+  earlier run, ``train --max-steps`` always leaves a ``best.pt``, export says which data its
+  baseline describes.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from output_checks import error_line, one_torch_thread  # noqa: F401 (autouse fixture)
+
+from sq_mitsuba.cli import main
+from sq_mitsuba.outputs import LOCK_NAME, OutputBusyError, lock_path, output_lock
+
+ROOT = Path(__file__).resolve().parents[1]
+TINY = ROOT / "train" / "configs" / "tiny.toml"
+#: eval at its cheapest: no figures, two images, few points.
+EVAL_FAST = ["--limit", "2", "--no-figures", "--set", "surface_points=300",
+             "--set", "volume_points=2000", "--baseline-images", "2"]
+
+
+def _copy(train_dataset: Path, tmp_path: Path, name: str = "data") -> Path:
+    data = tmp_path / name
+    shutil.copytree(train_dataset, data)
+    return data
+
+
+def _models(data: Path, split: str) -> list[str]:
+    rows = [line.split(",") for line in (data / "splits.csv").read_text().splitlines() if line]
+    return sorted(model for model, which in rows if which == split)
+
+
+def _rewrite_samples(path: Path, change) -> None:
+    with np.load(path) as samples:
+        arrays = {key: samples[key] for key in samples.files}
+    change(arrays)
+    np.savez_compressed(path, **arrays)
+
+
+def _digest(folder: Path) -> dict[str, str]:
+    """Every file (hidden ones too) and folder under ``folder`` -> sha256 of its bytes."""
+    found = {}
+    for path in sorted(folder.rglob("*")):
+        relative = str(path.relative_to(folder))
+        found[relative] = ("folder" if path.is_dir() else
+                           hashlib.sha256(path.read_bytes()).hexdigest())
+    return found
+
+
+def _train(data: Path, out: Path, *extra: str) -> list[str]:
+    return ["train", "--config", str(TINY), "--data", str(data), "--out", str(out), "--quiet",
+            *extra]
+
+
+def _eval(checkpoint: Path, data: Path, out: Path, *extra: str) -> list[str]:
+    return ["eval", "--checkpoint", str(checkpoint), "--data", str(data), "--out", str(out),
+            *EVAL_FAST, *extra]
+
+
+# ------------------------------------------------------------------- 1, 6: samples.npz
+
+
+def test_eval_and_train_name_a_samples_file_that_lacks_an_array(train_dataset, eval_checkpoint,
+                                                                 tmp_path, capsys):
+    data = _copy(train_dataset, tmp_path)
+    samples = data / _models(data, "train")[0] / "models" / "samples.npz"
+    _rewrite_samples(samples, lambda arrays: arrays.pop("surface_points"))
+    for argv, out in ((_eval(eval_checkpoint, data, tmp_path / "eval", "--quiet"),
+                       tmp_path / "eval"),
+                      (_train(data, tmp_path / "run"), tmp_path / "run")):
+        assert main(argv) == 2, argv[0]
+        line = error_line(capsys)
+        assert str(samples) in line and "'surface_points'" in line, line
+        assert not out.exists(), argv[0]  # refused before any work: nothing written
+
+
+def test_train_refuses_nan_points_before_work_naming_the_file(train_dataset, tmp_path, capsys):
+    data = _copy(train_dataset, tmp_path)
+    samples = data / _models(data, "train")[-1] / "models" / "samples.npz"
+
+    def poison(arrays):
+        arrays["near_points"][7] = np.nan
+
+    _rewrite_samples(samples, poison)
+    out = tmp_path / "run"
+    assert main(_train(data, out, "--max-steps", "2")) == 2
+    line = error_line(capsys)
+    assert str(samples) in line and "near_points" in line and "NaN" in line, line
+    assert not out.exists()  # no run folder, no last.pt
+
+
+# ------------------------------------------------------------------- camera of another size
+
+
+def test_a_camera_json_of_another_resolution_is_refused(train_dataset, eval_checkpoint,
+                                                        tmp_path, capsys):
+    from sq_mitsuba.geometry.camera import Camera
+
+    data = _copy(train_dataset, tmp_path)
+    camera = Camera.load(data / "camera.json")
+    assert (camera.width, camera.height) == (64, 64)
+    (data / "camera.json").write_text(json.dumps(camera.rescaled(256, 256).to_speed_dict()))
+    for argv, out in ((_train(data, tmp_path / "run"), tmp_path / "run"),
+                      (_eval(eval_checkpoint, data, tmp_path / "eval", "--quiet"),
+                       tmp_path / "eval")):
+        assert main(argv) == 2, argv[0]
+        line = error_line(capsys)
+        assert str(data / "camera.json") in line and "256 x 256" in line, line
+        assert "64 x 64" in line, line
+        assert not out.exists()
+
+
+# ------------------------------------------------------------------- 9: datasets are read only
+
+
+def test_reading_a_dataset_leaves_it_byte_identical(train_dataset, eval_checkpoint, tmp_path,
+                                                    capsys):
+    data = _copy(train_dataset, tmp_path)
+    for stray in data.rglob("symmetries.json"):  # as the render wrote it: no records
+        stray.unlink()
+    before = _digest(data)
+    # train (one step: stops before the first validation, so best.pt is the last state)
+    run = tmp_path / "run"
+    assert main(_train(data, run, "--max-steps", "1")) == 0
+    out = capsys.readouterr().out
+    assert _digest(data) == before, "train changed the dataset"
+    assert (run / "best.pt").is_file() and (run / "last.pt").is_file()
+    assert "best.pt holds the last state (step 1)" in out, out
+    assert list((run / "cache" / "symmetries").glob("*.json"))  # the records live here
+    assert not (run / LOCK_NAME).exists()
+    # the README's next step works: eval of RUN/best.pt
+    assert main(_eval(run / "best.pt", data, tmp_path / "eval", "--quiet")) == 0
+    assert _digest(data) == before, "eval changed the dataset"
+    assert main(["dataset", "check", str(data), "--per-model", "1", "--quiet"]) == 0
+    assert _digest(data) == before, "dataset check changed the dataset"
+    assert main(["dataset", "preview", str(data), "--count", "2"]) == 0
+    assert _digest(data) == before, "dataset preview changed the dataset"
+    assert (tmp_path / "data_preview.png").is_file()  # beside the dataset, not in it
+
+
+def test_symmetries_are_cached_outside_the_model_folder(train_dataset, tmp_path):
+    from sq_mitsuba.data.symmetry import model_symmetries
+
+    data = _copy(train_dataset, tmp_path)
+    model = data / _models(data, "train")[0]
+    for stray in model.rglob("symmetries.json"):
+        stray.unlink()
+    before = _digest(model)
+    cache = tmp_path / "cache"
+    first = model_symmetries(model, cache_dir=cache)
+    assert _digest(model) == before
+    records = list(cache.glob(f"{model.name}-*.json"))
+    assert len(records) == 1
+    assert np.array_equal(model_symmetries(model, cache_dir=cache), first)  # read back
+    assert np.array_equal(model_symmetries(model), first)  # no cache: computed, not written
+    assert _digest(model) == before
+    # An edited model is a new record, not the old one read back.
+    _rewrite_samples(model / "models" / "samples.npz",
+                     lambda arrays: arrays.update(surface_points=arrays["surface_points"][::2]))
+    model_symmetries(model, cache_dir=cache)
+    assert len(list(cache.glob(f"{model.name}-*.json"))) == 2
+
+
+# ------------------------------------------------------------------- dataset check
+
+
+def test_check_finds_points_eval_would_fail_on(train_dataset, tmp_path, capsys):
+    data = _copy(train_dataset, tmp_path)
+    no_file, no_key, nan = sorted(_models(data, "train") + _models(data, "test"))
+    (data / no_file / "models" / "samples.npz").unlink()
+    _rewrite_samples(data / no_key / "models" / "samples.npz",
+                     lambda arrays: arrays.pop("uniform_inside"))
+
+    def poison(arrays):
+        arrays["surface_points"][0, 1] = np.inf
+
+    _rewrite_samples(data / nan / "models" / "samples.npz", poison)
+    assert main(["dataset", "check", str(data), "--per-model", "1", "--quiet"]) == 1
+    out = capsys.readouterr().out
+    assert "no problems" not in out
+    assert f"problem: {no_file}/models/samples.npz: missing" in out, out
+    assert f"problem: {no_key}/models/samples.npz: no array 'uniform_inside'" in out, out
+    assert f"problem: {nan}/models/samples.npz: surface_points: 1 of" in out, out
+
+
+def test_check_says_a_stopped_render_has_not_finished(train_dataset, tmp_path, capsys):
+    data = _copy(train_dataset, tmp_path)
+    manifest = json.loads((data / "dataset.json").read_text())
+    manifest["state"] = "rendering"  # what a render killed part-way leaves
+    (data / "dataset.json").write_text(json.dumps(manifest))
+    (data / "splits.csv").unlink()  # the last model to finish writes it
+    assert main(["dataset", "check", str(data), "--quiet"]) == 1
+    out = capsys.readouterr().out
+    assert "rendering has not finished" in out and "splits.csv: missing" in out, out
+
+
+def test_check_of_a_missing_folder_is_bad_input(tmp_path, capsys):
+    assert main(["dataset", "check", str(tmp_path / "nowhere"), "--quiet"]) == 2
+    assert "nowhere: no such folder" in error_line(capsys)
+    (tmp_path / "file").write_text("x")
+    assert main(["dataset", "check", str(tmp_path / "file"), "--quiet"]) == 2
+    assert "not a folder" in error_line(capsys)
+
+
+# ------------------------------------------------------------------- eval's output folder
+
+
+def test_eval_refuses_an_output_inside_its_dataset(train_dataset, eval_checkpoint, tmp_path,
+                                                   capsys):
+    data = _copy(train_dataset, tmp_path)
+    before = _digest(data)
+    for out in (data, data / "eval"):
+        assert main(_eval(eval_checkpoint, data, out, "--quiet")) == 2
+        line = error_line(capsys)
+        assert "inside the dataset folder" in line, line
+    assert _digest(data) == before
+
+
+def test_eval_rerun_leaves_no_stale_outputs_and_ignores_a_killed_runs_lock(
+        train_dataset, eval_checkpoint, tmp_path, capsys):
+    out = tmp_path / "eval"
+    out.mkdir()
+    # What an earlier run with figures, then a kill -9, left: old figures and a lock file
+    # whose process is gone.
+    stale = ["per_model.png", "qualitative.png", "consistency.png", "mesh_ranking.csv"]
+    for name in stale:
+        (out / name).write_bytes(b"from an earlier run")
+    (out / LOCK_NAME).write_text("999999999 sq-mitsuba eval\n")
+    assert main(_eval(eval_checkpoint, train_dataset, out, "--no-baseline")) == 0
+    captured = capsys.readouterr()
+    assert "batch 1/1" in captured.err  # the bar names the batch it works on
+    names = sorted(p.name for p in out.iterdir())
+    assert not set(stale) & set(names), names
+    assert LOCK_NAME not in names  # released, and the stale one gone with it
+    assert names == sorted(["per_image.csv", "per_model.csv", "per_model.md", "summary.csv",
+                            "summary.md", "eval.json"])
+
+
+def test_eval_times_the_network_after_one_untimed_call(train_dataset, eval_checkpoint,
+                                                       tmp_path):
+    """The first call of a network compiles its kernels: it is made once, untimed, on the
+    first batch, before the timed call of that batch."""
+    from sq_mitsuba.evaluation.evaluate import EvalOptions, evaluate
+    from sq_mitsuba.inference.loading import load_model
+
+    predictor = load_model(eval_checkpoint)
+    calls = []
+    real_predict = predictor.predict
+
+    def recording(images, *args, **kwargs):
+        calls.append(images.clone())
+        return real_predict(images, *args, **kwargs)
+
+    predictor.predict = recording
+    options = EvalOptions(limit=2, figures=False, baseline=False, fast=False,
+                          surface_points=300, volume_points=2000)
+    result = evaluate(predictor, train_dataset, tmp_path / "eval", options, progress=False)
+    assert result.images == 2
+    assert len(calls) == 2 and calls[0].equal(calls[1])
+
+
+# ------------------------------------------------------------------- 3, 5: one run per output
+
+
+HOLDER = """\
+import sys, time
+from sq_mitsuba.outputs import output_lock
+with output_lock(sys.argv[1], command="the test's holder"):
+    print("locked", flush=True)
+    time.sleep(300)
+"""
+
+
+def _hold(out: Path) -> subprocess.Popen:
+    """Another process holding the lock on ``out`` (until killed)."""
+    process = subprocess.Popen([sys.executable, "-c", HOLDER, str(out)], cwd=ROOT,
+                               stdout=subprocess.PIPE, text=True)
+    assert process.stdout.readline().strip() == "locked"
+    return process
+
+
+def _hold_file(out: Path) -> subprocess.Popen:
+    """Another process holding the lock on the output file ``out``."""
+    holder = HOLDER.replace("output_lock(sys.argv[1],", "output_lock(sys.argv[1], file=True,")
+    process = subprocess.Popen([sys.executable, "-c", holder, str(out)], cwd=ROOT,
+                               stdout=subprocess.PIPE, text=True)
+    assert process.stdout.readline().strip() == "locked"
+    return process
+
+
+def _kill(process: subprocess.Popen) -> None:
+    if process.poll() is None:
+        os.kill(process.pid, signal.SIGKILL)
+    process.wait(timeout=30)
+    process.stdout.close()
+
+
+def test_a_run_into_a_locked_output_refuses_and_a_killed_holder_blocks_nothing(
+        train_dataset, eval_checkpoint, tmp_path, capsys):
+    out = tmp_path / "out"
+    image = next(train_dataset.glob("*/images/000000.png"))
+    holder = _hold(out)
+    try:
+        assert _digest(out) == {LOCK_NAME: _digest(out)[LOCK_NAME]}
+        commands = {
+            "train": _train(train_dataset, out, "--max-steps", "1"),
+            "eval": _eval(eval_checkpoint, train_dataset, out, "--quiet"),
+            "models": ["models", "generate", "--count", "1", "--points", "1000", "--out",
+                       str(out)],
+            # predict takes the lock through the CLI's all-or-nothing output
+            "predict": ["predict", str(image), "--checkpoint", str(eval_checkpoint), "--out",
+                        str(out), "--quiet"],
+        }
+        for name, argv in commands.items():
+            assert main(argv) == 2, name
+            line = error_line(capsys)
+            assert f"{out}: another run is writing into this folder" in line, line
+            assert f"process {holder.pid}, the test's holder" in line, line
+            assert sorted(p.name for p in out.iterdir()) == [LOCK_NAME], name  # untouched
+        with pytest.raises(OutputBusyError, match="another run"), output_lock(out):
+            pass
+        # An output file (export): its lock lies beside it.
+        target = tmp_path / "model.pt"
+        file_holder = _hold_file(target)
+        try:
+            assert main(["export", "--checkpoint", str(eval_checkpoint), "--out",
+                         str(target)]) == 2
+            assert f"{target}: another run is writing into this file" in error_line(capsys)
+            assert not target.exists()
+        finally:
+            _kill(file_holder)
+    finally:
+        _kill(holder)  # kill -9: no chance to clean up
+    assert (out / LOCK_NAME).exists()  # its lock file stays; the lock itself died with it
+    with output_lock(out) as folder:
+        assert folder == out
+        assert (out / LOCK_NAME).read_text().startswith(f"{os.getpid()} ")
+    assert not (out / LOCK_NAME).exists()
+
+
+def test_output_lock_is_released_on_errors_and_removes_what_it_created(tmp_path):
+    new = tmp_path / "a" / "b"
+    with pytest.raises(RuntimeError), output_lock(new):
+        assert (new / LOCK_NAME).is_file()
+        with output_lock(new):  # re-entrant in one process
+            pass
+        raise RuntimeError
+    assert not (tmp_path / "a").exists()  # made for the lock, left empty: removed
+    target = tmp_path / "models" / "model.pt"
+    with output_lock(target, file=True):
+        assert lock_path(target, file=True).is_file()
+        target.write_text("written")
+    assert sorted(p.name for p in target.parent.iterdir()) == ["model.pt"]
+
+
+def test_two_generate_runs_at_once_into_one_library_do_not_mix(tmp_path):
+    from sq_mitsuba.data.spacecraft import catalogue
+
+    # Seeds 0 and 3 both start with a model named sc000_twin_wing: other spacecraft.
+    first, other = catalogue(1, 0)[0], catalogue(1, 3)[0]
+    assert first.name == other.name and first.seed != other.seed
+    library = tmp_path / "library"
+    runs = [subprocess.Popen([sys.executable, "-m", "sq_mitsuba", "models", "generate",
+                              "--count", "1", "--points", "1000", "--seed", str(seed),
+                              "--out", str(library)], cwd=ROOT, stdout=subprocess.PIPE,
+                             stderr=subprocess.PIPE, text=True)
+            for seed in (0, 3)]
+    results = [(run.wait(timeout=300), *run.communicate()) for run in runs]
+    codes = sorted(code for code, _, _ in results)
+    assert codes == [0, 2], results
+    winner = 0 if results[0][0] == 0 else 3
+    loser_err = next(err for code, _, err in results if code == 2)
+    message = [line for line in loser_err.splitlines() if "error:" in line]
+    assert len(message) == 1, loser_err
+    # Refused by the lock (started together) or, had it started after the other ended, by
+    # the name check: never a mix.
+    assert "another run is writing" in message[0] or "another spacecraft" in message[0]
+    assert sorted(p.name for p in library.iterdir()) == [first.name, "splits.csv"]
+    card = json.loads((library / first.name / "models" / "model_card.json").read_text())
+    assert card["catalogue_seed"] == winner
+    split = (first if winner == 0 else other).split
+    assert (library / "splits.csv").read_text() == f"{first.name},{split}\n"
+
+
+def test_generate_never_replaces_a_model_by_another_spacecraft_of_its_name(tmp_path, capsys):
+    library = tmp_path / "library"
+    common = ["models", "generate", "--count", "1", "--points", "1000", "--out", str(library)]
+    assert main([*common, "--seed", "0"]) == 0
+    capsys.readouterr()
+    before = _digest(library)
+    assert main([*common, "--seed", "3"]) == 2
+    line = error_line(capsys)
+    name = next(p.name for p in library.iterdir() if p.is_dir())
+    assert f"{library / name}: holds another spacecraft of this name" in line, line
+    assert "catalogue seed 0" in line and "catalogue seed 3" in line, line
+    assert _digest(library) == before  # nothing generated, nothing replaced
+    assert main([*common, "--seed", "0"]) == 0  # the same spacecraft again is fine
+    card = json.loads((library / name / "models" / "model_card.json").read_text())
+    assert card["catalogue_seed"] == 0
+
+
+# ------------------------------------------------------------------- export's baseline
+
+
+def test_export_says_which_dataset_its_baseline_describes(train_dataset, eval_checkpoint,
+                                                          tmp_path, capsys):
+    from sq_mitsuba.model.checkpoint import read_checkpoint, write_checkpoint
+    from sq_mitsuba.training.cache import dataset_fingerprint
+
+    payload = read_checkpoint(eval_checkpoint)
+    payload["dataset"] = {"root": str(train_dataset),
+                          "fingerprint": dataset_fingerprint(train_dataset)}
+    trained = tmp_path / "trained.pt"
+    write_checkpoint(trained, payload)
+    other = _copy(train_dataset, tmp_path, "other")
+    labels = other / _models(other, "train")[0] / "labels.json"
+    entries = json.loads(labels.read_text())
+    entries[0]["exposure"] = 0.5  # another dataset: another fingerprint
+    labels.write_text(json.dumps(entries))
+    common = ["export", "--checkpoint", str(trained), "--baseline-images", "2"]
+    assert main([*common, "--data", str(train_dataset), "--out", str(tmp_path / "a.pt")]) == 0
+    out = capsys.readouterr().out
+    assert "not the dataset" not in out and "baseline: the mean" in out, out
+    assert main([*common, "--data", str(other), "--out", str(tmp_path / "b.pt")]) == 0
+    out = capsys.readouterr().out
+    assert f"{other} is not the dataset the checkpoint was trained on" in out, out
+    # An exported file's baseline is kept when exported again, and never silently replaced.
+    again = ["export", "--checkpoint", str(tmp_path / "a.pt")]
+    assert main([*again, "--data", str(other), "--out", str(tmp_path / "c.pt")]) == 2
+    assert "stores a baseline already" in error_line(capsys)
+    assert not (tmp_path / "c.pt").exists()
+    assert main([*again, "--out", str(tmp_path / "c.pt")]) == 0
+    assert read_checkpoint(tmp_path / "c.pt")["baseline"] is not None
+
+
+def test_a_refused_lock_does_not_wait(tmp_path):
+    """The lock never waits: a refused run returns at once."""
+    out = tmp_path / "out"
+    holder = _hold(out)
+    try:
+        tick = time.perf_counter()
+        with pytest.raises(OutputBusyError), output_lock(out):
+            pass
+        assert time.perf_counter() - tick < 5
+    finally:
+        _kill(holder)

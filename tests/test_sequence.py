@@ -1,0 +1,253 @@
+"""A pass of images: the half turns resolved across readings, one assembly and N poses fitted
+at once to N masks, and one-line errors for bad sequences.
+
+References: a known assembly rendered by Mitsuba from N known poses (the masks to fit), and
+readings made by turning a known assembly by known half turns."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from output_checks import one_torch_thread  # noqa: F401 (autouse fixture)
+
+from sq_mitsuba.geometry.assembly import Assembly
+from sq_mitsuba.geometry.camera import Camera
+from sq_mitsuba.geometry.metrics import mask_iou, rotation_error_deg
+from sq_mitsuba.geometry.rotation import matrix_to_rotation_6d, random_rotations
+from sq_mitsuba.geometry.so3_grid import half_turns
+from sq_mitsuba.inference.loading import load_model
+from sq_mitsuba.inference.sequence import SequenceOptions, align_half_turns, fit_sequence
+from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer, render_assembly
+
+CAMERA = Camera.default(64)
+
+
+def _asymmetric_assembly() -> Assembly:
+    """A bus, an off-centre wing and a small box on one side: no half turn maps it to itself."""
+    def tensor(rows: list) -> torch.Tensor:
+        return torch.tensor([rows], dtype=torch.float64)
+
+    return Assembly.from_values(
+        size=tensor([[0.20, 0.14, 0.12], [0.30, 0.10, 0.02], [0.06, 0.05, 0.05]]),
+        shape=tensor([[0.2, 0.2], [0.1, 0.1], [0.3, 0.3]]),
+        translation=tensor([[0.0, 0.0, 0.0], [0.22, 0.06, 0.0], [-0.10, -0.10, 0.14]]),
+        taper=tensor([[0.0, 0.0], [0.0, 0.0], [0.2, 0.0]]))
+
+
+def _turned(assembly: Assembly, turn: torch.Tensor) -> Assembly:
+    """The assembly turned by a rotation of its body frame: x -> turn x."""
+    params = assembly.params.clone().double()
+    turn = turn.double()
+    params[..., 5:8] = params[..., 5:8] @ turn.T
+    params[..., 8:14] = matrix_to_rotation_6d(turn @ assembly.rotation.double())
+    return Assembly(params)
+
+
+def test_half_turns_are_resolved_across_readings():
+    """Reading j is the body turned by S_j; carried into reading 1's frame it needs S_1 S_j."""
+    body = _asymmetric_assembly()
+    turns = half_turns()
+    chosen = [2, 0, 3, 1, 2]
+    readings = Assembly(torch.cat([_turned(body, turns[k]).params for k in chosen]))
+    found = align_half_turns(readings, reference=1)
+    for j, k in enumerate(chosen):
+        torch.testing.assert_close(found[j], turns[chosen[1]] @ turns[k])
+
+
+def test_half_turns_in_order_follow_the_motion_where_the_shape_cannot_tell():
+    """A box symmetric under every half turn: its readings look alike whatever S_j, but the
+    rotations of a slow tumble, read with random half turns, are smoothest when undone."""
+    from sq_mitsuba.inference.sequence import align_half_turns_in_order
+
+    box = Assembly.from_values(size=torch.tensor([[[0.3, 0.2, 0.1]]], dtype=torch.float64),
+                               shape=torch.tensor([[[0.1, 0.1]]], dtype=torch.float64))
+    turns = half_turns()
+    start = random_rotations(1, torch.Generator().manual_seed(5), torch.float64)[0]
+    step = _perturbed(torch.eye(3, dtype=torch.float64)[None], 9.0, seed=4)[0]
+    truth = torch.stack([torch.linalg.matrix_power(step, k) @ start for k in range(6)])
+    chosen = [1, 3, 0, 2, 2, 1]
+    readings = Assembly(box.params.expand(6, -1, -1))
+    found = align_half_turns_in_order(readings, truth @ turns[chosen], reference=2)
+    for j, k in enumerate(chosen):
+        torch.testing.assert_close(found[j], turns[chosen[2]] @ turns[k])
+
+
+def test_the_canonical_frame_sorts_the_extents_and_keeps_the_posed_shape():
+    from sq_mitsuba.inference.sequence import canonical_frame, reframed
+
+    body = _asymmetric_assembly()
+    turn = random_rotations(1, torch.Generator().manual_seed(9), torch.float64)[0]
+    read = _turned(body, turn)  # a reading with its axes anywhere
+    frame, centre = canonical_frame(read)
+    torch.testing.assert_close(frame @ frame.T, torch.eye(3, dtype=torch.float64))
+    assert float(torch.linalg.det(frame)) > 0
+    canonical = reframed(read, frame, centre)
+    points = canonical.surface_points(3).reshape(-1, 3)
+    extents = points.amax(0) - points.amin(0)
+    assert extents[0] >= extents[1] >= extents[2]
+    # Posed with R P^T and t + R c, the reframed assembly is the reading, point for point.
+    rotation = random_rotations(1, torch.Generator().manual_seed(2), torch.float64)[0]
+    translation = torch.tensor([0.1, 0.0, 2.0], dtype=torch.float64)
+    before = read.surface_points(3).reshape(-1, 3) @ rotation.T + translation
+    after = points @ (rotation @ frame.T).T + translation + rotation @ centre
+    torch.testing.assert_close(after, before, atol=1e-9, rtol=0)
+
+
+def _masks(assembly: Assembly, rotations: torch.Tensor, translations: torch.Tensor
+           ) -> torch.Tensor:
+    renderer = SilhouetteRenderer(CAMERA, spp=16)
+    count = len(rotations)
+    with torch.no_grad():
+        coverage = render_assembly(Assembly(assembly.params.expand(count, -1, -1)), rotations,
+                                   translations, renderer, 3)
+    return coverage > 0.5
+
+
+@pytest.fixture(scope="module")
+def known_pass():
+    """A known assembly seen from 6 random poses at 1.8 m, and its masks."""
+    generator = torch.Generator().manual_seed(3)
+    body = _asymmetric_assembly()
+    rotations = random_rotations(6, generator, torch.float64)
+    translations = torch.tensor([[0.02, -0.01, 1.8]], dtype=torch.float64).expand(6, 3).clone()
+    return body, rotations, translations, _masks(body, rotations, translations)
+
+
+def _perturbed(rotations: torch.Tensor, degrees: float, seed: int) -> torch.Tensor:
+    generator = torch.Generator().manual_seed(seed)
+    axes = torch.randn(len(rotations), 3, generator=generator, dtype=torch.float64)
+    axes = axes / axes.norm(dim=1, keepdim=True) * math.radians(degrees)
+    skew = torch.zeros(len(rotations), 3, 3, dtype=torch.float64)
+    skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -axes[:, 2], axes[:, 1], -axes[:, 0]
+    return torch.linalg.matrix_exp(skew - skew.transpose(1, 2)) @ rotations
+
+
+def _posed(assembly: Assembly, rotations: torch.Tensor, translations: torch.Tensor
+           ) -> torch.Tensor:
+    """The assembly's surface samples (V, P, 3) in the camera frame of each of V poses."""
+    points = assembly.surface_points(2).double().reshape(1, -1, 3)
+    return points @ rotations.transpose(1, 2) + translations[:, None]
+
+
+def _chamfer(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    distances = torch.cdist(a, b)
+    return 0.5 * (distances.amin(-1).mean() + distances.amin(-2).mean())
+
+
+def test_a_known_assembly_is_recovered_from_its_masks(known_pass):
+    body, rotations, translations, masks = known_pass
+    start_params = body.params.clone().double()
+    start_params[..., 0:3] *= 1.25  # every size a quarter too large
+    start = Assembly(start_params)
+    start_rotations = _perturbed(rotations, 8.0, seed=1)
+    start_translations = translations + torch.tensor([0.03, -0.02, 0.0], dtype=torch.float64)
+    options = SequenceOptions(steps=40, patience=40, spp=8)
+    assembly, rotation, translation, ious, steps, _ = fit_sequence(
+        start, start_rotations, start_translations, masks, CAMERA, options)
+    assert steps == 40 and assembly.batch_size == 1
+    before = _masks(start, start_rotations, start_translations)
+    iou_before = mask_iou(before.double(), masks.double())
+    assert float(ious.mean()) > 0.85 > float(iou_before.mean())
+    # The rotations moved towards the truth, and the posed shape too: the body origin is not
+    # seen (a shift of every primitive and the opposite shift of the pose give the same
+    # images), so the shape is compared in the camera frame, where it is seen.
+    assert float(rotation_error_deg(rotation, rotations).median()) < 6.0
+    truth = _posed(body, rotations, translations)
+    after = _chamfer(_posed(assembly, rotation, translation), truth)
+    before = _chamfer(_posed(start, start_rotations, start_translations), truth)
+    assert float(after) < 0.7 * float(before)
+
+
+def test_relative_rotations_tie_every_frame_to_one_rotation(known_pass):
+    body, rotations, translations, masks = known_pass
+    relative = rotations @ rotations[0].T  # Q_j = R_j R_0^T
+    start_rotations = relative @ _perturbed(rotations[:1], 10.0, seed=2)
+    _, rotation, _, ious, _, _ = fit_sequence(
+        body, start_rotations, translations, masks, CAMERA,
+        SequenceOptions(steps=25, patience=25, shape="pose", spp=8), relative)
+    torch.testing.assert_close(rotation @ rotation[0].T, relative, atol=1e-9, rtol=0)
+    assert float(rotation_error_deg(rotation[:1], rotations[:1])[0]) < 4.0
+    assert float(ious.mean()) > 0.85
+
+
+def _frames(train_dataset, count: int) -> torch.Tensor:
+    from sq_mitsuba.data.spe3r import Spe3rDataset
+
+    dataset = Spe3rDataset(train_dataset, "test", image_size=64, num_surface=10,
+                           num_occupancy=2)
+    return torch.stack([dataset[i]["image"][0] for i in range(count)])
+
+
+def test_predict_sequence_returns_one_assembly_and_every_pose(eval_checkpoint, train_dataset):
+    predictor = load_model(eval_checkpoint)
+    images = _frames(train_dataset, 3)
+    result = predictor.predict_sequence(images, options=SequenceOptions(steps=4, spp=2),
+                                        search=None)
+    assert result.assembly.batch_size == 1
+    assert result.rotation.shape == (3, 3, 3) and result.translation.shape == (3, 3)
+    assert result.half_turns.shape == (3, 3, 3)
+    torch.testing.assert_close(result.half_turns[result.reference],
+                               torch.eye(3, dtype=torch.float64))
+    assert result.frames.rotation.shape == (3, 3, 3) and result.iou.shape == (3,)
+    # The fit keeps the best step, which is no worse than the start (the frames' own fits
+    # turned into the reference's body frame, with the reference's shape).
+    assert bool(torch.isfinite(result.iou).all()) and result.seconds > 0
+
+
+@pytest.mark.parametrize("case, message", [
+    ("one", "images: a sequence needs at least 2 frames"),
+    ("nan", "images: contains NaN"),
+    ("list", "images: expected a torch.Tensor or numpy array"),
+    ("dark", "images: frame 1 has no target in its mask"),
+    ("relative", r"relative_rotations: expected \(3, 3, 3\)"),
+    ("not_rotations", "relative_rotations: expected rotation matrices"),
+])
+def test_bad_sequences_are_one_line_errors(eval_checkpoint, train_dataset, case, message):
+    predictor = load_model(eval_checkpoint)
+    images = _frames(train_dataset, 3)
+    kwargs = {}
+    if case == "one":
+        images = images[:1]
+    elif case == "nan":
+        images[1, 3, 3] = float("nan")
+    elif case == "list":
+        images = [images[0].numpy(), images[1, :32].numpy()]
+    elif case == "dark":
+        images[1] = 0.0
+    elif case == "relative":
+        kwargs["relative_rotations"] = torch.eye(3).expand(2, 3, 3)
+    elif case == "not_rotations":
+        kwargs["relative_rotations"] = 2 * torch.eye(3).expand(3, 3, 3)
+    with pytest.raises(ValueError, match=message) as info:
+        predictor.predict_sequence(images, **kwargs)
+    assert "\n" not in str(info.value)
+
+
+def test_predict_sequence_cli_writes_one_assembly_and_a_pose_per_frame(eval_checkpoint,
+                                                                      train_dataset, tmp_path):
+    import json
+
+    from sq_mitsuba.cli import main
+
+    model = next(line.split(",")[0] for line in
+                 (train_dataset / "splits.csv").read_text().splitlines()
+                 if line.endswith(",test"))
+    images = sorted((train_dataset / model / "images").glob("*.png"))[:3]
+    out = tmp_path / "pass"
+    assert main(["predict", *map(str, images), "--sequence", "--ordered", "--checkpoint",
+                 str(eval_checkpoint), "--out", str(out), "--quiet"]) == 0
+    shared = Assembly.load(out / "sequence.assembly.json")
+    assert shared.batch_size == 1 and (out / "sequence.glb").stat().st_size > 0
+    assert (out / "sequence.png").stat().st_size > 0
+    for k, image in enumerate(images):
+        pose = json.loads((out / f"{image.stem}.pose.json").read_text())
+        assert pose["sequence"]["frame"] == k and pose["sequence"]["frames"] == 3
+        assert len(pose["q_vbs2tango"]) == 4 and pose["r_Vo2To_vbs"][2] > 0
+        assert (out / f"{image.stem}.overlay.png").stat().st_size > 0
+    assert main(["predict", str(images[0]), "--ordered", "--checkpoint", str(eval_checkpoint),
+                 "--out", str(tmp_path / "x")]) == 2
+    assert main(["predict", str(images[0]), "--sequence", "--checkpoint",
+                 str(eval_checkpoint), "--out", str(tmp_path / "y")]) == 2
+    assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
