@@ -249,3 +249,36 @@ def test_without_checkpoint_and_no_shipped_model_is_one_clear_line(train_dataset
     line = error_line(capsys)
     assert "no trained model is shipped" in line and "sq-mitsuba train" in line
     assert not (tmp_path / "out").exists()
+
+
+def test_a_dataset_of_test_models_only_is_scored_against_the_stored_baseline(
+        eval_checkpoint, train_dataset, tmp_path):
+    """Held-out families and real spacecraft come without a train split: the trivial baseline
+    is then the checkpoint's own (the mean over its training images), not an error."""
+    exported = tmp_path / "exported.pt"
+    assert main(["export", "--checkpoint", str(eval_checkpoint), "--data", str(train_dataset),
+                 "--out", str(exported), "--no-half"]) == 0
+    stored = load_model(exported).baseline
+    assert stored is not None
+    only_test = tmp_path / "only_test"
+    only_test.mkdir()
+    shutil.copy(train_dataset / "camera.json", only_test)
+    test_line = next(line for line in (train_dataset / "splits.csv").read_text().splitlines()
+                     if line.endswith(",test"))
+    (only_test / "splits.csv").write_text(test_line + "\n")
+    (only_test / test_line.split(",")[0]).symlink_to(train_dataset / test_line.split(",")[0])
+    out = tmp_path / "out"
+    assert main(["eval", "--checkpoint", str(exported), "--data", str(only_test), "--split",
+                 "test", "--out", str(out), "--no-figures", "--set", "surface_points=500",
+                 "--set", "volume_points=3000", "--limit", "2", "--quiet"]) == 0
+    rows = [r for r in read_rows(out / "per_image.csv") if r["method"] == "baseline"]
+    assert len(rows) == 2
+    # The stored translation is the baseline's pose: its error against each label.
+    truth = {(int(label["filename"][:6]), tuple(label["r_Vo2To_vbs_true"]))
+             for label in json.loads((only_test / test_line.split(",")[0] / "labels.json")
+                                     .read_text())}
+    for row in rows:
+        true_t = next(t for index, t in truth if index == int(row["index"]))
+        error = float(torch.linalg.vector_norm(stored[2][0] - torch.tensor(true_t,
+                                                                           dtype=torch.float64)))
+        assert float(row["translation_error_m"]) == pytest.approx(error, rel=1e-6)

@@ -92,6 +92,22 @@ def test_library_checks_the_device_before_any_suite(no_suite_runs):
 # --- Ctrl-C inside Dr.Jit and Mitsuba (item 7) ----------------------------------------------
 
 
+@pytest.fixture
+def ctrl_c_raises():
+    """Python's own Ctrl-C handler for the test. A shell ignores SIGINT in what it starts in
+    the background (``make test &``), and the ignored signal is inherited: these tests need
+    Ctrl-C to act, as it does in a terminal."""
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, previous)
+
+
+def _sigint_acts() -> None:
+    """In a child process, before it runs: SIGINT to its default (the shell that started the
+    tests may have ignored it, and an ignored signal survives exec)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _interrupt_while_tracing(mi):
     """A real ``dr.switch`` whose traced callable gets Ctrl-C (the process sends itself
     SIGINT), as when the user presses it while Mitsuba traces a render; returns the result."""
@@ -107,7 +123,7 @@ def _interrupt_while_tracing(mi):
                      mi.Float([1.0, 2.0]))
 
 
-def test_ctrl_c_inside_drjit_comes_out_disguised():
+def test_ctrl_c_inside_drjit_comes_out_disguised(ctrl_c_raises):
     """What the CLI has to recognise: Dr.Jit turns a KeyboardInterrupt raised in Python code
     it runs into a RuntimeError caused by it."""
     from sq_mitsuba.render.backend import mitsuba
@@ -117,7 +133,7 @@ def test_ctrl_c_inside_drjit_comes_out_disguised():
     assert isinstance(caught.value.__cause__, KeyboardInterrupt)
 
 
-def test_interrupts_deferred_holds_ctrl_c_until_the_drjit_call_is_done():
+def test_interrupts_deferred_holds_ctrl_c_until_the_drjit_call_is_done(ctrl_c_raises):
     from sq_mitsuba.render.backend import interrupts_deferred, mitsuba
 
     mi = mitsuba()
@@ -132,7 +148,7 @@ def test_interrupts_deferred_holds_ctrl_c_until_the_drjit_call_is_done():
     assert signal.getsignal(signal.SIGINT) is handler
 
 
-def test_cli_maps_a_disguised_ctrl_c_to_exit_130(monkeypatch, capsys):
+def test_cli_maps_a_disguised_ctrl_c_to_exit_130(monkeypatch, capsys, ctrl_c_raises):
     from sq_mitsuba.render.backend import mitsuba
 
     def run(args):
@@ -168,7 +184,7 @@ def test_ctrl_c_during_mitsuba_import_and_renders_is_exit_130_and_one_line():
                "--warmup", "0"]
     for delay in (0.0, 0.1, 0.25, 0.6, 1.5):
         process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                   text=True, env=env)
+                                   text=True, env=env, preexec_fn=_sigint_acts)
         try:
             start = time.monotonic()
             while not _loaded(process.pid, "libdrjit-core") and process.poll() is None:

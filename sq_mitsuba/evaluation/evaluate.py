@@ -108,7 +108,8 @@ class EvalOptions:
     """Refinement after the search (by default the pose only, its rotation held near the
     search's: shape changes degraded Chamfer-L1; see inference.search.SEARCH_REFINEMENT)."""
     baseline: bool = True
-    "Also score the trivial baseline (needs the dataset's train split)."
+    """Also score the trivial baseline: from the dataset's train split, or, for a dataset of test
+    models only, the one the checkpoint stores."""
     baseline_images: int = in_range(1, 1_000_000, default=256)
     "Training images (spread evenly) whose mean prediction and mean pose make the baseline."
     level: int = in_range(0, 5, default=3)
@@ -219,18 +220,26 @@ def _evaluate(predictor: Any, data_root: Path, out_dir: Path, options: EvalOptio
 
     image_size = predictor.image_size
     dataset = open_split(data_root, options.split, image_size, options.surface_points)
+    stored_baseline = None
     if options.baseline:  # its images are read too: refused now, not after the split's work
         train_split = Spe3rDataset(data_root, "train", image_size=image_size, num_surface=1,
                                    num_occupancy=2)
         if len(train_split):
             train_split.check()
+        else:
+            # A dataset of test models only (held-out families, real spacecraft): the baseline
+            # is the one the checkpoint stores, the mean over the model's own training images.
+            stored_baseline = getattr(predictor, "baseline", None)
     camera = dataset.camera.rescaled(image_size, image_size)
     # Every image of a dataset shows its target: the evaluation fits each one, whatever its
     # target-present score (min_target 0), so that the methods are scored on the same images.
     predictor = with_fast_path(predictor, options.fast, min_target=0.0)
     started = time.perf_counter()
     baseline = None
-    if options.baseline:
+    if stored_baseline is not None:
+        base_raw, base_rotation, base_translation = stored_baseline
+        baseline = (Assembly.from_raw(base_raw), base_rotation, base_translation)
+    elif options.baseline:
         base_raw, base_rotation, base_translation = baseline_prediction(
             predictor, data_root, options.baseline_images, options.batch_size)
         baseline = (Assembly.from_raw(base_raw), base_rotation, base_translation)
