@@ -78,6 +78,7 @@ def test_predict_refine_is_what_the_cli_writes(eval_checkpoint, train_dataset, t
     assert pose["mask_source"] == fitted.fit.mask_source == "segmentation"
 
 
+@pytest.mark.slow  # end to end: `make test` runs it, `make test-fast` not
 def test_predict_refine_is_what_eval_refine_scores(eval_checkpoint, train_dataset, tmp_path,
                                                    one_drjit_thread):
     out = tmp_path / "eval"

@@ -133,6 +133,7 @@ def test_a_camera_json_of_another_resolution_is_refused(train_dataset, eval_chec
 # ------------------------------------------------------------------- 9: datasets are read only
 
 
+@pytest.mark.slow  # end to end: `make test` runs it, `make test-fast` not
 def test_reading_a_dataset_leaves_it_byte_identical(train_dataset, eval_checkpoint, tmp_path,
                                                     capsys):
     data = _copy(train_dataset, tmp_path)
@@ -373,6 +374,7 @@ def test_output_lock_is_released_on_errors_and_removes_what_it_created(tmp_path)
     assert sorted(p.name for p in target.parent.iterdir()) == ["model.pt"]
 
 
+@pytest.mark.slow  # end to end: `make test` runs it, `make test-fast` not
 def test_two_generate_runs_at_once_into_one_library_do_not_mix(tmp_path):
     from sq_mitsuba.data.spacecraft import catalogue
 

@@ -225,6 +225,7 @@ def test_bad_sequences_are_one_line_errors(eval_checkpoint, train_dataset, case,
     assert "\n" not in str(info.value)
 
 
+@pytest.mark.slow  # end to end: `make test` runs it, `make test-fast` not
 def test_predict_sequence_cli_writes_one_assembly_and_a_pose_per_frame(eval_checkpoint,
                                                                       train_dataset, tmp_path):
     import json
