@@ -475,3 +475,34 @@ def test_scene_configuration_overrides_and_errors(tmp_path, capsys):
     assert main(["dataset", "render", "--models", str(tmp_path), "--out", str(tmp_path / "o"),
                  "--scene", str(path)]) == 2
     assert "not valid JSON" in capsys.readouterr().err
+
+
+def test_passes_are_frames_of_one_tumble_in_order(model_library, dataset, tmp_path):
+    """``--pass-frames 3``: each model's images are one pass; its first frame is the frame an
+    independent dataset of the same seed draws for image 0, and between consecutive frames the
+    target turns by one rotation (a constant tumble) while the camera closes in."""
+    out = tmp_path / "passes"
+    assert main(["dataset", "render", "--models", str(model_library), "--out", str(out),
+                 "--images-per-model", str(IMAGES), "--seed", "7", "--resolution",
+                 str(RESOLUTION), "--spp", str(SPP), "--pass-frames", str(IMAGES),
+                 "--quiet"]) == 0
+    for model_dir in sorted(p for p in out.iterdir() if (p / "labels.json").is_file()):
+        labels = json.loads((model_dir / "labels.json").read_text())
+        single = json.loads((dataset / model_dir.name / "labels.json").read_text())
+        assert [(e["pass"], e["frame_in_pass"]) for e in labels] == [(0, k) for k in
+                                                                    range(IMAGES)]
+        assert labels[0]["q_vbs2tango_true"] == single[0]["q_vbs2tango_true"]
+        rotations = quaternion_to_matrix(torch.tensor([e["q_vbs2tango_true"] for e in labels],
+                                                      dtype=torch.float64))
+        steps = [rotations[k + 1] @ rotations[k].T for k in range(IMAGES - 1)]
+        torch.testing.assert_close(steps[0], steps[1], atol=1e-9, rtol=0)
+        angle = float(rotation_angle(rotations[1:2], rotations[0:1])[0])
+        assert math.radians(3.0) - 1e-9 <= angle <= math.radians(15.0) + 1e-9
+        # Closing in to the start frame's distance, reached at the last frame.
+        depths = [e["r_Vo2To_vbs_true"][2] for e in labels]
+        assert depths == sorted(depths, reverse=True)
+        assert depths[-1] == pytest.approx(single[0]["r_Vo2To_vbs_true"][2], rel=1e-9)
+    # The pass length is part of the dataset's identity: resuming with another is refused.
+    assert main(["dataset", "render", "--models", str(model_library), "--out", str(out),
+                 "--images-per-model", str(IMAGES), "--seed", "7", "--resolution",
+                 str(RESOLUTION), "--spp", str(SPP), "--quiet"]) == 2

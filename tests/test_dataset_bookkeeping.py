@@ -92,7 +92,7 @@ def test_manifest_records_how_the_dataset_was_made(reference, library):
     assert manifest["settings"] == {
         "seed": 11, "resolution": 32, "spp": 1, "exr": True,
         "camera": json.loads(json.dumps(camera.to_speed_dict())),
-        "scene_hash": config_hash(SCENE)}
+        "scene_hash": config_hash(SCENE), "pass_frames": 1}
     assert manifest["tool"]["name"] == "sq-mitsuba" and manifest["tool"]["version"]
     assert manifest["images_per_model"] == IMAGES and manifest["state"] == "complete"
     assert SceneConfig.load() != SCENE and manifest["scene"]["mask"]["spp"] == 4
@@ -107,6 +107,19 @@ def test_manifest_records_how_the_dataset_was_made(reference, library):
     assert not (reference / ".failures").exists()
 
 
+def test_a_manifest_from_before_passes_resumes_as_independent_images(reference, library,
+                                                                     tmp_path):
+    """Datasets rendered before ``pass_frames`` existed recorded no such setting: they were
+    independent images, and resuming them with the default renders nothing new."""
+    out = tmp_path / "data"
+    shutil.copytree(reference, out)
+    manifest = json.loads((out / "dataset.json").read_text())
+    del manifest["settings"]["pass_frames"]
+    (out / "dataset.json").write_text(json.dumps(manifest))
+    assert render_cli(library, out) == 0
+    assert render_cli(library, out, "--pass-frames", "2") == 2  # another dataset
+
+
 @pytest.mark.parametrize("extra, named", [
     (["--resolution", "40"], "resolution 32 (this run: 40)"),
     (["--seed", "12"], "seed 11 (this run: 12)"),
@@ -116,6 +129,7 @@ def test_manifest_records_how_the_dataset_was_made(reference, library):
     (["--camera", "CAMERA"], "camera 32 x 32 px"),
     (["--images-per-model", "2"], "grows but does not shrink"),
 ])
+
 def test_other_settings_stop_before_touching_any_file(reference, library, tmp_path, capsys,
                                                       extra, named):
     out = tmp_path / "data"

@@ -26,7 +26,7 @@ with their reason in OUT/failures.json. Exit code 1 when a model failed, 2 on ba
 RENDER_FLAGS = {"images_per_model": "--images-per-model", "seed": "--seed",
                 "resolution": "--resolution", "spp": "--spp", "exr": "--exr",
                 "camera": "--camera", "workers": "--workers", "shard": "--shard",
-                "overwrite": "--overwrite"}
+                "overwrite": "--overwrite", "pass_frames": "--pass-frames"}
 CHECK_FLAGS = {"per_model": "--per-model", "min_iou": "--min-iou", "spp": "--spp"}
 PREVIEW_FLAGS = {"count": "--count", "axis_length": "--axis-length"}
 

@@ -49,7 +49,7 @@ from typing import Any
 import numpy as np
 
 from sq_mitsuba.config import config_hash, in_range, to_dict, validate
-from sq_mitsuba.data.frames import sample_frame
+from sq_mitsuba.data.frames import sample_frame, sample_pass_frame
 from sq_mitsuba.data.spe3r.layout import (
     EXR,
     FAILURE_MARKS,
@@ -99,7 +99,9 @@ MAX_SAMPLES_PER_RENDER = 2**32 - 1
 OVERWRITE_DELETES = (MANIFEST, "camera.json", "splits.csv", FAILURES, "preview.png")
 _MODEL_FOLDER_SIGNS = ("labels.json", IMAGES, MASKS, EXR, PROGRESS)
 #: Settings compared between a run and the manifest of its output folder, in message order.
-IDENTITY = ("seed", "resolution", "spp", "exr", "camera", "scene_hash")
+IDENTITY = ("seed", "resolution", "spp", "exr", "camera", "scene_hash", "pass_frames")
+# What a manifest written before a setting existed meant by it.
+_IDENTITY_BEFORE = {"pass_frames": 1}
 
 # ------------------------------------------------------------------------ writer
 
@@ -133,6 +135,11 @@ class RenderOptions:
     camera: Path | None = None
     """SPEED-style camera.json to render with, rescaled to resolution pixels wide (none: the
     SPEED camera's 35.45 deg field of view, square)."""
+    pass_frames: int = in_range(1, 100_000, default=1)
+    """1: every image of a model is drawn on its own (pose, sun, Earth). N > 1: a model's images
+    are passes of N frames, in order: the target tumbling about a random axis at 3-15 deg per
+    frame while the camera approaches, the sun and the Earth fixed in the camera frame
+    (sample_pass_frame); the labels record "pass" and "frame_in_pass"."""
     workers: int = in_range(1, 256, default=1)
     """Processes rendering models in parallel on this machine (they share its cores)."""
     shard: str = "0/1"
@@ -327,7 +334,11 @@ def render_image(scene: Any, vertices: np.ndarray, options: RenderOptions, model
     image, mask (and EXR), then its progress label (with the image's exposure and the target's
     visibility, see :func:`label_entry`), all atomically."""
     name = f"{index:06d}"
-    frame = sample_frame(vertices, scene.camera, options.scene, options.seed, model, index)
+    if options.pass_frames > 1:
+        frame = sample_pass_frame(vertices, scene.camera, options.scene, options.seed, model,
+                                  index, options.pass_frames)
+    else:
+        frame = sample_frame(vertices, scene.camera, options.scene, options.seed, model, index)
     result = scene.render(frame)
     write_png(model_out / IMAGES / f"{name}.png", result.image_8bit())
     write_png(model_out / MASKS / f"{name}.png", result.mask)
@@ -335,8 +346,11 @@ def render_image(scene: Any, vertices: np.ndarray, options: RenderOptions, model
         write_exr(model_out / "exr" / f"{name}.exr",
                   {"Y": result.radiance, "Z": result.depth, "A": result.coverage})
     # The label is the commit marker: written last, it says the image is complete.
-    atomic_write_json(model_out / PROGRESS / f"{name}.json",
-                      label_entry(f"{name}.png", frame, result))
+    label = label_entry(f"{name}.png", frame, result)
+    if options.pass_frames > 1:
+        label.update({"pass": index // options.pass_frames,
+                      "frame_in_pass": index % options.pass_frames})
+    atomic_write_json(model_out / PROGRESS / f"{name}.json", label)
 
 
 # ------------------------------------------------------------------------ per model
@@ -510,7 +524,7 @@ def dataset_settings(options: RenderOptions, camera: Camera) -> dict[str, Any]:
     """The settings that decide a dataset's pixels, as the manifest records them."""
     settings = {"seed": options.seed, "resolution": options.resolution, "spp": options.spp,
                 "exr": options.exr, "camera": camera.to_speed_dict(),
-                "scene_hash": config_hash(options.scene)}
+                "scene_hash": config_hash(options.scene), "pass_frames": options.pass_frames}
     return json.loads(json.dumps(settings))  # as read back from the file
 
 
@@ -565,7 +579,7 @@ def _settings_differences(manifest: dict[str, Any], settings: dict[str, Any],
     stored = manifest["settings"]
     differences = []
     for key in IDENTITY:
-        if stored.get(key) == settings[key]:
+        if stored.get(key, _IDENTITY_BEFORE.get(key)) == settings[key]:
             continue
         if key == "camera":
             differences.append(f"camera {_describe_camera(stored.get(key))} (this run: "
