@@ -202,7 +202,7 @@ def test_predict_sequence_returns_one_assembly_and_every_pose(eval_checkpoint, t
     ("list", "images: expected a torch.Tensor or numpy array"),
     ("dark", "images: frame 1 has no target in its mask"),
     ("relative", r"relative_rotations: expected \(3, 3, 3\)"),
-    ("not_rotations", "relative_rotations: expected rotation matrices"),
+    ("not_rotations", "relative_rotations: not rotation matrices"),
 ])
 def test_bad_sequences_are_one_line_errors(eval_checkpoint, train_dataset, case, message):
     predictor = load_model(eval_checkpoint)

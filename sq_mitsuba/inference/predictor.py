@@ -63,6 +63,7 @@ from sq_mitsuba.model.rotation_grid import RotationGridPoseHead, rotation_hypoth
 if TYPE_CHECKING:  # the search and refinement load Mitsuba's bridge: imported when used
     from sq_mitsuba.inference.refine import RefineOptions
     from sq_mitsuba.inference.search import SearchOptions
+    from sq_mitsuba.inference.sequence import SequencePrediction
 
 __all__ = ["Prediction", "Predictor", "prepare_images"]
 
@@ -228,7 +229,7 @@ class Predictor:
                               refinement=refinement, reuse=reuse)
 
     def predict_sequence(self, images: Tensor | np.ndarray, camera: Camera | None = None,
-                         **kwargs: object) -> object:
+                         **kwargs: object) -> SequencePrediction:
         """One assembly and every pose from N >= 2 images of the same spacecraft: each frame
         read by the shipped path, the half turns resolved across frames, then one shape and N
         poses fitted to every frame's mask at once

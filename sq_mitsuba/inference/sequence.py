@@ -56,6 +56,7 @@ from sq_mitsuba.geometry.rotation import (
 from sq_mitsuba.geometry.so3_grid import half_turns
 from sq_mitsuba.inference.prediction import Prediction
 from sq_mitsuba.inference.refine import raw_from_assembly
+from sq_mitsuba.inference.search import check_rotations
 
 __all__ = ["SequenceOptions", "SequencePrediction", "align_half_turns",
            "align_half_turns_in_order", "canonical_frame", "fit_sequence", "predict_sequence",
@@ -214,15 +215,14 @@ def canonical_frame(assembly: Assembly, level: int = 3) -> tuple[Tensor, Tensor]
     Returns:
         ``P`` (3, 3) and ``c`` (3,) float64 such that ``x_canonical = P (x - c)``.
     """
-    import trimesh
+    from sq_mitsuba.data.mesh_processing import alignment_rotation
 
-    points = _surface(assembly, level)[0].numpy()
-    to_box, _ = trimesh.bounds.oriented_bounds(points)
-    base = np.asarray(to_box[:3, :3], dtype=np.float64)
-    extents = np.ptp(points @ base.T, axis=0)
-    rotation = base[np.argsort(-extents, kind="stable")]
-    if np.linalg.det(rotation) < 0:
-        rotation[2] *= -1
+    # The processed models' own rule (their "obb" alignment), on the primitives' meshes: the
+    # convex hull of the union is that of all its primitives, so parts inside others do not
+    # change the box.
+    vertices, faces = assembly.merged_mesh(level)
+    points = vertices[0].detach().double().numpy()
+    rotation = alignment_rotation(points, faces.numpy(), "obb")
     # The centre of mass of the union: uniform points in the bounding box that it holds.
     low, high = points.min(0), points.max(0)
     grid = torch.from_numpy(np.random.default_rng(0).uniform(low, high, (20_000, 3)))
@@ -361,11 +361,7 @@ def _check_relative(relative_rotations: Any, count: int) -> Tensor | None:
         raise ValueError(f"relative_rotations: expected ({count}, 3, 3) (one per frame), got "
                          f"{shape or type(relative_rotations).__name__}")
     relative = relative_rotations.detach().double().cpu()
-    if not bool(torch.isfinite(relative).all()):
-        raise ValueError("relative_rotations: contains NaN or infinite values")
-    error = (relative.transpose(-1, -2) @ relative - torch.eye(3, dtype=torch.float64)).abs()
-    if float(error.amax()) > 1e-3 or bool((torch.linalg.det(relative) < 0).any()):
-        raise ValueError("relative_rotations: expected rotation matrices (orthonormal, det +1)")
+    check_rotations("relative_rotations", relative)
     return relative
 
 
