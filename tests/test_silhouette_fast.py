@@ -1,7 +1,8 @@
 """The fast paths of the reprojection renderer, each against its reference: the lean
 ``silhouette_projective`` integrator against Mitsuba's ``prb_projective``, the per-target loss
 (the renderer renders, the loss from ``learning.losses`` is handed in) against the general
-fused loss, worker processes against one process, bit for bit."""
+fused loss, worker processes against one process, bit for bit. All on the per-item path
+(``batched=False``, also on CUDA; the batched path has tests/test_silhouette_batched.py)."""
 
 from __future__ import annotations
 
@@ -60,7 +61,8 @@ def test_lean_integrator_renders_what_prb_projective_renders(batch):
     vertices, faces, masks = batch
     camera = Camera.default(40)
     with one_drjit_thread():
-        lean = _mask_mse(SilhouetteRenderer(camera, spp=8, sppp=4), vertices, faces, masks)
+        lean = _mask_mse(SilhouetteRenderer(camera, spp=8, sppp=4, batched=False), vertices,
+                         faces, masks)
         reference = _mask_mse(SilhouetteRenderer(camera, spp=8, sppp=4,
                                                  integrator="prb_projective"),
                               vertices, faces, masks)
@@ -75,7 +77,7 @@ def test_mask_loss_matches_the_general_fused_loss(batch):
     """``render_target_loss`` with ``mask_mse`` against ``render_loss`` with the same MSE
     written as a per-index callback."""
     vertices, faces, masks = batch
-    renderer = SilhouetteRenderer(Camera.default(40), spp=8, sppp=4)
+    renderer = SilhouetteRenderer(Camera.default(40), spp=8, sppp=4, batched=False)
     with one_drjit_thread():
         loss, coverage, grad = _mask_mse(renderer, vertices, faces, masks)
         renderer.reseed(5)
@@ -112,11 +114,11 @@ def test_workers_match_one_process_bit_for_bit(batch):
     one-thread result; a dead worker is reported and replaced on the next call."""
     vertices, faces, masks = batch
     camera = Camera.default(40)
-    pooled = SilhouetteRenderer(camera, spp=8, sppp=4, workers=2)
+    pooled = SilhouetteRenderer(camera, spp=8, sppp=4, workers=2, batched=False)
     try:
         with one_drjit_thread():
-            expected = _mask_mse(SilhouetteRenderer(camera, spp=8, sppp=4), vertices, faces,
-                                 masks)
+            expected = _mask_mse(SilhouetteRenderer(camera, spp=8, sppp=4, batched=False),
+                                 vertices, faces, masks)
         for _ in range(2):  # the second call reuses the running workers
             for ours, theirs in zip(_mask_mse(pooled, vertices, faces, masks), expected,
                                     strict=True):
@@ -131,8 +133,8 @@ def test_workers_match_one_process_bit_for_bit(batch):
             assert torch.equal(ours, theirs)
         # Another loss of learning.losses runs in the workers as it runs here.
         with one_drjit_thread():
-            expected = _mask_mse(SilhouetteRenderer(camera, spp=8, sppp=4), vertices, faces,
-                                 masks, loss_fn=soft_iou_loss)
+            expected = _mask_mse(SilhouetteRenderer(camera, spp=8, sppp=4, batched=False),
+                                 vertices, faces, masks, loss_fn=soft_iou_loss)
         for ours, theirs in zip(_mask_mse(pooled, vertices, faces, masks,
                                           loss_fn=soft_iou_loss), expected, strict=True):
             assert torch.equal(ours, theirs)

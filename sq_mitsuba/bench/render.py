@@ -7,11 +7,15 @@ counts, Dr.Jit kernel compilations after the first batch, and the gradient noise
 defaults against a high-sample reference. Then the training loss (``render_target_loss`` with
 :func:`~sq_mitsuba.model.losses.mask_mse`) as training runs it, in one run: Mitsuba's
 ``prb_projective`` against the lean ``silhouette_projective`` on one Dr.Jit thread, and the
-lean one shared among worker processes.
+lean one shared among worker processes. Last, training's reprojection at the CPU recipe's
+size (64 px, M = 5 at icosphere level 2, spp 8, default sppp) for 8 and 32 items (and 256 on
+CUDA): per item (today's path) against the batched path, every item in one launch each way
+(``SilhouetteRenderer(batched=True)``, :mod:`sq_mitsuba.render.silhouette.tiled`), in one run.
 """
 
 from __future__ import annotations
 
+import functools
 import os
 import time
 
@@ -114,6 +118,92 @@ def _mask_step(renderer, vertices: torch.Tensor, faces: torch.Tensor,
     return leaf.grad
 
 
+#: Training's reprojection sizes of the batched rows (cpu.toml: 64 px, level 2, spp 8).
+BATCHED_SIDE, BATCHED_LEVEL, BATCHED_SPP = 64, 2, 8
+
+
+def _reprojection_inputs(count: int, side: int, device: torch.device
+                         ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Camera-frame vertices (count, 810, 3) of random assemblies at level 2, 2.6 m away (so
+    that every item fits its tile), faces, and masks (count, side, side) of other items."""
+    from sq_mitsuba.geometry.assembly import Assembly
+    from sq_mitsuba.geometry.camera import Camera
+    from sq_mitsuba.geometry.rotation import random_rotations
+    from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer
+
+    generator = torch.Generator().manual_seed(1)
+    raw = torch.randn(count, PRIMITIVES, 16, generator=generator) * 0.7
+    vertices, faces = Assembly.from_raw(raw).merged_mesh(BATCHED_LEVEL)
+    rotation = random_rotations(count, generator=generator)
+    translation = torch.tensor([[0.0, 0.0, 2.6]])
+    camera_vertices = (torch.einsum("bij,bnj->bni", rotation, vertices)
+                       + translation[:, None]).detach().float()
+    with torch.no_grad():
+        masks = (SilhouetteRenderer(Camera.default(side), spp=4, batched=False).render(
+            camera_vertices.flip(0), faces) > 0.5).float()
+    return camera_vertices.to(device), faces.to(device), masks.to(device)
+
+
+def _batched_rows(report: Report, device: torch.device, repeats: int) -> None:
+    """Per item against batched, training's reprojection loss (forward + backward), one run."""
+    import drjit as dr
+
+    from sq_mitsuba.geometry.camera import Camera
+    from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer
+    from sq_mitsuba.render.silhouette.tiled import default_margin, fits
+    from sq_mitsuba.render.silhouette.workers import default_worker_count
+
+    camera = Camera.default(BATCHED_SIDE)
+    cuda = device.type == "cuda"
+    workers = 0 if cuda else default_worker_count()
+    previous = dr.thread_count()
+    if not cuda:
+        dr.set_thread_count(1)  # as training renders on the CPU (deterministic)
+    try:
+        for count in (8, 32, 256) if cuda else (8, 32):
+            vertices, faces, masks = _reprojection_inputs(count, BATCHED_SIDE, device)
+            fitting = int(fits(vertices, camera, default_margin(camera)).sum())
+            paths = [("per item", False, 0), ("batched", True, 0)]
+            if workers:
+                paths.insert(1, (f"per item, {workers} workers", False, workers))
+            renderers = {label: SilhouetteRenderer(camera, spp=BATCHED_SPP, workers=count_w,
+                                                   batched=batched)
+                         for label, batched, count_w in paths}
+            samples: dict[str, list[float]] = {label: [] for label in renderers}
+            try:
+                for renderer in renderers.values():  # warm-up: kernels, scenes, workers
+                    _mask_step(renderer, vertices, faces, masks)
+                for _ in range(repeats):  # interleaved: the machine's load hits all alike
+                    for label, renderer in renderers.items():
+                        samples[label] += time_callable(
+                            functools.partial(_synced_mask_step, renderer, vertices, faces,
+                                              masks, device),
+                            repeats=1, warmup=0)
+            finally:
+                for renderer in renderers.values():
+                    renderer.close()
+            for label, values in samples.items():
+                report.timings.append(Timing(
+                    f"reprojection forward + backward, {count} items, {label}, "
+                    f"{BATCHED_SIDE} x {BATCHED_SIDE}, per image", [t / count for t in values],
+                    note=f"level {BATCHED_LEVEL}, spp {BATCHED_SPP}, mask_mse; {fitting} of "
+                         f"{count} items fit a tile" + ("" if cuda else "; one Dr.Jit thread")))
+            medians = {label: sorted(v)[len(v) // 2] for label, v in samples.items()}
+            base = medians["per item"]
+            ratios = ", ".join(f"{label} {value / base:.2f} x"
+                               for label, value in medians.items() if label != "per item")
+            report.notes.append(f"reprojection, {count} items on {device.type}: time against "
+                                f"per item in this run: {ratios}")
+    finally:
+        dr.set_thread_count(previous)
+
+
+def _synced_mask_step(renderer, vertices, faces, masks, device: torch.device) -> None:
+    _mask_step(renderer, vertices, faces, masks)
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
 def _relative_noise(renderer, reference, vertices, faces, target, repeats: int) -> float:
     """Mean over items of |g - g_ref| / |g_ref| (gradient vectors over all vertices)."""
     reference_grad = torch.stack([_step(reference, vertices, faces, target)
@@ -173,6 +263,7 @@ def run(options: BenchOptions) -> Report:
             f"{renderer.sppp * resolution**2} silhouette samples per image) against a "
             f"reference of sppp 256 (4 x 64): mean relative L2 error {100 * noise:.1f} % "
             f"({few} items)")
+    _batched_rows(report, torch.device(options.device), repeats)
     load = load_average()
     report.notes.append(f"1-minute load average at the end: {load:.2f} on {os.cpu_count()} cores "
                         "(the benchmark's own threads count; above ~2, other processes "
@@ -181,6 +272,7 @@ def run(options: BenchOptions) -> Report:
         "render + backward: one vertex update (BVH rebuild, ~12-16 ms for 6,400 faces on one "
         "thread) forward and one backward per item (the last item of a batch reuses its "
         "scene); the fused losses back-propagate each item right after its render, so one "
-        "update per item. Several items cannot share one scene: the silhouette sampler and "
-        "Dr.Jit's virtual calls scale with every mesh and scene alive")
+        "update per item. Several meshes cannot share one scene (the silhouette sampler and "
+        "Dr.Jit's virtual calls scale with every mesh alive); the batched path puts every "
+        "item into one mesh instead, each in its own tile of one film")
     return report

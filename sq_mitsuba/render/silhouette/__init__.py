@@ -4,7 +4,9 @@
   item, gradients to the vertices, as training's reprojection and the refinement use).
 - :mod:`.batch`: :class:`PoseSilhouettes`, many poses of one assembly in one launch (forward
   only: the pose search).
-- :mod:`.integrator`: the mask integrator registered with Mitsuba.
+- :mod:`.tiled`: :class:`TiledSilhouettes`, a whole batch in one launch each way, each item in
+  its own tile of one film (the renderer's ``batched`` path, the default on CUDA).
+- :mod:`.integrator`: the mask integrators registered with Mitsuba.
 - :mod:`.workers` and :mod:`.worker_process`: the renders spread over worker processes.
 
 The public names are importable from here; each is loaded on first use, so that importing the

@@ -32,12 +32,15 @@ from sq_mitsuba.render.backend import interrupts_deferred, mitsuba
 
 PLUGIN = "silhouette_projective"
 COVERAGE_PLUGIN = "target_coverage"
+#: ``silhouette_projective`` for a scene of many items in tiles of one film
+#: (:mod:`sq_mitsuba.render.silhouette.tiled`): the silhouette samples shared equally by items.
+TILED_PLUGIN = "silhouette_projective_tiled"
 _registered = False
 
 
 def register() -> None:
-    """Register the ``silhouette_projective`` and ``target_coverage`` integrators with Mitsuba
-    (idempotent; sets up the variant first)."""
+    """Register the ``silhouette_projective``, ``silhouette_projective_tiled`` and
+    ``target_coverage`` integrators with Mitsuba (idempotent; sets up the variant first)."""
     global _registered
     if _registered:
         return
@@ -98,6 +101,66 @@ def register() -> None:
             escaped = active & ~scene.ray_test(ray, active)
             return environment_radiance(scene, ray, escaped), active, []
 
+    class TiledDetail(mi.ad.ProjectiveDetail):
+        """Primary silhouette sampling of a tiled scene: each item gets an equal share.
+
+        Mitsuba weights a silhouette edge by the angle it subtends at the viewpoint. In a
+        tiled scene an item is sheared towards its tile, so far tiles subtend smaller angles
+        and would get fewer samples. Here an edge's weight is its angle in the item's own,
+        unsheared frame (what a one-item scene uses), normalised so every active item has
+        total weight 1: an item's expected sample count and their spread along its edges
+        are those of its own render. Any positive weights are unbiased (the pdf uses them).
+        """
+
+        layout: Any = None
+        "Set by the tiled renderer before a backward pass: see ``TiledIntegrator``."
+
+        def init_primarily_visible_silhouette(self, scene: Any, sensor: Any) -> None:
+            layout = self.layout
+            if layout is None:  # not tiled: Mitsuba's own weights
+                super().init_primarily_visible_silhouette(scene, sensor)
+                return
+            (mesh,) = scene.silhouette_shapes()
+            indices, _ = mesh.precompute_silhouette(mi.ScalarPoint3f(0.0))
+            face = indices // 3
+            corner = indices - 3 * face
+            following = dr.select(corner == 2, face * 3, indices + 1)
+            start = dr.gather(mi.UInt32, layout.faces, indices)
+            end = dr.gather(mi.UInt32, layout.faces, following)
+            p0 = dr.gather(mi.Point3f, layout.positions, start)
+            p1 = dr.gather(mi.Point3f, layout.positions, end)
+            weight = dr.unit_angle(dr.normalize(p0), dr.normalize(p1))
+            item = face // layout.faces_per_item
+            active = dr.gather(mi.Bool, layout.active, item)
+            weight = dr.select(active & dr.isfinite(weight), weight, 0.0)
+            totals = dr.zeros(mi.Float, layout.items)
+            dr.scatter_reduce(dr.ReduceOp.Add, totals, weight, item)
+            total = dr.gather(mi.Float, totals, item)
+            weight = dr.select(total > 0, weight / total, 0.0)
+            self.primary_indices = [indices]
+            self.primary_distributions = [mi.DiscreteDistribution(weight)]
+            self.primary_shape_distribution = mi.DiscreteDistribution(mi.Float([1.0]))
+
+    class TiledIntegrator(SilhouetteProjectiveIntegrator):
+        """``silhouette_projective`` whose primary silhouette samples are shared equally by
+        the items of a tiled scene. Its ``layout`` (None: Mitsuba's weights) has ``faces``
+        (UInt32, the scene mesh's faces), ``positions`` (Float, each item's vertices in its
+        own frame), ``faces_per_item``, ``items`` and ``active`` (Bool per item: False gives
+        an item no samples)."""
+
+        def __init__(self, props: Any) -> None:
+            super().__init__(props)
+            self.proj_detail = TiledDetail(self)
+
+        @property
+        def layout(self) -> Any:
+            return self.proj_detail.layout
+
+        @layout.setter
+        def layout(self, value: Any) -> None:
+            self.proj_detail.layout = value
+
     mi.register_integrator(PLUGIN, lambda props: SilhouetteProjectiveIntegrator(props))
+    mi.register_integrator(TILED_PLUGIN, lambda props: TiledIntegrator(props))
     mi.register_integrator(COVERAGE_PLUGIN, lambda props: TargetCoverageIntegrator(props))
     _registered = True

@@ -28,6 +28,13 @@ renders) can spread its items over worker processes (``workers``), each renderin
 thread. An item draws its samples from ``(seed, call, item)`` alone, so the pooled result
 equals a one-process, one-thread render bit for bit, whatever the number of workers. The
 renderer renders and back-propagates; the losses it is given are the caller's.
+
+Convention: with ``batched`` (the default on CUDA variants), :meth:`render_target_loss` renders
+every item of the batch in one Mitsuba launch each way instead, each item in its own tile of one
+film (:mod:`sq_mitsuba.render.silhouette.tiled`): the same estimator with other random numbers,
+so equal to the per-item result in distribution, not bit for bit. An item that reaches too far
+out of its image for a tile is rendered alone, as above. The CPU default stays per item (exact,
+and faster there).
 """
 
 from __future__ import annotations
@@ -47,6 +54,7 @@ from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.metrics import mask_iou  # noqa: F401  (re-exported for callers)
 from sq_mitsuba.render.backend import interrupts_deferred, mitsuba
 from sq_mitsuba.render.silhouette.integrator import register as register_integrator
+from sq_mitsuba.render.silhouette.tiled import TiledSilhouettes, tiled_seeds
 from sq_mitsuba.render.silhouette.workers import SilhouetteWorkers, WorkerError
 
 #: Integrators a renderer can use: the lean mask integrator (default) and Mitsuba's general
@@ -179,6 +187,10 @@ class SilhouetteRenderer:
             on first use; CPU variants only.
         integrator: ``"silhouette_projective"`` (:mod:`sq_mitsuba.render.silhouette.integrator`,
             the lean one) or ``"prb_projective"`` (Mitsuba's general one, the reference).
+        batched: :meth:`render_target_loss` renders the whole batch in one launch each way
+            (:mod:`sq_mitsuba.render.silhouette.tiled`; lean integrator only, no workers); None
+            (default): on CUDA variants, where per-item launches leave the GPU waiting on the
+            host. The CPU default, per item, is exact across worker counts and faster there.
 
     One Mitsuba scene is built on the first call and reused while the mesh topology (vertex
     count and faces) stays the same; a new topology rebuilds it. Recognising the topology costs
@@ -189,7 +201,7 @@ class SilhouetteRenderer:
 
     def __init__(self, camera: Camera, spp: int = DEFAULT_SPP, sppp: int | None = None,
                  seed: int = 0, workers: int = 0,
-                 integrator: str = "silhouette_projective") -> None:
+                 integrator: str = "silhouette_projective", batched: bool | None = None) -> None:
         if not isinstance(camera, Camera):
             raise ValueError(f"camera: expected a Camera, got {type(camera).__name__}")
         if sppp is None:
@@ -201,12 +213,23 @@ class SilhouetteRenderer:
             raise ValueError(f"workers: expected an integer in [0, 256], got {workers!r}")
         if integrator not in INTEGRATORS:
             raise ValueError(f"integrator: expected one of {INTEGRATORS}, got {integrator!r}")
+        if batched is not None and not isinstance(batched, bool):
+            raise ValueError(f"batched: expected True, False or None, got {batched!r}")
+        if batched and integrator != "silhouette_projective":
+            raise ValueError(f"batched: needs the integrator 'silhouette_projective', got "
+                             f"{integrator!r}")
         self.integrator = integrator
         self.camera = camera
         self.spp = spp
         self.sppp = sppp
         self.seed = int(seed) & 0xFFFFFFFF
         self._mi = mitsuba()
+        if batched is None:
+            batched = (self._mi.variant().startswith("cuda")
+                       and integrator == "silhouette_projective")
+        self.batched = batched
+        self._tiled: TiledSilhouettes | None = None
+        self._tiled_topology: _Topology | None = None
         self._scene: Any = None
         self._params: Any = None
         self._integrator: Any = None
@@ -229,7 +252,8 @@ class SilhouetteRenderer:
     def __repr__(self) -> str:
         c = self.camera
         return (f"SilhouetteRenderer({c.width}x{c.height}, fx={c.fx:.2f}, spp={self.spp}, "
-                f"sppp={self.sppp}, workers={self.workers}, variant={self._mi.variant()})")
+                f"sppp={self.sppp}, workers={self.workers}, batched={self.batched}, "
+                f"variant={self._mi.variant()})")
 
     def close(self) -> None:
         """Stop the worker processes, if any were started (a later call starts new ones)."""
@@ -269,12 +293,26 @@ class SilhouetteRenderer:
 
     # ------------------------------------------------------------------ scene
 
-    def _prepare(self, vertices: Tensor, faces: Tensor) -> np.ndarray:
-        """Check the inputs of a render, make the scene fit their topology; faces as numpy."""
+    @staticmethod
+    def _check_vertices(vertices: Tensor) -> None:
         check_tensor("vertices", vertices, (None, 3), min_dims=3)
         if vertices.dim() != 3 or vertices.shape[0] < 1 or vertices.shape[1] < 3:
             raise ValueError(f"vertices: expected shape (B, V, 3) with B >= 1 and V >= 3, got "
                              f"{tuple(vertices.shape)}")
+
+    def _check_targets(self, vertices: Tensor, targets: Tensor, loss: Any) -> None:
+        """One-line errors for :meth:`render_target_loss`'s targets (B, H, W) and loss."""
+        check_tensor("targets", targets, (None, None), min_dims=3)
+        expected = (vertices.shape[0], *self.resolution)
+        if tuple(targets.shape) != expected:
+            raise ValueError(f"targets: expected shape {expected}, got {tuple(targets.shape)}")
+        if not callable(loss):
+            raise ValueError("loss: expected a callable (coverage (H, W), target (H, W)) -> "
+                             "scalar")
+
+    def _prepare(self, vertices: Tensor, faces: Tensor) -> np.ndarray:
+        """Check the inputs of a render, make the scene fit their topology; faces as numpy."""
+        self._check_vertices(vertices)
         num_vertices = vertices.shape[1]
         if (self._topology is not None and isinstance(faces, Tensor)
                 and self._topology.matches(faces, num_vertices)):
@@ -463,15 +501,15 @@ class SilhouetteRenderer:
         Returns:
             (loss, coverage): the summed loss (scalar, vertices' dtype) and the coverage
             images (B, H, W), detached.
+
+        With :attr:`batched`, all items render in one launch each way (see the module); the
+        loss is then mapped over the items with ``torch.func.vmap`` where it can be (a loop
+        otherwise), and everything stays on the vertices' device.
         """
+        if self.batched:
+            return self._tiled_target_loss(vertices, faces, targets, loss)
         self._prepare(vertices, faces)
-        check_tensor("targets", targets, (None, None), min_dims=3)
-        expected = (vertices.shape[0], *self.resolution)
-        if tuple(targets.shape) != expected:
-            raise ValueError(f"targets: expected shape {expected}, got {tuple(targets.shape)}")
-        if not callable(loss):
-            raise ValueError("loss: expected a callable (coverage (H, W), target (H, W)) -> "
-                             "scalar")
+        self._check_targets(vertices, targets, loss)
         targets = targets.detach().to("cpu", torch.float32).contiguous()
         requires_grad = torch.is_grad_enabled() and vertices.requires_grad
 
@@ -496,6 +534,50 @@ class SilhouetteRenderer:
             return _RenderedLoss.apply(vertices, self, run)
         total, coverage, _ = run(vertices.detach(), self._next_call())
         return (vertices.new_tensor(total),
+                coverage.to(dtype=vertices.dtype, device=vertices.device))
+
+    def _tiled_target_loss(self, vertices: Tensor, faces: Tensor, targets: Tensor,
+                           loss: Callable[[Tensor, Tensor], Tensor]) -> tuple[Tensor, Tensor]:
+        """:meth:`render_target_loss` with every item in one launch each way (``batched``)."""
+        self._check_vertices(vertices)
+        num_vertices = vertices.shape[1]
+        topology = self._tiled_topology
+        if topology is not None and isinstance(faces, Tensor) and topology.matches(
+                faces, num_vertices):
+            faces_np = topology.faces
+        else:
+            faces_np = _check_faces(faces, num_vertices)
+            self._tiled_topology = _Topology(0, num_vertices, faces_np,
+                                             torch.from_numpy(faces_np.astype(np.int64)))
+            self._tiled_topology.remember(faces)
+        self._check_targets(vertices, targets, loss)
+        if self._tiled is None:
+            self._tiled = TiledSilhouettes(self.camera, self.spp, self.sppp, sensor_dict)
+        requires_grad = torch.is_grad_enabled() and vertices.requires_grad
+        targets = targets.detach()
+
+        def run(detached: Tensor, call: int) -> tuple[Tensor, Tensor, Tensor]:
+            result = self._tiled.target_loss(detached, faces_np, targets, loss,
+                                             tiled_seeds(self.seed, call), requires_grad)
+            losses, coverage, grad = result.losses, result.coverage, result.grad
+            if not bool(result.tiled.all()):  # the one host read of a batched call
+                # Items reaching too far out of their images: rendered alone, as per item.
+                rest = (~result.tiled).nonzero().flatten().cpu()
+                self._prepare(detached, faces)
+                alone = self.target_loss_items(
+                    detached[rest.to(detached.device)].to("cpu", torch.float32),
+                    targets[rest.to(targets.device)].to("cpu", torch.float32).contiguous(),
+                    call, rest.tolist(), loss, requires_grad)
+                index = rest.to(losses.device)
+                losses[index] = alone[0].to(losses)
+                coverage[index] = alone[1].to(coverage)
+                grad[index] = alone[2].to(grad)
+            return losses.double().sum(), coverage, grad
+
+        if requires_grad:
+            return _RenderedLoss.apply(vertices, self, run)
+        total, coverage, _ = run(vertices.detach(), self._next_call())
+        return (total.to(dtype=vertices.dtype, device=vertices.device),
                 coverage.to(dtype=vertices.dtype, device=vertices.device))
 
     def target_loss_items(self, vertices: Tensor, targets: Tensor, call: int,
@@ -576,18 +658,20 @@ class _RenderSilhouettes(torch.autograd.Function):
 
 class _RenderedLoss(torch.autograd.Function):
     """Autograd bridge of the fused losses (:meth:`SilhouetteRenderer.render_loss`,
-    :meth:`~SilhouetteRenderer.render_target_loss`): ``run(vertices, call)`` computes the loss,
-    the coverage and the vertex gradients item by item during the forward pass; the backward
-    returns the gradients, scaled."""
+    :meth:`~SilhouetteRenderer.render_target_loss`): ``run(vertices, call)`` computes the loss
+    (a float, or a scalar tensor: the batched path keeps it on the device), the coverage and the
+    vertex gradients during the forward pass; the backward returns the gradients, scaled."""
 
     @staticmethod
     def forward(ctx: Any, vertices: Tensor, renderer: SilhouetteRenderer,
-                run: Callable[[Tensor, int], tuple[float, Tensor, Tensor]]
+                run: Callable[[Tensor, int], tuple[float | Tensor, Tensor, Tensor]]
                 ) -> tuple[Tensor, Tensor]:
         total, coverage, grad_vertices = run(vertices.detach(), renderer._next_call())
         ctx.save_for_backward(grad_vertices.to(dtype=vertices.dtype, device=vertices.device))
         coverage = coverage.to(dtype=vertices.dtype, device=vertices.device)
         ctx.mark_non_differentiable(coverage)
+        if isinstance(total, Tensor):
+            return total.to(dtype=vertices.dtype, device=vertices.device), coverage
         return vertices.new_tensor(total), coverage
 
     @staticmethod
