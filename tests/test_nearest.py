@@ -51,3 +51,79 @@ def test_gathered_differences_value_and_gradient(device):
     assert torch.equal(differences, expected)
     assert torch.autograd.gradcheck(lambda s, t: gathered_differences(s, t, index),
                                     (source, target))
+
+
+def _matched_distances(a, b, a_to_b, b_to_a, p):
+    """The L``p`` distance of every matched pair: (B, N) a -> b and (B, K) b -> a."""
+    forward = torch.linalg.vector_norm(gathered_differences(a, b, a_to_b), ord=p, dim=-1)
+    backward = torch.linalg.vector_norm(gathered_differences(b, a, b_to_a), ord=p, dim=-1)
+    return forward, backward
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("p", [1.0, 2.0])
+def test_dense_search_equals_the_kdtree_search(p, dtype, device):
+    """The batched dense search (forced on any device) matches the KD-tree's pairs: equal
+    matched distances (indices may differ only between tied neighbours), masks respected."""
+    gen = torch.Generator().manual_seed(3)
+    a = torch.randn(4, 300, 3, generator=gen, dtype=dtype).to(device)
+    b = torch.randn(4, 500, 3, generator=gen, dtype=dtype).to(device)
+    keep = (torch.rand(4, 300, generator=gen) > 0.3).to(device)
+    keep[2] = False
+    keep[2, 7] = True  # an item keeping one point
+    kd = matched_indices(a, keep, b, p, method="kdtree")
+    dense = matched_indices(a, keep, b, p, method="dense")
+    assert all(i.device == a.device and i.dtype == torch.int64 for i in (*kd, *dense))
+    assert torch.equal(dense[0][~keep], torch.zeros_like(dense[0][~keep]))
+    assert bool(keep.gather(1, dense[1]).all())  # b's neighbours are kept points of a
+    tolerance = 1e-12 if dtype == torch.float64 else 1e-5
+    (dense_forward, dense_backward) = _matched_distances(a, b, *dense, p)
+    (kd_forward, kd_backward) = _matched_distances(a, b, *kd, p)
+    torch.testing.assert_close(dense_forward[keep], kd_forward[keep], rtol=0, atol=tolerance)
+    torch.testing.assert_close(dense_backward, kd_backward, rtol=0, atol=tolerance)
+
+
+def test_dense_search_in_small_chunks_equals_one_chunk(monkeypatch):
+    """Chunks of items and of rows (b's running minimum over them) give one chunk's answer."""
+    import sq_mitsuba.geometry.nearest as nearest
+
+    gen = torch.Generator().manual_seed(4)
+    a, b = torch.randn(5, 90, 3, generator=gen), torch.randn(5, 70, 3, generator=gen)
+    keep = torch.rand(5, 90, generator=gen) > 0.5
+    whole = matched_indices(a, keep, b, 2.0, method="dense")
+    monkeypatch.setattr(nearest, "DENSE_CHUNK", 70 * 16)  # 16 rows of one item at a time
+    chunked = matched_indices(a, keep, b, 2.0, method="dense")
+    assert torch.equal(whole[0], chunked[0]) and torch.equal(whole[1], chunked[1])
+
+
+def test_the_search_is_chosen_by_device():
+    from sq_mitsuba.geometry.nearest import nearest_method
+
+    assert nearest_method(torch.device("cpu")) == "kdtree"
+    assert nearest_method(torch.device("cuda", 0)) == "dense"
+    assert nearest_method(torch.device("cpu"), "dense") == "dense"
+    with pytest.raises(ValueError, match="method"):
+        nearest_method(torch.device("cpu"), "brute")
+    with pytest.raises(ValueError, match="p: the dense search"):
+        matched_indices(torch.zeros(1, 2, 3), torch.ones(1, 2, dtype=torch.bool),
+                        torch.zeros(1, 2, 3), 3.0, method="dense")
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_chamfer_loss_value_and_gradient_equal_between_searches(dtype, device):
+    from sq_mitsuba.model.losses import chamfer_loss
+
+    gen = torch.Generator().manual_seed(5)
+    points = torch.randn(3, 200, 3, generator=gen, dtype=dtype).to(device)
+    target = torch.randn(3, 400, 3, generator=gen, dtype=dtype).to(device)
+    keep = (torch.rand(3, 200, generator=gen) > 0.25).to(device)
+    results = []
+    for method in ("kdtree", "dense"):
+        leaf = points.clone().requires_grad_(True)
+        loss = chamfer_loss(leaf, keep, target, method=method)
+        loss.backward()
+        results.append((loss.detach(), leaf.grad))
+    tolerance = {"rtol": 1e-12, "atol": 1e-12} if dtype == torch.float64 else \
+        {"rtol": 1e-5, "atol": 1e-6}
+    torch.testing.assert_close(results[1][0], results[0][0], **tolerance)
+    torch.testing.assert_close(results[1][1], results[0][1], **tolerance)

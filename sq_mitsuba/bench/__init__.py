@@ -38,6 +38,12 @@ class BenchOptions:
     "Torch CPU threads (2: the reference machine)."
     device: str = "cpu"
     "Torch device of the suites that use one (cpu, cuda or cuda:N)."
+    batch: int | None = in_range(1, 4096, default=None)
+    """bench train: also measure the network alone against the full step at this batch
+    size (besides 32)."""
+    step_only: bool = False
+    """bench train: only the network-alone against full-step figures (always so on a GPU);
+    recorded as the section train-step."""
 
     def __post_init__(self) -> None:
         if not _DEVICE.fullmatch(self.device):
@@ -141,6 +147,29 @@ def time_callable(fn: Callable[[], object], repeats: int, warmup: int,
             sync()
         samples.append(time.perf_counter() - start)
     return samples
+
+
+def bench_dataset(root: Path, count: int, seed: int, images: int, resolution: int,
+                 render_seed: int, suite: str, pass_frames: int = 1) -> Path:
+    """A small SPE3R-layout dataset of the first ``count`` models of the archetype catalogue of
+    ``seed``, every model in the test split, rendered into ``root/data`` (models in
+    ``root/models``); ``suite`` names the bench in the error when a render fails."""
+    from sq_mitsuba.data.library import generate_model
+    from sq_mitsuba.data.spacecraft import catalogue
+    from sq_mitsuba.data.spe3r import RenderOptions, render_dataset
+
+    models = root / "models"
+    entries = catalogue(count, seed)
+    for entry in entries:
+        generate_model(entry, models, points=20_000)
+    (models / "splits.csv").write_text("".join(f"{e.name},test\n" for e in entries))
+    data = root / "data"
+    summary = render_dataset(models, data, RenderOptions(
+        images_per_model=images, resolution=resolution, spp=16, seed=render_seed,
+        pass_frames=pass_frames), progress=False)
+    if summary.failures:
+        raise RuntimeError(f"bench {suite}: rendering failed: {summary.failures}")
+    return data
 
 
 def load_average() -> float:

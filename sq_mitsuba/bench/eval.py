@@ -26,7 +26,14 @@ import os
 import tempfile
 from pathlib import Path
 
-from sq_mitsuba.bench import BenchOptions, Report, Timing, load_average, time_callable
+from sq_mitsuba.bench import (
+    BenchOptions,
+    Report,
+    Timing,
+    bench_dataset,
+    load_average,
+    time_callable,
+)
 
 RESOLUTION = 128
 IMAGES = 4
@@ -34,21 +41,7 @@ REFINE_STEPS = 50
 
 
 def _dataset(root: Path) -> Path:
-    from sq_mitsuba.data.library import generate_model
-    from sq_mitsuba.data.spacecraft import catalogue
-    from sq_mitsuba.data.spe3r import RenderOptions, render_dataset
-
-    models = root / "models"
-    entries = catalogue(2, 0)
-    for entry in entries:
-        generate_model(entry, models, points=20_000)
-    (models / "splits.csv").write_text("".join(f"{e.name},test\n" for e in entries))
-    data = root / "data"
-    summary = render_dataset(models, data, RenderOptions(
-        images_per_model=IMAGES, resolution=RESOLUTION, spp=16, seed=3), progress=False)
-    if summary.failures:
-        raise RuntimeError(f"bench eval: rendering failed: {summary.failures}")
-    return data
+    return bench_dataset(root, 2, 0, IMAGES, RESOLUTION, 3, "eval")
 
 
 def run(options: BenchOptions) -> Report:

@@ -1,4 +1,12 @@
-"""``sq-mitsuba bench train``: CPU training throughput and inference latency; learning curves.
+"""``sq-mitsuba bench train``: training throughput and inference latency; learning curves.
+
+The headline (first rows; on any ``--device``, at batch 32 and ``--batch``): the shipped
+recipe's (``train/configs/shipped.toml``) network alone (forward, backward, AdamW on one fixed
+batch on the device) against its full training step (the batch made as the data stream makes
+it, then :func:`~sq_mitsuba.training.step.training_step`), alternating, and the ratio of their
+images/s: what the rest of the step costs beside the network. On a GPU, or with
+``--step-only``, the suite stops there (report ``train-step``, its own section of
+eval/BENCHMARKS.md); the rest measures the CPU recipes:
 
 Training (batch 32, each config at its own input size): ``train/configs/a.toml`` (the paper's
 settings: 128 px, Chamfer on level-3 primitives, every item rendered at 128 px) and
@@ -52,6 +60,8 @@ CONFIG_DIR = Path(__file__).resolve().parents[2] / "train" / "configs"
 TARGETS = {"a": 20.0, "cpu": 40.0}
 INFERENCE_TARGET_S = 0.005
 REPROJECTION_TARGET_S = 0.010
+#: The config of the headline ratio (full step / network alone): the shipped recipe.
+RATIO_CONFIG = "shipped"
 #: Parts of the decomposed step besides the loss terms (which the registry names).
 STEP_PARTS = ("data", "encoder", "update")
 _DEPTH = 2.0  # camera distance (m) of the synthetic poses: a unit-size model fills the frame
@@ -77,7 +87,8 @@ class SyntheticData:
         seed: of every random draw.
     """
 
-    def __init__(self, config: Any, batch: int = BATCH, models: int = 4, seed: int = 0) -> None:
+    def __init__(self, config: Any, batch: int = BATCH, models: int = 4, seed: int = 0,
+                 device: torch.device | None = None) -> None:
         from sq_mitsuba.geometry.assembly import Assembly
         from sq_mitsuba.geometry.camera import Camera
         from sq_mitsuba.geometry.rotation import random_rotations
@@ -98,17 +109,22 @@ class SyntheticData:
         self.translation = torch.zeros(batch, 3)
         self.translation[:, 2] = _DEPTH
         renderer = SilhouetteRenderer(self.camera, spp=4)
+        where = torch.device("cpu") if device is None else device  # Mitsuba's variant's
         with torch.no_grad():
-            masks = render_assembly(Assembly(truth.params[self.model_index]), self.rotation,
-                                    self.translation, renderer, 2)
+            masks = render_assembly(Assembly(truth.params[self.model_index].to(where)),
+                                    self.rotation.to(where), self.translation.to(where),
+                                    renderer, 2).cpu()
         self.mask = (masks > 0.5).float()[:, None]
         grey = 0.3 + 0.6 * torch.rand(batch, 1, 1, 1, generator=generator)
         noise = 0.03 * torch.randn(self.mask.shape, generator=generator)
         self.image = (self.mask * grey + noise).clamp(0, 1)
 
-    def batch(self, step: int) -> TrainingBatch:
-        """Step ``step``'s batch, as the training loop's data stream makes them."""
-        from sq_mitsuba.training.augment import augment_batch
+    def batch(self, step: int, device: torch.device | None = None) -> TrainingBatch:
+        """Step ``step``'s batch, as the training loop's data stream makes them: the draws on
+        the host, the pixels copied to ``device`` (default the CPU) and augmented there."""
+        from sq_mitsuba.training.augment import augment_batch, to_device
+
+        device = torch.device("cpu") if device is None else device
 
         cfg = self.config
         generators = [np.random.default_rng([7, step, j]) for j in range(len(self.image))]
@@ -126,17 +142,19 @@ class SyntheticData:
             points.append(self.box[model][rows])
             labels.append(np.concatenate([np.ones(want_in, np.float32),
                                           np.zeros(len(rows) - want_in, np.float32)]))
-        image, mask, rotation, translation = self.image, self.mask, self.rotation, \
-            self.translation
+        image, mask, rotation, translation = (
+            to_device(value, device) for value in (self.image, self.mask, self.rotation,
+                                                   self.translation))
         if cfg.augment.enabled:
             image, mask, rotation, translation = augment_batch(
                 image, mask, rotation, translation, cfg.augment, generators, self.camera)
         return TrainingBatch(
             image=image, mask=mask, rotation=rotation, translation=translation,
-            model_index=self.model_index, surface_points=torch.from_numpy(np.stack(surface)),
-            occupancy_points=torch.from_numpy(np.stack(points)),
-            occupancy_labels=torch.from_numpy(np.stack(labels)),
-            symmetries=torch.eye(3).expand(len(self.image), 1, 3, 3))
+            model_index=to_device(self.model_index, device),
+            surface_points=to_device(np.stack(surface), device),
+            occupancy_points=to_device(np.stack(points), device),
+            occupancy_labels=to_device(np.stack(labels), device),
+            symmetries=torch.eye(3, device=device).expand(len(self.image), 1, 3, 3))
 
 
 # ------------------------------------------------------------------------------ training step
@@ -144,22 +162,26 @@ class SyntheticData:
 
 class StepBench:
     """One config's network, optimiser and renderer, as the training loop builds them, on
-    :class:`SyntheticData`."""
+    :class:`SyntheticData` of ``batch`` items, on ``device`` (default the CPU; Mitsuba's
+    variant for it set by the caller, :func:`~sq_mitsuba.training.step.mitsuba_for`)."""
 
-    def __init__(self, config: Any) -> None:
+    def __init__(self, config: Any, batch: int = BATCH, device: torch.device | None = None
+                 ) -> None:
         from sq_mitsuba.model.network import SuperquadricNet
         from sq_mitsuba.training.schedule import make_optimizer
         from sq_mitsuba.training.step import reprojection_renderer, to_channels_last
 
         self.config = config
-        self.data = SyntheticData(config)
+        self.device = torch.device("cpu") if device is None else device
+        self.data = SyntheticData(config, batch, device=self.device)
         torch.manual_seed(config.seed)
-        self.model = SuperquadricNet(config.network).train()
+        self.model = SuperquadricNet(config.network).to(self.device).train()
         if config.channels_last:
             to_channels_last(self.model)
         self.optimizer, _ = make_optimizer(self.model, config.optim, 1)
-        self.k_matrix = self.data.camera.matrix()
-        self.renderer = reprojection_renderer(config, self.data.camera, torch.device("cpu"))
+        self.k_matrix = self.data.camera.matrix(device=self.device)
+        self.renderer = reprojection_renderer(config, self.data.camera, self.device)
+        self._fixed: TrainingBatch | None = None
 
     def close(self) -> None:
         """Stop the renderer's worker processes."""
@@ -173,14 +195,30 @@ class StepBench:
         return loss_context(self.config, self.renderer, step)
 
     def step(self, step: int) -> None:
-        """One training step exactly as the loop runs it (without logging)."""
+        """One training step exactly as the loop runs it (without logging): the batch made
+        (draws on the host, pixels to the device, augmentation there), then
+        :func:`~sq_mitsuba.training.step.training_step`."""
         from sq_mitsuba.training.step import NotFiniteError, training_step
 
         try:
-            training_step(self.model, self.optimizer, self.data.batch(step), self.k_matrix,
-                          self.context(step), self.config.optim.grad_clip)
+            training_step(self.model, self.optimizer, self.data.batch(step, self.device),
+                          self.k_matrix, self.context(step), self.config.optim.grad_clip)
         except NotFiniteError as error:
             raise RuntimeError(f"bench train: step {step}: {error}") from None
+
+    def network_step(self) -> None:
+        """The network alone on one fixed batch already on the device: forward, backward of
+        the sum of its outputs' means (every head gets a gradient), AdamW step. What the
+        hardware allows a step to cost; :meth:`step` over it is the price of the rest."""
+        if self._fixed is None:
+            self._fixed = self.data.batch(0, self.device)
+        output = self.model(self._fixed.image, self.k_matrix)
+        loss = sum(value.float().mean() for f in dataclasses.fields(output)
+                   if isinstance(value := getattr(output, f.name), torch.Tensor)
+                   and value.requires_grad)
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()  # type: ignore[union-attr]
+        self.optimizer.step()
 
     def timed_parts(self, step: int) -> dict[str, float]:
         """The same step cut into parts, each timed (seconds): ``data``, ``encoder``, each
@@ -372,13 +410,79 @@ def _inference_figures(report: Report, options: BenchOptions) -> None:
     report.notes.append(f"inference: 1-minute load average after it: {load_average():.2f}")
 
 
+def step_ratio(config: Any, batch: int, device: torch.device, repeats: int, warmup: int
+               ) -> dict[str, list[float]]:
+    """Seconds per step of the network alone (:meth:`StepBench.network_step`) and of the full
+    training step (:meth:`StepBench.step`) of ``config`` at ``batch`` images on ``device``,
+    the two alternating (``warmup`` untimed pairs first) so that load changes hit both alike;
+    the device is waited for after each. Returns ``{"network": [...], "step": [...]}``."""
+    from sq_mitsuba.config import apply_overrides
+    from sq_mitsuba.training.step import mitsuba_for
+
+    config = apply_overrides(config, [f"optim.batch_size={batch}", f'device="{device.type}"'])
+
+    def sync() -> None:
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+
+    samples: dict[str, list[float]] = {"network": [], "step": []}
+    with mitsuba_for(device, config.reprojection.deterministic):
+        trainer = StepBench(config, batch, device)
+        try:
+            calls = {"network": trainer.network_step, "step": lambda: trainer.step(step)}
+            for step in range(warmup + repeats):
+                for name, call in calls.items():
+                    sync()
+                    start = time.perf_counter()
+                    call()
+                    sync()
+                    if step >= warmup:
+                        samples[name].append(time.perf_counter() - start)
+        finally:
+            trainer.close()
+    return samples
+
+
+def _ratio_figures(report: Report, options: BenchOptions) -> None:
+    """The headline rows: ``shipped.toml``'s network alone and full step at batch 32 and
+    ``options.batch``, images/s each and the ratio full / network alone."""
+    device = torch.device(options.device)
+    batches = sorted({BATCH, options.batch or BATCH})
+    repeats = max(3, min(options.repeats, 10))
+    for batch in batches:
+        samples = step_ratio(load_config(RATIO_CONFIG), batch, device, repeats,
+                             max(1, options.warmup))
+        rates = {name: [batch / s for s in values] for name, values in samples.items()}
+        for name, label in (("network", "network alone (forward, backward, AdamW)"),
+                            ("step", "full training step (training_step, batch made)")):
+            rate = Timing(name, rates[name])
+            report.timings.append(Timing(
+                f"{RATIO_CONFIG}.toml {label}, batch {batch}, per image",
+                [s / batch for s in samples[name]],
+                note=f"{rate.median:.1f} images/s (IQR {rate.spread[0]:.1f} - "
+                     f"{rate.spread[1]:.1f}), {options.device}"))
+        pairs = Timing("ratio", [n / s for n, s in zip(samples["network"], samples["step"],
+                                                        strict=True)])
+        report.notes.insert(0, (
+            f"**headline, batch {batch} on {options.device}: the full step runs at "
+            f"{100 * pairs.median:.1f} % of the network alone** (full / network-alone images/s, "
+            f"median of {repeats} alternating pairs, IQR {100 * pairs.spread[0]:.1f} - "
+            f"{100 * pairs.spread[1]:.1f} %; network alone "
+            f"{statistics.median(rates['network']):.1f} images/s, full step "
+            f"{statistics.median(rates['step']):.1f} images/s, medians of the same pairs)"))
+
+
 def run(options: BenchOptions) -> Report:
     torch.set_num_threads(options.threads)
-    report = Report("train", options=options)
-    repeats = max(1, min(options.repeats, 5))  # each repeat is a training step of 32 images
+    step_only = options.step_only or options.device != "cpu"
+    report = Report("train-step" if step_only else "train", options=options)
     report.notes.append(f"load average at the start: {load_average():.2f} on "
                         f"{os.cpu_count()} cores (above ~2, other processes inflate these "
                         "timings)")
+    _ratio_figures(report, options)
+    if step_only:  # the rest measures the CPU recipes
+        return report
+    repeats = max(1, min(options.repeats, 5))  # each repeat is a training step of 32 images
     for name in ("a", "cpu"):
         _train_figures(report, name, repeats)
     # What the render workers and channels-last buy, each measured in the same run.

@@ -10,7 +10,7 @@ from sq_mitsuba.cli import CLIError
 from sq_mitsuba.cli._options import add_config_options, config_from_args
 
 FLAGS = {"repeats": "--repeats", "warmup": "--warmup", "threads": "--threads",
-         "device": "--device"}
+         "device": "--device", "batch": "--batch", "step_only": "--step-only"}
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

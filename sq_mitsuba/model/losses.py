@@ -29,11 +29,13 @@ the batch) unless its docstring says otherwise.
 
 from __future__ import annotations
 
+import functools
+
 import torch
 from torch import Tensor
 from torch.nn import functional as F
 
-from sq_mitsuba.checks import check_tensor
+from sq_mitsuba.checks import check_tensor, value_checks_enabled
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.nearest import gathered_differences, matched_indices
 from sq_mitsuba.geometry.rotation import rotation_angle
@@ -67,15 +69,18 @@ SILHOUETTE_LOSSES = ("mse", "iou")
 # ------------------------------------------------------------------------------- Chamfer
 
 
-def chamfer_loss(pred_points: Tensor, pred_mask: Tensor | None, target: Tensor) -> Tensor:
+def chamfer_loss(pred_points: Tensor, pred_mask: Tensor | None, target: Tensor,
+                 method: str | None = None) -> Tensor:
     """Squared-L2 Chamfer distance (paper Eq. 12), mean over the batch.
 
     Per item: mean over predicted points of the squared distance to the nearest target point,
     plus mean over target points of the squared distance to the nearest predicted point.
     Equal in value and gradient to the dense form (all pairwise distances, min per row and
-    column) but O((N + K) log(N + K)) per item: nearest-neighbour indices come from a KD-tree
-    (:mod:`sq_mitsuba.geometry.nearest`, no gradient), and the gradient flows through the
-    differences of the matched pairs, which is exactly where the dense form's min sends it.
+    column): nearest-neighbour indices come from
+    :func:`~sq_mitsuba.geometry.nearest.matched_indices` (no gradient; a KD-tree per item on
+    the CPU, O((N + K) log(N + K)), all pairs in batched chunks on a GPU), and the gradient
+    flows through the differences of the matched pairs, which is exactly where the dense
+    form's min sends it.
 
     Args:
         pred_points: (B, N, 3), e.g. an assembly's surface samples.
@@ -83,6 +88,8 @@ def chamfer_loss(pred_points: Tensor, pred_mask: Tensor | None, target: Tensor) 
             primitive), or None for all. Points that do not count are left out of both
             directions. Convention: an item where no point counts uses all its points.
         target: (B, K, 3) ground-truth surface points, same dtype.
+        method: the nearest-neighbour search, ``"kdtree"``, ``"dense"`` or None (by the
+            device: :func:`~sq_mitsuba.geometry.nearest.nearest_method`); equal results.
 
     Returns:
         Scalar tensor.
@@ -108,7 +115,7 @@ def chamfer_loss(pred_points: Tensor, pred_mask: Tensor | None, target: Tensor) 
                              f"got {shape}")
         keep = pred_mask.to(pred_points.device)
         keep = keep | ~keep.any(dim=1, keepdim=True)  # an empty item keeps all its points
-    to_target, to_pred = matched_indices(pred_points, keep, target)
+    to_target, to_pred = matched_indices(pred_points, keep, target, method=method)
     forward = gathered_differences(pred_points, target, to_target).square().sum(-1)  # (B, N)
     backward = gathered_differences(target, pred_points, to_pred).square().sum(-1)  # (B, K)
     weight = keep.to(pred_points.dtype)
@@ -170,7 +177,8 @@ def occupancy_loss(assembly: Assembly, points: Tensor, labels: Tensor,
         raise ValueError(f"labels: expected shape {tuple(points.shape[:-1])} (B, N), got "
                          f"{shape}")
     target = labels.to(points.dtype)
-    if bool(((target < 0) | (target > 1)).any()):
+    # A value check (off inside a training step): a scan of the labels is a host sync on a GPU.
+    if value_checks_enabled() and bool(((target < 0) | (target > 1)).any()):
         raise ValueError("labels: expected values in [0, 1]")
     if not sharpness > 0:
         raise ValueError(f"sharpness: expected a positive number, got {sharpness}")
@@ -198,11 +206,11 @@ def reprojection_loss(assembly: Assembly, rotations: Tensor, translations: Tenso
     Per item: :func:`mask_mse` ``= mean over pixels (coverage - mask)^2``, with coverage the
     silhouette of the merged primitive meshes rendered by the renderer's fused
     :meth:`~sq_mitsuba.render.silhouette.renderer.SilhouetteRenderer.render_target_loss` (one BVH
-    rebuild per item, items shared among the renderer's worker processes if it has any;
-    gradients from Mitsuba's projective integrator, w.r.t. the assembly parameters and the
-    pose). Without a
-    gradient to compute (``torch.no_grad()`` or constant inputs) only the forward images are
-    rendered.
+    rebuild per item, items shared among the renderer's worker processes if it has any; or,
+    with a ``batched`` renderer, the default on CUDA, every item in one launch each way, each in
+    its own tile of one film; gradients from Mitsuba's projective integrator, w.r.t. the
+    assembly parameters and the pose). Without a gradient to compute (``torch.no_grad()`` or
+    constant inputs) only the forward images are rendered.
 
     Args:
         assembly: batch size B (or 1, shared by every pose).
@@ -240,6 +248,9 @@ def reprojection_loss(assembly: Assembly, rotations: Tensor, translations: Tenso
                              f"{items!r}")
         if items < batch:
             chosen = torch.randperm(batch, generator=generator)[:items].sort().values
+            if rotations.device.type != "cpu":
+                # From pinned memory the copy does not make the host wait for the device.
+                chosen = chosen.pin_memory().to(rotations.device, non_blocking=True)
             if assembly.batch_size == batch:
                 assembly = Assembly(assembly.params[chosen.to(assembly.params.device)])
             rotations = rotations[chosen.to(rotations.device)]
@@ -264,9 +275,18 @@ def translation_loss(pred_translation: Tensor, gt_translation: Tensor) -> Tensor
         raise ValueError(f"pred_translation, gt_translation: expected (B, 3) each, got "
                          f"{tuple(pred_translation.shape)} and {tuple(gt_translation.shape)}")
     distance = torch.linalg.vector_norm(gt_translation, dim=-1)
-    if bool((distance == 0).any()):
+    # Read back only with value checks on: inside a training step (checks off) it would make
+    # the host wait for the device every step.
+    if value_checks_enabled() and bool((distance == 0).any()):
         raise ValueError("gt_translation: must be non-zero (the error is relative to it)")
     return torch.linalg.vector_norm(gt_translation - pred_translation, dim=-1) / distance
+
+
+@functools.cache
+def _grid_on(cells: int, device: torch.device) -> Tensor:
+    """:func:`~sq_mitsuba.model.rotation_grid.grid_quaternions` on ``device``, copied once
+    (a copy per step from pageable memory would make the host wait for a GPU)."""
+    return grid_quaternions(cells).to(device=device)
 
 
 def _symmetric_targets(gt_rotation: Tensor, symmetries: Tensor | None) -> Tensor:
@@ -387,7 +407,7 @@ def rotation_distribution_loss(logits: Tensor, gt_rotation: Tensor,
     if symmetries is None:
         symmetries = torch.eye(3, dtype=gt_rotation.dtype,
                                device=gt_rotation.device).expand(len(gt_rotation), 1, 3, 3)
-    cells = grid_quaternions(logits.shape[-1]).to(device=logits.device)
+    cells = _grid_on(logits.shape[-1], logits.device)
     targets = soft_rotation_targets(gt_rotation.float(), symmetries.float(), cells)
     return -(targets.to(logits) * logits.log_softmax(dim=-1)).sum(dim=-1)
 

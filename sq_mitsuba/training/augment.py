@@ -29,6 +29,12 @@ edges.
 
 Every random draw of an item comes from its own ``numpy.random.Generator``, so an item is
 augmented the same whatever batch or process it lands in (distributed training splits batches).
+
+Convention: the images may live on a GPU. The parameters are drawn on the host, and every
+decision that depends on them (which items turn, whether any blurs, the blur's width) is taken
+from the host's copy, so augmenting a batch on a GPU never waits for it; the parameters (and the
+noise, drawn on the host from each item's seed) reach the device in asynchronous copies. On the
+CPU the results are the same, bit for bit, as one item at a time.
 """
 
 from __future__ import annotations
@@ -46,7 +52,7 @@ from sq_mitsuba.config import in_range
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.image_turns import check_rotation_exact, rotate_batch, z_rotation
 
-__all__ = ["KINDS", "AugmentConfig", "augment_batch"]
+__all__ = ["KINDS", "AugmentConfig", "augment_batch", "to_device"]
 
 #: The kinds of augmentation, in the order they are applied.
 KINDS = ("rotation", "brightness", "gamma", "blur", "noise")
@@ -96,11 +102,22 @@ class AugmentConfig:
         return self.probability > 0 and any(getattr(self, kind) for kind in KINDS)
 
 
-def _gaussian_blur(images: Tensor, sigmas: Tensor) -> Tensor:
+def to_device(value: np.ndarray | Tensor, device: torch.device) -> Tensor:
+    """A host array or tensor on ``device``: on a GPU through pinned memory, copied without
+    waiting (a copy from pageable memory would wait for the device); on the CPU as it is."""
+    tensor = torch.as_tensor(value)
+    if device.type != "cuda":
+        return tensor.to(device)
+    return tensor.pin_memory().to(device, non_blocking=True)
+
+
+def _gaussian_blur(images: Tensor, sigmas: Tensor, largest: float | None = None) -> Tensor:
     """Per-item Gaussian blur (reflect padding) of images (B, C, H, W) with widths (B,) px;
-    items with sigma 0 are returned unchanged."""
+    items with sigma 0 are returned unchanged. ``largest``: the largest width, when known on
+    the host (else read from ``sigmas``)."""
     batch, channels = images.shape[:2]
-    radius = max(1, math.ceil(3 * float(sigmas.max())))
+    largest = float(sigmas.max()) if largest is None else largest
+    radius = max(1, math.ceil(3 * largest))
     offsets = torch.arange(-radius, radius + 1, dtype=images.dtype, device=images.device)
     safe = sigmas.clamp_min(1e-6).to(images.dtype)[:, None]
     kernel = torch.exp(-0.5 * (offsets[None] / safe) ** 2)
@@ -179,10 +196,13 @@ def augment_batch(images: Tensor, masks: Tensor, rotations: Tensor, translations
     images, masks = images.clone(), masks.clone()
     rotations, translations = rotations.clone(), translations.clone()
 
-    angles = torch.as_tensor(params["rotation"], dtype=torch.float64, device=device)
-    turned = angles != 0
-    if bool(turned.any()):
-        idx = torch.nonzero(turned).flatten()
+    # Every parameter in one copy to the device (float64 here, each cast as before).
+    table = to_device(np.stack([params[kind] for kind in KINDS]), device)  # (kinds, B)
+    column = dict(zip(KINDS, table, strict=True))
+    angles = column["rotation"]
+    turned = np.flatnonzero(params["rotation"] != 0)  # decided on the host: no wait
+    if len(turned):
+        idx = to_device(turned, device)
         images[idx] = rotate_batch(images[idx], angles[idx]).to(dtype)
         masks[idx] = rotate_batch(masks[idx], angles[idx]).to(masks.dtype).clamp(0, 1)
         rz = z_rotation(angles[idx])
@@ -190,20 +210,23 @@ def augment_batch(images: Tensor, masks: Tensor, rotations: Tensor, translations
         translations[idx] = (rz @ translations[idx].to(torch.float64)[..., None])[..., 0].to(
             translations.dtype)
 
-    factor = torch.as_tensor(params["brightness"], dtype=dtype, device=device)
+    factor = column["brightness"].to(dtype)
     images = (images * factor[:, None, None, None]).clamp(0, 1)
-    gamma = torch.as_tensor(params["gamma"], dtype=dtype, device=device)
-    if bool((gamma != 1).any()):
+    gamma = column["gamma"].to(dtype)
+    if bool((params["gamma"] != 1).any()):
         images = images.clamp_min(0) ** gamma[:, None, None, None]
-    sigmas = torch.as_tensor(params["blur"], dtype=dtype, device=device)
-    if bool((sigmas > 0).any()):
-        images = _gaussian_blur(images, sigmas)
+    sigmas = column["blur"].to(dtype)
+    if bool((params["blur"] > 0).any()):
+        # The radius from the host's values, rounded to the images' dtype as on the device.
+        largest = float(torch.as_tensor(params["blur"], dtype=dtype).max())
+        images = _gaussian_blur(images, sigmas, largest)
     stds = params["noise"]
     if bool((stds > 0).any()):
-        noise = torch.zeros_like(images)
+        # Drawn on the host from each item's seed (the same noise on every device), one copy.
+        noise = torch.zeros(images.shape, dtype=dtype)
         for i in np.flatnonzero(stds > 0):
             gen = torch.Generator().manual_seed(int(noise_seeds[i]))
             noise[i] = float(stds[i]) * torch.randn(images.shape[1:], generator=gen,
-                                                    dtype=dtype).to(device)
-        images = (images + noise).clamp(0, 1)
+                                                    dtype=dtype)
+        images = (images + to_device(noise, device)).clamp(0, 1)
     return images, masks, rotations, translations

@@ -45,8 +45,8 @@ from torch import Tensor
 from sq_mitsuba.data.spe3r.layout import DatasetError, read_splits
 from sq_mitsuba.io import atomic_write_json
 
-__all__ = ["CACHE_VERSION", "ImageCache", "PointCache", "dataset_fingerprint", "manifest_hash",
-           "open_image_cache", "open_point_cache"]
+__all__ = ["CACHE_VERSION", "ImageCache", "PointCache", "dataset_fingerprint", "decode_pixels",
+           "manifest_hash", "open_image_cache", "open_point_cache"]
 
 CACHE_VERSION = 1
 MANIFEST = "dataset.json"
@@ -177,17 +177,36 @@ class ImageCache:
         """Collated items: ``image`` (B, 1, S, S) float32 in [0, 1] (exactly the dataset's
         values, k / 255), ``mask`` (B, 1, S, S) float32 in {0, 1}, ``quaternion`` (B, 4),
         ``rotation`` (B, 3, 3), ``translation`` (B, 3) float32, ``model_index`` (B,) int64."""
+        items = self.raw_batch(indices)
+        image, mask = decode_pixels(items.pop("image_u8"), items.pop("mask_packed"), self.size)
+        return {"image": image, "mask": mask, **items}
+
+    def raw_batch(self, indices: Sequence[int] | np.ndarray) -> dict[str, Tensor]:
+        """:meth:`batch` before its pixels are decoded (what a GPU step copies, a quarter of
+        the float32 bytes): ``image_u8`` (B, S, S) uint8, ``mask_packed`` (B, S, ceil(S / 8))
+        uint8 bit-packed, and the poses and model indices of :meth:`batch`; decoded by
+        :func:`decode_pixels` on any device."""
         idx = np.asarray(indices, dtype=np.int64)
-        images = torch.from_numpy(np.ascontiguousarray(self.images[idx]))
-        masks = torch.from_numpy(self.mask_array(idx))
         return {
-            "image": (images.to(torch.float32) / 255.0)[:, None],
-            "mask": masks.to(torch.float32)[:, None],
+            "image_u8": torch.from_numpy(np.ascontiguousarray(self.images[idx])),
+            "mask_packed": torch.from_numpy(np.ascontiguousarray(self.masks[idx])),
             "quaternion": torch.from_numpy(self.quaternions[idx]).to(torch.float32),
             "rotation": torch.from_numpy(self.rotations[idx]).to(torch.float32),
             "translation": torch.from_numpy(self.translations[idx]).to(torch.float32),
             "model_index": torch.from_numpy(self.model_index[idx]).to(torch.int64),
         }
+
+
+def decode_pixels(images: Tensor, packed_masks: Tensor, size: int) -> tuple[Tensor, Tensor]:
+    """Cached pixels decoded on their own device: images (B, S, S) uint8 -> (B, 1, S, S)
+    float32 k / 255; bit-packed masks (B, S, ceil(S / 8)) uint8 (``np.packbits`` order, most
+    significant bit first) -> (B, 1, S, S) float32 in {0, 1}. Equal, bit for bit, on every
+    device (one correctly rounded division; the masks exact)."""
+    image = (images.to(torch.float32) / 255.0)[:, None]
+    shifts = torch.arange(7, -1, -1, dtype=torch.uint8, device=packed_masks.device)
+    bits = (packed_masks[..., None] >> shifts) & 1  # (B, S, P, 8)
+    mask = bits.flatten(-2)[..., :size].to(torch.float32)[:, None]
+    return image, mask
 
 
 def _label_of(dataset: Any, item: int) -> dict[str, Any]:

@@ -13,6 +13,7 @@ an ordinary, complete config.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -72,10 +73,23 @@ class DataConfig:
 
 @dataclass(frozen=True)
 class OptimConfig:
-    """AdamW with a per-step cosine schedule and gradient clipping."""
+    """AdamW with a per-step cosine schedule and gradient clipping.
+
+    Large batches: ``lr`` and ``warmup_images`` are given for ``reference_batch`` images per
+    step, and ``lr_scaling`` says how they follow ``batch_size`` (:meth:`peak_lr`,
+    :meth:`warmup_step_count`): a batch k times the reference takes k times fewer steps per
+    epoch, so each step must move further ("linear": k lr, Goyal et al. 2017 for SGD; "sqrt":
+    sqrt(k) lr, the rule that keeps Adam's update noise alike, Malladi et al. 2022).
+    """
 
     lr: float = positive(1e-4)
-    "Peak learning rate."
+    """Peak learning rate at ``reference_batch`` images per step (the peak of this run:
+    :meth:`peak_lr`)."""
+    lr_scaling: Literal["none", "linear", "sqrt"] = "none"
+    """How the peak learning rate follows batch_size / reference_batch = k: none (lr as
+    given), linear (k lr) or sqrt (sqrt(k) lr)."""
+    reference_batch: int = in_range(1, 1_000_000, default=32)
+    "The batch size that lr (and warmup_images) are tuned for; read with lr_scaling."
     weight_decay: float = non_negative(1e-4)
     "AdamW's decoupled weight decay."
     eps: float = positive(1e-5)
@@ -85,7 +99,10 @@ class OptimConfig:
     min_lr_ratio: float = in_range(0, 1, default=0.0)
     "The cosine schedule decays to lr * min_lr_ratio at the last step."
     warmup_steps: int = non_negative(0)
-    "Steps of linear warm-up from 0 before the cosine decay."
+    "Steps of linear warm-up from 0 before the cosine decay (unless warmup_images is set)."
+    warmup_images: int | None = in_range(0, 1_000_000_000, default=None)
+    """Warm-up length in images seen instead of steps: ceil(warmup_images / batch_size)
+    steps, so a larger batch warms up over the same data; None: warmup_steps."""
     grad_clip: float | None = positive(1.0)
     "Clip the gradient's global L2 norm to this; None: no clipping."
     batch_size: int = in_range(1, 4096, default=32)
@@ -101,6 +118,21 @@ class OptimConfig:
         for index, beta in enumerate(self.betas):
             if not 0 <= beta < 1:
                 raise ValueError(f"betas[{index}]: expected a value in [0, 1), got {beta}")
+
+    def peak_lr(self) -> float:
+        """The peak learning rate of this run: ``lr`` scaled by ``lr_scaling`` from
+        ``reference_batch`` to ``batch_size`` (k = batch_size / reference_batch: lr, k lr or
+        sqrt(k) lr)."""
+        ratio = self.batch_size / self.reference_batch
+        factor = {"none": 1.0, "linear": ratio, "sqrt": math.sqrt(ratio)}[self.lr_scaling]
+        return self.lr * factor
+
+    def warmup_step_count(self) -> int:
+        """Steps of warm-up: ``ceil(warmup_images / batch_size)`` when ``warmup_images`` is
+        set, else ``warmup_steps``."""
+        if self.warmup_images is None:
+            return self.warmup_steps
+        return math.ceil(self.warmup_images / self.batch_size)
 
 
 @dataclass(frozen=True)

@@ -25,9 +25,15 @@ from torch import Tensor
 from sq_mitsuba.data.spe3r import Spe3rDataset
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.image_turns import check_rotation_exact
-from sq_mitsuba.training.augment import augment_batch
+from sq_mitsuba.training.augment import augment_batch, to_device
 from sq_mitsuba.training.batch import TrainingBatch
-from sq_mitsuba.training.cache import ImageCache, PointCache, open_image_cache, open_point_cache
+from sq_mitsuba.training.cache import (
+    ImageCache,
+    PointCache,
+    decode_pixels,
+    open_image_cache,
+    open_point_cache,
+)
 from sq_mitsuba.training.config import TrainConfig
 from sq_mitsuba.training.distributed import World, broadcast_object
 from sq_mitsuba.training.random_streams import STREAMS, seed_of
@@ -70,17 +76,30 @@ class TrainingStream:
             out[where] = self.keep[self._permutation(int(epoch))[positions[where] % n]]
         return out
 
-    def batch(self, step: int, world: World) -> TrainingBatch:
-        """This process's slice of step ``step``'s batch, with points and augmentation."""
+    def batch(self, step: int, world: World, device: torch.device | str | None = None
+              ) -> TrainingBatch:
+        """This process's slice of step ``step``'s batch, with points and augmentation, on
+        ``device`` (default the CPU).
+
+        The random draws are made on the host, item by item (each from its own generator, so
+        the batch is the same on every device); the pixels travel as uint8 (images and
+        bit-packed masks, in copies that do not wait on a GPU) and are decoded and augmented on
+        ``device``. On the CPU the batch equals, bit for bit, one decoded and augmented there.
+        """
+        device = torch.device("cpu" if device is None else device)
         local = self.batch_size // world.size
         start = world.rank * local
         rows = self.rows(step)[start:start + local]
-        cached = self.images.batch(rows)
+        raw = self.images.raw_batch(rows)
+        moved = {name: to_device(value, device) for name, value in raw.items()}
+        image, mask = decode_pixels(moved.pop("image_u8"), moved.pop("mask_packed"),
+                                    self.images.size)
+        cached = {"image": image, "mask": mask, **moved}
         cfg = self.config
         generators = [np.random.default_rng(seed_of(cfg.seed, STREAMS["item"], step, j))
                       for j in range(start, start + local)]
         surface, occupancy, labels = [], [], []
-        for k, model in enumerate(cached["model_index"].tolist()):
+        for k, model in enumerate(raw["model_index"].tolist()):  # the host's copy
             s, o, lab = self.points.sample(model, generators[k], cfg.data.num_surface,
                                            cfg.data.num_occupancy)
             surface.append(s)
@@ -94,10 +113,10 @@ class TrainingStream:
         return TrainingBatch(
             image=image, mask=mask, rotation=rotation, translation=translation,
             model_index=cached["model_index"],
-            surface_points=torch.from_numpy(np.stack(surface)),
-            occupancy_points=torch.from_numpy(np.stack(occupancy)),
-            occupancy_labels=torch.from_numpy(np.stack(labels)),
-            symmetries=self.symmetries[cached["model_index"]])
+            surface_points=to_device(np.stack(surface), device),
+            occupancy_points=to_device(np.stack(occupancy), device),
+            occupancy_labels=to_device(np.stack(labels), device),
+            symmetries=to_device(self.symmetries[raw["model_index"]], device))
 
 
 def symmetry_table(root: Path, models: Sequence[str], cache_dir: Path | None = None) -> Tensor:

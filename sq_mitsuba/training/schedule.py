@@ -27,11 +27,13 @@ def cosine_lr_factor(step: int, total_steps: int, warmup_steps: int = 0,
 def make_optimizer(model: nn.Module, optim: OptimConfig, total_steps: int
                    ) -> tuple[torch.optim.AdamW, torch.optim.lr_scheduler.LambdaLR]:
     """AdamW over ``model``'s trainable parameters (``requires_grad``) and its per-step
-    schedule (:func:`cosine_lr_factor` over ``total_steps``)."""
+    schedule (:func:`cosine_lr_factor` over ``total_steps``), peaking at
+    :meth:`OptimConfig.peak_lr` after :meth:`OptimConfig.warmup_step_count` steps (the batch
+    size's learning-rate scaling)."""
     parameters = [p for p in model.parameters() if p.requires_grad]
-    optimizer = torch.optim.AdamW(parameters, lr=optim.lr, betas=optim.betas,
+    warmup = optim.warmup_step_count()
+    optimizer = torch.optim.AdamW(parameters, lr=optim.peak_lr(), betas=optim.betas,
                                   eps=optim.eps, weight_decay=optim.weight_decay)
     scheduler = torch.optim.lr_scheduler.LambdaLR(
-        optimizer, lambda s: cosine_lr_factor(s, total_steps, optim.warmup_steps,
-                                              optim.min_lr_ratio))
+        optimizer, lambda s: cosine_lr_factor(s, total_steps, warmup, optim.min_lr_ratio))
     return optimizer, scheduler

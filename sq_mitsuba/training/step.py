@@ -14,6 +14,13 @@ processes that share a step's rendered items, each on one thread: an item's samp
 (seed, step, item) alone, so any number of workers gives the same losses bit for bit, and a run
 may resume with another. Torch's CPU kernels are deterministic at a fixed thread count; a
 resumed run must use the same one.
+
+Convention: on a GPU, a step waits for the device once. The finite checks of the outputs, the
+loss and the gradient norm, and the logged values (the loss, each term, the norm), are one
+device reduction read back in one copy (:func:`training_step`), before the update; every other
+part of the step (the batch's conversion and augmentation, the nearest-neighbour search of the
+Chamfer term) is queued without waiting. On the CPU, where reading a value costs nothing, the
+outputs are checked before the loss terms run (a KD-tree or the renderer never sees a NaN).
 """
 
 from __future__ import annotations
@@ -41,8 +48,10 @@ from sq_mitsuba.training.run.state import TrainError
 __all__ = [
     "NotFiniteError",
     "StepResult",
+    "finite_flag",
     "forward_loss",
     "gradient_norm",
+    "gradient_norm_tensor",
     "loss_context",
     "mitsuba_for",
     "outputs_finite",
@@ -73,16 +82,23 @@ class StepResult:
     "Each weighted term, detached scalars, in registry order."
     grad_norm: float
     "The gradient's global L2 norm before clipping."
+    values: dict[str, float] = dataclasses.field(default_factory=dict)
+    """``loss`` and each term as floats (read back with the finite checks, in one copy):
+    ``{"loss": ..., name: ...}``."""
+
+
+def finite_flag(output: Any) -> Tensor:
+    """Whether every floating tensor field of a network output is finite: a bool scalar on
+    the output's device, one reduction, no synchronisation."""
+    flags = [torch.isfinite(value).all() for item in dataclasses.fields(output)
+             if isinstance(value := getattr(output, item.name), Tensor)
+             and value.is_floating_point()]
+    return torch.stack(flags).all() if flags else torch.tensor(True)
 
 
 def outputs_finite(output: Any) -> bool:
-    """Whether every floating tensor field of a network output is finite."""
-    for item in dataclasses.fields(output):
-        value = getattr(output, item.name)
-        if isinstance(value, Tensor) and value.is_floating_point() and not bool(
-                torch.isfinite(value).all()):
-            return False
-    return True
+    """Whether every floating tensor field of a network output is finite (one read)."""
+    return bool(finite_flag(output))
 
 
 def forward_loss(model: nn.Module, batch: TrainingBatch, k_matrix: Tensor,
@@ -109,13 +125,19 @@ def forward_loss(model: nn.Module, batch: TrainingBatch, k_matrix: Tensor,
     return terms, total_loss(terms, context.loss)
 
 
-def gradient_norm(model: nn.Module, grad_clip: float | None) -> float:
+def gradient_norm_tensor(model: nn.Module, grad_clip: float | None) -> Tensor:
     """Norm of the gradient of every parameter, before clipping it to ``grad_clip`` (None:
-    no clipping)."""
+    no clipping): a scalar on the parameters' device, not read back (clipping does not wait
+    for it)."""
     if grad_clip is not None:
-        return float(nn.utils.clip_grad_norm_(model.parameters(), grad_clip))
-    return float(torch.linalg.vector_norm(torch.stack([
-        p.grad.norm() for p in model.parameters() if p.grad is not None])))
+        return nn.utils.clip_grad_norm_(model.parameters(), grad_clip)
+    return torch.linalg.vector_norm(torch.stack([
+        p.grad.norm() for p in model.parameters() if p.grad is not None]))
+
+
+def gradient_norm(model: nn.Module, grad_clip: float | None) -> float:
+    """:func:`gradient_norm_tensor` read back as a float."""
+    return float(gradient_norm_tensor(model, grad_clip))
 
 
 def training_step(model: nn.Module, optimizer: torch.optim.Optimizer, batch: TrainingBatch,
@@ -125,14 +147,21 @@ def training_step(model: nn.Module, optimizer: torch.optim.Optimizer, batch: Tra
 
     The inputs are checked once, where the data are cached; the per-call NaN scans of the
     geometry and loss functions are switched off here and replaced by one check of the outputs
-    and one of the loss and of the gradient norm. In a distributed run (``world``) every
-    process agrees on them before the backward pass (whose gradient all-reduce would wait
-    forever for a process that skipped it) and again after it.
+    and one of the loss and of the gradient norm.
+
+    On the CPU the outputs and the loss are checked before the backward pass; in a distributed
+    run (``world``) every process agrees on them there (the gradient all-reduce would wait
+    forever for a process that skipped it) and again on the norm after it. On any other device
+    every process runs the loss and the backward pass whatever the outputs hold, and the
+    outputs, the loss and the norm are checked together after it, with the logged values, in
+    one read (see the module docstring).
 
     Raises:
         NotFiniteError: the loss or the gradient is not finite; the update was not applied.
     """
     world = World() if world is None else world
+    if batch.image.device.type != "cpu":
+        return _device_step(model, optimizer, batch, k_matrix, context, grad_clip, world)
     with value_checks(False):
         terms, loss = forward_loss(model, batch, k_matrix, context)
         finite = loss is not None and bool(torch.isfinite(loss))
@@ -145,7 +174,36 @@ def training_step(model: nn.Module, optimizer: torch.optim.Optimizer, batch: Tra
     if any_rank(not math.isfinite(norm), world):
         raise NotFiniteError({**terms, "gradient norm": torch.tensor(norm)})
     optimizer.step()
-    return StepResult(loss.detach(), {k: v.detach() for k, v in terms.items()}, norm)
+    detached = {k: v.detach() for k, v in terms.items()}
+    # float32 -> float64 is exact: the values equal float() of each tensor.
+    read = torch.stack([loss.detach(), *detached.values()]).to(torch.float64).tolist()
+    return StepResult(loss.detach(), detached, norm, dict(zip(["loss", *detached], read,
+                                                              strict=True)))
+
+
+def _device_step(model: nn.Module, optimizer: torch.optim.Optimizer, batch: TrainingBatch,
+                 k_matrix: Tensor, context: LossContext, grad_clip: float | None,
+                 world: World) -> StepResult:
+    """:func:`training_step` on a GPU: one read of the device per step (the finite checks
+    and the logged values together), before the update."""
+    with value_checks(False):
+        output = model(batch.image, k_matrix)
+        outputs_ok = finite_flag(output)
+        terms = compute_terms(output, batch, context)
+        loss = total_loss(terms, context.loss)
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    norm = gradient_norm_tensor(model, grad_clip)
+    detached = {k: v.detach() for k, v in terms.items()}
+    ok = outputs_ok & torch.isfinite(loss.detach()) & torch.isfinite(norm)
+    read = torch.stack([ok.to(torch.float64), norm.detach().to(torch.float64),
+                        *(v.to(torch.float64) for v in (loss.detach(), *detached.values()))]
+                       ).tolist()  # the step's one synchronisation
+    if any_rank(read[0] != 1.0, world):
+        raise NotFiniteError({**detached, "gradient norm": torch.tensor(read[1])})
+    optimizer.step()
+    return StepResult(loss.detach(), detached, read[1],
+                      dict(zip(["loss", *detached], read[2:], strict=True)))
 
 
 def loss_context(config: TrainConfig, renderer: SilhouetteRenderer | None, step: int,

@@ -215,7 +215,12 @@ def _read_resumed(out_dir: Path) -> dict[str, Any]:
 
 def _check_resumable(checkpoint: dict[str, Any], config: TrainConfig, fingerprint: str,
                      out_dir: Path, data_root: Path) -> None:
-    difference = config_difference(checkpoint["config"], to_dict(config))
+    recorded_config = checkpoint["config"]
+    # A field added since the checkpoint was written counts at its default (older runs
+    # resume); a config that no longer reads is compared as it was written.
+    with contextlib.suppress(ValueError, TypeError):
+        recorded_config = to_dict(from_dict(TrainConfig, recorded_config))
+    difference = config_difference(recorded_config, to_dict(config))
     if difference is not None:
         raise TrainError(f"{out_dir / LAST}: the checkpoint is of another config: {difference}")
     recorded = checkpoint.get("dataset", {}).get("fingerprint")
@@ -415,7 +420,7 @@ class _Loop:
         """Run step ``step``; its log row and its wall time."""
         run, cfg = self.run_state, self.run_state.config
         tick = time.perf_counter()
-        batch = self.data.stream.batch(step, run.world).to(run.device)
+        batch = self.data.stream.batch(step, run.world, run.device)
         context = loss_context(cfg, self.renderer, step, run.world)
         try:
             outcome = training_step(self.model, self.optimizer, batch, self.k_matrix, context,
@@ -425,8 +430,9 @@ class _Loop:
         lr = self.optimizer.param_groups[0]["lr"]
         self.scheduler.step()
         names = list(outcome.terms)
-        values = all_mean(torch.tensor([float(outcome.loss)]
-                                       + [float(outcome.terms[t]) for t in names],
+        # The step read these back with its finite checks (one copy; no more waits here).
+        values = all_mean(torch.tensor([outcome.values["loss"]]
+                                       + [outcome.values[t] for t in names],
                                        dtype=torch.float64), run.world)
         seconds = time.perf_counter() - tick
         row = {"step": step + 1, "epoch": step // self.steps_per_epoch, "lr": lr,

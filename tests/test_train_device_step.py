@@ -1,0 +1,221 @@
+"""The training step on the step's device (issue 34): the batch decoded and augmented where the
+step runs, the GPU step's single read of the device, the large-batch learning-rate rule, and
+``bench train``'s network-alone against full-step figures.
+
+Tests that take ``device`` run on ``pytest --device`` (conftest.py); on the CPU the device
+paths are forced where they would otherwise be chosen only on a GPU."""
+
+from __future__ import annotations
+
+import math
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from sq_mitsuba.checks import value_checks
+from sq_mitsuba.config import apply_overrides
+from sq_mitsuba.training.config import OptimConfig, load_train_config
+
+ROOT = Path(__file__).resolve().parents[1]
+CONFIGS = ROOT / "train" / "configs"
+TINY = CONFIGS / "tiny.toml"
+
+
+# ------------------------------------------------------------------------ learning rate
+
+
+@pytest.mark.parametrize(("rule", "factor"), [("none", 1.0), ("linear", 8.0),
+                                              ("sqrt", math.sqrt(8.0))])
+def test_lr_scaling_rule_gives_the_peak_learning_rate(rule, factor):
+    optim = OptimConfig(lr=1e-3, batch_size=256, lr_scaling=rule, reference_batch=32)
+    assert optim.peak_lr() == pytest.approx(1e-3 * factor, rel=1e-12)
+    # At the reference batch every rule is the lr as given.
+    assert OptimConfig(lr=1e-3, batch_size=32, lr_scaling=rule).peak_lr() == 1e-3
+
+
+def test_warm_up_in_images_follows_the_batch_and_the_optimiser_peaks_there():
+    from sq_mitsuba.training.schedule import make_optimizer
+
+    assert OptimConfig(warmup_steps=50).warmup_step_count() == 50
+    assert OptimConfig(batch_size=256, warmup_steps=50,
+                       warmup_images=1600).warmup_step_count() == 7  # ceil(1600 / 256)
+    optim = OptimConfig(lr=1e-3, batch_size=128, lr_scaling="linear", warmup_images=256)
+    model = torch.nn.Linear(2, 2)
+    optimizer, scheduler = make_optimizer(model, optim, total_steps=10)
+    rates = []
+    for _ in range(4):
+        rates.append(optimizer.param_groups[0]["lr"])
+        optimizer.step()
+        scheduler.step()
+    # Two warm-up steps (256 images of 128) up to the scaled peak, 4e-3; then the cosine.
+    assert rates[0] == pytest.approx(2e-3) and rates[1] == pytest.approx(4e-3)
+    assert rates[2] == pytest.approx(4e-3) and rates[3] < 4e-3
+
+
+def test_shipped_b256_is_the_shipped_recipe_at_batch_256():
+    import dataclasses
+
+    shipped = load_train_config(CONFIGS / "shipped.toml")
+    large = load_train_config(CONFIGS / "shipped_b256.toml")
+    assert large.optim.batch_size == 256 and large.optim.lr_scaling == "sqrt"
+    assert large.optim.peak_lr() == pytest.approx(shipped.optim.lr * math.sqrt(8))
+    # The same number of warm-up images as shipped.toml's 50 steps of 32.
+    assert large.optim.warmup_images == 50 * 32 == shipped.optim.warmup_steps * 32
+    assert dataclasses.replace(large, optim=shipped.optim) == shipped
+    assert shipped.optim.peak_lr() == shipped.optim.lr  # the default rule changes nothing
+
+
+# ------------------------------------------------------------------------ the batch
+
+
+def test_pixels_decode_on_the_device_as_on_the_host(device):
+    from sq_mitsuba.training.cache import decode_pixels
+
+    rng = np.random.default_rng(0)
+    size = 21  # not a multiple of 8: the last packed byte is part padding
+    masks = rng.integers(0, 2, (3, size, size), dtype=np.uint8)
+    images = rng.integers(0, 256, (3, size, size), dtype=np.uint8)
+    packed = torch.from_numpy(np.packbits(masks, axis=-1))
+    image, mask = decode_pixels(torch.from_numpy(images).to(device), packed.to(device), size)
+    assert image.shape == mask.shape == (3, 1, size, size) and image.device.type == device.type
+    assert torch.equal(mask.cpu()[:, 0], torch.from_numpy(masks).float())
+    assert torch.equal(image.cpu(), (torch.from_numpy(images).float() / 255.0)[:, None])
+
+
+@pytest.fixture(scope="module")
+def stream(train_dataset, tmp_path_factory):
+    """A :class:`TrainingStream` of tiny.toml (augmentation on) over ``train_dataset``."""
+    from sq_mitsuba.data.spe3r import Spe3rDataset
+    from sq_mitsuba.training.cache import dataset_fingerprint, open_image_cache, open_point_cache
+    from sq_mitsuba.training.data_stream import TrainingStream
+
+    config = load_train_config(TINY)
+    dataset = Spe3rDataset(train_dataset, "train", image_size=config.network.image_size,
+                           num_surface=1, num_occupancy=2)
+    root, fingerprint = tmp_path_factory.mktemp("stream_cache"), dataset_fingerprint(
+        train_dataset)
+    images = open_image_cache(dataset, "train", root, fingerprint, workers=2)
+    points = open_point_cache(dataset, root, fingerprint)
+    camera = dataset.camera.rescaled(config.network.image_size, config.network.image_size)
+    symmetries = torch.eye(3).repeat(len(dataset.models), 2, 1, 1)
+    return TrainingStream(images, points, np.arange(len(images)), config, camera, symmetries)
+
+
+def _reference_batch(stream, step):
+    """Step ``step``'s batch as the stream made it item by item before issue 34: decoded and
+    augmented on the host."""
+    from sq_mitsuba.training.augment import augment_batch
+    from sq_mitsuba.training.random_streams import STREAMS, seed_of
+
+    cfg = stream.config
+    rows = stream.rows(step)
+    cached = stream.images.batch(rows)
+    generators = [np.random.default_rng(seed_of(cfg.seed, STREAMS["item"], step, j))
+                  for j in range(len(rows))]
+    drawn = [stream.points.sample(int(m), generators[k], cfg.data.num_surface,
+                                  cfg.data.num_occupancy)
+             for k, m in enumerate(cached["model_index"].tolist())]
+    image, mask, rotation, translation = augment_batch(
+        cached["image"], cached["mask"], cached["rotation"], cached["translation"],
+        cfg.augment, generators, stream.camera)
+    return {"image": image, "mask": mask, "rotation": rotation, "translation": translation,
+            "surface_points": torch.from_numpy(np.stack([d[0] for d in drawn])),
+            "occupancy_points": torch.from_numpy(np.stack([d[1] for d in drawn])),
+            "occupancy_labels": torch.from_numpy(np.stack([d[2] for d in drawn])),
+            "model_index": cached["model_index"]}
+
+
+def test_stream_batch_made_on_the_device_equals_the_host_batch(stream, device):
+    """The batch decoded and augmented on ``device`` equals the host's, item by item: bit for
+    bit on the CPU, to float rounding on a GPU (bilinear resampling, blur, powers)."""
+    from sq_mitsuba.training.distributed import World
+
+    for step in (0, 1, 5):
+        expected = _reference_batch(stream, step)
+        got = stream.batch(step, World(), device)
+        assert got.image.device.type == device.type
+        for name, value in expected.items():
+            actual = getattr(got, name).cpu()
+            assert actual.dtype == value.dtype, name
+            if device.type == "cpu":
+                assert torch.equal(actual, value), name
+            else:
+                torch.testing.assert_close(actual, value, rtol=1e-5, atol=1e-5)
+
+
+# ------------------------------------------------------------------------ the step
+
+
+def _config(*overrides: str):
+    return apply_overrides(load_train_config(TINY), ["loss.weights.reprojection=0",
+                                                     "optim.eps=1e-5", *overrides])
+
+
+def test_the_gpu_step_forced_on_the_cpu_equals_the_cpu_step():
+    """:func:`training_step`'s device path (one read of the device, checks after the backward
+    pass), run on the CPU, updates the network exactly as the CPU path and reads back the same
+    values."""
+    from sq_mitsuba.bench.train import StepBench
+    from sq_mitsuba.training import step as step_module
+    from sq_mitsuba.training.distributed import World
+
+    config = _config()
+    with step_module.mitsuba_for(torch.device("cpu"), True):
+        cpu, forced = StepBench(config, batch=4), StepBench(config, batch=4)
+    for index in range(2):
+        batch = cpu.data.batch(index)
+        a = step_module.training_step(cpu.model, cpu.optimizer, batch, cpu.k_matrix,
+                                      cpu.context(index), config.optim.grad_clip)
+        b = step_module._device_step(forced.model, forced.optimizer, batch, forced.k_matrix,
+                                     forced.context(index), config.optim.grad_clip, World())
+        assert a.values == b.values and a.grad_norm == b.grad_norm
+        assert set(a.values) == {"loss", *config.loss.enabled()}
+        assert a.values["loss"] == float(a.loss)
+    for p, q in zip(cpu.model.parameters(), forced.model.parameters(), strict=True):
+        assert torch.equal(p, q)
+
+
+def test_a_non_finite_network_is_refused_by_both_step_paths(monkeypatch):
+    """A NaN network: the CPU path stops before the loss terms; the device path runs them
+    (with the GPU's dense search, which takes NaN) and refuses the update after."""
+    from sq_mitsuba.bench.train import StepBench
+    from sq_mitsuba.geometry import nearest
+    from sq_mitsuba.training import step as step_module
+    from sq_mitsuba.training.distributed import World
+
+    config = _config()
+    with step_module.mitsuba_for(torch.device("cpu"), True):
+        bench = StepBench(config, batch=4)
+    with torch.no_grad():
+        next(bench.model.parameters()).fill_(float("nan"))
+    before = [p.detach().clone() for p in bench.model.parameters()]
+    batch = bench.data.batch(0)
+    with value_checks(False):
+        assert not step_module.outputs_finite(bench.model(batch.image, bench.k_matrix))
+    with pytest.raises(step_module.NotFiniteError, match="non-finite network output"):
+        step_module.training_step(bench.model, bench.optimizer, batch, bench.k_matrix,
+                                  bench.context(0), 1.0)
+    monkeypatch.setattr(nearest, "nearest_method", lambda device, method=None: "dense")
+    with pytest.raises(step_module.NotFiniteError, match="not finite"):
+        step_module._device_step(bench.model, bench.optimizer, batch, bench.k_matrix,
+                                 bench.context(0), 1.0, World())
+    for p, q in zip(before, bench.model.parameters(), strict=True):  # no update applied
+        assert torch.equal(p, q) or bool(torch.isnan(p).all())
+
+
+def test_bench_step_ratio_times_both_on_the_step_device(device):
+    from sq_mitsuba.bench.train import step_ratio
+
+    samples = step_ratio(_config(f'device="{device.type}"'), 4, device, repeats=2, warmup=1)
+    assert set(samples) == {"network", "step"}
+    assert all(len(v) == 2 and all(s > 0 for s in v) for v in samples.values())
+
+
+def test_gpu_step_check_script_parses_and_documents_its_dry_run():
+    script = ROOT / "train" / "gpu_step_check.sh"
+    assert subprocess.run(["bash", "-n", str(script)], check=False).returncode == 0
+    text = script.read_text()
+    assert "DEVICE=cpu" in text and "shipped_b256.toml" in text and "timeout" in text

@@ -1,0 +1,176 @@
+#!/usr/bin/env bash
+# Measure the training step on a GPU against the network alone, and check that the batch-256
+# recipe learns as the batch-32 one does (issue 34). About 7 minutes on one H200; every stage
+# runs under `timeout` and the script goes on after a failure.
+#
+#   (a) `sq-mitsuba bench train --device cuda --batch 256`: the shipped recipe's network alone
+#       (forward, backward, AdamW) against its full training step, images/s each and the ratio,
+#       at batch 32 and 256;
+#   (b) a small dataset rendered here, then train/configs/shipped.toml at batch 32 and
+#       train/configs/shipped_b256.toml at batch 256 for the same number of images seen (each
+#       a whole cosine schedule, same data and seed), both validation Chamfer-L1 values and
+#       their ratio, and each run's training images/s;
+#   (c) everything in OUT_DIR: summary.txt, bench_train.txt, log_b32.csv, val_b32.csv, ... .
+#
+# Usage, from the repository root:  train/gpu_step_check.sh [OUT_DIR]  (default /tmp/sq-gpu-step)
+#   Without mitsuba installed it unpacks .gpu/site-cpXY.tar.xz (train/gpu_bundle.sh builds it)
+#   into /tmp/site. Environment (defaults in brackets):
+#   DEVICE [cuda]; cpu dry-runs the whole script with the sizes below made tiny by hand, e.g.
+#     DEVICE=cpu MODELS=4 IMAGES=10 RESOLUTION=64 SPP=4 SEEN=128 BATCH_LARGE=64 REPEATS=1 \
+#       train/gpu_step_check.sh /tmp/dry
+#   MODELS [32], IMAGES [16] images per model (the val split takes 2 of each model's 10 or
+#   more), RESOLUTION [96], SPP [16]: the dataset; DATA: an existing SPE3R-layout dataset
+#   instead; SEEN [20480]: training images seen by each run; BATCH_LARGE [256]: the large
+#   batch; TRAIN_SECONDS [110]: cap of each run's training (a run cut by it is reported as not
+#   comparable); BENCH_SECONDS [180]; TOTAL_SECONDS [420]: every stage ends by then (the
+#   script's own limit); REPEATS [10]: bench pairs; PYTHON [python3]; WORK: folder kept for
+#   the dataset and runs (default temporary); STAGES ["bench dataset learn"].
+set -u -o pipefail
+
+absolute() { case $1 in /*) echo "$1" ;; *) echo "$PWD/$1" ;; esac; }
+out=$(absolute "${1:-/tmp/sq-gpu-step}")
+device=${DEVICE:-cuda}
+py=${PYTHON:-python3}
+repo=$(cd "$(dirname "$0")/.." && pwd)
+stages=${STAGES:-bench dataset learn}
+want() { [[ " $stages " == *" $1 "* ]]; }
+large=${BATCH_LARGE:-256}
+seen=${SEEN:-20480}
+work=${WORK:+$(absolute "$WORK")}
+[ -z "$work" ] && work=$(mktemp -d /tmp/sq-gpu-step-work.XXXX) && trap 'rm -rf "$work"' EXIT
+mkdir -p "$out" "$work"
+export PYTHONUNBUFFERED=1
+summary="$out/summary.txt"
+: > "$summary"
+
+note() { echo "$*" | tee -a "$summary"; }
+deadline=$(( SECONDS + ${TOTAL_SECONDS:-420} ))
+# stage NAME LIMIT_S COMMAND...: run under a time limit (and within TOTAL_SECONDS of the start),
+# record the exit status and seconds.
+stage() {
+  local name=$1 limit=$2; shift 2
+  local left=$(( deadline - SECONDS ))
+  [ "$limit" -gt "$left" ] && limit=$left
+  if [ "$limit" -lt 10 ]; then note "stage $name skipped: out of time"; return 124; fi
+  echo "=== stage $name (limit ${limit} s): $*"
+  local start=$SECONDS
+  timeout -k 10 "$limit" "$@"
+  local rc=$?
+  note "stage $name rc=$rc seconds=$((SECONDS - start))"
+  return $rc
+}
+sq=("$py" -m sq_mitsuba)
+
+if ! "$py" -c 'import mitsuba' 2>/dev/null; then
+  tag=$("$py" -c 'import sys; print(f"cp{sys.version_info[0]}{sys.version_info[1]}")')
+  bundle=${BUNDLE:-$repo/.gpu/site-$tag.tar.xz}
+  if [ ! -f "$bundle" ]; then
+    echo "gpu_step_check: mitsuba is not installed and $bundle is missing (train/gpu_bundle.sh)" >&2
+    exit 2
+  fi
+  mkdir -p /tmp/site && tar -xJf "$bundle" -C /tmp/site
+  export PYTHONPATH=/tmp/site${PYTHONPATH:+:$PYTHONPATH}
+fi
+export PYTHONPATH=$repo${PYTHONPATH:+:$PYTHONPATH}
+[ -n "${DATA:-}" ] && DATA=$(absolute "$DATA")
+cd "$repo" || exit 2
+
+note "gpu_step_check: device $device, batch 32 and $large, $seen images seen per run"
+{ nvidia-smi -L 2>/dev/null || echo "no nvidia-smi"; } | tee -a "$summary"
+"$py" -c 'import torch, sys; print("python", sys.version.split()[0], "torch", torch.__version__,
+"cuda", torch.cuda.is_available(), torch.cuda.get_device_name() if torch.cuda.is_available()
+else "")' 2>&1 | tee -a "$summary"
+
+# (a) The network alone against the full step, batch 32 and $large.
+if want bench; then
+  stage bench "${BENCH_SECONDS:-180}" "${sq[@]}" bench train --device "$device" --batch "$large" --step-only \
+    --repeats "${REPEATS:-10}" --warmup 2 2>&1 | tee "$out/bench_train.txt"
+  grep -E "headline|images/s" "$out/bench_train.txt" >> "$summary"
+fi
+
+# (b1) A small dataset, rendered here (on the GPU with the CUDA variant).
+data=${DATA:-}
+if [ -z "$data" ] && want dataset; then
+  data=$work/dataset
+  stage models 90 "${sq[@]}" models generate --count "${MODELS:-32}" --points 20000 \
+    --out "$work/models" > "$work/models.txt" 2>&1
+  if stage dataset 150 "${sq[@]}" dataset render --models "$work/models" --out "$data" \
+      --images-per-model "${IMAGES:-16}" --resolution "${RESOLUTION:-96}" \
+      --spp "${SPP:-16}" --quiet; then
+    note "dataset: $(find "$data" -path '*/images/*' -type f | wc -l) images"
+  else
+    data=
+  fi
+fi
+
+# (b2) Batch 32 against batch $large for the same images seen; (c) the summary.
+if want learn && [ -n "$data" ]; then
+  # Each run's training cap fits what is left (start-up, caches and validations besides).
+  train_s=${TRAIN_SECONDS:-110}
+  fit=$(( (deadline - SECONDS - 60) / 2 ))
+  [ "$fit" -lt "$train_s" ] && train_s=$fit
+  [ "$train_s" -lt 5 ] && train_s=5
+  stage learn $(( 2 * train_s + 60 )) "$py" - "$data" "$work" "$out" "$device" \
+      "$seen" "$large" "$train_s" <<'EOF' 2>&1 | tee "$out/learn.txt"
+"""Train shipped.toml at batch 32 and shipped_b256.toml at the large batch on the same data
+for the same images seen (whole cosine schedules), and compare their validation Chamfer-L1."""
+import csv
+import math
+import shutil
+import statistics
+import sys
+from pathlib import Path
+
+from sq_mitsuba.config import apply_overrides
+from sq_mitsuba.data.spe3r import Spe3rDataset
+from sq_mitsuba.training.config import load_train_config
+from sq_mitsuba.training.train import train
+
+data, work, out = Path(sys.argv[1]), Path(sys.argv[2]), Path(sys.argv[3])
+device, seen, large, seconds = sys.argv[4], int(sys.argv[5]), int(sys.argv[6]), float(sys.argv[7])
+available = len(Spe3rDataset(data, "train", image_size=96, num_surface=1, num_occupancy=2))
+# A whole number of large batches per epoch: both runs then see exactly `seen` images (an
+# epoch is ceil(images / batch) steps; with fewer images than one large batch they differ).
+images = available // large * large if available >= large else available
+rows = {}
+for label, config_name, batch in (("b32", "shipped.toml", 32),
+                                  (f"b{large}", "shipped_b256.toml", large)):
+    epochs = max(1, round(seen / (math.ceil(images / batch) * batch)))
+    config = apply_overrides(load_train_config(Path("train/configs") / config_name), [
+        f'device="{device}"', f"optim.batch_size={batch}", f"optim.epochs={epochs}",
+        f"data.train_images={images}", f"validation.every={max(1, epochs // 4)}",
+        f"data.cache_dir={work / 'cache'}"])
+    run = work / f"run_{label}"
+    shutil.rmtree(run, ignore_errors=True)
+    result = train(config, data, run, progress=False, max_seconds=seconds)
+    log = list(csv.DictReader((run / "log.csv").open()))
+    val = list(csv.DictReader((run / "val.csv").open())) if (run / "val.csv").exists() else []
+    for name in ("log.csv", "val.csv"):
+        if (run / name).exists():
+            shutil.copy(run / name, out / f"{name[:-4]}_{label}.csv")
+    rate = statistics.median(float(r["images_per_s"]) for r in log[1:]) if len(log) > 1 \
+        else float("nan")
+    rows[label] = (result, val, rate, batch, config.optim.peak_lr())
+    print(f"{label}: {result.steps} of {result.total_steps} steps x {batch} = "
+          f"{result.steps * batch} images seen (peak lr {config.optim.peak_lr():.3g}), "
+          f"median {rate:.1f} training images/s (validation excluded), "
+          f"{result.train_seconds:.1f} s; val Chamfer-L1 by step: "
+          + ", ".join(f"{v['step']}: {float(v['chamfer_l1']):.4f}" for v in val))
+print(f"train images used {images} of {available}")
+small, big = rows["b32"], rows[f"b{large}"]
+if small[1] and big[1]:
+    a, b = float(small[1][-1]["chamfer_l1"]), float(big[1][-1]["chamfer_l1"])
+    counts = [r[0].steps * r[3] for r in (small, big)]
+    complete = all(r[0].steps == r[0].total_steps for r in (small, big))
+    fair = complete and counts[0] == counts[1]
+    print(f"val Chamfer-L1 after {counts[0]} / {counts[1]} images seen: batch 32 {a:.4f}, "
+          f"batch {large} {b:.4f}, ratio {b / a:.3f} (acceptance: <= 1.03)"
+          + ("" if fair else " -- NOT COMPARABLE: a run was cut by the time cap or the "
+             "images seen differ"))
+else:
+    print("no validation in one of the runs: no Chamfer comparison")
+EOF
+  grep -E "^b[0-9]+:|^train images|^val Chamfer|^no validation" "$out/learn.txt" >> "$summary"
+fi
+
+echo "=== summary"; cat "$summary"
