@@ -252,3 +252,53 @@ def test_predict_sequence_cli_writes_one_assembly_and_a_pose_per_frame(eval_chec
     assert main(["predict", str(images[0]), "--sequence", "--checkpoint",
                  str(eval_checkpoint), "--out", str(tmp_path / "y")]) == 2
     assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
+
+
+def test_the_start_is_the_reading_that_fits_every_frame(known_pass):
+    """Of a reading a quarter too large, the true assembly and a reading half as thick, the
+    true one fits the masks of all six frames best and is chosen, recentred on them."""
+    from sq_mitsuba.inference.fit import resize_masks
+    from sq_mitsuba.inference.sequence import choose_start
+    from sq_mitsuba.render.silhouette.batch import PoseSilhouettes
+
+    body, rotations, translations, masks = known_pass
+    large, thin = body.params.clone(), body.params.clone()
+    large[..., 0:3] *= 1.25
+    thin[..., 2] *= 0.5
+    readings = Assembly(torch.cat([large, body.params, thin]))
+    scorer = PoseSilhouettes(CAMERA)
+    targets = resize_masks(masks.double(), CAMERA.height, CAMERA.width)
+    shifted = translations + torch.tensor([0.04, 0.0, 0.0], dtype=torch.float64)
+    chosen, recentred, scores = choose_start(readings, rotations, shifted, targets, scorer, 3)
+    assert scores.shape == (4,) and int(scores.argmax()) == 1  # the mean of the three too
+    torch.testing.assert_close(chosen.params, body.params.double())
+    assert float((recentred - translations).abs().max()) < 0.015  # the shift undone
+
+
+def test_a_shape_first_stage_keeps_the_rotations_then_the_joint_fit_moves_them(known_pass):
+    body, rotations, translations, masks = known_pass
+    start = Assembly(body.params.clone().double() * torch.tensor(
+        [1.2, 1.2, 1.2] + [1.0] * 13, dtype=torch.float64))
+    start_rotations = _perturbed(rotations, 5.0, seed=6)
+    options = SequenceOptions(steps=1, shape_steps=6, patience=40, spp=4)
+    assembly, rotation, _, ious, steps, losses = fit_sequence(
+        start, start_rotations, translations, masks, CAMERA, options)
+    assert steps == 7 and len(losses) == 7 and ious.shape == (6,)
+    # A single joint step (lr 0.03 rad at most per axis) barely turns them.
+    assert float(rotation_error_deg(rotation, start_rotations).max()) < 6.0
+    assert not torch.equal(assembly.params, start.params)
+
+
+def test_a_shared_shape_is_one_assembly_in_the_refinement():
+    from sq_mitsuba.inference.refine import refine_pose_and_shape
+
+    body = _asymmetric_assembly()
+    rotations = random_rotations(2, torch.Generator().manual_seed(1), torch.float64)
+    translations = torch.tensor([[0.0, 0.0, 1.8]], dtype=torch.float64).expand(2, 3)
+    masks = _masks(body, rotations, translations)
+    with pytest.raises(ValueError, match="assembly: a shared shape has batch size 1"):
+        refine_pose_and_shape(Assembly(body.params.expand(2, -1, -1)), rotations,
+                              translations, masks, CAMERA, shared=True)
+    with pytest.raises(ValueError, match="relative_rotations: only with a shared shape"):
+        refine_pose_and_shape(body, rotations[:1], translations[:1], masks[:1], CAMERA,
+                              relative_rotations=rotations[:1])

@@ -5,7 +5,8 @@ the shipped model never trained on (default 4242; it trained on seed 0), in the 
 scene (:func:`sq_mitsuba.data.frames.sample_pass_frame`: the target tumbling about a random
 axis, the camera approaching), then scores, for N in ``--counts``, the first N frames of each
 pass: the single-image shipped path (``Predictor.predict(refine=True)``, each frame alone)
-against ``Predictor.predict_sequence`` (one assembly, N poses), with the metrics of
+(run once per pass on all its frames, the first N taken) against
+``Predictor.predict_sequence`` (one assembly, N poses; ``--set`` its options), with the metrics of
 ``sq-mitsuba eval`` (:func:`sq_mitsuba.evaluation.scoring.score`) per frame, and the error of
 the relative rotations between consecutive frames. Writes ``sequence_passes.csv`` (one row per
 model, N, method and frame), prints the table of medians and means, and draws
@@ -18,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import time
 from pathlib import Path
 
@@ -35,6 +37,7 @@ from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.metrics import rotation_error_deg
 from sq_mitsuba.geometry.rotation import matrix_to_quaternion
+from sq_mitsuba.inference.sequence import SequenceOptions
 from sq_mitsuba.render.scene_config import SceneConfig
 from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer
 from sq_mitsuba.render.space import SpaceScene
@@ -73,6 +76,18 @@ def relative_errors(rotation: torch.Tensor, truth: torch.Tensor) -> torch.Tensor
     return torch.tensor(errors, dtype=torch.float64)
 
 
+def sequence_options(settings: list[str]) -> SequenceOptions:
+    """SequenceOptions with ``FIELD=VALUE`` settings applied (values typed as the defaults)."""
+    options = SequenceOptions()
+    changes = {}
+    for setting in settings:
+        name, _, text = setting.partition("=")
+        default = getattr(options, name)
+        changes[name] = (text.lower() in ("1", "true", "yes")) if isinstance(default, bool) \
+            else type(default)(text)
+    return dataclasses.replace(options, **changes)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, required=True)
@@ -83,7 +98,10 @@ def main() -> None:
     parser.add_argument("--resolution", type=int, default=256)
     parser.add_argument("--spp", type=int, default=16)
     parser.add_argument("--seed", type=int, default=7)
+    parser.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
+                        help="SequenceOptions fields for the joint fit (e.g. steps=30)")
     args = parser.parse_args()
+    options = sequence_options(args.set)
     args.out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(0)
     predictor = sq_mitsuba.load_model(fast=True)
@@ -100,6 +118,11 @@ def main() -> None:
             surface = torch.from_numpy(samples["surface_points"][:2500]).double()
         symmetry = torch.as_tensor(np.asarray(model_symmetries(model_dir)), dtype=torch.float64)
         volume = volume_points(model_dir, 20_000)
+        # The single-image path (each frame alone, predict(refine=True)) runs once per pass:
+        # its frames are independent, so the first N of them are the N-frame result.
+        tick = time.perf_counter()
+        alone = predictor.predict(shot["image"][:max(args.counts)], camera, refine=True)
+        alone_seconds = (time.perf_counter() - tick) / max(args.counts)
         for count in args.counts:
             images = shot["image"][:count]
             batch = {"mask": shot["mask"][:count, None].double(),
@@ -107,14 +130,12 @@ def main() -> None:
                      "translation": shot["translation"][:count].double(),
                      "surface_points": surface.expand(count, -1, -1)}
             batch["quaternion"] = matrix_to_quaternion(batch["rotation"])
-            tick = time.perf_counter()
-            single = predictor.predict(images, camera, refine=True)
-            single_seconds = time.perf_counter() - tick
-            methods = {"single": (single.assembly, single.rotation.double(),
-                                  single.translation.double(), single_seconds)}
+            methods = {"single": (alone.assembly[:count], alone.rotation[:count].double(),
+                                  alone.translation[:count].double(), alone_seconds * count)}
             if count >= 2:
                 tick = time.perf_counter()
-                sequence = predictor.predict_sequence(images, camera, ordered=True)
+                sequence = predictor.predict_sequence(images, camera, ordered=True,
+                                                      options=options)
                 methods["sequence"] = (Assembly(sequence.assembly.params.expand(count, -1, -1)),
                                        sequence.rotation, sequence.translation,
                                        time.perf_counter() - tick)

@@ -7,7 +7,7 @@ Files written to the output folder (each atomically; the folder is all or nothin
 - ``<image stem>.pose.json`` per frame: the frame's pose of that assembly, in the layout
   ``sq-mitsuba predict`` writes (``q_vbs2tango``, ``r_Vo2To_vbs``, convention, camera), with
   the frame's IoU after the joint fit and the half turn that carried its own reading;
-- ``<image stem>.overlay.png`` per frame: the image with the frame's own fitted silhouette
+- ``<image stem>.overlay.png`` per frame: the image with the frame's own searched silhouette
   (red), the shared assembly's at the frame's pose (green) and the mask's outline (yellow);
 - ``sequence.png``: the shared assembly from six sides (one colour per primitive).
 
@@ -46,7 +46,7 @@ class SequenceRecord:
         count = len(self.iou)
         return (f"{count} frames: one assembly, {count} poses in {self.seconds:.1f} s "
                 f"({self.seconds / max(count, 1):.2f} s per frame); silhouette IoU against the "
-                f"masks {np.mean(self.frame_iou):.3f} (each frame alone) -> "
+                f"masks {np.mean(self.frame_iou):.3f} (each frame's own search) -> "
                 f"{np.mean(self.iou):.3f} (one shape, all frames)")
 
 

@@ -15,11 +15,19 @@ translation (a fraction of the distance); with ``depth = "fixed"`` the correctio
 stays zero, so t_z is the start's: a silhouette fixes the depth only through the predicted
 shape's size, whose error it would otherwise turn into a depth error. Raw parameters are those of
 :meth:`sq_mitsuba.geometry.assembly.Assembly.from_raw`; :func:`raw_from_assembly` inverts it.
+
+Shared shape (``shared=True``, :mod:`sq_mitsuba.inference.sequence`): the B items are B views of
+one body, so one assembly (batch size 1) moves with B poses, and the best step is kept by the
+mean IoU over the views (one state for all). Its translation moves as ``t = t0 exp(d - mean d)
++ |t0| (dx, dy, 0)``: the views' depths change by factors whose geometric mean is 1, because
+silhouettes from one camera cannot tell a shape s times larger at s times the distance, so the
+start's mean depth keeps the scale. With ``relative_rotations`` (``Q_j``, ``R_j = Q_j R_0``)
+one rotation ``R_0`` moves instead of B.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Literal
 
 import torch
@@ -89,6 +97,7 @@ class RefineResult:
         iou_before: (B,) IoU of the start at the refinement resolution.
         iou_after: (B,) IoU of the returned parameters (>= iou_before up to render noise).
         steps: Adam steps taken.
+        losses: the silhouette loss (summed over items) of each step.
     """
 
     assembly: Assembly
@@ -97,6 +106,7 @@ class RefineResult:
     iou_before: Tensor
     iou_after: Tensor
     steps: int
+    losses: list[float] = field(default_factory=list)
 
 
 def raw_from_assembly(assembly: Assembly, ranges: ParameterRanges | None = None) -> Tensor:
@@ -137,18 +147,24 @@ def _seen_fraction(assembly: Assembly, rotation: Tensor, translation: Tensor) ->
 
 def refine_pose_and_shape(assembly: Assembly, rotation: Tensor, translation: Tensor,
                           masks: Tensor, camera: Camera,
-                          options: RefineOptions | None = None) -> RefineResult:
+                          options: RefineOptions | None = None, *, shared: bool = False,
+                          relative_rotations: Tensor | None = None) -> RefineResult:
     """Refine B predictions against B target masks through the Mitsuba silhouette.
 
     Args:
-        assembly: predicted assembly, batch size B.
+        assembly: predicted assembly, batch size B (1 with ``shared``).
         rotation: (B, 3, 3) predicted body-to-camera rotations; translation: (B, 3).
         masks: (B, H, W) target masks (bool or float in [0, 1]) at ``camera``'s resolution.
         camera: intrinsics of the masks.
         options: :class:`RefineOptions` (default settings when None).
+        shared: the B items are views of one body: one assembly (batch size 1) for all, the
+            best step by the mean IoU, the depths' geometric mean held (module docstring).
+        relative_rotations: with ``shared``, (B, 3, 3) ``Q_j`` such that ``R_j = Q_j R_0``: one
+            rotation ``R_0 = Q_0^T rotation[0]`` moves, not B; None: each view's own.
 
     Returns:
-        :class:`RefineResult` holding, per item, the best of the start and every step.
+        :class:`RefineResult` holding, per item (with ``shared``: for all items at once), the
+        best of the start and every step.
     """
     from sq_mitsuba.inference.fit import resize_masks
     from sq_mitsuba.render.silhouette.renderer import (
@@ -160,7 +176,12 @@ def refine_pose_and_shape(assembly: Assembly, rotation: Tensor, translation: Ten
 
     options = options or RefineOptions()
     validate(options)
-    batch = assembly.batch_size
+    if shared and (assembly.batch_size != 1 or options.seen_sizes):
+        raise ValueError("assembly: a shared shape has batch size 1 (and no seen_sizes), got "
+                         f"{assembly.batch_size}")
+    if relative_rotations is not None and not shared:
+        raise ValueError("relative_rotations: only with a shared shape (shared=True)")
+    batch = rotation.shape[0] if shared else assembly.batch_size
     check_tensor("rotation", rotation, (3, 3), min_dims=3)
     check_tensor("translation", translation, (3,), min_dims=2)
     check_tensor("masks", masks, (None, None), min_dims=3, floating=False)
@@ -193,7 +214,9 @@ def refine_pose_and_shape(assembly: Assembly, rotation: Tensor, translation: Ten
     if options.seen_sizes:
         free_fields[..., FIELDS["size"]] *= _seen_fraction(assembly, rotation0, translation0)
     change = torch.zeros_like(raw0, requires_grad=moving)
-    rotation_vector = torch.zeros(batch, 3, dtype=dtype, requires_grad=True)
+    relative = None if relative_rotations is None else relative_rotations.detach().to(dtype)
+    rotation_vector = torch.zeros(1 if relative is not None else batch, 3, dtype=dtype,
+                                  requires_grad=True)
     shift = torch.zeros(batch, 3, dtype=dtype, requires_grad=True)
     # Zeroes the z component of the correction when the depth is held.
     shift_axes = torch.tensor([1.0, 1.0, 0.0 if options.depth == "fixed" else 1.0], dtype=dtype)
@@ -205,17 +228,33 @@ def refine_pose_and_shape(assembly: Assembly, rotation: Tensor, translation: Ten
         return raw0 + change * free_fields
 
     def pose() -> tuple[Tensor, Tensor]:
-        return (axis_angle_to_matrix(rotation_vector) @ rotation0,
-                translation0 + distance * shift * shift_axes)
+        if not shared:
+            return (axis_angle_to_matrix(rotation_vector) @ rotation0,
+                    translation0 + distance * shift * shift_axes)
+        spin = axis_angle_to_matrix(rotation_vector)
+        rotations = relative @ (spin[0] @ relative[0].T @ rotation0[0]) \
+            if relative is not None else spin @ rotation0
+        # The depths' geometric mean stays the start's: the scale is the start's.
+        depth = shift[:, 2] * shift_axes[2]
+        scale = torch.exp(depth - depth.mean())[:, None]
+        lateral = shift * shift_axes.new_tensor([1.0, 1.0, 0.0])
+        return rotations, translation0 * scale + distance * lateral
 
     best_iou = torch.full((batch,), -1.0, dtype=dtype)
     best_raw, best_rotation, best_translation = raw0.clone(), rotation0.clone(), \
         translation0.clone()
     iou_before = None
     stale = steps = 0
+    losses: list[float] = []
 
     def remember(ious: Tensor, raw_now: Tensor, rotation_now: Tensor,
                  translation_now: Tensor) -> bool:
+        if shared:  # one state for all views: better by the mean IoU
+            if float(ious.mean()) <= float(best_iou.mean()):
+                return False
+            best_iou[:], best_raw[:] = ious, raw_now
+            best_rotation[:], best_translation[:] = rotation_now, translation_now
+            return True
         better = ious > best_iou
         best_iou[better] = ious[better]
         best_raw[better] = raw_now[better]
@@ -234,7 +273,10 @@ def refine_pose_and_shape(assembly: Assembly, rotation: Tensor, translation: Ten
                                             options.loss), options.level)
         prior = options.prior_weight * ((raw - raw0) ** 2).mean(dim=(1, 2)).sum() \
             + options.rotation_prior * rotation_vector.square().sum()
+        if shared:  # the one shape's prior weighs as much as B items' would
+            prior = prior + (batch - 1) * options.prior_weight * ((raw - raw0) ** 2).mean()
         (silhouette + prior).backward()
+        losses.append(float(silhouette.detach()))
         with torch.no_grad():
             ious = mask_iou(coverage, targets)
             if iou_before is None:
@@ -254,4 +296,4 @@ def refine_pose_and_shape(assembly: Assembly, rotation: Tensor, translation: Ten
         remember(mask_iou(coverage, targets), raw.detach(), rotation_now, translation_now)
     assert iou_before is not None
     return RefineResult(Assembly.from_raw(best_raw), best_rotation, best_translation,
-                        iou_before, best_iou.clone(), steps)
+                        iou_before, best_iou.clone(), steps, losses)

@@ -5,8 +5,9 @@ One silhouette cannot show the far side of a target, its depth, or which end of 
 ``Predictor.predict_sequence``) takes N images of one spacecraft and returns one assembly in
 its body frame and the pose of every image:
 
-1. **Each frame alone**: the shipped path (``Predictor.predict(images, refine=True)``: the
-   network's reading from turned copies, the mask, the pose search and the refinement).
+1. **Each frame alone**: ``Predictor.predict(images, refine=True)`` with the refinement cut
+   to one step (:data:`FRAMES_REFINEMENT`): the network's reading from turned copies, the
+   mask and the pose search; the joint fit refines.
 2. **One body frame**: each frame's reading is in a body frame fixed only up to the four half
    turns (the principal axes' signs cannot be seen). The frame whose fit matches its mask best
    is the reference; every other frame's half turn is chosen so that its assembly, turned, lies
@@ -14,12 +15,13 @@ its body frame and the pose of every image:
    resolved across frames, not per frame. With the frames' relative rotations given (a
    servicer's navigation: ``R_j = Q_j R_0``), one rotation ``R_0`` is kept instead, the
    chordal mean of the frames' readings carried back by their ``Q_j``.
-3. **One shape, N poses, fitted at once** (:func:`fit_sequence`): the shared assembly (every
-   shape parameter free, held near the reference's reading by a weak prior) and each frame's
-   rotation and translation (or, with relative rotations, the one ``R_0``) move together by
-   Adam so that the Mitsuba silhouettes match every frame's mask; the best step by the mean
-   IoU over the frames is kept. The scale stays the network's: the frames' depths move with a
-   geometric mean of 1 (silhouettes from one camera cannot tell a larger shape farther away).
+3. **One shape, N poses, fitted at once** (:func:`fit_sequence`, the refinement's shared
+   mode): the shared assembly (from the reference's reading, or with ``start="best"`` the
+   reading that fits all frames best, :func:`choose_start`; every shape parameter free, held
+   near the start by a weak prior) and each frame's rotation and translation (or, with
+   relative rotations, the one ``R_0``) move together by Adam so that the Mitsuba silhouettes
+   match every frame's mask; the best step by the mean IoU over the frames is kept. The
+   scale stays the network's (the frames' depths keep their geometric mean).
 4. **The dataset's body frame** (``options.canonical``, off by default): the result expressed
    in the convention of the processed models (:func:`canonical_frame`: the fitted assembly's
    oriented box's axes ordered by extent, its centre of mass at the origin) instead of the
@@ -38,7 +40,7 @@ stay ambiguous, harmlessly for the shape.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
 import numpy as np
@@ -49,21 +51,31 @@ from sq_mitsuba.config import in_range, non_negative, positive, validate
 from sq_mitsuba.geometry.assembly import FIELDS, Assembly
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.rotation import (
-    axis_angle_to_matrix,
     matrix_to_quaternion,
     mean_rotation,
 )
 from sq_mitsuba.geometry.so3_grid import half_turns
 from sq_mitsuba.inference.prediction import Prediction
-from sq_mitsuba.inference.refine import raw_from_assembly
-from sq_mitsuba.inference.search import check_rotations
+from sq_mitsuba.inference.refine import RefineOptions, refine_pose_and_shape
+from sq_mitsuba.inference.search import (
+    SEARCH_REFINEMENT,
+    SearchOptions,
+    _recentred,
+    check_rotations,
+    soft_iou,
+)
 
-__all__ = ["SequenceOptions", "SequencePrediction", "align_half_turns",
-           "align_half_turns_in_order", "canonical_frame", "fit_sequence", "predict_sequence",
-           "reframed"]
+#: The frames' own path in a sequence: the pose search's best candidate (``keep=1``: no
+#: screening) and one refinement step, since the joint fit refines every pose after it.
+#: Measured on passes of 8 frames of 4 unseen spacecraft (eval/experiments/README.md,
+#: "Passes"): against the shipped refinement (``SEARCH_REFINEMENT``) per frame, the joint fit's
+#: mean 2D IoU 0.762 -> 0.779, in a quarter of the frames' time.
+FRAMES_SEARCH = SearchOptions(keep=1)
+FRAMES_REFINEMENT = replace(SEARCH_REFINEMENT, steps=1, patience=1)
 
-# Assembly fields that move in the joint fit, by SequenceOptions.shape.
-_MOVING: dict[str, tuple[str, ...]] = {"free": tuple(FIELDS), "size": ("size",), "pose": ()}
+__all__ = ["FRAMES_REFINEMENT", "FRAMES_SEARCH", "SequenceOptions", "SequencePrediction",
+           "align_half_turns", "align_half_turns_in_order", "canonical_frame", "choose_start",
+           "fit_sequence", "predict_sequence", "reframed", "sequence_from_frames"]
 
 
 @dataclass(frozen=True)
@@ -71,7 +83,14 @@ class SequenceOptions:
     """Settings of the joint fit of one shape and N poses to N masks."""
 
     steps: int = in_range(1, 10_000, default=40)
-    "Adam steps of the joint fit."
+    "Adam steps of the joint fit (shape and poses together)."
+    shape_steps: int = in_range(0, 10_000, default=0)
+    """Adam steps of the shape alone first, the poses held (0: none; 20 lowered the mean 2D
+    IoU on the passes of eval/experiments/README.md, 0.779 -> 0.752)."""
+    start: Literal["reference", "best"] = "reference"
+    """The shared shape's start: the best-fitting frame's reading, or the reading (or the
+    readings' mean) that fits every frame's mask best at the frames' poses ("best": on the
+    same passes camera-frame Chamfer 0.083 -> 0.079, mean 2D IoU 0.779 -> 0.762)."""
     lr: float = positive(0.03)
     "Adam's learning rate (raw shape parameters, rotation vectors, relative shifts)."
     resolution: int = in_range(8, 1024, default=64)
@@ -110,7 +129,8 @@ class SequencePrediction:
             reference body frame (``R_j <- R_j S_j``).
         iou: (N,) IoU of each frame's silhouette against its mask after the joint fit (at the
             fit's resolution); frame_iou: (N,) the same of each frame's own fit.
-        steps: Adam steps taken; seconds: wall time of the whole sequence (frames included).
+        steps: Adam steps taken; seconds: wall time of the whole sequence (frames included);
+            frames_seconds: of the frames' own path alone (network, search, refinement).
     """
 
     assembly: Assembly
@@ -125,6 +145,7 @@ class SequencePrediction:
     steps: int = 0
     seconds: float = 0.0
     losses: list[float] = field(default_factory=list)
+    frames_seconds: float = 0.0
 
 
 def _surface(assembly: Assembly, level: int) -> Tensor:
@@ -246,11 +267,25 @@ def reframed(assembly: Assembly, rotation: Tensor, centre: Tensor) -> Assembly:
     return Assembly(params)
 
 
+def _refine_options(options: SequenceOptions, steps: int, poses: bool) -> RefineOptions:
+    """The :class:`RefineOptions` of one stage of the joint fit: ``poses`` False holds the
+    rotations and depths (a shape-only stage; the frames' image-plane shifts still move)."""
+    return RefineOptions(steps=steps, lr=options.lr, resolution=options.resolution,
+                         level=options.level, prior_weight=options.prior_weight,
+                         shape=options.shape if poses else "free", loss="iou",
+                         rotation="free" if poses else "fixed",
+                         depth="free" if poses else "fixed", patience=options.patience,
+                         spp=options.spp, seed=options.seed)
+
+
 def fit_sequence(assembly: Assembly, rotation: Tensor, translation: Tensor, masks: Tensor,
                  camera: Camera, options: SequenceOptions | None = None,
                  relative_rotations: Tensor | None = None
                  ) -> tuple[Assembly, Tensor, Tensor, Tensor, int, list[float]]:
-    """One shared assembly and N poses fitted at once to N masks through Mitsuba silhouettes.
+    """One shared assembly and N poses fitted at once to N masks through Mitsuba silhouettes
+    (:func:`~sq_mitsuba.inference.refine.refine_pose_and_shape` with ``shared=True``): first
+    the shape alone for ``options.shape_steps`` steps (the poses held: many views constrain
+    it), then the shape and the poses together for ``options.steps``.
 
     Args:
         assembly: the start, batch size 1, in the body frame.
@@ -265,89 +300,60 @@ def fit_sequence(assembly: Assembly, rotation: Tensor, translation: Tensor, mask
         The assembly (batch size 1), rotation (N, 3, 3), translation (N, 3), each frame's IoU
         (N,) at the best step (by the mean IoU), the steps taken and the loss per step.
     """
-    from sq_mitsuba.inference.fit import resize_masks
-    from sq_mitsuba.model.losses import silhouette_loss
-    from sq_mitsuba.render.silhouette.renderer import (
-        SilhouetteRenderer,
-        mask_iou,
-        render_assembly,
-        render_assembly_loss,
-    )
-
     options = options or SequenceOptions()
     validate(options)
-    count = rotation.shape[0]
-    dtype = torch.float64
-    fit_camera = camera.rescaled(options.resolution)
-    targets = resize_masks(masks.float(), fit_camera.height, fit_camera.width).to(dtype)
-    renderer = SilhouetteRenderer(fit_camera, spp=options.spp, seed=options.seed)
-    raw0 = raw_from_assembly(Assembly(assembly.params.detach().double())).to(dtype)
-    free = torch.zeros(raw0.shape[-1], dtype=dtype)
-    for name in _MOVING[options.shape]:
-        free[FIELDS[name]] = 1.0
-    free = free.expand_as(raw0).clone()
-    rotation0 = rotation.detach().to(dtype)
-    translation0 = translation.detach().to(dtype)
-    distance = torch.linalg.vector_norm(translation0, dim=-1, keepdim=True)
-    shared = relative_rotations is not None
-    if shared:
-        relative = relative_rotations.detach().to(dtype)
-        base = relative[0].T @ rotation0[0]
-    change = torch.zeros_like(raw0, requires_grad=options.shape != "pose")
-    turn = torch.zeros(1 if shared else count, 3, dtype=dtype, requires_grad=True)
-    shift = torch.zeros(count, 2, dtype=dtype, requires_grad=True)
-    log_depth = torch.zeros(count, dtype=dtype, requires_grad=True)
-    parameters = [turn, shift, log_depth] + ([change] if options.shape != "pose" else [])
-    optimizer = torch.optim.Adam(parameters, lr=options.lr)
+    assembly = Assembly(assembly.params.detach().double())
+    rotation, translation = rotation.detach().double(), translation.detach().double()
+    stages = [(options.shape_steps, False)] if options.shape_steps and \
+        options.shape != "pose" else []
+    steps, losses, ious = 0, [], None
+    for count, poses in [*stages, (options.steps, True)]:
+        result = refine_pose_and_shape(assembly, rotation, translation, masks, camera,
+                                       _refine_options(options, count, poses), shared=True,
+                                       relative_rotations=relative_rotations)
+        assembly, rotation, translation = result.assembly, result.rotation, result.translation
+        ious, steps, losses = result.iou_after, steps + result.steps, losses + result.losses
+    assert ious is not None
+    return assembly, rotation, translation, ious, steps, losses
 
-    def state() -> tuple[Tensor, Tensor, Tensor]:
-        spin = axis_angle_to_matrix(turn)
-        rotations = relative @ (spin[0] @ base) if shared else spin @ rotation0
-        # Convention: silhouettes cannot tell a shape s times larger at s times the distance,
-        # in one view or in many from one camera: the frames' depths move along their lines of
-        # sight by factors whose geometric mean is 1, so the network's depths (their mean)
-        # keep the scale and the shape's size follows.
-        scale = torch.exp(log_depth - log_depth.mean())[:, None]
-        lateral = torch.cat([shift, torch.zeros(count, 1, dtype=dtype)], dim=1)
-        return raw0 + change * free, rotations, translation0 * scale + distance * lateral
 
-    best = (-1.0, raw0.clone(), rotation0.clone(), translation0.clone(),
-            torch.zeros(count, dtype=dtype))
-    losses: list[float] = []
-    stale = steps = 0
+def _scores(assembly: Assembly, rotation: Tensor, translation: Tensor, targets: Tensor,
+            renderer: Any, level: int) -> tuple[Tensor, Tensor]:
+    """Soft IoUs (P,) of one assembly (batch size 1) at P poses against P targets (P, h, w)
+    at ``renderer``'s size, each translation recentred on its target (P, 3): the whole lot
+    in one Mitsuba launch (and one more for the recentred poses)."""
+    vertices, faces = Assembly(assembly.params.detach().double()).merged_mesh(level)
+    coverage = renderer.render(vertices[0], faces, rotation, translation).double()
+    translation = _recentred(translation.double(), coverage, targets, renderer.camera, False)
+    coverage = renderer.render(vertices[0], faces, rotation, translation).double()
+    return soft_iou(coverage, targets), translation
 
-    def remember(ious: Tensor, raw: Tensor, rotations: Tensor, translations: Tensor) -> bool:
-        nonlocal best
-        if float(ious.mean()) <= best[0]:
-            return False
-        best = (float(ious.mean()), raw.detach().clone(), rotations.detach().clone(),
-                translations.detach().clone(), ious.detach().clone())
-        return True
 
-    for _ in range(options.steps):
-        optimizer.zero_grad(set_to_none=True)
-        raw, rotations, translations = state()
-        views = Assembly.from_raw(raw.expand(count, -1, -1))
-        loss, coverage = render_assembly_loss(
-            views, rotations, translations, renderer,
-            lambda view, i: silhouette_loss(view[None], targets[i, None].to(view.dtype),
-                                            "iou"), options.level)
-        prior = options.prior_weight * ((raw - raw0) ** 2).mean() * count
-        (loss + prior).backward()
-        losses.append(float(loss.detach()))
-        improved = remember(mask_iou(coverage.to(dtype), targets), raw, rotations, translations)
-        optimizer.step()
-        steps += 1
-        stale = 0 if improved else stale + 1
-        if stale >= options.patience:
-            break
-    with torch.no_grad():
-        raw, rotations, translations = state()
-        coverage = render_assembly(Assembly.from_raw(raw.expand(count, -1, -1)), rotations,
-                                   translations, renderer, options.level)
-        remember(mask_iou(coverage.to(dtype), targets), raw, rotations, translations)
-    _, raw, rotations, translations, ious = best
-    return Assembly.from_raw(raw), rotations, translations, ious, steps, losses
+def choose_start(readings: Assembly, rotation: Tensor, translation: Tensor, targets: Tensor,
+                 renderer: Any, level: int, mean: bool = True
+                 ) -> tuple[Assembly, Tensor, Tensor]:
+    """The start of the shared shape: of the N readings (already in one body frame) and,
+    with ``mean``, their parameters' mean, the one whose silhouettes at every frame's pose fit
+    every frame's mask best (mean soft IoU; :func:`_scores`).
+
+    Args:
+        readings: N assemblies (batch size N) in the common body frame.
+        rotation: (N, 3, 3) the frames' poses in that frame; translation: (N, 3).
+        targets: (N, h, w) the masks at ``renderer``'s size.
+
+    Returns:
+        The chosen assembly (batch size 1), the frames' translations recentred for it (N, 3)
+        and every candidate's mean score (N or N + 1,).
+    """
+    params = readings.params.detach().double()
+    candidates = list(params.split(1))
+    if mean:
+        candidates.append(params.mean(0, keepdim=True))
+    scored = [_scores(Assembly(c), rotation, translation, targets, renderer, level)
+              for c in candidates]
+    means = torch.tensor([float(score.mean()) for score, _ in scored], dtype=torch.float64)
+    best = int(means.argmax())
+    return Assembly(candidates[best]), scored[best][1], means
 
 
 def _check_relative(relative_rotations: Any, count: int) -> Tensor | None:
@@ -384,7 +390,8 @@ def predict_sequence(predictor: Any, images: Tensor | np.ndarray, camera: Camera
         mask: the masks to fit, as ``Predictor.predict(refine=True)`` takes them (default: the
             network's mask head, or the segmentation).
         options: the joint fit's :class:`SequenceOptions`.
-        search, refinement: the per-frame search's and refinement's settings.
+        search, refinement: the per-frame search's and refinement's settings (default
+            :data:`FRAMES_SEARCH` and :data:`FRAMES_REFINEMENT`: the joint fit refines).
 
     Raises:
         ValueError: one line naming ``images`` (fewer than two frames, sizes, NaN),
@@ -403,13 +410,41 @@ def predict_sequence(predictor: Any, images: Tensor | np.ndarray, camera: Camera
     relative = _check_relative(relative_rotations, count)
     if not isinstance(ordered, bool):
         raise ValueError(f"ordered: expected True or False, got {ordered!r}")
-    frames = predictor.predict(checked, camera, refine=True, mask=mask, search=search,
-                               refinement=refinement)
-    fit = frames.fit
-    empty = [k for k in range(count) if not bool(fit.fitted[k])]
+    frames = predictor.predict(checked, camera, refine=True, mask=mask,
+                               search=search or FRAMES_SEARCH,
+                               refinement=refinement or FRAMES_REFINEMENT)
+    empty = [k for k in range(count) if not bool(frames.fit.fitted[k])]
     if empty:
-        raise ValueError(f"images: frame {empty[0]} has no target in its mask ({fit.mask_source}"
-                         "); leave it out of the sequence or pass its mask")
+        raise ValueError(f"images: frame {empty[0]} has no target in its mask "
+                         f"({frames.fit.mask_source}); leave it out of the sequence or pass "
+                         "its mask")
+    return sequence_from_frames(frames, relative, ordered, options, started=started,
+                                frames_seconds=time.perf_counter() - started)
+
+
+def sequence_from_frames(frames: Prediction, relative: Tensor | None = None,
+                         ordered: bool = False, options: SequenceOptions | None = None, *,
+                         started: float | None = None, frames_seconds: float = 0.0
+                         ) -> SequencePrediction:
+    """Steps 2-4 of the module docstring from the frames' own fitted predictions.
+
+    Args:
+        frames: ``Predictor.predict(images, refine=True)`` of N >= 2 frames, every frame
+            fitted (``frames.fit.fitted``).
+        relative: (N, 3, 3) checked relative rotations ``Q_j``, or None.
+        ordered, options: see :func:`predict_sequence`.
+        started, frames_seconds: the clock at the start of the whole sequence and the time
+            the frames took (for :attr:`SequencePrediction.seconds`).
+    """
+    from sq_mitsuba.inference.fit import resize_masks
+    from sq_mitsuba.render.silhouette.batch import PoseSilhouettes
+
+    started = time.perf_counter() if started is None else started
+    options = options or SequenceOptions()
+    validate(options)
+    fit = frames.fit
+    if fit is None:
+        raise ValueError("frames: expected a fitted prediction (predict(refine=True))")
     reference = int(torch.argmax(fit.iou))
     turns = align_half_turns_in_order(frames.assembly, frames.rotation, reference,
                                       options.level) if ordered else \
@@ -418,10 +453,23 @@ def predict_sequence(predictor: Any, images: Tensor | np.ndarray, camera: Camera
     if relative is not None:
         carried = relative.transpose(-1, -2) @ rotation  # each frame's estimate of R_0
         rotation = relative @ mean_rotation(carried)
-    start = Assembly(frames.assembly.params[reference:reference + 1].detach().double())
+    translation = frames.translation.double()
+    # Forward silhouettes of one shape at every frame's pose, in one launch: the scores of
+    # the start's candidates and of the frames' rotations searched again.
+    scorer = PoseSilhouettes(frames.camera.rescaled(options.resolution), seed=options.seed)
+    targets = resize_masks((fit.mask.double() > 0.5).double(), scorer.camera.height,
+                           scorer.camera.width)
+    params = frames.assembly.params.detach().double()
+    if options.start == "best":
+        readings = Assembly(torch.cat([reframed(Assembly(params[j:j + 1]), turns[j],
+                                                torch.zeros(3, dtype=torch.float64)).params
+                                       for j in range(len(params))]))
+        start, translation, _ = choose_start(readings, rotation, translation, targets, scorer,
+                                             options.level)
+    else:
+        start = Assembly(params[reference:reference + 1])
     assembly, rotation, translation, ious, steps, losses = fit_sequence(
-        start, rotation, frames.translation.double(), fit.mask, frames.camera, options,
-        relative)
+        start, rotation, translation, fit.mask, frames.camera, options, relative)
     if options.canonical:
         # x_cam = R x + t = R P^T x' + (t + R c): the poses follow the body frame.
         frame, centre = canonical_frame(assembly)
@@ -432,4 +480,4 @@ def predict_sequence(predictor: Any, images: Tensor | np.ndarray, camera: Camera
         assembly=assembly, rotation=rotation, translation=translation,
         quaternion=matrix_to_quaternion(rotation), frames=frames, reference=reference,
         half_turns=turns, iou=ious, frame_iou=fit.iou.clone(), steps=steps,
-        seconds=time.perf_counter() - started, losses=losses)
+        seconds=time.perf_counter() - started, losses=losses, frames_seconds=frames_seconds)
