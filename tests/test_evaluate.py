@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -224,13 +225,7 @@ def test_missing_split_and_missing_data_are_one_line(eval_checkpoint, train_data
         assert expected in error_line(capsys)
         assert not out.exists()
     # The baseline needs the train split: a dataset without one says how to go on.
-    only_test = tmp_path / "only_test"
-    only_test.mkdir()
-    shutil.copy(train_dataset / "camera.json", only_test)
-    test_line = next(line for line in (train_dataset / "splits.csv").read_text().splitlines()
-                     if line.endswith(",test"))
-    (only_test / "splits.csv").write_text(test_line + "\n")
-    (only_test / test_line.split(",")[0]).symlink_to(train_dataset / test_line.split(",")[0])
+    only_test = _test_models_only(train_dataset, tmp_path / "only_test")
     assert main(["eval", "--checkpoint", str(eval_checkpoint), "--data", str(only_test),
                  "--split", "test", "--out", str(tmp_path / "out_base"), "--quiet"]) == 2
     assert "--no-baseline" in error_line(capsys)
@@ -239,6 +234,17 @@ def test_missing_split_and_missing_data_are_one_line(eval_checkpoint, train_data
         main(["eval", "--checkpoint", str(eval_checkpoint), "--data", str(train_dataset),
               "--split", "train", "--out", str(tmp_path / "x")])
     assert stop.value.code == 2
+
+
+def _test_models_only(dataset: Path, folder: Path) -> Path:
+    """A dataset folder holding one test model of ``dataset`` (linked) and no train split."""
+    folder.mkdir()
+    shutil.copy(dataset / "camera.json", folder)
+    test_line = next(line for line in (dataset / "splits.csv").read_text().splitlines()
+                     if line.endswith(",test"))
+    (folder / "splits.csv").write_text(test_line + "\n")
+    (folder / test_line.split(",")[0]).symlink_to(dataset / test_line.split(",")[0])
+    return folder
 
 
 def test_without_checkpoint_and_no_shipped_model_is_one_clear_line(train_dataset, tmp_path,
@@ -260,13 +266,8 @@ def test_a_dataset_of_test_models_only_is_scored_against_the_stored_baseline(
                  "--out", str(exported), "--no-half"]) == 0
     stored = load_model(exported).baseline
     assert stored is not None
-    only_test = tmp_path / "only_test"
-    only_test.mkdir()
-    shutil.copy(train_dataset / "camera.json", only_test)
-    test_line = next(line for line in (train_dataset / "splits.csv").read_text().splitlines()
-                     if line.endswith(",test"))
-    (only_test / "splits.csv").write_text(test_line + "\n")
-    (only_test / test_line.split(",")[0]).symlink_to(train_dataset / test_line.split(",")[0])
+    only_test = _test_models_only(train_dataset, tmp_path / "only_test")
+    model = (only_test / "splits.csv").read_text().split(",")[0]
     out = tmp_path / "out"
     assert main(["eval", "--checkpoint", str(exported), "--data", str(only_test), "--split",
                  "test", "--out", str(out), "--no-figures", "--set", "surface_points=500",
@@ -275,7 +276,7 @@ def test_a_dataset_of_test_models_only_is_scored_against_the_stored_baseline(
     assert len(rows) == 2
     # The stored translation is the baseline's pose: its error against each label.
     truth = {(int(label["filename"][:6]), tuple(label["r_Vo2To_vbs_true"]))
-             for label in json.loads((only_test / test_line.split(",")[0] / "labels.json")
+             for label in json.loads((only_test / model / "labels.json")
                                      .read_text())}
     for row in rows:
         true_t = next(t for index, t in truth if index == int(row["index"]))
