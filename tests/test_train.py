@@ -238,6 +238,21 @@ def test_sigkill_then_resume_repeats_the_uninterrupted_run(train_dataset, cache_
             assert row[key] == expected[key], (row["step"], key, row[key], expected[key])
 
 
+def test_a_run_with_the_prefetch_thread_repeats_the_reference(train_dataset, cache_dir,
+                                                              reference_run, tmp_path):
+    """``data.prefetch = true`` on the CPU: the same batches, so the same run bit for bit."""
+    out = tmp_path / "run"
+    config = apply_overrides(load_train_config(TINY), [f"data.cache_dir={cache_dir}",
+                                                       "data.prefetch=true"])
+    result = train(config, train_dataset, out, progress=False, max_steps=5)
+    assert result.steps == 5
+    reference = {int(r["step"]): r for r in _rows(reference_run / "log.csv")}
+    for row in _rows(out / "log.csv"):
+        expected = reference[int(row["step"])]
+        for key in ("loss", "lr", "grad_norm", *LOSS_TERMS):
+            assert row[key] == expected[key], (row["step"], key, row[key], expected[key])
+
+
 @pytest.mark.slow
 def test_resume_refuses_another_config_or_dataset(train_dataset, cache_dir, tmp_path, capsys):
     out = tmp_path / "run"

@@ -104,11 +104,14 @@ class AugmentConfig:
 
 def to_device(value: np.ndarray | Tensor, device: torch.device) -> Tensor:
     """A host array or tensor on ``device``: on a GPU through pinned memory, copied without
-    waiting (a copy from pageable memory would wait for the device); on the CPU as it is."""
+    waiting (a copy from pageable memory would wait for the device; a tensor already pinned,
+    e.g. by a prefetch thread, is not pinned again); on the CPU as it is."""
     tensor = torch.as_tensor(value)
     if device.type != "cuda":
         return tensor.to(device)
-    return tensor.pin_memory().to(device, non_blocking=True)
+    if not tensor.is_pinned():
+        tensor = tensor.pin_memory()
+    return tensor.to(device, non_blocking=True)
 
 
 def _gaussian_blur(images: Tensor, sigmas: Tensor, largest: float | None = None) -> Tensor:

@@ -69,6 +69,11 @@ class DataConfig:
     cache_dir: Path | None = None
     """Folder of the decoded training cache (shared between runs of the same dataset and
     size); None: ``RUN_DIR/cache``. Not compared when a run resumes."""
+    prefetch: bool | None = None
+    """Prepare the next step's host share of the batch (cache rows, point draws, pinned
+    copies) on a thread while the step runs; the batches are the same either way. None: on
+    where the step runs on a GPU, off on the CPU (the thread would take the step's cores).
+    Not compared when a run resumes."""
 
 
 @dataclass(frozen=True)

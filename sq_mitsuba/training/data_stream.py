@@ -39,8 +39,8 @@ from sq_mitsuba.training.distributed import World, broadcast_object
 from sq_mitsuba.training.random_streams import STREAMS, seed_of
 from sq_mitsuba.training.run.state import TrainError, TrainRun
 
-__all__ = ["DataSources", "TrainingData", "TrainingStream", "evenly", "open_datasets",
-           "open_training_data", "symmetry_table"]
+__all__ = ["DataSources", "HostBatch", "TrainingData", "TrainingStream", "evenly",
+           "open_datasets", "open_training_data", "symmetry_table"]
 
 
 class TrainingStream:
@@ -76,10 +76,57 @@ class TrainingStream:
             out[where] = self.keep[self._permutation(int(epoch))[positions[where] % n]]
         return out
 
+    def host_batch(self, step: int, world: World, pin: bool = False) -> HostBatch:
+        """The host's share of :meth:`batch`: this process's rows of step ``step``, their
+        cached pixels and poses, and their point draws; what a prefetch thread prepares while
+        the previous step runs (:class:`~sq_mitsuba.training.prefetch.BatchPrefetcher`).
+        ``pin``: the tensors in pinned memory, for copies to a GPU that do not wait."""
+        local = self.batch_size // world.size
+        start = world.rank * local
+        rows = self.rows(step)[start:start + local]
+        raw = self.images.raw_batch(rows)
+        cfg = self.config
+        generators = [np.random.default_rng(seed_of(cfg.seed, STREAMS["item"], step, j))
+                      for j in range(start, start + local)]
+        surface, occupancy, labels = [], [], []
+        for k, model in enumerate(raw["model_index"].tolist()):
+            s, o, lab = self.points.sample(model, generators[k], cfg.data.num_surface,
+                                           cfg.data.num_occupancy)
+            surface.append(s)
+            occupancy.append(o)
+            labels.append(lab)
+        raw.update(surface_points=torch.from_numpy(np.stack(surface)),
+                   occupancy_points=torch.from_numpy(np.stack(occupancy)),
+                   occupancy_labels=torch.from_numpy(np.stack(labels)),
+                   symmetries=self.symmetries[raw["model_index"]])
+        if pin:
+            raw = {name: value.pin_memory() for name, value in raw.items()}
+        return HostBatch(step, raw, generators)
+
+    def device_batch(self, host: HostBatch, device: torch.device | str | None = None
+                     ) -> TrainingBatch:
+        """The :class:`TrainingBatch` of a :meth:`host_batch` on ``device`` (default the CPU):
+        its pixels decoded and the batch augmented there, the augmentation's draws taken from
+        the host batch's generators (after its point draws, as in :meth:`batch`)."""
+        device = torch.device("cpu" if device is None else device)
+        moved = {name: to_device(value, device) for name, value in host.tensors.items()}
+        image, mask = decode_pixels(moved.pop("image_u8"), moved.pop("mask_packed"),
+                                    self.images.size)
+        rotation, translation = moved["rotation"], moved["translation"]
+        cfg = self.config
+        if cfg.augment.enabled:
+            image, mask, rotation, translation = augment_batch(
+                image, mask, rotation, translation, cfg.augment, host.generators, self.camera)
+        return TrainingBatch(
+            image=image, mask=mask, rotation=rotation, translation=translation,
+            model_index=moved["model_index"], surface_points=moved["surface_points"],
+            occupancy_points=moved["occupancy_points"],
+            occupancy_labels=moved["occupancy_labels"], symmetries=moved["symmetries"])
+
     def batch(self, step: int, world: World, device: torch.device | str | None = None
               ) -> TrainingBatch:
         """This process's slice of step ``step``'s batch, with points and augmentation, on
-        ``device`` (default the CPU).
+        ``device`` (default the CPU): :meth:`device_batch` of :meth:`host_batch`.
 
         The random draws are made on the host, item by item (each from its own generator, so
         the batch is the same on every device); the pixels travel as uint8 (images and
@@ -87,36 +134,22 @@ class TrainingStream:
         ``device``. On the CPU the batch equals, bit for bit, one decoded and augmented there.
         """
         device = torch.device("cpu" if device is None else device)
-        local = self.batch_size // world.size
-        start = world.rank * local
-        rows = self.rows(step)[start:start + local]
-        raw = self.images.raw_batch(rows)
-        moved = {name: to_device(value, device) for name, value in raw.items()}
-        image, mask = decode_pixels(moved.pop("image_u8"), moved.pop("mask_packed"),
-                                    self.images.size)
-        cached = {"image": image, "mask": mask, **moved}
-        cfg = self.config
-        generators = [np.random.default_rng(seed_of(cfg.seed, STREAMS["item"], step, j))
-                      for j in range(start, start + local)]
-        surface, occupancy, labels = [], [], []
-        for k, model in enumerate(raw["model_index"].tolist()):  # the host's copy
-            s, o, lab = self.points.sample(model, generators[k], cfg.data.num_surface,
-                                           cfg.data.num_occupancy)
-            surface.append(s)
-            occupancy.append(o)
-            labels.append(lab)
-        image, mask = cached["image"], cached["mask"]
-        rotation, translation = cached["rotation"], cached["translation"]
-        if cfg.augment.enabled:
-            image, mask, rotation, translation = augment_batch(
-                image, mask, rotation, translation, cfg.augment, generators, self.camera)
-        return TrainingBatch(
-            image=image, mask=mask, rotation=rotation, translation=translation,
-            model_index=cached["model_index"],
-            surface_points=to_device(np.stack(surface), device),
-            occupancy_points=to_device(np.stack(occupancy), device),
-            occupancy_labels=to_device(np.stack(labels), device),
-            symmetries=to_device(self.symmetries[raw["model_index"]], device))
+        return self.device_batch(self.host_batch(step, world, pin=device.type == "cuda"),
+                                 device)
+
+
+@dataclass
+class HostBatch:
+    """The host's share of one step's batch (:meth:`TrainingStream.host_batch`)."""
+
+    step: int
+    "The step it belongs to."
+    tensors: dict[str, Tensor]
+    """``image_u8``, ``mask_packed`` (see :meth:`ImageCache.raw_batch`), ``quaternion``,
+    ``rotation``, ``translation``, ``model_index``, ``surface_points``, ``occupancy_points``,
+    ``occupancy_labels`` and ``symmetries`` of :class:`TrainingBatch`, on the host."""
+    generators: list[np.random.Generator]
+    "Each item's generator, its point draws taken: the augmentation draws from it next."
 
 
 def symmetry_table(root: Path, models: Sequence[str], cache_dir: Path | None = None) -> Tensor:

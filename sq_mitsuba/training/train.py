@@ -88,6 +88,7 @@ from sq_mitsuba.training.distributed import (
     wrap_model,
 )
 from sq_mitsuba.training.loss_terms import LOSS_TERMS, LossTermError, check_terms
+from sq_mitsuba.training.prefetch import BatchPrefetcher, prefetch_enabled
 from sq_mitsuba.training.random_streams import STREAMS, rng_state, seed_of, set_rng_state
 from sq_mitsuba.training.run.folder import (
     BEST,
@@ -329,6 +330,7 @@ class _Loop:
             self.log = RunLog(run.out_dir, run.start_step if checkpoint is not None else None)
         self.git = git_commit()
         self.k_matrix = data.camera.matrix(device=run.device)
+        self.prefetcher: BatchPrefetcher | None = None
 
     # ------------------------------------------------------------------ checkpoints
 
@@ -364,6 +366,8 @@ class _Loop:
                              validation=self.history)
         end_step = self.total_steps if run.max_steps is None else min(self.total_steps,
                                                                      run.max_steps)
+        self.prefetcher = BatchPrefetcher(self.data.stream, world, run.device, end_step,
+                                          prefetch_enabled(cfg.data.prefetch, run.device))
         bar = None
         if run.progress and world.main:
             from tqdm import tqdm
@@ -420,7 +424,7 @@ class _Loop:
         """Run step ``step``; its log row and its wall time."""
         run, cfg = self.run_state, self.run_state.config
         tick = time.perf_counter()
-        batch = self.data.stream.batch(step, run.world, run.device)
+        batch = self.prefetcher.batch(step)
         context = loss_context(cfg, self.renderer, step, run.world)
         try:
             outcome = training_step(self.model, self.optimizer, batch, self.k_matrix, context,
@@ -469,6 +473,8 @@ class _Loop:
     def _close(self, bar: Any) -> None:
         if bar is not None:
             bar.close()
+        if self.prefetcher is not None:
+            self.prefetcher.close()
         if self.renderer is not None:
             self.renderer.close()
         log, out_dir = self.log, self.run_state.out_dir
