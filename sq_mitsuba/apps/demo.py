@@ -516,8 +516,11 @@ def _predict_and_score(predictor: Any, data: Path, options: DemoOptions,
                           "filename": dataset.items[item][2]["filename"],
                           "gt_rotation": batch["rotation"][k].double(),
                           "gt_translation": batch["translation"][k].double()}
+                # Each item's own primitives (no stand-ins of a network with existence).
+                own = {"network": prediction.item_assembly(k), "refined": refined.item_assembly(k)}
                 for method, (assembly, rotation, translation) in candidates.items():
-                    record[method] = (Assembly(assembly.params[k:k + 1].detach().double()),
+                    item = own.get(method, Assembly(assembly.params[k:k + 1]))
+                    record[method] = (Assembly(item.params.detach().double()),
                                       rotation[k].detach().double(),
                                       translation[k].detach().double())
                 record["metrics"] = {

@@ -38,6 +38,10 @@ stem left by an earlier run are removed, so the folder does not hold a pose of n
 printed line says "no target", and the command still succeeds (exit code 0).
 ``--set min_target=0`` takes every image for a target.
 
+Existence (``min_existence``): a network with existence probabilities keeps, per image, the
+primitives whose probability reaches ``min_existence`` (0.5; its most probable one always),
+and the files hold those alone; ``--set min_existence=0`` keeps every primitive.
+
 Refinement (``refine``): the shipped path of ``Predictor.predict(images, refine=True)``
 (:mod:`sq_mitsuba.inference.pipeline`: the turned copies' reading, a global pose search, then
 refinement of its best few), against a mask: the given masks (one
@@ -67,6 +71,7 @@ from sq_mitsuba.apps.overlay import NETWORK_COLOUR, REFINED_COLOUR, overlay_imag
 from sq_mitsuba.apps.padding import MAX_PADDING_GROWTH, Padding, padded_camera, padding_to_aspect
 from sq_mitsuba.config import in_range, validate
 from sq_mitsuba.inference.images import DEFAULT_MIN_TARGET
+from sq_mitsuba.inference.predictor import DEFAULT_MIN_EXISTENCE
 from sq_mitsuba.inference.refine import RefineOptions
 from sq_mitsuba.inference.search import SEARCH_REFINEMENT, SearchOptions
 
@@ -87,6 +92,9 @@ class PredictOptions:
     min_target: float = in_range(0.0, 1.0, default=DEFAULT_MIN_TARGET)
     ("Target-present score from which an image shows a target; below it: 'no target', only "
      "pose.json written (0: every image)")
+    min_existence: float = in_range(0.0, 1.0, default=DEFAULT_MIN_EXISTENCE)
+    ("A network with existence probabilities: the probability from which a primitive is kept "
+     "(its most probable one always; 0: every primitive)")
     search: SearchOptions = field(default_factory=SearchOptions)
     "Global pose search settings."
     refinement: RefineOptions = field(default_factory=lambda: SEARCH_REFINEMENT)
@@ -274,7 +282,8 @@ def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
                                                           pad=not explicit_camera,
                                                           predictor=predictor)
     out = check_output_folder(out_dir)
-    predictor = with_fast_path(predictor, options.fast, min_target=options.min_target)
+    predictor = with_fast_path(predictor, options.fast, min_target=options.min_target,
+                               min_existence=options.min_existence)
     # One untimed call first: the first run of a network sets up its kernels (~1 s), which
     # would otherwise count against the first image.
     predictor.predict(torch.from_numpy(pictures[0]).float()[None],

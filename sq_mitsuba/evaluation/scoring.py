@@ -160,10 +160,17 @@ def baseline_prediction(predictor: Any, data_root: Path, count: int,
     of their labels. ``split``: the split those images come from (``sq-mitsuba demo`` takes
     its own test images when the checkpoint stores no baseline).
 
+    Convention: a network with existence probabilities is read with every primitive (one M
+    for all images); the baseline keeps those whose mean probability reaches the predictor's
+    ``min_existence`` (its most probable one always), the others replaced by invisible
+    stand-ins (:mod:`sq_mitsuba.model.existence`), so it still holds M rows.
+
     Raises:
         ValueError: the split has no images.
     """
     from sq_mitsuba.data.spe3r import Spe3rDataset
+    from sq_mitsuba.inference.loading import with_fast_path
+    from sq_mitsuba.model.existence import gathered_primitives, kept_primitives
 
     train = Spe3rDataset(data_root, split, image_size=predictor.image_size, num_surface=1,
                          num_occupancy=2)
@@ -172,12 +179,23 @@ def baseline_prediction(predictor: Any, data_root: Path, count: int,
                          "is empty); evaluate without it (--no-baseline)")
     camera = train.camera.rescaled(predictor.image_size, predictor.image_size)
     indices = evenly(len(train), count)
-    raws, rotations, translations = [], [], []
+    threshold = predictor.min_existence
+    every = with_fast_path(predictor, predictor.fast, min_existence=0.0)
+    raws, existences, rotations, translations = [], [], [], []
     for start in range(0, len(indices), batch_size):
         batch = collate([train[i] for i in indices[start:start + batch_size]])
-        raws.append(raw_from_assembly(predictor.predict(batch["image"], camera).assembly))
+        prediction = every.predict(batch["image"], camera)
+        raws.append(raw_from_assembly(prediction.assembly))
+        if prediction.existence is not None:
+            existences.append(prediction.existence)
         rotations.append(batch["rotation"])
         translations.append(batch["translation"])
-    return (torch.cat(raws).double().mean(0, keepdim=True),
+    raw = torch.cat(raws).double().mean(0, keepdim=True)
+    if existences:
+        rows = kept_primitives(torch.cat(existences).double().mean(0, keepdim=True), threshold,
+                               width=raw.shape[1])
+        raw = raw_from_assembly(Assembly(gathered_primitives(Assembly.from_raw(raw).params,
+                                                             rows)))
+    return (raw,
             mean_rotation(torch.cat(rotations))[None],
             torch.cat(translations).double().mean(0, keepdim=True))

@@ -9,7 +9,7 @@ from pathlib import Path
 import torch
 
 from sq_mitsuba.inference.images import DEFAULT_MIN_TARGET
-from sq_mitsuba.inference.predictor import Predictor, check_min_target
+from sq_mitsuba.inference.predictor import DEFAULT_MIN_EXISTENCE, Predictor, check_min_target
 from sq_mitsuba.model import checkpoint
 
 __all__ = ["check_device", "load_model", "with_fast_path"]
@@ -47,7 +47,8 @@ def check_device(device: str | torch.device) -> torch.device:
 
 def load_model(path: str | os.PathLike[str] | None = None, *, fast: bool = False,
                device: str | torch.device = "cpu",
-               min_target: float = DEFAULT_MIN_TARGET) -> Predictor:
+               min_target: float = DEFAULT_MIN_TARGET,
+               min_existence: float = DEFAULT_MIN_EXISTENCE) -> Predictor:
     """A :class:`Predictor` from a checkpoint, with the dataset camera as its default camera.
 
     Args:
@@ -57,18 +58,21 @@ def load_model(path: str | os.PathLike[str] | None = None, *, fast: bool = False
         device: where the network runs.
         min_target: the target-present score from which an image shows a target (see
             :class:`Predictor`).
+        min_existence: the existence probability from which a prediction keeps a primitive
+            (a network with existence probabilities; see :class:`Predictor`).
 
     Raises:
         FileNotFoundError: no such file, or no shipped model (saying how to get one).
         ValueError: ``<path>: ...`` for a corrupt or mismatched checkpoint; naming ``path``
-            (an empty one), ``device`` (one this torch cannot use) or ``min_target``; all
-            checked before the checkpoint is read.
+            (an empty one), ``device`` (one this torch cannot use), ``min_target`` or
+            ``min_existence``; all checked before the checkpoint is read.
     """
     if isinstance(path, str | os.PathLike) and not os.fspath(path):
         raise ValueError("path: empty; give a checkpoint file, or None for the model shipped "
                          "with sq_mitsuba")
     device = check_device(device)
     min_target = check_min_target(min_target)
+    min_existence = check_min_target(min_existence, "min_existence")
     if path is None:
         if not checkpoint.SHIPPED_MODEL.is_file():
             raise FileNotFoundError(
@@ -79,29 +83,34 @@ def load_model(path: str | os.PathLike[str] | None = None, *, fast: bool = False
     path = Path(path)
     payload = checkpoint.read_checkpoint(path)
     model, camera = checkpoint.model_from_checkpoint(payload, str(path))
-    predictor = Predictor(model.to(device), camera, fast=fast, min_target=min_target)
+    predictor = Predictor(model.to(device), camera, fast=fast, min_target=min_target,
+                          min_existence=min_existence)
     predictor.source = path
     predictor.baseline = checkpoint.checkpoint_baseline(payload, str(path))
     return predictor
 
 
-def with_fast_path(predictor: Predictor, fast: bool, *,
-                   min_target: float | None = None) -> Predictor:
+def with_fast_path(predictor: Predictor, fast: bool, *, min_target: float | None = None,
+                   min_existence: float | None = None) -> Predictor:
     """``predictor``, or a copy: predicting with the BatchNorm-folded network when ``fast``
     and it has none (folding takes about a second: done once the inputs are checked), with
-    the threshold ``min_target`` when given and another than its own."""
+    the thresholds ``min_target`` and ``min_existence`` when given and other than its own."""
     min_target = predictor.min_target if min_target is None else check_min_target(min_target)
+    min_existence = predictor.min_existence if min_existence is None else \
+        check_min_target(min_existence, "min_existence")
     folds = fast and not predictor.fast
-    if not folds and min_target == predictor.min_target:
+    same = (min_target, min_existence) == (predictor.min_target, predictor.min_existence)
+    if not folds and same:
         return predictor
-    if not folds:  # the same network and fast path, another threshold
+    if not folds:  # the same network and fast path, other thresholds
         import copy
 
         changed = copy.copy(predictor)
-        changed.min_target = min_target
+        changed.min_target, changed.min_existence = min_target, min_existence
         return changed
     folded = Predictor(predictor.model, predictor.camera, fast=True,
-                       hypotheses=predictor.hypotheses, min_target=min_target)
+                       hypotheses=predictor.hypotheses, min_target=min_target,
+                       min_existence=min_existence)
     folded.source = predictor.source
     folded.baseline = predictor.baseline
     return folded

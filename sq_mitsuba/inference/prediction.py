@@ -81,7 +81,11 @@ class Prediction:
     then copied out of it), so they may start an autograd computation such as refinement.
 
     Attributes:
-        assembly: the B assemblies of M superquadrics, in the body frame.
+        assembly: the B assemblies of M superquadrics, in the body frame. For a network with
+            existence probabilities, the primitives each item keeps (``primitive_index``):
+            (B, W, 16), W the most any item keeps, an item keeping fewer padded with
+            invisible stand-ins (:mod:`sq_mitsuba.model.existence`); :meth:`item_assembly`
+            gives one item's own primitives.
         rotation: (B, 3, 3) body -> camera rotation.
         translation: (B, 3) body origin in the camera frame (metres).
         quaternion: (B, 4) ``rotation`` as (w, x, y, z), w >= 0.
@@ -114,6 +118,12 @@ class Prediction:
         fingerprint: (B, C, 8, 8) the network's input averaged over 8 x 8 blocks, with which
             ``read_turns`` and ``refine`` check that they are given the images this reading
             was made from.
+        existence: (B, M) the network's probability that each of its M primitives exists,
+            or None for a network without existence probabilities.
+        primitive_index: (B, W) int64, the network's primitive behind each row of
+            ``assembly`` (those whose existence reaches the predictor's ``min_existence``,
+            and each item's most probable one, in the network's order), -1 for a stand-in;
+            None for a network without existence probabilities (every primitive, in order).
     """
 
     assembly: Assembly
@@ -132,3 +142,18 @@ class Prediction:
     target_score: Tensor | None = None
     target: Tensor | None = None
     fingerprint: Tensor | None = None
+    existence: Tensor | None = None
+    primitive_index: Tensor | None = None
+
+    def item_assembly(self, item: int) -> Assembly:
+        """Batch item ``item``'s assembly (batch size 1) without stand-ins: its own
+        primitives, what its files hold.
+
+        Raises:
+            IndexError: naming ``item`` outside the batch.
+        """
+        own = self.assembly[item]  # (1, W, 16); an IndexError names the item
+        if self.primitive_index is None:
+            return own
+        real = self.primitive_index[range(self.assembly.batch_size)[item]] >= 0
+        return Assembly(own.params[:, real.to(own.params.device)])

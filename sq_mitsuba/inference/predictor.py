@@ -31,6 +31,10 @@ Convention:
       :func:`~sq_mitsuba.inference.images.target_scores`); an image scoring below the
       predictor's ``min_target`` shows no target (``Prediction.target`` False): its assembly
       and pose mean nothing, and ``refine`` does not fit it.
+    - A network with existence probabilities: a prediction drops the primitives whose
+      probability is below the predictor's ``min_existence`` (each item keeps its most
+      probable one), before the turned copies, the search, the refinement or any file see
+      it; the turned copies keep the unturned pass's primitives.
 """
 
 from __future__ import annotations
@@ -57,6 +61,7 @@ from sq_mitsuba.inference.images import (
 )
 from sq_mitsuba.inference.prediction import Fit, MaskChoice, Prediction
 from sq_mitsuba.inference.traced import TracedNetwork
+from sq_mitsuba.model.existence import EXISTENCE_THRESHOLD, gathered_primitives, kept_primitives
 from sq_mitsuba.model.network import NetworkOutput, SuperquadricNet
 from sq_mitsuba.model.rotation_grid import RotationGridPoseHead, rotation_hypotheses
 
@@ -69,6 +74,8 @@ __all__ = ["Prediction", "Predictor", "prepare_images"]
 
 #: Rotation hypotheses a Predictor gives per image by default (distribution heads).
 DEFAULT_HYPOTHESES = 8
+#: The existence probability from which a prediction keeps a primitive, by default.
+DEFAULT_MIN_EXISTENCE = EXISTENCE_THRESHOLD
 # Side of Prediction.fingerprint (blocks of the network input), and the largest difference
 # of a block's mean at which two inputs are the same images (a fifth of an 8-bit grey level:
 # the same pixels given as uint8 or float differ by rounding, 1e-7).
@@ -100,11 +107,15 @@ class Predictor:
         min_target: the target-present score from which an image shows a target
             (``Prediction.target``; see :func:`~sq_mitsuba.inference.images.target_scores`
             for how the default, 0.92, was chosen); 0 takes every image for one.
+        min_existence: for a network with existence probabilities, the probability from
+            which a prediction keeps a primitive (an item keeps its most probable one
+            whatever it is); 0 keeps every primitive. Unused by other networks.
     """
 
     def __init__(self, model: SuperquadricNet, camera: Camera, fast: bool = False,
                  hypotheses: int = DEFAULT_HYPOTHESES,
-                 min_target: float = DEFAULT_MIN_TARGET) -> None:
+                 min_target: float = DEFAULT_MIN_TARGET,
+                 min_existence: float = DEFAULT_MIN_EXISTENCE) -> None:
         if not isinstance(model, SuperquadricNet):
             raise ValueError(f"model: expected a SuperquadricNet, got {type(model).__name__}")
         if not isinstance(camera, Camera):
@@ -112,6 +123,7 @@ class Predictor:
         if isinstance(hypotheses, bool) or not isinstance(hypotheses, int) or hypotheses < 1:
             raise ValueError(f"hypotheses: expected an int >= 1, got {hypotheses!r}")
         self.min_target = check_min_target(min_target)
+        self.min_existence = check_min_target(min_existence, "min_existence")
         self.model = model
         self.camera = camera
         self.fast = bool(fast)
@@ -135,7 +147,8 @@ class Predictor:
 
     @property
     def num_primitives(self) -> int:
-        """Superquadrics per predicted assembly (M)."""
+        """Superquadrics the network predicts per image (M; with existence probabilities a
+        prediction keeps those that exist)."""
         return self.model.config.num_primitives
 
     def predict(self, images: Tensor | np.ndarray, camera: Camera | None = None, *,
@@ -313,8 +326,14 @@ class Predictor:
             log_p = output.rotation_logits.float().log_softmax(dim=-1).to(rotation)
         scale = rotation.new_tensor([x.width / size, x.height / size])
         score = target_scores(x.images, output.mask_logits, x.checked).to(rotation)
+        params = Assembly.from_raw(output.raw.clone()).params
+        existence = rows = None
+        if output.existence_logits is not None:
+            existence = output.existence_logits.clone().sigmoid()
+            rows = kept_primitives(existence, self.min_existence)
+            params = gathered_primitives(params, rows)
         return Prediction(
-            assembly=Assembly.from_raw(output.raw.clone()),
+            assembly=Assembly(params),
             rotation=rotation,
             translation=output.translation.clone(),
             quaternion=matrix_to_quaternion(rotation),
@@ -328,6 +347,8 @@ class Predictor:
             target_score=score,
             target=score >= self.min_target,
             fingerprint=self._fingerprint(x),
+            existence=existence,
+            primitive_index=rows,
         )
 
     def can_turn(self, camera: Camera | None = None) -> bool:
@@ -407,8 +428,11 @@ class Predictor:
         # Rz(angle) q in a copy turned by angle (rotate_batch), so q = Rz^T p maps it back.
         # The assembly is in the body frame and the depth along the optical axis: neither turns.
         dtype = prediction.rotation.dtype
+        copies = Assembly.from_raw(output.raw).params
+        if prediction.primitive_index is not None:  # the unturned pass's primitives
+            copies = gathered_primitives(copies, prediction.primitive_index.repeat(turns - 1, 1))
         params = torch.cat([prediction.assembly.params[None].to(dtype),
-                            per_copy(Assembly.from_raw(output.raw).params).to(dtype)])
+                            per_copy(copies).to(dtype)])
         scale = prediction.pixel.new_tensor([x.width / size, x.height / size])
         back = z_rotation(angles[1:]).to(dtype)[:, None, :2, :2]  # (T - 1, 1, 2, 2)
         offsets = per_copy(output.pixel).to(dtype) - 0.5 * size
@@ -458,9 +482,10 @@ class Predictor:
         return rotations, scores.to(rotation)
 
 
-def check_min_target(min_target: float) -> float:
-    """``min_target`` as a float, or a one-line ``ValueError`` naming it unless in [0, 1]."""
+def check_min_target(min_target: float, name: str = "min_target") -> float:
+    """``min_target`` (or another threshold, ``name``) as a float, or a one-line
+    ``ValueError`` naming it unless in [0, 1]."""
     if isinstance(min_target, bool) or not isinstance(min_target, int | float) \
             or not 0.0 <= min_target <= 1.0:
-        raise ValueError(f"min_target: expected a number in [0, 1], got {min_target!r}")
+        raise ValueError(f"{name}: expected a number in [0, 1], got {min_target!r}")
     return float(min_target)

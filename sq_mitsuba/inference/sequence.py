@@ -460,14 +460,20 @@ def sequence_from_frames(frames: Prediction, relative: Tensor | None = None,
     targets = resize_masks((fit.mask.double() > 0.5).double(), scorer.camera.height,
                            scorer.camera.width)
     params = frames.assembly.params.detach().double()
+    rows = frames.primitive_index  # None, or (N, W) with -1 for a frame's stand-ins
     if options.start == "best":
         readings = Assembly(torch.cat([reframed(Assembly(params[j:j + 1]), turns[j],
                                                 torch.zeros(3, dtype=torch.float64)).params
                                        for j in range(len(params))]))
-        start, translation, _ = choose_start(readings, rotation, translation, targets, scorer,
-                                             options.level)
+        # The readings' mean only where every frame kept the same primitives.
+        same = rows is None or bool((rows == rows[:1]).all())
+        start, translation, scores = choose_start(readings, rotation, translation, targets,
+                                                  scorer, options.level, mean=same)
+        chosen = min(int(scores.argmax()), len(params) - 1)  # the mean: any frame's rows
     else:
-        start = Assembly(params[reference:reference + 1])
+        start, chosen = Assembly(params[reference:reference + 1]), reference
+    if rows is not None:  # the shared shape holds the chosen reading's own primitives
+        start = Assembly(start.params[:, rows[chosen].to(start.params.device) >= 0])
     assembly, rotation, translation, ious, steps, losses = fit_sequence(
         start, rotation, translation, fit.mask, frames.camera, options, relative)
     if options.canonical:

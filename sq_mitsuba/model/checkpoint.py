@@ -35,14 +35,21 @@ from sq_mitsuba.config import ConfigError, from_dict, to_dict
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.inputs import check_finite_tensors, load_torch_file
 from sq_mitsuba.io import atomic_path
-from sq_mitsuba.model.network import NetworkConfig, SuperquadricNet, upgrade_state_dict
+from sq_mitsuba.model.network import (
+    NetworkConfig,
+    SuperquadricNet,
+    _sphere_directions,
+    upgrade_state_dict,
+)
 
 __all__ = [
     "FORMAT",
+    "GROWN_OFFSET",
     "SHIPPED_MODEL",
     "VERSION",
     "checkpoint_baseline",
     "checkpoint_payload",
+    "grown_generators",
     "load_weights",
     "model_from_checkpoint",
     "read_checkpoint",
@@ -56,6 +63,13 @@ SHIPPED_MODEL = Path(__file__).resolve().parent / "weights" / "model.pt"
 _REQUIRED = ("config", "model", "camera")
 # Exact types: numpy scalars subclass float but weights_only loading refuses them.
 _SCALARS = (str, int, float, bool, type(None))
+#: The generators' grouped layers, whose first dimension is the primitive: what a partial load
+#: may grow (:func:`grown_generators`).
+_GROUPED = tuple(f"sq_generator.layers.{k}.{name}" for k in range(3)
+                 for name in ("weight", "bias"))
+#: Raw translation added to a grown primitive's position outputs (along a direction of its
+#: own), so it does not coincide with the primitive it copies: at most 0.05 model units.
+GROWN_OFFSET = 0.1
 
 
 def _check_loadable(value: Any, where: str) -> None:
@@ -173,13 +187,55 @@ def read_checkpoint(path: str | os.PathLike[str]) -> dict[str, Any]:
     return payload
 
 
+def grown_generators(state: Mapping[str, Tensor], model: SuperquadricNet) -> dict[str, Tensor]:
+    """``state`` with the generators' grouped layers grown to fit ``model`` (a network with
+    ``existence``): M_f primitives in the file, M >= M_f in the network.
+
+    Groups 0..M_f-1 are the file's. Convention: group m >= M_f copies group m mod M_f of the
+    file (all three layers), its raw translation bias moved by :data:`GROWN_OFFSET` along a
+    direction of its own (Fibonacci lattice): it starts next to the primitive it copies, so
+    the grown network reads an image nearly as the file's did, and the two can part. A file
+    without existence logits leaves the last layer's existence column as the network
+    initialised it (every primitive present with probability 0.9). Anything else (another
+    width, a network without ``existence``, fewer groups than the file) is left for the shape
+    check to refuse.
+    """
+    state = dict(state)
+    own = model.state_dict()
+    if not model.config.existence or any(
+            not isinstance(state.get(key), Tensor) for key in _GROUPED):
+        return state
+    file_groups = {state[key].shape[0] for key in _GROUPED}
+    groups = model.config.num_primitives
+    if len(file_groups) != 1 or not 1 <= (file_count := file_groups.pop()) <= groups:
+        return state
+    grown: dict[str, Tensor] = {}
+    for key in _GROUPED:
+        value, target = state[key], own[key]
+        extra = target.shape[-1] - value.shape[-1]  # 1: the file has no existence column
+        last = key.startswith("sq_generator.layers.2.")
+        if value.shape[1:-1] != target.shape[1:-1] or extra not in ((0, 1) if last else (0,)):
+            return state
+        result = target.detach().clone()
+        result[:file_count, ..., :value.shape[-1]] = value.to(result.dtype)
+        result[file_count:] = result[torch.arange(file_count, groups) % file_count]
+        grown[key] = result
+    if groups > file_count:  # the copies' raw translations (columns 5:8 of the last bias)
+        offsets = GROWN_OFFSET * _sphere_directions(groups - file_count)
+        grown["sq_generator.layers.2.bias"][file_count:, 5:8] += offsets.to(
+            grown["sq_generator.layers.2.bias"].dtype)
+    return {**state, **grown}
+
+
 def load_weights(model: SuperquadricNet, state: Any, where: str = "checkpoint", *,
                  partial: bool = False) -> None:
     """A checkpoint's state dict into ``model``, after checking that it fits.
 
     Checkpoints of the fixed-head layout are upgraded first. With ``partial`` the state may
-    lack some of the network's entries (a head added since: it keeps its initialisation);
-    otherwise every entry must be there.
+    lack some of the network's entries (a head added since: it keeps its initialisation), and
+    a network with ``existence`` may have more primitives than the file, or an existence
+    column the file lacks (:func:`grown_generators`); otherwise every entry must be there, of
+    the network's shape.
 
     Raises:
         ValueError: ``<where>: weights do not fit config.network (...)`` naming the first
@@ -188,6 +244,8 @@ def load_weights(model: SuperquadricNet, state: Any, where: str = "checkpoint", 
     if not isinstance(state, Mapping):
         raise ValueError(f"{where}: 'model' must be a state dict")
     state = upgrade_state_dict(state)  # checkpoints of the fixed-head layout load too
+    if partial:
+        state = grown_generators(state, model)
     own = model.state_dict()
     missing = [] if partial else sorted(set(own) - set(state))
     unexpected = sorted(set(state) - set(own))
@@ -199,8 +257,11 @@ def load_weights(model: SuperquadricNet, state: Any, where: str = "checkpoint", 
         value = own[key]
         if not isinstance(state[key], Tensor) or state[key].shape != value.shape:
             got = tuple(state[key].shape) if isinstance(state[key], Tensor) else type(state[key])
+            hint = ("; a network grows more primitives from a file only with "
+                    "network.existence = true" if partial and key in _GROUPED
+                    and not model.config.existence else "")
             raise ValueError(f"{where}: weights do not fit config.network ({key}: file {got}, "
-                             f"network {tuple(value.shape)})")
+                             f"network {tuple(value.shape)}){hint}")
     model.load_state_dict(state, strict=not partial)
 
 

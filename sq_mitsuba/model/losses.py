@@ -5,6 +5,9 @@ from the network output and the batch) are computed by
 
 - :func:`chamfer_loss`, :func:`surface_chamfer_loss`: squared-L2 Chamfer distance between the
   assembly's surface samples and points on the ground-truth mesh (paper Eq. 12);
+  :func:`probabilistic_chamfer_loss` its expectation over which primitives exist, and
+  :func:`parsimony_loss` the expected number of primitives, for a network with existence
+  probabilities (both in :mod:`sq_mitsuba.model.existence`);
 - :func:`occupancy_loss`: binary cross-entropy of the union occupancy at labelled points
   (Eq. 14);
 - :func:`reprojection_loss`: pixel MSE (:func:`mask_mse`) between the Mitsuba silhouette at the
@@ -39,6 +42,7 @@ from sq_mitsuba.checks import check_tensor, value_checks_enabled
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.nearest import gathered_differences, matched_indices
 from sq_mitsuba.geometry.rotation import rotation_angle
+from sq_mitsuba.model.existence import parsimony_loss, probabilistic_chamfer_loss
 from sq_mitsuba.model.rotation_grid import grid_quaternions, soft_rotation_targets
 from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer, assembly_camera_vertices
 
@@ -50,7 +54,9 @@ __all__ = [
     "mask_mse",
     "occupancy_loss",
     "overlap",
+    "parsimony_loss",
     "pose_loss",
+    "probabilistic_chamfer_loss",
     "reprojection_loss",
     "rotation_6d_loss",
     "rotation_distribution_loss",

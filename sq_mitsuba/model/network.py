@@ -13,7 +13,8 @@ Architecture (each exchangeable part chosen by name in :class:`NetworkConfig`):
     - G_sq: M three-layer MLPs (latent -> hidden -> hidden -> 16, SiLU between layers), run as
       ONE batched operation over a (M, in, out) weight tensor (:class:`GroupedLinear`), giving
       ``raw`` (B, M, 16), squashed into valid parameters by
-      :meth:`~sq_mitsuba.geometry.assembly.Assembly.from_raw`.
+      :meth:`~sq_mitsuba.geometry.assembly.Assembly.from_raw`; with ``existence`` each MLP has
+      a 17th output, the primitive's existence logit (``existence_logits`` (B, M)).
     - Pose head (``pose_head``, :data:`~sq_mitsuba.model.heads.POSE_HEADS`): z_pose -> a
       rotation (regressed 6D, or a distribution over a grid of SO(3)) and the raw image
       position (u, v) of the body origin and its depth z, back-projected through K to the
@@ -38,7 +39,8 @@ Convention:
     - Initial prediction (last layers: small weights, chosen biases): M primitives of semi-axes
       0.255 (raw size 0), shape 0.5, identity rotation, no taper, centres spread on a sphere of
       radius ``init_spread`` around the origin; pose rotation near identity, origin near the
-      image centre at the typical depth.
+      image centre at the typical depth. Existence logits start at ln 9 (every primitive
+      present with probability 0.9), so a network grown from one without them starts as it.
 """
 
 from __future__ import annotations
@@ -62,6 +64,7 @@ from sq_mitsuba.model.pretrained import load_imagenet_weights, resolve_pretraine
 
 __all__ = [
     "ENCODERS",
+    "INITIAL_EXISTENCE",
     "GroupedLinear",
     "NetworkConfig",
     "NetworkOutput",
@@ -73,6 +76,8 @@ __all__ = [
 
 _IDENTITY_6D = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0)
 _LN2 = math.log(2.0)
+#: Initial existence probability of every primitive (its logit is the last layer's bias).
+INITIAL_EXISTENCE = 0.9
 
 # --- the batched generators ---------------------------------------------------------------
 
@@ -113,22 +118,24 @@ class GroupedLinear(nn.Module):
 
 
 class SuperquadricGenerators(nn.Module):
-    """G_sq: M three-layer MLPs evaluated together: z_sq (B, latent) -> raw (B, M, 16).
+    """G_sq: M three-layer MLPs evaluated together: z_sq (B, latent) -> (B, M, 16), or
+    (B, M, 17) with ``existence`` (the 16 raw parameters, then the existence logit).
 
     Layer k of primitive m is ``layers[k].weight[m]`` / ``.bias[m]``; SiLU follows the first
     two layers.
     """
 
-    def __init__(self, num_primitives: int, latent_dim: int, hidden_dim: int) -> None:
+    def __init__(self, num_primitives: int, latent_dim: int, hidden_dim: int,
+                 existence: bool = False) -> None:
         super().__init__()
         self.layers = nn.ModuleList([
             GroupedLinear(num_primitives, latent_dim, hidden_dim),
             GroupedLinear(num_primitives, hidden_dim, hidden_dim),
-            GroupedLinear(num_primitives, hidden_dim, NUM_PARAMS),
+            GroupedLinear(num_primitives, hidden_dim, NUM_PARAMS + int(existence)),
         ])
 
     def forward(self, z_sq: Tensor) -> Tensor:
-        """(B, latent_dim) -> (B, M, 16)."""
+        """(B, latent_dim) -> (B, M, 16), or (B, M, 17) with existence."""
         h = F.silu(self.layers[0](z_sq))
         h = F.silu(self.layers[1](h))
         return self.layers[2](h).transpose(0, 1)
@@ -152,6 +159,8 @@ class NetworkOutput:
         rotation_logits: (B, G) scores over the SO(3) grid of a distribution head, else None.
         mask_logits: (B, 1, ceil(H / 4), ceil(W / 4)) the mask head's logits (B, 1, H, W with
             ``mask_resolution = "full"``), else None.
+        existence_logits: (B, M) each primitive's existence logit (``network.existence``),
+            else None; the probability is its sigmoid (:attr:`existence`).
     """
 
     raw: Tensor
@@ -162,11 +171,19 @@ class NetworkOutput:
     rotation_6d: Tensor | None = None
     rotation_logits: Tensor | None = None
     mask_logits: Tensor | None = None
+    existence_logits: Tensor | None = None
 
     @property
     def assembly(self) -> Assembly:
         """``Assembly.from_raw(raw)`` with the default :class:`ParameterRanges`."""
         return Assembly.from_raw(self.raw, ParameterRanges())
+
+    @property
+    def existence(self) -> Tensor | None:
+        """(B, M) each primitive's existence probability, ``sigmoid(existence_logits)``, or
+        None without an existence head."""
+        return None if self.existence_logits is None else torch.sigmoid(self.existence_logits)
+
 
 def _sphere_directions(count: int) -> Tensor:
     """``count`` unit vectors spread evenly on the sphere (Fibonacci lattice), (count, 3)."""
@@ -244,7 +261,7 @@ class SuperquadricNet(nn.Module):
         if not getattr(self.latent_head, "uses_head_map", True):
             self.encoder.head = None  # unused: no parameter without a gradient (DDP)
         self.sq_generator = SuperquadricGenerators(
-            config.num_primitives, config.latent_dim, config.hidden_dim)
+            config.num_primitives, config.latent_dim, config.hidden_dim, config.existence)
         self.pose_head = POSE_HEADS[config.pose_head](config)
         self.mask_head = (MaskHead(self.encoder.pyramid_channels,
                                    full_resolution=config.mask_resolution == "full",
@@ -294,12 +311,15 @@ class SuperquadricNet(nn.Module):
         gain = self.config.init_gain
         last_sq = self.sq_generator.layers[2]
         last_sq.weight.mul_(gain)
-        bias = torch.zeros(self.config.num_primitives, NUM_PARAMS, dtype=torch.float64)
+        bias = torch.zeros(self.config.num_primitives, last_sq.bias.shape[1],
+                           dtype=torch.float64)
         bias[:, 8:14] = torch.tensor(_IDENTITY_6D, dtype=torch.float64)
         if self.config.num_primitives > 1:
             # Raw translation r gives translation_scale tanh(r): invert for the wanted centres.
             centres = self.config.init_spread * _sphere_directions(self.config.num_primitives)
             bias[:, 5:8] = torch.atanh(centres / ParameterRanges().translation_scale)
+        if self.config.existence:  # every primitive present at first (module doc)
+            bias[:, NUM_PARAMS] = math.log(INITIAL_EXISTENCE / (1.0 - INITIAL_EXISTENCE))
         last_sq.bias.copy_(bias)
         reset = getattr(self.pose_head, "reset_last_layer", None)
         if reset is not None:  # a_u = a_v = 0: image centre; a_z = 0: depth prior
@@ -339,7 +359,10 @@ class SuperquadricNet(nn.Module):
         normalised = self.normalise(images)
         maps = self.encoder.forward_pyramid(normalised)
         z_sq, z_pose = self.latent_head(maps)
-        raw = self.sq_generator(z_sq)  # (B, M, 16)
+        generated = self.sq_generator(z_sq)  # (B, M, 16), or (B, M, 17) with existence
+        raw, existence_logits = generated, None
+        if self.config.existence:
+            raw, existence_logits = generated[..., :NUM_PARAMS], generated[..., NUM_PARAMS]
         pose = self.pose_head(z_pose)
         size = images.new_tensor([width, height])
         pixel = 0.5 * size * (1.0 + self.config.pixel_extent * torch.tanh(pose.position[:, :2]))
@@ -352,7 +375,8 @@ class SuperquadricNet(nn.Module):
         mask_logits = None if self.mask_head is None else self.mask_head(maps, normalised)
         return NetworkOutput(raw, pose.rotation, pixel, depth, translation,
                              rotation_6d=pose.rotation_6d,
-                             rotation_logits=pose.rotation_logits, mask_logits=mask_logits)
+                             rotation_logits=pose.rotation_logits, mask_logits=mask_logits,
+                             existence_logits=existence_logits)
 
     def folded(self, channels_last: bool = True) -> SuperquadricNet:
         """Inference copy: eval mode, no gradients, encoder BatchNorm folded into its convs.

@@ -35,6 +35,10 @@ class NetworkConfig:
     "Channels of the input images (1: the grey renders of this project)."
     num_primitives: int = in_range(1, 64, default=5)
     "Superquadrics per assembly (M)."
+    existence: bool = False
+    """Also predict each primitive's probability of existing (NetworkOutput.existence_logits,
+    (B, M)); the predictor drops the primitives below its min_existence, so a network with a
+    large M can use fewer."""
     encoder: str = "efficientnet_b0"
     "Encoder by name (ENCODERS): efficientnet_b0 (the paper's) or efficientnet_lite0."
     latent: str = "pooled"

@@ -12,7 +12,8 @@ training starts (:func:`check_terms`).
 The terms (weights of the paper's configuration in :data:`PUBLISHED_WEIGHTS`):
 
 - ``chamfer``: squared-L2 Chamfer distance between the assembly's surface samples and the
-  mesh points (paper Eq. 12);
+  mesh points (paper Eq. 12); for a network with existence probabilities
+  (``network.existence``) its expectation over which primitives exist;
 - ``occupancy``: balanced BCE of the union occupancy at labelled points (Eq. 14);
 - ``reprojection``: pixel MSE of the Mitsuba silhouette at the true pose against the mask;
 - ``rotation``: rotation angle in radians, minimised over the model's symmetries (the paper's);
@@ -23,7 +24,16 @@ The terms (weights of the paper's configuration in :data:`PUBLISHED_WEIGHTS`):
 - ``translation``: relative translation error;
 - ``overlap``: summed occupancy above ``loss.beta`` (Eq. 18);
 - ``taper``: mean squared taper;
-- ``mask``: binary cross-entropy of the mask head against the mask.
+- ``mask``: binary cross-entropy of the mask head against the mask;
+- ``parsimony``: the expected number of primitives of a network with existence probabilities
+  (off by default; a config that weighs it for a network without them is refused).
+
+Convention: only the Chamfer and parsimony terms read the existence probabilities. The
+occupancy, reprojection, overlap and taper terms see every primitive, present or not: they
+pull every primitive into the target's solid and silhouette, where a primitive the predictor
+then drops costs nothing but coverage, which the Chamfer term's target -> prediction
+direction prices; weighing them too (an expected union occupancy, a silhouette per existence
+pattern) would cost a reformulation of each, or renders, for a second-order gain.
 """
 
 from __future__ import annotations
@@ -36,12 +46,15 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from sq_mitsuba.config import bounds, in_range, positive
+from sq_mitsuba.model.existence import existence_surface_samples
 from sq_mitsuba.model.losses import (
     chamfer_loss,
     counted_surface_samples,
     mask_loss,
     occupancy_loss,
     overlap,
+    parsimony_loss,
+    probabilistic_chamfer_loss,
     reprojection_loss,
     rotation_6d_loss,
     rotation_distribution_loss,
@@ -89,8 +102,9 @@ class LossConfig:
                                       metadata=bounds(0, None))
     """Weight of each term by name (the names of ``sq_mitsuba.training.loss_terms``: chamfer,
     occupancy, reprojection, rotation, rotation_6d, rotation_grid, translation, overlap, taper,
-    mask). A table in a
-    file lists every term that trains; --set loss.weights.taper=0 changes one."""
+    mask, parsimony). A table in a file lists every term that trains (parsimony, the price of
+    a primitive of a network with network.existence, is off unless weighed); --set
+    loss.weights.taper=0 changes one."""
     sharpness: float = positive(10.0)
     "Sharpness s of the occupancy sigmoid g = sigmoid(s (1 - f)) (paper Eq. 14)."
     beta: float = positive(1.25)
@@ -184,7 +198,14 @@ def register_term(name: str, function: TermFunction, needs: tuple[str, ...] = ()
 
 def chamfer_term(output: NetworkOutput, batch: TrainingBatch, context: LossContext) -> Tensor:
     """:func:`~sq_mitsuba.model.losses.chamfer_loss` of the assembly's counted surface
-    samples (level ``loss.level``) against ``batch.surface_points``."""
+    samples (level ``loss.level``) against ``batch.surface_points``; with existence logits,
+    :func:`~sq_mitsuba.model.losses.probabilistic_chamfer_loss` (equal to it when every
+    primitive surely exists)."""
+    probabilities = output.existence
+    if probabilities is not None:
+        points, inside = existence_surface_samples(output.assembly, context.loss.level)
+        return probabilistic_chamfer_loss(points, inside, probabilities.to(points),
+                                          batch.surface_points.to(points))
     points, keep = counted_surface_samples(output.assembly, context.loss.level)
     return chamfer_loss(points, keep, batch.surface_points.to(points))
 
@@ -263,6 +284,11 @@ def mask_term(output: NetworkOutput, batch: TrainingBatch, context: LossContext)
     return mask_loss(output.mask_logits, batch.mask)
 
 
+def parsimony_term(output: NetworkOutput, batch: TrainingBatch, context: LossContext) -> Tensor:
+    """:func:`~sq_mitsuba.model.losses.parsimony_loss` of the existence probabilities."""
+    return parsimony_loss(output.existence_logits.sigmoid())
+
+
 register_term("chamfer", chamfer_term, ("assembly",))
 register_term("occupancy", occupancy_term, ("assembly",))
 register_term("reprojection", reprojection_term, ("assembly",))
@@ -273,6 +299,7 @@ register_term("translation", translation_term, ("translation",))
 register_term("overlap", overlap_term, ("assembly",))
 register_term("taper", taper_term, ("assembly",))
 register_term("mask", mask_term, ("mask_logits",))
+register_term("parsimony", parsimony_term, ("existence_logits",))
 
 
 # ------------------------------------------------------------------------------ use

@@ -4,7 +4,11 @@ error and the mask head's IoU over a fixed subset of the val split, with the met
 
 ``mask_iou`` is the IoU of the mask head's mask (logits upsampled bilinearly to the image's
 size, probability > 0.5) against the true mask, as ``sq-mitsuba eval`` reports it; NaN for a
-network without a mask head."""
+network without a mask head.
+
+A network with existence probabilities is validated on the primitives the predictor keeps by
+default (probability at least 0.5, each item's most probable one always), as evaluation
+scores it."""
 
 from __future__ import annotations
 
@@ -16,6 +20,7 @@ from torch import Tensor, nn
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.metrics import chamfer_l1, mask_iou, rotation_error_deg
+from sq_mitsuba.model.existence import EXISTENCE_THRESHOLD, gathered_primitives, kept_primitives
 from sq_mitsuba.model.losses import counted_surface_samples
 from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer, render_assembly
 from sq_mitsuba.training.cache import ImageCache, PointCache
@@ -54,7 +59,11 @@ def validate(model: nn.Module, cache: ImageCache, points: PointCache, config: Tr
                 rows = np.arange(start, min(len(cache), start + cfg.batch_size))
                 batch = cache.batch(rows)
                 output = model(batch["image"].to(device), k_matrix)
-                assembly = Assembly(output.assembly.params.detach().to("cpu", torch.float64))
+                params = output.assembly.params.detach().to("cpu", torch.float64)
+                if output.existence is not None:  # stand-ins pad items keeping fewer
+                    kept = kept_primitives(output.existence.detach().cpu(), EXISTENCE_THRESHOLD)
+                    params = gathered_primitives(params, kept)
+                assembly = Assembly(params)
                 surface, keep = counted_surface_samples(assembly, cfg.level)
                 gt = []
                 for row, model_index in zip(rows, batch["model_index"].tolist(), strict=True):
