@@ -6,6 +6,9 @@
    ``inside_outside_dual``) and with the primal function through the same frames.
 2. Dual surface sampling of 32 x 5 x 642 points, forward + backward (target <= 10 ms),
    compared with primal sampling on the same angles.
+3. The Chamfer term of a training step (level-2 samples, 2,500 target points, batch 32),
+   forward + backward: today's ``chamfer_loss`` against the expectation over which primitives
+   exist (``probabilistic_chamfer_loss``, ``network.existence``), at M = 5 and M = 8.
 """
 
 from __future__ import annotations
@@ -21,10 +24,12 @@ from sq_mitsuba.geometry.superquadric import (
     surface_points,
     surface_points_dual,
 )
-from sq_mitsuba.model.losses import overlap
+from sq_mitsuba.model.existence import existence_surface_samples, probabilistic_chamfer_loss
+from sq_mitsuba.model.losses import chamfer_loss, counted_surface_samples, overlap
 
 BATCH, PRIMITIVES, QUERY_POINTS = 32, 5, 10_000
 SHARPNESS, BETA = 10.0, 1.25
+TARGET_POINTS, CHAMFER_LEVEL = 2_500, 2
 
 
 def _occupancy_step(raw: torch.Tensor, points: torch.Tensor, field: str) -> None:
@@ -47,6 +52,20 @@ def _sampling_step(raw: torch.Tensor, dual: bool) -> None:
     function = surface_points_dual if dual else surface_points
     points = function(eta, omega, assembly.size, assembly.shape)
     points.square().mean().backward()
+    raw.grad = None
+
+
+def _chamfer_step(raw: torch.Tensor, logits: torch.Tensor | None, target: torch.Tensor
+                  ) -> None:
+    """The Chamfer term as the training step computes it (loss_terms.chamfer_term)."""
+    assembly = Assembly.from_raw(raw)
+    if logits is None:
+        points, keep = counted_surface_samples(assembly, CHAMFER_LEVEL)
+        loss = chamfer_loss(points, keep, target)
+    else:
+        points, inside = existence_surface_samples(assembly, CHAMFER_LEVEL)
+        loss = probabilistic_chamfer_loss(points, inside, torch.sigmoid(logits), target)
+    loss.backward()
     raw.grad = None
 
 
@@ -78,11 +97,27 @@ def run(options: BenchOptions) -> Report:
                                 note=f"{BATCH} x {PRIMITIVES} x 642 points")
     report.timings += sampling.values()
 
+    chamfer = {}
+    for count in (PRIMITIVES, 8):
+        shapes = torch.randn(BATCH, count, 16, generator=gen, device=device).requires_grad_()
+        logits = torch.randn(BATCH, count, generator=gen, device=device).requires_grad_()
+        target = torch.rand(BATCH, TARGET_POINTS, 3, generator=gen, device=device) - 0.5
+        for kind, existence in (("plain", None), ("with existence", logits)):
+            samples = time_callable(lambda r=shapes, e=existence, t=target: _chamfer_step(r, e, t),
+                                    options.repeats, options.warmup, sync)
+            chamfer[count, kind] = Timing(
+                f"Chamfer term fwd+bwd, M={count}, {kind}", samples,
+                note=f"B={BATCH}, level {CHAMFER_LEVEL} samples, {TARGET_POINTS} target points")
+    report.timings += chamfer.values()
+
     fused = occupancy["dual (fused)"].median
     report.notes += [
         f"occupancy: fused dual / primal = {fused / occupancy['primal'].median:.2f}, "
         f"fused dual / unfused dual = {fused / occupancy['dual (unfused)'].median:.2f} "
         "(same inputs, same run; < 1 means the fused dual is faster)",
         f"sampling: dual / primal = {sampling['dual'].median / sampling['primal'].median:.2f}",
+        *(f"Chamfer term, M={m}: with existence / plain = "
+          f"{chamfer[m, 'with existence'].median / chamfer[m, 'plain'].median:.2f}"
+          for m in (PRIMITIVES, 8)),
     ]
     return report
