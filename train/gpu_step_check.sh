@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Measure the training step on a GPU against the network alone, and check that the batch-256
-# recipe learns as the batch-32 one does (issue 34). About 7 minutes on one H200; every stage
+# recipe learns as the batch-32 one does (issue 34). About 9 minutes on one H200; every stage
 # runs under `timeout` and the script goes on after a failure.
 #
 #   (a) `sq-mitsuba bench train --device cuda --batch 256`: the shipped recipe's network alone
@@ -10,7 +10,9 @@
 #       train/configs/shipped_b256.toml at batch 256 for the same number of images seen (each
 #       a whole cosine schedule, same data and seed), both validation Chamfer-L1 values and
 #       their ratio, and each run's training images/s;
-#   (c) everything in OUT_DIR: summary.txt, bench_train.txt, log_b32.csv, val_b32.csv, ... .
+#   (b') the training loop itself at the large batch (batches made by the data stream), with
+#       the prefetch thread off and on (data.prefetch), median training images/s each;
+#   (c) everything in OUT_DIR: summary.txt, bench_train.txt, stream.txt, log_b32.csv, ... .
 #
 # Usage, from the repository root:  train/gpu_step_check.sh [OUT_DIR]  (default /tmp/sq-gpu-step)
 #   Without mitsuba installed it unpacks .gpu/site-cpXY.tar.xz (train/gpu_bundle.sh builds it)
@@ -22,7 +24,7 @@
 #   more), RESOLUTION [96], SPP [16]: the dataset; DATA: an existing SPE3R-layout dataset
 #   instead; SEEN [20480]: training images seen by each run; BATCH_LARGE [256]: the large
 #   batch; TRAIN_SECONDS [110]: cap of each run's training (a run cut by it is reported as not
-#   comparable); BENCH_SECONDS [180]; TOTAL_SECONDS [420]: every stage ends by then (the
+#   comparable); BENCH_SECONDS [180]; TOTAL_SECONDS [540]: every stage ends by then (the
 #   script's own limit); REPEATS [10]: bench pairs; PYTHON [python3]; WORK: folder kept for
 #   the dataset and runs (default temporary); STAGES ["bench dataset learn"].
 set -u -o pipefail
@@ -32,7 +34,7 @@ out=$(absolute "${1:-/tmp/sq-gpu-step}")
 device=${DEVICE:-cuda}
 py=${PYTHON:-python3}
 repo=$(cd "$(dirname "$0")/.." && pwd)
-stages=${STAGES:-bench dataset learn}
+stages=${STAGES:-bench dataset stream learn}
 want() { [[ " $stages " == *" $1 "* ]]; }
 large=${BATCH_LARGE:-256}
 seen=${SEEN:-20480}
@@ -44,7 +46,7 @@ summary="$out/summary.txt"
 : > "$summary"
 
 note() { echo "$*" | tee -a "$summary"; }
-deadline=$(( SECONDS + ${TOTAL_SECONDS:-420} ))
+deadline=$(( SECONDS + ${TOTAL_SECONDS:-540} ))
 # stage NAME LIMIT_S COMMAND...: run under a time limit (and within TOTAL_SECONDS of the start),
 # record the exit status and seconds.
 stage() {
@@ -92,6 +94,41 @@ if [ -z "$data" ] && want dataset; then
   else
     data=
   fi
+fi
+
+# (b1') The training loop's own images/s at the large batch, the batches made by the data
+#       stream, without and with the prefetch thread (data.prefetch), STREAM_STEPS steps each.
+if want stream && [ -n "$data" ]; then
+  stage stream "${STREAM_SECONDS:-120}" "$py" - "$data" "$work" "$device" "$large" \
+      "${STREAM_STEPS:-40}" <<'EOF' 2>&1 | tee "$out/stream.txt"
+"""shipped_b256.toml's training loop, prefetch off then on: median training images/s."""
+import csv
+import shutil
+import statistics
+import sys
+from pathlib import Path
+
+from sq_mitsuba.config import apply_overrides
+from sq_mitsuba.training.config import load_train_config
+from sq_mitsuba.training.train import train
+
+data, work, device, large, steps = (Path(sys.argv[1]), Path(sys.argv[2]), sys.argv[3],
+                                    int(sys.argv[4]), int(sys.argv[5]))
+rates = {}
+for prefetch in ("false", "true"):
+    config = apply_overrides(load_train_config(Path("train/configs/shipped_b256.toml")), [
+        f'device="{device}"', f"optim.batch_size={large}", "validation.every=0",
+        f"data.prefetch={prefetch}", f"data.cache_dir={work / 'cache'}"])
+    run = work / f"stream_{prefetch}"
+    shutil.rmtree(run, ignore_errors=True)
+    train(config, data, run, progress=False, max_steps=steps)
+    log = list(csv.DictReader((run / "log.csv").open()))[3:]  # past the kernels' warm-up
+    rates[prefetch] = statistics.median(float(r["images_per_s"]) for r in log)
+    print(f"training loop, batch {large}, prefetch {prefetch}: median "
+          f"{rates[prefetch]:.1f} images/s over {len(log)} steps")
+print(f"prefetch on / off: {rates['true'] / rates['false']:.2f} x")
+EOF
+  grep -E "^training loop|^prefetch on" "$out/stream.txt" >> "$summary"
 fi
 
 # (b2) Batch 32 against batch $large for the same images seen; (c) the summary.
