@@ -38,7 +38,7 @@ from sq_mitsuba.io import atomic_path
 from sq_mitsuba.model.network import (
     NetworkConfig,
     SuperquadricNet,
-    _sphere_directions,
+    sphere_directions,
     upgrade_state_dict,
 )
 
@@ -221,7 +221,7 @@ def grown_generators(state: Mapping[str, Tensor], model: SuperquadricNet) -> dic
         result[file_count:] = result[torch.arange(file_count, groups) % file_count]
         grown[key] = result
     if groups > file_count:  # the copies' raw translations (columns 5:8 of the last bias)
-        offsets = GROWN_OFFSET * _sphere_directions(groups - file_count)
+        offsets = GROWN_OFFSET * sphere_directions(groups - file_count)
         grown["sq_generator.layers.2.bias"][file_count:, 5:8] += offsets.to(
             grown["sq_generator.layers.2.bias"].dtype)
     return {**state, **grown}

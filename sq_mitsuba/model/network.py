@@ -71,6 +71,7 @@ __all__ = [
     "SuperquadricGenerators",
     "SuperquadricNet",
     "check_camera_matrix",
+    "sphere_directions",
     "upgrade_state_dict",
 ]
 
@@ -185,7 +186,7 @@ class NetworkOutput:
         return None if self.existence_logits is None else torch.sigmoid(self.existence_logits)
 
 
-def _sphere_directions(count: int) -> Tensor:
+def sphere_directions(count: int) -> Tensor:
     """``count`` unit vectors spread evenly on the sphere (Fibonacci lattice), (count, 3)."""
     k = torch.arange(count, dtype=torch.float64) + 0.5
     z = 1.0 - 2.0 * k / count
@@ -316,7 +317,7 @@ class SuperquadricNet(nn.Module):
         bias[:, 8:14] = torch.tensor(_IDENTITY_6D, dtype=torch.float64)
         if self.config.num_primitives > 1:
             # Raw translation r gives translation_scale tanh(r): invert for the wanted centres.
-            centres = self.config.init_spread * _sphere_directions(self.config.num_primitives)
+            centres = self.config.init_spread * sphere_directions(self.config.num_primitives)
             bias[:, 5:8] = torch.atanh(centres / ParameterRanges().translation_scale)
         if self.config.existence:  # every primitive present at first (module doc)
             bias[:, NUM_PARAMS] = math.log(INITIAL_EXISTENCE / (1.0 - INITIAL_EXISTENCE))
