@@ -163,7 +163,7 @@ def test_prefetched_batches_equal_the_streams_own(stream, device):
                          "surface_points", "occupancy_points", "occupancy_labels",
                          "symmetries"):
                 assert torch.equal(getattr(got, name), getattr(expected, name)), (step, name)
-        assert prefetcher._pending is not None and prefetcher._pending[0] == 4
+        assert prefetcher._pending is not None and prefetcher._pending.result().step == 4
     assert not prefetcher.enabled  # closed: the worker is gone
     assert torch.equal(BatchPrefetcher(stream, World(), device, 7, enabled=False).batch(1).image,
                        stream.batch(1, World(), device).image)

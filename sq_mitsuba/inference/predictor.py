@@ -327,9 +327,8 @@ class Predictor:
         scale = rotation.new_tensor([x.width / size, x.height / size])
         score = target_scores(x.images, output.mask_logits, x.checked).to(rotation)
         params = Assembly.from_raw(output.raw.clone()).params
-        existence = rows = None
-        if output.existence_logits is not None:
-            existence = output.existence_logits.clone().sigmoid()
+        existence, rows = output.existence, None
+        if existence is not None:
             rows = kept_primitives(existence, self.min_existence)
             params = gathered_primitives(params, rows)
         return Prediction(

@@ -286,7 +286,7 @@ def mask_term(output: NetworkOutput, batch: TrainingBatch, context: LossContext)
 
 def parsimony_term(output: NetworkOutput, batch: TrainingBatch, context: LossContext) -> Tensor:
     """:func:`~sq_mitsuba.model.losses.parsimony_loss` of the existence probabilities."""
-    return parsimony_loss(output.existence_logits.sigmoid())
+    return parsimony_loss(output.existence)
 
 
 register_term("chamfer", chamfer_term, ("assembly",))

@@ -44,7 +44,7 @@ class BatchPrefetcher:
         self.end_step = end_step
         self.pin = self.device.type == "cuda"
         self._executor = ThreadPoolExecutor(1, "batch-prefetch") if enabled else None
-        self._pending: tuple[int, Future[HostBatch]] | None = None
+        self._pending: Future[HostBatch] | None = None  # a host batch under way
 
     @property
     def enabled(self) -> bool:
@@ -57,16 +57,16 @@ class BatchPrefetcher:
             return self.stream.batch(step, self.world, self.device)
         host = self._take(step)
         if step + 1 < self.end_step:
-            self._pending = (step + 1, self._executor.submit(
-                self.stream.host_batch, step + 1, self.world, self.pin))
+            self._pending = self._executor.submit(self.stream.host_batch, step + 1,
+                                                  self.world, self.pin)
         return self.stream.device_batch(host, self.device)
 
     def _take(self, step: int) -> HostBatch:
         assert self._executor is not None
         pending, self._pending = self._pending, None
         if pending is not None:
-            host = pending[1].result()  # also waits for a stale one: one reader at a time
-            if pending[0] == step:
+            host = pending.result()  # also waits for a stale one: one reader at a time
+            if host.step == step:
                 return host
         return self._executor.submit(self.stream.host_batch, step, self.world,
                                      self.pin).result()
