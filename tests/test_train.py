@@ -238,12 +238,15 @@ def test_sigkill_then_resume_repeats_the_uninterrupted_run(train_dataset, cache_
             assert row[key] == expected[key], (row["step"], key, row[key], expected[key])
 
 
-def test_a_run_with_the_prefetch_thread_repeats_the_reference(train_dataset, cache_dir,
-                                                              reference_run, tmp_path):
-    """``data.prefetch = true`` on the CPU: the same batches, so the same run bit for bit."""
+@pytest.mark.parametrize("workers", [0, 2])
+def test_a_prefetched_run_repeats_the_reference(train_dataset, cache_dir, reference_run,
+                                                tmp_path, workers):
+    """``data.prefetch = true`` on the CPU, on a thread or in worker processes: the same
+    batches, so the same run bit for bit."""
     out = tmp_path / "run"
-    config = apply_overrides(load_train_config(TINY), [f"data.cache_dir={cache_dir}",
-                                                       "data.prefetch=true"])
+    config = apply_overrides(load_train_config(TINY), [
+        f"data.cache_dir={cache_dir}", "data.prefetch=true",
+        f"data.prefetch_workers={workers}"])
     result = train(config, train_dataset, out, progress=False, max_steps=5)
     assert result.steps == 5
     reference = {int(r["step"]): r for r in _rows(reference_run / "log.csv")}

@@ -146,25 +146,30 @@ def test_stream_batch_made_on_the_device_equals_the_host_batch(stream, device):
                 torch.testing.assert_close(actual, value, rtol=1e-5, atol=1e-5)
 
 
-def test_prefetched_batches_equal_the_streams_own(stream, device):
-    """The prefetch thread hands out, bit for bit, the batch the stream makes on demand: in
-    step order (each prefetched behind the last), after a jump (the stale prefetch dropped),
-    and with the stream's own batch interleaved."""
+@pytest.mark.parametrize("workers", [0, 2])
+def test_prefetched_batches_equal_the_streams_own(stream, device, workers):
+    """The prefetch thread (``workers = 0``) or worker processes hand out, bit for bit, the
+    batch the stream makes on demand: in step order (each prefetched behind the last), after
+    a jump (the stale prefetch dropped), past the planned steps, and with the stream's own
+    batch interleaved."""
     from sq_mitsuba.training.distributed import World
     from sq_mitsuba.training.prefetch import BatchPrefetcher, prefetch_enabled
 
     assert prefetch_enabled(None, "cpu") is False and prefetch_enabled(None, "cuda") is True
     assert prefetch_enabled(True, "cpu") is True
-    with BatchPrefetcher(stream, World(), device, end_step=7) as prefetcher:
-        for step in (0, 1, 2, 5, 6, 3):
+    with BatchPrefetcher(stream, World(), device, end_step=7, workers=workers) as prefetcher:
+        for step in (0, 1, 2, 5, 6, 7, 3):
             got = prefetcher.batch(step)
             expected = stream.batch(step, World(), device)
             for name in ("image", "mask", "rotation", "translation", "model_index",
                          "surface_points", "occupancy_points", "occupancy_labels",
                          "symmetries"):
                 assert torch.equal(getattr(got, name), getattr(expected, name)), (step, name)
-        assert prefetcher._pending is not None and prefetcher._pending.result().step == 4
-    assert not prefetcher.enabled  # closed: the worker is gone
+        if workers == 0:
+            assert prefetcher._pending is not None and prefetcher._pending.result().step == 4
+        else:
+            assert prefetcher._loader is not None and prefetcher._next == 4
+    assert not prefetcher.enabled  # closed: the workers are gone
     assert torch.equal(BatchPrefetcher(stream, World(), device, 7, enabled=False).batch(1).image,
                        stream.batch(1, World(), device).image)
 

@@ -7,11 +7,13 @@
 #       (forward, backward, AdamW) against its full training step, images/s each and the ratio,
 #       at batch 32 and 256;
 #   (b) a small dataset rendered here, then train/configs/shipped.toml at batch 32 and
-#       train/configs/shipped_b256.toml at batch 256 for the same number of images seen (each
-#       a whole cosine schedule, same data and seed), both validation Chamfer-L1 values and
-#       their ratio, and each run's training images/s;
+#       train/configs/shipped_b256.toml at batch 256 (its square-root learning-rate scaling,
+#       then linear scaling) for the same number of images seen (each a whole cosine schedule,
+#       same data and seed), the validation Chamfer-L1 values and their ratios, and each run's
+#       training images/s;
 #   (b') the training loop itself at the large batch (batches made by the data stream), with
-#       the prefetch thread off and on (data.prefetch), median training images/s each;
+#       the prefetch off, on a thread and in two worker processes (data.prefetch,
+#       data.prefetch_workers), median training images/s each;
 #   (c) everything in OUT_DIR: summary.txt, bench_train.txt, stream.txt, log_b32.csv, ... .
 #
 # Usage, from the repository root:  train/gpu_step_check.sh [OUT_DIR]  (default /tmp/sq-gpu-step)
@@ -97,11 +99,13 @@ if [ -z "$data" ] && want dataset; then
 fi
 
 # (b1') The training loop's own images/s at the large batch, the batches made by the data
-#       stream, without and with the prefetch thread (data.prefetch), STREAM_STEPS steps each.
+#       stream, without prefetch, with the thread and with worker processes (STREAM_MODES:
+#       off, thread, or a number of workers), STREAM_STEPS steps each.
 if want stream && [ -n "$data" ]; then
-  stage stream "${STREAM_SECONDS:-120}" "$py" - "$data" "$work" "$device" "$large" \
-      "${STREAM_STEPS:-40}" <<'EOF' 2>&1 | tee "$out/stream.txt"
-"""shipped_b256.toml's training loop, prefetch off then on: median training images/s."""
+  stage stream "${STREAM_SECONDS:-150}" "$py" - "$data" "$work" "$device" "$large" \
+      "${STREAM_STEPS:-40}" "${STREAM_MODES:-off thread 2}" <<'EOF' 2>&1 | tee "$out/stream.txt"
+"""shipped_b256.toml's training loop, prefetch off, on a thread, in worker processes: median
+training images/s."""
 import csv
 import shutil
 import statistics
@@ -114,31 +118,39 @@ from sq_mitsuba.training.train import train
 
 data, work, device, large, steps = (Path(sys.argv[1]), Path(sys.argv[2]), sys.argv[3],
                                     int(sys.argv[4]), int(sys.argv[5]))
+modes = sys.argv[6].split()  # off, thread, or a number of worker processes
 rates = {}
-for prefetch in ("false", "true"):
+for label in modes:
+    prefetch = "false" if label == "off" else "true"
+    workers = int(label) if label.isdigit() else 0
     config = apply_overrides(load_train_config(Path("train/configs/shipped_b256.toml")), [
         f'device="{device}"', f"optim.batch_size={large}", "validation.every=0",
-        f"data.prefetch={prefetch}", f"data.cache_dir={work / 'cache'}"])
-    run = work / f"stream_{prefetch}"
+        f"data.prefetch={prefetch}", f"data.prefetch_workers={workers}",
+        f"data.cache_dir={work / 'cache'}"])
+    run = work / f"stream_{label}"
     shutil.rmtree(run, ignore_errors=True)
     train(config, data, run, progress=False, max_steps=steps)
-    log = list(csv.DictReader((run / "log.csv").open()))[3:]  # past the kernels' warm-up
-    rates[prefetch] = statistics.median(float(r["images_per_s"]) for r in log)
-    print(f"training loop, batch {large}, prefetch {prefetch}: median "
-          f"{rates[prefetch]:.1f} images/s over {len(log)} steps")
-print(f"prefetch on / off: {rates['true'] / rates['false']:.2f} x")
+    log = list(csv.DictReader((run / "log.csv").open()))
+    log = log[3:] if len(log) > 4 else log[1:]  # past the kernels' warm-up
+    rates[label] = statistics.median(float(r["images_per_s"]) for r in log)
+    print(f"training loop, batch {large}, prefetch {label}: median "
+          f"{rates[label]:.1f} images/s over {len(log)} steps")
+if "off" in rates:
+    print("prefetch " + ", ".join(
+        f"{'on a thread' if m == 'thread' else f'in {m} worker processes'} / off: "
+        f"{rates[m] / rates['off']:.2f} x" for m in modes if m != "off"))
 EOF
-  grep -E "^training loop|^prefetch on" "$out/stream.txt" >> "$summary"
+  grep -E "^training loop|^prefetch " "$out/stream.txt" >> "$summary"
 fi
 
 # (b2) Batch 32 against batch $large for the same images seen; (c) the summary.
 if want learn && [ -n "$data" ]; then
   # Each run's training cap fits what is left (start-up, caches and validations besides).
   train_s=${TRAIN_SECONDS:-110}
-  fit=$(( (deadline - SECONDS - 60) / 2 ))
+  fit=$(( (deadline - SECONDS - 90) / 2 ))
   [ "$fit" -lt "$train_s" ] && train_s=$fit
   [ "$train_s" -lt 5 ] && train_s=5
-  stage learn $(( 2 * train_s + 60 )) "$py" - "$data" "$work" "$out" "$device" \
+  stage learn $(( 2 * train_s + 90 )) "$py" - "$data" "$work" "$out" "$device" \
       "$seen" "$large" "$train_s" <<'EOF' 2>&1 | tee "$out/learn.txt"
 """Train shipped.toml at batch 32 and shipped_b256.toml at the large batch on the same data
 for the same images seen (whole cosine schedules), and compare their validation Chamfer-L1."""
@@ -161,13 +173,16 @@ available = len(Spe3rDataset(data, "train", image_size=96, num_surface=1, num_oc
 # epoch is ceil(images / batch) steps; with fewer images than one large batch they differ).
 images = available // large * large if available >= large else available
 rows = {}
-for label, config_name, batch in (("b32", "shipped.toml", 32),
-                                  (f"b{large}", "shipped_b256.toml", large)):
+# The large batch twice: the recipe's square-root learning-rate scaling, and linear scaling.
+for label, config_name, batch, extra in (
+        ("b32", "shipped.toml", 32, []),
+        (f"b{large}", "shipped_b256.toml", large, []),
+        (f"b{large}_linear", "shipped_b256.toml", large, ['optim.lr_scaling="linear"'])):
     epochs = max(1, round(seen / (math.ceil(images / batch) * batch)))
     config = apply_overrides(load_train_config(Path("train/configs") / config_name), [
         f'device="{device}"', f"optim.batch_size={batch}", f"optim.epochs={epochs}",
         f"data.train_images={images}", f"validation.every={max(1, epochs // 4)}",
-        f"data.cache_dir={work / 'cache'}"])
+        f"data.cache_dir={work / 'cache'}", *extra])
     run = work / f"run_{label}"
     shutil.rmtree(run, ignore_errors=True)
     result = train(config, data, run, progress=False, max_seconds=seconds)
@@ -185,20 +200,22 @@ for label, config_name, batch in (("b32", "shipped.toml", 32),
           f"{result.train_seconds:.1f} s; val Chamfer-L1 by step: "
           + ", ".join(f"{v['step']}: {float(v['chamfer_l1']):.4f}" for v in val))
 print(f"train images used {images} of {available}")
-small, big = rows["b32"], rows[f"b{large}"]
-if small[1] and big[1]:
+small = rows["b32"]
+for label in (f"b{large}", f"b{large}_linear"):
+    big = rows[label]
+    if not (small[1] and big[1]):
+        print(f"{label}: no validation in one of the runs: no Chamfer comparison")
+        continue
     a, b = float(small[1][-1]["chamfer_l1"]), float(big[1][-1]["chamfer_l1"])
     counts = [r[0].steps * r[3] for r in (small, big)]
     complete = all(r[0].steps == r[0].total_steps for r in (small, big))
     fair = complete and counts[0] == counts[1]
     print(f"val Chamfer-L1 after {counts[0]} / {counts[1]} images seen: batch 32 {a:.4f}, "
-          f"batch {large} {b:.4f}, ratio {b / a:.3f} (acceptance: <= 1.03)"
+          f"{label} (peak lr {big[4]:.3g}) {b:.4f}, ratio {b / a:.3f} (acceptance: <= 1.03)"
           + ("" if fair else " -- NOT COMPARABLE: a run was cut by the time cap or the "
              "images seen differ"))
-else:
-    print("no validation in one of the runs: no Chamfer comparison")
 EOF
-  grep -E "^b[0-9]+:|^train images|^val Chamfer|^no validation" "$out/learn.txt" >> "$summary"
+  grep -E "^b[0-9]+(_linear)?:|^train images|^val Chamfer|no validation" "$out/learn.txt" >> "$summary"
 fi
 
 echo "=== summary"; cat "$summary"

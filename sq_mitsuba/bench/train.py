@@ -119,12 +119,11 @@ class SyntheticData:
         noise = 0.03 * torch.randn(self.mask.shape, generator=generator)
         self.image = (self.mask * grey + noise).clamp(0, 1)
 
-    def batch(self, step: int, device: torch.device | None = None) -> TrainingBatch:
-        """Step ``step``'s batch, as the training loop's data stream makes them: the draws on
-        the host, the pixels copied to ``device`` (default the CPU) and augmented there."""
-        from sq_mitsuba.training.augment import augment_batch, to_device
-
-        device = torch.device("cpu") if device is None else device
+    def host_batch(self, step: int, pin: bool = False) -> dict[str, Any]:
+        """Step ``step``'s host share, as the data stream's: every item's point draws and
+        augmentation draws (points first, from the item's own generator); ``pin``: in pinned
+        memory. What the training loop's prefetch thread prepares while a step runs."""
+        from sq_mitsuba.training.augment import draw_augmentation
 
         cfg = self.config
         generators = [np.random.default_rng([7, step, j]) for j in range(len(self.image))]
@@ -142,19 +141,47 @@ class SyntheticData:
             points.append(self.box[model][rows])
             labels.append(np.concatenate([np.ones(want_in, np.float32),
                                           np.zeros(len(rows) - want_in, np.float32)]))
-        image, mask, rotation, translation = (
-            to_device(value, device) for value in (self.image, self.mask, self.rotation,
-                                                   self.translation))
+        host: dict[str, Any] = {
+            "image": self.image, "mask": self.mask, "rotation": self.rotation,
+            "translation": self.translation, "model_index": self.model_index,
+            "surface_points": torch.from_numpy(np.stack(surface)),
+            "occupancy_points": torch.from_numpy(np.stack(points)),
+            "occupancy_labels": torch.from_numpy(np.stack(labels))}
+        if pin:
+            host = {name: value.pin_memory() for name, value in host.items()}
+        draws = None
         if cfg.augment.enabled:
-            image, mask, rotation, translation = augment_batch(
-                image, mask, rotation, translation, cfg.augment, generators, self.camera)
+            draws = draw_augmentation(cfg.augment, generators, tuple(self.image.shape),
+                                      self.image.dtype)
+            draws = draws.pinned() if pin else draws
+        host["augmentation"] = draws
+        return host
+
+    def device_batch(self, host: dict[str, Any], device: torch.device | None = None
+                     ) -> TrainingBatch:
+        """A :meth:`host_batch` on ``device`` (default the CPU), augmented there."""
+        from sq_mitsuba.training.augment import apply_augmentation, to_device
+
+        device = torch.device("cpu") if device is None else device
+        moved = {name: to_device(value, device) for name, value in host.items()
+                 if name != "augmentation"}
+        image, mask, rotation, translation = (
+            moved[name] for name in ("image", "mask", "rotation", "translation"))
+        if host["augmentation"] is not None:
+            image, mask, rotation, translation = apply_augmentation(
+                image, mask, rotation, translation, host["augmentation"], self.camera)
         return TrainingBatch(
             image=image, mask=mask, rotation=rotation, translation=translation,
-            model_index=to_device(self.model_index, device),
-            surface_points=to_device(np.stack(surface), device),
-            occupancy_points=to_device(np.stack(points), device),
-            occupancy_labels=to_device(np.stack(labels), device),
+            model_index=moved["model_index"], surface_points=moved["surface_points"],
+            occupancy_points=moved["occupancy_points"],
+            occupancy_labels=moved["occupancy_labels"],
             symmetries=torch.eye(3, device=device).expand(len(self.image), 1, 3, 3))
+
+    def batch(self, step: int, device: torch.device | None = None) -> TrainingBatch:
+        """Step ``step``'s batch, as the training loop's data stream makes them: the draws on
+        the host, the pixels copied to ``device`` (default the CPU) and augmented there."""
+        device = torch.device("cpu") if device is None else device
+        return self.device_batch(self.host_batch(step, pin=device.type == "cuda"), device)
 
 
 # ------------------------------------------------------------------------------ training step
@@ -194,15 +221,20 @@ class StepBench:
 
         return loss_context(self.config, self.renderer, step)
 
-    def step(self, step: int) -> None:
+    def step(self, step: int, host: dict[str, Any] | None = None) -> None:
         """One training step exactly as the loop runs it (without logging): the batch made
         (draws on the host, pixels to the device, augmentation there), then
-        :func:`~sq_mitsuba.training.step.training_step`."""
+        :func:`~sq_mitsuba.training.step.training_step`. ``host``: step ``step``'s
+        :meth:`SyntheticData.host_batch` made beforehand, as the loop's prefetch thread
+        makes it (then only its copy to the device and augmentation count here)."""
         from sq_mitsuba.training.step import NotFiniteError, training_step
 
+        if host is None:
+            host = self.data.host_batch(step, pin=self.device.type == "cuda")
+        batch = self.data.device_batch(host, self.device)
         try:
-            training_step(self.model, self.optimizer, self.data.batch(step, self.device),
-                          self.k_matrix, self.context(step), self.config.optim.grad_clip)
+            training_step(self.model, self.optimizer, batch, self.k_matrix,
+                          self.context(step), self.config.optim.grad_clip)
         except NotFiniteError as error:
             raise RuntimeError(f"bench train: step {step}: {error}") from None
 
@@ -414,8 +446,10 @@ def step_ratio(config: Any, batch: int, device: torch.device, repeats: int, warm
                ) -> dict[str, list[float]]:
     """Seconds per step of the network alone (:meth:`StepBench.network_step`) and of the full
     training step (:meth:`StepBench.step`) of ``config`` at ``batch`` images on ``device``,
-    the two alternating (``warmup`` untimed pairs first) so that load changes hit both alike;
-    the device is waited for after each. Returns ``{"network": [...], "step": [...]}``."""
+    alternating (``warmup`` untimed rounds first) so that load changes hit both alike; the
+    device is waited for after each. Returns ``{"network": [...], "step": [...]}``, and
+    ``"prefetched"`` (the step with its host share made beforehand, as the loop's prefetch
+    thread makes it) where ``data.prefetch`` is on for ``device``."""
     from sq_mitsuba.config import apply_overrides
     from sq_mitsuba.training.step import mitsuba_for
 
@@ -425,12 +459,20 @@ def step_ratio(config: Any, batch: int, device: torch.device, repeats: int, warm
         if device.type == "cuda":
             torch.cuda.synchronize(device)
 
+    from sq_mitsuba.training.prefetch import prefetch_enabled
+
     samples: dict[str, list[float]] = {"network": [], "step": []}
     with mitsuba_for(device, config.reprojection.deterministic):
         trainer = StepBench(config, batch, device)
+        calls: dict[str, Callable[[], None]] = {
+            "network": trainer.network_step, "step": lambda: trainer.step(step)}
+        if prefetch_enabled(config.data.prefetch, device):
+            # As the loop runs it: the host share made beforehand by the prefetch thread.
+            samples["prefetched"] = []
+            calls["prefetched"] = lambda: trainer.step(step, host)
         try:
-            calls = {"network": trainer.network_step, "step": lambda: trainer.step(step)}
             for step in range(warmup + repeats):
+                host = trainer.data.host_batch(step, pin=device.type == "cuda")
                 for name, call in calls.items():
                     sync()
                     start = time.perf_counter()
@@ -454,22 +496,31 @@ def _ratio_figures(report: Report, options: BenchOptions) -> None:
                              max(1, options.warmup))
         rates = {name: [batch / s for s in values] for name, values in samples.items()}
         for name, label in (("network", "network alone (forward, backward, AdamW)"),
-                            ("step", "full training step (training_step, batch made)")):
+                            ("step", "full training step (training_step, batch made)"),
+                            ("prefetched", "full training step, host share prefetched")):
+            if name not in rates:
+                continue
             rate = Timing(name, rates[name])
             report.timings.append(Timing(
                 f"{RATIO_CONFIG}.toml {label}, batch {batch}, per image",
                 [s / batch for s in samples[name]],
                 note=f"{rate.median:.1f} images/s (IQR {rate.spread[0]:.1f} - "
                      f"{rate.spread[1]:.1f}), {options.device}"))
-        pairs = Timing("ratio", [n / s for n, s in zip(samples["network"], samples["step"],
+        # The headline is the step as the loop runs it on this device.
+        loop = "prefetched" if "prefetched" in samples else "step"
+        pairs = Timing("ratio", [n / s for n, s in zip(samples["network"], samples[loop],
                                                         strict=True)])
+        inline = ("" if loop == "step" else f"; batch made inline "
+                  f"{statistics.median(rates['step']):.1f} images/s")
         report.notes.insert(0, (
             f"**headline, batch {batch} on {options.device}: the full step runs at "
             f"{100 * pairs.median:.1f} % of the network alone** (full / network-alone images/s, "
             f"median of {repeats} alternating pairs, IQR {100 * pairs.spread[0]:.1f} - "
             f"{100 * pairs.spread[1]:.1f} %; network alone "
             f"{statistics.median(rates['network']):.1f} images/s, full step "
-            f"{statistics.median(rates['step']):.1f} images/s, medians of the same pairs)"))
+            f"{statistics.median(rates[loop]):.1f} images/s"
+            f"{' with its host share prefetched as the loop does' if loop != 'step' else ''}, "
+            f"medians of the same pairs{inline})"))
 
 
 def run(options: BenchOptions) -> Report:

@@ -52,7 +52,8 @@ from sq_mitsuba.config import in_range
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.image_turns import check_rotation_exact, rotate_batch, z_rotation
 
-__all__ = ["KINDS", "AugmentConfig", "augment_batch", "to_device"]
+__all__ = ["KINDS", "AugmentConfig", "AugmentDraws", "apply_augmentation", "augment_batch",
+           "check_augment_inputs", "draw_augmentation", "to_device"]
 
 #: The kinds of augmentation, in the order they are applied.
 KINDS = ("rotation", "brightness", "gamma", "blur", "noise")
@@ -139,47 +140,44 @@ def _log_uniform(rng: np.random.Generator, bounds: tuple[float, float]) -> float
     return math.exp(rng.uniform(math.log(bounds[0]), math.log(bounds[1])))
 
 
-def augment_batch(images: Tensor, masks: Tensor, rotations: Tensor, translations: Tensor,
-                  config: AugmentConfig, generators: list[np.random.Generator],
-                  camera: Camera | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Augment a batch; labels stay exact (see the module docstring).
+@dataclass
+class AugmentDraws:
+    """Every item's augmentation parameters, drawn on the host (:func:`draw_augmentation`);
+    applied on any device by :func:`apply_augmentation`."""
+
+    params: dict[str, np.ndarray]
+    "Each kind's parameter per item (B,), float64; neutral where the kind did not fire."
+    table: Tensor
+    "(kinds, B) float64: the parameters in :data:`KINDS` order, what travels to the device."
+    noise: Tensor | None
+    "(B, C, S, S) additive noise in the images' dtype (zero for items without), or None."
+
+    def pinned(self) -> AugmentDraws:
+        """The same draws in pinned host memory (copies to a GPU that do not wait)."""
+        return AugmentDraws(self.params, self.table.pin_memory(),
+                            None if self.noise is None else self.noise.pin_memory())
+
+
+def draw_augmentation(config: AugmentConfig, generators: list[np.random.Generator],
+                      image_shape: tuple[int, ...], dtype: torch.dtype = torch.float32
+                      ) -> AugmentDraws:
+    """Draw every item's parameters and noise on the host, from each item's generator.
 
     Args:
-        images: (B, C, S, S) in [0, 1].
-        masks: (B, 1, S, S) in [0, 1].
-        rotations: (B, 3, 3) body-to-camera rotations; translations: (B, 3).
         config: which kinds and how strong.
-        generators: one numpy Generator per item; each item draws its parameters from its own.
-        camera: intrinsics at S x S, checked with :func:`check_rotation_exact` when the
-            rotation is on (None: assume the default camera, centred and square).
-
-    Returns:
-        (images, masks, rotations, translations), new tensors of the same shapes and dtypes.
+        generators: one numpy Generator per item.
+        image_shape: (B, C, S, S) of the images the draws will augment.
+        dtype: the images' dtype (the noise is drawn in it).
     """
-    check_tensor("images", images, (None, None, None), min_dims=4)
-    batch = images.shape[0]
-    if images.dim() != 4 or images.shape[-1] != images.shape[-2]:
-        raise ValueError(f"images: expected (B, C, S, S), got {tuple(images.shape)}")
-    if masks.shape != (batch, 1, *images.shape[-2:]):
-        raise ValueError(f"masks: expected {(batch, 1, *images.shape[-2:])}, got "
-                         f"{tuple(masks.shape)}")
-    check_tensor("rotations", rotations, (3, 3), min_dims=3)
-    check_tensor("translations", translations, (3,), min_dims=2)
-    if rotations.shape[0] != batch or translations.shape[0] != batch:
-        raise ValueError(f"rotations, translations: expected {batch} items, got "
-                         f"{rotations.shape[0]} and {translations.shape[0]}")
+    batch = image_shape[0]
     if len(generators) != batch:
         raise ValueError(f"generators: expected {batch} (one per item), got {len(generators)}")
-    if not config.enabled:
-        return images, masks, rotations, translations
-    if config.rotation and camera is not None:
-        check_rotation_exact(camera)
-
-    # Draw every item's parameters first, in a fixed order per item, so that the draws of one
-    # kind do not depend on whether another kind fired.
+    # Every item's parameters first, in a fixed order per item, so that the draws of one kind
+    # do not depend on whether another kind fired.
     p = config.probability
     params = {kind: np.zeros(batch) for kind in KINDS}
     noise_seeds = np.zeros(batch, dtype=np.int64)
+    neutral = {"rotation": 0.0, "brightness": 1.0, "gamma": 1.0, "noise": 0.0, "blur": 0.0}
     for i, rng in enumerate(generators):
         fire = rng.random(len(KINDS)) < p
         angle = math.radians(rng.uniform(-config.max_rotation_deg, config.max_rotation_deg))
@@ -190,18 +188,36 @@ def augment_batch(images: Tensor, masks: Tensor, rotations: Tensor, translations
         noise_seeds[i] = int(rng.integers(0, 2**62))
         values = {"rotation": angle, "brightness": factor, "gamma": gamma, "noise": std,
                   "blur": sigma}
-        neutral = {"rotation": 0.0, "brightness": 1.0, "gamma": 1.0, "noise": 0.0, "blur": 0.0}
         for k, kind in enumerate(KINDS):
             on = getattr(config, kind) and bool(fire[k])
             params[kind][i] = values[kind] if on else neutral[kind]
+    stds = params["noise"]
+    noise = None
+    if bool((stds > 0).any()):
+        # Each item's noise from its own seed: the same noise on every device.
+        noise = torch.zeros(image_shape, dtype=dtype)
+        for i in np.flatnonzero(stds > 0):
+            gen = torch.Generator().manual_seed(int(noise_seeds[i]))
+            noise[i] = float(stds[i]) * torch.randn(image_shape[1:], generator=gen, dtype=dtype)
+    table = torch.from_numpy(np.stack([params[kind] for kind in KINDS]))  # (kinds, B)
+    return AugmentDraws(params, table, noise)
 
+
+def apply_augmentation(images: Tensor, masks: Tensor, rotations: Tensor, translations: Tensor,
+                       draws: AugmentDraws, camera: Camera | None = None
+                       ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Apply host-drawn parameters (:func:`draw_augmentation`) to a batch on its device;
+    shapes as :func:`augment_batch`. Never waits for the device: every decision is taken from
+    the host's copy of the parameters."""
+    params = draws.params
+    if bool((params["rotation"] != 0).any()) and camera is not None:
+        check_rotation_exact(camera)
     dtype, device = images.dtype, images.device
     images, masks = images.clone(), masks.clone()
     rotations, translations = rotations.clone(), translations.clone()
 
     # Every parameter in one copy to the device (float64 here, each cast as before).
-    table = to_device(np.stack([params[kind] for kind in KINDS]), device)  # (kinds, B)
-    column = dict(zip(KINDS, table, strict=True))
+    column = dict(zip(KINDS, to_device(draws.table, device), strict=True))
     angles = column["rotation"]
     turned = np.flatnonzero(params["rotation"] != 0)  # decided on the host: no wait
     if len(turned):
@@ -223,13 +239,53 @@ def augment_batch(images: Tensor, masks: Tensor, rotations: Tensor, translations
         # The radius from the host's values, rounded to the images' dtype as on the device.
         largest = float(torch.as_tensor(params["blur"], dtype=dtype).max())
         images = _gaussian_blur(images, sigmas, largest)
-    stds = params["noise"]
-    if bool((stds > 0).any()):
-        # Drawn on the host from each item's seed (the same noise on every device), one copy.
-        noise = torch.zeros(images.shape, dtype=dtype)
-        for i in np.flatnonzero(stds > 0):
-            gen = torch.Generator().manual_seed(int(noise_seeds[i]))
-            noise[i] = float(stds[i]) * torch.randn(images.shape[1:], generator=gen,
-                                                    dtype=dtype)
-        images = (images + to_device(noise, device)).clamp(0, 1)
+    if draws.noise is not None:
+        images = (images + to_device(draws.noise, device)).clamp(0, 1)
     return images, masks, rotations, translations
+
+
+def augment_batch(images: Tensor, masks: Tensor, rotations: Tensor, translations: Tensor,
+                  config: AugmentConfig, generators: list[np.random.Generator],
+                  camera: Camera | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Augment a batch; labels stay exact (see the module docstring): the draws of
+    :func:`draw_augmentation`, then :func:`apply_augmentation`.
+
+    Args:
+        images: (B, C, S, S) in [0, 1].
+        masks: (B, 1, S, S) in [0, 1].
+        rotations: (B, 3, 3) body-to-camera rotations; translations: (B, 3).
+        config: which kinds and how strong.
+        generators: one numpy Generator per item; each item draws its parameters from its own.
+        camera: intrinsics at S x S, checked with :func:`check_rotation_exact` when the
+            rotation is on (None: assume the default camera, centred and square).
+
+    Returns:
+        (images, masks, rotations, translations), new tensors of the same shapes and dtypes.
+    """
+    check_augment_inputs(images, masks, rotations, translations)
+    if len(generators) != images.shape[0]:
+        raise ValueError(f"generators: expected {images.shape[0]} (one per item), got "
+                         f"{len(generators)}")
+    if not config.enabled:
+        return images, masks, rotations, translations
+    if config.rotation and camera is not None:
+        check_rotation_exact(camera)
+    draws = draw_augmentation(config, generators, tuple(images.shape), images.dtype)
+    return apply_augmentation(images, masks, rotations, translations, draws, camera)
+
+
+def check_augment_inputs(images: Tensor, masks: Tensor, rotations: Tensor,
+                         translations: Tensor) -> None:
+    """One-line errors for a batch of the wrong shapes (see :func:`augment_batch`)."""
+    check_tensor("images", images, (None, None, None), min_dims=4)
+    batch = images.shape[0]
+    if images.dim() != 4 or images.shape[-1] != images.shape[-2]:
+        raise ValueError(f"images: expected (B, C, S, S), got {tuple(images.shape)}")
+    if masks.shape != (batch, 1, *images.shape[-2:]):
+        raise ValueError(f"masks: expected {(batch, 1, *images.shape[-2:])}, got "
+                         f"{tuple(masks.shape)}")
+    check_tensor("rotations", rotations, (3, 3), min_dims=3)
+    check_tensor("translations", translations, (3,), min_dims=2)
+    if rotations.shape[0] != batch or translations.shape[0] != batch:
+        raise ValueError(f"rotations, translations: expected {batch} items, got "
+                         f"{rotations.shape[0]} and {translations.shape[0]}")

@@ -70,10 +70,14 @@ class DataConfig:
     """Folder of the decoded training cache (shared between runs of the same dataset and
     size); None: ``RUN_DIR/cache``. Not compared when a run resumes."""
     prefetch: bool | None = None
-    """Prepare the next step's host share of the batch (cache rows, point draws, pinned
-    copies) on a thread while the step runs; the batches are the same either way. None: on
-    where the step runs on a GPU, off on the CPU (the thread would take the step's cores).
+    """Prepare the next steps' host share of the batch (cache rows, point and augmentation
+    draws, pinned copies) while the step runs; the batches are the same either way. None: on
+    where the step runs on a GPU, off on the CPU (the workers would take the step's cores).
     Not compared when a run resumes."""
+    prefetch_workers: int = in_range(0, 64, default=2)
+    """Processes that prepare the batches when ``prefetch`` is on, each two steps ahead; 0:
+    one thread of the training process, one step ahead (its Python work then competes with
+    the step's for the interpreter lock). Not compared when a run resumes."""
 
 
 @dataclass(frozen=True)

@@ -25,7 +25,12 @@ from torch import Tensor
 from sq_mitsuba.data.spe3r import Spe3rDataset
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.image_turns import check_rotation_exact
-from sq_mitsuba.training.augment import augment_batch, to_device
+from sq_mitsuba.training.augment import (
+    AugmentDraws,
+    apply_augmentation,
+    draw_augmentation,
+    to_device,
+)
 from sq_mitsuba.training.batch import TrainingBatch
 from sq_mitsuba.training.cache import (
     ImageCache,
@@ -78,8 +83,9 @@ class TrainingStream:
 
     def host_batch(self, step: int, world: World, pin: bool = False) -> HostBatch:
         """The host's share of :meth:`batch`: this process's rows of step ``step``, their
-        cached pixels and poses, and their point draws; what a prefetch thread prepares while
-        the previous step runs (:class:`~sq_mitsuba.training.prefetch.BatchPrefetcher`).
+        cached pixels and poses, their point draws and augmentation draws (each item's from its
+        own generator, points first); what a prefetch thread prepares while the previous step
+        runs (:class:`~sq_mitsuba.training.prefetch.BatchPrefetcher`).
         ``pin``: the tensors in pinned memory, for copies to a GPU that do not wait."""
         local = self.batch_size // world.size
         start = world.rank * local
@@ -99,24 +105,25 @@ class TrainingStream:
                    occupancy_points=torch.from_numpy(np.stack(occupancy)),
                    occupancy_labels=torch.from_numpy(np.stack(labels)),
                    symmetries=self.symmetries[raw["model_index"]])
-        if pin:
-            raw = {name: value.pin_memory() for name, value in raw.items()}
-        return HostBatch(step, raw, generators)
+        draws = None
+        if cfg.augment.enabled:  # the images' shape once decoded: (B, 1, S, S) float32
+            shape = (local, 1, self.images.size, self.images.size)
+            draws = draw_augmentation(cfg.augment, generators, shape, torch.float32)
+        host = HostBatch(step, raw, draws)
+        return host.pin_memory() if pin else host
 
     def device_batch(self, host: HostBatch, device: torch.device | str | None = None
                      ) -> TrainingBatch:
         """The :class:`TrainingBatch` of a :meth:`host_batch` on ``device`` (default the CPU):
-        its pixels decoded and the batch augmented there, the augmentation's draws taken from
-        the host batch's generators (after its point draws, as in :meth:`batch`)."""
+        its pixels decoded and the batch augmented there with the host batch's draws."""
         device = torch.device("cpu" if device is None else device)
         moved = {name: to_device(value, device) for name, value in host.tensors.items()}
         image, mask = decode_pixels(moved.pop("image_u8"), moved.pop("mask_packed"),
                                     self.images.size)
         rotation, translation = moved["rotation"], moved["translation"]
-        cfg = self.config
-        if cfg.augment.enabled:
-            image, mask, rotation, translation = augment_batch(
-                image, mask, rotation, translation, cfg.augment, host.generators, self.camera)
+        if host.augmentation is not None:
+            image, mask, rotation, translation = apply_augmentation(
+                image, mask, rotation, translation, host.augmentation, self.camera)
         return TrainingBatch(
             image=image, mask=mask, rotation=rotation, translation=translation,
             model_index=moved["model_index"], surface_points=moved["surface_points"],
@@ -148,8 +155,16 @@ class HostBatch:
     """``image_u8``, ``mask_packed`` (see :meth:`ImageCache.raw_batch`), ``quaternion``,
     ``rotation``, ``translation``, ``model_index``, ``surface_points``, ``occupancy_points``,
     ``occupancy_labels`` and ``symmetries`` of :class:`TrainingBatch`, on the host."""
-    generators: list[np.random.Generator]
-    "Each item's generator, its point draws taken: the augmentation draws from it next."
+    augmentation: AugmentDraws | None
+    """The augmentation's parameters and noise, drawn on the host from each item's generator
+    after its point draws; None when the augmentation is off."""
+
+    def pin_memory(self) -> HostBatch:
+        """The same batch in pinned host memory, for copies to a GPU that do not wait (also
+        what a DataLoader's pinning thread calls)."""
+        return HostBatch(self.step, {name: value.pin_memory()
+                                     for name, value in self.tensors.items()},
+                         None if self.augmentation is None else self.augmentation.pinned())
 
 
 def symmetry_table(root: Path, models: Sequence[str], cache_dir: Path | None = None) -> Tensor:

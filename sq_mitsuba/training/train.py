@@ -367,7 +367,8 @@ class _Loop:
         end_step = self.total_steps if run.max_steps is None else min(self.total_steps,
                                                                      run.max_steps)
         self.prefetcher = BatchPrefetcher(self.data.stream, world, run.device, end_step,
-                                          prefetch_enabled(cfg.data.prefetch, run.device))
+                                          prefetch_enabled(cfg.data.prefetch, run.device),
+                                          cfg.data.prefetch_workers)
         bar = None
         if run.progress and world.main:
             from tqdm import tqdm

@@ -43,7 +43,8 @@ LOG_FILE, VAL_FILE, CURVES_FILE = "log.csv", "val.csv", "curves.png"
 LAST, BEST, CONFIG_FILE = "last.pt", "best.pt", "config.json"
 CHECKPOINT_FORMAT, CHECKPOINT_VERSION = "sq_mitsuba.checkpoint", 1
 #: Config fields that may differ between a checkpoint and the run that resumes it.
-RESUME_FREE = frozenset({"data.cache_dir", "data.prefetch", "reprojection.workers"})
+RESUME_FREE = frozenset({"data.cache_dir", "data.prefetch", "data.prefetch_workers",
+                         "reprojection.workers"})
 
 
 def _nearest_existing(path: Path) -> Path:
