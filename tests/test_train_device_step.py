@@ -28,12 +28,35 @@ TINY = CONFIGS / "tiny.toml"
 
 
 @pytest.mark.parametrize(("rule", "factor"), [("none", 1.0), ("linear", 8.0),
-                                              ("sqrt", math.sqrt(8.0))])
+                                              ("sqrt", math.sqrt(8.0)),
+                                              ("adam_sde", math.sqrt(8.0))])
 def test_lr_scaling_rule_gives_the_peak_learning_rate(rule, factor):
     optim = OptimConfig(lr=1e-3, batch_size=256, lr_scaling=rule, reference_batch=32)
     assert optim.peak_lr() == pytest.approx(1e-3 * factor, rel=1e-12)
     # At the reference batch every rule is the lr as given.
     assert OptimConfig(lr=1e-3, batch_size=32, lr_scaling=rule).peak_lr() == 1e-3
+
+
+def test_adam_sde_keeps_the_moments_memory_in_images_and_scales_eps():
+    """adam_sde: an exponential average with decay beta remembers 1 / (1 - beta) steps; at k
+    times the batch, the rescaled betas remember k times fewer steps, so as many images."""
+    from sq_mitsuba.training.schedule import make_optimizer
+
+    reference = OptimConfig(lr=1e-3, betas=(0.9, 0.999), eps=1e-5)
+    large = OptimConfig(lr=1e-3, betas=(0.9, 0.999), eps=1e-5, batch_size=256,
+                        reference_batch=32, lr_scaling="adam_sde")
+    for small_beta, large_beta in zip(reference.adam_betas(), large.adam_betas(), strict=True):
+        images_small = 32 / (1 - small_beta)
+        images_large = 256 / (1 - large_beta)
+        assert images_large == pytest.approx(images_small, rel=1e-9)
+    assert large.adam_betas() == pytest.approx((0.2, 0.992))
+    assert large.adam_eps() == pytest.approx(1e-5 / math.sqrt(8))
+    group = make_optimizer(torch.nn.Linear(2, 2), large, total_steps=4)[0].param_groups[0]
+    assert group["betas"] == pytest.approx((0.2, 0.992)) and group["eps"] == large.adam_eps()
+    # Other rules leave them as given; a batch too large for beta1 is refused by name.
+    assert OptimConfig(batch_size=256, lr_scaling="sqrt").adam_betas() == (0.9, 0.999)
+    with pytest.raises(ValueError, match=r"betas\[0\].*batch_size 384"):
+        OptimConfig(batch_size=384, reference_batch=32, lr_scaling="adam_sde")
 
 
 def test_warm_up_in_images_follows_the_batch_and_the_optimiser_peaks_there():

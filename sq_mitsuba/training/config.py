@@ -88,15 +88,19 @@ class OptimConfig:
     step, and ``lr_scaling`` says how they follow ``batch_size`` (:meth:`peak_lr`,
     :meth:`warmup_step_count`): a batch k times the reference takes k times fewer steps per
     epoch, so each step must move further ("linear": k lr, Goyal et al. 2017 for SGD; "sqrt":
-    sqrt(k) lr, the rule that keeps Adam's update noise alike, Malladi et al. 2022).
+    sqrt(k) lr, the rule that keeps Adam's update noise alike, Malladi et al. 2022; "adam_sde":
+    that rule in full, Adam's moments also made to remember as many images as at the reference
+    batch, each beta to 1 - k (1 - beta), and eps to eps / sqrt(k), :meth:`adam_betas`,
+    :meth:`adam_eps`).
     """
 
     lr: float = positive(1e-4)
     """Peak learning rate at ``reference_batch`` images per step (the peak of this run:
     :meth:`peak_lr`)."""
-    lr_scaling: Literal["none", "linear", "sqrt"] = "none"
+    lr_scaling: Literal["none", "linear", "sqrt", "adam_sde"] = "none"
     """How the peak learning rate follows batch_size / reference_batch = k: none (lr as
-    given), linear (k lr) or sqrt (sqrt(k) lr)."""
+    given), linear (k lr), sqrt (sqrt(k) lr) or adam_sde (sqrt(k) lr, and betas and eps
+    rescaled: see the class)."""
     reference_batch: int = in_range(1, 1_000_000, default=32)
     "The batch size that lr (and warmup_images) are tuned for; read with lr_scaling."
     weight_decay: float = non_negative(1e-4)
@@ -127,14 +131,40 @@ class OptimConfig:
         for index, beta in enumerate(self.betas):
             if not 0 <= beta < 1:
                 raise ValueError(f"betas[{index}]: expected a value in [0, 1), got {beta}")
+        ratio = self.batch_size / self.reference_batch
+        for index, beta in enumerate(self.betas):
+            if self.lr_scaling == "adam_sde" and ratio * (1 - beta) >= 1:
+                raise ValueError(
+                    f"betas[{index}]: {beta} cannot be rescaled to batch_size "
+                    f"{self.batch_size} (lr_scaling adam_sde: 1 - k (1 - beta) must stay "
+                    f"above 0, k = {ratio:g}); use a batch closer to reference_batch")
 
     def peak_lr(self) -> float:
         """The peak learning rate of this run: ``lr`` scaled by ``lr_scaling`` from
         ``reference_batch`` to ``batch_size`` (k = batch_size / reference_batch: lr, k lr or
         sqrt(k) lr)."""
         ratio = self.batch_size / self.reference_batch
-        factor = {"none": 1.0, "linear": ratio, "sqrt": math.sqrt(ratio)}[self.lr_scaling]
+        factor = {"none": 1.0, "linear": ratio, "sqrt": math.sqrt(ratio),
+                  "adam_sde": math.sqrt(ratio)}[self.lr_scaling]
         return self.lr * factor
+
+    def adam_betas(self) -> tuple[float, float]:
+        """AdamW's betas of this run: ``betas``, or with ``lr_scaling = "adam_sde"`` each
+        ``1 - k (1 - beta)`` (k = batch_size / reference_batch), so that the moments average
+        over as many images as at the reference batch."""
+        if self.lr_scaling != "adam_sde":
+            return self.betas
+        ratio = self.batch_size / self.reference_batch
+        first, second = (1 - ratio * (1 - beta) for beta in self.betas)
+        return first, second
+
+    def adam_eps(self) -> float:
+        """AdamW's eps of this run: ``eps``, or ``eps / sqrt(k)`` with ``adam_sde`` (the
+        gradient's noise, which eps is compared with, shrinks by sqrt(k) in a k times larger
+        batch)."""
+        if self.lr_scaling != "adam_sde":
+            return self.eps
+        return self.eps / math.sqrt(self.batch_size / self.reference_batch)
 
     def warmup_step_count(self) -> int:
         """Steps of warm-up: ``ceil(warmup_images / batch_size)`` when ``warmup_images`` is

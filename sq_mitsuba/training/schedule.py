@@ -28,12 +28,13 @@ def make_optimizer(model: nn.Module, optim: OptimConfig, total_steps: int
                    ) -> tuple[torch.optim.AdamW, torch.optim.lr_scheduler.LambdaLR]:
     """AdamW over ``model``'s trainable parameters (``requires_grad``) and its per-step
     schedule (:func:`cosine_lr_factor` over ``total_steps``), peaking at
-    :meth:`OptimConfig.peak_lr` after :meth:`OptimConfig.warmup_step_count` steps (the batch
-    size's learning-rate scaling)."""
+    :meth:`OptimConfig.peak_lr` after :meth:`OptimConfig.warmup_step_count` steps, with
+    :meth:`OptimConfig.adam_betas` and :meth:`OptimConfig.adam_eps` (the batch size's
+    scaling)."""
     parameters = [p for p in model.parameters() if p.requires_grad]
     warmup = optim.warmup_step_count()
-    optimizer = torch.optim.AdamW(parameters, lr=optim.peak_lr(), betas=optim.betas,
-                                  eps=optim.eps, weight_decay=optim.weight_decay)
+    optimizer = torch.optim.AdamW(parameters, lr=optim.peak_lr(), betas=optim.adam_betas(),
+                                  eps=optim.adam_eps(), weight_decay=optim.weight_decay)
     scheduler = torch.optim.lr_scheduler.LambdaLR(
         optimizer, lambda s: cosine_lr_factor(s, total_steps, warmup, optim.min_lr_ratio))
     return optimizer, scheduler
