@@ -197,6 +197,30 @@ def test_prefetched_batches_equal_the_streams_own(stream, device, workers):
                        stream.batch(1, World(), device).image)
 
 
+@pytest.mark.parametrize("workers", [0, 2])
+def test_a_prefetch_error_comes_back_as_raised(stream, workers, monkeypatch):
+    """An error met while making a batch ahead reaches the training process as it was raised
+    (type and one-line message), not wrapped in a worker's traceback."""
+    from sq_mitsuba.data.spe3r import DatasetError
+    from sq_mitsuba.training.distributed import World
+    from sq_mitsuba.training.prefetch import BatchPrefetcher
+
+    made = stream.host_batch
+
+    def host_batch(step, world, pin=False):
+        if step == 2:
+            raise DatasetError("model x: no outside occupancy points")
+        return made(step, world, pin)
+
+    monkeypatch.setattr(stream, "host_batch", host_batch)
+    with BatchPrefetcher(stream, World(), "cpu", end_step=5, workers=workers) as prefetcher:
+        prefetcher.batch(0)
+        prefetcher.batch(1)
+        with pytest.raises(DatasetError) as raised:
+            prefetcher.batch(2)
+    assert str(raised.value) == "model x: no outside occupancy points"
+
+
 # ------------------------------------------------------------------------ the step
 
 

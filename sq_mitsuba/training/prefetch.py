@@ -39,14 +39,25 @@ def prefetch_enabled(setting: bool | None, device: torch.device | str) -> bool:
     return torch.device(device).type == "cuda" if setting is None else bool(setting)
 
 
-class _HostBatches(Dataset[HostBatch]):
+class _Failed:
+    """An error a worker met making a batch, handed back as a value: the training process
+    raises it as it is (a DataLoader would wrap it in the worker's traceback)."""
+
+    def __init__(self, error: Exception) -> None:
+        self.error = error
+
+
+class _HostBatches(Dataset[HostBatch | _Failed]):
     """Step -> :meth:`TrainingStream.host_batch`, the item a DataLoader worker makes."""
 
     def __init__(self, stream: TrainingStream, world: World) -> None:
         self.stream, self.world = stream, world
 
-    def __getitem__(self, step: int) -> HostBatch:
-        return self.stream.host_batch(step, self.world)
+    def __getitem__(self, step: int) -> HostBatch | _Failed:
+        try:
+            return self.stream.host_batch(step, self.world)
+        except Exception as error:  # raised again in the training process, unwrapped
+            return _Failed(error)
 
 
 class BatchPrefetcher:
@@ -69,7 +80,7 @@ class BatchPrefetcher:
         self._executor = (ThreadPoolExecutor(1, "batch-prefetch")
                           if enabled and workers == 0 else None)
         self._pending: Future[HostBatch] | None = None  # a host batch under way (thread)
-        self._loader: Iterator[HostBatch] | None = None  # worker processes' batches, in order
+        self._loader: Iterator[HostBatch | _Failed] | None = None  # workers' batches, in order
         self._next = -1  # the step the loader hands out next
         self._open = enabled
 
@@ -115,6 +126,9 @@ class BatchPrefetcher:
                 multiprocessing_context="fork"))
         host = next(self._loader)
         self._next = step + 1
+        if isinstance(host, _Failed):
+            self._stop_loader()
+            raise host.error
         return host
 
     def _stop_loader(self) -> None:
