@@ -149,3 +149,33 @@ def test_config_bounds():
     with pytest.raises(ConfigError, match="probability"):
         from_dict(AugmentConfig, {"probability": 1.5})
     assert not AugmentConfig().enabled
+
+
+def test_draw_and_apply_equal_augment_batch_and_refuse_bad_input():
+    """The two halves the data stream uses (draws on the host, applied on the device) give
+    augment_batch's batch bit for bit, and refuse mismatched input in one line each."""
+    from sq_mitsuba.training.augment import apply_augmentation, draw_augmentation
+
+    gen = torch.Generator().manual_seed(3)
+    images = torch.rand(4, 1, SIZE, SIZE, generator=gen)
+    masks = (images > 0.5).float()
+    rotations = quaternion_to_matrix(random_quaternions(4, gen, torch.float32))
+    translations = torch.tensor([[0.0, 0.0, 2.0]]).repeat(4, 1)
+    config = AugmentConfig(rotation=True, brightness=True, gamma=True, noise=True, blur=True,
+                           probability=0.7)
+    whole = augment_batch(images, masks, rotations, translations, config, _rngs(4, seed=5))
+    draws = draw_augmentation(config, _rngs(4, seed=5), tuple(images.shape))
+    halves = apply_augmentation(images, masks, rotations, translations, draws)
+    for a, b in zip(whole, halves, strict=True):
+        assert torch.equal(a, b)
+    with pytest.raises(ValueError, match="generators: expected 4"):
+        draw_augmentation(config, _rngs(3), tuple(images.shape))
+    with pytest.raises(ValueError, match="draws: made for 4 items, the batch has 2"):
+        apply_augmentation(images[:2], masks[:2], rotations[:2], translations[:2], draws)
+    with pytest.raises(ValueError, match="masks: expected"):
+        apply_augmentation(images, masks[:, :, :8], rotations, translations, draws)
+    with pytest.raises(ValueError, match="principal point"):
+        apply_augmentation(images, masks, rotations, translations,
+                           draw_augmentation(AugmentConfig(rotation=True, probability=1.0),
+                                             _rngs(4), tuple(images.shape)),
+                           Camera(80.0, 80.0, 30.0, 32.0, SIZE, SIZE))

@@ -122,7 +122,7 @@ class SyntheticData:
     def host_batch(self, step: int, pin: bool = False) -> dict[str, Any]:
         """Step ``step``'s host share, as the data stream's: every item's point draws and
         augmentation draws (points first, from the item's own generator); ``pin``: in pinned
-        memory. What the training loop's prefetch thread prepares while a step runs."""
+        memory. What the training loop's prefetch prepares while a step runs."""
         from sq_mitsuba.training.augment import draw_augmentation
 
         cfg = self.config
@@ -225,7 +225,7 @@ class StepBench:
         """One training step exactly as the loop runs it (without logging): the batch made
         (draws on the host, pixels to the device, augmentation there), then
         :func:`~sq_mitsuba.training.step.training_step`. ``host``: step ``step``'s
-        :meth:`SyntheticData.host_batch` made beforehand, as the loop's prefetch thread
+        :meth:`SyntheticData.host_batch` made beforehand, as the loop's prefetch
         makes it (then only its copy to the device and augmentation count here)."""
         from sq_mitsuba.training.step import NotFiniteError, training_step
 
@@ -451,6 +451,7 @@ def step_ratio(config: Any, batch: int, device: torch.device, repeats: int, warm
     ``"prefetched"`` (the step with its host share made beforehand, as the loop's prefetch
     thread makes it) where ``data.prefetch`` is on for ``device``."""
     from sq_mitsuba.config import apply_overrides
+    from sq_mitsuba.training.prefetch import prefetch_enabled
     from sq_mitsuba.training.step import mitsuba_for
 
     config = apply_overrides(config, [f"optim.batch_size={batch}", f'device="{device.type}"'])
@@ -459,20 +460,19 @@ def step_ratio(config: Any, batch: int, device: torch.device, repeats: int, warm
         if device.type == "cuda":
             torch.cuda.synchronize(device)
 
-    from sq_mitsuba.training.prefetch import prefetch_enabled
-
     samples: dict[str, list[float]] = {"network": [], "step": []}
     with mitsuba_for(device, config.reprojection.deterministic):
         trainer = StepBench(config, batch, device)
         calls: dict[str, Callable[[], None]] = {
             "network": trainer.network_step, "step": lambda: trainer.step(step)}
         if prefetch_enabled(config.data.prefetch, device):
-            # As the loop runs it: the host share made beforehand by the prefetch thread.
+            # As the loop runs it: the host share made beforehand by the prefetch.
             samples["prefetched"] = []
             calls["prefetched"] = lambda: trainer.step(step, host)
         try:
             for step in range(warmup + repeats):
-                host = trainer.data.host_batch(step, pin=device.type == "cuda")
+                if "prefetched" in calls:  # made untimed, as the prefetch makes it
+                    host = trainer.data.host_batch(step, pin=device.type == "cuda")
                 for name, call in calls.items():
                     sync()
                     start = time.perf_counter()

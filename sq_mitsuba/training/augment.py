@@ -106,7 +106,7 @@ class AugmentConfig:
 def to_device(value: np.ndarray | Tensor, device: torch.device) -> Tensor:
     """A host array or tensor on ``device``: on a GPU through pinned memory, copied without
     waiting (a copy from pageable memory would wait for the device; a tensor already pinned,
-    e.g. by a prefetch thread, is not pinned again); on the CPU as it is."""
+    e.g. by the prefetch, is not pinned again); on the CPU as it is."""
     tensor = torch.as_tensor(value)
     if device.type != "cuda":
         return tensor.to(device)
@@ -208,10 +208,21 @@ def apply_augmentation(images: Tensor, masks: Tensor, rotations: Tensor, transla
                        ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Apply host-drawn parameters (:func:`draw_augmentation`) to a batch on its device;
     shapes as :func:`augment_batch`. Never waits for the device: every decision is taken from
-    the host's copy of the parameters."""
-    params = draws.params
-    if bool((params["rotation"] != 0).any()) and camera is not None:
+    the host's copy of the parameters. ``camera`` is checked with
+    :func:`check_rotation_exact` where an item turns."""
+    check_augment_inputs(images, masks, rotations, translations)
+    if draws.table.shape[-1] != images.shape[0]:
+        raise ValueError(f"draws: made for {draws.table.shape[-1]} items, the batch has "
+                         f"{images.shape[0]}")
+    if bool((draws.params["rotation"] != 0).any()) and camera is not None:
         check_rotation_exact(camera)
+    return _apply(images, masks, rotations, translations, draws)
+
+
+def _apply(images: Tensor, masks: Tensor, rotations: Tensor, translations: Tensor,
+           draws: AugmentDraws) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """:func:`apply_augmentation` on inputs already checked."""
+    params = draws.params
     dtype, device = images.dtype, images.device
     images, masks = images.clone(), masks.clone()
     rotations, translations = rotations.clone(), translations.clone()
@@ -271,7 +282,7 @@ def augment_batch(images: Tensor, masks: Tensor, rotations: Tensor, translations
     if config.rotation and camera is not None:
         check_rotation_exact(camera)
     draws = draw_augmentation(config, generators, tuple(images.shape), images.dtype)
-    return apply_augmentation(images, masks, rotations, translations, draws, camera)
+    return _apply(images, masks, rotations, translations, draws)  # checked above
 
 
 def check_augment_inputs(images: Tensor, masks: Tensor, rotations: Tensor,

@@ -84,8 +84,8 @@ class TrainingStream:
     def host_batch(self, step: int, world: World, pin: bool = False) -> HostBatch:
         """The host's share of :meth:`batch`: this process's rows of step ``step``, their
         cached pixels and poses, their point draws and augmentation draws (each item's from its
-        own generator, points first); what a prefetch thread prepares while the previous step
-        runs (:class:`~sq_mitsuba.training.prefetch.BatchPrefetcher`).
+        own generator, points first); what the prefetch workers prepare while earlier steps
+        run (:class:`~sq_mitsuba.training.prefetch.BatchPrefetcher`).
         ``pin``: the tensors in pinned memory, for copies to a GPU that do not wait."""
         local = self.batch_size // world.size
         start = world.rank * local

@@ -76,7 +76,7 @@ class BatchPrefetcher:
         self.device = torch.device(device)
         self.end_step = end_step
         self.pin = self.device.type == "cuda"
-        self.workers, self.depth = (workers, depth) if enabled else (0, depth)
+        self.workers, self.depth = (workers if enabled else 0), depth
         self._executor = (ThreadPoolExecutor(1, "batch-prefetch")
                           if enabled and workers == 0 else None)
         self._pending: Future[HostBatch] | None = None  # a host batch under way (thread)
