@@ -91,3 +91,16 @@ def test_composed_generator_keeps_the_held_out_families_apart(tmp_path) -> None:
     # The archetype catalogue has no held-out families to choose.
     assert main(["models", "generate", "--families", "held-out", "--count", "2",
                  "--out", str(tmp_path / "x")]) == 2
+
+
+def test_graph_generator_writes_part_graphs(tmp_path) -> None:
+    out = tmp_path / "graphs"
+    assert main(["models", "generate", "--generator", "graph", "--count", "2", "--seed", "3",
+                 "--points", "500", "--out", str(out)]) == 0
+    rows = [line.split(",") for line in (out / "splits.csv").read_text().split()]
+    assert [name for name, _ in rows] == ["pg00000_part_graph", "pg00001_part_graph"]
+    assert (out / "pg00001_part_graph" / "models" / "model_normalized.obj").is_file()
+    # Part graphs belong to no family: none to hold out.
+    assert main(["models", "generate", "--generator", "graph", "--families", "training",
+                 "--count", "2", "--out", str(tmp_path / "x")]) == 2
+    assert not (tmp_path / "x").exists()

@@ -66,7 +66,7 @@ def _axis_and_length(part) -> tuple[np.ndarray, float]:
 def test_families_and_fixed_held_out_set() -> None:
     assert 10 <= len(FAMILIES) <= 16
     assert not set(FAMILIES) & set(ARCHETYPES)
-    assert set(RECIPES) == set(FAMILIES) | set(ARCHETYPES)
+    assert set(FAMILIES) | set(ARCHETYPES) < set(RECIPES)  # and the part graphs
     # Pinned: changing the held-out set invalidates every leave-family-out comparison.
     assert frozenset({"infrared_observatory", "module_stack",
                       "planetary_orbiter"}) == HELD_OUT_FAMILIES

@@ -92,9 +92,10 @@ class GenerateOptions:
     "Catalogue seed, 0 <= SEED < 2**32; it fixes every model's name, shape and split."
     points: int = in_range(1, MAX_POINTS, default=DEFAULT_POINTS)
     "Points per sample set: surface, uniform, near."
-    generator: Literal["archetypes", "composed"] = "archetypes"
-    """The 14 archetype recipes (the shipped model's catalogue), or the compositional families
-    (data/spacecraft/families.py; models named cs<i:05d>_<family>)."""
+    generator: Literal["archetypes", "composed", "graph"] = "archetypes"
+    """The 14 archetype recipes (the shipped model's catalogue), the compositional families
+    (data/spacecraft/families.py; models named cs<i:05d>_<family>), or free-form part graphs
+    (data/spacecraft/part_graph.py; models named pg<i:05d>_part_graph)."""
     families: Literal["all", "training", "held-out"] = "all"
     """With the composed generator: every family, the training families only, or the held-out
     families only (never trained on: the leave-family-out test)."""
@@ -320,8 +321,12 @@ def _generate_locked(root: Path, options: GenerateOptions, progress: bool) -> Li
                     "held-out": HELD_OUT_FAMILIES}[options.families]
         entries = composed_catalogue(options.count, options.seed, families)
     elif options.families != "all":
-        raise ValueError("families: only with --generator composed (the archetypes have no "
-                         "held-out families)")
+        raise ValueError(f"families: only with --generator composed (the "
+                         f"{options.generator} generator has no held-out families)")
+    elif options.generator == "graph":
+        from sq_mitsuba.data.spacecraft import graph_catalogue
+
+        entries = graph_catalogue(options.count, options.seed)
     else:
         entries = catalogue(options.count, options.seed)
     clashes = [problem for entry in entries

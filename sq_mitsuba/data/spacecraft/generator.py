@@ -24,6 +24,7 @@ from sq_mitsuba.data.mesh_io import TaggedMesh
 from sq_mitsuba.data.mesh_processing import union_solids
 from sq_mitsuba.data.spacecraft.archetypes import ARCHETYPES, Recipe
 from sq_mitsuba.data.spacecraft.families import FAMILIES, HELD_OUT_FAMILIES
+from sq_mitsuba.data.spacecraft.part_graph import PART_GRAPH, part_graph
 from sq_mitsuba.data.spacecraft.parts import Part
 from sq_mitsuba.render.materials import MATERIALS, material_index
 
@@ -40,11 +41,12 @@ TEST_STRATA = (0, 2, 12, 23, 33, 43, 54, 64)
 """Stratum boundaries within a block: one test model in each of the 7 strata."""
 
 
-RECIPES: dict[str, Recipe] = {**ARCHETYPES, **FAMILIES}
-"""Every recipe :func:`generate_spacecraft` builds: the 14 archetypes of :func:`catalogue`
-and the families of the compositional generator (:func:`composed_catalogue`)."""
-if len(RECIPES) != len(ARCHETYPES) + len(FAMILIES):  # pragma: no cover - a naming mistake
-    raise ImportError(f"archetype and family names overlap: {set(ARCHETYPES) & set(FAMILIES)}")
+RECIPES: dict[str, Recipe] = {**ARCHETYPES, **FAMILIES, PART_GRAPH: part_graph}
+"""Every recipe :func:`generate_spacecraft` builds: the 14 archetypes of :func:`catalogue`,
+the families of the compositional generator (:func:`composed_catalogue`) and the free-form
+part graphs (:func:`graph_catalogue`)."""
+if len(RECIPES) != len(ARCHETYPES) + len(FAMILIES) + 1:  # pragma: no cover - naming mistake
+    raise ImportError(f"recipe names overlap: {set(ARCHETYPES) & set(FAMILIES)}")
 
 
 @dataclass
@@ -264,6 +266,32 @@ def composed_catalogue(count: int, seed: int, families: Sequence[str] | None = N
         if len(entries) == count:
             break
     return entries
+
+
+GRAPH_PREFIX = "pg"
+"""Name prefix of the part-graph catalogue's models (``pg<i:05d>_part_graph``)."""
+
+
+def graph_catalogue(count: int, seed: int) -> list[CatalogueEntry]:
+    """``count`` free-form part graphs (:mod:`~sq_mitsuba.data.spacecraft.part_graph`), as
+    catalogue entries named ``pg<i:05d>_part_graph``.
+
+    Model ``i`` has a seed from the catalogue seed and the split :func:`catalogue_split`
+    gives its number; as for the other catalogues, every entry is a function of
+    ``(seed, i)`` alone. Part graphs belong to no held-out family: a network may train on
+    them, and no catalogue made before them changes.
+
+    Args:
+        count: number of models, ``1 <= count <= MAX_CATALOGUE_COUNT``.
+        seed: catalogue seed, ``0 <= seed <= MAX_CATALOGUE_SEED``.
+    """
+    if isinstance(count, bool) or int(count) != count or not 1 <= count <= MAX_CATALOGUE_COUNT:
+        raise ValueError(f"count: expected an integer in [1, {MAX_CATALOGUE_COUNT}], got {count}")
+    seed = _check_catalogue_seed(seed)
+    model_seeds = np.random.SeedSequence([seed, 0x96A9]).generate_state(count, dtype=np.uint32)
+    return [CatalogueEntry(f"{GRAPH_PREFIX}{i:05d}_{PART_GRAPH}", PART_GRAPH,
+                           int(model_seeds[i]), catalogue_split(seed, i), seed)
+            for i in range(count)]
 
 
 def is_held_out(entry: CatalogueEntry | str) -> bool:
