@@ -1,7 +1,8 @@
 """Quality against the number of frames: one assembly and every pose from passes of N frames.
 
 Renders one pass of ``--frames`` frames of each of ``--models`` spacecraft of a catalogue seed
-the shipped model never trained on (default 4242; it trained on seed 0), in the default space
+the shipped model never trained on (default 4242; it trained on seed 0; with ``--held-out``
+the held-out families of the compositional catalogue of that seed), in the default space
 scene (:func:`sq_mitsuba.data.frames.sample_pass_frame`: the target tumbling about a random
 axis, the camera approaching), then scores, for N in ``--counts``, the first N frames of each
 pass: the single-image shipped path (``Predictor.predict(refine=True)``, each frame alone)
@@ -29,7 +30,7 @@ import torch
 import sq_mitsuba
 from sq_mitsuba.data.frames import sample_pass_frame
 from sq_mitsuba.data.library import generate_model
-from sq_mitsuba.data.spacecraft import catalogue
+from sq_mitsuba.data.spacecraft import HELD_OUT_FAMILIES, catalogue, composed_catalogue
 from sq_mitsuba.data.spe3r.layout import MODELS, SAMPLES_FILE, load_model
 from sq_mitsuba.data.symmetry import model_symmetries
 from sq_mitsuba.evaluation.scoring import score, volume_points
@@ -93,6 +94,9 @@ def main() -> None:
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--models", type=int, default=6)
     parser.add_argument("--catalogue-seed", type=int, default=4242)
+    parser.add_argument("--held-out", action="store_true",
+                        help="spacecraft of the held-out families (never trained on) from the "
+                             "compositional catalogue of --catalogue-seed, not the archetypes")
     parser.add_argument("--frames", type=int, default=8)
     parser.add_argument("--counts", type=int, nargs="+", default=[1, 2, 4, 8])
     parser.add_argument("--resolution", type=int, default=256)
@@ -109,7 +113,9 @@ def main() -> None:
     renderer = SilhouetteRenderer(camera, spp=4)
     library = args.out / "models"
     rows = []
-    for entry in catalogue(args.models, args.catalogue_seed):
+    entries = (composed_catalogue(args.models, args.catalogue_seed, HELD_OUT_FAMILIES)
+               if args.held_out else catalogue(args.models, args.catalogue_seed))
+    for entry in entries:
         model_dir = library / entry.name
         if not (model_dir / MODELS / SAMPLES_FILE).is_file():
             generate_model(entry, library, points=20_000)

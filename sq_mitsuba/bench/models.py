@@ -14,10 +14,16 @@ TARGET_END_TO_END_S = 10.0
 
 def run(options: BenchOptions) -> Report:
     """Time generation (recipe + exact union), processing (normalise + 3 x 100k labelled
-    points) and the whole write per model, over the archetypes of the default catalogue."""
+    points) and the whole write per model, over the archetypes of the default catalogue; and
+    generation alone for the compositional families and the free-form part graphs."""
     from sq_mitsuba.data.library import generate_model
     from sq_mitsuba.data.mesh_processing import process_mesh, sample_model
-    from sq_mitsuba.data.spacecraft import catalogue, generate_spacecraft
+    from sq_mitsuba.data.spacecraft import (
+        catalogue,
+        composed_catalogue,
+        generate_spacecraft,
+        graph_catalogue,
+    )
 
     entries = catalogue(max(14, min(options.repeats, 64)), seed=0)
     generate_s, process_s, sample_s, total_s = [], [], [], []
@@ -40,11 +46,21 @@ def run(options: BenchOptions) -> Report:
         queue = iter(entries)
         total_s = time_callable(lambda: generate_model(next(queue), root),
                                 repeats=len(entries), warmup=0)
+        others = {name: iter(make(len(entries), 0)) for name, make in
+                  (("composed", composed_catalogue), ("graph", graph_catalogue))}
+
+        def union(name: str) -> None:
+            entry = next(others[name])
+            generate_spacecraft(entry.seed, entry.archetype).union()
+        composed_s, graph_s = (time_callable(lambda n=name: union(n), repeats=len(entries),
+                                             warmup=0) for name in others)
     finally:
         shutil.rmtree(root, ignore_errors=True)
     n = len(entries)
     return Report("models", [
         Timing("generate (recipe + exact union)", generate_s),
+        Timing("generate, compositional families", composed_s),
+        Timing("generate, free-form part graphs", graph_s),
         Timing("process (checks, normalise)", process_s),
         Timing("sample 3 x 100k points + occupancy labels", sample_s),
         Timing("end to end per model (incl. writing files)", total_s,
