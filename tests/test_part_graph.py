@@ -144,3 +144,12 @@ def test_earlier_composed_catalogues_unchanged() -> None:
         "417d7166f0d59a5007a54286a4b55c131a2a1b395994dbfa5d73fdfa14cef064")
     assert generate_spacecraft(5, "module_stack").union().digest() == (
         "882932aef4e3a3b11f62b39f0aa71bd8baa2a76f85b3bcc0d1d4d025bccb3274")
+
+
+def test_part_graph_library_pinned() -> None:
+    """The recipe and catalogue that the recorded part-graph runs trained on (seed 0, 1,000
+    models): a change to either makes a different library, so it must be deliberate."""
+    assert _digest(graph_catalogue(1000, 0)) == (
+        "58d33324ca982d820813fc30b57490896ebb9e91c28c95dc6293ff4327e12e7d")
+    assert generate_spacecraft(3, PART_GRAPH).union().digest() == (
+        "13cd3841dc2d7b2a9424e2359d3607f6479f59d21a7bde3e4ce71fb27ec4f8b5")

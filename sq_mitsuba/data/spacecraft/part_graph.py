@@ -178,10 +178,11 @@ def _panel(rng: np.random.Generator, site: G.Site, direction: np.ndarray, scale:
     b = scale * _log_uniform(rng, 0.3, 2.0)
     material = pick(rng, _PANEL_MATERIALS)
     up = G.tilted(rng, G.perpendicular(site.normal), 180.0)
-    kind = "radiator" if fin else "sunshade"
-    size = (a, 3 * thin, b) if fin else (a, b, 2 * thin)
-    return G.box_on(site, size, material, kind, up=up, sink=min(0.25 * size[2], site.embed()) if
-                    fin else 0.5 * thin), None
+    if fin:  # standing out of the face, sunk a quarter of its height
+        size = (a, 3 * thin, b)
+        return G.box_on(site, size, material, "radiator", up=up,
+                        sink=min(0.25 * b, site.embed())), None
+    return G.box_on(site, (a, b, 2 * thin), material, "sunshade", up=up, sink=0.5 * thin), None
 
 
 def _instrument(rng: np.random.Generator, site: G.Site, direction: np.ndarray, scale: float,
