@@ -104,8 +104,16 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=7)
     parser.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
                         help="SequenceOptions fields for the joint fit (e.g. steps=30)")
+    parser.add_argument("--variant", action="append", default=[],
+                        metavar="NAME:FIELD=VALUE[,FIELD=VALUE]",
+                        help="another joint fit scored on the same frames, as method NAME "
+                             "(the --set options with these changes); repeatable")
     args = parser.parse_args()
     options = sequence_options(args.set)
+    variants = {"sequence": options}
+    for text in args.variant:
+        name, _, settings = text.partition(":")
+        variants[name] = sequence_options(args.set + [s for s in settings.split(",") if s])
     args.out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(0)
     predictor = sq_mitsuba.load_model(fast=True)
@@ -138,13 +146,13 @@ def main() -> None:
             batch["quaternion"] = matrix_to_quaternion(batch["rotation"])
             methods = {"single": (alone.assembly[:count], alone.rotation[:count].double(),
                                   alone.translation[:count].double(), alone_seconds * count)}
-            if count >= 2:
+            for name, variant in variants.items() if count >= 2 else ():
                 tick = time.perf_counter()
                 sequence = predictor.predict_sequence(images, camera, ordered=True,
-                                                      options=options)
-                methods["sequence"] = (Assembly(sequence.assembly.params.expand(count, -1, -1)),
-                                       sequence.rotation, sequence.translation,
-                                       time.perf_counter() - tick)
+                                                      options=variant)
+                methods[name] = (Assembly(sequence.assembly.params.expand(count, -1, -1)),
+                                 sequence.rotation, sequence.translation,
+                                 time.perf_counter() - tick)
             for method, (assembly, rotation, translation, seconds) in methods.items():
                 metrics = score(assembly, rotation, translation, batch, renderer,
                                 [symmetry] * count, [volume] * count, level=2)
@@ -161,7 +169,7 @@ def main() -> None:
         writer.writerows(rows)
     summary = {}
     for count in args.counts:
-        for method in ("single", "sequence"):
+        for method in ("single", *variants):
             chosen = [r for r in rows if r["frames"] == count and r["method"] == method]
             if not chosen:
                 continue
@@ -183,7 +191,8 @@ def main() -> None:
               ("relative_rotation_deg", "relative rotation (median, deg)")]
     for axis, (name, label) in zip(axes, panels, strict=True):
         which = 1 if "median" in label else 0
-        for method, colour in (("single", "tab:red"), ("sequence", "tab:green")):
+        colours = ("tab:red", "tab:green", "tab:blue", "tab:orange", "tab:purple")
+        for method, colour in zip(("single", *variants), colours, strict=False):
             counts = [c for c in args.counts if (c, method) in summary]
             axis.plot(counts, [summary[(c, method)][name][which] for c in counts], "o-",
                       color=colour, label=method)
