@@ -196,33 +196,6 @@ def test_predict_sequence_returns_one_assembly_and_every_pose(eval_checkpoint, t
     assert bool(torch.isfinite(result.iou).all()) and result.seconds > 0
 
 
-def test_the_readings_body_frame_averages_the_frames_and_keeps_the_posed_shape(
-        eval_checkpoint, train_dataset):
-    """``body_frame="readings"`` turns the body frame only: every frame's posed shape is the
-    reference frame's result's, and the frames' readings, related by the fit, now average
-    to the identity (the chordal mean is equivariant: mean(X_j D^T) = mean(X_j) D^T)."""
-    from sq_mitsuba.geometry.rotation import mean_rotation
-    from sq_mitsuba.inference.sequence import (
-        FRAMES_REFINEMENT,
-        FRAMES_SEARCH,
-        sequence_from_frames,
-    )
-
-    predictor = load_model(eval_checkpoint)
-    frames = predictor.predict(_frames(train_dataset, 3), refine=True, search=FRAMES_SEARCH,
-                               refinement=FRAMES_REFINEMENT)
-    results = {frame: sequence_from_frames(frames, options=SequenceOptions(
-        steps=3, spp=2, body_frame=frame)) for frame in ("reference", "readings")}
-    ref, mean = results["reference"], results["readings"]
-    torch.testing.assert_close(_posed(mean.assembly, mean.rotation, mean.translation),
-                               _posed(ref.assembly, ref.rotation, ref.translation))
-    readings = frames.rotation.double() @ ref.half_turns
-    implied = readings.transpose(-1, -2) @ mean.rotation
-    torch.testing.assert_close(mean_rotation(implied), torch.eye(3, dtype=torch.float64))
-    assert not torch.allclose(mean_rotation(readings.transpose(-1, -2) @ ref.rotation),
-                              torch.eye(3, dtype=torch.float64), atol=1e-3)
-
-
 @pytest.mark.parametrize("case, message", [
     ("one", "images: a sequence needs at least 2 frames"),
     ("nan", "images: contains NaN"),

@@ -22,9 +22,7 @@ its body frame and the pose of every image:
    relative rotations, the one ``R_0``) move together by Adam so that the Mitsuba silhouettes
    match every frame's mask; the best step by the mean IoU over the frames is kept. The
    scale stays the network's (the frames' depths keep their geometric mean).
-4. **The body frame** (``options.body_frame``): the reference frame's reading, or the mean of
-   the body frames all frames' readings imply once the fit relates them. **The dataset's body
-   frame** (``options.canonical``, off by default): the result expressed
+4. **The dataset's body frame** (``options.canonical``, off by default): the result expressed
    in the convention of the processed models (:func:`canonical_frame`: the fitted assembly's
    oriented box's axes ordered by extent, its centre of mass at the origin) instead of the
    reference reading's frame, which the network may have read with its axes swapped.
@@ -109,12 +107,6 @@ class SequenceOptions:
     "Stop after this many steps without a better mean IoU."
     seed: int = in_range(0, 2**31 - 1, default=0)
     "Seed of the silhouettes' sampling."
-    body_frame: Literal["reference", "readings"] = "reference"
-    """The body frame of the result: the reference frame's reading, or the chordal mean of
-    the body frames that every frame's reading implies once the joint fit relates the frames
-    (frame j read ``x_cam = A_j x``, the fit found ``x_cam = R_j x_ref``: its reading's
-    frame is ``A_j^T R_j x_ref``). The shape and the relative poses are the same either way;
-    the absolute rotation averages N readings instead of taking one."""
     canonical: bool = False
     """Express the result in the dataset's body frame convention: the fitted assembly's
     oriented box's axes by extent, its centre of mass at the origin (else the reference
@@ -458,7 +450,6 @@ def sequence_from_frames(frames: Prediction, relative: Tensor | None = None,
                                       options.level) if ordered else \
         align_half_turns(frames.assembly, reference, options.level)
     rotation = frames.rotation.double() @ turns  # x_ref = S x_j  =>  R_j x_j = (R_j S) x_ref
-    readings = rotation.clone()  # A_j: each frame's reading in the reference's convention
     if relative is not None:
         carried = relative.transpose(-1, -2) @ rotation  # each frame's estimate of R_0
         rotation = relative @ mean_rotation(carried)
@@ -485,11 +476,6 @@ def sequence_from_frames(frames: Prediction, relative: Tensor | None = None,
         start = Assembly(start.params[:, rows[chosen].to(start.params.device) >= 0])
     assembly, rotation, translation, ious, steps, losses = fit_sequence(
         start, rotation, translation, fit.mask, frames.camera, options, relative)
-    if options.body_frame == "readings":
-        # x' = D x_ref with D the mean of A_j^T R_j; x_cam = R_j x_ref = (R_j D^T) x'.
-        frame = mean_rotation(readings.transpose(-1, -2) @ rotation)
-        assembly = reframed(assembly, frame, torch.zeros(3, dtype=torch.float64))
-        rotation = rotation @ frame.T
     if options.canonical:
         # x_cam = R x + t = R P^T x' + (t + R c): the poses follow the body frame.
         frame, centre = canonical_frame(assembly)
