@@ -64,3 +64,26 @@ def test_shape_capacity_fits_the_networks_assemblies_to_the_meshes(train_dataset
     for mean_chamfer, median_chamfer, mean_exponent, box_share in totals.values():
         assert float(mean_chamfer) > 0 and float(median_chamfer) > 0
         assert 0 < float(mean_exponent) < 1 and 0 <= float(box_share) <= 1
+
+
+def test_body_frame_limits_scores_the_reading_five_ways(train_dataset, eval_checkpoint):
+    """The best of the 24 axis rotations includes the identity, so it is never worse than the
+    reading as it is; the 24 are distinct proper rotations."""
+    sys.path.insert(0, str(EXPERIMENTS))
+    try:
+        from body_frame_limits import axis_rotations
+    finally:
+        sys.path.remove(str(EXPERIMENTS))
+    turns = torch.stack(axis_rotations())
+    assert turns.shape == (24, 3, 3)
+    assert torch.allclose(torch.linalg.det(turns), torch.ones(24, dtype=turns.dtype))
+    assert len({tuple(t.flatten().tolist()) for t in turns}) == 24
+    command = [sys.executable, str(EXPERIMENTS / "body_frame_limits.py"), "--checkpoint",
+               str(eval_checkpoint), "--data", str(train_dataset), "--images", "4"]
+    result = subprocess.run(command, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr
+    means = {line.split()[0]: float(line.split()[3]) for line in result.stdout.splitlines()
+             if "Chamfer-L1 mean" in line}
+    assert set(means) == {"read", "axes_sorted", "oriented_box", "best_of_24", "true_pose"}
+    assert 0 < means["best_of_24"] <= means["read"] + 1e-12
+    assert "4 images of" in result.stdout
