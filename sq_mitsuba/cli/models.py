@@ -27,6 +27,9 @@ relays, deep-space and solar-electric probes, observatories, small satellites, s
 named cs<i:05d>_<family>; three families are held out of training for good
 (planetary_orbiter, infrared_observatory, module_stack): --families training leaves them out,
 --families held-out makes only them (all marked test), for a leave-family-out evaluation.
+With --generator graph the models are free-form part graphs (a core body and a random tree
+of bodies, booms, arrays, dishes, panels and instruments, no family's layout), named
+pg<i:05d>_part_graph.
 Exit code 1 when some model failed, 2 on bad options (nothing written)."""
 
 IMPORT_DESCRIPTION = """\

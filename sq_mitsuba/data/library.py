@@ -322,7 +322,7 @@ def _generate_locked(root: Path, options: GenerateOptions, progress: bool) -> Li
         entries = composed_catalogue(options.count, options.seed, families)
     elif options.families != "all":
         raise ValueError(f"families: only with --generator composed (the "
-                         f"{options.generator} generator has no held-out families)")
+                         f"{options.generator} generator has no families to choose from)")
     elif options.generator == "graph":
         from sq_mitsuba.data.spacecraft import graph_catalogue
 

@@ -46,7 +46,8 @@ RECIPES: dict[str, Recipe] = {**ARCHETYPES, **FAMILIES, PART_GRAPH: part_graph}
 the families of the compositional generator (:func:`composed_catalogue`) and the free-form
 part graphs (:func:`graph_catalogue`)."""
 if len(RECIPES) != len(ARCHETYPES) + len(FAMILIES) + 1:  # pragma: no cover - naming mistake
-    raise ImportError(f"recipe names overlap: {set(ARCHETYPES) & set(FAMILIES)}")
+    raise ImportError("recipe names overlap: "
+                      f"{(set(ARCHETYPES) | {PART_GRAPH}) & set(FAMILIES) or {PART_GRAPH}}")
 
 
 @dataclass
@@ -123,8 +124,8 @@ def generate_spacecraft(seed: int, archetype: str, name: str | None = None) -> S
 
     Args:
         seed: non-negative integer seed of the recipe's random numbers.
-        archetype: one of :data:`ARCHETYPES` or a family of :data:`FAMILIES` (the
-            compositional generator), i.e. a key of :data:`RECIPES`.
+        archetype: one of :data:`ARCHETYPES`, a family of :data:`FAMILIES` (the
+            compositional generator) or ``"part_graph"``, i.e. a key of :data:`RECIPES`.
         name: model name (default ``"<archetype>_<seed>"``).
     """
     if archetype not in RECIPES:
@@ -154,6 +155,13 @@ def _check_catalogue_seed(seed: int) -> int:
     if isinstance(seed, bool) or int(seed) != seed or not 0 <= int(seed) <= MAX_CATALOGUE_SEED:
         raise ValueError(f"seed: expected an integer in [0, {MAX_CATALOGUE_SEED}], got {seed}")
     return int(seed)
+
+
+def _check_catalogue_size(count: int, seed: int) -> tuple[int, int]:
+    """``count`` and ``seed`` of a catalogue, checked (one-line errors naming them)."""
+    if isinstance(count, bool) or int(count) != count or not 1 <= count <= MAX_CATALOGUE_COUNT:
+        raise ValueError(f"count: expected an integer in [1, {MAX_CATALOGUE_COUNT}], got {count}")
+    return int(count), _check_catalogue_seed(seed)
 
 
 def _stratum_of(position: int) -> int:
@@ -196,9 +204,7 @@ def catalogue(count: int, seed: int) -> list[CatalogueEntry]:
         count: number of models, ``1 <= count <= MAX_CATALOGUE_COUNT``.
         seed: catalogue seed, ``0 <= seed <= MAX_CATALOGUE_SEED`` (``2**32 - 1``).
     """
-    if isinstance(count, bool) or int(count) != count or not 1 <= count <= MAX_CATALOGUE_COUNT:
-        raise ValueError(f"count: expected an integer in [1, {MAX_CATALOGUE_COUNT}], got {count}")
-    seed = _check_catalogue_seed(seed)
+    count, seed = _check_catalogue_size(count, seed)
     rng = np.random.default_rng([seed, 0x5C])
     names = sorted(ARCHETYPES)
     order: list[str] = []
@@ -240,9 +246,7 @@ def composed_catalogue(count: int, seed: int, families: Sequence[str] | None = N
         seed: catalogue seed, ``0 <= seed <= MAX_CATALOGUE_SEED``.
         families: names from :data:`FAMILIES` to keep (None: all).
     """
-    if isinstance(count, bool) or int(count) != count or not 1 <= count <= MAX_CATALOGUE_COUNT:
-        raise ValueError(f"count: expected an integer in [1, {MAX_CATALOGUE_COUNT}], got {count}")
-    seed = _check_catalogue_seed(seed)
+    count, seed = _check_catalogue_size(count, seed)
     names = sorted(FAMILIES)
     wanted = set(names) if families is None else set(families)
     unknown = wanted - set(names)
@@ -285,9 +289,7 @@ def graph_catalogue(count: int, seed: int) -> list[CatalogueEntry]:
         count: number of models, ``1 <= count <= MAX_CATALOGUE_COUNT``.
         seed: catalogue seed, ``0 <= seed <= MAX_CATALOGUE_SEED``.
     """
-    if isinstance(count, bool) or int(count) != count or not 1 <= count <= MAX_CATALOGUE_COUNT:
-        raise ValueError(f"count: expected an integer in [1, {MAX_CATALOGUE_COUNT}], got {count}")
-    seed = _check_catalogue_seed(seed)
+    count, seed = _check_catalogue_size(count, seed)
     model_seeds = np.random.SeedSequence([seed, 0x96A9]).generate_state(count, dtype=np.uint32)
     return [CatalogueEntry(f"{GRAPH_PREFIX}{i:05d}_{PART_GRAPH}", PART_GRAPH,
                            int(model_seeds[i]), catalogue_split(seed, i), seed)
