@@ -94,6 +94,8 @@ def main() -> None:
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--models", type=int, default=6)
     parser.add_argument("--catalogue-seed", type=int, default=4242)
+    parser.add_argument("--checkpoint", type=Path, default=None,
+                        help="the model to run (default: the shipped one)")
     parser.add_argument("--held-out", action="store_true",
                         help="spacecraft of the held-out families (never trained on) from the "
                              "compositional catalogue of --catalogue-seed, not the archetypes")
@@ -116,7 +118,7 @@ def main() -> None:
         variants[name] = sequence_options(args.set + [s for s in settings.split(",") if s])
     args.out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(0)
-    predictor = sq_mitsuba.load_model(fast=True)
+    predictor = sq_mitsuba.load_model(args.checkpoint, fast=True)
     camera = Camera.default(args.resolution)
     renderer = SilhouetteRenderer(camera, spp=4)
     library = args.out / "models"
