@@ -80,6 +80,28 @@ def test_invariants_on_lopsided_solid() -> None:
     assert all(invariant_checks(model.mesh).values())
 
 
+def test_equal_sides_count_as_sorted() -> None:
+    """A model with two equal sides (a ring of four arms: its x and y extents are one
+    length) is sorted whichever of the two the rounding makes longer; a side longer than
+    the one before by more than the tolerance is not."""
+    from sq_mitsuba.data.spacecraft import generate_spacecraft, graph_catalogue
+
+    # Catalogue model 550 of the part graphs, seed 0: x and z extents equal to the last digit
+    # before processing; it failed the strict check.
+    entry = graph_catalogue(551, 0)[550]
+    model = process_mesh(generate_spacecraft(entry.seed, entry.archetype).union(),
+                         method="solid")
+    assert model.checks["extents_sorted"]
+    assert model.extents[0] == pytest.approx(model.extents[1], abs=1e-6)
+    box = _tagged(trimesh.creation.box([1.0, 0.5, 0.3]))
+    stretched = TaggedMesh(box.vertices * np.array([1.0, 2.01, 1.0]), box.faces,
+                           box.face_material)
+    assert invariant_checks(stretched)["extents_sorted"] is False  # y longer than x: unsorted
+    tied = TaggedMesh(box.vertices * np.array([1.0, 2.0 + 2e-4, 1.0]), box.faces,
+                      box.face_material)
+    assert invariant_checks(tied)["extents_sorted"]  # y = x within the tolerance
+
+
 def _analytic_agreement(model, inside_fn, extra: np.ndarray | None = None) -> float:
     samples = sample_model(model.mesh, 2000, 20000, 20000, seed=3)
     points = np.concatenate([samples["uniform_points"], samples["near_points"]])
