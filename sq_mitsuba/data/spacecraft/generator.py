@@ -45,9 +45,10 @@ RECIPES: dict[str, Recipe] = {**ARCHETYPES, **FAMILIES, PART_GRAPH: part_graph}
 """Every recipe :func:`generate_spacecraft` builds: the 14 archetypes of :func:`catalogue`,
 the families of the compositional generator (:func:`composed_catalogue`) and the free-form
 part graphs (:func:`graph_catalogue`)."""
-if len(RECIPES) != len(ARCHETYPES) + len(FAMILIES) + 1:  # pragma: no cover - naming mistake
+_RECIPE_NAMES = [*ARCHETYPES, *FAMILIES, PART_GRAPH]
+if len(RECIPES) != len(_RECIPE_NAMES):  # pragma: no cover - a naming mistake
     raise ImportError("recipe names overlap: "
-                      f"{(set(ARCHETYPES) | {PART_GRAPH}) & set(FAMILIES) or {PART_GRAPH}}")
+                      f"{sorted({n for n in _RECIPE_NAMES if _RECIPE_NAMES.count(n) > 1})}")
 
 
 @dataclass
