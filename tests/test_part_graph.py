@@ -134,7 +134,7 @@ def test_copies_are_the_same_attachment_turned() -> None:
         core = pg._random_body(rng, 1.0, 1.0, "gold_mli", np.zeros(3), pg.Z, pg.X)
         local = pg.G.unit(rng.normal(size=3))
         up_local = pg.G.perpendicular(local)
-        for name, attach in pg.ATTACHMENTS.items():
+        for name, (attach, _) in pg.ATTACHMENTS.items():
             built = []
             # The core is square with the axes, so a half turn about z maps it onto itself.
             for turn in (np.eye(3), pg.P.rotation_about(pg.Z, 180.0)):

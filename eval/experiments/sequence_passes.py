@@ -38,7 +38,8 @@ from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.metrics import rotation_error_deg
 from sq_mitsuba.geometry.rotation import matrix_to_quaternion
-from sq_mitsuba.inference.sequence import SequenceOptions
+from sq_mitsuba.inference.refine import refine_pose_and_shape
+from sq_mitsuba.inference.sequence import SequenceOptions, _refine_options, reframed
 from sq_mitsuba.render.scene_config import SceneConfig
 from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer
 from sq_mitsuba.render.space import SpaceScene
@@ -77,6 +78,25 @@ def relative_errors(rotation: torch.Tensor, truth: torch.Tensor) -> torch.Tensor
     return torch.tensor(errors, dtype=torch.float64)
 
 
+def oracle_methods(alone, shot: dict, count: int, camera: Camera,
+                   options: SequenceOptions) -> dict:
+    """The diagnostic methods of ``--oracle``: frame 0's reading in the true body frame at the
+    true poses, as read and with its shape fitted to the true masks, the poses held."""
+    truth = shot["rotation"][:count].double()
+    translation = shot["translation"][:count].double()
+    carried = reframed(alone.assembly[:1], truth[0].T @ alone.rotation[0].double(),
+                       torch.zeros(3, dtype=torch.float64))
+    tick = time.perf_counter()
+    fitted = refine_pose_and_shape(carried, truth, translation, shot["mask"][:count], camera,
+                                   _refine_options(options, options.steps, poses=False),
+                                   shared=True)
+    seconds = time.perf_counter() - tick
+    expand = (count, -1, -1)
+    return {"oracle_pose": (Assembly(carried.params.expand(*expand)), truth, translation, 0.0),
+            "oracle_fit": (Assembly(fitted.assembly.params.expand(*expand)), truth,
+                           fitted.translation, seconds)}
+
+
 def sequence_options(settings: list[str]) -> SequenceOptions:
     """SequenceOptions with ``FIELD=VALUE`` settings applied (values typed as the defaults)."""
     options = SequenceOptions()
@@ -110,6 +130,11 @@ def main() -> None:
                         metavar="NAME:FIELD=VALUE[,FIELD=VALUE]",
                         help="another joint fit scored on the same frames, as method NAME "
                              "(the --set options with these changes); repeatable")
+    parser.add_argument("--oracle", action="store_true",
+                        help="also score, from the true poses (a diagnostic, not a method): "
+                             "frame 0's reading carried into the true body frame as it is "
+                             "(oracle_pose) and fitted to the N true masks with the poses held "
+                             "(oracle_fit): can the frames' silhouettes correct the shape?")
     args = parser.parse_args()
     options = sequence_options(args.set)
     variants = {"sequence": options}
@@ -155,6 +180,8 @@ def main() -> None:
                 methods[name] = (Assembly(sequence.assembly.params.expand(count, -1, -1)),
                                  sequence.rotation, sequence.translation,
                                  time.perf_counter() - tick)
+            if args.oracle and count >= 2:
+                methods.update(oracle_methods(alone, shot, count, camera, options))
             for method, (assembly, rotation, translation, seconds) in methods.items():
                 metrics = score(assembly, rotation, translation, batch, renderer,
                                 [symmetry] * count, [volume] * count, level=2)
@@ -171,7 +198,7 @@ def main() -> None:
         writer.writerows(rows)
     summary = {}
     for count in args.counts:
-        for method in ("single", *variants):
+        for method in ("single", *variants, "oracle_pose", "oracle_fit"):
             chosen = [r for r in rows if r["frames"] == count and r["method"] == method]
             if not chosen:
                 continue

@@ -207,12 +207,11 @@ def _instrument(rng: np.random.Generator, site: G.Site, direction: np.ndarray, u
     return G.cylinder_on(site, s[0] * 0.5, s[2], material, "instrument", direction=look), None
 
 
-ATTACHMENTS: dict[str, Attachment] = {
-    "body": _body, "boom": _boom, "wing": _wing, "dish": _dish, "panel": _panel,
-    "instrument": _instrument,
+ATTACHMENTS: dict[str, tuple[Attachment, float]] = {
+    "body": (_body, 0.24), "boom": (_boom, 0.18), "wing": (_wing, 0.2), "dish": (_dish, 0.12),
+    "panel": (_panel, 0.12), "instrument": (_instrument, 0.14),
 }
-_ATTACHMENT_WEIGHTS = {"body": 0.24, "boom": 0.18, "wing": 0.2, "dish": 0.12, "panel": 0.12,
-                       "instrument": 0.14}
+"""Each kind of attachment: its builder and the probability that an attachment is of it."""
 
 
 def _aim(rng: np.random.Generator, host: G.Body, main: np.ndarray) -> np.ndarray:
@@ -252,7 +251,7 @@ def part_graph(rng: np.random.Generator, thin: float) -> list[Part]:
     hosts = [core]
     parts = list(core.parts)
     names = list(ATTACHMENTS)
-    weights = [_ATTACHMENT_WEIGHTS[n] for n in names]
+    weights = [weight for _, weight in ATTACHMENTS.values()]
     for _ in range(int(rng.integers(2, 11))):
         # The core takes a little more than half of the attachments: p = 0.5 + 0.5 / hosts.
         on_core = chance(rng, 0.5)
@@ -270,7 +269,7 @@ def part_graph(rng: np.random.Generator, thin: float) -> list[Part]:
             # Turned offsets can leave the box a little (a third of a turn): held inside.
             inside = np.clip(turn @ shift, -0.35, 0.35) * host.size
             site = host.toward(direction, host.rotation @ inside)
-            new_parts, new_host = ATTACHMENTS[kind](
+            new_parts, new_host = ATTACHMENTS[kind][0](
                 np.random.default_rng(sub_seed), site, direction, up, _scale(host), thin)
             parts += new_parts
             if new_host is not None:
