@@ -39,7 +39,7 @@ from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.metrics import rotation_error_deg
 from sq_mitsuba.geometry.rotation import matrix_to_quaternion
 from sq_mitsuba.inference.refine import refine_pose_and_shape
-from sq_mitsuba.inference.sequence import SequenceOptions, _refine_options, reframed
+from sq_mitsuba.inference.sequence import SequenceOptions, reframed, stage_refine_options
 from sq_mitsuba.render.scene_config import SceneConfig
 from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer
 from sq_mitsuba.render.space import SpaceScene
@@ -88,7 +88,7 @@ def oracle_methods(alone, shot: dict, count: int, camera: Camera,
                        torch.zeros(3, dtype=torch.float64))
     tick = time.perf_counter()
     fitted = refine_pose_and_shape(carried, truth, translation, shot["mask"][:count], camera,
-                                   _refine_options(options, options.steps, poses=False),
+                                   stage_refine_options(options, options.steps, poses=False),
                                    shared=True)
     seconds = time.perf_counter() - tick
     expand = (count, -1, -1)

@@ -75,7 +75,8 @@ FRAMES_REFINEMENT = replace(SEARCH_REFINEMENT, steps=1, patience=1)
 
 __all__ = ["FRAMES_REFINEMENT", "FRAMES_SEARCH", "SequenceOptions", "SequencePrediction",
            "align_half_turns", "align_half_turns_in_order", "canonical_frame", "choose_start",
-           "fit_sequence", "predict_sequence", "reframed", "sequence_from_frames"]
+           "fit_sequence", "predict_sequence", "reframed", "sequence_from_frames",
+           "stage_refine_options"]
 
 
 @dataclass(frozen=True)
@@ -267,7 +268,7 @@ def reframed(assembly: Assembly, rotation: Tensor, centre: Tensor) -> Assembly:
     return Assembly(params)
 
 
-def _refine_options(options: SequenceOptions, steps: int, poses: bool) -> RefineOptions:
+def stage_refine_options(options: SequenceOptions, steps: int, poses: bool) -> RefineOptions:
     """The :class:`RefineOptions` of one stage of the joint fit: ``poses`` False holds the
     rotations and depths (a shape-only stage; the frames' image-plane shifts still move)."""
     return RefineOptions(steps=steps, lr=options.lr, resolution=options.resolution,
@@ -309,7 +310,7 @@ def fit_sequence(assembly: Assembly, rotation: Tensor, translation: Tensor, mask
     steps, losses, ious = 0, [], None
     for count, poses in [*stages, (options.steps, True)]:
         result = refine_pose_and_shape(assembly, rotation, translation, masks, camera,
-                                       _refine_options(options, count, poses), shared=True,
+                                       stage_refine_options(options, count, poses), shared=True,
                                        relative_rotations=relative_rotations)
         assembly, rotation, translation = result.assembly, result.rotation, result.translation
         ious, steps, losses = result.iou_after, steps + result.steps, losses + result.losses
