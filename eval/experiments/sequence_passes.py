@@ -38,6 +38,7 @@ from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.metrics import rotation_error_deg
 from sq_mitsuba.geometry.rotation import matrix_to_quaternion
+from sq_mitsuba.inference.prediction import Prediction
 from sq_mitsuba.inference.refine import refine_pose_and_shape
 from sq_mitsuba.inference.sequence import SequenceOptions, reframed, stage_refine_options
 from sq_mitsuba.render.scene_config import SceneConfig
@@ -78,7 +79,7 @@ def relative_errors(rotation: torch.Tensor, truth: torch.Tensor) -> torch.Tensor
     return torch.tensor(errors, dtype=torch.float64)
 
 
-def oracle_methods(alone, shot: dict, count: int, camera: Camera,
+def oracle_methods(alone: Prediction, shot: dict, count: int, camera: Camera,
                    options: SequenceOptions) -> dict:
     """The diagnostic methods of ``--oracle``: frame 0's reading in the true body frame at the
     true poses, as read and with its shape fitted to the true masks, the poses held."""
