@@ -87,3 +87,31 @@ def test_body_frame_limits_scores_the_reading_five_ways(train_dataset, eval_chec
     assert set(means) == {"read", "axes_sorted", "oriented_box", "best_of_24", "true_pose"}
     assert 0 < means["best_of_24"] <= means["read"] + 1e-12
     assert "4 images of" in result.stdout
+
+
+def test_training_fit_scores_training_models_as_a_test_split(train_dataset, eval_checkpoint,
+                                                             tmp_path):
+    """The script's eval reads exactly the training models it picked (none of the test split);
+    asking for more training models than the dataset has is a one-line error before any work."""
+    train_models = [line.split(",")[0] for line in
+                    (train_dataset / "splits.csv").read_text().splitlines()
+                    if line.endswith(",train")]
+    prefix = train_models[0][:2]
+    out = tmp_path / "fit"
+    env = {"SQ": f"{sys.executable} -m sq_mitsuba", "PATH": "/usr/bin:/bin"}
+    script = str(EXPERIMENTS / "training_fit.sh")
+    result = subprocess.run(["bash", script, str(train_dataset), str(eval_checkpoint), str(out),
+                             f"{prefix}:2", "--", "--no-baseline"],
+                            capture_output=True, text=True, timeout=300, env=env)
+    assert result.returncode == 0, result.stderr
+    with (out / "per_image.csv").open() as handle:
+        scored = {row["model"] for row in csv.DictReader(handle)}
+    assert scored == set(train_models)
+    for pick, message in ((f"{prefix}:9", "asked for 9"), (f"{prefix}:2:2", "asked for 2 every 2"),
+                          (f"{prefix}:0", "expected PREFIX:COUNT")):
+        failed = subprocess.run(["bash", script, str(train_dataset), str(eval_checkpoint),
+                                 str(tmp_path / "refused"), pick],
+                                capture_output=True, text=True, timeout=60, env=env)
+        assert failed.returncode == 2, pick
+        assert failed.stderr.strip().count("\n") == 0 and message in failed.stderr, pick
+        assert not list(tmp_path.glob("refused*")), pick
