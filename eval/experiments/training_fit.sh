@@ -10,10 +10,11 @@
 # DATA: a dataset folder (SPE3R layout, splits.csv); CHECKPOINT: the network; OUT: the eval
 # folder (the links go to OUT.data). PREFIX:COUNT picks COUNT training models whose names
 # start with PREFIX, spread evenly over them; PREFIX:COUNT:STEP every STEP-th of them from the
-# first (default cs:60:30 pg:40:20, the model card's: compositional models and part graphs). 300 images at most are scored, spread evenly; arguments after -- go to
-# `sq-mitsuba eval` (e.g. --no-baseline for a checkpoint that stores no baseline).
+# first (default cs:60:30 pg:40:20, the model card's: compositional models and part graphs).
+# 300 images at most are scored, spread evenly; arguments after -- go to `sq-mitsuba eval`
+# (e.g. --no-baseline for a checkpoint that stores no baseline).
 set -euo pipefail
-[ $# -ge 3 ] || { echo "usage: $0 DATA CHECKPOINT OUT [PREFIX:COUNT ...] [-- EVAL_ARGS ...]" >&2
+[ $# -ge 3 ] || { echo "usage: $0 DATA CHECKPOINT OUT [PREFIX:COUNT[:STEP] ...] [-- EVAL_ARGS ...]" >&2
   exit 2; }
 DATA=$(realpath "$1"); CHECKPOINT=$2; OUT=$3; shift 3
 PICKS=()
