@@ -156,6 +156,26 @@ def test_generate_merges_splits_and_records_failures(tmp_path) -> None:
                                                **{n: reference[n] for n in names}}
 
 
+def test_workers_build_the_same_files_and_keep_failures_apart(library, tmp_path) -> None:
+    """Two worker processes give the library one process gives, byte for byte, and a model
+    that fails in a worker is recorded like one that fails in the main process."""
+    names = [e.name for e in catalogue(3, SEED)]
+    out = tmp_path / "lib"
+    out.mkdir()
+    (out / names[1]).write_text("in the way\n")
+    summary = generate_library(GenerateOptions(out=out, count=3, seed=SEED, points=300,
+                                               workers=2), progress=False)
+    assert summary.written == [names[0], names[2]] and list(summary.failures) == [names[1]]
+    assert "in the way" not in summary.failures[names[1]]  # the reason, not the file's text
+    assert set(read_splits(out / "splits.csv")) == {names[0], names[2]}
+    for name in (names[0], names[2]):
+        files = sorted(p.relative_to(library) for p in (library / name).rglob("*")
+                       if p.is_file())
+        assert files
+        for relative in files:
+            assert (out / relative).read_bytes() == (library / relative).read_bytes(), relative
+
+
 def test_cli_count_6_splits_are_those_of_count_64(tmp_path) -> None:
     out = tmp_path / "lib"
     assert main(["models", "generate", "--count", "6", "--seed", "0", "--out", str(out),

@@ -7,6 +7,7 @@ import json
 
 import numpy as np
 import pytest
+import torch
 import trimesh
 
 from sq_mitsuba.data.mesh_io import TaggedMesh, obj_text
@@ -189,3 +190,25 @@ def test_stack_symmetries_pads_with_identity():
     assert np.array_equal(stacked[1, 2], HALF_TURNS["x"])
     with pytest.raises(ValueError, match=r"sets\[0\]"):
         stack_symmetries([np.ones((1, 3, 3))])
+
+
+def test_symmetry_table_in_worker_processes_matches_one_process(tmp_path):
+    """The training table of many models, analysed in two worker processes, holds each
+    model's own group (padded with identities), the same as one process gives; a model that
+    cannot be analysed gets the identity alone, and every analysis is kept in the cache."""
+    from sq_mitsuba.training.data_stream import symmetry_table
+
+    shapes = [ONLY_Z, ASYMMETRIC, BOX, ONLY_Z, BOX, ASYMMETRIC, ONLY_Z, BOX]
+    names = [f"m{i}" for i in range(len(shapes))] + ["broken"]
+    for name, shape in zip(names, shapes, strict=False):
+        write_samples(tmp_path / "data" / name, boxes_points(shape, count=4_000, seed=1))
+    (tmp_path / "data" / "broken" / "models").mkdir(parents=True)  # no samples, no mesh
+    pooled = symmetry_table(tmp_path / "data", names, tmp_path / "pool", workers=2)
+    serial = symmetry_table(tmp_path / "data", names, tmp_path / "serial", workers=1)
+    assert torch.equal(pooled, serial) and pooled.shape == (len(names), 4, 3, 3)
+    expected = {id(ONLY_Z): ["z"], id(ASYMMETRIC): [], id(BOX): ["x", "y", "z"]}
+    for row, shape in zip(pooled, [*shapes, None], strict=True):
+        axes = expected.get(id(shape), [])
+        assert as_axes(row.numpy()[:1 + len(axes)]) == axes
+        assert all(np.array_equal(m, np.eye(3)) for m in row.numpy()[1 + len(axes):])
+    assert len(list((tmp_path / "pool").glob("*.json"))) == len(shapes)

@@ -8,6 +8,7 @@ paths are forced where they would otherwise be chosen only on a GPU."""
 from __future__ import annotations
 
 import math
+import re
 import subprocess
 from pathlib import Path
 
@@ -294,3 +295,14 @@ def test_gpu_step_check_script_parses_and_documents_its_dry_run():
     assert subprocess.run(["bash", "-n", str(script)], check=False).returncode == 0
     text = script.read_text()
     assert "DEVICE=cpu" in text and "shipped_b256.toml" in text and "timeout" in text
+
+
+def test_gpu_recipe_script_parses_and_names_what_it_trains():
+    """train/gpu_recipe.sh (dry-run on the CPU with DEVICE=cpu and tiny sizes, as its usage
+    says) parses, trains a config that exists, and keeps each run within a time limit."""
+    script = ROOT / "train" / "gpu_recipe.sh"
+    assert subprocess.run(["bash", "-n", str(script)], check=False).returncode == 0
+    text = script.read_text()
+    config = re.search(r"^config=(\S+)$", text, re.MULTILINE)
+    assert config and (ROOT / config.group(1)).is_file()
+    assert "DEVICE=cpu" in text and "timeout" in text and "--workers" in text

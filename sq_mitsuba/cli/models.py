@@ -63,7 +63,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     add_config_options(gen, GenerateOptions, {"count": "--count", "seed": "--seed",
                                               "out": "--out", "points": "--points",
                                               "generator": "--generator",
-                                              "families": "--families"},
+                                              "families": "--families",
+                                              "workers": "--workers"},
                        metavars={"out": "DIR"})
     gen.set_defaults(func=_generate)
 

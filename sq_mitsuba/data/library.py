@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import os
 import re
-from collections.abc import Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -99,6 +99,9 @@ class GenerateOptions:
     families: Literal["all", "training", "held-out"] = "all"
     """With the composed generator: every family, the training families only, or the held-out
     families only (never trained on: the leave-family-out test)."""
+    workers: int = in_range(1, 256, default=1)
+    """Processes building models in parallel (each model is independent; the library's
+    files are written by the main process, in catalogue order, as each model is done)."""
 
 
 def machine_memory_bytes() -> int:
@@ -229,10 +232,10 @@ def _reason(error: Exception) -> str:
     return f"{type(error).__name__}: {error}"
 
 
-def _progress(items: Sequence, desc: str, unit: str, show: bool):
+def _progress(items: Iterable, desc: str, unit: str, show: bool, total: int | None = None):
     from tqdm import tqdm
 
-    return tqdm(items, desc=desc, unit=unit, disable=not show)
+    return tqdm(items, desc=desc, unit=unit, disable=not show, total=total)
 
 
 # --------------------------------------------------------------------------- generate
@@ -306,6 +309,34 @@ def same_spacecraft_problem(root: Path, entry: CatalogueEntry) -> str | None:
     return None
 
 
+def _generate_one(entry: CatalogueEntry, root: Path, points: int) -> str | None:
+    """Build one model; the reason it failed, or None (a worker's job: errors come back as
+    text, so that one bad model does not stop the batch)."""
+    try:
+        generate_model(entry, root, points=points)
+    except Exception as error:  # any failure of one model is that model's alone
+        return _reason(error)
+    return None
+
+
+def _generate_outcomes(entries: Sequence[CatalogueEntry], root: Path, points: int,
+                       workers: int) -> Iterator[str | None]:
+    """Each entry's outcome (:func:`_generate_one`), in catalogue order, as it is known:
+    built here, or by ``workers`` processes a few models ahead of the bookkeeping."""
+    if workers == 1 or len(entries) <= 1:
+        for entry in entries:
+            yield _generate_one(entry, root, points)
+        return
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    # spawn, not fork: the parent may hold threads (torch, tqdm) that fork would copy mid-state.
+    with ProcessPoolExecutor(min(workers, len(entries)),
+                             mp_context=multiprocessing.get_context("spawn")) as pool:
+        yield from pool.map(_generate_one, entries, [root] * len(entries),
+                            [points] * len(entries))
+
+
 def _generate_locked(root: Path, options: GenerateOptions, progress: bool) -> LibrarySummary:
     """:func:`generate_library` under the library's lock."""
     splits = read_library_splits(root)
@@ -338,11 +369,10 @@ def _generate_locked(root: Path, options: GenerateOptions, progress: bool) -> Li
                          "by another spacecraft of the same name (generate into another "
                          "--out, or remove those folders)")
     summary = LibrarySummary(root)
-    for entry in _progress(entries, "models", "model", progress):
-        try:
-            generate_model(entry, root, points=options.points)
-        except Exception as error:  # one bad model must not stop the batch
-            reason = _reason(error)
+    outcomes = _generate_outcomes(entries, root, options.points, options.workers)
+    for entry, reason in _progress(zip(entries, outcomes, strict=True), "models", "model", progress,
+                                   total=len(entries)):
+        if reason is not None:
             if entry.name in splits:
                 reason += " (the earlier model in this folder is kept)"
             summary.failures[entry.name] = failures[entry.name] = reason

@@ -11,8 +11,8 @@ per-item random draw (points, augmentation) comes from (seed, step, position in 
 
 from __future__ import annotations
 
-import contextlib
 import math
+import os
 import shutil
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -167,28 +167,61 @@ class HostBatch:
                          None if self.augmentation is None else self.augmentation.pinned())
 
 
-def symmetry_table(root: Path, models: Sequence[str], cache_dir: Path | None = None) -> Tensor:
+#: From this many training models on, their symmetries are analysed in worker processes.
+POOL_MODELS = 64
+
+
+def symmetry_table(root: Path, models: Sequence[str], cache_dir: Path | None = None,
+                   workers: int | None = None) -> Tensor:
     """(models, S, 3, 3) body-frame symmetries per model, padded with identities (identity
     alone where the symmetry module or a model's analysis is unavailable). The analysis of
-    each model is kept in ``cache_dir`` (never in the dataset, which is only read)."""
-    try:
-        from sq_mitsuba.data.symmetry import model_symmetries
-    except ImportError:
-        model_symmetries = None
-    sets = []
-    for model in models:
-        matrices = torch.eye(3, dtype=torch.float32)[None]
-        if model_symmetries is not None:
-            with contextlib.suppress(OSError, ValueError):
-                matrices = torch.as_tensor(
-                    np.asarray(model_symmetries(root / model, cache_dir=cache_dir)),
-                    dtype=torch.float32).reshape(-1, 3, 3)
-        sets.append(matrices)
+    each model is kept in ``cache_dir`` (never in the dataset, which is only read).
+
+    The analysis costs about 0.4 s per model on one core, minutes for a library of
+    thousands, so it runs in ``workers`` processes (default: this process's cores where
+    there are at least :data:`POOL_MODELS` models, else this process: starting the workers
+    costs seconds); a model already on record in ``cache_dir`` is only read."""
+    if workers is None:
+        workers = len(os.sched_getaffinity(0)) if len(models) >= POOL_MODELS else 1
+    arguments = ([root / model for model in models], [cache_dir] * len(models))
+    if workers > 1 and len(models) > 1:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+
+        with ProcessPoolExecutor(workers,
+                                 mp_context=multiprocessing.get_context("spawn")) as pool:
+            found = list(pool.map(_model_symmetries, *arguments, chunksize=8))
+    else:
+        found = list(map(_model_symmetries, *arguments))
+    sets = [torch.eye(3, dtype=torch.float32)[None] if matrices is None
+            else torch.as_tensor(matrices, dtype=torch.float32).reshape(-1, 3, 3)
+            for matrices in found]
     width = max(len(s) for s in sets)
     table = torch.eye(3).repeat(len(sets), width, 1, 1)
     for i, matrices in enumerate(sets):
         table[i, :len(matrices)] = matrices
     return table
+
+
+def _symmetry_workers(models: int, world: World) -> int:
+    """Processes for :func:`symmetry_table` in a training run: the machine's cores shared by
+    its training processes, or one for fewer than :data:`POOL_MODELS` models."""
+    if models < POOL_MODELS:
+        return 1
+    return max(1, len(os.sched_getaffinity(0)) // world.size)
+
+
+def _model_symmetries(model_dir: Path, cache_dir: Path | None) -> np.ndarray | None:
+    """One model's symmetries (S, 3, 3), or None where they cannot be analysed (a worker's
+    job of :func:`symmetry_table`)."""
+    try:
+        from sq_mitsuba.data.symmetry import model_symmetries
+    except ImportError:
+        return None
+    try:
+        return np.asarray(model_symmetries(model_dir, cache_dir=cache_dir))
+    except (OSError, ValueError):
+        return None
 
 
 def evenly(count: int, limit: int) -> list[int]:
@@ -298,6 +331,8 @@ def open_training_data(run: TrainRun, sources: DataSources) -> TrainingData:
     camera = train_set.camera.rescaled(size, size)
     stream = TrainingStream(images, points, keep, cfg, camera,
                             symmetry_table(run.data_root, train_set.models,
-                                           Path(cache_root) / "symmetries"))
+                                           Path(cache_root) / "symmetries",
+                                           workers=_symmetry_workers(len(train_set.models),
+                                                                     run.world)))
     return TrainingData(stream, points, val_images, bool(sources.val_indices), train_set.camera,
                         camera)
