@@ -47,18 +47,9 @@ mkdir -p "$out" "$work"
 export PYTHONUNBUFFERED=1
 summary="$out/summary.txt"
 : > "$summary"
-note() { echo "$*" | tee -a "$summary"; }
 deadline=$(( SECONDS + ${TOTAL_SECONDS:-540} ))
 left() { echo $(( deadline - SECONDS )); }
-# stage NAME COMMAND...: run within the script's time limit, record exit status and seconds.
-stage() {
-  local name=$1; shift
-  local start=$SECONDS
-  timeout -k 10 "$(left)" "$@"
-  local rc=$?
-  note "stage $name rc=$rc seconds=$((SECONDS - start))"
-  return $rc
-}
+source "$repo/train/gpu_stages.sh"
 sq=("$py" -m sq_mitsuba)
 
 source "$repo/train/gpu_site.sh" gpu_recipe
@@ -74,17 +65,17 @@ for spec in "archetypes ${ARCHETYPES:-128} 0 all" "composed ${COMPOSED:-1500} ${
             "graph ${GRAPH:-750} ${SEED:-21} all"; do
   read -r generator count seed families <<< "$spec"
   [ "$count" -gt 0 ] || continue
-  stage "models_$generator" "${sq[@]}" models generate --generator "$generator" --count "$count" \
+  stage "models_$generator" "$(left)" "${sq[@]}" models generate --generator "$generator" --count "$count" \
     --seed "$seed" --families "$families" --points 20000 --out "$library" --workers "$cores" \
     > "$work/models_$generator.txt" 2>&1
-  grep -v "^stage " "$work/models_$generator.txt" | tail -2 | tee -a "$summary"
+  grep -E "written|failed|Error" "$work/models_$generator.txt" | tail -3 | tee -a "$summary"
 done
 
 # (2) The images.
 data=$work/data
-stage render "${sq[@]}" dataset render --models "$library" --out "$data" \
+stage render "$(left)" "${sq[@]}" dataset render --models "$library" --out "$data" \
   --images-per-model "${VIEWS:-3}" --resolution 96 --spp 16 --set mask.spp=16 \
-  --seed "${SEED:-21}" --workers "${RENDER_WORKERS:-12}" --quiet 2>&1 | grep -v "^stage " \
+  --seed "${SEED:-21}" --workers "${RENDER_WORKERS:-12}" --quiet 2>&1 | grep -v "stage " \
   | tail -3 | tee -a "$summary"
 images=$("$py" -c 'import sys
 from sq_mitsuba.data.spe3r import Spe3rDataset
@@ -136,7 +127,7 @@ print(f"{label}: checkpoint at step {state['step']} of {state['total_steps']}{cu
       f"{steps} steps logged, median {rate:.0f} images/s, last loss "
       f"{float(log[-1]['loss']):.4f}" if log else f"{label}: empty log")
 EOF
-  stage "export_$label" "${sq[@]}" export --checkpoint "$run/last.pt" --data "$data" \
+  stage "export_$label" 60 "${sq[@]}" export --checkpoint "$run/last.pt" --data "$data" \
     --out "$out/model_$label.pt" 2>&1 | tail -2
   cp "$run/log.csv" "$out/log_$label.csv"; cp "$run/config.json" "$out/config_$label.json"
 done

@@ -47,22 +47,8 @@ export PYTHONUNBUFFERED=1
 summary="$out/summary.txt"
 : > "$summary"
 
-note() { echo "$*" | tee -a "$summary"; }
 deadline=$(( SECONDS + ${TOTAL_SECONDS:-540} ))
-# stage NAME LIMIT_S COMMAND...: run under a time limit (and within TOTAL_SECONDS of the start),
-# record the exit status and seconds.
-stage() {
-  local name=$1 limit=$2; shift 2
-  local left=$(( deadline - SECONDS ))
-  [ "$limit" -gt "$left" ] && limit=$left
-  if [ "$limit" -lt 10 ]; then note "stage $name skipped: out of time"; return 124; fi
-  echo "=== stage $name (limit ${limit} s): $*"
-  local start=$SECONDS
-  timeout -k 10 "$limit" "$@"
-  local rc=$?
-  note "stage $name rc=$rc seconds=$((SECONDS - start))"
-  return $rc
-}
+source "$repo/train/gpu_stages.sh"
 sq=("$py" -m sq_mitsuba)
 
 source "$repo/train/gpu_site.sh" gpu_step_check
