@@ -97,3 +97,34 @@ def test_corrupt_image_names_the_file_and_leaves_nothing(train_dataset, tmp_path
         open_image_cache(dataset, "train", cache_root, dataset_fingerprint(root))
     assert "\n" not in str(info.value) and str(victim) in str(info.value)
     assert not any(cache_root.iterdir())  # no half-written cache folder
+
+
+def test_a_ready_point_cache_spares_reading_the_models_points_again(train_dataset, tmp_path):
+    """Training refuses a model whose points cannot be read, before any work, unless the
+    point cache of this dataset is already built (its points were read and checked then, and
+    training reads them from it): a start or resume then skips reading every samples.npz."""
+    from sq_mitsuba.training.cache import point_cache_ready
+    from sq_mitsuba.training.config import TrainConfig
+    from sq_mitsuba.training.data_stream import open_datasets
+
+    root = tmp_path / "data"
+    shutil.copytree(train_dataset, root)
+    config, fingerprint, cache = TrainConfig(), dataset_fingerprint(root), tmp_path / "cache"
+    dataset = _dataset(root)
+    samples = root / dataset.models[0] / "models" / "samples.npz"
+    good = samples.read_bytes()
+    samples.write_bytes(b"not an archive")
+    for arguments in ((), (cache, fingerprint)):
+        with pytest.raises(DatasetError, match=r"samples\.npz"):
+            open_datasets(config, root, *arguments)
+
+    samples.write_bytes(good)
+    assert not point_cache_ready(dataset.models, cache, fingerprint)
+    open_point_cache(dataset, cache, fingerprint)
+    assert point_cache_ready(dataset.models, cache, fingerprint)
+    assert not point_cache_ready(dataset.models, cache, "another dataset")
+    assert not point_cache_ready(dataset.models[1:], cache, fingerprint)
+    samples.write_bytes(b"not an archive")
+    assert open_datasets(config, root, cache, fingerprint).train_set.models == dataset.models
+    with pytest.raises(DatasetError, match=r"samples\.npz"):
+        open_datasets(config, root, cache, "another dataset")

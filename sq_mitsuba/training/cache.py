@@ -374,13 +374,27 @@ class PointCache:
         return np.asarray(surface[chosen]), np.asarray(self.points[rows]), labels
 
 
+def _point_cache_folder(models: Sequence[str], cache_root: str | Path,
+                        fingerprint: str) -> tuple[Path, dict[str, Any]]:
+    key = {"version": CACHE_VERSION, "fingerprint": fingerprint, "models": list(models)}
+    return Path(cache_root) / f"points-{_key_digest(key)}", key
+
+
+def point_cache_ready(models: Sequence[str], cache_root: str | Path, fingerprint: str) -> bool:
+    """Whether ``cache_root`` holds the finished :class:`PointCache` of these models of the
+    dataset with this fingerprint: their points were then read, and checked, when it was
+    built, and training reads them from it, not from the models' files."""
+    folder, key = _point_cache_folder(models, cache_root, fingerprint)
+    meta = _read_meta(folder)
+    return meta is not None and meta.get("key") == key
+
+
 def open_point_cache(dataset: Any, cache_root: str | Path, fingerprint: str,
                      progress: bool = False) -> PointCache:
     """The :class:`PointCache` of every model of ``dataset`` (``dataset.model_points``),
     built on first use under ``cache_root``."""
     models = list(dataset.models)
-    key = {"version": CACHE_VERSION, "fingerprint": fingerprint, "models": models}
-    folder = Path(cache_root) / f"points-{_key_digest(key)}"
+    folder, key = _point_cache_folder(models, cache_root, fingerprint)
     meta = _read_meta(folder)
     if meta is not None and meta.get("key") == key:
         return PointCache(folder)

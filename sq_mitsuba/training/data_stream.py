@@ -38,6 +38,7 @@ from sq_mitsuba.training.cache import (
     decode_pixels,
     open_image_cache,
     open_point_cache,
+    point_cache_ready,
 )
 from sq_mitsuba.training.config import TrainConfig
 from sq_mitsuba.training.distributed import World, broadcast_object
@@ -45,7 +46,7 @@ from sq_mitsuba.training.random_streams import STREAMS, seed_of
 from sq_mitsuba.training.run.state import TrainError, TrainRun
 
 __all__ = ["DataSources", "HostBatch", "TrainingData", "TrainingStream", "evenly",
-           "open_datasets", "open_training_data", "symmetry_table"]
+           "open_datasets", "open_training_data", "run_cache_root", "symmetry_table"]
 
 
 class TrainingStream:
@@ -241,9 +242,19 @@ class DataSources:
     "The val images that validate (spread evenly; empty when validation is off)."
 
 
-def open_datasets(config: TrainConfig, data_root: Path) -> DataSources:
+def run_cache_root(config: TrainConfig, out_dir: Path) -> Path:
+    """Where a run's caches live: ``data.cache_dir``, else ``<out>/cache``."""
+    return config.data.cache_dir or out_dir / "cache"
+
+
+def open_datasets(config: TrainConfig, data_root: Path, cache_root: Path | None = None,
+                  fingerprint: str | None = None) -> DataSources:
     """The train and val splits of ``data_root`` at the network's input size; one-line errors
-    for a missing folder or an empty train split (the dataset's own for bad labels)."""
+    for a missing folder or an empty train split (the dataset's own for bad labels).
+
+    The models' point files are checked unless ``cache_root`` already holds the point cache
+    of this split for ``fingerprint`` (checked when it was built; training reads that): a
+    library of thousands takes a minute to read again at every start and resume."""
     if not data_root.is_dir():
         raise TrainError(f"{data_root}: dataset folder not found")
     size = config.network.image_size
@@ -253,7 +264,9 @@ def open_datasets(config: TrainConfig, data_root: Path) -> DataSources:
         raise TrainError(f"{data_root}: the train split has no images")
     # Images of camera.json's size, readable finite points: refused here, before any work,
     # not at the cache build or a step later (the val split holds the same models).
-    train_set.check()
+    cached = cache_root is not None and fingerprint is not None and \
+        point_cache_ready(train_set.models, cache_root, fingerprint)
+    train_set.check(points=not cached)
     val_set = Spe3rDataset(data_root, "val", image_size=size, num_surface=1, num_occupancy=2,
                            seed=config.seed)
     val_indices = evenly(len(val_set), config.validation.images) if config.validation.every \
@@ -301,7 +314,7 @@ def open_training_data(run: TrainRun, sources: DataSources) -> TrainingData:
     """The caches of ``sources`` (rank 0 builds them, the others wait and open them) and the
     stream of training batches over them."""
     cfg = run.config
-    cache_root = cfg.data.cache_dir or run.out_dir / "cache"
+    cache_root = run_cache_root(cfg, run.out_dir)
     error = None
     if run.world.main:
         try:

@@ -66,6 +66,7 @@ from torch import nn
 
 from sq_mitsuba.config import from_dict, to_dict
 from sq_mitsuba.config import validate as validate_config
+from sq_mitsuba.data.spe3r import DatasetError
 from sq_mitsuba.io import atomic_write_json
 from sq_mitsuba.model.checkpoint import load_weights, read_checkpoint
 from sq_mitsuba.model.network import SuperquadricNet
@@ -78,6 +79,7 @@ from sq_mitsuba.training.data_stream import (
     TrainingData,
     open_datasets,
     open_training_data,
+    run_cache_root,
 )
 from sq_mitsuba.training.distributed import (
     all_mean,
@@ -181,8 +183,15 @@ def _train(config: TrainConfig | None, data_root: Path, out_dir: Path, resume: b
         config = TrainConfig() if checkpoint is None else from_dict(TrainConfig,
                                                                     checkpoint["config"])
     validate_config(config)
-    sources = open_datasets(config, data_root)
-    fingerprint = dataset_fingerprint(data_root)
+    # The fingerprint first: a point cache already built for it spares reading every model's
+    # points again (open_datasets). A dataset it cannot be taken of gets open_datasets' error.
+    try:
+        fingerprint = dataset_fingerprint(data_root)
+    except (OSError, DatasetError):
+        fingerprint = None
+    sources = open_datasets(config, data_root, run_cache_root(config, out_dir), fingerprint)
+    if fingerprint is None:
+        fingerprint = dataset_fingerprint(data_root)
     if checkpoint is not None:
         _check_resumable(checkpoint, config, fingerprint, out_dir, data_root)
     model = _build_network(config, sources)
