@@ -10,6 +10,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import torch
 
 EXPERIMENTS = Path(__file__).resolve().parents[1] / "eval" / "experiments"
@@ -115,3 +116,29 @@ def test_training_fit_scores_training_models_as_a_test_split(train_dataset, eval
         assert failed.returncode == 2, pick
         assert failed.stderr.strip().count("\n") == 0 and message in failed.stderr, pick
         assert not list(tmp_path.glob("refused*")), pick
+
+
+def test_reading_spread_ranks_each_reading_against_every_model(train_dataset, eval_checkpoint):
+    """The rank is one more than the models strictly nearer (checked on a small matrix by
+    hand), and the script reports ranks within the set and spreads on the fixture."""
+    sys.path.insert(0, str(EXPERIMENTS))
+    try:
+        from reading_spread import own_model_ranks
+    finally:
+        sys.path.remove(str(EXPERIMENTS))
+    distances = np.array([[0.1, 0.3, 0.2], [0.5, 0.4, 0.6], [0.2, 0.2, 0.9]])
+    assert own_model_ranks(distances, np.array([0, 0, 1])).tolist() == [1, 2, 1]
+    command = [sys.executable, str(EXPERIMENTS / "reading_spread.py"), "--checkpoint",
+               str(eval_checkpoint), "--data", str(train_dataset), "--images"]
+    one = subprocess.run([*command, "6"], capture_output=True, text=True, timeout=300)
+    assert one.returncode != 0 and "one model" in one.stderr  # the test split: one model
+    result = subprocess.run([*command, "8", "--split", "train"], capture_output=True, text=True,
+                            timeout=300)
+    assert result.returncode == 0, result.stderr
+    models = int(re.search(r"8 images of (\d+) models", result.stdout).group(1))
+    assert models == 2
+    spread = re.search(r"readings (\S+) against the truths' (\S+)", result.stdout)
+    # Two different spacecraft lie apart; the fixture's two-step network may read them alike.
+    assert float(spread.group(1)) >= 0 and float(spread.group(2)) > 0
+    median = float(re.search(r"rank: median (\S+),", result.stdout).group(1))
+    assert 1 <= median <= models
