@@ -14,18 +14,16 @@ the true surface (Chamfer-L1, the paper's) five ways:
 
 from __future__ import annotations
 
-import argparse
 import itertools
-from pathlib import Path
 
 import numpy as np
 import torch
+from spread_images import open_spread_images
 
 from sq_mitsuba.data.mesh_processing import alignment_rotation
-from sq_mitsuba.evaluation.split import collate, open_split
+from sq_mitsuba.evaluation.split import collate
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.metrics import chamfer_l1
-from sq_mitsuba.inference.loading import load_model
 from sq_mitsuba.inference.sequence import canonical_frame, reframed
 from sq_mitsuba.model.losses import counted_surface_samples
 
@@ -49,16 +47,9 @@ def points(assembly: Assembly) -> torch.Tensor:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--checkpoint", type=Path, required=True)
-    parser.add_argument("--data", type=Path, required=True)
-    parser.add_argument("--split", default="test")
-    parser.add_argument("--images", type=int, default=96)
-    args = parser.parse_args()
-    predictor = load_model(args.checkpoint)
-    dataset = open_split(args.data, args.split, predictor.image_size, 2000)
-    camera = dataset.camera.rescaled(predictor.image_size, predictor.image_size)
-    chosen = np.linspace(0, len(dataset) - 1, min(args.images, len(dataset))).round()
+    spread = open_spread_images(__doc__.split("\n\n")[0], min_images=1)
+    args, predictor, dataset = spread.args, spread.predictor, spread.dataset
+    camera, chosen = spread.camera, spread.chosen
     turns = axis_rotations()
     scores: dict[str, list[float]] = {name: [] for name in (
         "read", "axes_sorted", "oriented_box", "best_of_24", "true_pose")}

@@ -16,16 +16,13 @@ set (Chamfer-L1, the paper's), which gives two figures:
 
 from __future__ import annotations
 
-import argparse
-from pathlib import Path
-
 import numpy as np
 import torch
+from spread_images import open_spread_images
 
-from sq_mitsuba.evaluation.split import collate, open_split
+from sq_mitsuba.evaluation.split import collate
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.metrics import chamfer_l1
-from sq_mitsuba.inference.loading import load_model
 from sq_mitsuba.model.losses import counted_surface_samples
 
 #: Points kept per cloud (readings and truths alike), so that every pair costs the same.
@@ -51,18 +48,9 @@ def own_model_ranks(distances: np.ndarray, own: np.ndarray) -> np.ndarray:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--checkpoint", type=Path, required=True)
-    parser.add_argument("--data", type=Path, required=True)
-    parser.add_argument("--split", default="test")
-    parser.add_argument("--images", type=int, default=96)
-    args = parser.parse_args()
-    if args.images < 2:
-        parser.error("--images: need at least 2 (the spread compares pairs)")
-    predictor = load_model(args.checkpoint)
-    dataset = open_split(args.data, args.split, predictor.image_size, 2000)
-    camera = dataset.camera.rescaled(predictor.image_size, predictor.image_size)
-    chosen = np.linspace(0, len(dataset) - 1, min(args.images, len(dataset))).round()
+    spread = open_spread_images(__doc__.split("\n\n")[0], min_images=2)
+    args, predictor, dataset = spread.args, spread.predictor, spread.dataset
+    camera, chosen = spread.camera, spread.chosen
     rng = np.random.default_rng(0)
     readings: list[torch.Tensor] = []
     models: list[str] = []
