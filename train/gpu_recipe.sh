@@ -32,24 +32,13 @@
 #   PYTHON [python3], WORK (folder kept for the library, data and runs; default temporary).
 set -u -o pipefail
 
-absolute() { case $1 in /*) echo "$1" ;; *) echo "$PWD/$1" ;; esac; }
-out=$(absolute "${1:-/tmp/sq-gpu-recipe}")
-device=${DEVICE:-cuda}
-py=${PYTHON:-python3}
 repo=$(cd "$(dirname "$0")/.." && pwd)
+source "$repo/train/gpu_stages.sh" sq-gpu-recipe "${1:-}"
+left() { echo $(( deadline - SECONDS )); }
 config=train/configs/broad_chamfer100_b256.toml
 short=${SHORT:-181248}
 long=${LONG:-$(( short * ${LONG_FACTOR:-3} ))}
 cores=$(nproc)
-work=${WORK:+$(absolute "$WORK")}
-[ -z "$work" ] && work=$(mktemp -d /tmp/sq-gpu-recipe-work.XXXX) && trap 'rm -rf "$work"' EXIT
-mkdir -p "$out" "$work"
-export PYTHONUNBUFFERED=1
-summary="$out/summary.txt"
-: > "$summary"
-deadline=$(( SECONDS + ${TOTAL_SECONDS:-540} ))
-left() { echo $(( deadline - SECONDS )); }
-source "$repo/train/gpu_stages.sh"
 sq=("$py" -m sq_mitsuba)
 
 source "$repo/train/gpu_site.sh" gpu_recipe

@@ -31,24 +31,12 @@
 #   the dataset and runs (default temporary); STAGES ["bench dataset learn"].
 set -u -o pipefail
 
-absolute() { case $1 in /*) echo "$1" ;; *) echo "$PWD/$1" ;; esac; }
-out=$(absolute "${1:-/tmp/sq-gpu-step}")
-device=${DEVICE:-cuda}
-py=${PYTHON:-python3}
 repo=$(cd "$(dirname "$0")/.." && pwd)
+source "$repo/train/gpu_stages.sh" sq-gpu-step "${1:-}"
 stages=${STAGES:-bench dataset stream learn}
 want() { [[ " $stages " == *" $1 "* ]]; }
 large=${BATCH_LARGE:-256}
 seen=${SEEN:-20480}
-work=${WORK:+$(absolute "$WORK")}
-[ -z "$work" ] && work=$(mktemp -d /tmp/sq-gpu-step-work.XXXX) && trap 'rm -rf "$work"' EXIT
-mkdir -p "$out" "$work"
-export PYTHONUNBUFFERED=1
-summary="$out/summary.txt"
-: > "$summary"
-
-deadline=$(( SECONDS + ${TOTAL_SECONDS:-540} ))
-source "$repo/train/gpu_stages.sh"
 sq=("$py" -m sq_mitsuba)
 
 source "$repo/train/gpu_site.sh" gpu_step_check

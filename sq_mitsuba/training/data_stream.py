@@ -183,7 +183,7 @@ def symmetry_table(root: Path, models: Sequence[str], cache_dir: Path | None = N
     there are at least :data:`POOL_MODELS` models, else this process: starting the workers
     costs seconds); a model already on record in ``cache_dir`` is only read."""
     if workers is None:
-        workers = len(os.sched_getaffinity(0)) if len(models) >= POOL_MODELS else 1
+        workers = _symmetry_workers(len(models))
     arguments = ([root / model for model in models], [cache_dir] * len(models))
     if workers > 1 and len(models) > 1:
         import multiprocessing
@@ -204,12 +204,12 @@ def symmetry_table(root: Path, models: Sequence[str], cache_dir: Path | None = N
     return table
 
 
-def _symmetry_workers(models: int, world: World) -> int:
-    """Processes for :func:`symmetry_table` in a training run: the machine's cores shared by
-    its training processes, or one for fewer than :data:`POOL_MODELS` models."""
+def _symmetry_workers(models: int, processes: int = 1) -> int:
+    """Processes for :func:`symmetry_table`: this process's cores shared by ``processes``
+    (the training processes of a run), or one for fewer than :data:`POOL_MODELS` models."""
     if models < POOL_MODELS:
         return 1
-    return max(1, len(os.sched_getaffinity(0)) // world.size)
+    return max(1, len(os.sched_getaffinity(0)) // processes)
 
 
 def _model_symmetries(model_dir: Path, cache_dir: Path | None) -> np.ndarray | None:
@@ -346,6 +346,6 @@ def open_training_data(run: TrainRun, sources: DataSources) -> TrainingData:
                             symmetry_table(run.data_root, train_set.models,
                                            Path(cache_root) / "symmetries",
                                            workers=_symmetry_workers(len(train_set.models),
-                                                                     run.world)))
+                                                                     run.world.size)))
     return TrainingData(stream, points, val_images, bool(sources.val_indices), train_set.camera,
                         camera)
