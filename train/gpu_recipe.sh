@@ -6,13 +6,17 @@
 #       shipped model's catalogue), COMPOSED models of the training families and GRAPH
 #       free-form part graphs (catalogue seed SEED; the held-out families are never made);
 #   (2) VIEWS images of each at 96 px, spp 16, rendered with Mitsuba on the GPU;
-#   (3) two runs of train/configs/broad_chamfer100_b256.toml from the shipped model on that
-#       same data, side by side on the GPU: "short" sees SHORT images (R6's and R7's 181,248
-#       on 2 CPU cores), "long" LONG_FACTOR times as many, each a whole cosine schedule. The
-#       pair says what a longer schedule alone is worth at a fixed library; the held-out
+#   (3) two runs of train/configs/broad_chamfer100_b256.toml on that same data, side by
+#       side on the GPU, each a whole cosine schedule; PAIR says which one change they differ
+#       by. PAIR=schedule (the default): both from the shipped model, "short" sees SHORT
+#       images (R6's and R7's 181,248 on 2 CPU cores), "long" LONG_FACTOR times as many: what
+#       a longer schedule alone is worth at a fixed library. PAIR=start: both see SHORT
+#       images, "shipped" from the shipped model, "imagenet" from the ImageNet encoder at the
+#       first stage's learning rate (1e-3 at batch 32, its warm-up of 1,600 images): whether
+#       the shipped model's start holds back what the broad library teaches. The held-out
 #       families (`eval`) judge both, on a machine of any kind;
-#   (4) OUT_DIR/model_short.pt and model_long.pt (`sq-mitsuba export`, with the trivial
-#       baseline of that data), their log.csv and config.json, and summary.txt.
+#   (4) OUT_DIR/model_LABEL.pt for each run (`sq-mitsuba export`, with the trivial baseline
+#       of that data), its log.csv and config.json, and summary.txt.
 #
 # A run the time limit cuts (TOTAL_SECONDS for the whole script) is exported from its last
 # checkpoint (every 50 steps) and said to be cut in summary.txt: its schedule did not finish.
@@ -25,8 +29,8 @@
 # Usage, from the repository root:  train/gpu_recipe.sh [OUT_DIR]     (default /tmp/sq-gpu-recipe)
 #   Without mitsuba installed it unpacks .gpu/site-cpXY.tar.xz (train/gpu_bundle.sh builds it)
 #   into /tmp/site. Environment (defaults in brackets): ARCHETYPES [128], COMPOSED [1500],
-#   GRAPH [750], SEED [21], VIEWS [3], RENDER_WORKERS [12], SHORT [181248], LONG_FACTOR [3]
-#   (or LONG, the long run's images seen),
+#   GRAPH [750], SEED [21], VIEWS [3], RENDER_WORKERS [12], PAIR [schedule; or start],
+#   SHORT [181248], LONG_FACTOR [3] (or LONG, the long run's images seen; PAIR=schedule),
 #   TOTAL_SECONDS [540], DEVICE [cuda; cpu dry-runs it, e.g. DEVICE=cpu ARCHETYPES=2
 #   COMPOSED=4 GRAPH=2 VIEWS=2 SHORT=512 RENDER_WORKERS=2 train/gpu_recipe.sh /tmp/dry],
 #   PYTHON [python3], WORK (folder kept for the library, data and runs; default temporary).
@@ -46,7 +50,7 @@ export PYTHONPATH=$repo${PYTHONPATH:+:$PYTHONPATH}
 cd "$repo" || exit 2
 [ "$device" = cpu ] && export SQ_MITSUBA_VARIANT=llvm_ad_mono
 { nvidia-smi -L 2>/dev/null || echo "no nvidia-smi"; } | tee -a "$summary"
-note "gpu_recipe: $cores cores; short $short, long $long images seen; $config"
+note "gpu_recipe: $cores cores; pair ${PAIR:-schedule}; short $short, long $long images seen; $config"
 
 # (1) The library.
 library=$work/models
@@ -73,29 +77,44 @@ print(len(Spe3rDataset(sys.argv[1], "train", image_size=96, num_surface=1, num_o
 note "training images: $images"
 [ "$images" -gt 0 ] || { note "no training images: stopping"; exit 1; }
 
-# (3) Two runs on the same data, side by side; "long" starts first and builds the cache, and
-# "short" starts once long's first step is logged (the cache is then there to be read).
-epochs() { "$py" -c "import math; print(max(1, round($1 / (math.ceil($images / 256) * 256))))"; }
-train_run() {  # LABEL IMAGES_SEEN SECONDS
-  timeout -k 10 "$3" "${sq[@]}" train --config "$config" --data "$data" --out "$work/run_$1" \
-    --quiet --set "device=\"$device\"" --set "optim.epochs=$(epochs "$2")" \
-    --set 'init_from="sq_mitsuba/model/weights/model.pt"' \
+# (3) Two runs on the same data, side by side: the first starts first and builds the cache,
+# the second once the first's step is logged (the cache is then there to be read).
+# Convention: a run is "LABEL IMAGES_SEEN START", START shipped or imagenet.
+case ${PAIR:-schedule} in
+  schedule) runs=("long $long shipped" "short $short shipped") ;;
+  start) runs=("imagenet $short imagenet" "shipped $short shipped") ;;
+  *) echo "PAIR: expected schedule or start, got '$PAIR'" >&2; exit 2 ;;
+esac
+batch=$("$py" -c 'import sys
+from sq_mitsuba.training.config import load_train_config
+print(load_train_config(sys.argv[1]).optim.batch_size)' "$config")
+epochs() { "$py" -c "import math; print(max(1, round($1 / (math.ceil($images / $batch) * $batch))))"; }
+train_run() {  # LABEL IMAGES_SEEN START SECONDS
+  local start_args=(--set 'init_from="sq_mitsuba/model/weights/model.pt"')
+  # From ImageNet: no init_from, and the first stage's rate and warm-up (cpu.toml), not the
+  # fine-tune's.
+  [ "$3" = imagenet ] && start_args=(--set optim.lr=1e-3 --set optim.warmup_images=1600)
+  timeout -k 10 "$4" "${sq[@]}" train --config "$config" --data "$data" --out "$work/run_$1" \
+    --quiet --set "device=\"$device\"" --set "optim.epochs=$(epochs "$2")" "${start_args[@]}" \
     --set "data.cache_dir=\"$work/cache\"" > "$work/train_$1.txt" 2>&1
 }
+read -r first first_seen first_start <<< "${runs[0]}"
+read -r second second_seen second_start <<< "${runs[1]}"
 budget=$(( $(left) - 60 ))  # a minute kept for the exports
-note "long: $(epochs $long) epochs, short: $(epochs $short) epochs of $images images; training budget ${budget} s"
+note "$first ($first_start): $(epochs "$first_seen") epochs, $second ($second_start):" \
+  "$(epochs "$second_seen") epochs of $images images; training budget ${budget} s"
 start=$SECONDS
-train_run long "$long" "$budget" &
-long_pid=$!
-while [ ! -s "$work/run_long/log.csv" ] && kill -0 $long_pid 2>/dev/null; do sleep 2; done
-note "long: first step logged after $((SECONDS - start)) s (cache, symmetries, start-up)"
-train_run short "$short" $(( budget - (SECONDS - start) )) &
-short_pid=$!
-wait $short_pid; note "stage train_short rc=$? seconds=$((SECONDS - start))"
-wait $long_pid; note "stage train_long rc=$? seconds=$((SECONDS - start))"
+train_run "$first" "$first_seen" "$first_start" "$budget" &
+first_pid=$!
+while [ ! -s "$work/run_$first/log.csv" ] && kill -0 $first_pid 2>/dev/null; do sleep 2; done
+note "$first: first step logged after $((SECONDS - start)) s (cache, symmetries, start-up)"
+train_run "$second" "$second_seen" "$second_start" $(( budget - (SECONDS - start) )) &
+second_pid=$!
+wait $second_pid; note "stage train_$second rc=$? seconds=$((SECONDS - start))"
+wait $first_pid; note "stage train_$first rc=$? seconds=$((SECONDS - start))"
 
 # (4) Exports and logs.
-for label in short long; do
+for label in "$second" "$first"; do
   run=$work/run_$label
   [ -f "$run/last.pt" ] || { note "$label: no checkpoint"; tail -5 "$work/train_$label.txt"; continue; }
   "$py" - "$run" "$label" <<'EOF' | tee -a "$summary"
@@ -120,5 +139,5 @@ EOF
     --out "$out/model_$label.pt" 2>&1 | tail -2
   cp "$run/log.csv" "$out/log_$label.csv"; cp "$run/config.json" "$out/config_$label.json"
 done
-tail -3 "$work/train_long.txt" "$work/train_short.txt" 2>/dev/null
+tail -3 "$work/train_$first.txt" "$work/train_$second.txt" 2>/dev/null
 note "gpu_recipe done in $SECONDS s"
