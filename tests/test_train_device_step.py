@@ -8,6 +8,7 @@ paths are forced where they would otherwise be chosen only on a GPU."""
 from __future__ import annotations
 
 import math
+import os
 import re
 import subprocess
 from pathlib import Path
@@ -306,3 +307,16 @@ def test_gpu_recipe_script_parses_and_names_what_it_trains():
     config = re.search(r"^config=(\S+)$", text, re.MULTILINE)
     assert config and (ROOT / config.group(1)).is_file()
     assert "DEVICE=cpu" in text and "timeout" in text and "--workers" in text
+
+
+def test_gpu_recipe_script_refuses_an_unknown_pair_before_any_work(tmp_path):
+    """PAIR names the one change between the two runs; anything else is one line and exit 2,
+    before a model is generated (the output folder gets only its empty summary)."""
+    script = ROOT / "train" / "gpu_recipe.sh"
+    env = {**os.environ, "PAIR": "longer", "WORK": str(tmp_path / "work")}
+    result = subprocess.run(["bash", str(script), str(tmp_path / "out")], env=env,
+                            capture_output=True, text=True, check=False, timeout=60)
+    assert result.returncode == 2
+    assert result.stderr.strip() == "PAIR: expected schedule or start, got 'longer'"
+    assert not (tmp_path / "work" / "models").exists()
+

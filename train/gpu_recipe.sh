@@ -42,6 +42,13 @@ left() { echo $(( deadline - SECONDS )); }
 config=train/configs/broad_chamfer100_b256.toml
 short=${SHORT:-181248}
 long=${LONG:-$(( short * ${LONG_FACTOR:-3} ))}
+# The two runs (checked before any work), each "LABEL IMAGES_SEEN START", START shipped or
+# imagenet; the first listed starts first.
+case ${PAIR:-schedule} in
+  schedule) runs=("long $long shipped" "short $short shipped") ;;
+  start) runs=("imagenet $short imagenet" "shipped $short shipped") ;;
+  *) echo "PAIR: expected schedule or start, got '$PAIR'" >&2; exit 2 ;;
+esac
 cores=$(nproc)
 sq=("$py" -m sq_mitsuba)
 
@@ -79,12 +86,6 @@ note "training images: $images"
 
 # (3) Two runs on the same data, side by side: the first starts first and builds the cache,
 # the second once the first's step is logged (the cache is then there to be read).
-# Convention: a run is "LABEL IMAGES_SEEN START", START shipped or imagenet.
-case ${PAIR:-schedule} in
-  schedule) runs=("long $long shipped" "short $short shipped") ;;
-  start) runs=("imagenet $short imagenet" "shipped $short shipped") ;;
-  *) echo "PAIR: expected schedule or start, got '$PAIR'" >&2; exit 2 ;;
-esac
 batch=$("$py" -c 'import sys
 from sq_mitsuba.training.config import load_train_config
 print(load_train_config(sys.argv[1]).optim.batch_size)' "$config")
