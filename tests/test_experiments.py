@@ -142,3 +142,35 @@ def test_reading_spread_ranks_each_reading_against_every_model(train_dataset, ev
     assert float(spread.group(1)) >= 0 and float(spread.group(2)) > 0
     median = float(re.search(r"rank: median (\S+),", result.stdout).group(1))
     assert 1 <= median <= models
+
+
+def test_half_turn_hedge_measures_asymmetry_and_the_folded_ends(train_dataset, eval_checkpoint):
+    """A cloud the half turns leave unchanged has asymmetry 0, a one-sided one does not; a
+    truth turned by a half turn is matched exactly once the ends are folded, and its
+    symmetric hull contains it (so the hull's distance is the hull's excess only). Then the
+    script on the fixture."""
+    sys.path.insert(0, str(EXPERIMENTS))
+    try:
+        from half_turn_hedge import HALF_TURNS, asymmetry, distance, folded
+    finally:
+        sys.path.remove(str(EXPERIMENTS))
+    generator = torch.Generator().manual_seed(0)
+    blob = torch.rand(1, 200, 3, generator=generator, dtype=torch.float64) - 0.5
+    symmetric = torch.cat([blob[0]] + [blob[0] * turn for turn in HALF_TURNS])[None]
+    assert asymmetry(symmetric) < 1e-12
+    one_sided = blob + torch.tensor([0.6, 0.0, 0.0], dtype=torch.float64)
+    assert asymmetry(one_sided) > 0.3
+    turned = one_sided * HALF_TURNS[2]  # a half turn about z flips x: the far side
+    assert distance(turned, one_sided) > 0.3
+    assert folded(turned, one_sided) < 1e-12
+    command = [sys.executable, str(EXPERIMENTS / "half_turn_hedge.py"), "--checkpoint",
+               str(eval_checkpoint), "--data", str(train_dataset), "--images", "4"]
+    result = subprocess.run(command, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr
+    read, truth = (float(x) for x in re.search(r"readings (\S+), truths (\S+)",
+                                                 result.stdout).groups())
+    assert read >= 0 and truth > 0
+    as_read, ends = (float(x) for x in re.search(r"as read (\S+), ends folded (\S+)",
+                                                   result.stdout).groups())
+    assert 0 < ends <= as_read + 1e-9
+
