@@ -23,29 +23,11 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-from spread_images import open_spread_images
-
-from sq_mitsuba.evaluation.split import collate
-from sq_mitsuba.geometry.assembly import Assembly
-from sq_mitsuba.geometry.metrics import chamfer_l1
-from sq_mitsuba.model.losses import counted_surface_samples
-
-#: Points kept per cloud, so that every pair costs the same.
-POINTS = 1500
+from spread_images import distance, open_spread_images, readings_and_truths, thinned
 
 #: The three half turns about the body axes, as the diagonal they multiply points by.
 HALF_TURNS = torch.tensor([[1.0, -1.0, -1.0], [-1.0, 1.0, -1.0], [-1.0, -1.0, 1.0]],
                           dtype=torch.float64)
-
-
-def thinned(cloud: torch.Tensor, rng: np.random.Generator) -> torch.Tensor:
-    """(1, <= POINTS, 3) float64: an evenly drawn subset of a (P, 3) cloud."""
-    keep = rng.choice(len(cloud), min(POINTS, len(cloud)), replace=False)
-    return cloud[torch.from_numpy(np.sort(keep))].double()[None]
-
-
-def distance(a: torch.Tensor, b: torch.Tensor) -> float:
-    return float(chamfer_l1(a, b, "paper")[0])
 
 
 def asymmetry(cloud: torch.Tensor) -> float:
@@ -67,23 +49,15 @@ def symmetric_hull(cloud: torch.Tensor, rng: np.random.Generator) -> torch.Tenso
 
 def main() -> None:
     spread = open_spread_images(__doc__.split("\n\n")[0])
-    args, predictor, dataset = spread.args, spread.predictor, spread.dataset
-    camera, chosen = spread.camera, spread.chosen
     rng = np.random.default_rng(0)
     rows: list[tuple[float, float, float, float, float]] = []
-    for start in range(0, len(chosen), 16):
-        batch = collate([dataset[int(i)] for i in chosen[start:start + 16]])
-        prediction = predictor.predict(batch["image"], camera)
-        for k in range(len(batch["model"])):
-            assembly = Assembly(prediction.assembly.params[k:k + 1].detach().double())
-            samples, keep = counted_surface_samples(assembly, 3)
-            reading = thinned(samples[0][keep[0]], rng)
-            truth = thinned(batch["surface_points"][k], rng)
-            rows.append((asymmetry(reading), asymmetry(truth), distance(reading, truth),
-                         folded(reading, truth), distance(symmetric_hull(truth, rng), truth)))
+    for _, reading, truth in readings_and_truths(spread, rng):
+        rows.append((asymmetry(reading), asymmetry(truth), distance(reading, truth),
+                     folded(reading, truth), distance(symmetric_hull(truth, rng), truth)))
     table = np.array(rows)
     read_asym, true_asym, as_read, ends_folded, hedge = table.mean(0)
-    print(f"{len(rows)} images of {args.data} ({args.split}), {args.checkpoint}")
+    print(f"{len(rows)} images of {spread.args.data} ({spread.args.split}), "
+          f"{spread.args.checkpoint}")
     print(f"asymmetry under the half turns: readings {read_asym:.4f}, truths {true_asym:.4f} "
           f"({read_asym / true_asym:.2f} x); median per image "
           f"{np.median(table[:, 0] / table[:, 1]):.2f} x")

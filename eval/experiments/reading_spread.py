@@ -18,25 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-from spread_images import open_spread_images
-
-from sq_mitsuba.evaluation.split import collate
-from sq_mitsuba.geometry.assembly import Assembly
-from sq_mitsuba.geometry.metrics import chamfer_l1
-from sq_mitsuba.model.losses import counted_surface_samples
-
-#: Points kept per cloud (readings and truths alike), so that every pair costs the same.
-POINTS = 1500
-
-
-def thinned(cloud: torch.Tensor, rng: np.random.Generator) -> torch.Tensor:
-    """(1, <= POINTS, 3) float64: an evenly drawn subset of a (P, 3) cloud."""
-    keep = rng.choice(len(cloud), min(POINTS, len(cloud)), replace=False)
-    return cloud[torch.from_numpy(np.sort(keep))].double()[None]
-
-
-def distance(a: torch.Tensor, b: torch.Tensor) -> float:
-    return float(chamfer_l1(a, b, "paper")[0])
+from spread_images import distance, open_spread_images, readings_and_truths
 
 
 def own_model_ranks(distances: np.ndarray, own: np.ndarray) -> np.ndarray:
@@ -49,21 +31,15 @@ def own_model_ranks(distances: np.ndarray, own: np.ndarray) -> np.ndarray:
 
 def main() -> None:
     spread = open_spread_images(__doc__.split("\n\n")[0], min_images=2)
-    args, predictor, dataset = spread.args, spread.predictor, spread.dataset
-    camera, chosen = spread.camera, spread.chosen
+    args = spread.args
     rng = np.random.default_rng(0)
     readings: list[torch.Tensor] = []
     models: list[str] = []
     truths: dict[str, torch.Tensor] = {}
-    for start in range(0, len(chosen), 16):
-        batch = collate([dataset[int(i)] for i in chosen[start:start + 16]])
-        prediction = predictor.predict(batch["image"], camera)
-        for k, model in enumerate(batch["model"]):
-            assembly = Assembly(prediction.assembly.params[k:k + 1].detach().double())
-            samples, keep = counted_surface_samples(assembly, 3)
-            readings.append(thinned(samples[0][keep[0]], rng))
-            models.append(model)
-            truths.setdefault(model, thinned(batch["surface_points"][k], rng))
+    for model, reading, truth in readings_and_truths(spread, rng):
+        readings.append(reading)
+        models.append(model)
+        truths.setdefault(model, truth)
     names = sorted(truths)
     if len(names) < 2:
         raise SystemExit(f"{args.data} ({args.split}): the images chosen show one model; the "

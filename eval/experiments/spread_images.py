@@ -1,20 +1,29 @@
-"""What the per-image diagnostics share (body_frame_limits.py, reading_spread.py): the
-command line (--checkpoint, --data, --split, --images) and the checkpoint, the split and the
-indices of IMAGES images spread evenly over it."""
+"""What the per-image diagnostics share (body_frame_limits.py, reading_spread.py,
+half_turn_hedge.py): the command line (--checkpoint, --data, --split, --images) and the
+checkpoint, the split and the indices of IMAGES images spread evenly over it; and, for those
+that compare clouds, each image's body-frame reading and true surface thinned to POINTS."""
 
 from __future__ import annotations
 
 import argparse
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from sq_mitsuba.data.spe3r import Spe3rDataset
-from sq_mitsuba.evaluation.split import open_split
+from sq_mitsuba.evaluation.split import collate, open_split
+from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.camera import Camera
+from sq_mitsuba.geometry.metrics import chamfer_l1
 from sq_mitsuba.inference.loading import load_model
 from sq_mitsuba.inference.predictor import Predictor
+from sq_mitsuba.model.losses import counted_surface_samples
+
+#: Points kept per cloud (readings and truths alike), so that every pair costs the same.
+POINTS = 1500
 
 
 @dataclass
@@ -46,3 +55,30 @@ def open_spread_images(description: str, min_images: int = 1) -> SpreadImages:
     camera = dataset.camera.rescaled(predictor.image_size, predictor.image_size)
     chosen = np.linspace(0, len(dataset) - 1, min(args.images, len(dataset))).round()
     return SpreadImages(args, predictor, dataset, camera, chosen)
+
+
+def thinned(cloud: torch.Tensor, rng: np.random.Generator) -> torch.Tensor:
+    """(1, <= POINTS, 3) float64: an evenly drawn subset of a (P, 3) cloud."""
+    keep = rng.choice(len(cloud), min(POINTS, len(cloud)), replace=False)
+    return cloud[torch.from_numpy(np.sort(keep))].double()[None]
+
+
+def distance(a: torch.Tensor, b: torch.Tensor) -> float:
+    """Chamfer-L1 (the paper's) between two (1, P, 3) clouds."""
+    return float(chamfer_l1(a, b, "paper")[0])
+
+
+def readings_and_truths(spread: SpreadImages, rng: np.random.Generator
+                        ) -> Iterator[tuple[str, torch.Tensor, torch.Tensor]]:
+    """For each chosen image, in order: its model's name, the network's body-frame reading
+    (the kept primitives' surface samples) and the model's true surface points, both thinned
+    (the reading drawn first)."""
+    for start in range(0, len(spread.chosen), 16):
+        batch = collate([spread.dataset[int(i)] for i in spread.chosen[start:start + 16]])
+        prediction = spread.predictor.predict(batch["image"], spread.camera)
+        for k, model in enumerate(batch["model"]):
+            assembly = Assembly(prediction.assembly.params[k:k + 1].detach().double())
+            samples, keep = counted_surface_samples(assembly, 3)
+            reading = thinned(samples[0][keep[0]], rng)
+            yield model, reading, thinned(batch["surface_points"][k], rng)
+
