@@ -317,6 +317,6 @@ def test_gpu_recipe_script_refuses_an_unknown_pair_before_any_work(tmp_path):
     result = subprocess.run(["bash", str(script), str(tmp_path / "out")], env=env,
                             capture_output=True, text=True, check=False, timeout=60)
     assert result.returncode == 2
-    assert result.stderr.strip() == "PAIR: expected schedule or start, got 'longer'"
+    assert result.stderr.strip() == "PAIR: expected schedule, start or chamfer, got 'longer'"
     assert not (tmp_path / "work" / "models").exists()
 

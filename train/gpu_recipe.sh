@@ -13,8 +13,11 @@
 #       a longer schedule alone is worth at a fixed library. PAIR=start: both see SHORT
 #       images, "shipped" from the shipped model, "imagenet" from the ImageNet encoder at the
 #       first stage's learning rate (1e-3 at batch 32, its warm-up of 1,600 images): whether
-#       the shipped model's start holds back what the broad library teaches. The held-out
-#       families (`eval`) judge both, on a machine of any kind;
+#       the shipped model's start holds back what the broad library teaches. PAIR=chamfer:
+#       both from the shipped model for SHORT images, the Chamfer term weighted 300 and 1,000
+#       instead of the config's 100 (a dose above R7's; G2's "shipped" run is the 100 beside
+#       them): whether a heavier shape term fits the library's shapes nearer at scale. The
+#       held-out families (`eval`) judge both, on a machine of any kind;
 #   (4) OUT_DIR/model_LABEL.pt for each run (`sq-mitsuba export`, with the trivial baseline
 #       of that data), its log.csv and config.json, and summary.txt.
 #
@@ -29,7 +32,7 @@
 # Usage, from the repository root:  train/gpu_recipe.sh [OUT_DIR]     (default /tmp/sq-gpu-recipe)
 #   Without mitsuba installed it unpacks .gpu/site-cpXY.tar.xz (train/gpu_bundle.sh builds it)
 #   into /tmp/site. Environment (defaults in brackets): ARCHETYPES [128], COMPOSED [1500],
-#   GRAPH [750], SEED [21], VIEWS [3], RENDER_WORKERS [12], PAIR [schedule; or start],
+#   GRAPH [750], SEED [21], VIEWS [3], RENDER_WORKERS [12], PAIR [schedule; or start, chamfer],
 #   SHORT [181248], LONG_FACTOR [3] (or LONG, the long run's images seen; PAIR=schedule),
 #   TOTAL_SECONDS [540], DEVICE [cuda; cpu dry-runs it, e.g. DEVICE=cpu ARCHETYPES=2
 #   COMPOSED=4 GRAPH=2 VIEWS=2 SHORT=512 RENDER_WORKERS=2 train/gpu_recipe.sh /tmp/dry],
@@ -42,12 +45,14 @@ left() { echo $(( deadline - SECONDS )); }
 config=train/configs/broad_chamfer100_b256.toml
 short=${SHORT:-181248}
 long=${LONG:-$(( short * ${LONG_FACTOR:-3} ))}
-# The two runs (checked before any work), each "LABEL IMAGES_SEEN START", START shipped or
-# imagenet; the first listed starts first.
+# The two runs (checked before any work), each "LABEL IMAGES_SEEN START [KEY=VALUE...]", START
+# shipped or imagenet, then config overrides of that run alone; the first listed starts first.
 case ${PAIR:-schedule} in
   schedule) runs=("long $long shipped" "short $short shipped") ;;
   start) runs=("imagenet $short imagenet" "shipped $short shipped") ;;
-  *) echo "PAIR: expected schedule or start, got '$PAIR'" >&2; exit 2 ;;
+  chamfer) runs=("chamfer1000 $short shipped loss.weights.chamfer=1000.0"
+                 "chamfer300 $short shipped loss.weights.chamfer=300.0") ;;
+  *) echo "PAIR: expected schedule, start or chamfer, got '$PAIR'" >&2; exit 2 ;;
 esac
 cores=$(nproc)
 sq=("$py" -m sq_mitsuba)
@@ -90,26 +95,33 @@ batch=$("$py" -c 'import sys
 from sq_mitsuba.training.config import load_train_config
 print(load_train_config(sys.argv[1]).optim.batch_size)' "$config")
 epochs() { "$py" -c "import math; print(max(1, round($1 / (math.ceil($images / $batch) * $batch))))"; }
-train_run() {  # LABEL IMAGES_SEEN START SECONDS
-  local start_args=(--set 'init_from="sq_mitsuba/model/weights/model.pt"')
+train_run() {  # SECONDS LABEL IMAGES_SEEN START [KEY=VALUE...]
+  local seconds=$1 label=$2 seen=$3 from=$4; shift 4
+  local start_args=(--set 'init_from="sq_mitsuba/model/weights/model.pt"') overrides=()
   # From ImageNet: no init_from, and the first stage's rate and warm-up (cpu.toml), not the
   # fine-tune's.
-  [ "$3" = imagenet ] && start_args=(--set optim.lr=1e-3 --set optim.warmup_images=1600)
-  timeout -k 10 "$4" "${sq[@]}" train --config "$config" --data "$data" --out "$work/run_$1" \
-    --quiet --set "device=\"$device\"" --set "optim.epochs=$(epochs "$2")" "${start_args[@]}" \
-    --set "data.cache_dir=\"$work/cache\"" > "$work/train_$1.txt" 2>&1
+  [ "$from" = imagenet ] && start_args=(--set optim.lr=1e-3 --set optim.warmup_images=1600)
+  for pair in "$@"; do overrides+=(--set "$pair"); done
+  timeout -k 10 "$seconds" "${sq[@]}" train --config "$config" --data "$data" \
+    --out "$work/run_$label" --quiet --set "device=\"$device\"" \
+    --set "optim.epochs=$(epochs "$seen")" "${start_args[@]}" "${overrides[@]}" \
+    --set "data.cache_dir=\"$work/cache\"" > "$work/train_$label.txt" 2>&1
 }
-read -r first first_seen first_start <<< "${runs[0]}"
-read -r second second_seen second_start <<< "${runs[1]}"
+read -r first first_seen first_start first_sets <<< "${runs[0]}"
+read -r second second_seen second_start second_sets <<< "${runs[1]}"
 budget=$(( $(left) - 60 ))  # a minute kept for the exports
-note "$first ($first_start): $(epochs "$first_seen") epochs, $second ($second_start):" \
-  "$(epochs "$second_seen") epochs of $images images; training budget ${budget} s"
+note "$first ($first_start ${first_sets:-}): $(epochs "$first_seen") epochs, $second" \
+  "($second_start ${second_sets:-}): $(epochs "$second_seen") epochs of $images images;" \
+  "training budget ${budget} s"
 start=$SECONDS
-train_run "$first" "$first_seen" "$first_start" "$budget" &
+# shellcheck disable=SC2086  # the overrides are KEY=VALUE words without spaces
+train_run "$budget" "$first" "$first_seen" "$first_start" ${first_sets:-} &
 first_pid=$!
 while [ ! -s "$work/run_$first/log.csv" ] && kill -0 $first_pid 2>/dev/null; do sleep 2; done
 note "$first: first step logged after $((SECONDS - start)) s (cache, symmetries, start-up)"
-train_run "$second" "$second_seen" "$second_start" $(( budget - (SECONDS - start) )) &
+# shellcheck disable=SC2086
+train_run $(( budget - (SECONDS - start) )) "$second" "$second_seen" "$second_start" \
+  ${second_sets:-} &
 second_pid=$!
 wait $second_pid; note "stage train_$second rc=$? seconds=$((SECONDS - start))"
 wait $first_pid; note "stage train_$first rc=$? seconds=$((SECONDS - start))"
