@@ -67,6 +67,45 @@ def test_shape_capacity_fits_the_networks_assemblies_to_the_meshes(train_dataset
         assert 0 < float(mean_exponent) < 1 and 0 <= float(box_share) <= 1
 
 
+def test_shape_capacity_from_the_baseline_needs_a_checkpoint_that_stores_one(train_dataset,
+                                                                            eval_checkpoint):
+    """--from-baseline on a checkpoint without a trivial baseline: one line, exit 2."""
+    command = [sys.executable, str(EXPERIMENTS / "shape_capacity.py"), str(train_dataset),
+               "--split", "val", "--checkpoint", str(eval_checkpoint), "--steps", "2",
+               "--points", "100", "--from-baseline"]
+    result = subprocess.run(command, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 2
+    assert result.stderr.strip().splitlines()[-1].endswith("holds no trivial baseline")
+
+
+def _summary(folder: Path, rows: dict[tuple[str, str], tuple[float, float]]) -> None:
+    folder.mkdir(parents=True)
+    lines = ["method,metric,mean,std,median,images"]
+    lines += [f"{m},{k},{mean},0,{median},10" for (m, k), (mean, median) in rows.items()]
+    (folder / "summary.csv").write_text("\n".join(lines) + "\n")
+
+
+def test_generalisation_row_reads_the_four_evaluations(tmp_path):
+    """The row's margin and ratio are computed from the summaries (0.12 against 0.15: 20 %
+    below; 0.05 against 0.1: 0.5 x); a missing evaluation prints as '-'."""
+    _summary(tmp_path / "m_heldout", {
+        ("network", "chamfer_l1_paper"): (0.12, 0.11),
+        ("baseline", "chamfer_l1_paper"): (0.15, 0.1),
+        ("network", "camera_chamfer"): (0.05, 0.0), ("baseline", "camera_chamfer"): (0.1, 0.0),
+        ("network", "iou_2d"): (0.5, 0.5), ("network", "rotation_error_folded_deg"): (40, 41.25)})
+    _summary(tmp_path / "m_heldout_refined", {("refined", "iou_2d"): (0.6, 0.6),
+                                              ("search", "rotation_error_folded_deg"): (30, 33.5)})
+    result = subprocess.run([sys.executable, str(EXPERIMENTS / "generalisation_row.py"),
+                             str(tmp_path), "m"], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0, result.stderr
+    row = result.stdout.strip().splitlines()[-1]
+    assert row == ("| m | 0.1200 (20.0 % below 0.150) | 0.0500 (0.50 x) | 0.500 / 0.600 | "
+                   "41.2 / 33.5 deg | - / - / - / - deg |")
+    missing = subprocess.run([sys.executable, str(EXPERIMENTS / "generalisation_row.py"),
+                              str(tmp_path / "absent"), "m"], capture_output=True, text=True)
+    assert missing.returncode == 2 and "not a folder" in missing.stderr
+
+
 def test_body_frame_limits_scores_the_reading_five_ways(train_dataset, eval_checkpoint):
     """The best of the 24 axis rotations includes the identity, so it is never worse than the
     reading as it is; the 24 are distinct proper rotations."""

@@ -12,6 +12,11 @@ With ``--start-exponent 0.2`` a second fit starts from the same assembly made bo
 both fits end near the same Chamfer-L1 with different exponents, the loss cannot tell a box
 from a rounded box.
 
+``--from-baseline`` adds a fit from the checkpoint's trivial baseline assembly, one start for
+every model: if it ends as near the surfaces as the fit from the network's reading, every
+model's best assembly is reachable by gradient from one common layout, so the fits keep each
+primitive's role from model to model and could serve as per-primitive training targets.
+
 ``--occupancy-weight W`` adds the training's occupancy term (paper Eq. 14) to both fits: a
 loss that sees the volume, and so the corners, should bring both starts to the same shape.
 
@@ -21,7 +26,8 @@ similar Chamfer-L1, the Chamfer term itself is blind to edges (a rounded box's s
 almost as near a box's surface as the box's own).
 
     python eval/experiments/shape_capacity.py DATA --split test [--checkpoint PT] \\
-        [--steps 300] [--models 24] [--start-exponent 0.2] [--occupancy-weight 1]
+        [--steps 300] [--models 24] [--start-exponent 0.2] [--from-baseline] \\
+        [--occupancy-weight 1]
 """
 
 from __future__ import annotations
@@ -93,6 +99,9 @@ def main() -> None:
     parser.add_argument("--start-exponent", type=float, default=None,
                         help="also fit from the network's assembly with every shape exponent "
                              "set to this (e.g. 0.2, box-like): does the loss keep the edges?")
+    parser.add_argument("--from-baseline", action="store_true",
+                        help="also fit from the checkpoint's trivial baseline assembly (one "
+                             "start for every model)")
     parser.add_argument("--occupancy-weight", type=float, default=0.0,
                         help="add the occupancy term (labelled points near and inside the "
                              "mesh) at this weight to every fit")
@@ -122,6 +131,12 @@ def main() -> None:
         params[..., FIELDS["shape"]] = args.start_exponent
         rows[f"fit from exponents {args.start_exponent:g}"] = fit_to_points(
             Assembly(params), target, args.steps, args.lr, args.level, **fit)
+    if args.from_baseline:
+        if predictor.baseline is None:
+            parser.error(f"{args.checkpoint or 'the shipped model'}: holds no trivial baseline")
+        raw = predictor.baseline[0].expand(len(chosen), -1, -1)
+        rows["fit from the baseline"] = fit_to_points(
+            Assembly.from_raw(raw), target, args.steps, args.lr, args.level, **fit)
     chamfers = {name: paper_chamfer(a, target, args.level) for name, a in rows.items()}
     print(f"{len(chosen)} {args.split} models of {args.data}, M = {network.num_primitives}, "
           f"occupancy weight {args.occupancy_weight:g}")

@@ -71,6 +71,7 @@ __all__ = [
     "SuperquadricGenerators",
     "SuperquadricNet",
     "check_camera_matrix",
+    "initial_raw",
     "sphere_directions",
     "upgrade_state_dict",
 ]
@@ -195,6 +196,20 @@ def sphere_directions(count: int) -> Tensor:
     return torch.stack([radius * torch.cos(phi), radius * torch.sin(phi), z], dim=-1)
 
 
+def initial_raw(num_primitives: int, spread: float = 0.25) -> Tensor:
+    """The network's initial assembly as raw parameters, (1, M, 16) float64: every primitive
+    at mid size and mid exponent, unrotated, untapered, its centre ``spread`` from the body
+    origin along :func:`sphere_directions` (one primitive: at the origin). The last layer's
+    biases start here, and part targets are fitted from here (``model.part_targets``)."""
+    raw = torch.zeros(1, num_primitives, NUM_PARAMS, dtype=torch.float64)
+    raw[..., 8:14] = torch.tensor(_IDENTITY_6D, dtype=torch.float64)
+    if num_primitives > 1:
+        # Raw translation r gives translation_scale tanh(r): invert for the wanted centres.
+        centres = spread * sphere_directions(num_primitives)
+        raw[0, :, 5:8] = torch.atanh(centres / ParameterRanges().translation_scale)
+    return raw
+
+
 def check_camera_matrix(camera_matrix: Tensor, batch: int) -> Tensor:
     """Validate intrinsics (3, 3) or (batch, 3, 3) and return them as (batch, 3, 3).
 
@@ -314,11 +329,7 @@ class SuperquadricNet(nn.Module):
         last_sq.weight.mul_(gain)
         bias = torch.zeros(self.config.num_primitives, last_sq.bias.shape[1],
                            dtype=torch.float64)
-        bias[:, 8:14] = torch.tensor(_IDENTITY_6D, dtype=torch.float64)
-        if self.config.num_primitives > 1:
-            # Raw translation r gives translation_scale tanh(r): invert for the wanted centres.
-            centres = self.config.init_spread * sphere_directions(self.config.num_primitives)
-            bias[:, 5:8] = torch.atanh(centres / ParameterRanges().translation_scale)
+        bias[:, :NUM_PARAMS] = initial_raw(self.config.num_primitives, self.config.init_spread)[0]
         if self.config.existence:  # every primitive present at first (module doc)
             bias[:, NUM_PARAMS] = math.log(INITIAL_EXISTENCE / (1.0 - INITIAL_EXISTENCE))
         last_sq.bias.copy_(bias)

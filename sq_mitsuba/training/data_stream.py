@@ -42,6 +42,7 @@ from sq_mitsuba.training.cache import (
 )
 from sq_mitsuba.training.config import TrainConfig
 from sq_mitsuba.training.distributed import World, broadcast_object
+from sq_mitsuba.training.part_targets import PartTargetError, load_part_targets
 from sq_mitsuba.training.random_streams import STREAMS, seed_of
 from sq_mitsuba.training.run.state import TrainError, TrainRun
 
@@ -240,6 +241,9 @@ class DataSources:
     val_set: Spe3rDataset
     val_indices: list[int]
     "The val images that validate (spread evenly; empty when validation is off)."
+    part_targets: Tensor | None = None
+    """(train models, M, 16) their fitted assemblies' raw parameters when the ``parts`` loss
+    term is weighted (:mod:`sq_mitsuba.training.part_targets`), else None."""
 
 
 def run_cache_root(config: TrainConfig, out_dir: Path) -> Path:
@@ -273,7 +277,14 @@ def open_datasets(config: TrainConfig, data_root: Path, cache_root: Path | None 
         else []
     if config.augment.enabled and config.augment.rotation:
         check_rotation_exact(train_set.camera.rescaled(size, size))
-    return DataSources(train_set, val_set, val_indices)
+    part_targets = None
+    if config.loss.weights.get("parts", 0.0) > 0:
+        try:
+            part_targets = load_part_targets(data_root, train_set.models,
+                                             config.network.num_primitives)
+        except PartTargetError as error:
+            raise TrainError(f"loss.weights.parts: {error}") from None
+    return DataSources(train_set, val_set, val_indices, part_targets)
 
 
 @dataclass

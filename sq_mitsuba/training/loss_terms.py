@@ -26,7 +26,10 @@ The terms (weights of the paper's configuration in :data:`PUBLISHED_WEIGHTS`):
 - ``taper``: mean squared taper;
 - ``mask``: binary cross-entropy of the mask head against the mask;
 - ``parsimony``: the expected number of primitives of a network with existence probabilities
-  (off by default; a config that weighs it for a network without them is refused).
+  (off by default; a config that weighs it for a network without them is refused);
+- ``parts``: each primitive's Chamfer distance to the part it is paired with in the model's
+  own fitted assembly (:mod:`sq_mitsuba.model.part_targets`; off by default; the dataset's
+  part targets, ``sq-mitsuba dataset fit-parts``, are read when it is weighted).
 
 Convention: only the Chamfer and parsimony terms read the existence probabilities. The
 occupancy, reprojection, overlap and taper terms see every primitive, present or not: they
@@ -46,6 +49,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from sq_mitsuba.config import bounds, in_range, positive
+from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.model.existence import existence_surface_samples
 from sq_mitsuba.model.losses import (
     chamfer_loss,
@@ -63,6 +67,7 @@ from sq_mitsuba.model.losses import (
     translation_loss,
 )
 from sq_mitsuba.model.network import NetworkOutput
+from sq_mitsuba.model.part_targets import matched_part_loss
 from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer
 from sq_mitsuba.training.batch import TrainingBatch
 
@@ -102,7 +107,7 @@ class LossConfig:
                                       metadata=bounds(0, None))
     """Weight of each term by name (the names of ``sq_mitsuba.training.loss_terms``: chamfer,
     occupancy, reprojection, rotation, rotation_6d, rotation_grid, translation, overlap, taper,
-    mask, parsimony). A table in a file lists every term that trains (parsimony, the price of
+    mask, parsimony, parts). A table in a file lists every term that trains (parsimony, the price of
     a primitive of a network with network.existence, is off unless weighed); --set
     loss.weights.taper=0 changes one."""
     sharpness: float = positive(10.0)
@@ -163,6 +168,9 @@ class LossContext:
     (None when that term is off), reseeded by the training step."""
     generator: torch.Generator | None = None
     "Draws the reprojection term's subset of items (seeded per step by the training step)."
+    part_targets: Tensor | None = None
+    """(models, M, 16) the training models' fitted raw parameters, by ``model_index`` (the
+    ``parts`` term's targets; None when that term is off)."""
 
 
 # ------------------------------------------------------------------------------ registry
@@ -289,6 +297,17 @@ def parsimony_term(output: NetworkOutput, batch: TrainingBatch, context: LossCon
     return parsimony_loss(output.existence)
 
 
+def parts_term(output: NetworkOutput, batch: TrainingBatch, context: LossContext) -> Tensor:
+    """:func:`~sq_mitsuba.model.part_targets.matched_part_loss` of the assembly against each
+    image's model's fitted assembly (``context.part_targets``), icosphere level 1."""
+    table = context.part_targets
+    if table is None:
+        raise LossTermError("parts: the term is weighted but no part targets were read")
+    assembly = output.assembly
+    targets = table[batch.model_index.cpu()].to(assembly.params)
+    return matched_part_loss(assembly, Assembly.from_raw(targets), level=1)
+
+
 register_term("chamfer", chamfer_term, ("assembly",))
 register_term("occupancy", occupancy_term, ("assembly",))
 register_term("reprojection", reprojection_term, ("assembly",))
@@ -300,6 +319,7 @@ register_term("overlap", overlap_term, ("assembly",))
 register_term("taper", taper_term, ("assembly",))
 register_term("mask", mask_term, ("mask_logits",))
 register_term("parsimony", parsimony_term, ("existence_logits",))
+register_term("parts", parts_term, ("assembly",))
 
 
 # ------------------------------------------------------------------------------ use

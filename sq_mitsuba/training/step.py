@@ -207,9 +207,10 @@ def _device_step(model: nn.Module, optimizer: torch.optim.Optimizer, batch: Trai
 
 
 def loss_context(config: TrainConfig, renderer: SilhouetteRenderer | None, step: int,
-                 world: World | None = None) -> LossContext:
+                 world: World | None = None, part_targets: Tensor | None = None) -> LossContext:
     """The loss context of step ``step``: the renderer restarted at the step's samples and the
-    reprojection subset's generator seeded from the step (so a resumed step repeats)."""
+    reprojection subset's generator seeded from the step (so a resumed step repeats);
+    ``part_targets`` (models, M, 16) for the ``parts`` term."""
     world = World() if world is None else world
     generator = torch.Generator().manual_seed(
         seed_of(config.seed, STREAMS["subset"], step, world.rank))
@@ -217,7 +218,7 @@ def loss_context(config: TrainConfig, renderer: SilhouetteRenderer | None, step:
         # Item j of this process is item rank * local + j of the global batch.
         local = config.optim.batch_size // world.size
         renderer.reseed(seed_of(config.seed, STREAMS["render"], step) + 7919 * world.rank * local)
-    return LossContext(config.loss, config.reprojection, renderer, generator)
+    return LossContext(config.loss, config.reprojection, renderer, generator, part_targets)
 
 
 def to_channels_last(model: nn.Module) -> None:

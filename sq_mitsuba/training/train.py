@@ -62,7 +62,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from torch import nn
+from torch import Tensor, nn
 
 from sq_mitsuba.config import from_dict, to_dict
 from sq_mitsuba.config import validate as validate_config
@@ -208,7 +208,7 @@ def _train(config: TrainConfig | None, data_root: Path, out_dir: Path, resume: b
                              f"over {world.size} processes")
         with mitsuba_for(device, config.reprojection.deterministic):
             data = _open_data(run, sources, created)
-            return _Loop(run, data, model).run()
+            return _Loop(run, data, model, sources.part_targets).run()
     finally:
         if world.owns_group:
             import torch.distributed as dist
@@ -304,9 +304,11 @@ def _device_of(config: TrainConfig) -> torch.device:
 class _Loop:
     """The loop of one :func:`train` call: model, optimiser and schedule, renderers, log."""
 
-    def __init__(self, run: TrainRun, data: TrainingData, network: nn.Module) -> None:
+    def __init__(self, run: TrainRun, data: TrainingData, network: nn.Module,
+                 part_targets: Tensor | None = None) -> None:
         cfg, world, checkpoint = run.config, run.world, run.checkpoint
         self.run_state, self.data = run, data
+        self.part_targets = part_targets
         self.steps_per_epoch = data.stream.steps_per_epoch
         self.total_steps = cfg.optim.epochs * self.steps_per_epoch
         if checkpoint is not None:
@@ -435,7 +437,7 @@ class _Loop:
         run, cfg = self.run_state, self.run_state.config
         tick = time.perf_counter()
         batch = self.prefetcher.batch(step)
-        context = loss_context(cfg, self.renderer, step, run.world)
+        context = loss_context(cfg, self.renderer, step, run.world, self.part_targets)
         try:
             outcome = training_step(self.model, self.optimizer, batch, self.k_matrix, context,
                                     cfg.optim.grad_clip, run.world)
