@@ -106,6 +106,19 @@ def test_generalisation_row_reads_the_four_evaluations(tmp_path):
     assert missing.returncode == 2 and "not a folder" in missing.stderr
 
 
+def test_generalisation_script_refuses_bad_arguments_before_any_work(tmp_path):
+    """A wrong argument count or a missing checkpoint: one line, exit 2, no test set made."""
+    script = str(EXPERIMENTS / "generalisation.sh")
+    for argv, message in (([str(tmp_path / "work")], "usage:"),
+                          ([str(tmp_path / "work"), str(tmp_path / "absent.pt"), "x"],
+                           "checkpoint not found")):
+        result = subprocess.run(["bash", script, *argv], capture_output=True, text=True,
+                                timeout=60)
+        assert result.returncode == 2 and message in result.stderr
+        assert result.stderr.strip().count("\n") == 0
+        assert not (tmp_path / "work").exists()
+
+
 def test_body_frame_limits_scores_the_reading_five_ways(train_dataset, eval_checkpoint):
     """The best of the 24 axis rotations includes the identity, so it is never worse than the
     reading as it is; the 24 are distinct proper rotations."""
