@@ -4,12 +4,15 @@ for the network's primitives one by one.
 Why: the Chamfer term compares the union of the primitives with the model's surface, so a
 primitive is pulled towards whatever surface lies nearest it, and one network must move the
 same M output slots to every model's parts. Trained that way the shape reader stops far short
-of what M superquadrics reach (eval/MODEL_CARD.md, "Fitting, not generalising": 0.08-0.14
+of what M superquadrics reach (eval/MODEL_CARD.md, "Fitting, not generalising": 0.08-0.15
 Chamfer-L1 on its own training models against 0.04-0.06 fitted directly), and a heavier
 Chamfer term no longer helps. A fit to each model's surface from one common start (the
 network's initial layout, :func:`~sq_mitsuba.model.network.initial_raw`) reaches the same
 Chamfer-L1 as one from the network's reading, so such fits exist for every model; the
 ``parts`` training term then pulls each predicted primitive towards one fitted part.
+Measured on one small library (eval/MODEL_CARD.md, "Part targets, a pilot"): the network
+lowered the term but fitted its training shapes no nearer, and read held-out families worse;
+the term is off by default.
 
 Convention: predicted and fitted primitives are paired per item by the Hungarian assignment
 (scipy's ``linear_sum_assignment``) on their symmetric per-primitive Chamfer distance, so the
