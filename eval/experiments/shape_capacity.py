@@ -43,11 +43,8 @@ from sq_mitsuba.geometry.assembly import FIELDS, Assembly
 from sq_mitsuba.geometry.metrics import chamfer_l1
 from sq_mitsuba.inference.loading import load_model
 from sq_mitsuba.inference.refine import raw_from_assembly
-from sq_mitsuba.model.losses import (
-    counted_surface_samples,
-    occupancy_loss,
-    surface_chamfer_loss,
-)
+from sq_mitsuba.model.losses import counted_surface_samples
+from sq_mitsuba.model.part_targets import fit_to_surface
 
 BOX_LIKE = 0.3
 """Shape exponents below this count as box-like (1: ellipsoid, 0.1: nearly a box)."""
@@ -58,18 +55,11 @@ def fit_to_points(start: Assembly, target: torch.Tensor, steps: int, lr: float, 
                   occupancy_weight: float = 0.0) -> Assembly:
     """``start`` (B models) fitted to ``target`` (B, K, 3) by Adam on the raw parameters;
     with ``occupancy`` (points (B, N, 3), labels (B, N)), plus ``occupancy_weight`` times the
-    training's occupancy term (paper Eq. 14)."""
-    raw = raw_from_assembly(start).double().requires_grad_(True)
-    optimizer = torch.optim.Adam([raw], lr=lr)
-    for _ in range(steps):
-        optimizer.zero_grad(set_to_none=True)
-        assembly = Assembly.from_raw(raw)
-        loss = surface_chamfer_loss(assembly, target, level)
-        if occupancy is not None and occupancy_weight > 0:
-            loss = loss + occupancy_weight * occupancy_loss(assembly, *occupancy)
-        loss.backward()
-        optimizer.step()
-    return Assembly.from_raw(raw.detach())
+    training's occupancy term (paper Eq. 14): :func:`fit_to_surface`, the part targets' fit."""
+    raw, _ = fit_to_surface(target, start.num_primitives, steps, lr, level,
+                            start=raw_from_assembly(start).double(), occupancy=occupancy,
+                            occupancy_weight=occupancy_weight)
+    return Assembly.from_raw(raw)
 
 
 def paper_chamfer(assembly: Assembly, target: torch.Tensor, level: int) -> torch.Tensor:

@@ -29,16 +29,20 @@ from torch import Tensor
 
 from sq_mitsuba.checks import check_tensor
 from sq_mitsuba.geometry.assembly import NUM_PARAMS, Assembly
-from sq_mitsuba.model.losses import surface_chamfer_loss
+from sq_mitsuba.model.losses import occupancy_loss, surface_chamfer_loss
 from sq_mitsuba.model.network import initial_raw
 
 __all__ = ["fit_to_surface", "matched_part_loss", "part_costs", "part_matching"]
 
 
 def fit_to_surface(target: Tensor, num_primitives: int, steps: int = 300, lr: float = 0.05,
-                   level: int = 2, start: Tensor | None = None) -> tuple[Tensor, Tensor]:
+                   level: int = 2, start: Tensor | None = None,
+                   occupancy: tuple[Tensor, Tensor] | None = None,
+                   occupancy_weight: float = 0.0) -> tuple[Tensor, Tensor]:
     """M superquadrics fitted to each model's surface points by Adam on the raw parameters,
-    on the training's shape term (:func:`~sq_mitsuba.model.losses.surface_chamfer_loss`).
+    on the training's shape term (:func:`~sq_mitsuba.model.losses.surface_chamfer_loss`),
+    plus ``occupancy_weight`` times its occupancy term (paper Eq. 14) when ``occupancy``
+    (labelled points (B, N, 3), labels (B, N)) is given.
 
     Args:
         target: (B, K, 3) surface points of B models, body frame; the fit runs in its dtype
@@ -50,7 +54,7 @@ def fit_to_surface(target: Tensor, num_primitives: int, steps: int = 300, lr: fl
 
     Returns:
         raw (B, M, 16), the fitted parameters, and (B,) their squared-L2 Chamfer loss at the
-        end, both in ``target``'s dtype.
+        end (the occupancy term left out), both in ``target``'s dtype.
     """
     check_tensor("target", target, (None, None, 3))
     batch = target.shape[0]
@@ -61,8 +65,12 @@ def fit_to_surface(target: Tensor, num_primitives: int, steps: int = 300, lr: fl
     optimizer = torch.optim.Adam([raw], lr=lr)
     for _ in range(steps):
         optimizer.zero_grad(set_to_none=True)
-        # The per-model mean summed: each model's gradient is its own loss's.
-        loss = surface_chamfer_loss(Assembly.from_raw(raw), target, level) * batch
+        # The batch mean: Adam scales each parameter's step by its own gradient's size, and
+        # each model's parameters see only its own loss, so every model is fitted as alone.
+        assembly = Assembly.from_raw(raw)
+        loss = surface_chamfer_loss(assembly, target, level)
+        if occupancy is not None and occupancy_weight > 0:
+            loss = loss + occupancy_weight * occupancy_loss(assembly, *occupancy)
         loss.backward()
         optimizer.step()
     with torch.no_grad():
