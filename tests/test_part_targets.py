@@ -157,3 +157,17 @@ def test_fit_parts_refuses_bad_options_in_one_line(train_dataset, capsys, argv, 
     assert main(["dataset", "fit-parts", str(train_dataset), *argv]) == 2
     err = capsys.readouterr().err
     assert message in err and err.count("\n") == 1
+
+
+def test_fit_parts_refuses_a_folder_that_is_not_a_dataset(tmp_path, capsys):
+    assert main(["dataset", "fit-parts", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "splits.csv: missing" in err and err.count("\n") == 1
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_fit_to_surface_refuses_wrong_shapes():
+    with pytest.raises(ValueError, match="target"):
+        fit_to_surface(torch.zeros(2, 10, 2), 3, steps=1)
+    with pytest.raises(ValueError, match="start"):
+        fit_to_surface(torch.zeros(2, 10, 3), 3, steps=1, start=initial_raw(4))
