@@ -214,3 +214,26 @@ def test_export_rejects_unknown_format(tmp_path):
 def test_bad_input_names_the_argument(build, name):
     with pytest.raises(ValueError, match=name):
         build()
+
+
+def test_a_rotated_assembly_is_the_assembly_at_turned_points():
+    """Turning an assembly by Q moves its occupancy field and its surface with it: occupancy
+    of the turned one at Q x equals the original's at x, and its surface samples are Q times
+    the original's (the same icosphere parameters)."""
+    assembly = random_assembly(batch=3, count=4, seed=11)
+    turn = random_rotations(3, torch.Generator().manual_seed(12), dtype=F64)
+    turned = assembly.rotated(turn)
+    points = 0.4 * torch.randn(3, 200, 3, generator=torch.Generator().manual_seed(13),
+                               dtype=F64)
+    torch.testing.assert_close(turned.union_occupancy(points @ turn.transpose(1, 2)),
+                               assembly.union_occupancy(points))
+    torch.testing.assert_close(turned.surface_points(2),
+                               assembly.surface_points(2) @ turn[:, None].transpose(-1, -2))
+    torch.testing.assert_close(turned.size, assembly.size)
+    back = turned.rotated(turn.transpose(1, 2))
+    torch.testing.assert_close(back.rotation, assembly.rotation)  # 6D comes back normalised
+    torch.testing.assert_close(back.translation, assembly.translation)
+    with pytest.raises(ValueError, match="rotation"):
+        assembly.rotated(turn[:2])
+    with pytest.raises(ValueError, match="rotation"):
+        assembly.rotated(turn.float())

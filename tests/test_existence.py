@@ -75,26 +75,29 @@ def _cloud(batch: int, count: int, seed: int) -> torch.Tensor:
 # ------------------------------------------------------------------------------ the loss
 
 
+@pytest.mark.parametrize("squared", [True, False])
 @pytest.mark.parametrize("method", ["kdtree", "dense"])
-def test_every_primitive_present_is_todays_chamfer_loss(method):
+def test_every_primitive_present_is_todays_chamfer_loss(method, squared):
     assembly = _assembly(3, 4, seed=0)
     target = _cloud(3, 300, seed=1)
     points, keep = counted_surface_samples(assembly, 1)
-    expected = chamfer_loss(points, keep, target)
+    expected = chamfer_loss(points, keep, target, squared=squared)
     samples, inside = existence_surface_samples(assembly, 1)
     assert bool(inside.any()) and not bool(keep.all())  # the union filter is at work
     ones = torch.ones(3, 4, dtype=torch.float64)
-    value = probabilistic_chamfer_loss(samples, inside, ones, target, method=method)
+    value = probabilistic_chamfer_loss(samples, inside, ones, target, method=method,
+                                       squared=squared)
     assert float(value) == pytest.approx(float(expected), rel=1e-12)
     # An item none of whose samples is free: chamfer_loss keeps them all, and so does this.
     covered = torch.ones_like(inside)
-    value = probabilistic_chamfer_loss(samples, covered, ones, target, method=method)
+    value = probabilistic_chamfer_loss(samples, covered, ones, target, method=method,
+                                       squared=squared)
     keep_none = torch.zeros_like(keep)
-    assert float(value) == pytest.approx(float(chamfer_loss(points, keep_none, target)),
-                                         rel=1e-12)
+    assert float(value) == pytest.approx(
+        float(chamfer_loss(points, keep_none, target, squared=squared)), rel=1e-12)
 
 
-def _brute_force(points, inside, probabilities, target, threshold=0.5):
+def _brute_force(points, inside, probabilities, target, threshold=0.5, squared=True):
     """The loss by enumerating all 2^M existence patterns (module docstring of
     sq_mitsuba.model.existence): prediction -> target as the ratio of the expected sum of the
     counted samples' distances to their expected number, target -> prediction as the
@@ -103,14 +106,15 @@ def _brute_force(points, inside, probabilities, target, threshold=0.5):
     eye = torch.eye(count, dtype=torch.bool)[:, :, None]
     total = 0.0
     for b in range(batch):
-        squared = torch.cdist(points[b].reshape(-1, 3), target[b]).square()  # (M V, K)
-        to_target = squared.min(1).values.view(count, per)
+        distance = torch.cdist(points[b].reshape(-1, 3), target[b])  # (M V, K)
+        squared_ = distance.square() if squared else distance
+        to_target = squared_.min(1).values.view(count, per)
         covered = inside[b] & ~eye  # (holder, owner, V)
         all_covered = bool(covered.any(0).all())
         excluded = (covered & (probabilities[b] >= threshold)[:, None, None]).any(0)
         if bool(excluded.all()):
             excluded[:] = False
-        nearest = squared.view(count, per, -1).masked_fill(excluded[..., None], math.inf)
+        nearest = squared_.view(count, per, -1).masked_fill(excluded[..., None], math.inf)
         nearest = nearest.min(1).values  # (M, K)
         found = ~excluded.all(1)
         numerator = denominator = backward = 0.0
@@ -138,9 +142,11 @@ def test_the_expectation_equals_brute_force_over_every_existence_pattern():
     for probabilities in (torch.rand(2, 4, generator=generator, dtype=torch.float64),
                           torch.tensor([[0.9, 0.2, 0.7, 0.05], [0.3, 0.6, 0.95, 0.45]],
                                        dtype=torch.float64)):
-        value = probabilistic_chamfer_loss(points, inside, probabilities, target)
-        expected = _brute_force(points, inside, probabilities, target)
-        assert float(value) == pytest.approx(float(expected), rel=1e-10)
+        for squared in (True, False):
+            value = probabilistic_chamfer_loss(points, inside, probabilities, target,
+                                               squared=squared)
+            expected = _brute_force(points, inside, probabilities, target, squared=squared)
+            assert float(value) == pytest.approx(float(expected), rel=1e-10)
 
 
 def test_expected_nearest_equals_brute_force_with_missing_primitives():

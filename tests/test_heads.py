@@ -6,6 +6,7 @@ The tests that take ``device`` run on ``pytest --device`` (conftest.py)."""
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import io
 from pathlib import Path
 
@@ -69,7 +70,7 @@ def test_imagenet_names_the_lite0_file_only() -> None:
     assert (mean, std) == pytest.approx((0.498, 0.502))
 
 
-@pytest.mark.parametrize("latent", ["pooled", "spatial"])
+@pytest.mark.parametrize("latent", ["pooled", "spatial", "spatial_fine"])
 @pytest.mark.parametrize("pose_head", ["6d", "grid"])
 def test_every_head_combination_runs_and_trains(latent: str, pose_head: str,
                                                 device: torch.device) -> None:
@@ -96,6 +97,35 @@ def test_every_head_combination_runs_and_trains(latent: str, pose_head: str,
     loss.backward()
     silent = [n for n, p in net.named_parameters() if p.grad is None]
     assert silent == []
+
+
+def test_a_spatial_network_grows_a_fine_reader_that_starts_as_it() -> None:
+    """A trained ``"spatial"`` network's weights load (partially) into a ``"spatial_fine"``
+    one, which then predicts exactly what it does; one optimiser step later the fine reader
+    has changed the shape latent and left the pose latent alone."""
+    from sq_mitsuba.model.checkpoint import load_weights
+
+    torch.manual_seed(5)
+    config = NetworkConfig(encoder="efficientnet_lite0", latent="spatial", image_size=64,
+                           num_primitives=3, latent_dim=32, hidden_dim=32, spatial_channels=16)
+    coarse = SuperquadricNet(config).eval()
+    fine = SuperquadricNet(dataclasses.replace(config, latent="spatial_fine")).eval()
+    load_weights(fine, coarse.state_dict(), "test", partial=True)
+    assert fine.latent_head.reduce_fine.kernel_size == (4, 4)  # stride 16 at 64 px
+    images = torch.rand(2, 1, 64, 64, generator=torch.Generator().manual_seed(6))
+    k = torch.tensor([[80.0, 0.0, 32.0], [0.0, 80.0, 32.0], [0.0, 0.0, 1.0]])
+    before = coarse(images, k)
+    out = fine(images, k)
+    torch.testing.assert_close(out.raw, before.raw, rtol=0, atol=0)
+    torch.testing.assert_close(out.translation, before.translation, rtol=0, atol=0)
+    maps = fine.encoder.forward_pyramid(fine.normalise(images))
+    z_sq, z_pose = fine.latent_head(maps)
+    optimiser = torch.optim.SGD(fine.latent_head.to_z_sq_fine.parameters(), lr=0.1)
+    z_sq.square().sum().backward()
+    optimiser.step()
+    z_sq_after, z_pose_after = fine.latent_head(maps)
+    assert not torch.allclose(z_sq_after, z_sq)
+    torch.testing.assert_close(z_pose_after, z_pose, rtol=0, atol=0)
 
 
 def test_unknown_names_are_one_line_errors() -> None:

@@ -186,3 +186,39 @@ def test_a_stale_temporary_checkpoint_is_removed_by_the_next_run(train_dataset, 
     stale.write_bytes(b"")
     train(config, train_dataset, out, resume=True, progress=False, max_steps=2)
     assert not stale.exists() and (out / "last.pt").is_file()
+
+
+def test_a_view_frame_shape_is_scored_through_the_true_rotation():
+    """``network.shape_frame = "view"``: the network's assembly is turned into the body frame
+    by the predicted rotation, but the shape terms score it through the true one: its Chamfer
+    term equals the Chamfer of the unturned (view-frame) assembly against the true surface
+    turned into the camera's axes, whatever rotation the network predicts."""
+    from sq_mitsuba.geometry.assembly import Assembly
+    from sq_mitsuba.geometry.rotation import random_rotations
+    from sq_mitsuba.model.losses import chamfer_loss, counted_surface_samples
+    from sq_mitsuba.model.network import NetworkConfig, SuperquadricNet
+
+    torch.manual_seed(1)
+    network = SuperquadricNet(NetworkConfig(image_size=32, num_primitives=2, latent_dim=16,
+                                            hidden_dim=16, shape_frame="view")).eval()
+    k = torch.tensor([[40.0, 0, 16], [0, 40.0, 16], [0, 0, 1]])
+    with torch.no_grad():
+        output = network(torch.rand(3, 1, 32, 32), k)
+    view = Assembly.from_raw(output.raw)
+    predicted = output.rotation
+    torch.testing.assert_close(output.assembly.params,
+                               view.rotated(predicted.transpose(1, 2)).params)
+    rotation = random_rotations(3, torch.Generator().manual_seed(2))
+    surface = torch.rand(3, 10, 3) - 0.5
+    batch = TrainingBatch(torch.rand(3, 1, 32, 32), torch.zeros(3, 1, 32, 32), rotation,
+                          torch.tensor([[0.0, 0.0, 3.0]] * 3), torch.arange(3), surface,
+                          torch.rand(3, 12, 3), torch.zeros(3, 12),
+                          torch.eye(3)[None, None].expand(3, 1, 3, 3))
+    context = LossContext(LossConfig(weights={"chamfer": 1.0}))
+    points, keep = counted_surface_samples(view, context.loss.level)
+    expected = chamfer_loss(points, keep, surface @ rotation.transpose(1, 2))
+    got = compute_terms(output, batch, context)["chamfer"]
+    torch.testing.assert_close(got, expected, rtol=1e-5, atol=1e-6)
+    # Scored through the predicted rotation instead, the term would differ.
+    body_points, body_keep = counted_surface_samples(output.assembly, context.loss.level)
+    assert abs(float(chamfer_loss(body_points, body_keep, surface)) - float(expected)) > 1e-4

@@ -105,6 +105,31 @@ def test_chamfer_of_identical_clouds_is_zero_and_known_for_a_shift():
     assert float(chamfer_loss(a, None, b)) == pytest.approx(0.18, rel=1e-12)
 
 
+@pytest.mark.parametrize("masked", [False, True])
+def test_euclidean_chamfer_is_twice_the_metrics_l2_chamfer_l1(masked, device):
+    """``squared=False``: the mean nearest Euclidean distances, directions summed, i.e. twice
+    the evaluation's Chamfer-L1 of the "occnet" convention (its own implementation)."""
+    from sq_mitsuba.geometry.metrics import chamfer_l1
+
+    pred, keep, target = clouds(seed=5, device=device)
+    keep = keep if masked else None
+    expected = 2 * chamfer_l1(pred, target, "occnet", pred_mask=keep).mean()
+    assert float(chamfer_loss(pred, keep, target, squared=False)) == pytest.approx(
+        float(expected), rel=1e-9)
+    # Two single points 0.3 apart: 0.3 each way (0.09 squared).
+    a = torch.zeros(1, 1, 3, dtype=torch.float64)
+    b = torch.tensor([[[0.0, 0.3, 0.0]]], dtype=torch.float64)
+    assert float(chamfer_loss(a, None, b, squared=False)) == pytest.approx(0.6, rel=1e-9)
+
+
+def test_euclidean_chamfer_gradcheck(device):
+    pred, keep, target = clouds(batch=2, count=12, targets=9, seed=6, device=device)
+    pred.requires_grad_()
+    target.requires_grad_()
+    assert torch.autograd.gradcheck(lambda p, t: chamfer_loss(p, keep, t, squared=False),
+                                    (pred, target), eps=1e-7, atol=1e-6)
+
+
 def test_surface_chamfer_matches_metrics_chamfer_l2(device):
     from sq_mitsuba.geometry.metrics import chamfer_l2
 
@@ -464,6 +489,9 @@ def test_loss_weights_defaults_and_config():
         from_dict(LossConfig, {"weights": {"chamfer": -1}})
     with pytest.raises(ConfigError, match="unknown loss term 'oriented_chamfer'"):
         from_dict(LossConfig, {"weights": {"oriented_chamfer": 1.0}})
+    assert LossConfig().chamfer_distance == "squared"  # the paper's Eq. 12
+    with pytest.raises(ConfigError, match="chamfer_distance"):
+        from_dict(LossConfig, {"chamfer_distance": "manhattan"})
 
 
 def test_total_loss_sums_weighted_terms_and_skips_zero_weights():

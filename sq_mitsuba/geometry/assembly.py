@@ -217,6 +217,26 @@ class Assembly:
             index = slice(position, position + 1)
         return Assembly(self.params[index])
 
+    def rotated(self, rotation: Tensor) -> Assembly:
+        """The assembly turned about its origin: ``x -> rotation[b] @ x`` for item b.
+
+        Each primitive's centre turns and its frame with it (``t -> Q t``, ``R -> Q R``);
+        sizes, shapes and tapers live in the primitive frame and stay. Differentiable in both
+        the parameters and ``rotation``.
+
+        Args:
+            rotation: (B, 3, 3) rotation matrices (det 1) of the assembly's dtype.
+        """
+        check_tensor("rotation", rotation, (self.batch_size, 3, 3))
+        if rotation.dim() != 3 or rotation.dtype != self.params.dtype:
+            raise ValueError(f"rotation: expected ({self.batch_size}, 3, 3) of "
+                             f"{self.params.dtype}, got {tuple(rotation.shape)} {rotation.dtype}")
+        params = self.params
+        translation = (rotation[:, None] @ self.translation[..., None])[..., 0]
+        frames = matrix_to_rotation_6d(rotation[:, None] @ self.rotation)
+        return Assembly(torch.cat([params[..., FIELDS["size"]], params[..., FIELDS["shape"]],
+                                   translation, frames, params[..., FIELDS["taper"]]], dim=-1))
+
     def _item(self, item: int, name: str = "item") -> int:
         """Batch item ``item`` (negative counts from the end) as an index in [0, B), or a
         one-line ``IndexError`` naming ``name``, the item and the batch size."""

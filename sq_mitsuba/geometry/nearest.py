@@ -27,7 +27,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["DENSE_CHUNK", "METHODS", "gathered_differences", "matched_indices",
+__all__ = ["DENSE_CHUNK", "METHODS", "euclidean", "gathered_differences", "matched_indices",
            "nearest_method", "nearest_neighbours"]
 
 #: The searches of :func:`matched_indices`.
@@ -136,3 +136,9 @@ def gathered_differences(source: Tensor, target: Tensor, index: Tensor) -> Tenso
     """``source[b, i] - target[b, index[b, i]]``, (B, N, 3), differentiable w.r.t. both
     clouds; source (B, N, 3), target (B, K, 3), index (B, N) int64."""
     return source - target.gather(1, index[..., None].expand(-1, -1, target.shape[-1]))
+
+
+def euclidean(squared_distances: Tensor) -> Tensor:
+    """Distances from squared distances (any shape), with a finite gradient at 0:
+    ``sqrt(d^2 + 1e-12)``, 1e-6 for a coincident pair, far below any sample spacing."""
+    return torch.sqrt(squared_distances + 1e-12)

@@ -326,7 +326,7 @@ class Predictor:
             log_p = output.rotation_logits.float().log_softmax(dim=-1).to(rotation)
         scale = rotation.new_tensor([x.width / size, x.height / size])
         score = target_scores(x.images, output.mask_logits, x.checked).to(rotation)
-        params = Assembly.from_raw(output.raw.clone()).params
+        params = output.assembly.params.clone()
         existence, rows = output.existence, None
         if existence is not None:
             rows = kept_primitives(existence, self.min_existence)
@@ -427,7 +427,7 @@ class Predictor:
         # Rz(angle) q in a copy turned by angle (rotate_batch), so q = Rz^T p maps it back.
         # The assembly is in the body frame and the depth along the optical axis: neither turns.
         dtype = prediction.rotation.dtype
-        copies = Assembly.from_raw(output.raw).params
+        copies = output.assembly.params
         if prediction.primitive_index is not None:  # the unturned pass's primitives
             copies = gathered_primitives(copies, prediction.primitive_index.repeat(turns - 1, 1))
         params = torch.cat([prediction.assembly.params[None].to(dtype),

@@ -32,6 +32,7 @@ from torch import Tensor
 from sq_mitsuba.checks import check_tensor, value_checks_enabled
 from sq_mitsuba.geometry.assembly import FIELDS, NUM_PARAMS, Assembly
 from sq_mitsuba.geometry.nearest import (
+    euclidean,
     matched_indices,
     nearest_method,
     nearest_neighbours,
@@ -166,7 +167,7 @@ def _nearest_target(points: Tensor, target: Tensor, method: str | None) -> Tenso
 
 def probabilistic_chamfer_loss(points: Tensor, inside: Tensor | None, probabilities: Tensor,
                                target: Tensor, threshold: float = EXISTENCE_THRESHOLD,
-                               method: str | None = None) -> Tensor:
+                               method: str | None = None, *, squared: bool = True) -> Tensor:
     """Squared-L2 Chamfer distance of an assembly whose primitives exist with probabilities
     p_m, each independently; mean over the batch. With every p_m = 1 it equals
     :func:`~sq_mitsuba.model.losses.chamfer_loss` of the samples that count (not strictly
@@ -207,6 +208,7 @@ def probabilistic_chamfer_loss(points: Tensor, inside: Tensor | None, probabilit
         method: the prediction -> target nearest-neighbour search, ``"kdtree"``, ``"dense"``
             or None (by the device, as chamfer_loss's); equal results. The other direction
             needs each primitive's nearest sample: :func:`primitive_nearest`.
+        squared: squared distances, or Euclidean ones (``chamfer_loss``'s ``squared``).
 
     Returns:
         Scalar tensor.
@@ -248,6 +250,8 @@ def probabilistic_chamfer_loss(points: Tensor, inside: Tensor | None, probabilit
     to_target = _nearest_target(flat, target, method)
     nearest = target.gather(1, to_target[..., None].expand(-1, -1, 3))
     forward = (flat - nearest).square().sum(-1).view(batch, count, per)
+    if not squared:
+        forward = euclidean(forward)
     survives = torch.where(covered, 1.0 - probabilities[:, :, None, None],
                            torch.ones_like(probabilities)[:, :, None, None]).prod(1)
     all_covered = covered.any(1).flatten(1).all(1)  # chamfer_loss: such an item keeps all
@@ -263,6 +267,8 @@ def probabilistic_chamfer_loss(points: Tensor, inside: Tensor | None, probabilit
     flat_index = index + per * torch.arange(count, device=points.device)
     chosen = flat.gather(1, flat_index.flatten(1)[..., None].expand(-1, -1, 3))
     distances = (target[:, :, None, :] - chosen.view(*index.shape, 3)).square().sum(-1)
+    if not squared:
+        distances = euclidean(distances)
     found = (~excluded).any(-1)[:, None, :]  # (B, 1, M): a primitive with a sample left
     backward = expected_nearest(distances, probabilities[:, None, :], found).mean(1)
     return (forward_mean + backward).mean()

@@ -43,6 +43,7 @@ if TYPE_CHECKING:
 __all__ = [
     "LATENT_HEADS",
     "POSE_HEADS",
+    "FineSpatialLatents",
     "MaskHead",
     "PooledLatents",
     "PoseHeadOutput",
@@ -153,8 +154,47 @@ class SpatialLatents(nn.Module):
         return self.to_z_sq(features), self.to_z_pose(features)
 
 
+class FineSpatialLatents(SpatialLatents):
+    """``"spatial_fine"``: ``"spatial"`` with a second reader of the finer stride-16 map for
+    the shape latent.
+
+    At 96 px the stride-32 map is a 3 x 3 grid, where a boom or a module a few pixels wide
+    is one cell among nine. This head also reads the stride-16 map (112 channels,
+    ``2 G x 2 G`` cells, G as ``"spatial"``) through its own grid-wide convolution (to
+    ``spatial_channels``, SiLU) and adds a linear map of it to z_sq:
+    ``z_sq = to_z_sq(coarse) + to_z_sq_fine(fine)``. z_pose reads the coarse grid only, as
+    ``"spatial"``'s does: the rotation term dominates the training loss and would otherwise
+    set what the new reader learns.
+
+    Convention: ``to_z_sq_fine`` starts at zero, so the head starts as exactly the
+    ``"spatial"`` head it shares its other weights with (a trained ``"spatial"`` network
+    loads into it with ``init_from``; the fine weights the file lacks stay as built).
+
+    maps -> z_sq, z_pose, each (B, latent_dim).
+    """
+
+    def __init__(self, config: NetworkConfig, pyramid_channels: tuple[int, ...]) -> None:
+        super().__init__(config, pyramid_channels)
+        self.fine_grid = 2 * self.grid
+        self.reduce_fine = nn.Conv2d(pyramid_channels[2], config.spatial_channels,
+                                     self.fine_grid)
+        self.to_z_sq_fine = nn.Linear(config.spatial_channels, config.latent_dim)
+        with torch.no_grad():
+            self.to_z_sq_fine.weight.zero_()
+            self.to_z_sq_fine.bias.zero_()
+
+    def forward(self, maps: list[Tensor]) -> tuple[Tensor, Tensor]:
+        z_sq, z_pose = super().forward(maps)
+        x = maps[2]
+        if tuple(x.shape[-2:]) != (self.fine_grid, self.fine_grid):
+            x = F.adaptive_avg_pool2d(x, self.fine_grid)
+        fine = F.silu(self.reduce_fine(x)).flatten(1)  # (B, spatial_channels)
+        return z_sq + self.to_z_sq_fine(fine), z_pose
+
+
 register_latent_head("pooled", PooledLatents)
 register_latent_head("spatial", SpatialLatents)
+register_latent_head("spatial_fine", FineSpatialLatents)
 
 
 # --- pose heads -----------------------------------------------------------------------------

@@ -40,7 +40,7 @@ from torch.nn import functional as F
 
 from sq_mitsuba.checks import check_tensor, value_checks_enabled
 from sq_mitsuba.geometry.assembly import Assembly
-from sq_mitsuba.geometry.nearest import gathered_differences, matched_indices
+from sq_mitsuba.geometry.nearest import euclidean, gathered_differences, matched_indices
 from sq_mitsuba.geometry.rotation import rotation_angle
 from sq_mitsuba.model.existence import parsimony_loss, probabilistic_chamfer_loss
 from sq_mitsuba.model.rotation_grid import grid_quaternions, soft_rotation_targets
@@ -76,8 +76,10 @@ SILHOUETTE_LOSSES = ("mse", "iou")
 
 
 def chamfer_loss(pred_points: Tensor, pred_mask: Tensor | None, target: Tensor,
-                 method: str | None = None) -> Tensor:
-    """Squared-L2 Chamfer distance (paper Eq. 12), mean over the batch.
+                 method: str | None = None, *, squared: bool = True) -> Tensor:
+    """Squared-L2 Chamfer distance (paper Eq. 12), mean over the batch; with ``squared=False``
+    the distances themselves (Euclidean, as the evaluation's Chamfer-L1 "occnet" convention
+    times 2).
 
     Per item: mean over predicted points of the squared distance to the nearest target point,
     plus mean over target points of the squared distance to the nearest predicted point.
@@ -96,6 +98,9 @@ def chamfer_loss(pred_points: Tensor, pred_mask: Tensor | None, target: Tensor,
         target: (B, K, 3) ground-truth surface points, same dtype.
         method: the nearest-neighbour search, ``"kdtree"``, ``"dense"`` or None (by the
             device: :func:`~sq_mitsuba.geometry.nearest.nearest_method`); equal results.
+        squared: squared distances (the paper's loss: pulls hardest on the farthest points,
+            so an uncertain reading is drawn to the mean of what it might be) or Euclidean
+            ones (each point pulled alike: the median of what it might be).
 
     Returns:
         Scalar tensor.
@@ -124,6 +129,8 @@ def chamfer_loss(pred_points: Tensor, pred_mask: Tensor | None, target: Tensor,
     to_target, to_pred = matched_indices(pred_points, keep, target, method=method)
     forward = gathered_differences(pred_points, target, to_target).square().sum(-1)  # (B, N)
     backward = gathered_differences(target, pred_points, to_pred).square().sum(-1)  # (B, K)
+    if not squared:
+        forward, backward = euclidean(forward), euclidean(backward)
     weight = keep.to(pred_points.dtype)
     forward_mean = (forward * weight).sum(1) / weight.sum(1)
     return (forward_mean + backward.mean(1)).mean()

@@ -46,6 +46,7 @@ Convention:
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -163,6 +164,9 @@ class NetworkOutput:
             ``mask_resolution = "full"``), else None.
         existence_logits: (B, M) each primitive's existence logit (``network.existence``),
             else None; the probability is its sigmoid (:attr:`existence`).
+        view_to_body: (B, 3, 3) the rotation that turns ``raw``'s assembly into the body
+            frame (``shape_frame = "view"``: the predicted rotation's transpose), else None
+            (``raw`` is already in the body frame).
     """
 
     raw: Tensor
@@ -174,11 +178,25 @@ class NetworkOutput:
     rotation_logits: Tensor | None = None
     mask_logits: Tensor | None = None
     existence_logits: Tensor | None = None
+    view_to_body: Tensor | None = None
 
     @property
     def assembly(self) -> Assembly:
-        """``Assembly.from_raw(raw)`` with the default :class:`ParameterRanges`."""
-        return Assembly.from_raw(self.raw, ParameterRanges())
+        """The assembly in the body frame: ``Assembly.from_raw(raw)`` with the default
+        :class:`ParameterRanges`, turned by ``view_to_body`` where the network reads shapes in
+        the view frame."""
+        assembly = Assembly.from_raw(self.raw, ParameterRanges())
+        if self.view_to_body is None:
+            return assembly
+        return assembly.rotated(self.view_to_body.to(assembly.params))
+
+    def with_true_rotation(self, rotation: Tensor) -> NetworkOutput:
+        """This output with a view-frame assembly turned into the body frame by the true
+        rotation (B, 3, 3) instead of the predicted one (what the training losses score: the
+        shape then owes nothing to the rotation's error); unchanged for a body-frame network."""
+        if self.view_to_body is None:
+            return self
+        return dataclasses.replace(self, view_to_body=rotation.transpose(-1, -2))
 
     @property
     def existence(self) -> Tensor | None:
@@ -388,7 +406,9 @@ class SuperquadricNet(nn.Module):
         return NetworkOutput(raw, pose.rotation, pixel, depth, translation,
                              rotation_6d=pose.rotation_6d,
                              rotation_logits=pose.rotation_logits, mask_logits=mask_logits,
-                             existence_logits=existence_logits)
+                             existence_logits=existence_logits,
+                             view_to_body=(pose.rotation.transpose(-1, -2)
+                                           if self.config.shape_frame == "view" else None))
 
     def folded(self, channels_last: bool = True) -> SuperquadricNet:
         """Inference copy: eval mode, no gradients, encoder BatchNorm folded into its convs.

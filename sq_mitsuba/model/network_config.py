@@ -42,7 +42,15 @@ class NetworkConfig:
     encoder: str = "efficientnet_b0"
     "Encoder by name (ENCODERS): efficientnet_b0 (the paper's) or efficientnet_lite0."
     latent: str = "pooled"
-    "Latent head by name (heads.LATENT_HEADS): pooled (global average) or spatial."
+    """Latent head by name (heads.LATENT_HEADS): pooled (global average), spatial (the
+    stride-32 grid) or spatial_fine (spatial, and the stride-16 grid for the shape latent)."""
+    shape_frame: Literal["body", "view"] = "body"
+    """Frame the generators' assembly is read in. 'body': the spacecraft's body frame (the
+    paper's). 'view': the camera's axes about the body origin, what the image shows; the
+    assembly is turned into the body frame by the predicted rotation (NetworkOutput.assembly)
+    and, in training, by the true one, so the shape terms do not ask which way the body's
+    axes point. Viewer-centred shapes generalise better to unseen classes (Shin et al. 2018,
+    Tatarchenko et al. 2019)."""
     pose_head: str = "6d"
     "Pose head by name (heads.POSE_HEADS): 6d (regression) or grid (a distribution over SO(3))."
     mask_head: bool = False

@@ -12,8 +12,8 @@ training starts (:func:`check_terms`).
 The terms (weights of the paper's configuration in :data:`PUBLISHED_WEIGHTS`):
 
 - ``chamfer``: squared-L2 Chamfer distance between the assembly's surface samples and the
-  mesh points (paper Eq. 12); for a network with existence probabilities
-  (``network.existence``) its expectation over which primitives exist;
+  mesh points (paper Eq. 12; Euclidean with ``loss.chamfer_distance``); for a network with
+  existence probabilities (``network.existence``) its expectation over which primitives exist;
 - ``occupancy``: balanced BCE of the union occupancy at labelled points (Eq. 14);
 - ``reprojection``: pixel MSE of the Mitsuba silhouette at the true pose against the mask;
 - ``rotation``: rotation angle in radians, minimised over the model's symmetries (the paper's);
@@ -43,6 +43,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from typing import Literal
 
 import torch
 import torch.nn.functional as F
@@ -116,6 +117,10 @@ class LossConfig:
     "Summed occupancy tolerated before the overlap penalty starts (paper Eq. 18)."
     level: int = in_range(0, 5, default=3)
     "Icosphere level of the assembly's surface samples for the Chamfer loss (3: 642 each)."
+    chamfer_distance: Literal["squared", "euclidean"] = "squared"
+    """The Chamfer term's distances: squared (the paper's Eq. 12: an uncertain reading is drawn
+    to the mean of the shapes it might be) or Euclidean (each point pulled alike: towards
+    their median; the evaluation's Chamfer-L1 is of this kind)."""
 
     def __post_init__(self) -> None:
         unknown = sorted(set(self.weights) - set(LOSS_TERMS))
@@ -210,12 +215,13 @@ def chamfer_term(output: NetworkOutput, batch: TrainingBatch, context: LossConte
     :func:`~sq_mitsuba.model.losses.probabilistic_chamfer_loss` (equal to it when every
     primitive surely exists)."""
     probabilities = output.existence
+    squared = context.loss.chamfer_distance == "squared"
     if probabilities is not None:
         points, inside = existence_surface_samples(output.assembly, context.loss.level)
         return probabilistic_chamfer_loss(points, inside, probabilities.to(points),
-                                          batch.surface_points.to(points))
+                                          batch.surface_points.to(points), squared=squared)
     points, keep = counted_surface_samples(output.assembly, context.loss.level)
-    return chamfer_loss(points, keep, batch.surface_points.to(points))
+    return chamfer_loss(points, keep, batch.surface_points.to(points), squared=squared)
 
 
 def occupancy_term(output: NetworkOutput, batch: TrainingBatch, context: LossContext) -> Tensor:
@@ -358,6 +364,8 @@ def compute_terms(output: NetworkOutput, batch: TrainingBatch, context: LossCont
     """The value of each term of ``names`` (default: those ``context.loss`` weighs non-zero),
     each a scalar tensor, in registry order."""
     names = enabled_terms(context.loss) if names is None else names
+    # Convention: a view-frame shape is scored in the body frame through the true rotation.
+    output = output.with_true_rotation(batch.rotation.to(output.rotation))
     return {name: LOSS_TERMS[name].function(output, batch, context) for name in names}
 
 
