@@ -128,6 +128,36 @@ def test_a_spatial_network_grows_a_fine_reader_that_starts_as_it() -> None:
     torch.testing.assert_close(z_pose_after, z_pose, rtol=0, atol=0)
 
 
+def test_a_view_frame_network_predicts_its_assembly_in_the_body_frame(tmp_path) -> None:
+    """``shape_frame = "view"``: the predictor (eager and TorchScript fast path, through a
+    checkpoint) returns the network's view-frame assembly turned by the transpose of the
+    rotation it predicts, so the assembly placed at the predicted pose is the view-frame one."""
+    from sq_mitsuba.geometry.assembly import Assembly
+    from sq_mitsuba.geometry.camera import Camera
+    from sq_mitsuba.model.checkpoint import checkpoint_payload, write_checkpoint
+
+    torch.manual_seed(7)
+    config = NetworkConfig(image_size=64, num_primitives=3, latent_dim=16, hidden_dim=16,
+                           shape_frame="view")
+    net = SuperquadricNet(config).eval()
+    camera = Camera.default(64)
+    images = torch.rand(2, 64, 64, generator=torch.Generator().manual_seed(8))
+    with torch.no_grad():
+        output = net(images[:, None], camera.matrix(torch.float32))
+    view = Assembly.from_raw(output.raw).params.double()
+    path = write_checkpoint(tmp_path / "view.pt", checkpoint_payload(net, camera))
+    for fast in (False, True):
+        got = sq_mitsuba.load_model(path, fast=fast).predict(images)
+        assembly = Assembly(got.assembly.params.double())
+        turned_back = assembly.rotated(got.rotation.double())  # into the camera's axes
+        torch.testing.assert_close(turned_back.translation, view[..., 5:8], rtol=1e-4,
+                                   atol=1e-4)
+        torch.testing.assert_close(turned_back.rotation,
+                                   Assembly(view).rotation, rtol=1e-4, atol=1e-4)
+        torch.testing.assert_close(got.rotation.double(), output.rotation.double(),
+                                   rtol=1e-4, atol=1e-4)
+
+
 def test_unknown_names_are_one_line_errors() -> None:
     for field, value in (("encoder", "resnet"), ("latent", "attention"), ("pose_head", "euler")):
         with pytest.raises(ValueError, match=rf"network\.{field}: unknown '{value}'"):
