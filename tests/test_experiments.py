@@ -226,3 +226,41 @@ def test_half_turn_hedge_measures_asymmetry_and_the_folded_ends(train_dataset, e
                                                    result.stdout).groups())
     assert 0 < ends <= as_read + 1e-9
 
+
+
+def test_depth_error_scales_a_reading_without_changing_its_image(train_dataset,
+                                                                 eval_checkpoint):
+    """unit_scaled makes the longest body-frame side 1 and moves every camera-frame point
+    along its ray (the projections are unchanged); then the script on the fixture."""
+    sys.path.insert(0, str(EXPERIMENTS))
+    try:
+        from depth_error import longest_side, unit_scaled
+    finally:
+        sys.path.remove(str(EXPERIMENTS))
+    from sq_mitsuba.geometry.assembly import Assembly
+    from sq_mitsuba.geometry.rotation import random_rotations
+    from sq_mitsuba.model.losses import counted_surface_samples
+
+    generator = torch.Generator().manual_seed(3)
+    assembly = Assembly.from_raw(torch.randn(2, 4, 16, generator=generator,
+                                             dtype=torch.float64))
+    rotation = random_rotations(2, generator, dtype=torch.float64)
+    translation = torch.tensor([[0.2, -0.1, 4.0], [0.0, 0.3, 6.0]], dtype=torch.float64)
+    scaled, moved = unit_scaled(assembly, translation)
+    torch.testing.assert_close(longest_side(scaled), torch.ones(2, dtype=torch.float64))
+
+    def projected(a: Assembly, t: torch.Tensor) -> torch.Tensor:
+        points, _ = counted_surface_samples(a, 2)
+        camera = points @ rotation.transpose(1, 2) + t[:, None]
+        return camera[..., :2] / camera[..., 2:]
+
+    torch.testing.assert_close(projected(scaled, moved), projected(assembly, translation))
+    command = [sys.executable, str(EXPERIMENTS / "depth_error.py"), "--checkpoint",
+               str(eval_checkpoint), "--data", str(train_dataset), "--images", "4"]
+    result = subprocess.run(command, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr
+    as_read = re.search(r"as read: camera-frame Chamfer (\S+), translation (\S+) \(depth (\S+),"
+                        r" across (\S+),", result.stdout)
+    camera, total, depth, across = (float(x) for x in as_read.groups())
+    assert camera > 0 and total > 0
+    assert max(depth, across) <= total + 1e-9 <= depth + across + 1e-9  # the triangle
