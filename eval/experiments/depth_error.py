@@ -23,7 +23,7 @@ from spread_images import open_spread_images
 
 from sq_mitsuba.evaluation.split import collate
 from sq_mitsuba.geometry.assembly import FIELDS, Assembly
-from sq_mitsuba.geometry.metrics import camera_frame_chamfer, translation_error
+from sq_mitsuba.geometry.metrics import camera_frame_chamfer, chamfer_l1, translation_error
 from sq_mitsuba.model.losses import counted_surface_samples
 
 
@@ -50,12 +50,13 @@ def unit_scaled(assembly: Assembly, translation: torch.Tensor
 
 def errors(assembly: Assembly, rotation: torch.Tensor, translation: torch.Tensor,
            batch: dict) -> dict[str, torch.Tensor]:
-    """Per image: camera-frame Chamfer, relative translation error, depth and across errors
-    (fractions of the true distance), signed depth error."""
+    """Per image: camera-frame Chamfer, body-frame Chamfer-L1, relative translation error,
+    depth and across errors (fractions of the true distance), signed depth error."""
     points, keep = counted_surface_samples(assembly, 3)
     truth = batch["translation"].double()
     distance = truth.norm(dim=-1)
     return {
+        "body": chamfer_l1(points, batch["surface_points"].double(), "paper", pred_mask=keep),
         "camera": camera_frame_chamfer(points, rotation, translation,
                                        batch["surface_points"].double(),
                                        batch["rotation"].double(), truth, pred_mask=keep),
@@ -68,11 +69,8 @@ def errors(assembly: Assembly, rotation: torch.Tensor, translation: torch.Tensor
 
 def main() -> None:
     spread = open_spread_images(__doc__.split("\n\n")[0], min_images=2)
-    from sq_mitsuba.geometry.metrics import chamfer_l1
-
     read: dict[str, list[float]] = {}
     unit: dict[str, list[float]] = {}
-    body: list[float] = []
     sides: list[float] = []
     with torch.no_grad():
         for start in range(0, len(spread.chosen), 16):
@@ -86,16 +84,13 @@ def main() -> None:
             scaled, moved = unit_scaled(assembly, translation)
             for name, value in errors(scaled, rotation, moved, batch).items():
                 unit.setdefault(name, []).extend(value.tolist())
-            points, keep = counted_surface_samples(assembly, 3)
-            body.extend(chamfer_l1(points, batch["surface_points"].double(), "paper",
-                                   pred_mask=keep).tolist())
             sides.extend(longest_side(assembly).tolist())
     camera = np.array(read["camera"])
     print(f"{len(camera)} images of {spread.args.data} ({spread.args.split}), "
           f"{spread.args.checkpoint}")
     print(f"correlation of the camera-frame Chamfer with the translation error "
           f"{np.corrcoef(camera, read['translation'])[0, 1]:.2f}, with the body-frame "
-          f"Chamfer-L1 {np.corrcoef(camera, body)[0, 1]:.2f}")
+          f"Chamfer-L1 {np.corrcoef(camera, read['body'])[0, 1]:.2f}")
     for label, values in (("as read", read), ("unit size", unit)):
         print(f"{label}: camera-frame Chamfer {np.mean(values['camera']):.4f}, translation "
               f"{np.mean(values['translation']):.4f} (depth {np.mean(values['depth']):.4f}, "

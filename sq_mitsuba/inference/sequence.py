@@ -256,16 +256,12 @@ def canonical_frame(assembly: Assembly, level: int = 3) -> tuple[Tensor, Tensor]
 
 
 def reframed(assembly: Assembly, rotation: Tensor, centre: Tensor) -> Assembly:
-    """The assembly in the body frame ``x' = rotation (x - centre)``: each primitive's
-    translation and rotation carried along (sizes, shapes and tapers are the primitives' own)."""
-    from sq_mitsuba.geometry.rotation import matrix_to_rotation_6d
-
+    """The assembly in the body frame ``x' = rotation (x - centre)``, detached, float64: each
+    primitive's translation and rotation carried along (:meth:`Assembly.rotated`)."""
     params = assembly.params.detach().double().clone()
-    rotation, centre = rotation.double(), centre.double()
-    params[..., FIELDS["translation"]] = (params[..., FIELDS["translation"]] - centre) @ rotation.T
-    params[..., FIELDS["rotation_6d"]] = matrix_to_rotation_6d(
-        rotation @ Assembly(assembly.params.detach().double()).rotation)
-    return Assembly(params)
+    params[..., FIELDS["translation"]] -= centre.double()
+    shifted = Assembly(params)
+    return shifted.rotated(rotation.double().expand(shifted.batch_size, 3, 3))
 
 
 def stage_refine_options(options: SequenceOptions, steps: int, poses: bool) -> RefineOptions:

@@ -147,11 +147,18 @@ class SpatialLatents(nn.Module):
     uses_head_map = False
 
     def forward(self, maps: list[Tensor]) -> tuple[Tensor, Tensor]:
-        x = maps[3]
-        if tuple(x.shape[-2:]) != (self.grid, self.grid):
-            x = F.adaptive_avg_pool2d(x, self.grid)
-        features = F.silu(self.reduce(x)).flatten(1)  # (B, spatial_channels)
+        features = grid_features(maps[3], self.reduce)
         return self.to_z_sq(features), self.to_z_pose(features)
+
+
+def grid_features(x: Tensor, reduce: nn.Conv2d) -> Tensor:
+    """One map read over its whole grid: (B, C, H, W) average-pooled (or repeated) to the
+    convolution's kernel size G x G if it is another size, then ``reduce`` and SiLU ->
+    (B, reduce.out_channels)."""
+    grid = reduce.kernel_size
+    if tuple(x.shape[-2:]) != grid:
+        x = F.adaptive_avg_pool2d(x, grid)
+    return F.silu(reduce(x)).flatten(1)
 
 
 class FineSpatialLatents(SpatialLatents):
@@ -175,9 +182,8 @@ class FineSpatialLatents(SpatialLatents):
 
     def __init__(self, config: NetworkConfig, pyramid_channels: tuple[int, ...]) -> None:
         super().__init__(config, pyramid_channels)
-        self.fine_grid = 2 * self.grid
         self.reduce_fine = nn.Conv2d(pyramid_channels[2], config.spatial_channels,
-                                     self.fine_grid)
+                                     2 * self.grid)
         self.to_z_sq_fine = nn.Linear(config.spatial_channels, config.latent_dim)
         with torch.no_grad():
             self.to_z_sq_fine.weight.zero_()
@@ -185,10 +191,7 @@ class FineSpatialLatents(SpatialLatents):
 
     def forward(self, maps: list[Tensor]) -> tuple[Tensor, Tensor]:
         z_sq, z_pose = super().forward(maps)
-        x = maps[2]
-        if tuple(x.shape[-2:]) != (self.fine_grid, self.fine_grid):
-            x = F.adaptive_avg_pool2d(x, self.fine_grid)
-        fine = F.silu(self.reduce_fine(x)).flatten(1)  # (B, spatial_channels)
+        fine = grid_features(maps[2], self.reduce_fine)  # (B, spatial_channels)
         return z_sq + self.to_z_sq_fine(fine), z_pose
 
 
