@@ -123,6 +123,9 @@ def test_configs_say_what_they_reproduce():
 def test_every_config_runs_two_steps(config_path, train_dataset, cache_dir, tmp_path, capsys):
     out = tmp_path / "run"
     overrides = [*SMALL, f"data.cache_dir={cache_dir}"]
+    if load_train_config(config_path).network.shape_decoder == "regions":
+        # One primitive per stride-32 cell: 2 x 2 cells at 64 px (one at SMALL's 32).
+        overrides += ["network.image_size=64", "network.num_primitives=4"]
     args = ["train", "--config", str(config_path), "--data", str(train_dataset), "--out",
             str(out), "--max-steps", "2", "--quiet"]
     for item in overrides:

@@ -203,7 +203,7 @@ def grown_generators(state: Mapping[str, Tensor], model: SuperquadricNet) -> dic
     state = dict(state)
     own = model.state_dict()
     if not model.config.existence or any(
-            not isinstance(state.get(key), Tensor) for key in _GROUPED):
+            not isinstance(state.get(key), Tensor) or key not in own for key in _GROUPED):
         return state
     file_groups = {state[key].shape[0] for key in _GROUPED}
     groups = model.config.num_primitives
@@ -234,8 +234,9 @@ def load_weights(model: SuperquadricNet, state: Any, where: str = "checkpoint", 
     Checkpoints of the fixed-head layout are upgraded first. With ``partial`` the state may
     lack some of the network's entries (a head added since: it keeps its initialisation), and
     a network with ``existence`` may have more primitives than the file, or an existence
-    column the file lacks (:func:`grown_generators`); otherwise every entry must be there, of
-    the network's shape.
+    column the file lacks (:func:`grown_generators`), and a file's shape decoder of another
+    kind (``network.shape_decoder``) is left out; otherwise every entry must be there, of the
+    network's shape.
 
     Raises:
         ValueError: ``<where>: weights do not fit config.network (...)`` naming the first
@@ -244,9 +245,13 @@ def load_weights(model: SuperquadricNet, state: Any, where: str = "checkpoint", 
     if not isinstance(state, Mapping):
         raise ValueError(f"{where}: 'model' must be a state dict")
     state = upgrade_state_dict(state)  # checkpoints of the fixed-head layout load too
+    own = model.state_dict()
     if partial:
         state = grown_generators(state, model)
-    own = model.state_dict()
+        # A file whose shape decoder is of another kind (slots against regions): the
+        # network's decoder keeps its initialisation, everything else loads.
+        state = {key: value for key, value in state.items()
+                 if key in own or not key.startswith("sq_generator.")}
     missing = [] if partial else sorted(set(own) - set(state))
     unexpected = sorted(set(state) - set(own))
     if missing or unexpected:

@@ -10,11 +10,13 @@ Architecture (each exchangeable part chosen by name in :class:`NetworkConfig`):
       (``pretrained``); it gives feature maps at strides 4, 8, 16 and 32.
     - Latent head (``latent``, :data:`~sq_mitsuba.model.heads.LATENT_HEADS`): the maps ->
       two latents z_sq and z_pose, pooled (the paper's figure) or spatial (the authors' code).
-    - G_sq: M three-layer MLPs (latent -> hidden -> hidden -> 16, SiLU between layers), run as
-      ONE batched operation over a (M, in, out) weight tensor (:class:`GroupedLinear`), giving
-      ``raw`` (B, M, 16), squashed into valid parameters by
+    - G_sq (``shape_decoder``): M three-layer MLPs (latent -> hidden -> hidden -> 16, SiLU
+      between layers), run as ONE batched operation over a (M, in, out) weight tensor
+      (:class:`GroupedLinear`), giving ``raw`` (B, M, 16), squashed into valid parameters by
       :meth:`~sq_mitsuba.geometry.assembly.Assembly.from_raw`; with ``existence`` each MLP has
-      a 17th output, the primitive's existence logit (``existence_logits`` (B, M)).
+      a 17th output, the primitive's existence logit (``existence_logits`` (B, M)); or
+      (``"regions"``) one primitive per cell of the stride-32 grid through one shared MLP
+      (:class:`~sq_mitsuba.model.region_decoder.RegionDecoder`).
     - Pose head (``pose_head``, :data:`~sq_mitsuba.model.heads.POSE_HEADS`): z_pose -> a
       rotation (regressed 6D, or a distribution over a grid of SO(3)) and the raw image
       position (u, v) of the body origin and its depth z, back-projected through K to the
@@ -62,6 +64,7 @@ from sq_mitsuba.model.encoder import EfficientNet, fold_batchnorm
 from sq_mitsuba.model.heads import LATENT_HEADS, POSE_HEADS, MaskHead
 from sq_mitsuba.model.network_config import ENCODERS, NetworkConfig
 from sq_mitsuba.model.pretrained import load_imagenet_weights, resolve_pretrained
+from sq_mitsuba.model.region_decoder import RegionDecoder, region_grid
 
 __all__ = [
     "ENCODERS",
@@ -262,6 +265,18 @@ def _check_names(config: NetworkConfig) -> None:
                              f"expected one of {', '.join(sorted(registry))}")
     if config.input_std is not None and not config.input_std > 0:
         raise ValueError(f"network.input_std: expected > 0, got {config.input_std}")
+    if config.shape_decoder == "regions":
+        cells = region_grid(config.image_size) ** 2
+        if config.shape_frame != "view":
+            raise ValueError("network.shape_decoder: 'regions' reads shapes in the view frame; "
+                             "set network.shape_frame = \"view\"")
+        if not config.existence:
+            raise ValueError("network.shape_decoder: 'regions' switches off the cells that show "
+                             "empty space; set network.existence = true")
+        if config.num_primitives != cells:
+            raise ValueError(f"network.num_primitives: the 'regions' decoder reads one primitive "
+                             f"per cell of the stride-32 grid, {cells} at image_size "
+                             f"{config.image_size}; got {config.num_primitives}")
 
 
 class SuperquadricNet(nn.Module):
@@ -294,8 +309,10 @@ class SuperquadricNet(nn.Module):
         self.latent_head = LATENT_HEADS[config.latent](config, channels)
         if not getattr(self.latent_head, "uses_head_map", True):
             self.encoder.head = None  # unused: no parameter without a gradient (DDP)
-        self.sq_generator = SuperquadricGenerators(
-            config.num_primitives, config.latent_dim, config.hidden_dim, config.existence)
+        self.sq_generator: SuperquadricGenerators | RegionDecoder = (
+            RegionDecoder(config, channels) if config.shape_decoder == "regions"
+            else SuperquadricGenerators(config.num_primitives, config.latent_dim,
+                                        config.hidden_dim, config.existence))
         self.pose_head = POSE_HEADS[config.pose_head](config)
         self.mask_head = (MaskHead(self.encoder.pyramid_channels,
                                    full_resolution=config.mask_resolution == "full",
@@ -343,14 +360,17 @@ class SuperquadricNet(nn.Module):
     def _init_last_layers(self) -> None:
         """Small last-layer weights, biases that give a sane initial prediction (module doc)."""
         gain = self.config.init_gain
-        last_sq = self.sq_generator.layers[2]
+        regions = isinstance(self.sq_generator, RegionDecoder)
+        last_sq = self.sq_generator.last_layer if regions else self.sq_generator.layers[2]
         last_sq.weight.mul_(gain)
-        bias = torch.zeros(self.config.num_primitives, last_sq.bias.shape[1],
+        bias = torch.zeros(self.config.num_primitives, last_sq.bias.shape[-1],
                            dtype=torch.float64)
-        bias[:, :NUM_PARAMS] = initial_raw(self.config.num_primitives, self.config.init_spread)[0]
+        # Regions: one bias shared by every cell, at the origin (the cell's anchor moves it).
+        bias[:, :NUM_PARAMS] = (initial_raw(1)[0] if regions else
+                                initial_raw(self.config.num_primitives, self.config.init_spread)[0])
         if self.config.existence:  # every primitive present at first (module doc)
             bias[:, NUM_PARAMS] = math.log(INITIAL_EXISTENCE / (1.0 - INITIAL_EXISTENCE))
-        last_sq.bias.copy_(bias)
+        last_sq.bias.copy_(bias[0] if regions else bias)
         reset = getattr(self.pose_head, "reset_last_layer", None)
         if reset is not None:  # a_u = a_v = 0: image centre; a_z = 0: depth prior
             reset(gain)
@@ -389,10 +409,6 @@ class SuperquadricNet(nn.Module):
         normalised = self.normalise(images)
         maps = self.encoder.forward_pyramid(normalised)
         z_sq, z_pose = self.latent_head(maps)
-        generated = self.sq_generator(z_sq)  # (B, M, 16), or (B, M, 17) with existence
-        raw, existence_logits = generated, None
-        if self.config.existence:
-            raw, existence_logits = generated[..., :NUM_PARAMS], generated[..., NUM_PARAMS]
         pose = self.pose_head(z_pose)
         size = images.new_tensor([width, height])
         pixel = 0.5 * size * (1.0 + self.config.pixel_extent * torch.tanh(pose.position[:, :2]))
@@ -402,6 +418,13 @@ class SuperquadricNet(nn.Module):
         homogeneous = torch.cat([pixel, pixel.new_ones(batch, 1)], dim=-1)[..., None]
         ray = torch.linalg.solve_triangular(k, homogeneous, upper=True)[..., 0]  # K^-1 [u,v,1]
         translation = depth[:, None] * ray
+        if isinstance(self.sq_generator, RegionDecoder):
+            generated = self.sq_generator(maps[3], z_sq, pixel, depth, k, width, height)
+        else:
+            generated = self.sq_generator(z_sq)  # (B, M, 16), or (B, M, 17) with existence
+        raw, existence_logits = generated, None
+        if self.config.existence:
+            raw, existence_logits = generated[..., :NUM_PARAMS], generated[..., NUM_PARAMS]
         mask_logits = None if self.mask_head is None else self.mask_head(maps, normalised)
         return NetworkOutput(raw, pose.rotation, pixel, depth, translation,
                              rotation_6d=pose.rotation_6d,

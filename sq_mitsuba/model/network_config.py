@@ -51,6 +51,12 @@ class NetworkConfig:
     and, in training, by the true one, so the shape terms do not ask which way the body's
     axes point. Viewer-centred shapes generalise better to unseen classes (Shin et al. 2018,
     Tatarchenko et al. 2019)."""
+    shape_decoder: Literal["slots", "regions"] = "slots"
+    """How the primitives are read. 'slots': M generator MLPs, each reading the global z_sq into
+    its own output slot (the paper's G_sq). 'regions': one primitive per cell of the G x G
+    stride-32 grid (G = ceil(image_size / 32), so num_primitives = G^2), from that cell's
+    features and z_sq through one shared MLP, its centre starting at the cell
+    (region_decoder.RegionDecoder); needs shape_frame = 'view' and existence."""
     pose_head: str = "6d"
     "Pose head by name (heads.POSE_HEADS): 6d (regression) or grid (a distribution over SO(3))."
     mask_head: bool = False
