@@ -264,3 +264,5 @@ def test_depth_error_scales_a_reading_without_changing_its_image(train_dataset,
     camera, total, depth, across = (float(x) for x in as_read.groups())
     assert camera > 0 and total > 0
     assert max(depth, across) <= total + 1e-9 <= depth + across + 1e-9  # the triangle
+    at_true = float(re.search(r"as read: .* at the true position (\S+)", result.stdout).group(1))
+    assert at_true > 0

@@ -8,6 +8,8 @@ test images this prints, for the network's readings:
   the body-frame Chamfer-L1 (which follows it more);
 * the translation error split into depth (along the optical axis) and across, as fractions
   of the true distance, and the mean signed depth error (a bias);
+* the camera-frame Chamfer with the reading placed at the true position (its own rotation
+  kept): the shape as the camera sees it, what is left when the depth is right;
 * the same figures with the reading held to the dataset's unit size (:func:`unit_scaled`:
   its longest body-frame side made 1, its translation scaled alike, so its image is
   unchanged): does the network's depth follow its shape's extent?
@@ -50,8 +52,9 @@ def unit_scaled(assembly: Assembly, translation: torch.Tensor
 
 def errors(assembly: Assembly, rotation: torch.Tensor, translation: torch.Tensor,
            batch: dict) -> dict[str, torch.Tensor]:
-    """Per image: camera-frame Chamfer, body-frame Chamfer-L1, relative translation error,
-    depth and across errors (fractions of the true distance), signed depth error."""
+    """Per image: camera-frame Chamfer (as placed, and at the true position), body-frame
+    Chamfer-L1, relative translation error, depth and across errors (fractions of the true
+    distance), signed depth error."""
     points, keep = counted_surface_samples(assembly, 3)
     truth = batch["translation"].double()
     distance = truth.norm(dim=-1)
@@ -60,6 +63,9 @@ def errors(assembly: Assembly, rotation: torch.Tensor, translation: torch.Tensor
         "camera": camera_frame_chamfer(points, rotation, translation,
                                        batch["surface_points"].double(),
                                        batch["rotation"].double(), truth, pred_mask=keep),
+        "camera_true_position": camera_frame_chamfer(
+            points, rotation, truth, batch["surface_points"].double(),
+            batch["rotation"].double(), truth, pred_mask=keep),
         "translation": translation_error(translation, truth, relative=True),
         "depth": (translation[:, 2] - truth[:, 2]).abs() / distance,
         "across": (translation[:, :2] - truth[:, :2]).norm(dim=-1) / distance,
@@ -95,7 +101,8 @@ def main() -> None:
         print(f"{label}: camera-frame Chamfer {np.mean(values['camera']):.4f}, translation "
               f"{np.mean(values['translation']):.4f} (depth {np.mean(values['depth']):.4f}, "
               f"across {np.mean(values['across']):.4f}, depth bias "
-              f"{np.mean(values['signed_depth']):+.4f})")
+              f"{np.mean(values['signed_depth']):+.4f}); at the true position "
+              f"{np.mean(values['camera_true_position']):.4f}")
     print(f"longest body-frame side of the readings: mean {np.mean(sides):.3f}")
 
 
