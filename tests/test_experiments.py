@@ -264,5 +264,35 @@ def test_depth_error_scales_a_reading_without_changing_its_image(train_dataset,
     camera, total, depth, across = (float(x) for x in as_read.groups())
     assert camera > 0 and total > 0
     assert max(depth, across) <= total + 1e-9 <= depth + across + 1e-9  # the triangle
-    at_true = float(re.search(r"as read: .* at the true position (\S+)", result.stdout).group(1))
-    assert at_true > 0
+    at_true, across_true = (float(x) for x in re.search(
+        r"as read: .* at the true position (\S+) \(across the line of sight (\S+)\)",
+        result.stdout).groups())
+    assert 0 < across_true <= at_true + 1e-9  # nearest in x, y: never farther than in 3D
+
+
+def test_input_detail_cuts_the_detail_above_its_side(train_dataset, eval_checkpoint):
+    """degraded leaves an image at its own side unchanged, keeps a constant image constant,
+    turns a one-pixel checkerboard cut to half its side into its mean grey, and keeps a pattern
+    coarser than the side; then the script on the fixture prints a line per side."""
+    sys.path.insert(0, str(EXPERIMENTS))
+    try:
+        from input_detail import degraded
+    finally:
+        sys.path.remove(str(EXPERIMENTS))
+    images = torch.rand(2, 1, 16, 16, generator=torch.Generator().manual_seed(4))
+    assert torch.equal(degraded(images, 16), images)
+    torch.testing.assert_close(degraded(torch.full((1, 1, 16, 16), 0.3), 8),
+                               torch.full((1, 1, 16, 16), 0.3))
+    checker = (torch.arange(16)[:, None] + torch.arange(16)[None]) % 2
+    torch.testing.assert_close(degraded(checker[None, None].float(), 8),
+                               torch.full((1, 1, 16, 16), 0.5))
+    halves = torch.zeros(1, 1, 16, 16)
+    halves[..., 8:] = 1.0  # left half black, right half white: coarser than 8 px
+    cut = degraded(halves, 8)
+    assert cut[..., :6].max() == 0 and cut[..., 10:].min() == 1
+    command = [sys.executable, str(EXPERIMENTS / "input_detail.py"), "--checkpoint",
+               str(eval_checkpoint), "--data", str(train_dataset), "--images", "3"]
+    result = subprocess.run(command, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr
+    lines = re.findall(r"detail (\d+) px: body-frame Chamfer-L1 (\S+),", result.stdout)
+    assert len(lines) == 4 and all(float(value) > 0 for _, value in lines)

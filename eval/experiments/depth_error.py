@@ -9,7 +9,10 @@ test images this prints, for the network's readings:
 * the translation error split into depth (along the optical axis) and across, as fractions
   of the true distance, and the mean signed depth error (a bias);
 * the camera-frame Chamfer with the reading placed at the true position (its own rotation
-  kept): the shape as the camera sees it, what is left when the depth is right;
+  kept): the shape as the camera sees it, what is left when the depth is right; and the same
+  across the line of sight only (both clouds flattened onto the image plane's axes, x and y),
+  the part of it one image shows (a nearest distance in x and y is never longer than in 3D,
+  so the rest lies along the line of sight);
 * the same figures with the reading held to the dataset's unit size (:func:`unit_scaled`:
   its longest body-frame side made 1, its translation scaled alike, so its image is
   unchanged): does the network's depth follow its shape's extent?
@@ -58,7 +61,12 @@ def errors(assembly: Assembly, rotation: torch.Tensor, translation: torch.Tensor
     points, keep = counted_surface_samples(assembly, 3)
     truth = batch["translation"].double()
     distance = truth.norm(dim=-1)
+    flat = torch.tensor([1.0, 1.0, 0.0], dtype=torch.float64)  # onto the image plane's axes
+    seen = (points @ rotation.transpose(-1, -2) + truth[:, None]) * flat
+    true_seen = (batch["surface_points"].double() @ batch["rotation"].double().transpose(-1, -2)
+                 + truth[:, None]) * flat
     return {
+        "across_true_position": chamfer_l1(seen, true_seen, "occnet", pred_mask=keep) / distance,
         "body": chamfer_l1(points, batch["surface_points"].double(), "paper", pred_mask=keep),
         "camera": camera_frame_chamfer(points, rotation, translation,
                                        batch["surface_points"].double(),
@@ -102,7 +110,8 @@ def main() -> None:
               f"{np.mean(values['translation']):.4f} (depth {np.mean(values['depth']):.4f}, "
               f"across {np.mean(values['across']):.4f}, depth bias "
               f"{np.mean(values['signed_depth']):+.4f}); at the true position "
-              f"{np.mean(values['camera_true_position']):.4f}")
+              f"{np.mean(values['camera_true_position']):.4f} (across the line of sight "
+              f"{np.mean(values['across_true_position']):.4f})")
     print(f"longest body-frame side of the readings: mean {np.mean(sides):.3f}")
 
 
