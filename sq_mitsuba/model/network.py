@@ -23,6 +23,9 @@ Architecture (each exchangeable part chosen by name in :class:`NetworkConfig`):
       full translation ``t = z K^-1 [u, v, 1]``.
     - Mask head (``mask_head``): the target's mask at a quarter of the input size, or at its
       full size (``mask_resolution = "full"``: corrected from the image's own pixels).
+    - Depth head (``depth_head``): the depth of the surface seen in each stride-4 cell, an
+      auxiliary output trained by the ``surface_depth`` term
+      (:mod:`~sq_mitsuba.model.surface_depth`).
 
 Convention:
     - Input normalisation happens inside the network: ``(x - input_mean) / input_std`` with
@@ -170,6 +173,8 @@ class NetworkOutput:
         view_to_body: (B, 3, 3) the rotation that turns ``raw``'s assembly into the body
             frame (``shape_frame = "view"``: the predicted rotation's transpose), else None
             (``raw`` is already in the body frame).
+        surface_depth: (B, 1, ceil(H / 4), ceil(W / 4)) the depth of the surface seen in each
+            stride-4 cell relative to the body origin's, metres (``depth_head``), else None.
     """
 
     raw: Tensor
@@ -182,6 +187,7 @@ class NetworkOutput:
     mask_logits: Tensor | None = None
     existence_logits: Tensor | None = None
     view_to_body: Tensor | None = None
+    surface_depth: Tensor | None = None
 
     @property
     def assembly(self) -> Assembly:
@@ -293,6 +299,8 @@ class SuperquadricNet(nn.Module):
         sq_generator: :class:`SuperquadricGenerators`.
         pose_head: ``POSE_HEADS[config.pose_head]``: z_pose -> rotation and raw position.
         mask_head: :class:`~sq_mitsuba.model.heads.MaskHead` or None.
+        depth_head: a quarter-resolution :class:`~sq_mitsuba.model.heads.MaskHead` whose one
+            output is the visible surface's depth instead of a logit, or None.
     """
 
     def __init__(self, config: NetworkConfig | None = None) -> None:
@@ -318,6 +326,10 @@ class SuperquadricNet(nn.Module):
                                    full_resolution=config.mask_resolution == "full",
                                    in_channels=config.in_channels)
                           if config.mask_head else None)
+        self.depth_head = MaskHead(self.encoder.pyramid_channels) if config.depth_head else None
+        if self.depth_head is not None:
+            with torch.no_grad():  # depth 0 (the origin's) at first, not a mask's prior logit
+                self.depth_head.to_logit.bias.zero_()
         mean, std = config.normalisation()
         self.register_buffer("input_mean", torch.tensor(mean), persistent=False)
         self.register_buffer("input_std", torch.tensor(std), persistent=False)
@@ -426,12 +438,14 @@ class SuperquadricNet(nn.Module):
         if self.config.existence:
             raw, existence_logits = generated[..., :NUM_PARAMS], generated[..., NUM_PARAMS]
         mask_logits = None if self.mask_head is None else self.mask_head(maps, normalised)
+        surface_depth = None if self.depth_head is None else self.depth_head(maps)
         return NetworkOutput(raw, pose.rotation, pixel, depth, translation,
                              rotation_6d=pose.rotation_6d,
                              rotation_logits=pose.rotation_logits, mask_logits=mask_logits,
                              existence_logits=existence_logits,
                              view_to_body=(pose.rotation.transpose(-1, -2)
-                                           if self.config.shape_frame == "view" else None))
+                                           if self.config.shape_frame == "view" else None),
+                             surface_depth=surface_depth)
 
     def folded(self, channels_last: bool = True) -> SuperquadricNet:
         """Inference copy: eval mode, no gradients, encoder BatchNorm folded into its convs.

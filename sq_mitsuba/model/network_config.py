@@ -61,6 +61,10 @@ class NetworkConfig:
     "Pose head by name (heads.POSE_HEADS): 6d (regression) or grid (a distribution over SO(3))."
     mask_head: bool = False
     "Also predict the target's mask (NetworkOutput.mask_logits, see mask_resolution)."
+    depth_head: bool = False
+    """Also predict the depth of the surface the camera sees, relative to the body origin's,
+    per stride-4 cell (NetworkOutput.surface_depth; the surface_depth loss term,
+    model.surface_depth): a dense target alike for every family of spacecraft."""
     mask_resolution: Literal["quarter", "full"] = "quarter"
     """The mask head's output: 'quarter' (a logit per stride-4 cell) or 'full' (the input's
     size, the stride-4 mask corrected from the image's own pixels; heads.MaskHead)."""

@@ -27,6 +27,9 @@ The terms (weights of the paper's configuration in :data:`PUBLISHED_WEIGHTS`):
 - ``mask``: binary cross-entropy of the mask head against the mask;
 - ``parsimony``: the expected number of primitives of a network with existence probabilities
   (off by default; a config that weighs it for a network without them is refused);
+- ``surface_depth``: mean absolute error of the depth head's map of the visible surface against
+  the one the batch's surface points give at the true pose
+  (:mod:`sq_mitsuba.model.surface_depth`; off by default);
 - ``parts``: each primitive's Chamfer distance to the part it is paired with in the model's
   own fitted assembly (:mod:`sq_mitsuba.model.part_targets`; off by default; the dataset's
   part targets, ``sq-mitsuba dataset fit-parts``, are read when it is weighted).
@@ -41,6 +44,7 @@ pattern) would cost a reformulation of each, or renders, for a second-order gain
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Literal
@@ -69,6 +73,7 @@ from sq_mitsuba.model.losses import (
 )
 from sq_mitsuba.model.network import NetworkOutput
 from sq_mitsuba.model.part_targets import matched_part_loss
+from sq_mitsuba.model.surface_depth import surface_depth_loss, visible_depth_map
 from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer
 from sq_mitsuba.training.batch import TrainingBatch
 
@@ -173,6 +178,8 @@ class LossContext:
     (None when that term is off), reseeded by the training step."""
     generator: torch.Generator | None = None
     "Draws the reprojection term's subset of items (seeded per step by the training step)."
+    camera_matrix: Tensor | None = None
+    "(3, 3) intrinsics at the network's input size (the training step sets them)."
     part_targets: Tensor | None = None
     """(models, M, 16) the training models' fitted raw parameters, by ``model_index`` (the
     ``parts`` term's targets; None when that term is off)."""
@@ -303,6 +310,21 @@ def parsimony_term(output: NetworkOutput, batch: TrainingBatch, context: LossCon
     return parsimony_loss(output.existence)
 
 
+def surface_depth_term(output: NetworkOutput, batch: TrainingBatch,
+                       context: LossContext) -> Tensor:
+    """:func:`~sq_mitsuba.model.surface_depth.surface_depth_loss` of the depth head's map
+    against :func:`~sq_mitsuba.model.surface_depth.visible_depth_map` of the batch's surface
+    points at the true pose."""
+    predicted = output.surface_depth
+    if context.camera_matrix is None:
+        raise LossTermError("surface_depth: the term is weighted but no camera was given")
+    stride = math.ceil(batch.image.shape[-1] / predicted.shape[-1])
+    target, valid = visible_depth_map(batch.surface_points.to(predicted), batch.rotation,
+                                      batch.translation, context.camera_matrix,
+                                      batch.image.shape[-1], stride)
+    return surface_depth_loss(predicted, target, valid)
+
+
 def parts_term(output: NetworkOutput, batch: TrainingBatch, context: LossContext) -> Tensor:
     """:func:`~sq_mitsuba.model.part_targets.matched_part_loss` of the assembly against each
     image's model's fitted assembly (``context.part_targets``), icosphere level 1."""
@@ -326,6 +348,7 @@ register_term("taper", taper_term, ("assembly",))
 register_term("mask", mask_term, ("mask_logits",))
 register_term("parsimony", parsimony_term, ("existence_logits",))
 register_term("parts", parts_term, ("assembly",))
+register_term("surface_depth", surface_depth_term, ("surface_depth",))
 
 
 # ------------------------------------------------------------------------------ use

@@ -121,7 +121,8 @@ def forward_loss(model: nn.Module, batch: TrainingBatch, k_matrix: Tensor,
     output = model(batch.image, k_matrix)
     if not outputs_finite(output):
         return {}, None
-    terms = compute_terms(output, batch, context)
+    terms = compute_terms(output, batch,
+                          dataclasses.replace(context, camera_matrix=k_matrix))
     return terms, total_loss(terms, context.loss)
 
 
@@ -189,7 +190,8 @@ def _device_step(model: nn.Module, optimizer: torch.optim.Optimizer, batch: Trai
     with value_checks(False):
         output = model(batch.image, k_matrix)
         outputs_ok = finite_flag(output)
-        terms = compute_terms(output, batch, context)
+        terms = compute_terms(output, batch,
+                          dataclasses.replace(context, camera_matrix=k_matrix))
         loss = total_loss(terms, context.loss)
     optimizer.zero_grad(set_to_none=True)
     loss.backward()
