@@ -296,7 +296,8 @@ class SuperquadricNet(nn.Module):
         config: the config.
         encoder: :class:`~sq_mitsuba.model.encoder.EfficientNet` of ``config.encoder``.
         latent_head: ``LATENT_HEADS[config.latent]``: feature maps -> z_sq, z_pose.
-        sq_generator: :class:`SuperquadricGenerators`.
+        sq_generator: G_sq, :class:`SuperquadricGenerators` (``shape_decoder = "slots"``) or
+            :class:`~sq_mitsuba.model.region_decoder.RegionDecoder` (``"regions"``).
         pose_head: ``POSE_HEADS[config.pose_head]``: z_pose -> rotation and raw position.
         mask_head: :class:`~sq_mitsuba.model.heads.MaskHead` or None.
         depth_head: a quarter-resolution :class:`~sq_mitsuba.model.heads.MaskHead` whose one
