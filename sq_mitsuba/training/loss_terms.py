@@ -178,11 +178,11 @@ class LossContext:
     (None when that term is off), reseeded by the training step."""
     generator: torch.Generator | None = None
     "Draws the reprojection term's subset of items (seeded per step by the training step)."
-    camera_matrix: Tensor | None = None
-    "(3, 3) intrinsics at the network's input size (the training step sets them)."
     part_targets: Tensor | None = None
     """(models, M, 16) the training models' fitted raw parameters, by ``model_index`` (the
     ``parts`` term's targets; None when that term is off)."""
+    camera_matrix: Tensor | None = None
+    "(3, 3) intrinsics at the network's input size (the training step sets them)."
 
 
 # ------------------------------------------------------------------------------ registry

@@ -220,7 +220,8 @@ def loss_context(config: TrainConfig, renderer: SilhouetteRenderer | None, step:
         # Item j of this process is item rank * local + j of the global batch.
         local = config.optim.batch_size // world.size
         renderer.reseed(seed_of(config.seed, STREAMS["render"], step) + 7919 * world.rank * local)
-    return LossContext(config.loss, config.reprojection, renderer, generator, part_targets)
+    return LossContext(config.loss, config.reprojection, renderer, generator,
+                       part_targets=part_targets)
 
 
 def to_channels_last(model: nn.Module) -> None:
