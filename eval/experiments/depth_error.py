@@ -59,21 +59,20 @@ def errors(assembly: Assembly, rotation: torch.Tensor, translation: torch.Tensor
     Chamfer-L1, relative translation error, depth and across errors (fractions of the true
     distance), signed depth error."""
     points, keep = counted_surface_samples(assembly, 3)
+    surface = batch["surface_points"].double()
+    true_rotation = batch["rotation"].double()
     truth = batch["translation"].double()
     distance = truth.norm(dim=-1)
     flat = torch.tensor([1.0, 1.0, 0.0], dtype=torch.float64)  # onto the image plane's axes
     seen = (points @ rotation.transpose(-1, -2) + truth[:, None]) * flat
-    true_seen = (batch["surface_points"].double() @ batch["rotation"].double().transpose(-1, -2)
-                 + truth[:, None]) * flat
+    true_seen = (surface @ true_rotation.transpose(-1, -2) + truth[:, None]) * flat
     return {
         "across_true_position": chamfer_l1(seen, true_seen, "occnet", pred_mask=keep) / distance,
-        "body": chamfer_l1(points, batch["surface_points"].double(), "paper", pred_mask=keep),
-        "camera": camera_frame_chamfer(points, rotation, translation,
-                                       batch["surface_points"].double(),
-                                       batch["rotation"].double(), truth, pred_mask=keep),
-        "camera_true_position": camera_frame_chamfer(
-            points, rotation, truth, batch["surface_points"].double(),
-            batch["rotation"].double(), truth, pred_mask=keep),
+        "body": chamfer_l1(points, surface, "paper", pred_mask=keep),
+        "camera": camera_frame_chamfer(points, rotation, translation, surface, true_rotation,
+                                       truth, pred_mask=keep),
+        "camera_true_position": camera_frame_chamfer(points, rotation, truth, surface,
+                                                     true_rotation, truth, pred_mask=keep),
         "translation": translation_error(translation, truth, relative=True),
         "depth": (translation[:, 2] - truth[:, 2]).abs() / distance,
         "across": (translation[:, :2] - truth[:, :2]).norm(dim=-1) / distance,

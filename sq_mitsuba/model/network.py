@@ -376,14 +376,14 @@ class SuperquadricNet(nn.Module):
         regions = isinstance(self.sq_generator, RegionDecoder)
         last_sq = self.sq_generator.last_layer if regions else self.sq_generator.layers[2]
         last_sq.weight.mul_(gain)
-        bias = torch.zeros(self.config.num_primitives, last_sq.bias.shape[-1],
-                           dtype=torch.float64)
-        # Regions: one bias shared by every cell, at the origin (the cell's anchor moves it).
-        bias[:, :NUM_PARAMS] = (initial_raw(1)[0] if regions else
-                                initial_raw(self.config.num_primitives, self.config.init_spread)[0])
+        # Regions: one bias shared by every cell, one primitive at the origin (the cell's
+        # anchor moves it); slots: a bias per primitive, the centres spread about the origin.
+        rows = 1 if regions else self.config.num_primitives
+        bias = torch.zeros(rows, last_sq.bias.shape[-1], dtype=torch.float64)
+        bias[:, :NUM_PARAMS] = initial_raw(rows, self.config.init_spread)[0]
         if self.config.existence:  # every primitive present at first (module doc)
             bias[:, NUM_PARAMS] = math.log(INITIAL_EXISTENCE / (1.0 - INITIAL_EXISTENCE))
-        last_sq.bias.copy_(bias[0] if regions else bias)
+        last_sq.bias.copy_(bias.view_as(last_sq.bias))
         reset = getattr(self.pose_head, "reset_last_layer", None)
         if reset is not None:  # a_u = a_v = 0: image centre; a_z = 0: depth prior
             reset(gain)
