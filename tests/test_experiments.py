@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 import torch
 
 EXPERIMENTS = Path(__file__).resolve().parents[1] / "eval" / "experiments"
@@ -296,3 +297,42 @@ def test_input_detail_cuts_the_detail_above_its_side(train_dataset, eval_checkpo
     assert result.returncode == 0, result.stderr
     lines = re.findall(r"detail (\d+) px: body-frame Chamfer-L1 (\S+),", result.stdout)
     assert len(lines) == 4 and all(float(value) > 0 for _, value in lines)
+
+
+def _per_image(folder: Path, values: dict[tuple[str, int], float]) -> Path:
+    folder.mkdir(parents=True)
+    lines = ["model,index,method,chamfer_l1_paper"]
+    lines += [f"{model},{index},network,{value}" for (model, index), value in values.items()]
+    lines += [f"{model},{index},baseline,9" for (model, index) in values]  # never compared
+    (folder / "per_image.csv").write_text("\n".join(lines) + "\n")
+    return folder
+
+
+def test_paired_difference_averages_per_model_and_resamples_models(tmp_path):
+    """The mean difference is the mean of the per-model means (by hand: model m0's two images
+    differ by -0.02 and +0.04, m1's by -0.04, so (0.01 - 0.04) / 2); a difference the same on
+    every model has an interval of that one value; no common image is a one-line error."""
+    sys.path.insert(0, str(EXPERIMENTS))
+    from paired_difference import paired_difference, read_scores
+
+    a = _per_image(tmp_path / "a", {("m0", 0): 0.10, ("m0", 1): 0.16, ("m1", 0): 0.20})
+    b = _per_image(tmp_path / "b", {("m0", 0): 0.12, ("m0", 1): 0.12, ("m1", 0): 0.24,
+                                    ("m2", 0): 0.5})  # m2: B alone, left out
+    result = paired_difference(read_scores(a, "network", "chamfer_l1_paper"),
+                               read_scores(b, "network", "chamfer_l1_paper"), 2000)
+    assert result["mean"] == pytest.approx(-0.015)
+    assert result["models"] == 2 and result["images"] == 3 and result["lower_share"] == 0.5
+    assert -0.04 - 1e-12 <= result["low"] <= result["mean"] <= result["high"] <= 0.01 + 1e-12
+    same = {(f"m{k}", 0): 0.1 for k in range(5)}
+    shifted = {key: value + 0.03 for key, value in same.items()}
+    flat = paired_difference(same, shifted, 500)
+    assert flat["low"] == pytest.approx(-0.03) and flat["high"] == pytest.approx(-0.03)
+    run = subprocess.run([sys.executable, str(EXPERIMENTS / "paired_difference.py"), str(a),
+                          str(b), "--metric", "chamfer_l1_paper"],
+                         capture_output=True, text=True, timeout=60)
+    assert run.returncode == 0, run.stderr
+    assert "-0.0150" in run.stdout and "within noise" in run.stdout
+    other = _per_image(tmp_path / "c", {("x", 0): 0.1})
+    refused = subprocess.run([sys.executable, str(EXPERIMENTS / "paired_difference.py"),
+                              str(a), str(other)], capture_output=True, text=True, timeout=60)
+    assert refused.returncode == 2 and refused.stderr.count("\n") == 1

@@ -81,3 +81,118 @@ def test_shipped_model_is_small_and_predicts_grey_and_rgb_images():
         prediction = predictor.predict(image)
         assert torch.isfinite(prediction.assembly.params).all()
         assert prediction.translation[0, 2] > 0  # in front of the camera
+
+
+def _perturbed(eval_checkpoint, path, seed: int, change=None):
+    """A second checkpoint of the tiny network: every floating-point weight moved by a seeded
+    normal step (as a fine-tune of the same start would move it), ``change`` then applied."""
+    from sq_mitsuba.model.checkpoint import write_checkpoint
+
+    payload = read_checkpoint(eval_checkpoint)
+    generator = torch.Generator().manual_seed(seed)
+    payload["model"] = {key: value + 0.01 * torch.randn(value.shape, generator=generator)
+                        if value.is_floating_point() else value
+                        for key, value in payload["model"].items()}
+    if change is not None:
+        change(payload)
+    return write_checkpoint(path, payload)
+
+
+def test_export_averages_checkpoints_of_one_network(eval_checkpoint, train_dataset, tmp_path,
+                                                    capsys):
+    other = _perturbed(eval_checkpoint, tmp_path / "other.pt", 1)
+    out = tmp_path / "soup.pt"
+    assert main(["export", "--checkpoint", str(eval_checkpoint), str(other), "--no-half",
+                 "--data", str(train_dataset), "--baseline-images", "4", "--out",
+                 str(out)]) == 0
+    soup, a, b = (read_checkpoint(path)["model"] for path in (out, eval_checkpoint, other))
+    for key, value in soup.items():
+        if value.is_floating_point():  # the mean, element by element
+            assert torch.allclose(value.double(), (a[key].double() + b[key].double()) / 2,
+                                  atol=1e-6), key
+        else:
+            assert torch.equal(value, a[key]), key
+    source = read_checkpoint(out)["source"]
+    assert [entry["checkpoint"] for entry in source["averaged"]] == [eval_checkpoint.name,
+                                                                     "other.pt"]
+    # The baseline describes the averaged weights: recomputed with the loaded network.
+    predictor = load_model(out)
+    expected = baseline_prediction(predictor, train_dataset, 4)
+    for got, want in zip(predictor.baseline, expected, strict=True):
+        assert torch.allclose(got, want, atol=1e-5)
+    # Without --data no baseline is stored, and the command says so.
+    bare = tmp_path / "bare.pt"
+    assert main(["export", "--checkpoint", str(eval_checkpoint), str(other), "--out",
+                 str(bare)]) == 0
+    assert "baseline: none stored" in capsys.readouterr().out
+    assert load_model(bare).baseline is None
+
+
+def test_export_of_one_checkpoint_twice_predicts_as_the_checkpoint(eval_checkpoint, tmp_path):
+    single, twice = tmp_path / "single.pt", tmp_path / "twice.pt"
+    assert main(["export", "--checkpoint", str(eval_checkpoint), "--no-half", "--out",
+                 str(single)]) == 0
+    assert main(["export", "--checkpoint", str(eval_checkpoint), str(eval_checkpoint),
+                 "--no-half", "--out", str(twice)]) == 0
+    images = torch.rand(3, 64, 64, generator=torch.Generator().manual_seed(2))
+    a, b = load_model(single).predict(images), load_model(twice).predict(images)
+    assert torch.equal(a.assembly.params, b.assembly.params)
+    assert torch.equal(a.rotation, b.rotation)
+
+
+def _another_depth_prior(payload):  # the same weights' shapes, another network
+    payload["config"]["network"]["depth_prior"] = 2.5
+
+
+def _another_camera(payload):
+    payload["camera"] = {**payload["camera"], "fx": payload["camera"]["fx"] * 1.1}
+
+
+@pytest.mark.parametrize(("change", "named"), [(_another_depth_prior, "network.depth_prior"),
+                                               (_another_camera, "camera differs")])
+def test_export_refuses_to_average_different_networks(eval_checkpoint, tmp_path, capsys,
+                                                      change, named):
+    other = _perturbed(eval_checkpoint, tmp_path / "other.pt", 3, change)
+    out = tmp_path / "out" / "soup.pt"
+    assert main(["export", "--checkpoint", str(eval_checkpoint), str(other), "--out",
+                 str(out)]) == 2
+    line = error_line(capsys)
+    assert "other.pt" in line
+    assert named in line
+    assert not out.parent.exists()
+
+
+def test_average_weights_names_the_weight_that_differs():
+    from sq_mitsuba.model.weight_average import average_weights
+
+    a = {"w": torch.zeros(2, 3), "steps": torch.tensor(4)}
+    with pytest.raises(ValueError, match=r"b\.pt: lacks weight 'w'"):
+        average_weights([a, {"steps": torch.tensor(4)}], ["a.pt", "b.pt"])
+    with pytest.raises(ValueError, match=r"b\.pt: weight 'w' is torch.float32 \(3, 2\)"):
+        average_weights([a, {"w": torch.zeros(3, 2), "steps": torch.tensor(4)}],
+                        ["a.pt", "b.pt"])
+    mean = average_weights([a, {"w": torch.ones(2, 3), "steps": torch.tensor(9)}, a],
+                           ["a.pt", "b.pt", "c.pt"])
+    assert torch.equal(mean["w"], torch.full((2, 3), 1 / 3))
+    assert int(mean["steps"]) == 4  # integer counters: the first file's
+
+
+def test_export_averages_a_file_written_before_a_network_field_existed(eval_checkpoint,
+                                                                      tmp_path):
+    def older(payload):  # a file from before network.depth_head: it holds the default
+        payload["config"]["network"].pop("depth_head")
+
+    other = _perturbed(eval_checkpoint, tmp_path / "older.pt", 4, older)
+    assert main(["export", "--checkpoint", str(eval_checkpoint), str(other), "--out",
+                 str(tmp_path / "soup.pt")]) == 0
+
+
+def test_average_weights_of_half_and_single_precision_files():
+    from sq_mitsuba.model.weight_average import average_weights
+
+    single = {"w": torch.tensor([1.0, 2.0])}
+    half = {"w": torch.tensor([2.0, 4.0], dtype=torch.float16)}
+    mean = average_weights([single, half], ["single.pt", "half.pt"])
+    assert mean["w"].dtype == torch.float32 and torch.equal(mean["w"], torch.tensor([1.5, 3.0]))
+    with pytest.raises(ValueError, match=r"half\.pt: weight 'w' is torch.int64"):
+        average_weights([single, {"w": torch.tensor([2, 4])}], ["single.pt", "half.pt"])

@@ -13,6 +13,10 @@ alone. :func:`export_model` keeps what inference needs:
 - ``source``: where it came from (training step and epoch, dataset fingerprint and manifest
   hash, git commit, the run's validation history).
 
+Several checkpoints of one network, fine-tuned from one start, export as one: the average of
+their weights (:mod:`sq_mitsuba.model.weight_average`), its ``source`` listing each, its
+baseline computed over ``data_root`` (theirs describe their own weights and are not kept).
+
 Convention: half precision rounds each weight to 11 significant bits; the exported network's
 outputs differ from the float32 network's by ~1e-3 relative, far below what the metrics
 resolve (the model card's figures are measured with the exported file).
@@ -20,6 +24,8 @@ resolve (the model card's figures are measured with the exported file).
 
 from __future__ import annotations
 
+import os
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -36,6 +42,7 @@ from sq_mitsuba.model.checkpoint import (
     read_checkpoint,
     write_checkpoint,
 )
+from sq_mitsuba.model.weight_average import average_checkpoints
 
 __all__ = ["ExportOptions", "export_model"]
 
@@ -92,15 +99,16 @@ def baseline_data_note(payload: dict[str, Any], data_root: Path) -> str | None:
             f"baseline describes {data_root}")
 
 
-def export_model(checkpoint: str | Path, data_root: str | Path | None, out: str | Path,
-                 options: ExportOptions | None = None, notes: list[str] | None = None
-                 ) -> Path:
+def export_model(checkpoint: str | Path | Sequence[str | Path], data_root: str | Path | None,
+                 out: str | Path, options: ExportOptions | None = None,
+                 notes: list[str] | None = None) -> Path:
     """Write an inference checkpoint for ``checkpoint`` to ``out`` (atomically).
 
     Args:
-        checkpoint: a training checkpoint (or any checkpoint :func:`read_checkpoint` reads).
+        checkpoint: a training checkpoint (or any checkpoint :func:`read_checkpoint` reads),
+            or several of one network fine-tuned from one start: their weights' average.
         data_root: the training dataset (its train split gives the baseline); None: no
-            baseline is stored.
+            baseline is stored (for one checkpoint, one it stores is kept).
         out: the file to write; its folder is created.
         options: see :class:`ExportOptions`.
         notes: gets the lines worth saying (the CLI prints them): which images the
@@ -112,19 +120,27 @@ def export_model(checkpoint: str | Path, data_root: str | Path | None, out: str 
 
     Raises:
         ValueError / FileNotFoundError: a corrupt or mismatched checkpoint (or one whose
-            weights are not finite), ``out`` a folder, a dataset without training images
+            weights are not finite), checkpoints that are not of one network (a field, the
+            camera or a weight named), ``out`` a folder, a dataset without training images
             (or whose training images or points cannot be read), or ``data_root`` given for
-            a checkpoint that stores a baseline already (it would be replaced; without
+            one checkpoint that stores a baseline already (it would be replaced; without
             ``data_root`` it is kept); checked before ``out`` is touched.
     """
     options = options or ExportOptions()
     validate(options)
-    checkpoint, out = Path(checkpoint), Path(out)
+    paths = [Path(checkpoint)] if isinstance(checkpoint, (str, os.PathLike)) else \
+        [Path(path) for path in checkpoint]
+    if not paths:
+        raise ValueError("checkpoint: give at least one checkpoint to export")
+    out = Path(out)
     if out.is_dir():
         raise ValueError(f"out {out}: is a folder; give the file to write (e.g. "
                          f"{out / 'model.pt'})")
-    payload = read_checkpoint(checkpoint)
-    model_from_checkpoint(payload, str(checkpoint))  # refuse a mismatched file early
+    payloads = [read_checkpoint(path) for path in paths]
+    for path, payload in zip(paths, payloads, strict=True):
+        model_from_checkpoint(payload, str(path))  # refuse a mismatched file early
+    payload = payloads[0] if len(paths) == 1 else \
+        average_checkpoints(payloads, [str(path) for path in paths])
     check_output_folder(out.parent)
     notes = notes if notes is not None else []
     if data_root is not None:
@@ -132,22 +148,32 @@ def export_model(checkpoint: str | Path, data_root: str | Path | None, out: str 
 
         data_root = Path(data_root)
         if payload.get("baseline") is not None:
-            raise ValueError(f"{checkpoint}: stores a baseline already, which --data "
+            raise ValueError(f"{paths[0]}: stores a baseline already, which --data "
                              f"{data_root} would replace; export without --data to keep it")
         train = Spe3rDataset(data_root, "train", image_size=8, num_surface=1, num_occupancy=2)
         if len(train):
             train.check()  # images and points read by the baseline: refused before work
-        note = baseline_data_note(payload, data_root)
-        if note is not None:
-            notes.append(note)
+        trained_notes = [baseline_data_note(each, data_root) for each in payloads]
+        if all(note is not None for note in trained_notes):
+            notes.append(trained_notes[0] if len(paths) == 1 else
+                         f"{data_root} is none of the averaged checkpoints' training "
+                         f"datasets: the baseline describes {data_root}")
+    elif len(paths) > 1:
+        notes.append("baseline: none stored (each averaged checkpoint's describes its own "
+                     "weights); give --data for one")
+    sources = [{"checkpoint": path.name, **{key: each[key] for key in _SOURCE_KEYS
+                                            if key in each}}
+               for path, each in zip(paths, payloads, strict=True)]
+    if len(paths) > 1:  # an exported ingredient keeps its record in "source"
+        sources = [{**record, "source": each["source"]} if "source" in each else record
+                   for record, each in zip(sources, payloads, strict=True)]
     exported: dict[str, Any] = {
         "format": FORMAT,
         "version": VERSION,
         "config": payload["config"],
         "model": _exported_state(payload["model"], options.half),
         "camera": payload["camera"],
-        "source": {"checkpoint": checkpoint.name,
-                   **{key: payload[key] for key in _SOURCE_KEYS if key in payload}},
+        "source": sources[0] if len(paths) == 1 else {"averaged": sources},
     }
     if data_root is not None:
         from sq_mitsuba.evaluation.scoring import baseline_prediction
@@ -165,5 +191,5 @@ def export_model(checkpoint: str | Path, data_root: str | Path | None, out: str 
                      f"{data_root}")
     elif payload.get("baseline") is not None:
         exported["baseline"] = payload["baseline"]  # kept, not silently dropped
-        notes.append(f"baseline: kept from {checkpoint}")
+        notes.append(f"baseline: kept from {paths[0]}")
     return write_checkpoint(out, exported)

@@ -17,7 +17,13 @@ the run it came from; no optimiser, scheduler or RNG state. A --data that is not
 the checkpoint was trained on (by the fingerprint it records) is said in one line. The
 shipped model (sq_mitsuba/model/weights/model.pt) is such a file. Written atomically; a corrupt or
 mismatched checkpoint, or a dataset without training images, is a one-line error (exit 2)
-before anything is written."""
+before anything is written.
+
+Several checkpoints (--checkpoint A.pt B.pt ...) of one network, fine-tuned from one start
+(e.g. each from the shipped model on a different library), export as the average of their
+weights: a "model soup", which can read data unlike the training data better than each
+(docs/training.md). Their network configuration, camera and weights must match (else a
+one-line error naming what differs); the baseline is computed over --data."""
 
 FLAGS = {"half": "--half", "baseline_images": "--baseline-images"}
 
@@ -27,8 +33,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
     parser = subparsers.add_parser("export", help=HELP, description=DESCRIPTION,
                                    formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--checkpoint", type=Path, required=True, metavar="PT",
-                        help="training checkpoint (e.g. RUN/best.pt)")
+    parser.add_argument("--checkpoint", type=Path, required=True, nargs="+", metavar="PT",
+                        help="training checkpoint (e.g. RUN/best.pt); several of one network: "
+                             "their weights averaged")
     parser.add_argument("--data", type=Path, default=None, metavar="DIR",
                         help="the training dataset, for the baseline (default: no baseline)")
     parser.add_argument("--out", type=Path, required=True, metavar="PT",
@@ -44,7 +51,8 @@ def _run(args: argparse.Namespace) -> int:
     from sq_mitsuba.apps.export import ExportOptions, export_model
 
     notes: list[str] = []
-    path = export_model(args.checkpoint, args.data, args.out,
+    checkpoint = args.checkpoint[0] if len(args.checkpoint) == 1 else args.checkpoint
+    path = export_model(checkpoint, args.data, args.out,
                         config_from_args(ExportOptions, args), notes=notes)
     for note in notes:
         print(f"note: {note}")
