@@ -662,3 +662,42 @@ def test_checkpoint_records_everything(reference_run, train_dataset):
     assert (reference_run / "curves.png").stat().st_size > 0
     lrs = [float(r["lr"]) for r in _rows(reference_run / "log.csv")]
     assert lrs == pytest.approx([1e-3 * cosine_lr_factor(s, 12) for s in range(12)], rel=1e-6)
+
+
+# ------------------------------------------------------------------------ shards
+
+
+def test_shards_train_each_shard_and_average_them(reference_run, train_dataset, tmp_path):
+    """train/shards.sh: the shards split the training models (disjoint, all of them), each
+    holds every test model, each trains from the common start, and the average is exported;
+    a wrong K is one line and exit 2 before any folder is made."""
+    env = {**os.environ, "SQ": f"{sys.executable} -m sq_mitsuba", "CONFIG": str(TINY),
+           "INIT": str(reference_run / "last.pt")}
+    script = str(ROOT / "train" / "shards.sh")
+    out = tmp_path / "shards"
+    result = subprocess.run(["bash", script, str(train_dataset), str(out), "2", "--max-steps",
+                             "2", "--quiet"], capture_output=True, text=True, timeout=600,
+                            env=env)
+    assert result.returncode == 0, result.stderr
+    splits = [dict(line.split(",") for line in
+                   (out / f"shard_{k}" / "data" / "splits.csv").read_text().split())
+              for k in range(2)]
+    everything = dict(line.split(",") for line in
+                      (train_dataset / "splits.csv").read_text().split())
+    trained = [{m for m, s in split.items() if s == "train"} for split in splits]
+    assert not trained[0] & trained[1] and all(trained)
+    assert trained[0] | trained[1] == {m for m, s in everything.items() if s == "train"}
+    for split in splits:
+        assert {m for m, s in split.items() if s == "test"} == \
+            {m for m, s in everything.items() if s == "test"}
+    for k in range(2):
+        assert _read_checkpoint(out / f"shard_{k}" / "run" / "last.pt")["step"] == 2
+    from sq_mitsuba.model.checkpoint import read_checkpoint
+
+    source = read_checkpoint(out / "model.pt")["source"]
+    assert [entry["step"] for entry in source["averaged"]] == [2, 2]
+    for k in ("1", "x"):
+        refused = subprocess.run(["bash", script, str(train_dataset), str(tmp_path / "no"), k],
+                                 capture_output=True, text=True, timeout=60, env=env)
+        assert refused.returncode == 2 and refused.stderr.count("\n") == 1, k
+        assert not (tmp_path / "no").exists()
