@@ -83,19 +83,23 @@ def _trained_on(payload: dict[str, Any]) -> dict[str, Any]:
     return record if isinstance(record, dict) else {}
 
 
-def baseline_data_note(payload: dict[str, Any], data_root: Path) -> str | None:
-    """One line when ``data_root`` is not the dataset the checkpoint was trained on (by the
-    content fingerprint it records), else None."""
+def baseline_data_note(payloads: Sequence[dict[str, Any]], data_root: Path) -> str | None:
+    """One line when ``data_root`` is none of the datasets the checkpoints were trained on (by
+    the content fingerprints they record; ``data_root`` is hashed once), else None."""
     from sq_mitsuba.training.cache import dataset_fingerprint
 
-    recorded = _trained_on(payload).get("fingerprint")
-    if not isinstance(recorded, str):
+    recorded = [_trained_on(payload).get("fingerprint") for payload in payloads]
+    known = [fingerprint for fingerprint in recorded if isinstance(fingerprint, str)]
+    if known and dataset_fingerprint(data_root) in known:
+        return None
+    if len(payloads) > 1:
+        return (f"{data_root} is none of the averaged checkpoints' training datasets: the "
+                f"baseline describes {data_root}")
+    if not known:
         return (f"the checkpoint records no training dataset: the baseline describes "
                 f"{data_root}, which may not be the one it was trained on")
-    if dataset_fingerprint(data_root) == recorded:
-        return None
     return (f"{data_root} is not the dataset the checkpoint was trained on "
-            f"({_trained_on(payload).get('root')}, fingerprint {recorded[:12]}): the "
+            f"({_trained_on(payloads[0]).get('root')}, fingerprint {known[0][:12]}): the "
             f"baseline describes {data_root}")
 
 
@@ -153,11 +157,9 @@ def export_model(checkpoint: str | Path | Sequence[str | Path], data_root: str |
         train = Spe3rDataset(data_root, "train", image_size=8, num_surface=1, num_occupancy=2)
         if len(train):
             train.check()  # images and points read by the baseline: refused before work
-        trained_notes = [baseline_data_note(each, data_root) for each in payloads]
-        if all(note is not None for note in trained_notes):
-            notes.append(trained_notes[0] if len(paths) == 1 else
-                         f"{data_root} is none of the averaged checkpoints' training "
-                         f"datasets: the baseline describes {data_root}")
+        note = baseline_data_note(payloads, data_root)
+        if note is not None:
+            notes.append(note)
     elif len(paths) > 1:
         notes.append("baseline: none stored (each averaged checkpoint's describes its own "
                      "weights); give --data for one")

@@ -48,6 +48,7 @@ __all__ = [
     "SHIPPED_MODEL",
     "VERSION",
     "checkpoint_baseline",
+    "checkpoint_network_config",
     "checkpoint_payload",
     "grown_generators",
     "load_weights",
@@ -90,7 +91,13 @@ def _check_loadable(value: Any, where: str) -> None:
                      "(use dicts, lists, strings, numbers, None and tensors)")
 
 
-def _network_config(payload: Mapping[str, Any], where: str) -> NetworkConfig:
+def checkpoint_network_config(payload: Mapping[str, Any], where: str) -> NetworkConfig:
+    """The :class:`NetworkConfig` a checkpoint dictionary holds (a field a file written before
+    it existed takes its default).
+
+    Raises:
+        ValueError: ``<where>: ...`` when ``config.network`` is missing or invalid.
+    """
     config = payload.get("config")
     if not isinstance(config, Mapping) or not isinstance(config.get("network"), Mapping):
         raise ValueError(f"{where}: 'config' must be a dict with a 'network' dict")
@@ -153,7 +160,7 @@ def write_checkpoint(path: str | os.PathLike[str], payload: dict[str, Any]) -> P
         Camera.from_speed_dict(dict(payload["camera"]))
     except ValueError as error:
         raise ValueError(f"payload.camera: {error}") from None
-    _network_config(payload, "payload")
+    checkpoint_network_config(payload, "payload")
     _check_loadable({k: v for k, v in payload.items() if k != "model"}, "payload")
     payload["model"] = dict(payload["model"])  # an OrderedDict loads too, but keep it plain
     with atomic_path(path) as tmp:
@@ -280,7 +287,7 @@ def model_from_checkpoint(payload: Mapping[str, Any],
     Raises:
         ValueError: ``<where>: ...`` when the config, weights or camera do not fit.
     """
-    config = dataclasses.replace(_network_config(payload, where), pretrained=None)
+    config = dataclasses.replace(checkpoint_network_config(payload, where), pretrained=None)
     model = SuperquadricNet(config)
     load_weights(model, payload["model"], where)
     try:
@@ -303,7 +310,7 @@ def checkpoint_baseline(payload: Mapping[str, Any],
     entry = payload.get("baseline")
     if entry is None:
         return None
-    shapes = {"raw": (1, _network_config(payload, where).num_primitives, 16),
+    shapes = {"raw": (1, checkpoint_network_config(payload, where).num_primitives, 16),
               "rotation": (1, 3, 3), "translation": (1, 3)}
     if not isinstance(entry, Mapping) or set(entry) != set(shapes):
         raise ValueError(f"{where}: baseline must hold exactly {sorted(shapes)}")

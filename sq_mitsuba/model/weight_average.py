@@ -24,8 +24,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from sq_mitsuba.config import ConfigError, from_dict
-from sq_mitsuba.model.network_config import NetworkConfig
+from sq_mitsuba.model.checkpoint import checkpoint_network_config
 
 __all__ = ["average_checkpoints", "average_weights"]
 
@@ -89,14 +88,15 @@ def average_checkpoints(payloads: Sequence[Mapping[str, Any]], names: Sequence[s
             named), camera or weights differ from the first's.
     """
     first = payloads[0]
-    network = _network(first, names[0])
+    # Every field filled: a file written before a field existed holds its default.
+    network = dataclasses.asdict(checkpoint_network_config(first, names[0]))
     for payload, name in zip(payloads[1:], names[1:], strict=True):
-        other = _network(payload, name)
-        for field in sorted(set(network) | set(other)):
-            if field not in _IRRELEVANT and network.get(field) != other.get(field):
-                raise ValueError(f"{name}: network.{field} is {other.get(field)!r}, "
-                                 f"{names[0]} has {network.get(field)!r}: only fine-tunes of "
-                                 "one network can be averaged")
+        other = dataclasses.asdict(checkpoint_network_config(payload, name))
+        for field, value in network.items():
+            if field not in _IRRELEVANT and other[field] != value:
+                raise ValueError(f"{name}: network.{field} is {other[field]!r}, "
+                                 f"{names[0]} has {value!r}: only fine-tunes of one network "
+                                 "can be averaged")
         if dict(payload["camera"]) != dict(first["camera"]):
             raise ValueError(f"{name}: its camera differs from {names[0]}'s: the networks "
                              "read images of different cameras")
@@ -104,15 +104,3 @@ def average_checkpoints(payloads: Sequence[Mapping[str, Any]], names: Sequence[s
     return {"format": first["format"], "version": first["version"], "config": first["config"],
             "model": weights, "camera": first["camera"]}
 
-
-def _network(payload: Mapping[str, Any], name: str) -> dict[str, Any]:
-    """The payload's network configuration, every field filled (a file written before a field
-    existed holds its default)."""
-    config = payload.get("config")
-    network = config.get("network") if isinstance(config, Mapping) else None
-    if not isinstance(network, Mapping):
-        raise ValueError(f"{name}: 'config' must be a dict with a 'network' dict")
-    try:
-        return dataclasses.asdict(from_dict(NetworkConfig, network, "config.network"))
-    except ConfigError as error:
-        raise ValueError(f"{name}: {error}") from None
