@@ -701,3 +701,36 @@ def test_shards_train_each_shard_and_average_them(reference_run, train_dataset, 
                                  capture_output=True, text=True, timeout=60, env=env)
         assert refused.returncode == 2 and refused.stderr.count("\n") == 1, k
         assert not (tmp_path / "no").exists()
+
+
+def test_shards_keep_puts_matching_models_in_every_shard(tmp_path):
+    """KEEP: the training models whose names match are in every shard and only the others are
+    split (disjoint, all of them); SPLIT_ONLY=1 makes the folders and trains nothing."""
+    data = tmp_path / "data"
+    data.mkdir()
+    kept = ["sc000_twin_wing", "sc001_cubesat"]
+    split = [f"cs{i:05d}_smallsat" for i in range(5)] + ["pg00000_part_graph"]
+    tests = ["cs00009_observatory"]
+    (data / "splits.csv").write_text("".join(
+        f"{m},train\n" for m in kept + split) + "".join(f"{m},test\n" for m in tests))
+    for name in ("camera.json", "dataset.json"):
+        (data / name).write_text("{}")
+    for model in kept + split + tests:
+        (data / model).mkdir()
+    env = {**os.environ, "KEEP": "^sc[0-9]{3}_", "SPLIT_ONLY": "1",
+           "SQ": "false"}  # nothing is trained: a call of SQ would fail the script
+    out = tmp_path / "shards"
+    result = subprocess.run(["bash", str(ROOT / "train" / "shards.sh"), str(data), str(out), "3"],
+                            capture_output=True, text=True, timeout=60, env=env)
+    assert result.returncode == 0, result.stderr
+    shards = [dict(line.split(",") for line in
+                   (out / f"shard_{k}" / "data" / "splits.csv").read_text().split())
+              for k in range(3)]
+    trained = [{m for m, s in shard.items() if s == "train"} for shard in shards]
+    assert all(set(kept) <= t for t in trained)
+    rest = [t - set(kept) for t in trained]
+    assert [len(r) for r in rest] == [2, 2, 2]
+    assert set().union(*rest) == set(split) and sum(map(len, rest)) == len(split)
+    assert all({m for m, s in shard.items() if s == "test"} == set(tests) for shard in shards)
+    assert (out / "shard_0" / "data" / kept[0]).resolve() == (data / kept[0]).resolve()
+    assert not (out / "shard_0" / "run").exists() and not (out / "model.pt").exists()

@@ -6,7 +6,10 @@
 #   train/shards.sh DATA OUT K [train options, e.g. --set optim.epochs=14]
 #
 # (1) OUT/shard_<k>/data: a dataset folder per shard (links into DATA): every K-th training
-#     model of DATA in name order, starting at the k-th, and all of DATA's test models.
+#     model of DATA in name order, starting at the k-th, and all of DATA's test models. With
+#     KEEP (an extended regular expression), the training models whose names match it are in
+#     every shard and only the others are split (e.g. KEEP='^sc[0-9]{3}_': the archetypes at
+#     the share they have in DATA's training images times K).
 # (2) One run per shard into OUT/shard_<k>/run: `train --config CONFIG --set init_from=INIT`
 #     and the options given, resumed when the run folder holds last.pt; one shard after
 #     another, or with ONLY=k just shard k (one shard per machine, the folders shared).
@@ -15,7 +18,9 @@
 #
 # Environment: SQ (the command; default .venv/bin/sq-mitsuba), CONFIG (default
 # train/configs/broad_chamfer100.toml), INIT (the common start; default the shipped model),
-# ONLY (one shard's index). Wrong arguments are one line and exit 2 before any work.
+# ONLY (one shard's index), KEEP (above), SPLIT_ONLY=1 (make the shard folders, then stop:
+# train/gpu_recipe.sh trains them side by side). Wrong arguments are one line and exit 2
+# before any work.
 set -euo pipefail
 HERE=$(cd "$(dirname "$0")" && pwd)
 SQ=${SQ:-$HERE/../.venv/bin/sq-mitsuba}
@@ -29,8 +34,12 @@ OUT=$2; K=$3; shift 3
 [[ $K =~ ^[0-9]+$ ]] && [ "$K" -ge 2 ] || fail "K: expected a whole number of shards >= 2, got $K"
 [ -f "$CONFIG" ] || fail "CONFIG $CONFIG: no such file"
 [ -f "$INIT" ] || fail "INIT $INIT: no such file"
-mapfile -t TRAIN < <(grep ',train$' "$DATA/splits.csv" | cut -d, -f1 | LC_ALL=C sort)
-[ "${#TRAIN[@]}" -ge "$K" ] || fail "K: $K shards of ${#TRAIN[@]} training models"
+mapfile -t MODELS < <(grep ',train$' "$DATA/splits.csv" | cut -d, -f1 | LC_ALL=C sort)
+TRAIN=() KEPT=()
+for model in "${MODELS[@]}"; do
+  if [ -n "${KEEP:-}" ] && [[ $model =~ $KEEP ]]; then KEPT+=("$model"); else TRAIN+=("$model"); fi
+done
+[ "${#TRAIN[@]}" -ge "$K" ] || fail "K: $K shards of ${#TRAIN[@]} training models${KEEP:+ not matching KEEP}"
 if [ -n "${ONLY:-}" ]; then
   [[ $ONLY =~ ^[0-9]+$ ]] && [ "$ONLY" -lt "$K" ] || fail "ONLY: expected a shard index below $K, got $ONLY"
 fi
@@ -41,6 +50,7 @@ for ((k = 0; k < K; k++)); do
   mkdir -p "$shard.tmp"
   cp "$DATA/camera.json" "$DATA/dataset.json" "$shard.tmp/"
   grep ',test$' "$DATA/splits.csv" > "$shard.tmp/splits.csv" || true
+  for model in "${KEPT[@]}"; do echo "$model,train"; done >> "$shard.tmp/splits.csv"
   for ((i = k; i < ${#TRAIN[@]}; i += K)); do echo "${TRAIN[i]},train"; done \
     >> "$shard.tmp/splits.csv"
   cut -d, -f1 "$shard.tmp/splits.csv" | while read -r model; do
@@ -48,6 +58,7 @@ for ((k = 0; k < K; k++)); do
   done
   mv "$shard.tmp" "$shard"
 done
+[ "${SPLIT_ONLY:-}" = 1 ] && exit 0
 
 for ((k = 0; k < K; k++)); do
   [ -n "${ONLY:-}" ] && [ "$k" != "$ONLY" ] && continue
