@@ -196,3 +196,58 @@ def test_average_weights_of_half_and_single_precision_files():
     assert mean["w"].dtype == torch.float32 and torch.equal(mean["w"], torch.tensor([1.5, 3.0]))
     with pytest.raises(ValueError, match=r"half\.pt: weight 'w' is torch.int64"):
         average_weights([single, {"w": torch.tensor([2, 4])}], ["single.pt", "half.pt"])
+
+
+def _seeded(seed: int):
+    def change(payload):  # a run's config records the seed that drew its new layers
+        payload["config"]["seed"] = seed
+    return change
+
+
+def test_export_goes_part_way_back_to_the_start(eval_checkpoint, tmp_path, capsys):
+    """--start S --start-share s: s x the start + (1 - s) x the fine-tunes' average, element
+    by element (the start already the fine-tunes' network: nothing to grow), with the start
+    named in the source by file and content digest."""
+    import hashlib
+
+    start = _perturbed(eval_checkpoint, tmp_path / "start.pt", 5, _seeded(7))
+    a = _perturbed(eval_checkpoint, tmp_path / "a.pt", 6, _seeded(7))
+    b = _perturbed(eval_checkpoint, tmp_path / "b.pt", 7, _seeded(7))
+    out = tmp_path / "wise.pt"
+    assert main(["export", "--checkpoint", str(a), str(b), "--start", str(start),
+                 "--start-share", "0.25", "--no-half", "--out", str(out)]) == 0
+    got = read_checkpoint(out)["model"]
+    s, fa, fb = (read_checkpoint(path)["model"] for path in (start, a, b))
+    for key, value in got.items():
+        if value.is_floating_point():
+            want = 0.25 * s[key].double() + 0.75 * (fa[key].double() + fb[key].double()) / 2
+            assert torch.allclose(value.double(), want, atol=1e-6), key
+    source = read_checkpoint(out)["source"]
+    assert [entry["checkpoint"] for entry in source["averaged"]] == ["a.pt", "b.pt"]
+    assert source["start"] == {"checkpoint": "start.pt", "share": 0.25, "sha256":
+                               hashlib.sha256(start.read_bytes()).hexdigest()}
+    # One fine-tune and its start, halfway: the start's share is what moves the weights.
+    half = tmp_path / "half.pt"
+    assert main(["export", "--checkpoint", str(a), "--start", str(start), "--no-half",
+                 "--out", str(half)]) == 0
+    weights = read_checkpoint(half)["model"]
+    key = next(k for k, v in weights.items() if v.is_floating_point())
+    assert torch.allclose(weights[key].double(), (s[key].double() + fa[key].double()) / 2,
+                          atol=1e-6)
+    assert "baseline: none stored" in capsys.readouterr().out
+
+
+def test_export_with_a_start_refuses_other_seeds_and_whole_shares(eval_checkpoint, tmp_path,
+                                                                  capsys):
+    start = _perturbed(eval_checkpoint, tmp_path / "start.pt", 5, _seeded(7))
+    a = _perturbed(eval_checkpoint, tmp_path / "a.pt", 6, _seeded(7))
+    b = _perturbed(eval_checkpoint, tmp_path / "b.pt", 7, _seeded(8))
+    out = tmp_path / "out" / "wise.pt"
+    assert main(["export", "--checkpoint", str(a), str(b), "--start", str(start), "--out",
+                 str(out)]) == 2
+    line = error_line(capsys)
+    assert "b.pt: config.seed is 8" in line
+    assert main(["export", "--checkpoint", str(a), "--start", str(start), "--start-share",
+                 "1", "--out", str(out)]) == 2
+    assert "--start-share: expected a value in [0, 0.99], got 1" in error_line(capsys)
+    assert not out.parent.exists()

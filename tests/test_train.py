@@ -734,3 +734,34 @@ def test_shards_keep_puts_matching_models_in_every_shard(tmp_path):
     assert all({m for m, s in shard.items() if s == "test"} == set(tests) for shard in shards)
     assert (out / "shard_0" / "data" / kept[0]).resolve() == (data / kept[0]).resolve()
     assert not (out / "shard_0" / "run").exists() and not (out / "model.pt").exists()
+
+
+def test_fine_tune_start_is_the_start_training_grew(reference_run, train_dataset, cache_dir,
+                                                    tmp_path):
+    """weight_average.fine_tune_start rebuilds, bit for bit, the weights a fine-tune began
+    from: a run from reference_run's checkpoint grown to 3 primitives with existence (a layer
+    the file lacks, drawn from the seed), one step with only the pose head trained, so every
+    other weight and the frozen modules' statistics are still the start's."""
+    from sq_mitsuba.model.checkpoint import checkpoint_network_config, read_checkpoint
+    from sq_mitsuba.model.weight_average import fine_tune_start
+
+    start_file = reference_run / "last.pt"
+    config = apply_overrides(load_train_config(TINY), [
+        f"data.cache_dir={cache_dir}", f'init_from="{start_file}"', "network.existence=true",
+        "network.num_primitives=3", 'optim.trainable=["pose_head."]'])
+    out = tmp_path / "grown"
+    train(config, train_dataset, out, progress=False, max_steps=1)
+    payload = read_checkpoint(out / "last.pt")
+    start_state = read_checkpoint(start_file)["model"]
+    network = checkpoint_network_config(payload, "run")
+    start = fine_tune_start(start_state, network, payload["config"]["seed"], str(start_file))
+    assert set(start) == set(payload["model"])
+    trained = [key for key in start if key.startswith("pose_head.")]
+    assert trained and any(not torch.equal(payload["model"][k], start[k]) for k in trained)
+    for key, value in payload["model"].items():
+        if not key.startswith("pose_head."):
+            assert torch.equal(value, start[key]), key
+    # The grown layers come from the seed: another seed draws other weights there.
+    other = fine_tune_start(start_state, network, payload["config"]["seed"] + 1, "start")
+    grown = [key for key in start if not torch.equal(start[key], other[key])]
+    assert grown and all(key.startswith("sq_generator.") for key in grown)

@@ -16,6 +16,8 @@ alone. :func:`export_model` keeps what inference needs:
 Several checkpoints of one network, fine-tuned from one start, export as one: the average of
 their weights (:mod:`sq_mitsuba.model.weight_average`), its ``source`` listing each, its
 baseline computed over ``data_root`` (theirs describe their own weights and are not kept).
+With ``start`` (the file they were fine-tuned from) that average goes part way back to the
+start: ``start_share`` x the start + (1 - ``start_share``) x the fine-tunes' average.
 
 Convention: half precision rounds each weight to 11 significant bits; the exported network's
 outputs differ from the float32 network's by ~1e-3 relative, far below what the metrics
@@ -62,6 +64,9 @@ class ExportOptions:
     "Training images (spread evenly) whose mean prediction and mean pose make the baseline."
     batch_size: int = in_range(1, 4096, default=32)
     "Images per network batch while computing the baseline."
+    start_share: float = in_range(0.0, 0.99, default=0.5)
+    """With a ``start`` checkpoint: its share of the exported weights, the fine-tunes' average
+    the rest (0: the average alone)."""
 
 
 def _exported_state(state: dict[str, torch.Tensor], half: bool) -> dict[str, torch.Tensor]:
@@ -71,6 +76,17 @@ def _exported_state(state: dict[str, torch.Tensor], half: bool) -> dict[str, tor
         value = value.detach().cpu()
         out[key] = value.half() if half and value.is_floating_point() else value.clone()
     return out
+
+
+def _file_sha256(path: Path) -> str:
+    """sha256 (hex) of a file's bytes: which start an export went back to, by content."""
+    import hashlib
+
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
 
 
 def _trained_on(payload: dict[str, Any]) -> dict[str, Any]:
@@ -105,7 +121,7 @@ def baseline_data_note(payloads: Sequence[dict[str, Any]], data_root: Path) -> s
 
 def export_model(checkpoint: str | Path | Sequence[str | Path], data_root: str | Path | None,
                  out: str | Path, options: ExportOptions | None = None,
-                 notes: list[str] | None = None) -> Path:
+                 notes: list[str] | None = None, start: str | Path | None = None) -> Path:
     """Write an inference checkpoint for ``checkpoint`` to ``out`` (atomically).
 
     Args:
@@ -115,6 +131,10 @@ def export_model(checkpoint: str | Path | Sequence[str | Path], data_root: str |
             baseline is stored (for one checkpoint, one it stores is kept).
         out: the file to write; its folder is created.
         options: see :class:`ExportOptions`.
+        start: the checkpoint ``checkpoint`` was fine-tuned from (its ``init_from``, e.g. the
+            shipped model), or None. Given, the exported weights are ``options.start_share``
+            x the start, grown to the fine-tunes' network as training grew it, plus the rest
+            x the fine-tunes' average.
         notes: gets the lines worth saying (the CLI prints them): which images the
             baseline describes, and that ``data_root`` is not the checkpoint's training
             dataset (by the fingerprint the checkpoint records) when it is not.
@@ -143,8 +163,22 @@ def export_model(checkpoint: str | Path | Sequence[str | Path], data_root: str |
     payloads = [read_checkpoint(path) for path in paths]
     for path, payload in zip(paths, payloads, strict=True):
         model_from_checkpoint(payload, str(path))  # refuse a mismatched file early
-    payload = payloads[0] if len(paths) == 1 else \
-        average_checkpoints(payloads, [str(path) for path in paths])
+    start_record = None
+    if start is not None:
+        start = Path(start)
+        start_payload = read_checkpoint(start)
+        payload = average_checkpoints(payloads, [str(path) for path in paths],
+                                      (start_payload, str(start)), options.start_share)
+        start_record = {"checkpoint": start.name, "share": options.start_share,
+                        "sha256": _file_sha256(start)}
+        recorded = {str(each["config"].get("init_from")) for each in payloads}
+        if recorded != {str(start)} and {Path(r).name for r in recorded} != {start.name}:
+            notes = notes if notes is not None else []
+            notes.append(f"start {start}: the checkpoints record init_from "
+                         f"{', '.join(sorted(recorded))}")
+    else:
+        payload = payloads[0] if len(paths) == 1 else \
+            average_checkpoints(payloads, [str(path) for path in paths])
     check_output_folder(out.parent)
     notes = notes if notes is not None else []
     if data_root is not None:
@@ -160,13 +194,14 @@ def export_model(checkpoint: str | Path | Sequence[str | Path], data_root: str |
         note = baseline_data_note(payloads, data_root)
         if note is not None:
             notes.append(note)
-    elif len(paths) > 1:
+    elif len(paths) > 1 or start is not None:
         notes.append("baseline: none stored (each averaged checkpoint's describes its own "
                      "weights); give --data for one")
     sources = [{"checkpoint": path.name, **{key: each[key] for key in _SOURCE_KEYS
                                             if key in each}}
                for path, each in zip(paths, payloads, strict=True)]
-    if len(paths) > 1:  # an exported ingredient keeps its record in "source"
+    averaged = len(paths) > 1 or start is not None
+    if averaged:  # an exported ingredient keeps its record in "source"
         sources = [{**record, "source": each["source"]} if "source" in each else record
                    for record, each in zip(sources, payloads, strict=True)]
     exported: dict[str, Any] = {
@@ -175,8 +210,10 @@ def export_model(checkpoint: str | Path | Sequence[str | Path], data_root: str |
         "config": payload["config"],
         "model": _exported_state(payload["model"], options.half),
         "camera": payload["camera"],
-        "source": sources[0] if len(paths) == 1 else {"averaged": sources},
+        "source": {"averaged": sources} if averaged else sources[0],
     }
+    if start_record is not None:
+        exported["source"]["start"] = start_record
     if data_root is not None:
         from sq_mitsuba.evaluation.scoring import baseline_prediction
 

@@ -23,9 +23,13 @@ Several checkpoints (--checkpoint A.pt B.pt ...) of one network, fine-tuned from
 (e.g. each from the shipped model on a different library), export as the average of their
 weights: a "model soup", which can read data unlike the training data better than each
 (docs/training.md). Their network configuration, camera and weights must match (else a
-one-line error naming what differs); the baseline is computed over --data."""
+one-line error naming what differs); the baseline is computed over --data. With --start
+(the file they were fine-tuned from, e.g. the shipped model), the weights go part way back to
+it: --start-share x the start + the rest x the fine-tunes' average, which keeps more of what
+the start read well (WiSE-FT; docs/training.md)."""
 
-FLAGS = {"half": "--half", "baseline_images": "--baseline-images"}
+FLAGS = {"half": "--half", "baseline_images": "--baseline-images",
+         "start_share": "--start-share"}
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -40,7 +44,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="the training dataset, for the baseline (default: no baseline)")
     parser.add_argument("--out", type=Path, required=True, metavar="PT",
                         help="inference checkpoint to write")
+    parser.add_argument("--start", type=Path, default=None, metavar="PT",
+                        help="the checkpoint the --checkpoint files were fine-tuned from "
+                             "(their init_from): the export goes --start-share of the way "
+                             "back to it (default: none, the average alone)")
     add_config_options(parser, ExportOptions, FLAGS, helps={
+        "start_share": "With --start: its share of the exported weights, the fine-tunes' "
+                       "average the rest",
         "half": "Store floating-point weights in half precision: half the file size; the "
                 "network's outputs change by about 1e-3 relative, below what the metrics "
                 "resolve"})
@@ -53,7 +63,7 @@ def _run(args: argparse.Namespace) -> int:
     notes: list[str] = []
     checkpoint = args.checkpoint[0] if len(args.checkpoint) == 1 else args.checkpoint
     path = export_model(checkpoint, args.data, args.out,
-                        config_from_args(ExportOptions, args), notes=notes)
+                        config_from_args(ExportOptions, args), notes=notes, start=args.start)
     for note in notes:
         print(f"note: {note}")
     print(f"wrote {path} ({path.stat().st_size / 2**20:.1f} MiB)")

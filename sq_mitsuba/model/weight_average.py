@@ -13,6 +13,13 @@ and single precision average alike); integer tensors
 (BatchNorm's step counters) are the first checkpoint's. Networks that did not share a start
 have no common basin and average to nonsense; that cannot be read from the files, so only
 what can is checked: one network configuration, one camera, the same tensors.
+
+The start itself can join the average (:func:`fine_tune_start`, ``start_share``): weights part
+way back from the fine-tunes to the network they began from, which keep more of what the start
+read well (Wortsman et al. 2022, "Robust fine-tuning of zero-shot models", WiSE-FT: the
+interpolation reads data unlike the fine-tunes' better than either end). Here the start is
+the shipped model, good on its own archetypes, and the fine-tunes read unseen families better
+(eval/MODEL_CARD.md, "Back towards the start").
 """
 
 from __future__ import annotations
@@ -24,9 +31,10 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from sq_mitsuba.model.checkpoint import checkpoint_network_config
+from sq_mitsuba.model.checkpoint import checkpoint_network_config, load_weights
+from sq_mitsuba.model.network import NetworkConfig, SuperquadricNet
 
-__all__ = ["average_checkpoints", "average_weights"]
+__all__ = ["average_checkpoints", "average_weights", "fine_tune_start"]
 
 #: Network fields that do not change the network a checkpoint holds: the ImageNet file the
 #: encoder started from (replaced by the checkpoint's own weights when it loads).
@@ -77,16 +85,52 @@ def average_weights(states: Sequence[Mapping[str, Tensor]], names: Sequence[str]
     return averaged
 
 
-def average_checkpoints(payloads: Sequence[Mapping[str, Any]], names: Sequence[str]
-                        ) -> dict[str, Any]:
+def fine_tune_start(start: Mapping[str, Tensor], network: NetworkConfig, seed: int,
+                    where: str) -> dict[str, Tensor]:
+    """The weights a fine-tune began from: the network of ``network`` built after
+    ``torch.manual_seed(seed)``, then ``start``'s weights loaded into it as training's
+    ``init_from`` loads them (layers the file lacks keep that seeded initialisation; a file
+    of fewer primitives grows, :func:`~sq_mitsuba.model.checkpoint.load_weights`).
+
+    Args:
+        start: the state dict of the file the fine-tunes name in ``init_from``.
+        network: their network configuration.
+        seed: their config's ``seed`` (it draws the layers the file lacks).
+        where: names the start in errors.
+
+    Returns:
+        The state dict (CPU, float32 weights), key for key a fine-tune's.
+
+    Raises:
+        ValueError: ``<where>: weights do not fit config.network (...)``.
+    """
+    torch.manual_seed(seed)
+    model = SuperquadricNet(network)
+    load_weights(model, start, where, partial=True)
+    return {key: value.detach().clone() for key, value in model.state_dict().items()}
+
+
+def average_checkpoints(payloads: Sequence[Mapping[str, Any]], names: Sequence[str],
+                        start: tuple[Mapping[str, Any], str] | None = None,
+                        start_share: float = 0.0) -> dict[str, Any]:
     """A checkpoint dictionary whose weights average ``payloads``' (read by
     :func:`~sq_mitsuba.model.checkpoint.read_checkpoint`), with the first one's config and
     camera; no baseline (each payload's describes its own weights) and no training state.
 
+    Args:
+        payloads, names: the checkpoints (one or more) and their names for the errors.
+        start: (the checkpoint the payloads were fine-tuned from, its name), or None.
+        start_share: with ``start``, the weights are ``start_share`` x the start (grown to
+            the payloads' network by :func:`fine_tune_start` with their seed) plus
+            ``1 - start_share`` x the payloads' average.
+
     Raises:
         ValueError: ``<name>: ...`` for a payload whose network configuration (a field
-            named), camera or weights differ from the first's.
+            named), camera, seed (with ``start``) or weights differ from the first's, or a
+            start whose weights do not fit the network.
     """
+    if start is not None and not 0.0 <= start_share < 1.0:
+        raise ValueError(f"start_share: expected a share in [0, 1), got {start_share}")
     first = payloads[0]
     # Every field filled: a file written before a field existed holds its default.
     network = dataclasses.asdict(checkpoint_network_config(first, names[0]))
@@ -101,6 +145,21 @@ def average_checkpoints(payloads: Sequence[Mapping[str, Any]], names: Sequence[s
             raise ValueError(f"{name}: its camera differs from {names[0]}'s: the networks "
                              "read images of different cameras")
     weights = average_weights([payload["model"] for payload in payloads], names)
+    if start is not None:
+        seeds = [payload["config"].get("seed") for payload in payloads]
+        for seed, name in zip(seeds[1:], names[1:], strict=True):
+            if seed != seeds[0]:
+                raise ValueError(f"{name}: config.seed is {seed!r}, {names[0]} has {seeds[0]!r}: "
+                                 "fine-tunes of one start share the seed that drew its new "
+                                 "layers")
+        if not isinstance(seeds[0], int):
+            raise ValueError(f"{names[0]}: config.seed is {seeds[0]!r}, expected the run's "
+                             "integer seed (it drew the start's new layers)")
+        network_config = checkpoint_network_config(first, names[0])
+        begun = fine_tune_start(start[0]["model"], network_config, seeds[0], start[1])
+        weights = {key: (start_share * begun[key].double() + (1.0 - start_share)
+                         * value.double()).to(value.dtype) if value.is_floating_point()
+                   else value for key, value in weights.items()}
     return {"format": first["format"], "version": first["version"], "config": first["config"],
             "model": weights, "camera": first["camera"]}
 
