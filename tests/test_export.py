@@ -194,6 +194,10 @@ def test_average_weights_of_half_and_single_precision_files():
     half = {"w": torch.tensor([2.0, 4.0], dtype=torch.float16)}
     mean = average_weights([single, half], ["single.pt", "half.pt"])
     assert mean["w"].dtype == torch.float32 and torch.equal(mean["w"], torch.tensor([1.5, 3.0]))
+    mixed = average_weights([single, half], ["single.pt", "half.pt"], [0.75, 0.25])
+    assert torch.equal(mixed["w"], torch.tensor([1.25, 2.5]))
+    with pytest.raises(ValueError, match="coefficients summing to 1"):
+        average_weights([single, half], ["single.pt", "half.pt"], [0.5, 0.25])
     with pytest.raises(ValueError, match=r"half\.pt: weight 'w' is torch.int64"):
         average_weights([single, {"w": torch.tensor([2, 4])}], ["single.pt", "half.pt"])
 

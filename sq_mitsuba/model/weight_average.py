@@ -16,9 +16,10 @@ what can is checked: one network configuration, one camera, the same tensors.
 
 The start itself can join the average (:func:`fine_tune_start`, ``start_share``): weights part
 way back from the fine-tunes to the network they began from, which keep more of what the start
-read well (Wortsman et al. 2022, "Robust fine-tuning of zero-shot models", WiSE-FT: the
-interpolation reads data unlike the fine-tunes' better than either end). Here the start is
-the shipped model, good on its own archetypes, and the fine-tunes read unseen families better
+read well (Wortsman et al. 2022, "Robust fine-tuning of zero-shot models", WiSE-FT, where
+the mix read shifted data better than either end). Here the start is the shipped model, good
+on its own archetypes, the fine-tunes read unseen families better, and a quarter of the way
+keeps the first and about half of the second: a trade, not a gain on both
 (eval/MODEL_CARD.md, "Back towards the start").
 """
 
@@ -41,14 +42,16 @@ __all__ = ["average_checkpoints", "average_weights", "fine_tune_start"]
 _IRRELEVANT = ("pretrained",)
 
 
-def average_weights(states: Sequence[Mapping[str, Tensor]], names: Sequence[str]
-                    ) -> dict[str, Tensor]:
+def average_weights(states: Sequence[Mapping[str, Tensor]], names: Sequence[str],
+                    coefficients: Sequence[float] | None = None) -> dict[str, Tensor]:
     """The uniform average of K state dicts of one network (module note: Convention).
 
     Args:
         states: K >= 1 state dicts with the same keys and shapes, each tensor floating-point
             in all of them or in none (floating dtypes may differ).
         names: K names for the errors (e.g. the files).
+        coefficients: K weights summing to 1 for a weighted mean instead (one rounding, in
+            float64, to the first state's dtypes).
 
     Raises:
         ValueError: ``<name>: ...`` naming the first key whose presence, shape or dtype
@@ -75,11 +78,17 @@ def average_weights(states: Sequence[Mapping[str, Tensor]], names: Sequence[str]
                 raise ValueError(f"{name}: weight {key!r} is {other.dtype} "
                                  f"{tuple(other.shape)}, {names[0]} has {value.dtype} "
                                  f"{tuple(value.shape)}: not the same network")
+    if coefficients is not None and (len(coefficients) != len(states)
+                                     or abs(sum(coefficients) - 1.0) > 1e-9):
+        raise ValueError(f"expected {len(states)} coefficients summing to 1, got "
+                         f"{list(coefficients)}")
+    weight = None if coefficients is None else torch.tensor(coefficients, dtype=torch.float64)
     averaged = {}
     for key, value in first.items():
         if value.is_floating_point():
             total = torch.stack([state[key].detach().cpu().double() for state in states])
-            averaged[key] = total.mean(0).to(value.dtype)
+            mixed = total.mean(0) if weight is None else torch.tensordot(weight, total, dims=1)
+            averaged[key] = mixed.to(value.dtype)
         else:
             averaged[key] = value.detach().cpu().clone()
     return averaged
@@ -144,8 +153,9 @@ def average_checkpoints(payloads: Sequence[Mapping[str, Any]], names: Sequence[s
         if dict(payload["camera"]) != dict(first["camera"]):
             raise ValueError(f"{name}: its camera differs from {names[0]}'s: the networks "
                              "read images of different cameras")
-    weights = average_weights([payload["model"] for payload in payloads], names)
-    if start is not None:
+    if start is None:
+        weights = average_weights([payload["model"] for payload in payloads], names)
+    else:
         seeds = [payload["config"].get("seed") for payload in payloads]
         for seed, name in zip(seeds[1:], names[1:], strict=True):
             if seed != seeds[0]:
@@ -157,9 +167,10 @@ def average_checkpoints(payloads: Sequence[Mapping[str, Any]], names: Sequence[s
                              "integer seed (it drew the start's new layers)")
         network_config = checkpoint_network_config(first, names[0])
         begun = fine_tune_start(start[0]["model"], network_config, seeds[0], start[1])
-        weights = {key: (start_share * begun[key].double() + (1.0 - start_share)
-                         * value.double()).to(value.dtype) if value.is_floating_point()
-                   else value for key, value in weights.items()}
+        # The start last: the first fine-tune gives the dtypes and the integer counters.
+        shares = [(1.0 - start_share) / len(payloads)] * len(payloads) + [start_share]
+        weights = average_weights([payload["model"] for payload in payloads] + [begun],
+                                  [*names, start[1]], shares)
     return {"format": first["format"], "version": first["version"], "config": first["config"],
             "model": weights, "camera": first["camera"]}
 
