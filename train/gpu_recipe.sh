@@ -141,9 +141,8 @@ print(f"symmetries of {len(symmetry_table(root, models, Path(sys.argv[2])))} mod
 # (4) The shards' dataset folders (links into the library's), for PAIR=shards.
 if [ "${PAIR:-schedule}" = shards ]; then
   for set in ${SHARD_SETS:-split keep}; do
-    [ "$set" = split ] && { SPLIT_ONLY=1 "$repo/train/shards.sh" "$data" "$work/split" "$shards" || exit 2; }
-    [ "$set" = keep ] && { KEEP='^sc[0-9]{3}_' SPLIT_ONLY=1 "$repo/train/shards.sh" "$data" \
-      "$work/keep" "$shards" || exit 2; }
+    case $set in split) keep= ;; keep) keep='^sc[0-9]{3}_' ;; *) continue ;; esac
+    KEEP=$keep SPLIT_ONLY=1 "$repo/train/shards.sh" "$data" "$work/$set" "$shards" || exit 2
   done
 fi
 
@@ -155,8 +154,8 @@ print(load_train_config(sys.argv[1]).optim.batch_size)' "$config")
 epochs() {  # IMAGES_SEEN DATA_IMAGES: whole epochs of that data nearest the images seen
   "$py" -c "import math; print(max(1, round($1 / (math.ceil($2 / $batch) * $batch))))"
 }
-train_run() {  # SECONDS LABEL IMAGES_SEEN START DATA [KEY=VALUE...]
-  local seconds=$1 label=$2 seen=$3 from=$4 run_data=$5; shift 5
+train_run() {  # SECONDS LABEL IMAGES_SEEN START DATA DATA_IMAGES [KEY=VALUE...]
+  local seconds=$1 label=$2 seen=$3 from=$4 run_data=$5 run_images=$6; shift 6
   local start_args=(--set 'init_from="sq_mitsuba/model/weights/model.pt"') overrides=()
   # From ImageNet: no init_from, and the first stage's rate and warm-up (cpu.toml), not the
   # fine-tune's.
@@ -164,7 +163,7 @@ train_run() {  # SECONDS LABEL IMAGES_SEEN START DATA [KEY=VALUE...]
   for pair in "$@"; do overrides+=(--set "$pair"); done
   OMP_NUM_THREADS=$threads timeout -k 10 "$seconds" "${sq[@]}" train --config "$config" --data "$run_data" \
     --out "$work/run_$label" --quiet --set "device=\"$device\"" \
-    --set "optim.epochs=$(epochs "$seen" "$(count_images "$run_data")")" "${start_args[@]}" \
+    --set "optim.epochs=$(epochs "$seen" "$run_images")" "${start_args[@]}" \
     "${overrides[@]}" --set "data.cache_dir=\"$work/cache\"" > "$work/train_$label.txt" 2>&1
 }
 export_seconds=${EXPORT_SECONDS:-150}  # an export reads every model's points and runs 256 images
@@ -187,9 +186,12 @@ for spec in "${runs[@]}"; do
   else
     first_on[$run_data]=$label
   fi
-  note "$label ($from${sets:+ $sets}): $seen images seen on $(count_images "$run_data") images"
+  run_images=$images
+  [ "$run_data" = "$data" ] || run_images=$(count_images "$run_data")
+  note "$label ($from${sets:+ $sets}): $seen images seen on $run_images images"
   # shellcheck disable=SC2086  # the overrides are KEY=VALUE words without spaces
-  train_run $(( budget - (SECONDS - start) )) "$label" "$seen" "$from" "$run_data" ${sets:-} &
+  train_run $(( budget - (SECONDS - start) )) "$label" "$seen" "$from" "$run_data" \
+    "$run_images" ${sets:-} &
   pids+=($!) labels+=("$label") pid_of[$label]=$!
 done
 for i in "${!pids[@]}"; do

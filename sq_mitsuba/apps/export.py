@@ -163,6 +163,7 @@ def export_model(checkpoint: str | Path | Sequence[str | Path], data_root: str |
     payloads = [read_checkpoint(path) for path in paths]
     for path, payload in zip(paths, payloads, strict=True):
         model_from_checkpoint(payload, str(path))  # refuse a mismatched file early
+    notes = notes if notes is not None else []
     start_record = None
     if start is not None:
         start = Path(start)
@@ -173,14 +174,12 @@ def export_model(checkpoint: str | Path | Sequence[str | Path], data_root: str |
                         "sha256": _file_sha256(start)}
         recorded = {str(each["config"].get("init_from")) for each in payloads}
         if recorded != {str(start)} and {Path(r).name for r in recorded} != {start.name}:
-            notes = notes if notes is not None else []
             notes.append(f"start {start}: the checkpoints record init_from "
                          f"{', '.join(sorted(recorded))}")
     else:
         payload = payloads[0] if len(paths) == 1 else \
             average_checkpoints(payloads, [str(path) for path in paths])
     check_output_folder(out.parent)
-    notes = notes if notes is not None else []
     if data_root is not None:
         from sq_mitsuba.data.spe3r import Spe3rDataset
 
