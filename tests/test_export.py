@@ -254,4 +254,8 @@ def test_export_with_a_start_refuses_other_seeds_and_whole_shares(eval_checkpoin
     assert main(["export", "--checkpoint", str(a), "--start", str(start), "--start-share",
                  "1", "--out", str(out)]) == 2
     assert "--start-share: expected a value in [0, 0.99], got 1" in error_line(capsys)
+    missing = tmp_path / "no_start.pt"
+    assert main(["export", "--checkpoint", str(a), "--start", str(missing), "--out",
+                 str(out)]) == 2
+    assert "no_start.pt" in error_line(capsys)
     assert not out.parent.exists()
