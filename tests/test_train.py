@@ -736,6 +736,21 @@ def test_shards_keep_puts_matching_models_in_every_shard(tmp_path):
     assert not (out / "shard_0" / "run").exists() and not (out / "model.pt").exists()
 
 
+def test_shipped_model_script_refuses_a_missing_archetype_model(tmp_path):
+    """train/shipped_model.sh: ARCHETYPE_MODEL naming no file is one line and exit 2 before any
+    work (the work folder is not even made; SQ=false would fail any call of the CLI)."""
+    env = {**os.environ, "ARCHETYPE_MODEL": str(tmp_path / "nowhere.pt"), "SQ": "false"}
+    work = tmp_path / "work"
+    script = ROOT / "train" / "shipped_model.sh"
+    assert subprocess.run(["bash", "-n", str(script)], check=False).returncode == 0
+    result = subprocess.run(["bash", str(script), str(work)], capture_output=True, text=True,
+                            timeout=60, env=env, check=False)
+    assert result.returncode == 2
+    assert result.stderr.strip() == \
+        f"{script}: ARCHETYPE_MODEL {tmp_path / 'nowhere.pt'}: no such file"
+    assert not work.exists()
+
+
 def test_fine_tune_start_is_the_start_training_grew(reference_run, train_dataset, cache_dir,
                                                     tmp_path):
     """weight_average.fine_tune_start rebuilds, bit for bit, the weights a fine-tune began

@@ -47,13 +47,18 @@
 #   SHORT [181248], LONG_FACTOR [3] (or LONG, the long run's images seen; PAIR=schedule),
 #   TOTAL_SECONDS [540], DEVICE [cuda; cpu dry-runs it, e.g. DEVICE=cpu ARCHETYPES=2
 #   COMPOSED=4 GRAPH=2 VIEWS=2 SHORT=512 RENDER_WORKERS=2 train/gpu_recipe.sh /tmp/dry],
-#   PYTHON [python3], WORK (folder kept for the library, data and runs; default temporary).
+#   PYTHON [python3], WORK (folder kept for the library, data and runs; default temporary),
+#   INIT [sq_mitsuba/model/weights/model.pt] ("shipped" below: the checkpoint the runs
+#   start from; runs G1-G4 of eval/MODEL_CARD.md started from the five-primitive archetype
+#   model shipped before, `git show 1f9efc1:sq_mitsuba/model/weights/model.pt > FILE`).
 set -u -o pipefail
 
 repo=$(cd "$(dirname "$0")/.." && pwd)
 source "$repo/train/gpu_stages.sh" sq-gpu-recipe "${1:-}"
 left() { echo $(( deadline - SECONDS )); }
 config=train/configs/broad_chamfer100_b256.toml
+start_model=$(absolute "${INIT:-$repo/sq_mitsuba/model/weights/model.pt}")
+[ -f "$start_model" ] || { echo "$0: INIT $start_model: no such file" >&2; exit 2; }
 short=${SHORT:-181248}
 long=${LONG:-$(( short * ${LONG_FACTOR:-3} ))}
 # The runs (checked before any work), each "LABEL IMAGES_SEEN START DATA [KEY=VALUE...]":
@@ -156,7 +161,7 @@ epochs() {  # IMAGES_SEEN DATA_IMAGES: whole epochs of that data nearest the ima
 }
 train_run() {  # SECONDS LABEL IMAGES_SEEN START DATA DATA_IMAGES [KEY=VALUE...]
   local seconds=$1 label=$2 seen=$3 from=$4 run_data=$5 run_images=$6; shift 6
-  local start_args=(--set 'init_from="sq_mitsuba/model/weights/model.pt"') overrides=()
+  local start_args=(--set "init_from=\"$start_model\"") overrides=()
   # From ImageNet: no init_from, and the first stage's rate and warm-up (cpu.toml), not the
   # fine-tune's.
   [ "$from" = imagenet ] && start_args=(--set optim.lr=1e-3 --set optim.warmup_images=1600)
