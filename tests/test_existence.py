@@ -301,6 +301,7 @@ def test_the_shipped_model_is_the_broad_recipes_network_of_eight_primitives():
     # As train/shipped_model.sh exports it: two fine-tunes, a quarter of the way from the start.
     assert len(payload["source"]["averaged"]) == 2
     assert payload["source"]["start"]["share"] == 0.75
+    assert payload["source"]["start"]["checkpoint"] == "model_archetypes.pt"
 
 
 def _check_grown(source: SuperquadricNet, grown: SuperquadricNet, camera: Camera) -> None:

@@ -325,12 +325,10 @@ def test_gpu_recipe_script_refuses_an_unknown_pair_before_any_work(tmp_path):
 @pytest.mark.parametrize(("setting", "message"), [
     ({"SHARDS": "1"}, "SHARDS: expected a whole number >= 2, got '1'"),
     ({"SHARD_SETS": "split half"}, "SHARD_SETS: expected split, keep or all, got 'half'"),
-    ({"INIT": "/nowhere/start.pt"},
-     f"{ROOT}/train/gpu_recipe.sh: INIT /nowhere/start.pt: no such file"),
 ])
 def test_gpu_recipe_script_refuses_bad_shards_before_any_work(tmp_path, setting, message):
-    """PAIR=shards: a shard count below 2, an unknown set of runs or a start checkpoint that
-    is not there is one line and exit 2, before a model is generated."""
+    """PAIR=shards: a shard count below 2 or an unknown set of runs is one line and exit 2,
+    before a model is generated."""
     script = ROOT / "train" / "gpu_recipe.sh"
     env = {**os.environ, "PAIR": "shards", "WORK": str(tmp_path / "work"), **setting}
     result = subprocess.run(["bash", str(script), str(tmp_path / "out")], env=env,
@@ -339,3 +337,14 @@ def test_gpu_recipe_script_refuses_bad_shards_before_any_work(tmp_path, setting,
     assert result.stderr.strip() == message
     assert not (tmp_path / "work" / "models").exists()
 
+
+def test_gpu_recipe_script_refuses_a_missing_start_before_any_work(tmp_path):
+    """INIT naming no file is one line and exit 2 before anything is made, not even the
+    output folder."""
+    script = ROOT / "train" / "gpu_recipe.sh"
+    env = {**os.environ, "INIT": "/nowhere/start.pt", "WORK": str(tmp_path / "work")}
+    result = subprocess.run(["bash", str(script), str(tmp_path / "out")], env=env,
+                            capture_output=True, text=True, check=False, timeout=60)
+    assert result.returncode == 2
+    assert result.stderr.strip() == f"{script}: INIT /nowhere/start.pt: no such file"
+    assert not (tmp_path / "out").exists() and not (tmp_path / "work").exists()

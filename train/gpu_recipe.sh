@@ -54,11 +54,12 @@
 set -u -o pipefail
 
 repo=$(cd "$(dirname "$0")/.." && pwd)
+start_model=${INIT:-$repo/sq_mitsuba/model/weights/model.pt}
+case $start_model in /*) ;; *) start_model=$PWD/$start_model ;; esac
+[ -f "$start_model" ] || { echo "$0: INIT $start_model: no such file" >&2; exit 2; }
 source "$repo/train/gpu_stages.sh" sq-gpu-recipe "${1:-}"
 left() { echo $(( deadline - SECONDS )); }
 config=train/configs/broad_chamfer100_b256.toml
-start_model=$(absolute "${INIT:-$repo/sq_mitsuba/model/weights/model.pt}")
-[ -f "$start_model" ] || { echo "$0: INIT $start_model: no such file" >&2; exit 2; }
 short=${SHORT:-181248}
 long=${LONG:-$(( short * ${LONG_FACTOR:-3} ))}
 # The runs (checked before any work), each "LABEL IMAGES_SEEN START DATA [KEY=VALUE...]":

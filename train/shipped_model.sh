@@ -18,7 +18,8 @@
 # fine-tunes with their libraries (eval/MODEL_CARD.md). DEVICE=cuda trains on a GPU.
 # ARCHETYPE_MODEL=PT skips the archetype model's training and starts the broad fine-tunes
 # from that file (the archetype model was the shipped model until 2026-11-27:
-# `git show 1f9efc1:sq_mitsuba/model/weights/model.pt > PT`).
+# `git show 1f9efc1:sq_mitsuba/model/weights/model.pt > PT`). The broad runs resume from
+# their last.pt: after changing the archetype model, remove $WORK/broad_*/run first.
 set -euo pipefail
 WORK=${1:-data/shipped}
 SQ=${SQ:-sq-mitsuba}
