@@ -132,7 +132,7 @@ def export_model(checkpoint: str | Path | Sequence[str | Path], data_root: str |
         out: the file to write; its folder is created.
         options: see :class:`ExportOptions`.
         start: the checkpoint ``checkpoint`` was fine-tuned from (its ``init_from``, e.g. the
-            shipped model), or None. Given, the exported weights are ``options.start_share``
+            archetype model), or None. Given, the exported weights are ``options.start_share``
             x the start, grown to the fine-tunes' network as training grew it, plus the rest
             x the fine-tunes' average.
         notes: gets the lines worth saying (the CLI prints them): which images the

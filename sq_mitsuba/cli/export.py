@@ -20,11 +20,11 @@ mismatched checkpoint, or a dataset without training images, is a one-line error
 before anything is written.
 
 Several checkpoints (--checkpoint A.pt B.pt ...) of one network, fine-tuned from one start
-(e.g. each from the shipped model on a different library), export as the average of their
+(e.g. each on a different library), export as the average of their
 weights: a "model soup", which can read data unlike the training data better than each
 (docs/training.md). Their network configuration, camera and weights must match (else a
 one-line error naming what differs); the baseline is computed over --data. With --start
-(the file they were fine-tuned from, e.g. the shipped model), the weights go part way back to
+(the file they were fine-tuned from, their init_from), the weights go part way back to
 it: --start-share x the start + the rest x the fine-tunes' average, which keeps more of what
 the start read well (WiSE-FT; docs/training.md)."""
 

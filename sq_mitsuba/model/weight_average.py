@@ -1,6 +1,6 @@
 """One network from several: the average of the weights of fine-tunes of one start.
 
-Networks fine-tuned from the same start (here: the shipped model, grown by ``init_from``) stay
+Networks fine-tuned from the same start (here: the archetype model, grown by ``init_from``) stay
 in one basin of the loss, where the mean of their weights is itself a good network and often
 reads data unlike the training data better than any of them (Wortsman et al. 2022, "Model
 soups"; Wortsman et al. 2022, "lo-fi": fine-tunes on separate shards, averaged). On this
@@ -17,10 +17,10 @@ what can is checked: one network configuration, one camera, the same tensors.
 The start itself can join the average (:func:`fine_tune_start`, ``start_share``): weights part
 way back from the fine-tunes to the network they began from, which keep more of what the start
 read well (Wortsman et al. 2022, "Robust fine-tuning of zero-shot models", WiSE-FT, where
-the mix read shifted data better than either end). Here the start is the shipped model, good
+the mix read shifted data better than either end). Here the start is the archetype model, good
 on its own archetypes, the fine-tunes read unseen families better, and a quarter of the way
-keeps the first and about half of the second: a trade, not a gain on both
-(eval/MODEL_CARD.md, "Back towards the start").
+keeps the first and about half of the second: a trade, not a gain on both; the shipped model
+is made so (eval/MODEL_CARD.md, "Back towards the start").
 """
 
 from __future__ import annotations
