@@ -162,3 +162,21 @@ def test_axis_angle_matches_the_quaternion_of_the_same_turn():
                                quaternion_to_matrix(quaternions))
     torch.testing.assert_close(axis_angle_to_matrix(torch.zeros(3, dtype=torch.float64)),
                                torch.eye(3, dtype=torch.float64))
+
+
+def test_axis_angle_round_trip_through_the_matrix():
+    """matrix_to_axis_angle inverts axis_angle_to_matrix for angles in [0, pi), at 0 and near
+    pi (where the axis is still recovered, up to its sign at exactly pi)."""
+    from sq_mitsuba.geometry.rotation import axis_angle_to_matrix, matrix_to_axis_angle
+
+    generator = torch.Generator().manual_seed(1)
+    axes = torch.randn(32, 3, generator=generator, dtype=torch.float64)
+    axes = axes / axes.norm(dim=1, keepdim=True)
+    angles = torch.rand(32, generator=generator, dtype=torch.float64) * 3.1
+    angles[0], angles[1] = 0.0, math.pi - 1e-6
+    vectors = axes * angles[:, None]
+    torch.testing.assert_close(matrix_to_axis_angle(axis_angle_to_matrix(vectors)), vectors,
+                               atol=1e-6, rtol=0)
+    exact = axis_angle_to_matrix(torch.tensor([0.0, 0.0, math.pi], dtype=torch.float64))
+    torch.testing.assert_close(matrix_to_axis_angle(exact).abs(),
+                               torch.tensor([0.0, 0.0, math.pi], dtype=torch.float64))

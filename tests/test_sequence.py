@@ -17,8 +17,9 @@ from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.metrics import mask_iou, rotation_error_deg
 from sq_mitsuba.geometry.rotation import matrix_to_rotation_6d, random_rotations
 from sq_mitsuba.geometry.so3_grid import half_turns
+from sq_mitsuba.inference.body_frame import align_half_turns
 from sq_mitsuba.inference.loading import load_model
-from sq_mitsuba.inference.sequence import SequenceOptions, align_half_turns, fit_sequence
+from sq_mitsuba.inference.sequence import SequenceOptions, fit_sequence
 from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer, render_assembly
 
 CAMERA = Camera.default(64)
@@ -59,7 +60,7 @@ def test_half_turns_are_resolved_across_readings():
 def test_half_turns_in_order_follow_the_motion_where_the_shape_cannot_tell():
     """A box symmetric under every half turn: its readings look alike whatever S_j, but the
     rotations of a slow tumble, read with random half turns, are smoothest when undone."""
-    from sq_mitsuba.inference.sequence import align_half_turns_in_order
+    from sq_mitsuba.inference.body_frame import align_half_turns_in_order
 
     box = Assembly.from_values(size=torch.tensor([[[0.3, 0.2, 0.1]]], dtype=torch.float64),
                                shape=torch.tensor([[[0.1, 0.1]]], dtype=torch.float64))
@@ -75,7 +76,7 @@ def test_half_turns_in_order_follow_the_motion_where_the_shape_cannot_tell():
 
 
 def test_the_canonical_frame_sorts_the_extents_and_keeps_the_posed_shape():
-    from sq_mitsuba.inference.sequence import canonical_frame, reframed
+    from sq_mitsuba.inference.body_frame import canonical_frame, reframed
 
     body = _asymmetric_assembly()
     turn = random_rotations(1, torch.Generator().manual_seed(9), torch.float64)[0]
@@ -170,6 +171,72 @@ def test_relative_rotations_tie_every_frame_to_one_rotation(known_pass):
     torch.testing.assert_close(rotation @ rotation[0].T, relative, atol=1e-9, rtol=0)
     assert float(rotation_error_deg(rotation[:1], rotations[:1])[0]) < 4.0
     assert float(ious.mean()) > 0.85
+
+
+def _constant_rate_pass(count: int, rate_deg: float, seed: int,
+                       rate_error: torch.Tensor | None = None) -> torch.Tensor:
+    """Rotations (count, 3, 3) of a target turning at a constant rate about a random axis
+    (its rate vector plus ``rate_error``, radians per frame, when given)."""
+    from sq_mitsuba.geometry.rotation import axis_angle_to_matrix
+
+    generator = torch.Generator().manual_seed(seed)
+    axis = torch.randn(3, generator=generator, dtype=torch.float64)
+    rate = axis / axis.norm() * math.radians(rate_deg)
+    if rate_error is not None:
+        rate = rate + rate_error
+    start = random_rotations(1, generator, torch.float64)[0]
+    return axis_angle_to_matrix(torch.arange(count, dtype=torch.float64)[:, None] * rate) @ start
+
+
+def test_along_motion_replaces_a_misread_frame_and_keeps_the_reference_frame():
+    """Readings of a constant-rate pass, each in its own half turn, frame 3 misread: the
+    agreeing frames keep their readings (in the reference's body frame), frame 3 takes the
+    motion's rotation, and the reference is the best-fitting agreeing frame."""
+    from sq_mitsuba.inference.body_frame import along_motion
+
+    truth = _constant_rate_pass(6, rate_deg=10.0, seed=8)
+    turns = half_turns()
+    chosen = torch.tensor([1, 0, 3, 2, 2, 1])
+    reading = truth @ turns[chosen]
+    reading[3] = _perturbed(reading[3:4], 70.0, seed=3)[0]  # a misreading
+    iou = torch.tensor([0.5, 0.6, 0.7, 0.9, 0.4, 0.3], dtype=torch.float64)  # frame 3 best
+    rotation, found, reference, relative = along_motion(reading, reading, iou, 25.0)
+    assert reference == 2  # the best of the frames that agree
+    torch.testing.assert_close(rotation[reference], reading[reference])
+    # Every frame, the misread one too, is the truth in the reference's body frame.
+    expected = truth @ turns[chosen[reference]]
+    assert float(rotation_error_deg(rotation, expected).max()) < 1e-6
+    for j in (0, 1, 2, 4, 5):  # an agreeing frame: its reading turned by its half turn
+        torch.testing.assert_close(rotation[j], reading[j] @ found[j])
+    torch.testing.assert_close(relative, rotation @ rotation[0].T)
+    # Held: the same rotations (exact readings lie on the motion).
+    held, _, _, _ = along_motion(reading, reading, iou, 25.0, held=True)
+    assert float(rotation_error_deg(held, expected).max()) < 1e-6
+
+
+def test_a_fitted_rate_of_turn_corrects_the_motion(known_pass):
+    """A known assembly on a constant-rate pass, the fit started on a motion whose rate is
+    4 deg per frame off: with the frames' times the rate moves and every frame nears the truth;
+    with the relative rotations held it cannot (its silhouettes still fit, at 64 px, by
+    moving the poses' shifts: the outline alone is a weak judge of a few degrees)."""
+    body = known_pass[0]
+    truth = _constant_rate_pass(6, rate_deg=12.0, seed=4)
+    translations = torch.tensor([[0.02, -0.01, 1.8]], dtype=torch.float64).expand(6, 3).clone()
+    masks = _masks(body, truth, translations)
+    times = torch.arange(6, dtype=torch.float64)
+    error = torch.tensor([0.0, math.radians(4.0), 0.0], dtype=torch.float64)
+    start = _constant_rate_pass(6, rate_deg=12.0, seed=4, rate_error=error)  # frame 0 exact
+    relative = start @ start[0].T
+    options = SequenceOptions(steps=30, patience=30, shape="pose", spp=8)
+    fitted = fit_sequence(body, start, translations, masks, CAMERA, options, relative, times)
+    held = fit_sequence(body, start, translations, masks, CAMERA, options, relative)
+    start_error = float(rotation_error_deg(start, truth).mean())
+    fitted_error = float(rotation_error_deg(fitted[1], truth).mean())
+    held_error = float(rotation_error_deg(held[1], truth).mean())
+    assert fitted_error < 0.6 * start_error and fitted_error < 0.75 * held_error
+    # Still one constant-rate turn: equal steps from frame to frame.
+    steps = fitted[1][1:] @ fitted[1][:-1].transpose(1, 2)
+    assert float(rotation_error_deg(steps, steps[:1].expand_as(steps)).max()) < 1.0
 
 
 def _frames(train_dataset, count: int) -> torch.Tensor:

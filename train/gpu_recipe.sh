@@ -50,7 +50,9 @@
 #   PYTHON [python3], WORK (folder kept for the library, data and runs; default temporary),
 #   INIT [sq_mitsuba/model/weights/model.pt] ("shipped" below: the checkpoint the runs
 #   start from; runs G1-G4 of eval/MODEL_CARD.md started from the five-primitive archetype
-#   model shipped before, `git show 1f9efc1:sq_mitsuba/model/weights/model.pt > FILE`).
+#   model shipped before, `git show 1f9efc1:sq_mitsuba/model/weights/model.pt > FILE`; G5 put
+#   that file in place of the shipped one for the call and left INIT unset, since a lending
+#   service that copies the tree and .gpu/ (its 41 MB bundle) may refuse a second 11 MB model).
 set -u -o pipefail
 
 repo=$(cd "$(dirname "$0")/.." && pwd)

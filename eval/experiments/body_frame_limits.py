@@ -24,7 +24,7 @@ from sq_mitsuba.data.mesh_processing import alignment_rotation
 from sq_mitsuba.evaluation.split import collate
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.metrics import chamfer_l1
-from sq_mitsuba.inference.sequence import canonical_frame, reframed
+from sq_mitsuba.inference.body_frame import canonical_frame, reframed
 from sq_mitsuba.model.losses import counted_surface_samples
 
 

@@ -38,9 +38,10 @@ from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.metrics import rotation_error_deg
 from sq_mitsuba.geometry.rotation import matrix_to_quaternion
+from sq_mitsuba.inference.body_frame import reframed
 from sq_mitsuba.inference.prediction import Prediction
 from sq_mitsuba.inference.refine import refine_pose_and_shape
-from sq_mitsuba.inference.sequence import SequenceOptions, reframed, stage_refine_options
+from sq_mitsuba.inference.sequence import SequenceOptions, stage_refine_options
 from sq_mitsuba.render.scene_config import SceneConfig
 from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer
 from sq_mitsuba.render.space import SpaceScene

@@ -74,7 +74,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="the images are frames of one spacecraft: one assembly, every "
                              "pose (default: each image alone)")
     parser.add_argument("--ordered", action="store_true",
-                        help="with --sequence: the frames are in the order they were taken "
+                        help="with --sequence: the frames are in the order they were taken, "
+                             "equally spaced in time: they are kept on one constant-rate turn "
                              "(default: any order)")
     add_config_options(parser, PredictOptions, FLAGS)
     add_set_option(parser, "predict options", "refinement.steps=20")

@@ -22,6 +22,7 @@ from sq_mitsuba.checks import check_tensor
 
 __all__ = [
     "axis_angle_to_matrix",
+    "matrix_to_axis_angle",
     "matrix_to_quaternion",
     "matrix_to_rotation_6d",
     "mean_rotation",
@@ -201,3 +202,15 @@ def axis_angle_to_matrix(rotation_vector: Tensor) -> Tensor:
                         torch.stack([w[..., 2], zero, -w[..., 0]], -1),
                         torch.stack([-w[..., 1], w[..., 0], zero], -1)], -2)
     return torch.linalg.matrix_exp(skew)
+
+
+def matrix_to_axis_angle(matrix: Tensor) -> Tensor:
+    """Rotation matrices (..., 3, 3) -> rotation vectors (..., 3) (axis times angle, radians,
+    angle in [0, pi]): the inverse of :func:`axis_angle_to_matrix`, through the quaternion
+    with w >= 0 (accurate near 0 and 180 degrees)."""
+    quaternion = matrix_to_quaternion(matrix)
+    sine = quaternion[..., 1:].norm(dim=-1, keepdim=True)  # sin(angle / 2)
+    angle = 2.0 * torch.atan2(sine, quaternion[..., :1])
+    # angle / sin(angle / 2) -> 2 as the angle -> 0.
+    scale = torch.where(sine > 1e-12, angle / sine.clamp_min(1e-12), torch.full_like(sine, 2.0))
+    return quaternion[..., 1:] * scale

@@ -2,8 +2,10 @@
 a checkpoint by :func:`load_model` (:mod:`.loading`); the render-and-compare pose search
 (:mod:`.search`), the refinement of pose and shape against a mask (:mod:`.refine`), the fit of
 an assembly to masks seen from known poses (:mod:`.fit`), and the one pipeline that joins them
-(:mod:`.pipeline`, ``Predictor.predict(images, refine=True)``). Imports the model layer and
-those below it; never the training layer.
+(:mod:`.pipeline`, ``Predictor.predict(images, refine=True)``); for N images of one
+spacecraft, one assembly and every pose (:mod:`.sequence`, its frames brought into one body
+frame by :mod:`.body_frame`). Imports the model layer and those below it; never the training
+layer.
 
 ``Predictor``, ``Prediction`` and ``load_model`` are importable from here, loaded on first use.
 """

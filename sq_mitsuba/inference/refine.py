@@ -22,7 +22,10 @@ mean IoU over the views (one state for all). Its translation moves as ``t = t0 e
 + |t0| (dx, dy, 0)``: the views' depths change by factors whose geometric mean is 1, because
 silhouettes from one camera cannot tell a shape s times larger at s times the distance, so the
 start's mean depth keeps the scale. With ``relative_rotations`` (``Q_j``, ``R_j = Q_j R_0``)
-one rotation ``R_0`` moves instead of B.
+one rotation ``R_0`` moves instead of B; with ``relative_times`` as well (the relative
+rotations a constant-rate turn, ``Q_j = exp((t_j - t_0) [w])``), the rate moves too:
+``R_j = exp((t_j - t_0) [w + d]) R_0``, ``d`` scaled so that one step of it is the extra turn
+at the last view.
 """
 
 from __future__ import annotations
@@ -37,7 +40,7 @@ from sq_mitsuba.checks import check_tensor
 from sq_mitsuba.config import in_range, non_negative, positive, validate
 from sq_mitsuba.geometry.assembly import FIELDS, Assembly, ParameterRanges
 from sq_mitsuba.geometry.camera import Camera
-from sq_mitsuba.geometry.rotation import axis_angle_to_matrix
+from sq_mitsuba.geometry.rotation import axis_angle_to_matrix, matrix_to_axis_angle
 from sq_mitsuba.model.losses import silhouette_loss
 
 # Keeps squashed values strictly inside their open ranges before the inverse squash.
@@ -148,7 +151,8 @@ def _seen_fraction(assembly: Assembly, rotation: Tensor, translation: Tensor) ->
 def refine_pose_and_shape(assembly: Assembly, rotation: Tensor, translation: Tensor,
                           masks: Tensor, camera: Camera,
                           options: RefineOptions | None = None, *, shared: bool = False,
-                          relative_rotations: Tensor | None = None) -> RefineResult:
+                          relative_rotations: Tensor | None = None,
+                          relative_times: Tensor | None = None) -> RefineResult:
     """Refine B predictions against B target masks through the Mitsuba silhouette.
 
     Args:
@@ -161,6 +165,8 @@ def refine_pose_and_shape(assembly: Assembly, rotation: Tensor, translation: Ten
             best step by the mean IoU, the depths' geometric mean held (module docstring).
         relative_rotations: with ``shared``, (B, 3, 3) ``Q_j`` such that ``R_j = Q_j R_0``: one
             rotation ``R_0 = Q_0^T rotation[0]`` moves, not B; None: each view's own.
+        relative_times: with ``relative_rotations`` of a constant-rate turn, (B,) the views'
+            times: the rate of turn moves too (module docstring); None: the ``Q_j`` held.
 
     Returns:
         :class:`RefineResult` holding, per item (with ``shared``: for all items at once), the
@@ -181,6 +187,11 @@ def refine_pose_and_shape(assembly: Assembly, rotation: Tensor, translation: Ten
                          f"{assembly.batch_size}")
     if relative_rotations is not None and not shared:
         raise ValueError("relative_rotations: only with a shared shape (shared=True)")
+    if relative_times is not None and (relative_rotations is None or tuple(
+            relative_times.shape) != (rotation.shape[0],)):
+        raise ValueError(f"relative_times: expected ({rotation.shape[0]},) with "
+                         "relative_rotations, got "
+                         f"{tuple(relative_times.shape)}")
     batch = rotation.shape[0] if shared else assembly.batch_size
     check_tensor("rotation", rotation, (3, 3), min_dims=3)
     check_tensor("translation", translation, (3,), min_dims=2)
@@ -218,9 +229,21 @@ def refine_pose_and_shape(assembly: Assembly, rotation: Tensor, translation: Ten
     rotation_vector = torch.zeros(1 if relative is not None else batch, 3, dtype=dtype,
                                   requires_grad=True)
     shift = torch.zeros(batch, 3, dtype=dtype, requires_grad=True)
+    rate = torch.zeros(3, dtype=dtype, requires_grad=relative_times is not None)
+    times = None if relative_times is None else relative_times.detach().to(dtype)
+    if times is not None:
+        # The turn's rate from its first and last views, per unit of the views' time span,
+        # so that the correction d is the extra turn at the last view.
+        times = times - times[0]
+        last = int(times.abs().argmax())
+        span = times[last].clamp_min(1e-12) if times[last] >= 0 else times[last]
+        times = times / span
+        rate0 = matrix_to_axis_angle(relative[last] @ relative[0].T)
     # Zeroes the z component of the correction when the depth is held.
     shift_axes = torch.tensor([1.0, 1.0, 0.0 if options.depth == "fixed" else 1.0], dtype=dtype)
     pose_parameters = [shift] if options.rotation == "fixed" else [rotation_vector, shift]
+    if times is not None and options.rotation != "fixed":
+        pose_parameters.append(rate)
     optimizer = torch.optim.Adam([change, *pose_parameters] if moving else pose_parameters,
                                  lr=options.lr)
 
@@ -232,8 +255,13 @@ def refine_pose_and_shape(assembly: Assembly, rotation: Tensor, translation: Ten
             return (axis_angle_to_matrix(rotation_vector) @ rotation0,
                     translation0 + distance * shift * shift_axes)
         spin = axis_angle_to_matrix(rotation_vector)
-        rotations = relative @ (spin[0] @ relative[0].T @ rotation0[0]) \
-            if relative is not None else spin @ rotation0
+        if times is not None:  # R_j = exp((t_j - t_0) (w + d)) R_0
+            rotations = axis_angle_to_matrix(times[:, None] * (rate0 + rate)) @ \
+                (spin[0] @ rotation0[0])
+        elif relative is not None:
+            rotations = relative @ (spin[0] @ relative[0].T @ rotation0[0])
+        else:
+            rotations = spin @ rotation0
         # The depths' geometric mean stays the start's: the scale is the start's.
         depth = shift[:, 2] * shift_axes[2]
         scale = torch.exp(depth - depth.mean())[:, None]

@@ -1,0 +1,177 @@
+"""One body frame for the readings of N frames of one spacecraft (step 2 of
+:mod:`sq_mitsuba.inference.sequence`), and the dataset's body frame for an assembly (step 4).
+
+Each frame's reading lies in a body frame fixed only up to the four half turns (the principal
+axes' signs cannot be seen): :func:`align_half_turns` chooses them by shape,
+:func:`align_half_turns_in_order` by shape and smooth motion for frames in order, and
+:func:`along_motion` puts frames in order on the one constant-rate turn most of them agree
+with. :func:`canonical_frame` and :func:`reframed` express an assembly in the processed
+models' convention.
+
+Convention: poses map body to camera, ``x_cam = R x_body``; a half turn ``S`` acts on the body
+side (``R S``); tensors are float64 on the CPU.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from sq_mitsuba.geometry.assembly import FIELDS, Assembly
+from sq_mitsuba.geometry.rotation import rotation_angle
+from sq_mitsuba.geometry.so3_grid import half_turns
+
+__all__ = ["align_half_turns", "align_half_turns_in_order", "along_motion", "canonical_frame",
+           "reframed"]
+
+
+def _surface(assembly: Assembly, level: int) -> Tensor:
+    """Surface samples (B, P, 3), float64, that count (not inside another primitive; all of an
+    item when none does), padded to one length by repeating an item's first point."""
+    from sq_mitsuba.model.losses import counted_surface_samples
+
+    points, keep = counted_surface_samples(Assembly(assembly.params.detach().double()), level)
+    kept = [p[k] if bool(k.any()) else p for p, k in zip(points, keep, strict=True)]
+    length = max(len(p) for p in kept)
+    return torch.stack([torch.cat([p, p[:1].expand(length - len(p), 3)]) for p in kept])
+
+
+def _chamfer(a: Tensor, b: Tensor) -> Tensor:
+    """Symmetric mean nearest-neighbour distance between clouds a (..., P, 3), b (..., Q, 3)."""
+    distances = torch.cdist(a, b)
+    return 0.5 * (distances.amin(dim=-1).mean(dim=-1) + distances.amin(dim=-2).mean(dim=-1))
+
+
+def align_half_turns(assembly: Assembly, reference: int, level: int = 2) -> Tensor:
+    """The half turn S_j (N, 3, 3) that carries each of N readings of one body into the body
+    frame of reading ``reference``: ``S_j = argmin_S chamfer(A_ref, S A_j)`` over the four half
+    turns (S_ref = I).
+
+    Args:
+        assembly: N assemblies (batch size N), each in its own reading of the body frame.
+        reference: index of the reading whose body frame is kept.
+        level: icosphere level of the surface samples.
+    """
+    turns = half_turns()
+    clouds = _surface(assembly, level)  # (N, P, 3)
+    target = clouds[reference]
+    # (N, 4, P, 3): every reading turned by every half turn (a diagonal matrix: x -> S x).
+    turned = clouds[:, None] * torch.diagonal(turns, dim1=-2, dim2=-1)[None, :, None, :]
+    costs = _chamfer(turned.flatten(0, 1), target[None].expand(turned.shape[0] * 4, -1, -1))
+    best = costs.reshape(len(clouds), 4).argmin(dim=1)
+    best[reference] = 0  # the identity comes first in half_turns()
+    return turns[best]
+
+
+def align_half_turns_in_order(assembly: Assembly, rotation: Tensor, reference: int,
+                              level: int = 2, shape_weight: float = 1.0) -> Tensor:
+    """:func:`align_half_turns` for frames in the order they were taken: the half turns
+    ``S_j`` minimise, over the whole pass, the rotation angles between consecutive frames
+    (``R_j S_j`` against ``R_{j-1} S_{j-1}``: a tumbling target turns little between two
+    frames) plus ``shape_weight`` times each reading's Chamfer distance to the reference's
+    (relative to the reference's extent), by dynamic programming over the 4^N choices; then
+    expressed relative to the reference (``S_ref = I``).
+
+    Args:
+        assembly: N readings (batch size N), in the frames' order.
+        rotation: (N, 3, 3) the frames' body -> camera rotations of those readings.
+        reference: index of the reading whose body frame is kept.
+    """
+    turns = half_turns()
+    count = len(rotation)
+    clouds = _surface(assembly, level)
+    target = clouds[reference]
+    turned = clouds[:, None] * torch.diagonal(turns, dim1=-2, dim2=-1)[None, :, None, :]
+    extent = float((target.amax(0) - target.amin(0)).norm()) or 1.0
+    unary = shape_weight * _chamfer(turned.flatten(0, 1), target[None].expand(
+        count * 4, -1, -1)).reshape(count, 4) / extent  # (N, 4)
+    poses = rotation.double()[:, None] @ turns  # (N, 4, 3, 3)
+
+    def angle(a: Tensor, b: Tensor) -> Tensor:  # (4, 3, 3) x (4, 3, 3) -> (4, 4) radians
+        cosine = ((torch.einsum("aij,bij->ab", a, b) - 1) / 2).clamp(-1, 1)
+        return torch.arccos(cosine)
+
+    cost, back = unary[0].clone(), []
+    for k in range(1, count):
+        total = cost[:, None] + angle(poses[k - 1], poses[k])  # previous x current
+        best, arg = total.min(dim=0)
+        cost = best + unary[k]
+        back.append(arg)
+    choice = [int(cost.argmin())]
+    for arg in reversed(back):
+        choice.append(int(arg[choice[-1]]))
+    choice.reverse()
+    chosen = turns[torch.tensor(choice)]
+    return chosen[reference] @ chosen  # relative to the reference: S_ref = I
+
+
+def canonical_frame(assembly: Assembly, level: int = 3) -> tuple[Tensor, Tensor]:
+    """The body frame of the dataset convention for an assembly (batch size 1): its
+    minimum-volume oriented box's axes ordered by extent (largest on x, then y, then z; a
+    proper rotation), centred on its centre of mass.
+
+    Returns:
+        ``P`` (3, 3) and ``c`` (3,) float64 such that ``x_canonical = P (x - c)``.
+    """
+    from sq_mitsuba.data.mesh_processing import alignment_rotation
+
+    # The processed models' own rule (their "obb" alignment), on the primitives' meshes: the
+    # convex hull of the union is that of all its primitives, so parts inside others do not
+    # change the box.
+    vertices, faces = assembly.merged_mesh(level)
+    points = vertices[0].detach().double().numpy()
+    rotation = alignment_rotation(points, faces.numpy(), "obb")
+    # The centre of mass of the union: uniform points in the bounding box that it holds.
+    low, high = points.min(0), points.max(0)
+    grid = torch.from_numpy(np.random.default_rng(0).uniform(low, high, (20_000, 3)))
+    with torch.no_grad():
+        inside = Assembly(assembly.params.detach().double()).union_occupancy(grid[None])[0]
+    held = grid[inside > 0.5]
+    centre = held.mean(0) if len(held) else torch.from_numpy(points.mean(0))
+    return torch.from_numpy(rotation), centre.double()
+
+
+def reframed(assembly: Assembly, rotation: Tensor, centre: Tensor) -> Assembly:
+    """The assembly in the body frame ``x' = rotation (x - centre)``, detached, float64: each
+    primitive's translation and rotation carried along (:meth:`Assembly.rotated`)."""
+    params = assembly.params.detach().double().clone()
+    params[..., FIELDS["translation"]] -= centre.double()
+    shifted = Assembly(params)
+    return shifted.rotated(rotation.double().expand(shifted.batch_size, 3, 3))
+
+
+def along_motion(reading: Tensor, aligned: Tensor, iou: Tensor, threshold_deg: float,
+                 held: bool = False, max_rate_deg: float = 45.0
+                 ) -> tuple[Tensor, Tensor, int, Tensor]:
+    """The frames' rotations from the pass's constant-rate motion (``SequenceOptions.motion``).
+
+    Args:
+        reading: (N, 3, 3) each frame's own rotation reading (body frame: its reading's).
+        aligned: (N, 3, 3) the same with the half turns that carry the readings into one body
+            frame (``reading @ S``).
+        iou: (N,) how well each frame's own fit matches its mask (chooses the reference).
+        threshold_deg: see :func:`~sq_mitsuba.geometry.pass_motion.constant_rate_motion`.
+        held: every frame's rotation the motion's (else an agreeing frame keeps its reading).
+        max_rate_deg: the fastest turn considered, degrees per frame.
+
+    Returns:
+        The rotations (N, 3, 3) in the reference's reading frame, the half turns (N, 3, 3) of
+        each reading nearest its rotation there, the reference (the best-fitting agreeing
+        frame) and the relative rotations (N, 3, 3) ``Q_j = R_j R_0^T`` of the motion.
+    """
+    from sq_mitsuba.geometry.pass_motion import constant_rate_motion
+
+    motion = constant_rate_motion(aligned, threshold_deg, max_rate_deg=max_rate_deg)
+    turns = half_turns()
+    keep = motion.inliers & (not held)
+    chain = torch.where(keep[:, None, None], aligned @ turns[motion.turn], motion.predicted)
+    reference = int(torch.where(motion.inliers, iou.double(),
+                                torch.full_like(iou.double(), -1.0)).argmax())
+    # Into the reference's reading frame: chain_ref = reading_ref H, so chain @ H (H
+    # a diagonal half turn, its own inverse) is the reference's reading at the reference.
+    nearest = rotation_angle(reading.double()[:, None] @ turns, chain[:, None]).argmin(dim=1)
+    rotation = chain @ turns[nearest[reference]]
+    nearest = rotation_angle(reading.double()[:, None] @ turns, rotation[:, None]).argmin(dim=1)
+    relative = motion.predicted @ motion.predicted[0].T
+    return rotation, turns[nearest], reference, relative

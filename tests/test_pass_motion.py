@@ -1,0 +1,105 @@
+"""The constant-rate motion of a pass, found by consensus among the frames' readings.
+
+Reference: passes built from a known motion (``R_k = exp(k w) R_0``), their readings turned
+by random half turns, a little noise added and some frames replaced by misreadings.
+"""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from sq_mitsuba.geometry.pass_motion import constant_rate_motion
+from sq_mitsuba.geometry.rotation import axis_angle_to_matrix, random_rotations, rotation_angle
+from sq_mitsuba.geometry.so3_grid import half_turns
+
+
+def _pass(count: int, rate_deg: float, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+    generator = torch.Generator().manual_seed(seed)
+    axis = torch.randn(3, generator=generator, dtype=torch.float64)
+    rate = axis / axis.norm() * math.radians(rate_deg)
+    start = random_rotations(1, generator, torch.float64)[0]
+    truth = axis_angle_to_matrix(torch.arange(count, dtype=torch.float64)[:, None] * rate) @ start
+    noise = axis_angle_to_matrix(torch.randn(count, 3, generator=generator,
+                                             dtype=torch.float64) * math.radians(3.0))
+    turns = half_turns()[torch.randint(0, 4, (count,), generator=generator)]
+    return truth, noise @ truth @ turns
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_misread_frames_are_found_and_the_motion_recovered(seed):
+    truth, readings = _pass(8, rate_deg=12.0, seed=seed)
+    generator = torch.Generator().manual_seed(100 + seed)
+    wrong = [2, 5]
+    readings[wrong] = random_rotations(2, generator, torch.float64)  # far from the motion
+    motion = constant_rate_motion(readings, threshold_deg=20.0)
+    assert motion.inliers.tolist() == [k not in wrong for k in range(8)]
+    # The motion's rotations differ from the truth by one body-side half turn (the winning
+    # pair's frame a was read with one): the relative motion is the truth's.
+    relative = motion.predicted[1:] @ motion.predicted[:-1].transpose(-1, -2)
+    true_relative = truth[1:] @ truth[:-1].transpose(-1, -2)
+    assert float(torch.rad2deg(rotation_angle(relative, true_relative)).max()) < 4.0
+    aligned = truth[:, None] @ half_turns()
+    error = torch.rad2deg(rotation_angle(aligned, motion.predicted[:, None])).amin(dim=1)
+    assert float(error.max()) < 8.0
+    # Fitted to six readings, the motion lies nearer the truth than the readings themselves.
+    own = torch.rad2deg(rotation_angle(aligned, readings[:, None])).amin(dim=1)
+    keep = motion.inliers
+    assert float(error[keep].mean()) < float(own[keep].mean())
+    # Each agreeing reading, turned by its half turn, lies at its noise from the motion.
+    turned = readings @ half_turns()[motion.turn]
+    assert float(torch.rad2deg(rotation_angle(turned, motion.predicted))[
+        motion.inliers].max()) < 12.0
+
+
+def test_times_space_the_frames():
+    """Frames at uneven times: the rate is per unit of time, the motion passes through them."""
+    generator = torch.Generator().manual_seed(3)
+    rate = torch.tensor([0.0, 0.1, 0.05], dtype=torch.float64)
+    start = random_rotations(1, generator, torch.float64)[0]
+    times = torch.tensor([0.0, 0.5, 2.0, 3.0, 4.5], dtype=torch.float64)
+    truth = axis_angle_to_matrix(times[:, None] * rate) @ start
+    motion = constant_rate_motion(truth, times=times)
+    assert bool(motion.inliers.all())
+    torch.testing.assert_close(motion.rate.abs(), rate.abs(), atol=1e-6, rtol=0)
+    torch.testing.assert_close(motion.predicted @ half_turns()[motion.turn], truth,
+                               atol=1e-6, rtol=0)
+
+
+@pytest.mark.parametrize("call, name", [
+    (lambda: constant_rate_motion(torch.eye(3)[None]), "rotation"),
+    (lambda: constant_rate_motion(torch.eye(3).expand(3, 3, 3), threshold_deg=0.0),
+     "threshold_deg"),
+    (lambda: constant_rate_motion(torch.eye(3).expand(3, 3, 3), times=torch.zeros(3)),
+     "times"),
+    (lambda: constant_rate_motion(torch.full((3, 3, 3), float("nan"))), "rotation"),
+    (lambda: constant_rate_motion(torch.eye(3).expand(3, 3, 3), max_rate_deg=0.0),
+     "max_rate_deg"),
+])
+def test_bad_input_names_the_argument(call, name):
+    with pytest.raises(ValueError, match=f"^{name}"):
+        call()
+
+
+def test_a_flip_every_other_frame_is_not_read_as_a_fast_turn():
+    """A target spinning slowly about the line of sight, every other reading turned half a
+    turn about it (a flat target's outline looks the same): a turn of 180 + 8 deg a frame
+    explains every reading exactly, the slow one half of them; the rate bound keeps the slow
+    motion and outvotes the flips."""
+    generator = torch.Generator().manual_seed(11)
+    start = random_rotations(1, generator, torch.float64)[0]
+    rate = torch.tensor([0.0, 0.0, math.radians(8.0)], dtype=torch.float64)
+    times = torch.arange(8, dtype=torch.float64)
+    truth = axis_angle_to_matrix(times[:, None] * rate) @ start
+    flip = torch.diag(torch.tensor([-1.0, -1.0, 1.0], dtype=torch.float64))  # about z (camera)
+    readings = truth.clone()
+    readings[1::2] = flip @ truth[1::2]
+    fast = constant_rate_motion(readings, max_rate_deg=179.0)
+    slow = constant_rate_motion(readings)
+    assert bool(fast.inliers.all()) and float(torch.rad2deg(fast.rate.norm())) > 170.0
+    assert slow.inliers.tolist() == [True, False] * 4
+    relative = slow.predicted[1:] @ slow.predicted[:-1].transpose(-1, -2)
+    true_relative = truth[1:] @ truth[:-1].transpose(-1, -2)
+    assert float(torch.rad2deg(rotation_angle(relative, true_relative)).max()) < 1e-6
