@@ -103,3 +103,21 @@ def test_a_flip_every_other_frame_is_not_read_as_a_fast_turn():
     relative = slow.predicted[1:] @ slow.predicted[:-1].transpose(-1, -2)
     true_relative = truth[1:] @ truth[:-1].transpose(-1, -2)
     assert float(torch.rad2deg(rotation_angle(relative, true_relative)).max()) < 1e-6
+
+
+def test_two_frames_and_times_in_any_order():
+    """Two frames agree with the turn through them; times need not be sorted or positive."""
+    truth, _ = _pass(2, rate_deg=10.0, seed=2)
+    motion = constant_rate_motion(truth)
+    assert bool(motion.inliers.all())
+    torch.testing.assert_close(motion.predicted @ half_turns()[motion.turn], truth,
+                               atol=1e-9, rtol=0)
+    generator = torch.Generator().manual_seed(4)
+    rate = torch.tensor([0.05, -0.02, 0.08], dtype=torch.float64)
+    start = random_rotations(1, generator, torch.float64)[0]
+    times = torch.tensor([2.0, -1.0, 0.5, -3.0, 1.0], dtype=torch.float64)
+    readings = axis_angle_to_matrix(times[:, None] * rate) @ start
+    motion = constant_rate_motion(readings, times=times)
+    assert bool(motion.inliers.all())
+    torch.testing.assert_close(motion.predicted @ half_turns()[motion.turn], readings,
+                               atol=1e-6, rtol=0)

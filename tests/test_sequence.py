@@ -191,7 +191,8 @@ def _constant_rate_pass(count: int, rate_deg: float, seed: int,
 def test_along_motion_replaces_a_misread_frame_and_keeps_the_reference_frame():
     """Readings of a constant-rate pass, each in its own half turn, frame 3 misread: the
     agreeing frames keep their readings (in the reference's body frame), frame 3 takes the
-    motion's rotation, and the reference is the best-fitting agreeing frame."""
+    motion's rotation and its shape's half turn, and the reference is the best-fitting
+    agreeing frame."""
     from sq_mitsuba.inference.body_frame import along_motion
 
     truth = _constant_rate_pass(6, rate_deg=10.0, seed=8)
@@ -199,8 +200,10 @@ def test_along_motion_replaces_a_misread_frame_and_keeps_the_reference_frame():
     chosen = torch.tensor([1, 0, 3, 2, 2, 1])
     reading = truth @ turns[chosen]
     reading[3] = _perturbed(reading[3:4], 70.0, seed=3)[0]  # a misreading
+    # The half turns by shape, relative to frame 3 (the old reference): x_3 = S_j x_j.
+    shape_turns = turns[chosen[3]] @ turns[chosen]
     iou = torch.tensor([0.5, 0.6, 0.7, 0.9, 0.4, 0.3], dtype=torch.float64)  # frame 3 best
-    rotation, found, reference, relative = along_motion(reading, reading, iou, 25.0)
+    rotation, found, reference, relative = along_motion(reading, shape_turns, iou, 25.0)
     assert reference == 2  # the best of the frames that agree
     torch.testing.assert_close(rotation[reference], reading[reference])
     # Every frame, the misread one too, is the truth in the reference's body frame.
@@ -208,10 +211,29 @@ def test_along_motion_replaces_a_misread_frame_and_keeps_the_reference_frame():
     assert float(rotation_error_deg(rotation, expected).max()) < 1e-6
     for j in (0, 1, 2, 4, 5):  # an agreeing frame: its reading turned by its half turn
         torch.testing.assert_close(rotation[j], reading[j] @ found[j])
+    # Every frame's half turn carries its reading into the reference's: H_j = T_ref T_j.
+    torch.testing.assert_close(found, turns[chosen[reference]] @ turns[chosen])
     torch.testing.assert_close(relative, rotation @ rotation[0].T)
     # Held: the same rotations (exact readings lie on the motion).
-    held, _, _, _ = along_motion(reading, reading, iou, 25.0, held=True)
+    held, _, _, _ = along_motion(reading, shape_turns, iou, 25.0, held=True)
     assert float(rotation_error_deg(held, expected).max()) < 1e-6
+    # Too few frames agreeing on one turn: no motion, the frames keep their readings.
+    scattered = random_rotations(8, torch.Generator().manual_seed(1), torch.float64)
+    assert along_motion(scattered, half_turns()[torch.zeros(8, dtype=torch.long)],
+                        torch.rand(8, dtype=torch.float64), 25.0) is None
+
+
+def test_a_fitted_rate_survives_a_pass_that_turns_past_half_a_turn(known_pass):
+    """Ten frames 25 deg apart (225 deg in all), started at the truth: the rate read over the
+    whole span would wrap; read between neighbours it does not, and the fit stays there."""
+    body = known_pass[0]
+    truth = _constant_rate_pass(10, rate_deg=25.0, seed=6)
+    translations = torch.tensor([[0.0, 0.0, 1.8]], dtype=torch.float64).expand(10, 3).clone()
+    masks = _masks(body, truth, translations)
+    options = SequenceOptions(steps=3, patience=3, shape="pose", spp=4)
+    fitted = fit_sequence(body, truth, translations, masks, CAMERA, options,
+                          truth @ truth[0].T, torch.arange(10, dtype=torch.float64))
+    assert float(rotation_error_deg(fitted[1], truth).max()) < 3.0
 
 
 def test_a_fitted_rate_of_turn_corrects_the_motion(known_pass):

@@ -70,41 +70,52 @@ def _agreement(readings: Tensor, predicted: Tensor) -> tuple[Tensor, Tensor]:
 
 
 def _refit(rate: Tensor, start: Tensor, readings: Tensor, times: Tensor,
-           iterations: int = 30) -> tuple[Tensor, Tensor]:
+           iterations: int = 8) -> tuple[Tensor, Tensor]:
     """The motion (rate (3,), start (3, 3)) nearest the agreeing frames' readings (K, 3, 3) at
-    their times (K,), in the chordal sense, from the pair's motion: the pair's own noise
-    otherwise grows along the pass with the distance from the pair."""
-    rate = rate.clone().requires_grad_(True)
-    turn = torch.zeros(3, dtype=torch.float64, requires_grad=True)  # start <- exp(turn) start
-    optimiser = torch.optim.LBFGS([rate, turn], max_iter=iterations,
-                                  line_search_fn="strong_wolfe")
+    their times (K,), from the pair's motion: the pair's own noise otherwise grows along the
+    pass with the distance from the pair. Gauss-Newton on the residual turns: each reading is
+    ``exp([r_k]) R(t_k)``, and the line ``r_k = a + t_k d`` fitted by least squares moves the
+    start by ``a`` and the rate by ``d`` (turns compose to first order, as they do when the
+    agreeing frames lie within the threshold of the motion)."""
+    centred = times - times.mean()
+    spread = centred.square().sum()
+    for _ in range(iterations):
+        motion = axis_angle_to_matrix(times[:, None] * rate) @ start
+        residual = matrix_to_axis_angle(readings @ motion.transpose(-1, -2))  # (K, 3)
+        slope = (centred[:, None] * residual).sum(0) / spread
+        offset = residual.mean(0) - slope * times.mean()
+        rate, start = rate + slope, axis_angle_to_matrix(offset) @ start
+    return rate, start
 
-    def closure() -> Tensor:
-        optimiser.zero_grad()
-        motion = axis_angle_to_matrix(times[:, None] * rate) @ axis_angle_to_matrix(turn) @ start
-        loss = (motion - readings).square().sum()
-        loss.backward()
-        return loss
 
-    with torch.enable_grad():
-        optimiser.step(closure)
-    return rate.detach(), axis_angle_to_matrix(turn.detach()) @ start
+def _msac_cost(readings: Tensor, rate: Tensor, start: Tensor, times: Tensor,
+               threshold: float) -> Tensor:
+    """(H,) truncated squared angle of H motions over the frames, in chunks of hypotheses so
+    that memory stays linear in them (each chunk holds (h, N, 4, 3, 3) matrices)."""
+    chunk = max(1, 2**15 // len(readings))
+    costs = []
+    for k in range(0, len(rate), chunk):
+        angles, _ = _agreement(readings, _predicted(rate[k:k + chunk], start[k:k + chunk], times))
+        costs.append(angles.clamp_max(threshold).square().sum(dim=1))
+    return torch.cat(costs)
 
 
 def constant_rate_motion(rotation: Tensor, threshold_deg: float = 25.0,
                          times: Tensor | None = None, max_rate_deg: float = 45.0) -> PassMotion:
     """The constant-rate motion that most of N ordered frames' rotation readings agree with.
 
-    Every ordered pair of frames (a, b), frame a's reading as it is and frame b's with each of
-    its four half turns, proposes the motion through both; each frame agrees with a motion
-    by its nearest half turn. The motion of least truncated squared angle (MSAC: each frame
-    costs ``min(angle, threshold)^2``) wins; its rate and start are then fitted to the
-    agreeing frames' readings (least squares, chordal), and the agreement measured again.
+    Every pair of frames a < b (by index) close enough in time that a turn at ``max_rate_deg`` stays
+    under half a turn between them (all pairs if none is), frame a's reading as it is and
+    frame b's with each of its four half turns, proposes the motion through both; each frame
+    agrees with a motion by its nearest half turn. The motion of least truncated squared angle
+    (MSAC: each frame costs ``min(angle, threshold)^2``) wins; its rate and start are then
+    fitted to the agreeing frames' readings (least squares, chordal), kept only if that lowers
+    the cost within the rate bound, and the agreement measured again.
 
     Args:
         rotation: (N, 3, 3) body -> camera rotation of each frame, N >= 2, any float dtype.
         threshold_deg: a frame within this angle of a motion agrees with it.
-        times: (N,) the frames' times (default 0, 1, ..., N - 1).
+        times: (N,) the frames' times, distinct, in any order (default 0, 1, ..., N - 1).
         max_rate_deg: the fastest turn considered, degrees per unit of time: frames of a pass
             are taken close enough to follow the target, and readings that alternate between
             half turns would otherwise be explained by a turn of nearly 180 deg per frame.
@@ -137,23 +148,30 @@ def constant_rate_motion(rotation: Tensor, threshold_deg: float = 25.0,
     gap = times[second] - times[first]
     if bool((gap == 0).any()):
         raise ValueError("times: two frames share a time")
+    near = gap.abs() * max_rate_deg < 180.0  # the pair's turn read without wrapping
+    if bool(near.any()):
+        first, second, gap = first[near], second[near], gap[near]
     # (P * 4,) hypotheses: frame a's reading as it is, frame b's with each half turn.
     start_a = rotation[first].repeat_interleave(4, dim=0)
     end_b = readings[second].flatten(0, 1)
     rate = matrix_to_axis_angle(end_b @ start_a.transpose(-1, -2)) / \
         gap.repeat_interleave(4)[:, None]
     start = axis_angle_to_matrix(-times[first].repeat_interleave(4)[:, None] * rate) @ start_a
-    angles, _ = _agreement(readings, _predicted(rate, start, times))
-    threshold = math.radians(threshold_deg)
-    cost = angles.clamp_max(threshold).square().sum(dim=1)
-    slow = rate.norm(dim=1) <= math.radians(max_rate_deg)
+    threshold, bound = math.radians(threshold_deg), math.radians(max_rate_deg)
+    cost = _msac_cost(readings, rate, start, times, threshold)
+    slow = rate.norm(dim=1) <= bound
     if bool(slow.any()):
         cost = torch.where(slow, cost, torch.full_like(cost, math.inf))
     best = int(cost.argmin())
-    rate, start = rate[best:best + 1], start[best:best + 1]
-    angles, turn = _agreement(readings, _predicted(rate, start, times))
+    rate, start = rate[best], start[best]
+    angles, turn = _agreement(readings, _predicted(rate[None], start[None], times))
     agree = angles[0] <= threshold
-    rate, start = _refit(rate[0], start[0], readings[agree, turn[0][agree]], times[agree])
+    fitted_rate, fitted_start = _refit(rate, start, readings[agree, turn[0][agree]],
+                                       times[agree])
+    fitted_cost = _msac_cost(readings, fitted_rate[None], fitted_start[None], times, threshold)
+    if float(fitted_cost[0]) <= float(cost[best]) and (
+            float(fitted_rate.norm()) <= bound or not bool(slow.any())):
+        rate, start = fitted_rate, fitted_start
     predicted = _predicted(rate[None], start[None], times)
     angles, turn = _agreement(readings, predicted)
     return PassMotion(rate=rate, start=start, predicted=predicted[0], turn=turn[0],

@@ -19,6 +19,7 @@ import torch
 from torch import Tensor
 
 from sq_mitsuba.geometry.assembly import FIELDS, Assembly
+from sq_mitsuba.geometry.pass_motion import constant_rate_motion
 from sq_mitsuba.geometry.rotation import rotation_angle
 from sq_mitsuba.geometry.so3_grid import half_turns
 
@@ -141,37 +142,49 @@ def reframed(assembly: Assembly, rotation: Tensor, centre: Tensor) -> Assembly:
     return shifted.rotated(rotation.double().expand(shifted.batch_size, 3, 3))
 
 
-def along_motion(reading: Tensor, aligned: Tensor, iou: Tensor, threshold_deg: float,
+def along_motion(reading: Tensor, shape_turns: Tensor, iou: Tensor, threshold_deg: float,
                  held: bool = False, max_rate_deg: float = 45.0
-                 ) -> tuple[Tensor, Tensor, int, Tensor]:
-    """The frames' rotations from the pass's constant-rate motion (``SequenceOptions.motion``).
+                 ) -> tuple[Tensor, Tensor, int, Tensor] | None:
+    """The frames' rotations from the pass's constant-rate motion (``SequenceOptions.motion``),
+    or None where too few frames agree on one (for N >= 3: fewer than 3, or than half of them):
+    the frames then keep their own readings.
 
     Args:
-        reading: (N, 3, 3) each frame's own rotation reading (body frame: its reading's).
-        aligned: (N, 3, 3) the same with the half turns that carry the readings into one body
-            frame (``reading @ S``).
+        reading: (N, 3, 3) each frame's own rotation reading (body frame: its reading's),
+            frames in order, one unit of time apart.
+        shape_turns: (N, 3, 3) the half turns S_j that carry each reading into one body frame
+            by shape (:func:`align_half_turns`, :func:`align_half_turns_in_order`): they give
+            the half turns of the frames that disagree with the motion.
         iou: (N,) how well each frame's own fit matches its mask (chooses the reference).
         threshold_deg: see :func:`~sq_mitsuba.geometry.pass_motion.constant_rate_motion`.
-        held: every frame's rotation the motion's (else an agreeing frame keeps its reading).
+        held: every frame's rotation the motion's; else a frame that agrees keeps its reading
+            (turned) and only the others take the motion's.
         max_rate_deg: the fastest turn considered, degrees per frame.
 
     Returns:
-        The rotations (N, 3, 3) in the reference's reading frame, the half turns (N, 3, 3) of
-        each reading nearest its rotation there, the reference (the best-fitting agreeing
-        frame) and the relative rotations (N, 3, 3) ``Q_j = R_j R_0^T`` of the motion.
+        The rotations (N, 3, 3) in the reference's reading frame (at the reference its own
+        reading, or with ``held`` the motion's there, within ``threshold_deg`` of it); the half
+        turns H_j (N, 3, 3) that carry reading j into that frame (``x = H_j x_j``: the one
+        nearest its rotation for a frame that agrees, its shape's for the others); the
+        reference (the best-fitting frame that agrees) and the relative rotations
+        ``Q_j = R_j R_0^T`` (N, 3, 3) of the result.
     """
-    from sq_mitsuba.geometry.pass_motion import constant_rate_motion
-
-    motion = constant_rate_motion(aligned, threshold_deg, max_rate_deg=max_rate_deg)
+    count = len(reading)
+    reading = reading.double()
+    motion = constant_rate_motion(reading, threshold_deg, max_rate_deg=max_rate_deg)
+    agree = motion.inliers
+    if count >= 3 and int(agree.sum()) < max(3, (count + 1) // 2):
+        return None
     turns = half_turns()
-    keep = motion.inliers & (not held)
-    chain = torch.where(keep[:, None, None], aligned @ turns[motion.turn], motion.predicted)
-    reference = int(torch.where(motion.inliers, iou.double(),
-                                torch.full_like(iou.double(), -1.0)).argmax())
-    # Into the reference's reading frame: chain_ref = reading_ref H, so chain @ H (H
-    # a diagonal half turn, its own inverse) is the reference's reading at the reference.
-    nearest = rotation_angle(reading.double()[:, None] @ turns, chain[:, None]).argmin(dim=1)
-    rotation = chain @ turns[nearest[reference]]
-    nearest = rotation_angle(reading.double()[:, None] @ turns, rotation[:, None]).argmin(dim=1)
-    relative = motion.predicted @ motion.predicted[0].T
-    return rotation, turns[nearest], reference, relative
+    keep = torch.zeros_like(agree) if held else agree
+    chain = torch.where(keep[:, None, None], reading @ turns[motion.turn], motion.predicted)
+    reference = int(torch.where(agree, iou.double(), torch.full_like(iou.double(), -1.0))
+                    .argmax())
+    # Into the reference's reading frame: chain_ref ~ reading_ref T, so chain @ T (T a
+    # diagonal half turn, its own inverse) is near the reference's reading at the reference.
+    t_ref = int(rotation_angle(reading[reference] @ turns, chain[reference]).argmin())
+    rotation = chain @ turns[t_ref]
+    nearest = turns[rotation_angle(reading[:, None] @ turns, rotation[:, None]).argmin(dim=1)]
+    by_shape = shape_turns.double()[reference] @ shape_turns.double()
+    found = torch.where(agree[:, None, None], nearest, by_shape)
+    return rotation, found, reference, rotation @ rotation[0].T

@@ -23,9 +23,9 @@ mean IoU over the views (one state for all). Its translation moves as ``t = t0 e
 silhouettes from one camera cannot tell a shape s times larger at s times the distance, so the
 start's mean depth keeps the scale. With ``relative_rotations`` (``Q_j``, ``R_j = Q_j R_0``)
 one rotation ``R_0`` moves instead of B; with ``relative_times`` as well (the relative
-rotations a constant-rate turn, ``Q_j = exp((t_j - t_0) [w])``), the rate moves too:
-``R_j = exp((t_j - t_0) [w + d]) R_0``, ``d`` scaled so that one step of it is the extra turn
-at the last view.
+rotations a constant-rate turn, ``Q_j = exp((t_j - t_0) [w])``), its rate moves too:
+``R_j = exp(tau_j [w + d]) R_0`` with ``tau_j = (t_j - t_0) / max |t_k - t_0|``, ``w`` the whole
+turn over that span (read from the view nearest view 0 in time) and ``d`` its correction.
 """
 
 from __future__ import annotations
@@ -187,11 +187,14 @@ def refine_pose_and_shape(assembly: Assembly, rotation: Tensor, translation: Ten
                          f"{assembly.batch_size}")
     if relative_rotations is not None and not shared:
         raise ValueError("relative_rotations: only with a shared shape (shared=True)")
-    if relative_times is not None and (relative_rotations is None or tuple(
-            relative_times.shape) != (rotation.shape[0],)):
-        raise ValueError(f"relative_times: expected ({rotation.shape[0]},) with "
-                         "relative_rotations, got "
-                         f"{tuple(relative_times.shape)}")
+    if relative_times is not None:
+        if relative_rotations is None:
+            raise ValueError("relative_times: only with relative_rotations")
+        check_tensor("relative_times", relative_times, ())
+        if tuple(relative_times.shape) != (rotation.shape[0],) or len(
+                torch.unique(relative_times)) != len(relative_times):
+            raise ValueError(f"relative_times: expected {rotation.shape[0]} distinct times, "
+                             f"got shape {tuple(relative_times.shape)}")
     batch = rotation.shape[0] if shared else assembly.batch_size
     check_tensor("rotation", rotation, (3, 3), min_dims=3)
     check_tensor("translation", translation, (3,), min_dims=2)
@@ -230,15 +233,17 @@ def refine_pose_and_shape(assembly: Assembly, rotation: Tensor, translation: Ten
                                   requires_grad=True)
     shift = torch.zeros(batch, 3, dtype=dtype, requires_grad=True)
     rate = torch.zeros(3, dtype=dtype, requires_grad=relative_times is not None)
-    times = None if relative_times is None else relative_times.detach().to(dtype)
-    if times is not None:
-        # The turn's rate from its first and last views, per unit of the views' time span,
-        # so that the correction d is the extra turn at the last view.
+    times = rate0 = None
+    if relative is not None and relative_times is not None:
+        # The turn's rate from view 0 and the view nearest it in time (a turn read between
+        # views far apart could pass half a turn and wrap), in units of the views' time span:
+        # the correction d is then the extra turn at the view farthest from view 0.
+        times = relative_times.detach().to(dtype)
         times = times - times[0]
-        last = int(times.abs().argmax())
-        span = times[last].clamp_min(1e-12) if times[last] >= 0 else times[last]
+        span = times.abs().max()
         times = times / span
-        rate0 = matrix_to_axis_angle(relative[last] @ relative[0].T)
+        nearest = int(torch.where(times == 0, torch.inf, times.abs()).argmin())
+        rate0 = matrix_to_axis_angle(relative[nearest] @ relative[0].T) / times[nearest]
     # Zeroes the z component of the correction when the depth is held.
     shift_axes = torch.tensor([1.0, 1.0, 0.0 if options.depth == "fixed" else 1.0], dtype=dtype)
     pose_parameters = [shift] if options.rotation == "fixed" else [rotation_vector, shift]
@@ -255,7 +260,7 @@ def refine_pose_and_shape(assembly: Assembly, rotation: Tensor, translation: Ten
             return (axis_angle_to_matrix(rotation_vector) @ rotation0,
                     translation0 + distance * shift * shift_axes)
         spin = axis_angle_to_matrix(rotation_vector)
-        if times is not None:  # R_j = exp((t_j - t_0) (w + d)) R_0
+        if times is not None and rate0 is not None:  # R_j = exp(tau_j (w + d)) R_0
             rotations = axis_angle_to_matrix(times[:, None] * (rate0 + rate)) @ \
                 (spin[0] @ rotation0[0])
         elif relative is not None:

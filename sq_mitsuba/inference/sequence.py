@@ -15,18 +15,22 @@ its body frame and the pose of every image:
    resolved across frames, not per frame. With the frames' relative rotations given (a
    servicer's navigation: ``R_j = Q_j R_0``), one rotation ``R_0`` is kept instead, the
    chordal mean of the frames' readings carried back by their ``Q_j``. **Frames in order**
-   (``ordered=True``, a pass) turn steadily: the half turns also make the motion smoothest,
-   and then the one constant-rate turn that most frames' readings agree with is found by
-   consensus (:func:`~sq_mitsuba.geometry.pass_motion.constant_rate_motion`); with
-   ``options.motion = "fitted"`` (the default) every frame starts on it and the joint fit
-   keeps the frames on one constant-rate turn, its rate fitted with the rest, so a frame
-   misread alone no longer pulls the shared shape its own way.
+   (``ordered=True``, a pass, one unit of time apart) turn steadily: the half turns by shape
+   also make the motion smoothest, and the one constant-rate turn that most frames' readings
+   agree with is found by consensus
+   (:func:`~sq_mitsuba.inference.body_frame.along_motion`); the reference is then the
+   best-fitting frame that agrees, and with ``options.motion = "fitted"`` (the default)
+   every frame starts on the turn and the joint fit keeps the frames on one constant-rate
+   turn, its rate fitted with the rest, so a frame misread alone no longer pulls the shared
+   shape its own way. Where no turn has half the frames' agreement, the frames keep their
+   readings; given relative rotations take precedence over the pass's own turn.
 3. **One shape, N poses, fitted at once** (:func:`fit_sequence`, the refinement's shared
    mode): the shared assembly (from the reference's reading, or with ``start="best"`` the
    reading that fits all frames best, :func:`choose_start`; every shape parameter free, held
    near the start by a weak prior) and each frame's rotation and translation (or, with
    relative rotations, the one ``R_0``) move together by Adam so that the Mitsuba silhouettes
-   match every frame's mask (in order: ``R_0`` and the rate of turn move, not N rotations);
+   match every frame's mask (in order, ``motion="fitted"``: ``R_0`` and the rate of turn
+   move, not N rotations; ``"held"``: ``R_0`` alone);
    the best step by the mean IoU over the frames is kept. The scale stays the network's
    (the frames' depths keep their geometric mean).
 4. **The dataset's body frame** (``options.canonical``, off by default): the result expressed
@@ -129,9 +133,10 @@ class SequenceOptions:
     rotation and rate move with the shape; "held": the same with the rate held; "start": a
     frame that disagrees starts from the motion instead of its reading, then every frame moves
     alone; "free": every frame starts from its own reading. Measured on passes of 8 frames
-    (eval/experiments/README.md, "Passes"; held-out families / archetypes): "fitted" 2D IoU
-    0.689 / 0.794 and relative rotations 9.5 / 2.7 deg median, "free" 0.654 / 0.765 and
-    12.9 / 6.3 deg. A frame's time is its index; unordered frames are not affected."""
+    (eval/MODEL_CARD.md, "A pass of images"; held-out families / archetypes): "fitted" 2D IoU
+    0.686 / 0.794 and relative rotations 8.9 / 2.7 deg median, "free" 0.653 / 0.768 and
+    13.0 / 6.1 deg, in the same time. A frame's time is its index; unordered frames and
+    given relative rotations (which take precedence) are not affected."""
     motion_threshold_deg: float = in_range(1.0, 179.0, default=25.0)
     "A frame within this angle of the pass's motion agrees with it (``motion``)."
     motion_max_rate_deg: float = positive(45.0)
@@ -155,8 +160,9 @@ class SequencePrediction:
         quaternion: (N, 4) ``rotation`` as (w, x, y, z), w >= 0.
         frames: each frame's own prediction (the shipped path, before the joint fit).
         reference: index of the frame whose body frame is the result's.
-        half_turns: (N, 3, 3) the half turn S_j that carried frame j's reading into the
-            reference body frame (``R_j <- R_j S_j``).
+        half_turns: (N, 3, 3) the half turn S_j that carries frame j's reading into the
+            reference body frame (``x_ref = S_j x_j``; ``R_j S_j`` is the frame's rotation
+            there, or the nearest to it where the pass's motion replaced the reading).
         iou: (N,) IoU of each frame's silhouette against its mask after the joint fit (at the
             fit's resolution); frame_iou: (N,) the same of each frame's own fit.
         steps: Adam steps taken; seconds: wall time of the whole sequence (frames included);
@@ -207,7 +213,7 @@ def fit_sequence(assembly: Assembly, rotation: Tensor, translation: Tensor, mask
         relative_rotations: (N, 3, 3) ``Q_j`` with ``R_j = Q_j R_0``, or None. Given, the
             frames share one rotation ``R_0 = Q_0^T rotation[0]`` that moves, not N.
         relative_times: (N,) the frames' times when ``relative_rotations`` is a constant-rate
-            turn (``Q_j = exp(t_j [w])``): its rate moves too; None: the ``Q_j`` held.
+            turn (``Q_j = exp((t_j - t_0) [w])``): its rate moves too; None: the ``Q_j`` held.
 
     Returns:
         The assembly (batch size 1), rotation (N, 3, 3), translation (N, 3), each frame's IoU
@@ -301,8 +307,10 @@ def predict_sequence(predictor: Any, images: Tensor | np.ndarray, camera: Camera
         camera: the frames' camera (default: the predictor's).
         relative_rotations: (N, 3, 3) ``Q_j = R_j R_0^T`` when known (e.g. from navigation),
             else None.
-        ordered: the frames are in the order they were taken (a pass): the half turns are
-            chosen for the smoothest motion too (:func:`align_half_turns_in_order`).
+        ordered: the frames are in the order they were taken, equally spaced in time (a
+            pass): the half turns are chosen for the smoothest motion too
+            (:func:`align_half_turns_in_order`) and the frames put on the pass's turn
+            (``options.motion``).
         mask: the masks to fit, as ``Predictor.predict(refine=True)`` takes them (default: the
             network's mask head, or the segmentation).
         options: the joint fit's :class:`SequenceOptions`.
@@ -367,12 +375,15 @@ def sequence_from_frames(frames: Prediction, relative: Tensor | None = None,
         align_half_turns(frames.assembly, reference, options.level)
     rotation = frames.rotation.double() @ turns  # x_ref = S x_j  =>  R_j x_j = (R_j S) x_ref
     times = None  # the frames' times, when the rate of turn moves in the joint fit
-    if ordered and relative is None and options.motion != "free":
-        held = options.motion in ("held", "fitted")
-        rotation, turns, reference, motion = along_motion(
-            frames.rotation, rotation, fit.iou, options.motion_threshold_deg, held,
-            options.motion_max_rate_deg)
-        relative = motion if held else None
+    # Relative rotations the caller gives take precedence over the pass's own motion.
+    on_motion = along_motion(frames.rotation, turns, fit.iou, options.motion_threshold_deg,
+                             options.motion in ("held", "fitted"), options.motion_max_rate_deg
+                             ) if ordered and relative is None and options.motion != "free" \
+        else None
+    if on_motion is not None:
+        rotation, turns, reference, motion_relative = on_motion
+        if options.motion in ("held", "fitted"):
+            relative = motion_relative  # one rotation (and with "fitted" the rate) moves
         if options.motion == "fitted":
             times = torch.arange(len(rotation), dtype=torch.float64)
     if relative is not None:
