@@ -30,7 +30,7 @@ from sq_mitsuba.geometry.rotation import (
     matrix_to_axis_angle,
     rotation_angle,
 )
-from sq_mitsuba.geometry.so3_grid import half_turns
+from sq_mitsuba.geometry.so3_grid import with_half_turns
 
 __all__ = ["PassMotion", "constant_rate_motion"]
 
@@ -104,8 +104,9 @@ def constant_rate_motion(rotation: Tensor, threshold_deg: float = 25.0,
                          times: Tensor | None = None, max_rate_deg: float = 45.0) -> PassMotion:
     """The constant-rate motion that most of N ordered frames' rotation readings agree with.
 
-    Every pair of frames a < b (by index) close enough in time that a turn at ``max_rate_deg`` stays
-    under half a turn between them (all pairs if none is), frame a's reading as it is and
+    Every pair of frames a < b (by index) close enough in time that a turn at
+    ``max_rate_deg`` stays under half a turn between them (all pairs if none is), frame a's
+    reading as it is and
     frame b's with each of its four half turns, proposes the motion through both; each frame
     agrees with a motion by its nearest half turn. The motion of least truncated squared angle
     (MSAC: each frame costs ``min(angle, threshold)^2``) wins; its rate and start are then
@@ -143,7 +144,7 @@ def constant_rate_motion(rotation: Tensor, threshold_deg: float = 25.0,
         torch.as_tensor(times, dtype=torch.float64).cpu()
     if tuple(times.shape) != (count,) or not bool(torch.isfinite(times).all()):
         raise ValueError(f"times: expected ({count},) finite values, got {tuple(times.shape)}")
-    readings = rotation[:, None] @ half_turns()  # (N, 4, 3, 3)
+    readings = with_half_turns(rotation)  # (N, 4, 3, 3)
     first, second = torch.triu_indices(count, count, offset=1)
     gap = times[second] - times[first]
     if bool((gap == 0).any()):

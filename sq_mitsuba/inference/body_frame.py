@@ -20,7 +20,6 @@ from torch import Tensor
 
 from sq_mitsuba.geometry.assembly import FIELDS, Assembly
 from sq_mitsuba.geometry.pass_motion import constant_rate_motion
-from sq_mitsuba.geometry.rotation import rotation_angle
 from sq_mitsuba.geometry.so3_grid import half_turns
 
 __all__ = ["align_half_turns", "align_half_turns_in_order", "along_motion", "canonical_frame",
@@ -180,11 +179,12 @@ def along_motion(reading: Tensor, shape_turns: Tensor, iou: Tensor, threshold_de
     chain = torch.where(keep[:, None, None], reading @ turns[motion.turn], motion.predicted)
     reference = int(torch.where(agree, iou.double(), torch.full_like(iou.double(), -1.0))
                     .argmax())
-    # Into the reference's reading frame: chain_ref ~ reading_ref T, so chain @ T (T a
-    # diagonal half turn, its own inverse) is near the reference's reading at the reference.
-    t_ref = int(rotation_angle(reading[reference] @ turns, chain[reference]).argmin())
-    rotation = chain @ turns[t_ref]
-    nearest = turns[rotation_angle(reading[:, None] @ turns, rotation[:, None]).argmin(dim=1)]
+    # Into the reference's reading frame: the chain is the reference's reading turned by its
+    # half turn T (or the motion nearest that), so chain @ T (T diagonal, its own inverse) is
+    # its reading there; an agreeing frame's reading then needs its own turn times T.
+    to_reference = turns[motion.turn[reference]]
+    rotation = chain @ to_reference
+    by_motion = turns[motion.turn] @ to_reference
     by_shape = shape_turns.double()[reference] @ shape_turns.double()
-    found = torch.where(agree[:, None, None], nearest, by_shape)
+    found = torch.where(agree[:, None, None], by_motion, by_shape)
     return rotation, found, reference, rotation @ rotation[0].T

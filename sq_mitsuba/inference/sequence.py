@@ -375,20 +375,19 @@ def sequence_from_frames(frames: Prediction, relative: Tensor | None = None,
         align_half_turns(frames.assembly, reference, options.level)
     rotation = frames.rotation.double() @ turns  # x_ref = S x_j  =>  R_j x_j = (R_j S) x_ref
     times = None  # the frames' times, when the rate of turn moves in the joint fit
-    # Relative rotations the caller gives take precedence over the pass's own motion.
-    on_motion = along_motion(frames.rotation, turns, fit.iou, options.motion_threshold_deg,
-                             options.motion in ("held", "fitted"), options.motion_max_rate_deg
-                             ) if ordered and relative is None and options.motion != "free" \
-        else None
-    if on_motion is not None:
-        rotation, turns, reference, motion_relative = on_motion
-        if options.motion in ("held", "fitted"):
-            relative = motion_relative  # one rotation (and with "fitted" the rate) moves
-        if options.motion == "fitted":
-            times = torch.arange(len(rotation), dtype=torch.float64)
-    if relative is not None:
+    if relative is not None:  # given, they take precedence over the pass's own motion
         carried = relative.transpose(-1, -2) @ rotation  # each frame's estimate of R_0
         rotation = relative @ mean_rotation(carried)
+    elif ordered and options.motion != "free":
+        on_motion = along_motion(frames.rotation, turns, fit.iou, options.motion_threshold_deg,
+                                 options.motion in ("held", "fitted"),
+                                 options.motion_max_rate_deg)
+        if on_motion is not None:
+            rotation, turns, reference, motion_relative = on_motion
+            if options.motion in ("held", "fitted"):
+                relative = motion_relative  # one rotation (and with "fitted" the rate) moves
+            if options.motion == "fitted":
+                times = torch.arange(len(rotation), dtype=torch.float64)
     translation = frames.translation.double()
     # Forward silhouettes of one shape at every frame's pose, in one launch: the scores of
     # the start's candidates and of the frames' rotations searched again.
