@@ -173,6 +173,23 @@ def test_relative_rotations_tie_every_frame_to_one_rotation(known_pass):
     assert float(ious.mean()) > 0.85
 
 
+@pytest.mark.parametrize("times, relative, message", [
+    (torch.arange(6.0, dtype=torch.float64), False, "relative_times: only with relative_rotations"),
+    (torch.arange(5.0, dtype=torch.float64), True, "relative_times: expected 6 distinct times"),
+    (torch.zeros(6, dtype=torch.float64), True, "relative_times: expected 6 distinct times"),
+    (torch.full((6,), float("nan"), dtype=torch.float64), True, "relative_times"),
+])
+def test_bad_relative_times_are_one_line_errors(known_pass, times, relative, message):
+    from sq_mitsuba.inference.refine import RefineOptions, refine_pose_and_shape
+
+    body, rotations, translations, masks = known_pass
+    with pytest.raises(ValueError, match=f"^{message}"):
+        refine_pose_and_shape(body, rotations, translations, masks, CAMERA,
+                              RefineOptions(steps=1), shared=True,
+                              relative_rotations=rotations @ rotations[0].T if relative
+                              else None, relative_times=times)
+
+
 def _constant_rate_pass(count: int, rate_deg: float, seed: int,
                        rate_error: torch.Tensor | None = None) -> torch.Tensor:
     """Rotations (count, 3, 3) of a target turning at a constant rate about a random axis
