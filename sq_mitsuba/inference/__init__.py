@@ -4,7 +4,8 @@ a checkpoint by :func:`load_model` (:mod:`.loading`); the render-and-compare pos
 an assembly to masks seen from known poses (:mod:`.fit`), and the one pipeline that joins them
 (:mod:`.pipeline`, ``Predictor.predict(images, refine=True)``); for N images of one
 spacecraft, one assembly and every pose (:mod:`.sequence`, its frames brought into one body
-frame by :mod:`.body_frame`). Imports the model layer and those below it; never the training
+frame by :mod:`.body_frame`, primitives optionally grown where its silhouettes miss the
+masks by :mod:`.grow`). Imports the model layer and those below it; never the training
 layer.
 
 ``Predictor``, ``Prediction`` and ``load_model`` are importable from here, loaded on first use.

@@ -100,8 +100,11 @@ __all__ = ["FRAMES_REFINEMENT", "FRAMES_SEARCH", "SequenceOptions", "SequencePre
 class SequenceOptions:
     """Settings of the joint fit of one shape and N poses to N masks."""
 
-    steps: int = in_range(1, 10_000, default=40)
-    "Adam steps of the joint fit (shape and poses together)."
+    steps: int = in_range(1, 10_000, default=60)
+    """Adam steps of the joint fit (shape and poses together). 60 rather than 40 at ``level``
+    1: on passes of 8 frames of 12 spacecraft of the held-out families mean 2D IoU 0.718 ->
+    0.740 in 0.9 x the time of 40 steps at level 2; 80 steps 0.746 at 1.3 x
+    (eval/experiments/README.md, "Passes")."""
     shape_steps: int = in_range(0, 10_000, default=0)
     """Adam steps of the shape alone first, the poses held (0: none; 20 lowered the mean 2D
     IoU on the passes of eval/experiments/README.md, 0.779 -> 0.752)."""
@@ -113,8 +116,11 @@ class SequenceOptions:
     "Adam's learning rate (raw shape parameters, rotation vectors, relative shifts)."
     resolution: int = in_range(8, 1024, default=64)
     "Width in pixels at which the silhouettes are fitted."
-    level: int = in_range(0, 5, default=2)
-    "Icosphere level of the primitives' meshes (2: 162 vertices)."
+    level: int = in_range(0, 5, default=1)
+    """Icosphere level of the primitives' meshes (1: 42 vertices; 2: 162). At the fit's 64 px
+    level 1 fits as well as 2 (passes of 8 frames of 12 held-out spacecraft, 40 steps: mean
+    2D IoU 0.712 against 0.718; in family 0.809 against 0.821) in two thirds of the time: each
+    step's cost is mostly the silhouettes' scene update, which grows with the faces."""
     spp: int = in_range(1, 1024, default=4)
     "Samples per pixel of the fitted silhouettes."
     shape: Literal["free", "size", "pose"] = "free"
@@ -134,14 +140,25 @@ class SequenceOptions:
     frame that disagrees starts from the motion instead of its reading, then every frame moves
     alone; "free": every frame starts from its own reading. Measured on passes of 8 frames
     (eval/MODEL_CARD.md, "A pass of images"; held-out families / archetypes): "fitted" 2D IoU
-    0.686 / 0.794 and relative rotations 8.9 / 2.7 deg median, "free" 0.653 / 0.768 and
-    13.0 / 6.1 deg, in the same time. A frame's time is its index; unordered frames and
-    given relative rotations (which take precedence) are not affected."""
+    0.702 / 0.780 and relative rotations 9.2 / 2.4 deg median, "free" 0.655 / 0.773 and
+    11.9 / 6.4 deg (with 40 steps at level 2: 0.686 / 0.794 against 0.653 / 0.768). A
+    frame's time is its index; unordered frames and given relative rotations (which take
+    precedence) are not affected."""
     motion_threshold_deg: float = in_range(1.0, 179.0, default=25.0)
     "A frame within this angle of the pass's motion agrees with it (``motion``)."
     motion_max_rate_deg: float = positive(45.0)
     """The fastest turn of the target the pass's motion may have, degrees per frame (readings
     that alternate between half turns would otherwise read as a turn near 180 deg a frame)."""
+    grow: int = in_range(0, 16, default=0)
+    """Primitives the joint fit may add, one at a time, where the frames' silhouettes miss
+    their masks (:func:`~sq_mitsuba.inference.grow.grow_primitive`: a long array or boom the
+    reading left out), each followed by ``grow_steps`` more steps; 0: none. Off by default:
+    on passes of 8 frames of 12 held-out spacecraft, 3 grown with 10 steps each raised the
+    mean 2D IoU 0.740 -> 0.747 (in family 0.821 -> 0.831) but the body-frame Chamfer-L1 0.187
+    -> 0.202: a part placed from the outlines lands where the pass's misread body frame puts
+    it."""
+    grow_steps: int = in_range(1, 10_000, default=20)
+    "Adam steps of the joint fit after each grown primitive."
     canonical: bool = False
     """Express the result in the dataset's body frame convention: the fitted assembly's
     oriented box's axes by extent, its centre of mass at the origin (else the reference
@@ -235,8 +252,33 @@ def fit_sequence(assembly: Assembly, rotation: Tensor, translation: Tensor, mask
         if relative_times is not None:  # the rate moved: the next stage turns from here
             relative_rotations = rotation @ rotation[0].T
         ious, steps, losses = result.iou_after, steps + result.steps, losses + result.losses
+    for _ in range(options.grow if options.shape == "free" else 0):
+        grown = _grown(assembly, rotation, translation, masks, camera, options)
+        if grown is None:
+            break
+        result = refine_pose_and_shape(grown, rotation, translation, masks, camera,
+                                       stage_refine_options(options, options.grow_steps, True),
+                                       shared=True, relative_rotations=relative_rotations,
+                                       relative_times=relative_times)
+        assembly, rotation, translation = result.assembly, result.rotation, result.translation
+        if relative_times is not None:
+            relative_rotations = rotation @ rotation[0].T
+        ious, steps, losses = result.iou_after, steps + result.steps, losses + result.losses
     assert ious is not None
     return assembly, rotation, translation, ious, steps, losses
+
+
+def _grown(assembly: Assembly, rotation: Tensor, translation: Tensor, masks: Tensor,
+           camera: Camera, options: SequenceOptions) -> Assembly | None:
+    """The assembly with a primitive grown where the silhouettes miss the masks, or None."""
+    from sq_mitsuba.inference.fit import resize_masks
+    from sq_mitsuba.inference.grow import grow_primitive
+
+    small = camera.rescaled(options.resolution)
+    targets = resize_masks(masks.double(), small.height, small.width)
+    grown, before, after = grow_primitive(assembly, rotation, translation, targets, small,
+                                          options.level, options.spp, options.seed)
+    return grown if after > before else None
 
 
 def _scores(assembly: Assembly, rotation: Tensor, translation: Tensor, targets: Tensor,
