@@ -344,20 +344,26 @@ def test_predict_sequence_cli_writes_one_assembly_and_a_pose_per_frame(eval_chec
     images = sorted((train_dataset / model / "images").glob("*.png"))[:3]
     out = tmp_path / "pass"
     assert main(["predict", *map(str, images), "--sequence", "--ordered", "--checkpoint",
-                 str(eval_checkpoint), "--out", str(out), "--quiet"]) == 0
+                 str(eval_checkpoint), "--out", str(out), "--quiet", "--fit", "steps=5"]) == 0
     shared = Assembly.load(out / "sequence.assembly.json")
     assert shared.batch_size == 1 and (out / "sequence.glb").stat().st_size > 0
     assert (out / "sequence.png").stat().st_size > 0
     for k, image in enumerate(images):
         pose = json.loads((out / f"{image.stem}.pose.json").read_text())
         assert pose["sequence"]["frame"] == k and pose["sequence"]["frames"] == 3
+        assert pose["sequence"]["steps"] == 5  # --fit reached the joint fit
         assert len(pose["q_vbs2tango"]) == 4 and pose["r_Vo2To_vbs"][2] > 0
         assert (out / f"{image.stem}.overlay.png").stat().st_size > 0
     assert main(["predict", str(images[0]), "--ordered", "--checkpoint", str(eval_checkpoint),
                  "--out", str(tmp_path / "x")]) == 2
     assert main(["predict", str(images[0]), "--sequence", "--checkpoint",
                  str(eval_checkpoint), "--out", str(tmp_path / "y")]) == 2
-    assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
+    # --fit: only with --sequence, and a key the joint fit has, before any work.
+    assert main(["predict", str(images[0]), "--fit", "steps=5", "--checkpoint",
+                 str(eval_checkpoint), "--out", str(tmp_path / "z")]) == 2
+    assert main(["predict", *map(str, images), "--sequence", "--fit", "stepz=5",
+                 "--checkpoint", str(eval_checkpoint), "--out", str(tmp_path / "w")]) == 2
+    assert all(not (tmp_path / name).exists() for name in "xyzw")
 
 
 def test_the_start_is_the_reading_that_fits_every_frame(known_pass):

@@ -150,7 +150,7 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
             "sequence": {"frame": k, "frames": count, "reference": result.reference,
                          "iou": record.iou[k], "frame_iou": record.frame_iou[k],
                          "half_turn": [[float(v) for v in row] for row in result.half_turns[k]],
-                         "mask_source": own.fit.mask_source},
+                         "mask_source": own.fit.mask_source, "steps": result.steps},
         }
         atomic_write_json(out / f"{path.stem}.pose.json", pose)
         record.files.append(out / f"{path.stem}.pose.json")

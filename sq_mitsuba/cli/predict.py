@@ -77,10 +77,23 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="with --sequence: the frames are in the order they were taken, "
                              "equally spaced in time: they are kept on one constant-rate turn "
                              "(default: any order)")
+    parser.add_argument("--fit", dest="fit_overrides", action="append", default=[],
+                        metavar="KEY=VALUE",
+                        help="with --sequence: override a field of the joint fit's options "
+                             "(SequenceOptions: steps=80 for a longer fit, grow=2 to grow "
+                             "primitives where the silhouettes miss); repeatable. Fields: "
+                             + _sequence_fields())
     add_config_options(parser, PredictOptions, FLAGS)
     add_set_option(parser, "predict options", "refinement.steps=20")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.set_defaults(func=_run)
+
+
+def _sequence_fields() -> str:
+    from sq_mitsuba.cli._options import settable_fields
+    from sq_mitsuba.inference.sequence import SequenceOptions
+
+    return settable_fields(SequenceOptions)
 
 
 def check_conflicts(args: argparse.Namespace) -> None:
@@ -112,6 +125,8 @@ def _run(args: argparse.Namespace) -> int:
     check_conflicts(args)
     if args.ordered and not args.sequence:
         raise CLIError("--ordered: only with --sequence")
+    if args.fit_overrides and not args.sequence:
+        raise CLIError("--fit: only with --sequence (--set changes a single image's options)")
     if args.sequence:
         return _run_sequence(args)
     options = config_from_args(PredictOptions, args)
@@ -134,15 +149,21 @@ def _run(args: argparse.Namespace) -> int:
 def _run_sequence(args: argparse.Namespace) -> int:
     from sq_mitsuba.apps.predict_sequence import predict_sequence_files
     from sq_mitsuba.cli import CLIError
+    from sq_mitsuba.config import ConfigError, apply_overrides
     from sq_mitsuba.geometry.camera import Camera
     from sq_mitsuba.inference.loading import load_model
+    from sq_mitsuba.inference.sequence import SequenceOptions
 
     unused = [flag for flag, given in (("--mask", args.mask), ("--refine", getattr(
         args, "refine", None)), ("--set", getattr(args, "overrides", None))) if given]
     if unused:
         raise CLIError(f"{unused[0]}: not used with --sequence (every frame is refined)")
+    try:
+        options = apply_overrides(SequenceOptions(), args.fit_overrides)
+    except ConfigError as error:
+        raise CLIError(f"--fit {error}") from None
     camera = Camera.load(args.camera) if args.camera is not None else None
     record = predict_sequence_files(args.images, args.out, load_model(args.checkpoint),
-                                    camera, ordered=args.ordered)
+                                    camera, options=options, ordered=args.ordered)
     print(f"{record.describe()}; wrote {len(record.files)} files to {args.out}")
     return 0
