@@ -75,21 +75,19 @@ def piece_points(pixels: Tensor, frame: int, targets: Tensor, camera: Camera,
         ndimage.binary_dilation(mask, iterations=grow_pixels) if grow_pixels else mask
         for mask in (targets > 0.5).cpu().numpy()]))
     uv = torch.stack([pixels[:, 1], pixels[:, 0]], 1).to(dtype) + 0.5
-    focal = uv.new_tensor([camera.fx, camera.fy])
-    principal = uv.new_tensor([camera.cx, camera.cy])
-    rays = torch.cat([(uv - principal) / focal, uv.new_ones(len(uv), 1)], 1)  # (P, 3)
+    rays = camera.unproject(uv, 1.0)  # (P, 3), z = 1
     offsets = torch.linspace(-depth_span, depth_span, depths, dtype=dtype)
     along = float(translation[frame, 2]) + offsets
     along = along[along > 0]
     points = rays[:, None, :] * along[None, :, None]  # (P, Z, 3) camera frame of `frame`
     body = (points - translation[frame]) @ rotation[frame]  # R^T (x - t), row vectors
     cameras = body[None] @ rotation.transpose(-1, -2)[:, None] + translation[:, None, None]
-    z = cameras[..., 2].clamp_min(1e-9)
-    u = cameras[..., 0] / z * camera.fx + camera.cx
-    v = cameras[..., 1] / z * camera.fy + camera.cy
-    column, row = u.floor().long(), v.floor().long()
-    inside = (column >= 0) & (column < camera.width) & (row >= 0) & (row < camera.height) & (
-        cameras[..., 2] > 0)
+    ahead = cameras[..., 2] > 0
+    # Points behind a camera are projected from just ahead of it, then left out by `ahead`.
+    seen_at = camera.project(torch.cat([cameras[..., :2], cameras[..., 2:].clamp_min(1e-9)],
+                                       -1)).floor().long()
+    column, row = seen_at[..., 0], seen_at[..., 1]
+    inside = (column >= 0) & (column < camera.width) & (row >= 0) & (row < camera.height) & ahead
     views = torch.arange(len(rotation))[:, None, None].expand_as(row)
     seen = torch.zeros_like(inside)
     seen[inside] = grown[views[inside], row[inside], column[inside]]

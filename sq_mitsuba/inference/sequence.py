@@ -242,8 +242,11 @@ def fit_sequence(assembly: Assembly, rotation: Tensor, translation: Tensor, mask
     rotation, translation = rotation.detach().double(), translation.detach().double()
     stages = [(options.shape_steps, False)] if options.shape_steps and \
         options.shape != "pose" else []
+    stages.append((options.steps, True))
+    grows_left = options.grow if options.shape == "free" else 0
     steps, losses, ious = 0, [], None
-    for count, poses in [*stages, (options.steps, True)]:
+    while stages:
+        count, poses = stages.pop(0)
         result = refine_pose_and_shape(assembly, rotation, translation, masks, camera,
                                        stage_refine_options(options, count, poses), shared=True,
                                        relative_rotations=relative_rotations,
@@ -252,18 +255,12 @@ def fit_sequence(assembly: Assembly, rotation: Tensor, translation: Tensor, mask
         if relative_times is not None:  # the rate moved: the next stage turns from here
             relative_rotations = rotation @ rotation[0].T
         ious, steps, losses = result.iou_after, steps + result.steps, losses + result.losses
-    for _ in range(options.grow if options.shape == "free" else 0):
-        grown = _grown(assembly, rotation, translation, masks, camera, options)
-        if grown is None:
-            break
-        result = refine_pose_and_shape(grown, rotation, translation, masks, camera,
-                                       stage_refine_options(options, options.grow_steps, True),
-                                       shared=True, relative_rotations=relative_rotations,
-                                       relative_times=relative_times)
-        assembly, rotation, translation = result.assembly, result.rotation, result.translation
-        if relative_times is not None:
-            relative_rotations = rotation @ rotation[0].T
-        ious, steps, losses = result.iou_after, steps + result.steps, losses + result.losses
+        if not stages and grows_left:  # after the last stage: a grown primitive, fitted too
+            grows_left -= 1
+            grown = _grown(assembly, rotation, translation, masks, camera, options)
+            if grown is not None:
+                assembly = grown
+                stages.append((options.grow_steps, True))
     assert ious is not None
     return assembly, rotation, translation, ious, steps, losses
 
