@@ -258,7 +258,7 @@ def test_visibility_is_the_mean_and_lit_share_of_the_mask():
 # ------------------------------------------------------------------------ acceptance
 
 
-MODELS, IMAGES_PER_MODEL, RESOLUTION, SPP = 8, 25, 128, 8
+MODELS, IMAGES_PER_MODEL, RESOLUTION, SPP = 8, 16, 128, 8
 
 
 @pytest.fixture(scope="module")
@@ -272,7 +272,7 @@ def eight_models(tmp_path_factory) -> Path:
 
 @pytest.mark.slow
 def test_default_scene_shows_the_target_and_labels_record_it(eight_models, tmp_path):
-    """8 models x 25 images, 128 px, default scene: at most 3 % of the images have a target
+    """8 models x 16 images, 128 px, default scene: at most 3 % of the images have a target
     whose mean grey level is below 10/255; each label's visibility and exposure agree with the
     image and mask files written beside it."""
     from sq_mitsuba.render.space import SpaceScene

@@ -78,12 +78,14 @@ def test_default_64_models_pairwise_distinct() -> None:
     meshes = [normalise(generate_spacecraft(e.seed, e.archetype).union())[0]
               for e in catalogue(64, 0)]
     clouds = [sample_triangles(m.vertices, m.faces, 2000, rng)[0] for m in meshes]
-    trees = [cKDTree(c) for c in clouds]
-    candidates = []
-    for i, j in itertools.combinations(range(64), 2):
-        d = 0.5 * (trees[j].query(clouds[i])[0].mean() + trees[i].query(clouds[j])[0].mean())
-        if d < SCREEN_CHAMFER:
-            candidates.append((i, j))
+    # near[i, j]: mean distance from 500 of model i's points to model j's 2,000 (one query per
+    # tree). A quarter of the points (drawn at random) moves the mean by about 0.0005, far
+    # inside the screen's margin over DISTINCT_CHAMFER.
+    queries = np.concatenate([c[:500] for c in clouds])
+    near = np.stack([cKDTree(c).query(queries, workers=-1)[0].reshape(64, -1).mean(axis=1)
+                     for c in clouds], axis=1)
+    candidates = [(i, j) for i, j in itertools.combinations(range(64), 2)
+                  if 0.5 * (near[i, j] + near[j, i]) < SCREEN_CHAMFER]
     dense = {}
     for k in {k for pair in candidates for k in pair}:
         dense[k] = sample_triangles(meshes[k].vertices, meshes[k].faces, 20000, rng)[0]

@@ -195,7 +195,7 @@ def test_sigkill_then_resume_repeats_the_uninterrupted_run(train_dataset, cache_
     """The killed run renders in two worker processes, the reference and the resumed run in
     their own process: the workers change no bit, and die with the run."""
     out = tmp_path / "run"
-    sets = ["--set", f"data.cache_dir={cache_dir}"]
+    sets = ["--set", f"data.cache_dir={cache_dir}", "--set", "checkpoint_every=1"]
     env = {**os.environ, "OMP_NUM_THREADS": str(torch.get_num_threads())}
     process = subprocess.Popen(
         [sys.executable, "-m", "sq_mitsuba", "train", "--config", str(TINY), "--data",
@@ -398,6 +398,31 @@ def test_corrupt_image_names_the_file(train_dataset, tmp_path, capsys):
     assert not (out / "last.pt").exists() and not (out / "log.csv").exists()
 
 
+@pytest.mark.parametrize(("each_epoch", "expected"), [(True, [3, 4, 6, 8]), (False, [3, 6, 8])])
+def test_last_checkpoint_written_by_epoch_and_by_step(train_dataset, cache_dir, tmp_path,
+                                                      monkeypatch, each_epoch, expected):
+    """tiny.toml (epochs of 4 steps) for 8 steps, checkpoint_every = 3: last.pt after each
+    epoch, every 3 steps and at the end; with ``checkpoint_each_epoch`` off, not after the
+    epochs."""
+    import sq_mitsuba.training.train as train_module
+
+    written: list[tuple[str, int]] = []
+    real = train_module.save_checkpoint
+
+    def recording(path, run, step, **kwargs):
+        written.append((Path(path).name, step))
+        return real(path, run, step, **kwargs)
+
+    monkeypatch.setattr(train_module, "save_checkpoint", recording)
+    config = apply_overrides(load_train_config(TINY), [
+        f"data.cache_dir={cache_dir}", "validation.every=0", "checkpoint_every=3",
+        f"checkpoint_each_epoch={str(each_epoch).lower()}"])
+    result = train(config, train_dataset, tmp_path / "run", progress=False, max_steps=8)
+    assert result.steps == 8
+    assert [step for name, step in written if name == "last.pt"] == expected
+    assert _read_checkpoint(tmp_path / "run" / "last.pt")["step"] == 8
+
+
 @pytest.mark.slow
 def test_nan_stops_with_the_last_good_checkpoint_intact(train_dataset, cache_dir, tmp_path,
                                                         capsys):
@@ -405,7 +430,7 @@ def test_nan_stops_with_the_last_good_checkpoint_intact(train_dataset, cache_dir
     out = tmp_path / "run"
     code, err = _cli(["train", "--config", str(TINY), "--data", str(train_dataset), "--out",
                       str(out), "--quiet", "--set", "optim.lr=1e12", "--set",
-                      f"data.cache_dir={cache_dir}"], capsys)
+                      f"data.cache_dir={cache_dir}", "--set", "checkpoint_every=1"], capsys)
     assert code == 2 and err.count("\n") == 1
     assert "not finite" in err and "intact" in err
     rows = _rows(out / "log.csv")
@@ -481,10 +506,13 @@ def test_torchrun_two_processes_match_one(train_dataset, cache_dir, tmp_path):
                           "sq_mitsuba", *common, "--out", str(tmp_path / "two")], env=env,
                          capture_output=True, text=True, timeout=600)
     assert two.returncode == 0, two.stdout[-3000:] + two.stderr[-3000:]
-    one = subprocess.run([sys.executable, "-m", "sq_mitsuba", *common, "--out",
-                          str(tmp_path / "one")], env=env, capture_output=True, text=True,
-                         timeout=600)
-    assert one.returncode == 0, one.stderr[-3000:]
+    # The one-process run in this process, on one thread as each of the two.
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        assert main([*common, "--out", str(tmp_path / "one")]) == 0
+    finally:
+        torch.set_num_threads(threads)
     a, b = _read_checkpoint(tmp_path / "one" / "last.pt"), _read_checkpoint(
         tmp_path / "two" / "last.pt")
     assert a["world_size"] == 1 and b["world_size"] == 2
@@ -530,12 +558,13 @@ LEARNING_WEIGHTS = ("{chamfer = 10.0, occupancy = 1.0, reprojection = 1.0, rotat
 
 def _learning_config(cache_dir: Path, **weights: float) -> TrainConfig:
     """tiny.toml at 64 px, M = 3, lr 3e-3, Adam eps 1e-5, no augmentation, every term: 8
-    images = one fixed batch."""
+    images = one fixed batch (so every step ends an epoch: last.pt only at the end)."""
     config = load_train_config(TINY)
     overrides = [f"data.cache_dir={cache_dir}", "network.image_size=64", "optim.batch_size=8",
                  "network.num_primitives=3", "reprojection.resolution=64",
                  "reprojection.level=2", "loss.level=2", "augment.probability=0.0",
-                 "validation.every=0", "checkpoint_every=0", "optim.epochs=150",
+                 "validation.every=0", "checkpoint_every=0", "checkpoint_each_epoch=false",
+                 "optim.epochs=150",
                  "optim.lr=3e-3", "optim.eps=1e-5", "data.num_occupancy=256",
                  f"loss.weights={LEARNING_WEIGHTS}"]
     overrides += [f"loss.weights.{k}={v}" for k, v in weights.items()]

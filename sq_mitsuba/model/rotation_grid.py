@@ -62,6 +62,13 @@ def grid_quaternions(cells: int) -> Tensor:
     return super_fibonacci_quaternions(cells).float()
 
 
+@functools.lru_cache(maxsize=4)
+def grid_neighbours(cells: int) -> Tensor:
+    """(cells, NEIGHBOURS + 1) indices of each grid cell and its nearest cells, the cell
+    itself first (cached: every network of one grid size shares it; do not modify it)."""
+    return _nearest_cells(super_fibonacci_quaternions(cells), NEIGHBOURS)
+
+
 def _nearest_cells(quaternions: Tensor, count: int, chunk: int = 1024) -> Tensor:
     """(G, 4) unit quaternions -> (G, count + 1) indices of each cell and its nearest cells."""
     rows = []
@@ -88,10 +95,8 @@ class RotationGridPoseHead(nn.Module):
                                    nn.Linear(hidden, hidden), nn.SiLU())
         self.to_logits = nn.Linear(hidden, cells)
         self.to_position = nn.Linear(hidden, POSITION_OUTPUTS)
-        quaternions = super_fibonacci_quaternions(cells)
         self.register_buffer("quaternions", grid_quaternions(cells).clone(), persistent=False)
-        self.register_buffer("neighbours", _nearest_cells(quaternions, NEIGHBOURS),
-                             persistent=False)
+        self.register_buffer("neighbours", grid_neighbours(cells).clone(), persistent=False)
 
     @torch.no_grad()
     def reset_last_layer(self, gain: float) -> None:

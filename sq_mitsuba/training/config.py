@@ -221,7 +221,12 @@ class TrainConfig:
     network up to float rounding, and on the CPU its depthwise convolutions run far faster this
     way (see eval/BENCHMARKS.md)."""
     checkpoint_every: int = non_negative(200)
-    "Also write last.pt every this many steps (0: only at the end of each epoch)."
+    """Also write last.pt every this many steps (0: only at the end of each epoch, or of the run
+    when ``checkpoint_each_epoch`` is off)."""
+    checkpoint_each_epoch: bool = True
+    """Write last.pt at the end of every epoch. Off: only every ``checkpoint_every`` steps and
+    at the run's end, for runs of many tiny epochs (one fixed batch, a few models seen for many
+    epochs) where writing the checkpoint would cost more than the step."""
     init_from: Path | None = None
     """Start from the weights of this checkpoint or exported model (after the seed's
     initialisation): layers it lacks keep their new weights; a layer of another shape, or one

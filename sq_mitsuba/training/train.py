@@ -99,6 +99,7 @@ from sq_mitsuba.training.run.folder import (
     LAST,
     check_out_dir,
     config_difference,
+    copy_checkpoint,
     git_commit,
     not_finite_error,
     remove_stale_temporaries,
@@ -411,7 +412,7 @@ class _Loop:
                 # Every process stops at the same step (rank 0's clock decides).
                 out_of_time = stop_at is not None and done < end_step and bool(
                     broadcast_object(time.perf_counter() >= stop_at, world))
-                if epoch_end or done == end_step or out_of_time or (
+                if done == end_step or out_of_time or (epoch_end and cfg.checkpoint_each_epoch) or (
                         cfg.checkpoint_every and done % cfg.checkpoint_every == 0):
                     self.save(LAST, done)
                     result.last_checkpoint = out_dir / LAST
@@ -421,9 +422,10 @@ class _Loop:
         finally:
             self._close(bar)
         if self.best is None and result.steps > start_step:
-            # No validation has run (stopped before the first, validation off, or an empty
-            # val split): best.pt is the latest state, so RUN/best.pt always exists.
-            self.save(BEST, result.steps)
+            # No validation has run (stopped before the first, validation off, or an empty val
+            # split): best.pt is the latest state, a copy of the last.pt of the loop's last step.
+            if world.main:
+                copy_checkpoint(out_dir / LAST, out_dir / BEST)
             result.best_checkpoint = out_dir / BEST
             result.notes.append(f"no validation has run yet: {BEST} holds the last state "
                                 f"(step {result.steps})")

@@ -10,6 +10,7 @@ distributed run), the data-order state, the dataset fingerprint and the git comm
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 from pathlib import Path
 from typing import Any
@@ -18,6 +19,7 @@ import torch
 from torch import Tensor, nn
 
 from sq_mitsuba.config import to_dict
+from sq_mitsuba.io import atomic_path
 from sq_mitsuba.model.checkpoint import read_checkpoint, write_checkpoint
 from sq_mitsuba.training.cache import manifest_hash
 from sq_mitsuba.training.distributed import unwrap
@@ -114,6 +116,13 @@ def config_difference(old: dict[str, Any], new: dict[str, Any]) -> str | None:
             return (f"{key} = {a.get(key, '<absent>')!r} in the checkpoint, "
                     f"{b.get(key, '<absent>')!r} in this run")
     return None
+
+
+def copy_checkpoint(source: Path, target: Path) -> None:
+    """Copy the checkpoint file ``source`` to ``target`` (atomically): the same state, without
+    serialising it again."""
+    with atomic_path(target) as tmp:
+        shutil.copyfile(source, tmp)
 
 
 def save_checkpoint(path: Path, run: TrainRun, step: int, *, model: nn.Module,

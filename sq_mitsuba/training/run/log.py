@@ -125,13 +125,17 @@ def format_number(value: float | None) -> str:
 
 def plot_curves(rows: Sequence[dict[str, float]], val_rows: Sequence[dict[str, float]],
                 path: Path, terms: Sequence[str] | None = None) -> Path:
-    """``curves.png``: each loss term per step (log scale) and the validation metrics.
-    ``terms``: the term columns (default: every registered term)."""
+    """``curves.png``: each loss term per step (log scale) and each validation metric that
+    has a value. ``terms``: the term columns (default: every registered term)."""
     terms = tuple(LOSS_TERMS) if terms is None else tuple(terms)
     from matplotlib.figure import Figure
 
-    figure = Figure(figsize=(12, 4))
-    axes = figure.subplots(1, 1 + len(VAL_METRICS))
+    # A panel per validation metric with a value: a run resumed from before a metric existed,
+    # a network without a mask head or a run not yet validated has none to show.
+    metrics = [name for name in VAL_METRICS
+               if any(r.get(name) is not None and np.isfinite(r[name]) for r in val_rows)]
+    figure = Figure(figsize=(12 if metrics else 5, 4))
+    axes = np.atleast_1d(figure.subplots(1, 1 + len(metrics)))
     steps = [r["step"] for r in rows]
     settled: list[float] = []  # values after the first steps, which set the y range
     skip = max(10, len(rows) // 50)
@@ -148,13 +152,15 @@ def plot_curves(rows: Sequence[dict[str, float]], val_rows: Sequence[dict[str, f
     axes[0].set_xlabel("step")
     axes[0].set_title("training loss (global batch mean)")
     axes[0].legend(fontsize=7)
-    for axis, name in zip(axes[1:], VAL_METRICS, strict=True):
-        # A run resumed from before a metric existed, or a network without a mask head: NaN.
+    for axis, name in zip(axes[1:], metrics, strict=True):
         axis.plot([r["step"] for r in val_rows], [r.get(name, np.nan) for r in val_rows],
                   marker="o")
         axis.set_xlabel("step")
         axis.set_title(f"val {name}")
-    figure.tight_layout()
+    # Fixed margins: tight_layout would lay every label out once more before the save, as
+    # long as the save itself, and a training run writes this figure at every close.
+    figure.subplots_adjust(left=0.12 if not metrics else 0.05, right=0.98, bottom=0.13,
+                           top=0.92, wspace=0.3)
     with atomic_path(path) as tmp:
         figure.savefig(tmp, dpi=100, format="png")
     return path
