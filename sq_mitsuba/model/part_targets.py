@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-from scipy.optimize import linear_sum_assignment
 from torch import Tensor
 
 from sq_mitsuba.checks import check_tensor
@@ -101,6 +100,10 @@ def part_costs(pred: Assembly, target: Assembly, level: int = 1) -> Tensor:
 def part_matching(costs: Tensor) -> Tensor:
     """(B, M, M) costs -> (B, M) int64: the target primitive paired with each predicted one
     (minimum total cost per item)."""
+    # Imported here: scipy.optimize takes half a second, and every training command (its
+    # --help included) imports this module, most without the parts term.
+    from scipy.optimize import linear_sum_assignment
+
     values = costs.detach().cpu().double().numpy()
     pairs = np.empty(values.shape[:2], dtype=np.int64)
     for item, matrix in enumerate(values):
