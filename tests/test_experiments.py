@@ -17,6 +17,34 @@ import torch
 EXPERIMENTS = Path(__file__).resolve().parents[1] / "eval" / "experiments"
 
 
+def _run_script(command: list[str]) -> subprocess.CompletedProcess:
+    """``command`` (``[sys.executable, SCRIPT, *args]``) run in this process with runpy: the
+    script's exit code, stdout and stderr, without a second interpreter importing torch and
+    Mitsuba again. Only for scripts that change no global state (rotation_views.py sets
+    torch's thread count: it runs in a subprocess)."""
+    import contextlib
+    import io
+    import runpy
+
+    assert command[0] == sys.executable
+    out, err = io.StringIO(), io.StringIO()
+    saved_argv, saved_path = sys.argv, list(sys.path)
+    sys.argv = [str(part) for part in command[1:]]
+    sys.path.insert(0, str(EXPERIMENTS))  # as python puts a script's folder first
+    code = 0
+    try:
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            try:
+                runpy.run_path(sys.argv[0], run_name="__main__")
+            except SystemExit as exit_:
+                code = exit_.code if isinstance(exit_.code, int) else int(exit_.code is not None)
+                if exit_.code is not None and not isinstance(exit_.code, int):
+                    print(exit_.code, file=sys.stderr)
+    finally:
+        sys.argv, sys.path[:] = saved_argv, saved_path
+    return subprocess.CompletedProcess(command, code, out.getvalue(), err.getvalue())
+
+
 def test_rotation_views_trains_and_scores_both_view_sets(train_dataset, tmp_path):
     """The experiment is a run of the real trainer: its log holds the pose terms alone."""
     data = tmp_path / "data"
@@ -52,7 +80,7 @@ def test_shape_capacity_fits_the_networks_assemblies_to_the_meshes(train_dataset
     command = [sys.executable, str(EXPERIMENTS / "shape_capacity.py"), str(train_dataset),
                "--split", "val", "--checkpoint", str(eval_checkpoint), "--steps", "20",
                "--points", "500", "--start-exponent", "0.2", "--occupancy-weight", "1"]
-    result = subprocess.run(command, capture_output=True, text=True, timeout=300)
+    result = _run_script(command)
     assert result.returncode == 0, result.stderr
     assert "2 val models" in result.stdout and "M = 2, occupancy weight 1" in result.stdout
     per_model = [line.split(" | ") for line in result.stdout.splitlines()
@@ -74,7 +102,7 @@ def test_shape_capacity_from_the_baseline_needs_a_checkpoint_that_stores_one(tra
     command = [sys.executable, str(EXPERIMENTS / "shape_capacity.py"), str(train_dataset),
                "--split", "val", "--checkpoint", str(eval_checkpoint), "--steps", "2",
                "--points", "100", "--from-baseline"]
-    result = subprocess.run(command, capture_output=True, text=True, timeout=300)
+    result = _run_script(command)
     assert result.returncode == 2
     assert result.stderr.strip().splitlines()[-1].endswith("holds no trivial baseline")
 
@@ -134,7 +162,7 @@ def test_body_frame_limits_scores_the_reading_five_ways(train_dataset, eval_chec
     assert len({tuple(t.flatten().tolist()) for t in turns}) == 24
     command = [sys.executable, str(EXPERIMENTS / "body_frame_limits.py"), "--checkpoint",
                str(eval_checkpoint), "--data", str(train_dataset), "--images", "4"]
-    result = subprocess.run(command, capture_output=True, text=True, timeout=300)
+    result = _run_script(command)
     assert result.returncode == 0, result.stderr
     means = {line.split()[0]: float(line.split()[3]) for line in result.stdout.splitlines()
              if "Chamfer-L1 mean" in line}
@@ -183,10 +211,9 @@ def test_reading_spread_ranks_each_reading_against_every_model(train_dataset, ev
     assert own_model_ranks(distances, np.array([0, 0, 1])).tolist() == [1, 2, 1]
     command = [sys.executable, str(EXPERIMENTS / "reading_spread.py"), "--checkpoint",
                str(eval_checkpoint), "--data", str(train_dataset), "--images"]
-    one = subprocess.run([*command, "6"], capture_output=True, text=True, timeout=300)
+    one = _run_script([*command, "6"])
     assert one.returncode != 0 and "one model" in one.stderr  # the test split: one model
-    result = subprocess.run([*command, "8", "--split", "train"], capture_output=True, text=True,
-                            timeout=300)
+    result = _run_script([*command, "8", "--split", "train"])
     assert result.returncode == 0, result.stderr
     models = int(re.search(r"8 images of (\d+) models", result.stdout).group(1))
     assert models == 2
@@ -218,7 +245,7 @@ def test_half_turn_hedge_measures_asymmetry_and_the_folded_ends(train_dataset, e
     assert folded(turned, one_sided) < 1e-12
     command = [sys.executable, str(EXPERIMENTS / "half_turn_hedge.py"), "--checkpoint",
                str(eval_checkpoint), "--data", str(train_dataset), "--images", "4"]
-    result = subprocess.run(command, capture_output=True, text=True, timeout=300)
+    result = _run_script(command)
     assert result.returncode == 0, result.stderr
     read, truth = (float(x) for x in re.search(r"readings (\S+), truths (\S+)",
                                                  result.stdout).groups())
@@ -258,7 +285,7 @@ def test_depth_error_scales_a_reading_without_changing_its_image(train_dataset,
     torch.testing.assert_close(projected(scaled, moved), projected(assembly, translation))
     command = [sys.executable, str(EXPERIMENTS / "depth_error.py"), "--checkpoint",
                str(eval_checkpoint), "--data", str(train_dataset), "--images", "4"]
-    result = subprocess.run(command, capture_output=True, text=True, timeout=300)
+    result = _run_script(command)
     assert result.returncode == 0, result.stderr
     as_read = re.search(r"as read: camera-frame Chamfer (\S+), translation (\S+) \(depth (\S+),"
                         r" across (\S+),", result.stdout)
@@ -293,7 +320,7 @@ def test_input_detail_cuts_the_detail_above_its_side(train_dataset, eval_checkpo
     assert cut[..., :6].max() == 0 and cut[..., 10:].min() == 1
     command = [sys.executable, str(EXPERIMENTS / "input_detail.py"), "--checkpoint",
                str(eval_checkpoint), "--data", str(train_dataset), "--images", "3"]
-    result = subprocess.run(command, capture_output=True, text=True, timeout=300)
+    result = _run_script(command)
     assert result.returncode == 0, result.stderr
     lines = re.findall(r"detail (\d+) px: body-frame Chamfer-L1 (\S+),", result.stdout)
     assert len(lines) == 4 and all(float(value) > 0 for _, value in lines)
