@@ -37,9 +37,11 @@ def _run_script(command: list[str]) -> subprocess.CompletedProcess:
             try:
                 runpy.run_path(sys.argv[0], run_name="__main__")
             except SystemExit as exit_:
-                code = exit_.code if isinstance(exit_.code, int) else int(exit_.code is not None)
-                if exit_.code is not None and not isinstance(exit_.code, int):
+                if exit_.code is None or isinstance(exit_.code, int):
+                    code = exit_.code or 0
+                else:  # sys.exit("message"): the message on stderr and exit code 1, as python
                     print(exit_.code, file=sys.stderr)
+                    code = 1
     finally:
         sys.argv, sys.path[:] = saved_argv, saved_path
     return subprocess.CompletedProcess(command, code, out.getvalue(), err.getvalue())

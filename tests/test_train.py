@@ -421,6 +421,10 @@ def test_last_checkpoint_written_by_epoch_and_by_step(train_dataset, cache_dir, 
     assert result.steps == 8
     assert [step for name, step in written if name == "last.pt"] == expected
     assert _read_checkpoint(tmp_path / "run" / "last.pt")["step"] == 8
+    # No validation ran: best.pt is the last state, copied from last.pt rather than saved.
+    assert "best.pt" not in {name for name, _ in written}
+    run = tmp_path / "run"
+    assert (run / "best.pt").read_bytes() == (run / "last.pt").read_bytes()
 
 
 @pytest.mark.slow
