@@ -365,3 +365,38 @@ def test_paired_difference_averages_per_model_and_resamples_models(tmp_path):
     refused = subprocess.run([sys.executable, str(EXPERIMENTS / "paired_difference.py"),
                               str(a), str(other)], capture_output=True, text=True, timeout=60)
     assert refused.returncode == 2 and refused.stderr.count("\n") == 1
+
+
+def test_library_coverage_ranks_a_library_as_the_exact_distances_do(train_dataset,
+                                                                    eval_checkpoint):
+    """The coarse-then-exact ranking finds the exact nearest cloud (brute force over random
+    clouds), the trees' distance is spread_images.distance, and on images whose own models
+    are in the library the oracle row is the smallest and near zero."""
+    sys.path.insert(0, str(EXPERIMENTS))
+    try:
+        from library_coverage import Cloud, to_library
+        from spread_images import distance
+    finally:
+        sys.path.remove(str(EXPERIMENTS))
+    rng = np.random.default_rng(3)
+    clouds = [torch.from_numpy(rng.normal(size=(1, 600, 3)) * rng.uniform(0.2, 1.0, 3))
+              for _ in range(20)]
+    library = [Cloud(c) for c in clouds]
+    for probe in clouds[:4]:
+        probe = probe + torch.from_numpy(rng.normal(scale=0.05, size=probe.shape))
+        exact = np.array([distance(probe, c) for c in clouds])
+        ranked = to_library(Cloud(probe), library)
+        assert ranked.argmin() == exact.argmin()
+        assert ranked.min() == pytest.approx(exact.min(), rel=1e-12)
+    command = [sys.executable, str(EXPERIMENTS / "library_coverage.py"), "--checkpoint",
+               str(eval_checkpoint), "--data", str(train_dataset), "--split", "train",
+               "--library", str(train_dataset), "--images", "6", "--library-images", "6"]
+    result = _run_script(command)
+    assert result.returncode == 0, result.stderr
+    rows = dict(re.findall(r"^\| ([a-z][^|]*?) \| (\S+) \|", result.stdout, re.MULTILINE))
+    assert set(rows) == {"reading", "library constant", "feature look-up", "reading look-up",
+                         "nearest in the library (oracle)"}
+    oracle = float(rows.pop("nearest in the library (oracle)"))
+    assert oracle < 0.05 and all(oracle <= float(v) for v in rows.values())
+    refused = _run_script([*command[:-1], "0"])
+    assert refused.returncode != 0 and "--library-images" in refused.stderr
