@@ -11,14 +11,16 @@ paper's) to each image's true surface of five answers:
   input of the superquadric generators) is nearest to the test image's, by cosine;
 * **reading look-up**: the library spacecraft nearest to the network's reading;
 * **nearest in the library** (an oracle): the library spacecraft nearest to the image's own
-  true surface; no answer drawn from the library can do better.
+  true surface; no answer drawn from the library can do better. With ``--turns``, also the
+  nearest when the truth may be turned by any of the 24 axis-aligned rotations (the body
+  frame's labels and ends given free).
 
 The library is a training dataset (its train split): every model's surface, and, for the
 feature look-up, LIBRARY_IMAGES of its images spread evenly. A library is ranked for each
 cloud by coarse clouds of COARSE_POINTS points, the CANDIDATES nearest then measured exactly.
 
     .venv/bin/python eval/experiments/library_coverage.py --checkpoint MODEL --data DIR \
-        --library TRAIN_DIR [--images 96] [--library-images 400]
+        --library TRAIN_DIR [--images 96] [--library-images 400] [--turns]
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ import sys
 
 import numpy as np
 import torch
+from body_frame_limits import axis_rotations
 from scipy.spatial import cKDTree
 from spread_images import distance, open_spread_images, readings_and_truths, thinned
 
@@ -73,6 +76,16 @@ def to_library(cloud: Cloud, library: list[Cloud]) -> np.ndarray:
     return exact
 
 
+def nearest_turned(truth: torch.Tensor, library: list[Cloud]) -> float:
+    """The exact distance from a (1, P, 3) cloud, turned by any of the 24 axis-aligned
+    rotations, to its nearest library cloud: the CANDIDATES (turn, library cloud) pairs
+    nearest by the coarse clouds, measured exactly."""
+    turned = [Cloud(truth @ turn.T) for turn in axis_rotations()]
+    rough = np.array([[t.rough_distance(c) for c in library] for t in turned])
+    pairs = np.argsort(rough, axis=None)[:CANDIDATES]
+    return min(turned[k // len(library)].distance(library[k % len(library)]) for k in pairs)
+
+
 def shape_latents(predictor, images: torch.Tensor) -> torch.Tensor:
     """(B, latent) the network's z_sq for (B, C, S, S) images, captured at the generators'
     input (the predictor's own preparation of the images, the assembly discarded)."""
@@ -91,6 +104,7 @@ def main() -> None:
     extra = argparse.ArgumentParser(add_help=False)
     extra.add_argument("--library", required=True)
     extra.add_argument("--library-images", type=int, default=400)
+    extra.add_argument("--turns", action="store_true")
     own, rest = extra.parse_known_args()
     sys.argv = [sys.argv[0], *rest]
     spread = open_spread_images(__doc__.split("\n\n")[0])
@@ -152,6 +166,9 @@ def main() -> None:
         "reading look-up": np.array([exact(i, nearest_to_reading[i]) for i in rows]),
         "nearest in the library (oracle)": truth_to_library.min(1),
     }
+    if own.turns:
+        figures["nearest in the library, any axis turn (oracle)"] = np.array(
+            [nearest_turned(truth, clouds) for truth in truths])
     print(f"{len(truths)} images of {spread.args.data} ({spread.args.split}) against "
           f"{len(names)} spacecraft of {own.library} ({len(picks)} of its images), "
           f"{spread.args.checkpoint}")
