@@ -26,13 +26,15 @@ cloud by coarse clouds of COARSE_POINTS points, the CANDIDATES nearest then meas
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
+from collections.abc import Iterator
 
 import numpy as np
 import torch
 from body_frame_limits import axis_rotations
 from scipy.spatial import cKDTree
-from spread_images import distance, open_spread_images, readings_and_truths, thinned
+from spread_images import open_spread_images, readings_and_truths, thinned
 
 from sq_mitsuba.evaluation.split import collate, open_split
 
@@ -86,17 +88,22 @@ def nearest_turned(truth: torch.Tensor, library: list[Cloud]) -> float:
     return min(turned[k // len(library)].distance(library[k % len(library)]) for k in pairs)
 
 
-def shape_latents(predictor, images: torch.Tensor) -> torch.Tensor:
-    """(B, latent) the network's z_sq for (B, C, S, S) images, captured at the generators'
-    input (the predictor's own preparation of the images, the assembly discarded)."""
+@contextlib.contextmanager
+def shape_latents(predictor) -> Iterator[list[torch.Tensor]]:
+    """A list that collects the network's z_sq (B, latent), the generators' input, of every
+    batch the predictor reads while the context is open, in order."""
     captured: list[torch.Tensor] = []
     hook = predictor.model.latent_head.register_forward_hook(
-        lambda _module, _inputs, output: captured.append(output[0].detach()))
+        lambda _module, _inputs, output: captured.append(output[0].detach().double()))
     try:
-        predictor.predict(images)
+        yield captured
     finally:
         hook.remove()
-    return captured[0].double()
+
+
+def unit_rows(latents: list[torch.Tensor]) -> torch.Tensor:
+    """(N, latent) the collected latents, each scaled to unit length (for the cosine)."""
+    return torch.nn.functional.normalize(torch.cat(latents), dim=1)
 
 
 def main() -> None:
@@ -114,11 +121,11 @@ def main() -> None:
     library = open_split(own.library, "train", spread.predictor.image_size, 2000)
     picks = np.linspace(0, len(library) - 1, min(own.library_images, len(library))).round()
     library_models: list[str] = []
-    library_latents: list[torch.Tensor] = []
-    for start in range(0, len(picks), 32):
-        batch = collate([library[int(i)] for i in picks[start:start + 32]])
-        library_latents.append(shape_latents(spread.predictor, batch["image"]))
-        library_models.extend(batch["model"])
+    with shape_latents(spread.predictor) as library_latents:
+        for start in range(0, len(picks), 32):
+            batch = collate([library[int(i)] for i in picks[start:start + 32]])
+            spread.predictor.predict(batch["image"])
+            library_models.extend(batch["model"])
     # Every model's surface, whether or not one of its images was picked: one item each.
     first_item: dict[int, int] = {}
     for item, (model_index, _index, _label) in enumerate(library.items):
@@ -128,28 +135,26 @@ def main() -> None:
         entry = library[item]
         surfaces[entry["model"]] = Cloud(thinned(entry["surface_points"], rng))
     names = sorted(surfaces)
-    latents = torch.nn.functional.normalize(torch.cat(library_latents), dim=1)
 
-    readings, truths, test_latents = [], [], []
-    for _model, reading, truth in readings_and_truths(spread, rng):
-        readings.append(reading)
-        truths.append(truth)
-    for start in range(0, len(spread.chosen), 32):
-        batch = collate([spread.dataset[int(i)] for i in spread.chosen[start:start + 32]])
-        test_latents.append(shape_latents(spread.predictor, batch["image"]))
-    test_latents = torch.nn.functional.normalize(torch.cat(test_latents), dim=1)
+    truths: list[torch.Tensor] = []
+    truth_clouds: list[Cloud] = []
+    reading_clouds: list[Cloud] = []
+    # The readings' own network pass gives their latents: each test image is read once.
+    with shape_latents(spread.predictor) as test_latents:
+        for _model, reading, truth in readings_and_truths(spread, rng):
+            truths.append(truth)
+            truth_clouds.append(Cloud(truth))
+            reading_clouds.append(Cloud(reading))
 
     # (test images, library models): every truth and every reading against every surface.
-    truth_clouds = [Cloud(t) for t in truths]
-    reading_clouds = [Cloud(r) for r in readings]
     clouds = [surfaces[m] for m in names]
     truth_to_library = np.array([to_library(c, clouds) for c in truth_clouds])
     nearest_to_reading = [int(to_library(c, clouds).argmin()) for c in reading_clouds]
-    nearest_image = (test_latents @ latents.T).argmax(1).numpy()
+    nearest_image = (unit_rows(test_latents) @ unit_rows(library_latents).T).argmax(1).numpy()
     looked_up = [names.index(library_models[j]) for j in nearest_image]
-    # The library constant: the spacecraft nearest to most test surfaces' own nearest ranks
-    # would need every pair; the mean over the candidates found is its stand-in, each
-    # candidate then scored exactly against every test surface.
+    # The library constant: the best over the whole library would need every pair measured
+    # exactly; the candidates found for some test surface stand in for it, each then scored
+    # exactly against every test surface.
     found = sorted({int(j) for row in truth_to_library for j in np.flatnonzero(np.isfinite(row))})
     constant = min(found, key=lambda j: np.mean([c.distance(clouds[j]) for c in truth_clouds]))
 
@@ -160,7 +165,8 @@ def main() -> None:
 
     rows = range(len(truths))
     figures = {
-        "reading": np.array([distance(r, t) for r, t in zip(readings, truths, strict=True)]),
+        "reading": np.array([r.distance(t)
+                             for r, t in zip(reading_clouds, truth_clouds, strict=True)]),
         "library constant": np.array([exact(i, constant) for i in rows]),
         "feature look-up": np.array([exact(i, looked_up[i]) for i in rows]),
         "reading look-up": np.array([exact(i, nearest_to_reading[i]) for i in rows]),
