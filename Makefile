@@ -30,12 +30,17 @@ $(STAMP): pyproject.toml
 	$(PIP) install -q -e '.[dev]'
 	touch $(STAMP)
 
+# Test processes: one per core, at most 4 (each holds its own Mitsuba kernels and fixtures).
+# A file's tests stay in one process (--dist loadfile), so its module fixtures are built once.
+TEST_JOBS ?= $(shell n=$$(nproc 2>/dev/null || echo 1); [ "$$n" -gt 4 ] && n=4; echo $$n)
+PYTEST    := $(PY) -m pytest -q -n $(TEST_JOBS) --dist loadfile
+
 test: setup
-	$(PY) -m pytest -q
+	$(PYTEST)
 
 # The inner loop while developing: everything but the tests marked slow (end-to-end runs).
 test-fast: setup
-	$(PY) -m pytest -q -m "not slow"
+	$(PYTEST) -m "not slow"
 
 lint: setup
 	$(VENV)/bin/ruff check sq_mitsuba tests

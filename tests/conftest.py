@@ -1,6 +1,9 @@
 """Shared test configuration.
 
-Tests run on 2 CPU threads (the reference machine). Fixtures that build Mitsuba scenes are
+Threads: 2 when pytest runs alone (the reference machine has 2 cores); ``make test`` runs the
+files in one pytest-xdist worker process per core (``-n <cores> --dist loadfile``, so each
+file's module fixtures are built once) with the cores shared out between the workers (see
+:func:`_threads_per_process`). Fixtures that build Mitsuba scenes are
 session-scoped: the first kernels compile for seconds, later renders reuse them.
 
 Device (in the style of kornia's conftest): ``pytest --device cpu|cuda`` (default ``cpu``)
@@ -19,10 +22,33 @@ tolerances written for the CPU still hold::
 
 from __future__ import annotations
 
+import os
+
 import pytest
 import torch
 
-torch.set_num_threads(2)
+
+def _threads_per_process() -> int:
+    """Threads for one test process: 2 when pytest runs alone (the reference machine's
+    cores); under pytest-xdist (``make test`` runs ``-n <cores>``) the cores shared out
+    between its worker processes, at least one each. Two processes with two threads each on
+    two cores are several times slower than one thread each: torch's threads wait for each
+    other at every operation while the other process holds a core."""
+    workers = os.environ.get("PYTEST_XDIST_WORKER_COUNT")
+    if workers is None:
+        return 2
+    return max(1, len(os.sched_getaffinity(0)) // int(workers))
+
+
+THREADS = _threads_per_process()
+torch.set_num_threads(THREADS)
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    # The same for Dr.Jit's thread pool and for every process a test starts (torch reads
+    # OMP_NUM_THREADS when it loads).
+    os.environ["OMP_NUM_THREADS"] = str(THREADS)
+    import drjit
+
+    drjit.set_thread_count(THREADS)
 
 DEVICES = ("cpu", "cuda")
 
