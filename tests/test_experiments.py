@@ -374,7 +374,7 @@ def test_library_coverage_ranks_a_library_as_the_exact_distances_do(train_datase
     are in the library the oracle row is the smallest and near zero."""
     sys.path.insert(0, str(EXPERIMENTS))
     try:
-        from library_coverage import Cloud, to_library
+        from library_coverage import Cloud, nearest_by_size, rough_distances, to_library
         from spread_images import distance
     finally:
         sys.path.remove(str(EXPERIMENTS))
@@ -388,18 +388,37 @@ def test_library_coverage_ranks_a_library_as_the_exact_distances_do(train_datase
         ranked = to_library(Cloud(probe), library)
         assert ranked.argmin() == exact.argmin()
         assert ranked.min() == pytest.approx(exact.min(), rel=1e-12)
+    # Nested random subsets of the library, against brute force over each subset.
+    probes = [Cloud(c + torch.from_numpy(rng.normal(scale=0.05, size=c.shape)))
+              for c in clouds[::3]]
+    rough = np.array([rough_distances(p, library) for p in probes])
+    by_size = nearest_by_size(probes, library, rough, [5, 12, 20], seed=1)
+    order = np.random.default_rng(1).permutation(len(library))
+    for size, found in by_size.items():
+        brute = [min(p.distance(library[j]) for j in order[:size]) for p in probes]
+        assert found == pytest.approx(brute, rel=1e-12), size
+    assert np.all(by_size[5] >= by_size[12]) and np.all(by_size[12] >= by_size[20])
     command = [sys.executable, str(EXPERIMENTS / "library_coverage.py"), "--checkpoint",
                str(eval_checkpoint), "--data", str(train_dataset), "--split", "train",
                "--library", str(train_dataset), "--images", "6", "--library-images", "6"]
-    result = _run_script([*command, "--turns"])
+    result = _run_script([*command, "--turns", "--sizes", "2", "1"])
     assert result.returncode == 0, result.stderr
     rows = dict(re.findall(r"^\| ([a-z][^|]*?) \| (\S+) \|", result.stdout, re.MULTILINE))
     assert set(rows) == {"reading", "library constant", "feature look-up", "reading look-up",
                          "nearest in the library (oracle)",
-                         "nearest in the library, any axis turn (oracle)"}
+                         "nearest in the library, any axis turn (oracle)",
+                         "nearest among 1 of the library (oracle)",
+                         "nearest among 2 of the library (oracle)"}
+    # The library's 2 training spacecraft: the larger subset is the whole library.
+    assert rows.pop("nearest among 2 of the library (oracle)") == rows[
+        "nearest in the library (oracle)"]
+    assert float(rows.pop("nearest among 1 of the library (oracle)")) >= float(
+        rows["nearest in the library (oracle)"])
     # The turns include the identity: turned, the truth finds its own model again or nearer.
     turned = float(rows.pop("nearest in the library, any axis turn (oracle)"))
     oracle = float(rows.pop("nearest in the library (oracle)"))
     assert turned <= oracle < 0.05 and all(oracle <= float(v) for v in rows.values())
     refused = _run_script([*command[:-1], "0"])
     assert refused.returncode != 0 and "--library-images" in refused.stderr
+    refused = _run_script([*command, "--sizes", "3"])
+    assert refused.returncode != 0 and "--sizes: the library holds 2" in refused.stderr

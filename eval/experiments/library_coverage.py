@@ -13,14 +13,17 @@ paper's) to each image's true surface of five answers:
 * **nearest in the library** (an oracle): the library spacecraft nearest to the image's own
   true surface; no answer drawn from the library can do better. With ``--turns``, also the
   nearest when the truth may be turned by any of the 24 axis-aligned rotations (the body
-  frame's labels and ends given free).
+  frame's labels and ends given free). With ``--sizes N...``, also the nearest among N
+  library spacecraft drawn at random (nested subsets): how the oracle falls as the library
+  grows.
 
 The library is a training dataset (its train split): every model's surface, and, for the
 feature look-up, LIBRARY_IMAGES of its images spread evenly. A library is ranked for each
 cloud by coarse clouds of COARSE_POINTS points, the CANDIDATES nearest then measured exactly.
 
     .venv/bin/python eval/experiments/library_coverage.py --checkpoint MODEL --data DIR \
-        --library TRAIN_DIR [--images 96] [--library-images 400] [--turns]
+        --library TRAIN_DIR [--images 96] [--library-images 400] [--turns] \
+        [--sizes 100 300 1000]
 """
 
 from __future__ import annotations
@@ -67,15 +70,46 @@ class Cloud:
         return float(forward + backward)
 
 
-def to_library(cloud: Cloud, library: list[Cloud]) -> np.ndarray:
+def rough_distances(cloud: Cloud, library: list[Cloud]) -> np.ndarray:
+    """(len(library),) the coarse clouds' distances from ``cloud`` to every library cloud."""
+    return np.array([cloud.rough_distance(c) for c in library])
+
+
+def to_library(cloud: Cloud, library: list[Cloud], rough: np.ndarray | None = None
+               ) -> np.ndarray:
     """(len(library),) the exact distance to the CANDIDATES library clouds nearest by the
     coarse clouds, infinity to the rest: enough for a nearest and for the rows' look-ups,
-    which only need the distance to one given spacecraft (computed exactly where missing)."""
-    rough = np.array([cloud.rough_distance(c) for c in library])
+    which only need the distance to one given spacecraft (computed exactly where missing).
+    ``rough``: :func:`rough_distances` of ``cloud``, when already computed."""
+    rough = rough_distances(cloud, library) if rough is None else rough
     exact = np.full(len(library), np.inf)
     for j in np.argsort(rough)[:CANDIDATES]:
         exact[j] = cloud.distance(library[j])
     return exact
+
+
+def nearest_by_size(clouds: list[Cloud], library: list[Cloud], rough: np.ndarray,
+                    sizes: list[int], seed: int = 0) -> dict[int, np.ndarray]:
+    """For each library size n in ``sizes``: (len(clouds),) the exact distance from each
+    cloud to its nearest among the first n library clouds of one random order (seeded), so
+    the smaller libraries are nested in the larger ones, as if the generator had made only
+    n spacecraft. ``rough``: (len(clouds), len(library)) the coarse distances; each subset is
+    ranked by them and its CANDIDATES nearest measured exactly, as :func:`to_library` does."""
+    order = np.random.default_rng(seed).permutation(len(library))
+    measured: dict[tuple[int, int], float] = {}
+
+    def exact(i: int, j: int) -> float:
+        if (i, j) not in measured:
+            measured[i, j] = clouds[i].distance(library[j])
+        return measured[i, j]
+
+    nearest = {}
+    for size in sizes:
+        members = order[:size]
+        nearest[size] = np.array([
+            min(exact(i, int(j)) for j in members[np.argsort(rough[i, members])[:CANDIDATES]])
+            for i in range(len(clouds))])
+    return nearest
 
 
 def nearest_turned(truth: torch.Tensor, library: list[Cloud]) -> float:
@@ -112,11 +146,14 @@ def main() -> None:
     extra.add_argument("--library", required=True)
     extra.add_argument("--library-images", type=int, default=400)
     extra.add_argument("--turns", action="store_true")
+    extra.add_argument("--sizes", type=int, nargs="+", default=[])
     own, rest = extra.parse_known_args()
     sys.argv = [sys.argv[0], *rest]
     spread = open_spread_images(__doc__.split("\n\n")[0])
     if own.library_images < 1:
         raise SystemExit("--library-images: need at least 1")
+    if any(size < 1 for size in own.sizes):
+        raise SystemExit(f"--sizes: every size must be at least 1, got {own.sizes}")
     rng = np.random.default_rng(0)
     library = open_split(own.library, "train", spread.predictor.image_size, 2000)
     picks = np.linspace(0, len(library) - 1, min(own.library_images, len(library))).round()
@@ -135,6 +172,9 @@ def main() -> None:
         entry = library[item]
         surfaces[entry["model"]] = Cloud(thinned(entry["surface_points"], rng))
     names = sorted(surfaces)
+    if any(size > len(names) for size in own.sizes):
+        raise SystemExit(f"--sizes: the library holds {len(names)} spacecraft, "
+                         f"fewer than {max(own.sizes)}")
 
     truths: list[torch.Tensor] = []
     truth_clouds: list[Cloud] = []
@@ -148,7 +188,9 @@ def main() -> None:
 
     # (test images, library models): every truth and every reading against every surface.
     clouds = [surfaces[m] for m in names]
-    truth_to_library = np.array([to_library(c, clouds) for c in truth_clouds])
+    truth_rough = np.array([rough_distances(c, clouds) for c in truth_clouds])
+    truth_to_library = np.array([to_library(c, clouds, rough)
+                                 for c, rough in zip(truth_clouds, truth_rough, strict=True)])
     nearest_to_reading = [int(to_library(c, clouds).argmin()) for c in reading_clouds]
     nearest_image = (unit_rows(test_latents) @ unit_rows(library_latents).T).argmax(1).numpy()
     looked_up = [names.index(library_models[j]) for j in nearest_image]
@@ -175,6 +217,9 @@ def main() -> None:
     if own.turns:
         figures["nearest in the library, any axis turn (oracle)"] = np.array(
             [nearest_turned(truth, clouds) for truth in truths])
+    for size, values in nearest_by_size(truth_clouds, clouds, truth_rough,
+                                        sorted(set(own.sizes))).items():
+        figures[f"nearest among {size} of the library (oracle)"] = values
     print(f"{len(truths)} images of {spread.args.data} ({spread.args.split}) against "
           f"{len(names)} spacecraft of {own.library} ({len(picks)} of its images), "
           f"{spread.args.checkpoint}")
