@@ -37,7 +37,9 @@ def _threads_per_process() -> int:
     workers = os.environ.get("PYTEST_XDIST_WORKER_COUNT")
     if workers is None:
         return 2
-    return max(1, len(os.sched_getaffinity(0)) // int(workers))
+    cores = (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity")
+             else os.cpu_count() or 1)  # the cores this process may use (Linux), else all
+    return max(1, cores // int(workers))
 
 
 THREADS = _threads_per_process()
