@@ -368,7 +368,7 @@ def test_paired_difference_averages_per_model_and_resamples_models(tmp_path):
 
 
 def test_library_coverage_ranks_a_library_as_the_exact_distances_do(train_dataset,
-                                                                    eval_checkpoint):
+                                                                    eval_checkpoint, tmp_path):
     """The coarse-then-exact ranking finds the exact nearest cloud (brute force over random
     clouds), the trees' distance is spread_images.distance, and on images whose own models
     are in the library the oracle row is the smallest and near zero."""
@@ -420,5 +420,15 @@ def test_library_coverage_ranks_a_library_as_the_exact_distances_do(train_datase
     assert turned <= oracle < 0.05 and all(oracle <= float(v) for v in rows.values())
     refused = _run_script([*command[:-1], "0"])
     assert refused.returncode != 0 and "--library-images" in refused.stderr
+    drawn = _run_script([*command, "--sizes", "1", "2", "--size-draws", "3", "--plot",
+                         str(tmp_path / "sizes.png")])
+    assert drawn.returncode == 0, drawn.stderr
+    spread_rows = {m[0]: [float(v) for v in m[1:]] for m in re.findall(
+        r"^\| (\d+) \| (\S+) \| (\S+) \| (\S+) \|$", drawn.stdout, re.MULTILINE)}
+    # The whole library is the same in every order; each mean lies in its range.
+    assert spread_rows["2"] == [oracle] * 3
+    mean, low, high = spread_rows["1"]
+    assert low <= mean <= high
+    assert (tmp_path / "sizes.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     refused = _run_script([*command, "--sizes", "3"])
     assert refused.returncode != 0 and "--sizes: the library holds 2" in refused.stderr

@@ -15,7 +15,8 @@ paper's) to each image's true surface of five answers:
   nearest when the truth may be turned by any of the 24 axis-aligned rotations (the body
   frame's labels and ends given free). With ``--sizes N...``, also the nearest among N
   library spacecraft drawn at random (nested subsets): how the oracle falls as the library
-  grows.
+  grows; ``--size-draws K`` repeats the draw with K random orders and prints their range,
+  ``--plot PNG`` draws it.
 
 The library is a training dataset (its train split): every model's surface, and, for the
 feature look-up, LIBRARY_IMAGES of its images spread evenly. A library is ranked for each
@@ -23,7 +24,7 @@ cloud by coarse clouds of COARSE_POINTS points, the CANDIDATES nearest then meas
 
     .venv/bin/python eval/experiments/library_coverage.py --checkpoint MODEL --data DIR \
         --library TRAIN_DIR [--images 96] [--library-images 400] [--turns] \
-        [--sizes 100 300 1000]
+        [--sizes 100 300 1000 [--size-draws 5] [--plot sizes.png]]
 """
 
 from __future__ import annotations
@@ -147,6 +148,8 @@ def main() -> None:
     extra.add_argument("--library-images", type=int, default=400)
     extra.add_argument("--turns", action="store_true")
     extra.add_argument("--sizes", type=int, nargs="+", default=[])
+    extra.add_argument("--size-draws", type=int, default=1)
+    extra.add_argument("--plot")
     own, rest = extra.parse_known_args()
     sys.argv = [sys.argv[0], *rest]
     spread = open_spread_images(__doc__.split("\n\n")[0])
@@ -154,6 +157,10 @@ def main() -> None:
         raise SystemExit("--library-images: need at least 1")
     if any(size < 1 for size in own.sizes):
         raise SystemExit(f"--sizes: every size must be at least 1, got {own.sizes}")
+    if own.size_draws < 1:
+        raise SystemExit(f"--size-draws: need at least 1, got {own.size_draws}")
+    if own.plot and not own.sizes:
+        raise SystemExit("--plot: draws the oracle against --sizes, which is not given")
     rng = np.random.default_rng(0)
     library = open_split(own.library, "train", spread.predictor.image_size, 2000)
     picks = np.linspace(0, len(library) - 1, min(own.library_images, len(library))).round()
@@ -217,9 +224,16 @@ def main() -> None:
     if own.turns:
         figures["nearest in the library, any axis turn (oracle)"] = np.array(
             [nearest_turned(truth, clouds) for truth in truths])
-    for size, values in nearest_by_size(truth_clouds, clouds, truth_rough,
-                                        sorted(set(own.sizes))).items():
-        figures[f"nearest among {size} of the library (oracle)"] = values
+    sizes = sorted(set(own.sizes))
+    # (draws, sizes): the oracle's mean over the images for each random order of the library.
+    by_draw = []
+    for draw in range(own.size_draws):
+        nearest = nearest_by_size(truth_clouds, clouds, truth_rough, sizes, seed=draw)
+        by_draw.append([nearest[size].mean() for size in sizes])
+        if draw == 0:
+            for size, values in nearest.items():
+                figures[f"nearest among {size} of the library (oracle)"] = values
+    by_draw = np.array(by_draw)
     print(f"{len(truths)} images of {spread.args.data} ({spread.args.split}) against "
           f"{len(names)} spacecraft of {own.library} ({len(picks)} of its images), "
           f"{spread.args.checkpoint}")
@@ -227,6 +241,48 @@ def main() -> None:
     print("|---|---|---|")
     for name, values in figures.items():
         print(f"| {name} | {values.mean():.4f} | {np.median(values):.4f} |")
+    if sizes and own.size_draws > 1:
+        print(f"\nThe oracle's mean over {own.size_draws} random orders of the library:")
+        print("| library spacecraft | mean over the orders | lowest | highest |")
+        print("|---|---|---|---|")
+        for column, size in enumerate(sizes):
+            draws = by_draw[:, column]
+            print(f"| {size} | {draws.mean():.4f} | {draws.min():.4f} | {draws.max():.4f} |")
+    if own.plot:
+        plot_sizes(own.plot, sizes, by_draw, figures, f"{len(truths)} images of "
+                   f"{spread.args.data}, library {own.library}")
+
+
+def plot_sizes(path: str, sizes: list[int], by_draw: np.ndarray,
+               figures: dict[str, np.ndarray], title: str) -> None:
+    """The oracle's mean against the library's size (the orders' mean, their range as a
+    bar), beside the reading's and the library constant's means, in a PNG at ``path``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from pathlib import Path
+
+    from sq_mitsuba.io import atomic_path
+
+    means = by_draw.mean(0)
+    figure, axis = plt.subplots(figsize=(5.5, 3.6))
+    axis.errorbar(sizes, means, yerr=[means - by_draw.min(0), by_draw.max(0) - means],
+                  fmt="o-", capsize=3, label="nearest library spacecraft (oracle)")
+    for name, style in (("reading", "--"), ("library constant", ":")):
+        axis.axhline(figures[name].mean(), color="grey", linestyle=style, label=name)
+    axis.set_xscale("log")
+    axis.set_xticks(sizes, [str(size) for size in sizes])
+    axis.set_xlabel("library spacecraft")
+    axis.set_ylabel("body-frame Chamfer-L1, mean")
+    axis.set_title(title, fontsize=7)
+    axis.grid(alpha=0.3)
+    axis.legend(fontsize=7)
+    figure.tight_layout()
+    with atomic_path(Path(path)) as tmp:
+        figure.savefig(tmp, dpi=110, format="png")
+    plt.close(figure)
 
 
 if __name__ == "__main__":
