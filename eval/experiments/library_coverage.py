@@ -33,6 +33,7 @@ import argparse
 import contextlib
 import sys
 from collections.abc import Iterator
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -262,13 +263,13 @@ def plot_sizes(path: str, sizes: list[int], by_draw: np.ndarray,
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from pathlib import Path
-
     from sq_mitsuba.io import atomic_path
 
     means = by_draw.mean(0)
     figure, axis = plt.subplots(figsize=(5.5, 3.6))
-    axis.errorbar(sizes, means, yerr=[means - by_draw.min(0), by_draw.max(0) - means],
+    # Clipped at 0: where every order gives the same mean, rounding can leave -1e-17.
+    spread = np.clip([means - by_draw.min(0), by_draw.max(0) - means], 0.0, None)
+    axis.errorbar(sizes, means, yerr=spread,
                   fmt="o-", capsize=3, label="nearest library spacecraft (oracle)")
     for name, style in (("reading", "--"), ("library constant", ":")):
         axis.axhline(figures[name].mean(), color="grey", linestyle=style, label=name)
