@@ -53,16 +53,21 @@ def test_point_cache_samples_like_the_dataset(train_dataset, tmp_path):
     for model_index in range(len(dataset.models)):
         reference = dataset.model_points(model_index)
         rng = np.random.default_rng(0)
-        surface, occupancy, labels = points.sample(model_index, rng, 500, 400)
-        assert surface.shape == (500, 3) and occupancy.shape == (400, 3)
+        surface, occupancy, labels, normals = points.sample(model_index, rng, 500, 400)
+        assert surface.shape == normals.shape == (500, 3) and occupancy.shape == (400, 3)
         assert labels.sum() == 200  # balanced: half inside
         # Every sampled point is one of the model's, with the model's own label.
         lookup = {tuple(p): bool(inside) for p, inside in
                   zip(reference["points"].astype(np.float32), reference["inside"], strict=True)}
         assert all(lookup[tuple(p)] == bool(lab) for p, lab in zip(occupancy, labels,
                                                                    strict=True))
-        surface_set = {tuple(p) for p in reference["surface"].astype(np.float32)}
-        assert all(tuple(p) in surface_set for p in surface)
+        # Every sampled surface point is one of the model's, with that point's own normal.
+        normal_of = {tuple(p): tuple(n) for p, n in zip(
+            reference["surface"].astype(np.float32), reference["normals"].astype(np.float32),
+            strict=True)}
+        assert all(normal_of[tuple(p)] == tuple(n) for p, n in zip(surface, normals,
+                                                                     strict=True))
+        np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-4)
 
 
 def test_fingerprint_follows_the_content(train_dataset, tmp_path):

@@ -432,3 +432,60 @@ def test_library_coverage_ranks_a_library_as_the_exact_distances_do(train_datase
     assert (tmp_path / "sizes.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     refused = _run_script([*command, "--sizes", "3"])
     assert refused.returncode != 0 and "--sizes: the library holds 2" in refused.stderr
+
+
+def test_structure_axes_reads_the_axes_from_the_visible_normals(train_dataset,
+                                                                 eval_checkpoint):
+    """The frame of the true visible normals with its best axis order is never worse than
+    with the order by extent; the six orders are distinct proper rotations."""
+    sys.path.insert(0, str(EXPERIMENTS))
+    try:
+        from structure_axes import axis_orders
+    finally:
+        sys.path.remove(str(EXPERIMENTS))
+    orders = axis_orders()
+    assert torch.allclose(torch.linalg.det(orders), torch.ones(6, dtype=orders.dtype))
+    assert len({tuple(o.abs().flatten().tolist()) for o in orders}) == 6
+    command = [sys.executable, str(EXPERIMENTS / "structure_axes.py"), "--checkpoint",
+               str(eval_checkpoint), "--data", str(train_dataset), "--images", "4"]
+    result = _run_script(command)
+    assert result.returncode == 0, result.stderr
+    medians = {line.split()[0]: float(line.split()[1]) for line in result.stdout.splitlines()
+               if line.startswith("  ") and "images:" not in line}
+    assert set(medians) == {"network", "true_normals", "true_normals_oracle"}
+    assert all(0 <= value <= 180 for value in medians.values())
+    # Per image the best order is never worse than the one chosen, so neither is the median.
+    assert medians["true_normals_oracle"] <= medians["true_normals"] + 1e-9
+    assert "over 4 images" in result.stdout
+
+
+def test_visible_surface_fit_keeps_one_point_per_cell_and_runs(train_dataset,
+                                                                eval_checkpoint):
+    """The visible points are the nearest of each cell by brute force; the script prints a
+    finite body-frame Chamfer-L1 for every fit."""
+    sys.path.insert(0, str(EXPERIMENTS))
+    try:
+        from visible_surface_fit import cells_of, nearest_per_cell
+    finally:
+        sys.path.remove(str(EXPERIMENTS))
+    generator = torch.Generator().manual_seed(0)
+    points = torch.rand(400, 3, generator=generator) - 0.5 + torch.tensor([0.0, 0.0, 3.0])
+    k = torch.tensor([[40.0, 0.0, 16.0], [0.0, 40.0, 16.0], [0.0, 0.0, 1.0]])
+    cells = cells_of(points, k, 4, 8)
+    kept = nearest_per_cell(points, cells, 8)
+    for cell in cells.unique().tolist():
+        members = (cells == cell).nonzero()[:, 0]
+        if cell == 64:  # outside the grid
+            assert not bool(kept[members].any())
+            continue
+        assert kept[members].tolist() == (points[members, 2] == points[members, 2].min()
+                                          ).tolist()
+    command = [sys.executable, str(EXPERIMENTS / "visible_surface_fit.py"), "--checkpoint",
+               str(eval_checkpoint), "--data", str(train_dataset), "--images", "2",
+               "--steps", "2", "--pose-steps", "1"]
+    result = _run_script(command)
+    assert result.returncode == 0, result.stderr
+    means = {line.split()[0]: float(line.split()[1]) for line in result.stdout.splitlines()
+             if line.startswith("  ")}
+    assert {"read", "visible", "visible_at_reading", "registered"} <= set(means)
+    assert all(0 < value < 10 for name, value in means.items() if "folded" not in name)

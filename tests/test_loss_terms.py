@@ -222,3 +222,14 @@ def test_a_view_frame_shape_is_scored_through_the_true_rotation():
     # Scored through the predicted rotation instead, the term would differ.
     body_points, body_keep = counted_surface_samples(output.assembly, context.loss.level)
     assert abs(float(chamfer_loss(body_points, body_keep, surface)) - float(expected)) > 1e-4
+
+
+def test_every_registered_term_has_its_own_name_on_the_progress_bar() -> None:
+    """The progress bar shortens the terms' names; two terms sharing a first word
+    (surface_depth, surface_normal) must not show as one."""
+    from sq_mitsuba.training.loss_terms import LOSS_TERMS, short_term_name
+
+    shown = [short_term_name(name) for name in LOSS_TERMS]
+    assert len(set(shown)) == len(shown)
+    assert short_term_name("surface_depth") != short_term_name("surface_normal")
+    assert short_term_name("chamfer") == "chamf"

@@ -6,7 +6,7 @@ that compare clouds, each image's body-frame reading and true surface thinned to
 from __future__ import annotations
 
 import argparse
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -39,19 +39,24 @@ class SpreadImages:
     "Dataset indices of the images, evenly spread, first and last included."
 
 
-def open_spread_images(description: str, min_images: int = 1) -> SpreadImages:
-    """Parse the command line (argparse's one-line errors, exit 2), then open the checkpoint
-    and the split."""
+def open_spread_images(description: str, min_images: int = 1,
+                       add_arguments: Callable[[argparse.ArgumentParser], None] | None = None,
+                       surface_points: int = 2000) -> SpreadImages:
+    """Parse the command line (argparse's one-line errors, exit 2; ``add_arguments`` adds a
+    script's own options), then open the checkpoint and the split (``surface_points`` per
+    item)."""
     parser = argparse.ArgumentParser(description=description)
     parser.add_argument("--checkpoint", type=Path, required=True)
     parser.add_argument("--data", type=Path, required=True)
     parser.add_argument("--split", default="test")
     parser.add_argument("--images", type=int, default=96)
+    if add_arguments is not None:
+        add_arguments(parser)
     args = parser.parse_args()
     if args.images < min_images:
         parser.error(f"--images: need at least {min_images}")
     predictor = load_model(args.checkpoint)
-    dataset = open_split(args.data, args.split, predictor.image_size, 2000)
+    dataset = open_split(args.data, args.split, predictor.image_size, surface_points)
     camera = dataset.camera.rescaled(predictor.image_size, predictor.image_size)
     chosen = np.linspace(0, len(dataset) - 1, min(args.images, len(dataset))).round()
     return SpreadImages(args, predictor, dataset, camera, chosen)

@@ -247,7 +247,8 @@ class MaskHead(nn.Module):
     The correction's last layer starts at zero: a head grown from a quarter-resolution one
     starts as exactly that head's mask, upsampled.
 
-    maps -> logits (B, 1, ceil(H / 4), ceil(W / 4)); with ``full_resolution``,
+    maps -> logits (B, outputs, ceil(H / 4), ceil(W / 4)) (``outputs`` 1 for a mask; the
+    depth and normal heads reuse the pyramid with 1 and 3); with ``full_resolution``,
     (maps, normalised images (B, C, H, W)) -> logits (B, 1, H, W). ``sigmoid`` gives the
     probability that a cell is the target. The bias starts at the logit of 0.25, about the
     share of an image the target covers.
@@ -255,12 +256,12 @@ class MaskHead(nn.Module):
 
     def __init__(self, pyramid_channels: tuple[int, ...], width: int = 32, *,
                  full_resolution: bool = False, in_channels: int = 1,
-                 guide_width: int = 16) -> None:
+                 guide_width: int = 16, outputs: int = 1) -> None:
         super().__init__()
         self.full_resolution = full_resolution
         self.lateral = nn.ModuleList(nn.Conv2d(c, width, 1) for c in pyramid_channels[:4])
         self.smooth = nn.Conv2d(width, width, 3, padding=1)
-        self.to_logit = nn.Conv2d(width, 1, 1)
+        self.to_logit = nn.Conv2d(width, outputs, 1)
         with torch.no_grad():
             self.to_logit.bias.fill_(math.log(0.25 / 0.75))
         if full_resolution:

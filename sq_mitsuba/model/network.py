@@ -26,6 +26,9 @@ Architecture (each exchangeable part chosen by name in :class:`NetworkConfig`):
     - Depth head (``depth_head``): the depth of the surface seen in each stride-4 cell, an
       auxiliary output trained by the ``surface_depth`` term
       (:mod:`~sq_mitsuba.model.surface_depth`).
+    - Normal head (``normal_head``): the camera-frame normal of the surface seen in each
+      stride-4 cell, trained by the ``surface_normal`` term
+      (:mod:`~sq_mitsuba.model.surface_normals`); the body axes can be read from it.
 
 Convention:
     - Input normalisation happens inside the network: ``(x - input_mean) / input_std`` with
@@ -175,6 +178,8 @@ class NetworkOutput:
             (``raw`` is already in the body frame).
         surface_depth: (B, 1, ceil(H / 4), ceil(W / 4)) the depth of the surface seen in each
             stride-4 cell relative to the body origin's, metres (``depth_head``), else None.
+        surface_normals: (B, 3, ceil(H / 4), ceil(W / 4)) the normal of the surface seen in
+            each stride-4 cell, camera frame, not normalised (``normal_head``), else None.
     """
 
     raw: Tensor
@@ -188,6 +193,7 @@ class NetworkOutput:
     existence_logits: Tensor | None = None
     view_to_body: Tensor | None = None
     surface_depth: Tensor | None = None
+    surface_normals: Tensor | None = None
 
     @property
     def assembly(self) -> Assembly:
@@ -331,6 +337,11 @@ class SuperquadricNet(nn.Module):
         if self.depth_head is not None:
             with torch.no_grad():  # depth 0 (the origin's) at first, not a mask's prior logit
                 self.depth_head.to_logit.bias.zero_()
+        self.normal_head = (MaskHead(self.encoder.pyramid_channels, outputs=3)
+                            if config.normal_head else None)
+        if self.normal_head is not None:
+            with torch.no_grad():  # facing the camera at first (z < 0), not a mask's prior
+                self.normal_head.to_logit.bias.copy_(torch.tensor([0.0, 0.0, -1.0]))
         mean, std = config.normalisation()
         self.register_buffer("input_mean", torch.tensor(mean), persistent=False)
         self.register_buffer("input_std", torch.tensor(std), persistent=False)
@@ -440,13 +451,14 @@ class SuperquadricNet(nn.Module):
             raw, existence_logits = generated[..., :NUM_PARAMS], generated[..., NUM_PARAMS]
         mask_logits = None if self.mask_head is None else self.mask_head(maps, normalised)
         surface_depth = None if self.depth_head is None else self.depth_head(maps)
+        surface_normals = None if self.normal_head is None else self.normal_head(maps)
         return NetworkOutput(raw, pose.rotation, pixel, depth, translation,
                              rotation_6d=pose.rotation_6d,
                              rotation_logits=pose.rotation_logits, mask_logits=mask_logits,
                              existence_logits=existence_logits,
                              view_to_body=(pose.rotation.transpose(-1, -2)
                                            if self.config.shape_frame == "view" else None),
-                             surface_depth=surface_depth)
+                             surface_depth=surface_depth, surface_normals=surface_normals)
 
     def folded(self, channels_last: bool = True) -> SuperquadricNet:
         """Inference copy: eval mode, no gradients, encoder BatchNorm folded into its convs.

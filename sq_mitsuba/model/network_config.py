@@ -65,6 +65,10 @@ class NetworkConfig:
     """Also predict the depth of the surface the camera sees, relative to the body origin's,
     per stride-4 cell (NetworkOutput.surface_depth; the surface_depth loss term,
     model.surface_depth): a dense target alike for every family of spacecraft."""
+    normal_head: bool = False
+    """Also predict the camera-frame normal of the surface the camera sees, per stride-4 cell
+    (NetworkOutput.surface_normals; the surface_normal loss term, model.surface_normals): the
+    body axes as the camera sees them cluster the normals of every family alike."""
     mask_resolution: Literal["quarter", "full"] = "quarter"
     """The mask head's output: 'quarter' (a logit per stride-4 cell) or 'full' (the input's
     size, the stride-4 mask corrected from the image's own pixels; heads.MaskHead)."""

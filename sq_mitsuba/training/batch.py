@@ -40,11 +40,15 @@ class TrainingBatch:
     symmetries: Tensor
     """(B, S, 3, 3) float32: body-frame rotations that map each model onto itself (the
     identity among them; shorter sets padded with identities)."""
+    surface_normals: Tensor | None = None
+    """(B, K, 3) float32: the unit outward normals at ``surface_points`` (body frame; zero
+    where the dataset holds none), or None."""
 
     def __len__(self) -> int:
         return int(self.image.shape[0])
 
     def to(self, device: torch.device | str) -> TrainingBatch:
         """The batch with every tensor on ``device`` (dtypes kept)."""
-        return TrainingBatch(**{f.name: getattr(self, f.name).to(device)
+        return TrainingBatch(**{f.name: None if getattr(self, f.name) is None
+                                else getattr(self, f.name).to(device)
                                 for f in dataclasses.fields(self)})

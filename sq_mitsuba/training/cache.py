@@ -48,7 +48,7 @@ from sq_mitsuba.io import atomic_write_json
 __all__ = ["CACHE_VERSION", "ImageCache", "PointCache", "dataset_fingerprint", "decode_pixels",
            "manifest_hash", "open_image_cache", "open_point_cache"]
 
-CACHE_VERSION = 1
+CACHE_VERSION = 2
 MANIFEST = "dataset.json"
 _LABEL_RECORD = ("target_visibility", "phase_angle_deg", "eclipse", "earth_in_view")
 
@@ -334,6 +334,8 @@ class PointCache:
         self.point_offsets = np.asarray(meta["point_offsets"], dtype=np.int64)
         self.surface = np.memmap(folder / "surface.f32", np.float32, "r",
                                  shape=(max(int(self.surface_offsets[-1]), 1), 3))
+        self.normals = np.memmap(folder / "normals.f32", np.float32, "r",
+                                 shape=(max(int(self.surface_offsets[-1]), 1), 3))
         self.points = np.memmap(folder / "points.f32", np.float32, "r",
                                 shape=(max(int(self.point_offsets[-1]), 1), 3))
         self.inside = np.memmap(folder / "inside.u8", np.uint8, "r",
@@ -356,9 +358,10 @@ class PointCache:
         return self._split[model_index]
 
     def sample(self, model_index: int, rng: np.random.Generator, num_surface: int,
-               num_occupancy: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+               num_occupancy: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(surface (num_surface, 3), occupancy points (num_occupancy, 3), labels
-        (num_occupancy,) in {0, 1}) of one item, float32, drawn from ``rng``."""
+        (num_occupancy,) in {0, 1}, the surface points' normals (num_surface, 3)) of one item,
+        float32, drawn from ``rng``."""
         surface = self.model_surface(model_index)
         chosen = rng.choice(len(surface), num_surface, replace=len(surface) < num_surface)
         inside_idx, outside_idx = self._inside_outside(model_index)
@@ -371,7 +374,9 @@ class PointCache:
             np.empty(0, np.int64),
             rng.choice(outside_idx, want_out, replace=len(outside_idx) < want_out)])
         labels = np.concatenate([np.ones(want_in, np.float32), np.zeros(want_out, np.float32)])
-        return np.asarray(surface[chosen]), np.asarray(self.points[rows]), labels
+        first = self.surface_offsets[model_index]
+        return (np.asarray(surface[chosen]), np.asarray(self.points[rows]), labels,
+                np.asarray(self.normals[first + chosen]))
 
 
 def _point_cache_folder(models: Sequence[str], cache_root: str | Path,
@@ -409,6 +414,7 @@ def open_point_cache(dataset: Any, cache_root: str | Path, fingerprint: str,
 
             iterator = tqdm(iterator, unit="model", desc="cache points", leave=False)
         with open(tmp / "surface.f32", "wb") as surface_file, \
+                open(tmp / "normals.f32", "wb") as normals_file, \
                 open(tmp / "points.f32", "wb") as points_file, \
                 open(tmp / "inside.u8", "wb") as inside_file:
             for model_index in iterator:
@@ -420,18 +426,21 @@ def open_point_cache(dataset: Any, cache_root: str | Path, fingerprint: str,
                     raise DatasetError(f"{dataset.root / models[model_index]}: cannot read "
                                        f"model points ({error})") from None
                 surface = np.ascontiguousarray(points["surface"], dtype=np.float32)
+                normals = np.ascontiguousarray(points["normals"], dtype=np.float32)
                 cloud = np.ascontiguousarray(points["points"], dtype=np.float32)
                 inside = np.ascontiguousarray(points["inside"], dtype=bool).astype(np.uint8)
                 if surface.ndim != 2 or surface.shape[1] != 3 or len(surface) == 0 or \
-                        cloud.ndim != 2 or cloud.shape[1] != 3 or len(cloud) != len(inside):
+                        cloud.ndim != 2 or cloud.shape[1] != 3 or len(cloud) != len(inside) \
+                        or normals.shape != surface.shape:
                     raise DatasetError(f"{dataset.root / models[model_index]}: malformed "
                                        "model points")
                 surface_file.write(surface.tobytes())
+                normals_file.write(normals.tobytes())
                 points_file.write(cloud.tobytes())
                 inside_file.write(inside.tobytes())
                 surface_offsets.append(surface_offsets[-1] + len(surface))
                 point_offsets.append(point_offsets[-1] + len(cloud))
-            for handle in (surface_file, points_file, inside_file):
+            for handle in (surface_file, normals_file, points_file, inside_file):
                 if handle.tell() == 0:  # a memory map of an empty file is an error
                     handle.write(b"\0" * 12)
         atomic_write_json(tmp / "meta.json", {

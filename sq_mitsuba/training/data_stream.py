@@ -96,14 +96,16 @@ class TrainingStream:
         cfg = self.config
         generators = [np.random.default_rng(seed_of(cfg.seed, STREAMS["item"], step, j))
                       for j in range(start, start + local)]
-        surface, occupancy, labels = [], [], []
+        surface, occupancy, labels, normals = [], [], [], []
         for k, model in enumerate(raw["model_index"].tolist()):
-            s, o, lab = self.points.sample(model, generators[k], cfg.data.num_surface,
-                                           cfg.data.num_occupancy)
+            s, o, lab, n = self.points.sample(model, generators[k], cfg.data.num_surface,
+                                              cfg.data.num_occupancy)
             surface.append(s)
+            normals.append(n)
             occupancy.append(o)
             labels.append(lab)
         raw.update(surface_points=torch.from_numpy(np.stack(surface)),
+                   surface_normals=torch.from_numpy(np.stack(normals)),
                    occupancy_points=torch.from_numpy(np.stack(occupancy)),
                    occupancy_labels=torch.from_numpy(np.stack(labels)),
                    symmetries=self.symmetries[raw["model_index"]])
@@ -130,7 +132,8 @@ class TrainingStream:
             image=image, mask=mask, rotation=rotation, translation=translation,
             model_index=moved["model_index"], surface_points=moved["surface_points"],
             occupancy_points=moved["occupancy_points"],
-            occupancy_labels=moved["occupancy_labels"], symmetries=moved["symmetries"])
+            occupancy_labels=moved["occupancy_labels"], symmetries=moved["symmetries"],
+            surface_normals=moved["surface_normals"])
 
     def batch(self, step: int, world: World, device: torch.device | str | None = None
               ) -> TrainingBatch:

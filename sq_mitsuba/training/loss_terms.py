@@ -30,6 +30,9 @@ The terms (weights of the paper's configuration in :data:`PUBLISHED_WEIGHTS`):
 - ``surface_depth``: mean absolute error of the depth head's map of the visible surface against
   the one the batch's surface points give at the true pose
   (:mod:`sq_mitsuba.model.surface_depth`; off by default);
+- ``surface_normal``: mean squared distance of the normal head's map of the visible surface
+  to the mean normal of the batch's surface points seen in each cell at the true pose
+  (:mod:`sq_mitsuba.model.surface_normals`; off by default);
 - ``parts``: each primitive's Chamfer distance to the part it is paired with in the model's
   own fitted assembly (:mod:`sq_mitsuba.model.part_targets`; off by default; the dataset's
   part targets, ``sq-mitsuba dataset fit-parts``, are read when it is weighted).
@@ -74,6 +77,7 @@ from sq_mitsuba.model.losses import (
 from sq_mitsuba.model.network import NetworkOutput
 from sq_mitsuba.model.part_targets import matched_part_loss
 from sq_mitsuba.model.surface_depth import surface_depth_loss, visible_depth_map
+from sq_mitsuba.model.surface_normals import surface_normal_loss, visible_normal_map
 from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer
 from sq_mitsuba.training.batch import TrainingBatch
 
@@ -88,6 +92,7 @@ __all__ = [
     "check_terms",
     "compute_terms",
     "register_term",
+    "short_term_name",
     "total_loss",
 ]
 
@@ -208,6 +213,14 @@ class LossTerm:
 LOSS_TERMS: dict[str, LossTerm] = {}
 
 
+def short_term_name(name: str) -> str:
+    """A loss term's name for the progress bar: its first five letters, or for a name of
+    several words the first four of the first and the initials of the rest, so that terms
+    sharing a first word stay apart ("surface_depth" "surf_d", "surface_normal" "surf_n")."""
+    first, *rest = name.split("_")
+    return first[:5] if not rest else first[:4] + "_" + "".join(word[:1] for word in rest)
+
+
 def register_term(name: str, function: TermFunction, needs: tuple[str, ...] = ()) -> LossTerm:
     """Add a term to :data:`LOSS_TERMS` (appended to the order); returns its entry."""
     if not name.isidentifier() or name in LOSS_TERMS:
@@ -325,6 +338,25 @@ def surface_depth_term(output: NetworkOutput, batch: TrainingBatch,
     return surface_depth_loss(predicted, target, valid)
 
 
+def surface_normal_term(output: NetworkOutput, batch: TrainingBatch,
+                        context: LossContext) -> Tensor:
+    """:func:`~sq_mitsuba.model.surface_normals.surface_normal_loss` of the normal head's map
+    against :func:`~sq_mitsuba.model.surface_normals.visible_normal_map` of the batch's
+    surface points and normals at the true pose."""
+    predicted = output.surface_normals
+    if context.camera_matrix is None:
+        raise LossTermError("surface_normal: the term is weighted but no camera was given")
+    if batch.surface_normals is None:
+        raise LossTermError("surface_normal: the term is weighted but the batch holds no "
+                            "surface normals")
+    stride = math.ceil(batch.image.shape[-1] / predicted.shape[-1])
+    target, valid = visible_normal_map(batch.surface_points.to(predicted),
+                                       batch.surface_normals.to(predicted), batch.rotation,
+                                       batch.translation, context.camera_matrix,
+                                       batch.image.shape[-1], stride)
+    return surface_normal_loss(predicted, target, valid)
+
+
 def parts_term(output: NetworkOutput, batch: TrainingBatch, context: LossContext) -> Tensor:
     """:func:`~sq_mitsuba.model.part_targets.matched_part_loss` of the assembly against each
     image's model's fitted assembly (``context.part_targets``), icosphere level 1."""
@@ -349,6 +381,7 @@ register_term("mask", mask_term, ("mask_logits",))
 register_term("parsimony", parsimony_term, ("existence_logits",))
 register_term("parts", parts_term, ("assembly",))
 register_term("surface_depth", surface_depth_term, ("surface_depth",))
+register_term("surface_normal", surface_normal_term, ("surface_normals",))
 
 
 # ------------------------------------------------------------------------------ use

@@ -89,7 +89,7 @@ from sq_mitsuba.training.distributed import (
     unwrap,
     wrap_model,
 )
-from sq_mitsuba.training.loss_terms import LOSS_TERMS, LossTermError, check_terms
+from sq_mitsuba.training.loss_terms import LOSS_TERMS, LossTermError, check_terms, short_term_name
 from sq_mitsuba.training.prefetch import BatchPrefetcher, prefetch_enabled
 from sq_mitsuba.training.random_streams import STREAMS, rng_state, seed_of, set_rng_state
 from sq_mitsuba.training.run.folder import (
@@ -402,7 +402,7 @@ class _Loop:
                 if self.log is not None:
                     self.log.step(row)
                 if bar is not None:
-                    shown = {name[:5]: f"{row[name]:.3g}" for name in LOSS_TERMS if name in row}
+                    shown = {short_term_name(n): f"{row[n]:.3g}" for n in LOSS_TERMS if n in row}
                     bar.set_postfix(loss=f"{row['loss']:.4g}", **shown,
                                     img_s=f"{row['images_per_s']:.1f}")
                     bar.update(1)

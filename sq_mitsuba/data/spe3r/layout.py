@@ -349,14 +349,31 @@ def check_model_points(model_dir: Path, keys: Iterable[str] = tuple(SAMPLE_ARRAY
                            "the model's points from)")
 
 
+def surface_normals(path: Path, count: int) -> np.ndarray:
+    """(count, 3) the unit outward normals of a ``samples.npz``'s surface points, or zeros
+    where the file holds none (an older release) or holds them in another shape or with
+    non-finite values: normals are an optional training target, not a reason to refuse a
+    model."""
+    with np.load(path) as samples:
+        normals = np.asarray(samples["surface_normals"]) if "surface_normals" in \
+            samples.files else None
+    if normals is None or normals.shape != (count, 3) or not np.isfinite(normals).all():
+        return np.zeros((count, 3), np.float32)
+    return normals
+
+
 def model_points(model_dir: Path) -> dict[str, np.ndarray]:
-    """Surface points and labelled occupancy points of a model: ``samples.npz`` (checked by
-    :func:`read_samples`), or, without one (the SPE3R release), samples of its mesh."""
+    """Surface points (``surface``) with their unit outward normals (``normals``, zero where a
+    ``samples.npz`` of an older release holds none) and labelled occupancy points of a model:
+    ``samples.npz`` (checked by :func:`read_samples`), or, without one (the SPE3R release),
+    samples of its mesh."""
     samples_path = model_dir / MODELS / SAMPLES_FILE
     if samples_path.is_file():
         samples = read_samples(samples_path)
+        surface = samples["surface_points"]
         return {
-            "surface": samples["surface_points"],
+            "surface": surface,
+            "normals": surface_normals(samples_path, len(surface)),
             "points": np.concatenate([samples["uniform_points"], samples["near_points"]]),
             "inside": np.concatenate([samples["uniform_inside"],
                                       samples["near_inside"]]).astype(bool),
@@ -369,12 +386,13 @@ def model_points(model_dir: Path) -> dict[str, np.ndarray]:
     vertices, faces, _ = load_model(model_dir)
     mesh = trimesh.Trimesh(vertices, faces, process=False)
     rng = np.random.default_rng(0)
-    surface, _ = trimesh.sample.sample_surface(mesh, 100_000, seed=0)
+    surface, faces_hit = trimesh.sample.sample_surface(mesh, 100_000, seed=0)
     uniform = rng.uniform(-0.5, 0.5, (50_000, 3))
     near = surface[:50_000] + rng.normal(scale=0.01, size=(50_000, 3))
     points = np.concatenate([uniform, near])
     inside = RayCaster(vertices, faces).inside(points)
-    return {"surface": np.asarray(surface), "points": points, "inside": np.asarray(inside)}
+    return {"surface": np.asarray(surface), "normals": np.asarray(mesh.face_normals[faces_hit]),
+            "points": points, "inside": np.asarray(inside)}
 
 
 def dataset_models(root: Path) -> list[str]:

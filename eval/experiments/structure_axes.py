@@ -1,0 +1,218 @@
+"""The body axes read from the visible surface's normals, against the network's rotation.
+
+Spacecraft are built along their body axes, so the normals of the surface one image shows
+cluster along those axes as the camera sees them, in every family alike. On evenly spread
+test images this reads the body-to-camera rotation as the Manhattan frame of those normals
+(:func:`~sq_mitsuba.geometry.manhattan_frame.manhattan_frame`), its axes ordered by the
+visible surface's extent along them (:func:`frame_by_extent`: longest on x, as the body
+axes are), and prints the folded rotation error (up to the four half turns, as ``sq-mitsuba
+eval``) of:
+
+* ``network``: the network's rotation;
+* ``true_normals``: the frame of the true visible surface's normals (the nearest true
+  surface point of each stride-4 cell), ordered by the true visible surface's extent (its
+  depth map back-projected): what a perfect normal and depth map give;
+* ``true_normals_oracle``: the same frame, its best axis order (which axis is which told);
+* ``head_normals`` (a checkpoint with a normal head, ``network.normal_head``): the frame of
+  the head's normals in the cells its mask covers, ordered by the depth head's visible
+  surface (``network.depth_head``) back-projected at the network's translation, or by the
+  network's own body-frame reading turned into that frame without a depth head (where the
+  head's normals all lie within 30 deg of one direction, no frame is defined and the
+  network's rotation stands: ``head_fallback`` is the share of such images);
+* ``head_normals_oracle``: the head's frame, its best axis order;
+
+and, per family, the medians; with a normal head, the head's mean angle to the true normals.
+
+    .venv/bin/python eval/experiments/structure_axes.py --checkpoint MODEL --data DIR \\
+        [--images 96]
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from spread_images import open_spread_images
+
+from sq_mitsuba.data.spe3r.layout import model_points
+from sq_mitsuba.evaluation.split import collate
+from sq_mitsuba.geometry.manhattan_frame import frame_by_extent, manhattan_frame
+from sq_mitsuba.geometry.metrics import rotation_error_deg
+from sq_mitsuba.model.losses import counted_surface_samples
+from sq_mitsuba.model.surface_depth import visible_depth_map
+from sq_mitsuba.model.surface_normals import visible_normal_map
+
+STRIDE = 4
+"""Cells of the maps, pixels at the network's input (the heads' stride)."""
+
+HALF_TURNS = torch.tensor([[1.0, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]],
+                          dtype=torch.float64).diag_embed()
+
+
+def axis_orders() -> torch.Tensor:
+    """(6, 3, 3) the proper signed permutations, one per order of the axes (the folded error
+    ignores the signs)."""
+    found = []
+    for order in itertools.permutations(range(3)):
+        matrix = torch.zeros(3, 3, dtype=torch.float64)
+        matrix[list(order), range(3)] = 1.0
+        if torch.linalg.det(matrix) < 0:
+            matrix[:, 2] *= -1
+        found.append(matrix)
+    return torch.stack(found)
+
+
+def folded(rotation: torch.Tensor, truth: torch.Tensor) -> float:
+    """Rotation error up to the four half turns, degrees."""
+    return float(rotation_error_deg(rotation[None].double(), truth[None].double(),
+                                    HALF_TURNS)[0])
+
+
+def back_projected(depth: torch.Tensor, cells: torch.Tensor, depth_origin: float,
+                   k: torch.Tensor) -> torch.Tensor:
+    """(V, 3) camera-frame points of a depth map (h, w; relative to the body origin's depth)
+    at the centres of the cells ``cells`` (h, w bool)."""
+    rows, cols = torch.nonzero(cells, as_tuple=True)
+    z = depth[rows, cols].double() + depth_origin
+    pixel = torch.stack([(cols.double() + 0.5) * STRIDE, (rows.double() + 0.5) * STRIDE,
+                         torch.ones_like(z)], -1)
+    return (pixel @ torch.linalg.inv(k.double()).T) * z[:, None]
+
+
+def draw(pictures: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]], path: Path
+         ) -> None:
+    """One row per image: the image, the true normal map and the head's (x, y, z mapped to
+    red, green, blue from [-1, 1]; black where no surface is seen)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    columns = 3 if pictures[0][2] is not None else 2
+    figure, axes = plt.subplots(len(pictures), columns, figsize=(2.2 * columns,
+                                                                 2.2 * len(pictures)),
+                                squeeze=False)
+    for row, (image, true_map, head_map) in enumerate(pictures):
+        panels = [(image, "image"), (0.5 + 0.5 * true_map, "true normals")]
+        if head_map is not None:
+            panels.append((np.clip(0.5 + 0.5 * head_map, 0, 1), "head's normals"))
+        for column, (picture, title) in enumerate(panels):
+            axes[row, column].imshow(picture, cmap="gray" if picture.ndim == 2 else None,
+                                     interpolation="nearest")
+            axes[row, column].set_axis_off()
+            if row == 0:
+                axes[row, column].set_title(title, fontsize=9)
+    figure.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    temporary = path.with_name(path.name + ".tmp.png")
+    figure.savefig(temporary, dpi=110)
+    plt.close(figure)
+    temporary.replace(path)
+
+
+def options(parser: argparse.ArgumentParser) -> None:
+    """This script's options beside the shared ones (spread_images.py)."""
+    parser.add_argument("--band", type=float, default=0.0,
+                        help="the true normal map's front band, metres (visible_normal_map)")
+    parser.add_argument("--figure", type=Path,
+                        help="a PNG of the first 6 images: image, true normals, head's")
+    parser.add_argument("--power", type=float, default=1.0,
+                        help="each cell weighs its normal's length to this power in the frame")
+
+
+def main() -> None:
+    spread = open_spread_images(__doc__.split("\n\n")[0], add_arguments=options,
+                                surface_points=100)
+    args, predictor, dataset, camera = spread.args, spread.predictor, spread.dataset, \
+        spread.camera
+    size, chosen = predictor.image_size, spread.chosen
+    network = predictor.model.eval()
+    orders = axis_orders()
+    rows: list[dict[str, float | str]] = []
+    pictures: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]] = []
+    for start in range(0, len(chosen), 16):
+        batch = collate([dataset[int(i)] for i in chosen[start:start + 16]])
+        prediction = predictor.predict(batch["image"], camera)
+        with torch.no_grad():
+            output = network(batch["image"], camera.matrix())
+        for item, model in enumerate(batch["model"]):
+            truth = batch["rotation"][item].double()
+            translation = batch["translation"][item].double()
+            k = batch["camera"][item].double()
+            points = model_points(args.data / model)
+            surface = torch.from_numpy(points["surface"]).double()[None]
+            normals = torch.from_numpy(points["normals"]).double()[None]
+            true_normal, valid = visible_normal_map(surface, normals, truth[None],
+                                                    translation[None], k, size, STRIDE,
+                                                    band=args.band)
+            true_depth, _ = visible_depth_map(surface, truth[None], translation[None], k,
+                                              size, STRIDE)
+            seen = valid[0, 0]
+            row: dict[str, float | str] = {"family": model.split("_", 1)[-1]}
+            if output.surface_normals is not None:
+                row["head_fallback"] = 0.0
+            row["network"] = folded(prediction.rotation[item], truth)
+            vectors = true_normal[0].permute(1, 2, 0)[seen]
+            frame, _ = manhattan_frame(vectors, vectors.norm(dim=1) ** args.power)
+            cloud = back_projected(true_depth[0, 0], seen, float(translation[2]), k)
+            row["true_normals"] = folded(frame_by_extent(frame, cloud), truth)
+            row["true_normals_oracle"] = min(folded(frame @ order, truth) for order in orders)
+            if output.surface_normals is not None:
+                mask = prediction.mask[item][None, None].float()
+                covered = F.avg_pool2d(mask, STRIDE)[0, 0] >= 0.5
+                head = output.surface_normals[item].double().permute(1, 2, 0)  # (h, w, 3)
+                if int(covered.sum()) < 2:
+                    covered = torch.ones_like(covered)
+                try:
+                    frame, _ = manhattan_frame(head[covered],
+                                               head[covered].norm(dim=1) ** args.power)
+                except ValueError:  # one face seen: no frame; the network's rotation stands
+                    frame = prediction.rotation[item].double()
+                    row["head_fallback"] = 1.0
+                if output.surface_depth is not None:
+                    cloud = back_projected(output.surface_depth[item, 0], covered,
+                                           float(prediction.translation[item, 2]), k)
+                else:  # the network's own reading, turned into the camera frame
+                    reading = prediction.item_assembly(item)
+                    samples, keep = counted_surface_samples(reading, 2)
+                    cloud = samples[0][keep[0]].double() @ prediction.rotation[item].double().T
+                row["head_normals"] = folded(frame_by_extent(frame, cloud), truth)
+                row["head_normals_oracle"] = min(folded(frame @ order, truth)
+                                                 for order in orders)
+                both = covered & seen
+                cosine = (F.normalize(head[both], dim=-1) * F.normalize(
+                    true_normal[0].permute(1, 2, 0)[both], dim=-1)).sum(-1)
+                row["head_angle"] = float(torch.rad2deg(torch.arccos(cosine.clamp(-1, 1)))
+                                          .mean()) if int(both.sum()) else float("nan")
+            if args.figure is not None and len(pictures) < 6:
+                head_map = None if output.surface_normals is None else \
+                    output.surface_normals[item].double().permute(1, 2, 0).numpy()
+                pictures.append((batch["image"][item, 0].numpy(),
+                                 true_normal[0].permute(1, 2, 0).numpy(), head_map))
+            rows.append(row)
+        print(f"{len(rows)} / {len(chosen)} images", flush=True)
+    if args.figure is not None:
+        draw(pictures, args.figure)
+    columns = [c for c in rows[0] if c != "family"]
+    print(f"\nfolded rotation error, degrees, over {len(rows)} images: median (mean)")
+    for column in columns:
+        values = np.array([r[column] for r in rows], dtype=float)
+        print(f"  {column:22s} {np.nanmedian(values):6.1f} ({np.nanmean(values):5.1f})")
+    by_family: dict[str, list[dict[str, float | str]]] = defaultdict(list)
+    for row in rows:
+        by_family[str(row["family"])].append(row)
+    print("\nmedians by family: " + ", ".join(columns))
+    for family, members in sorted(by_family.items()):
+        medians = [np.nanmedian(np.array([m[c] for m in members], dtype=float))
+                   for c in columns]
+        print(f"  {family:22s} {len(members):3d} images: " +
+              " ".join(f"{value:6.1f}" for value in medians))
+
+
+if __name__ == "__main__":
+    main()
