@@ -465,13 +465,18 @@ def test_visible_surface_fit_keeps_one_point_per_cell_and_runs(train_dataset,
     finite body-frame Chamfer-L1 for every fit."""
     sys.path.insert(0, str(EXPERIMENTS))
     try:
-        from visible_surface_fit import cells_of, nearest_per_cell
+        from visible_surface_fit import nearest_per_cell
     finally:
         sys.path.remove(str(EXPERIMENTS))
+    from sq_mitsuba.model.surface_depth import cells_at_pose
+
     generator = torch.Generator().manual_seed(0)
     points = torch.rand(400, 3, generator=generator) - 0.5 + torch.tensor([0.0, 0.0, 3.0])
     k = torch.tensor([[40.0, 0.0, 16.0], [0.0, 40.0, 16.0], [0.0, 0.0, 1.0]])
-    cells = cells_of(points, k, 4, 8)
+    # The camera at the body origin: the points are their own camera-frame coordinates.
+    _, flat, side = cells_at_pose(points[None], torch.eye(3)[None], torch.zeros(1, 3), k, 32, 4)
+    assert side == 8
+    cells = flat[0]
     kept = nearest_per_cell(points, cells, 8)
     for cell in cells.unique().tolist():
         members = (cells == cell).nonzero()[:, 0]

@@ -17,7 +17,8 @@ from sq_mitsuba.data.spe3r import Spe3rDataset
 from sq_mitsuba.evaluation.split import collate, open_split
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.camera import Camera
-from sq_mitsuba.geometry.metrics import chamfer_l1
+from sq_mitsuba.geometry.metrics import chamfer_l1, rotation_error_deg
+from sq_mitsuba.geometry.so3_grid import half_turns
 from sq_mitsuba.inference.loading import load_model
 from sq_mitsuba.inference.predictor import Predictor
 from sq_mitsuba.model.losses import counted_surface_samples
@@ -60,6 +61,23 @@ def open_spread_images(description: str, min_images: int = 1,
     camera = dataset.camera.rescaled(predictor.image_size, predictor.image_size)
     chosen = np.linspace(0, len(dataset) - 1, min(args.images, len(dataset))).round()
     return SpreadImages(args, predictor, dataset, camera, chosen)
+
+
+def folded_error_deg(rotation: torch.Tensor, truth: torch.Tensor) -> float:
+    """The rotation error (3, 3) against (3, 3) up to the four half turns of the body frame,
+    degrees, as ``sq-mitsuba eval``'s folded rotation."""
+    return float(rotation_error_deg(rotation[None].double(), truth[None].double(),
+                                    half_turns())[0])
+
+
+def back_projected(depth: torch.Tensor, cells: torch.Tensor, depth_origin: float,
+                   camera: Camera, stride: int) -> torch.Tensor:
+    """(V, 3) camera-frame points, float64, of a depth map (h, w; relative to the body
+    origin's depth ``depth_origin``) at the centres of the stride-``stride`` cells ``cells``
+    (h, w bool) of the camera's image."""
+    rows, cols = torch.nonzero(cells, as_tuple=True)
+    centres = torch.stack([cols, rows], -1).double().add(0.5).mul(stride)
+    return camera.unproject(centres, depth[rows, cols].double() + depth_origin)
 
 
 def thinned(cloud: torch.Tensor, rng: np.random.Generator) -> torch.Tensor:

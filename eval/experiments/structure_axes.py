@@ -37,22 +37,17 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn.functional as F
-from spread_images import open_spread_images
+from spread_images import back_projected, folded_error_deg, open_spread_images
 
 from sq_mitsuba.data.spe3r.layout import model_points
 from sq_mitsuba.evaluation.split import collate
 from sq_mitsuba.geometry.manhattan_frame import frame_by_extent, manhattan_frame
-from sq_mitsuba.geometry.metrics import rotation_error_deg
 from sq_mitsuba.model.losses import counted_surface_samples
 from sq_mitsuba.model.surface_depth import visible_depth_map
 from sq_mitsuba.model.surface_normals import visible_normal_map
 
 STRIDE = 4
 """Cells of the maps, pixels at the network's input (the heads' stride)."""
-
-HALF_TURNS = torch.tensor([[1.0, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]],
-                          dtype=torch.float64).diag_embed()
-
 
 def axis_orders() -> torch.Tensor:
     """(6, 3, 3) the proper signed permutations, one per order of the axes (the folded error
@@ -65,23 +60,6 @@ def axis_orders() -> torch.Tensor:
             matrix[:, 2] *= -1
         found.append(matrix)
     return torch.stack(found)
-
-
-def folded(rotation: torch.Tensor, truth: torch.Tensor) -> float:
-    """Rotation error up to the four half turns, degrees."""
-    return float(rotation_error_deg(rotation[None].double(), truth[None].double(),
-                                    HALF_TURNS)[0])
-
-
-def back_projected(depth: torch.Tensor, cells: torch.Tensor, depth_origin: float,
-                   k: torch.Tensor) -> torch.Tensor:
-    """(V, 3) camera-frame points of a depth map (h, w; relative to the body origin's depth)
-    at the centres of the cells ``cells`` (h, w bool)."""
-    rows, cols = torch.nonzero(cells, as_tuple=True)
-    z = depth[rows, cols].double() + depth_origin
-    pixel = torch.stack([(cols.double() + 0.5) * STRIDE, (rows.double() + 0.5) * STRIDE,
-                         torch.ones_like(z)], -1)
-    return (pixel @ torch.linalg.inv(k.double()).T) * z[:, None]
 
 
 def draw(pictures: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]], path: Path
@@ -156,12 +134,14 @@ def main() -> None:
             row: dict[str, float | str] = {"family": model.split("_", 1)[-1]}
             if output.surface_normals is not None:
                 row["head_fallback"] = 0.0
-            row["network"] = folded(prediction.rotation[item], truth)
+            row["network"] = folded_error_deg(prediction.rotation[item], truth)
             vectors = true_normal[0].permute(1, 2, 0)[seen]
             frame, _ = manhattan_frame(vectors, vectors.norm(dim=1) ** args.power)
-            cloud = back_projected(true_depth[0, 0], seen, float(translation[2]), k)
-            row["true_normals"] = folded(frame_by_extent(frame, cloud), truth)
-            row["true_normals_oracle"] = min(folded(frame @ order, truth) for order in orders)
+            cloud = back_projected(true_depth[0, 0], seen, float(translation[2]), camera,
+                                   STRIDE)
+            row["true_normals"] = folded_error_deg(frame_by_extent(frame, cloud), truth)
+            row["true_normals_oracle"] = min(folded_error_deg(frame @ order, truth)
+                                             for order in orders)
             if output.surface_normals is not None:
                 mask = prediction.mask[item][None, None].float()
                 covered = F.avg_pool2d(mask, STRIDE)[0, 0] >= 0.5
@@ -176,13 +156,14 @@ def main() -> None:
                     row["head_fallback"] = 1.0
                 if output.surface_depth is not None:
                     cloud = back_projected(output.surface_depth[item, 0], covered,
-                                           float(prediction.translation[item, 2]), k)
+                                           float(prediction.translation[item, 2]), camera,
+                                           STRIDE)
                 else:  # the network's own reading, turned into the camera frame
                     reading = prediction.item_assembly(item)
                     samples, keep = counted_surface_samples(reading, 2)
                     cloud = samples[0][keep[0]].double() @ prediction.rotation[item].double().T
-                row["head_normals"] = folded(frame_by_extent(frame, cloud), truth)
-                row["head_normals_oracle"] = min(folded(frame @ order, truth)
+                row["head_normals"] = folded_error_deg(frame_by_extent(frame, cloud), truth)
+                row["head_normals_oracle"] = min(folded_error_deg(frame @ order, truth)
                                                  for order in orders)
                 both = covered & seen
                 cosine = (F.normalize(head[both], dim=-1) * F.normalize(

@@ -26,19 +26,26 @@ the true surface (body-frame Chamfer-L1, the paper's):
 from __future__ import annotations
 
 import argparse
-import math
 from functools import partial
 
 import numpy as np
 import torch
-from spread_images import distance, open_spread_images, thinned
+from spread_images import (
+    back_projected,
+    distance,
+    folded_error_deg,
+    open_spread_images,
+    thinned,
+)
 
 from sq_mitsuba.evaluation.split import collate
 from sq_mitsuba.geometry.assembly import Assembly
-from sq_mitsuba.geometry.metrics import rotation_error_deg
+from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.rotation import axis_angle_to_matrix
+from sq_mitsuba.geometry.so3_grid import with_half_turns
 from sq_mitsuba.inference.refine import raw_from_assembly
 from sq_mitsuba.model.losses import counted_surface_samples, surface_chamfer_loss
+from sq_mitsuba.model.surface_depth import cells_at_pose
 
 TRUTH_POINTS = 16000
 """True surface points per model for its visible surface (about 10 per covered cell)."""
@@ -48,17 +55,6 @@ def to_camera(points: torch.Tensor, rotation: torch.Tensor, translation: torch.T
               ) -> torch.Tensor:
     """(K, 3) body-frame points placed by one pose (rotation (3, 3), translation (3,))."""
     return points @ rotation.T + translation
-
-
-def cells_of(camera_points: torch.Tensor, k: torch.Tensor, stride: int, side: int
-             ) -> torch.Tensor:
-    """(K,) flat cell index of each camera-frame point in a ``side`` x ``side`` grid of
-    ``stride`` px cells, ``side * side`` for points outside it or behind the camera."""
-    z = camera_points[:, 2]
-    pixel = (camera_points @ k.T)[:, :2] / z.clamp_min(1e-9)[:, None]
-    cell = torch.floor(pixel / stride).long()
-    inside = (z > 0) & (cell >= 0).all(-1) & (cell < side).all(-1)
-    return torch.where(inside, cell[:, 1] * side + cell[:, 0], side * side)
 
 
 def nearest_per_cell(camera_points: torch.Tensor, cells: torch.Tensor, side: int
@@ -71,17 +67,24 @@ def nearest_per_cell(camera_points: torch.Tensor, cells: torch.Tensor, side: int
     return (z <= nearest[cells]) & (cells < side * side)
 
 
+def seen_from(points: torch.Tensor, rotation: torch.Tensor, translation: torch.Tensor,
+              k: torch.Tensor, size: int, stride: int) -> torch.Tensor:
+    """(K,) bool: the body-frame points (K, 3) nearest the camera in their stride-``stride``
+    cell of the S = ``size`` image at one pose (rotation (3, 3), translation (3,))."""
+    camera, flat, side = cells_at_pose(points[None], rotation[None], translation[None], k,
+                                       size, stride)
+    return nearest_per_cell(camera[0], flat[0], side)
+
+
 def visible_chamfer(assembly: Assembly, visible: torch.Tensor, rotation: torch.Tensor,
-                    translation: torch.Tensor, k: torch.Tensor, stride: int, side: int,
+                    translation: torch.Tensor, k: torch.Tensor, stride: int, size: int,
                     level: int) -> torch.Tensor:
     """The 2.5D Chamfer of one assembly (batch 1, body frame) against visible points (V, 3,
     body frame): the visible points' mean squared distance to the assembly's counted samples
     plus the assembly's visible samples' (at the pose) to the visible points."""
     points, keep = counted_surface_samples(assembly, level)
     points = points[0][keep[0]]
-    seen = nearest_per_cell(to_camera(points, rotation, translation),
-                            cells_of(to_camera(points, rotation, translation), k, stride, side),
-                            side)
+    seen = seen_from(points, rotation, translation, k, size, stride)
     squared = torch.cdist(visible, points).square()
     forward = squared.amin(1).mean()
     backward = squared[:, seen].amin(0).mean() if bool(seen.any()) else squared.sum() * 0
@@ -99,12 +102,8 @@ def fit(start: Assembly, loss, steps: int, lr: float) -> Assembly:
     return Assembly.from_raw(raw.detach())
 
 
-HALF_TURNS = torch.tensor([[1.0, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]]).diag_embed()
-"""The identity and the half turns about the body axes (the folded rotation's symmetries)."""
-
-
 def registered(read: Assembly, cloud: torch.Tensor, hypotheses: torch.Tensor,
-               translation: torch.Tensor, k: torch.Tensor, stride: int, side: int, level: int,
+               translation: torch.Tensor, k: torch.Tensor, stride: int, size: int, level: int,
                pose_steps: int, steps: int, lr: float) -> tuple[Assembly, torch.Tensor]:
     """The reading registered to a camera-frame visible cloud (V, 3), then fitted to it.
 
@@ -113,7 +112,7 @@ def registered(read: Assembly, cloud: torch.Tensor, hypotheses: torch.Tensor,
     ``pose_steps``; the start whose 2.5D Chamfer ends lowest keeps its pose, and the shape
     is then fitted at it as :func:`fit`. Returns the fitted assembly (body frame) and its
     rotation (3, 3)."""
-    starts = (hypotheses[:, None] @ HALF_TURNS.to(hypotheses)).reshape(-1, 3, 3)
+    starts = with_half_turns(hypotheses).reshape(-1, 3, 3)
     best = (torch.inf, starts[0], translation)
     for start in starts:
         omega = torch.zeros(3, requires_grad=True)
@@ -124,7 +123,7 @@ def registered(read: Assembly, cloud: torch.Tensor, hypotheses: torch.Tensor,
             rotation = axis_angle_to_matrix(omega) @ start
             place = translation + shift
             loss = visible_chamfer(read, (cloud - place) @ rotation, rotation, place, k,
-                                   stride, side, level)
+                                   stride, size, level)
             if step == pose_steps:
                 break
             optimizer.zero_grad(set_to_none=True)
@@ -135,24 +134,21 @@ def registered(read: Assembly, cloud: torch.Tensor, hypotheses: torch.Tensor,
     _, rotation, place = best
     body_cloud = (cloud - place) @ rotation
     fitted = fit(read, lambda a: visible_chamfer(a, body_cloud, rotation, place, k, stride,
-                                                 side, level), steps, lr)
+                                                 size, level), steps, lr)
     return fitted, rotation
 
 
 def head_visible_points(surface_depth: torch.Tensor, mask: torch.Tensor,
-                        rotation: torch.Tensor, translation: torch.Tensor, k: torch.Tensor,
+                        rotation: torch.Tensor, translation: torch.Tensor, camera: Camera,
                         stride: int) -> torch.Tensor:
     """(V, 3) body-frame points of a depth head's map (1, h, w; depth relative to the body
     origin's) in the cells a mask (H, W probability) covers by half or more, each cell's
-    centre back-projected through K at the pose."""
-    side = surface_depth.shape[-1]
+    centre back-projected at the pose."""
     covered = torch.nn.functional.avg_pool2d(mask[None, None].float(), stride)[0, 0] >= 0.5
-    rows, cols = torch.nonzero(covered[:side, :side], as_tuple=True)
-    z = surface_depth[0, rows, cols].float() + translation[2]
-    pixel = torch.stack([(cols.float() + 0.5) * stride, (rows.float() + 0.5) * stride,
-                         torch.ones_like(z)], -1)
-    camera = (pixel @ torch.linalg.inv(k).T) * z[:, None]
-    return (camera - translation) @ rotation
+    side = surface_depth.shape[-1]
+    points = back_projected(surface_depth[0], covered[:side, :side], float(translation[2]),
+                            camera, stride)
+    return (points.to(rotation) - translation) @ rotation
 
 
 def positive(text: str) -> int:
@@ -181,7 +177,6 @@ def main() -> None:
     args, predictor, dataset, camera = spread.args, spread.predictor, spread.dataset, \
         spread.camera
     size, chosen = predictor.image_size, spread.chosen
-    side = math.ceil(size / args.stride)
     rng = np.random.default_rng(0)
     network = predictor.model.eval()
     has_head = network.depth_head is not None
@@ -198,9 +193,7 @@ def main() -> None:
             translation = batch["translation"][item].float()
             k = batch["camera"][item].float()
             truth = batch["surface_points"][item].float()
-            cells = cells_of(to_camera(truth, rotation, translation), k, args.stride, side)
-            visible = truth[nearest_per_cell(to_camera(truth, rotation, translation), cells,
-                                             side)]
+            visible = truth[seen_from(truth, rotation, translation, k, size, args.stride)]
             read = Assembly(prediction.item_assembly(item).params.detach().float())
             scored = thinned(truth.float(), rng)
             row = {"model": model}
@@ -212,7 +205,7 @@ def main() -> None:
             def to_cloud(cloud: torch.Tensor, pose_r: torch.Tensor, pose_t: torch.Tensor,
                          k: torch.Tensor = k):
                 return partial(visible_chamfer, visible=cloud, rotation=pose_r,
-                               translation=pose_t, k=k, stride=args.stride, side=side,
+                               translation=pose_t, k=k, stride=args.stride, size=size,
                                level=args.level)
 
             row["read"] = score(read)
@@ -225,11 +218,11 @@ def main() -> None:
                       "visible_at_reading": (in_network_frame, net_rotation, net_translation)}
             if head_depth is not None:
                 clouds["head"] = (head_visible_points(
-                    head_depth[item], prediction.mask[item], rotation, translation, k,
+                    head_depth[item], prediction.mask[item], rotation, translation, camera,
                     args.stride), rotation, translation)
                 clouds["head_at_reading"] = (head_visible_points(
-                    head_depth[item], prediction.mask[item], net_rotation, net_translation, k,
-                    args.stride), net_rotation, net_translation)
+                    head_depth[item], prediction.mask[item], net_rotation, net_translation,
+                    camera, args.stride), net_rotation, net_translation)
             for name, (cloud, pose_r, pose_t) in clouds.items():
                 row[name] = score(fit(read, to_cloud(cloud, pose_r, pose_t), args.steps,
                                       args.lr))
@@ -242,12 +235,11 @@ def main() -> None:
                 registered_clouds["registered_head"] = head_camera
             for name, cloud in registered_clouds.items():
                 fitted, folded[name] = registered(
-                    read, cloud, hypotheses, net_translation, k, args.stride, side, 1,
+                    read, cloud, hypotheses, net_translation, k, args.stride, size, 1,
                     args.pose_steps, args.steps, args.lr)
                 row[name] = score(fitted)
             for name, found in folded.items():
-                row[f"folded_{name}"] = float(rotation_error_deg(
-                    found[None], rotation[None], HALF_TURNS.to(rotation))[0])
+                row[f"folded_{name}"] = folded_error_deg(found, rotation)
             if args.surface:
                 target = thinned(truth.float(), rng)
                 row["surface"] = score(fit(read, partial(surface_chamfer_loss, target=target,

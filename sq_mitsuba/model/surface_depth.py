@@ -29,7 +29,38 @@ from torch import Tensor
 
 from sq_mitsuba.checks import check_tensor
 
-__all__ = ["surface_depth_loss", "visible_depth_map"]
+__all__ = ["cells_at_pose", "surface_depth_loss", "visible_depth_map"]
+
+
+def cells_at_pose(points: Tensor, rotation: Tensor, translation: Tensor, camera_matrix: Tensor,
+                  image_size: int, stride: int) -> tuple[Tensor, Tensor, int]:
+    """Body-frame points placed at a pose and binned into the cells of a ``ceil(S / stride)``
+    grid, for the visible-surface maps (this module's and
+    :mod:`~sq_mitsuba.model.surface_normals`).
+
+    Args:
+        points: (B, K, 3) body frame; rotation (B, 3, 3) body -> camera; translation (B, 3).
+        camera_matrix: (3, 3) or (B, 3, 3) intrinsics of the S x S image; image_size: S.
+        stride: pixels per cell side.
+
+    Returns:
+        camera (B, K, 3) the points in the camera frame; flat (B, K) each point's cell as an
+        index into B blocks of ``side * side + 1`` (item b's cells from ``b (side^2 + 1)``,
+        row-major, then one spare cell for its points outside the grid or behind the
+        camera); side.
+    """
+    check_tensor("points", points, (None, 3), min_dims=3)
+    batch = points.shape[0]
+    side = math.ceil(image_size / stride)
+    k = camera_matrix.to(points).expand(batch, 3, 3)
+    camera = points @ rotation.to(points).transpose(-1, -2) + translation.to(points)[:, None]
+    z = camera[..., 2]
+    pixel = (camera @ k.transpose(-1, -2))[..., :2] / z.clamp_min(1e-9)[..., None]
+    cell = torch.floor(pixel / stride).long()  # (B, K, 2): column, row
+    inside = (z > 0) & (cell >= 0).all(-1) & (cell < side).all(-1)
+    index = torch.where(inside, cell[..., 1] * side + cell[..., 0], side * side)
+    flat = index + torch.arange(batch, device=points.device)[:, None] * (side * side + 1)
+    return camera, flat, side
 
 
 def visible_depth_map(points: Tensor, rotation: Tensor, translation: Tensor,
@@ -49,18 +80,9 @@ def visible_depth_map(points: Tensor, rotation: Tensor, translation: Tensor,
         depth (B, 1, h, w): ``min z_camera - t_z`` over the cell's points (0 where it does not
         count), and valid (B, 1, h, w) bool, h = w = ceil(S / stride).
     """
-    check_tensor("points", points, (None, 3), min_dims=3)
-    batch = points.shape[0]
-    side = math.ceil(image_size / stride)
-    k = camera_matrix.to(points).expand(batch, 3, 3)
-    camera = points @ rotation.to(points).transpose(-1, -2) + translation.to(points)[:, None]
-    z = camera[..., 2]
-    pixel = (camera @ k.transpose(-1, -2))[..., :2] / z.clamp_min(1e-9)[..., None]
-    cell = torch.floor(pixel / stride).long()  # (B, K, 2): column, row
-    inside = (z > 0) & (cell >= 0).all(-1) & (cell < side).all(-1)
-    index = cell[..., 1] * side + cell[..., 0]
-    index = torch.where(inside, index, side * side)  # one spare cell for points outside
-    flat = index + torch.arange(batch, device=points.device)[:, None] * (side * side + 1)
+    camera, flat, side = cells_at_pose(points, rotation, translation, camera_matrix,
+                                       image_size, stride)
+    batch, z = points.shape[0], camera[..., 2]
     nearest = torch.full((batch * (side * side + 1),), torch.inf, dtype=points.dtype,
                          device=points.device)
     nearest = nearest.scatter_reduce(0, flat.flatten(), z.flatten(), reduce="amin")

@@ -29,12 +29,10 @@ Convention:
 
 from __future__ import annotations
 
-import math
-
 import torch
 from torch import Tensor
 
-from sq_mitsuba.checks import check_tensor
+from sq_mitsuba.model.surface_depth import cells_at_pose
 
 __all__ = ["surface_normal_loss", "visible_normal_map"]
 
@@ -61,28 +59,19 @@ def visible_normal_map(points: Tensor, normals: Tensor, rotation: Tensor, transl
         normal (B, 3, h, w), camera frame, length <= 1 (0 where the cell does not count),
         and valid (B, 1, h, w) bool, h = w = ceil(S / stride).
     """
-    check_tensor("points", points, (None, 3), min_dims=3)
     if normals.shape != points.shape:
         raise ValueError(f"normals: expected the points' shape {tuple(points.shape)}, got "
                          f"{tuple(normals.shape)}")
-    batch, count = points.shape[:2]
-    side = math.ceil(image_size / stride)
-    cells = side * side
-    k = camera_matrix.to(points).expand(batch, 3, 3)
-    rotation = rotation.to(points)
-    camera = points @ rotation.transpose(-1, -2) + translation.to(points)[:, None]
-    z = camera[..., 2]
-    pixel = (camera @ k.transpose(-1, -2))[..., :2] / z.clamp_min(1e-9)[..., None]
-    cell = torch.floor(pixel / stride).long()  # (B, K, 2): column, row
-    inside = (z > 0) & (cell >= 0).all(-1) & (cell < side).all(-1)
-    index = torch.where(inside, cell[..., 1] * side + cell[..., 0], cells)
-    flat = index + torch.arange(batch, device=points.device)[:, None] * (cells + 1)
+    camera, flat, side = cells_at_pose(points, rotation, translation, camera_matrix,
+                                       image_size, stride)
+    batch, cells, z = points.shape[0], side * side, camera[..., 2]
+    inside = flat % (cells + 1) < cells
     # Only points facing the camera can be seen (a thin panel's back lies within any band).
     # A cell's front is those within ``band`` of its nearest, and its target their mean
     # normal, not the nearest's own: with a few dozen points a cell, that is often a point on
     # an edge, and the target noise.
-    turned = (normals.to(points) @ rotation.transpose(-1, -2)).reshape(batch * count, 3)
-    facing = (turned * camera.reshape(batch * count, 3)).sum(-1) < 0
+    turned = (normals.to(points) @ rotation.to(points).transpose(-1, -2)).flatten(0, 1)
+    facing = (turned * camera.flatten(0, 1)).sum(-1) < 0
     nearest = torch.full((batch * (cells + 1),), torch.inf, dtype=points.dtype,
                          device=points.device)
     seen = inside.flatten() & facing
