@@ -82,3 +82,11 @@ def test_weights_decide_which_normals_count() -> None:
         weights[heavy * 300:(heavy + 1) * 300] = 1.0
         frame, _ = manhattan_frame(normals, weights)
         assert _angle_up_to_axes_deg(frame, rotation) < 1e-4
+
+
+def test_frame_by_extent_refuses_a_cloud_of_another_shape_or_with_nan() -> None:
+    with pytest.raises(ValueError, match="cloud"):
+        frame_by_extent(torch.eye(3, dtype=torch.float64), torch.zeros(5, 2))
+    with pytest.raises(ValueError, match="cloud"):
+        frame_by_extent(torch.eye(3, dtype=torch.float64),
+                        torch.tensor([[0.0, float("nan"), 1.0]] * 4))

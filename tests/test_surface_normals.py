@@ -166,3 +166,13 @@ def test_a_samples_file_without_good_normals_gives_zeros_and_no_cell(tmp_path) -
                                       torch.tensor([[0.0, 0.0, 2.0]], dtype=torch.float64), K,
                                       64)
         assert not bool(valid.any()), name
+
+
+def test_normals_of_another_shape_than_the_points_are_refused() -> None:
+    points = torch.zeros(2, 10, 3, dtype=torch.float64)
+    with pytest.raises(ValueError, match="normals: expected the points' shape"):
+        visible_normal_map(points, points[:, :5], torch.eye(3, dtype=torch.float64).expand(2, 3, 3),
+                           torch.zeros(2, 3, dtype=torch.float64), K, 64)
+    with pytest.raises(ValueError, match="points"):
+        visible_normal_map(points[0], points[0], torch.eye(3, dtype=torch.float64)[None],
+                           torch.zeros(1, 3, dtype=torch.float64), K, 64)
