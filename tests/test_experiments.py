@@ -447,16 +447,61 @@ def test_structure_axes_reads_the_axes_from_the_visible_normals(train_dataset,
     assert torch.allclose(torch.linalg.det(orders), torch.ones(6, dtype=orders.dtype))
     assert len({tuple(o.abs().flatten().tolist()) for o in orders}) == 6
     command = [sys.executable, str(EXPERIMENTS / "structure_axes.py"), "--checkpoint",
-               str(eval_checkpoint), "--data", str(train_dataset), "--images", "4"]
+               str(eval_checkpoint), "--data", str(train_dataset), "--images", "2", "--edges"]
     result = _run_script(command)
     assert result.returncode == 0, result.stderr
     medians = {line.split()[0]: float(line.split()[1]) for line in result.stdout.splitlines()
                if line.startswith("  ") and "images:" not in line}
-    assert set(medians) == {"network", "true_normals", "true_normals_oracle"}
+    assert set(medians) == {"network", "true_normals", "true_normals_oracle",
+                            "true_depth_oracle", "edges_oracle"}
     assert all(0 <= value <= 180 for value in medians.values())
     # Per image the best order is never worse than the one chosen, so neither is the median.
     assert medians["true_normals_oracle"] <= medians["true_normals"] + 1e-9
-    assert "over 4 images" in result.stdout
+    assert "over 2 images" in result.stdout
+
+
+def test_depth_normals_and_edge_frame_read_a_known_plane_and_rectangle() -> None:
+    """The normals of a tilted plane's depth map are its analytic normal; a bright rectangle
+    drawn along the image axes is explained by the identity's axes and not by a turn of
+    30 deg about the line of sight, and the edge frame found on a grid lies on the image axes
+    (up to the axes' order and signs)."""
+    import math
+
+    sys.path.insert(0, str(EXPERIMENTS))
+    try:
+        from structure_axes import depth_normals, edge_agreement, edge_frame, edge_pixels
+    finally:
+        sys.path.remove(str(EXPERIMENTS))
+    from sq_mitsuba.geometry.camera import Camera
+    from sq_mitsuba.geometry.rotation import axis_angle_to_matrix
+    from sq_mitsuba.geometry.so3_grid import so3_grid
+
+    camera = Camera.default(96)
+    # The plane z = 3 + 0.2 x - 0.1 y seen through the stride-4 cell centres.
+    rows, cols = torch.meshgrid(torch.arange(24), torch.arange(24), indexing="ij")
+    x = (cols.double().add(0.5).mul(4) - camera.cx) / camera.fx
+    y = (rows.double().add(0.5).mul(4) - camera.cy) / camera.fy
+    depth = 3.0 / (1.0 - 0.2 * x + 0.1 * y)  # z of each ray's hit: z = 3 + 0.2 xz - 0.1 yz
+    normals = depth_normals(depth - 3.0, torch.ones(24, 24, dtype=torch.bool), 3.0, camera)
+    expected = torch.nn.functional.normalize(torch.tensor([0.2, -0.1, -1.0],
+                                                          dtype=torch.float64), dim=0)
+    assert normals.shape == (23 * 23, 3)
+    assert torch.allclose(normals, expected.expand_as(normals), atol=1e-6)
+
+    image = np.zeros((96, 96), np.uint8)
+    image[30:60, 20:76] = 200
+    mask = (image > 0).astype(np.uint8)
+    edges = edge_pixels(image, mask, camera, count=10_000)
+    assert 300 < len(edges[0]) < 1000  # the outline's pixels only, not the flat ones
+    assert torch.allclose(edges[0].norm(dim=1), torch.ones(len(edges[0]), dtype=torch.float64))
+    turned = axis_angle_to_matrix(torch.tensor([0.0, 0.0, math.radians(30.0)],
+                                               dtype=torch.float64))
+    upright = edge_agreement(torch.eye(3, dtype=torch.float64)[None], *edges)[0]
+    assert upright > 0.9 > 0.2 > edge_agreement(turned[None], *edges)[0]
+    frame = edge_frame(*edges, so3_grid(500), steps=20)
+    # Two of its axes on the image's u and v axes, whichever they are.
+    in_image = frame[:2].abs().amax(dim=0).sort(descending=True).values
+    assert bool((in_image[:2] > math.cos(math.radians(5.0))).all())
 
 
 def test_visible_surface_fit_keeps_one_point_per_cell_and_runs(train_dataset,

@@ -176,3 +176,30 @@ def test_normals_of_another_shape_than_the_points_are_refused() -> None:
     with pytest.raises(ValueError, match="points"):
         visible_normal_map(points[0], points[0], torch.eye(3, dtype=torch.float64)[None],
                            torch.zeros(1, 3, dtype=torch.float64), K, 64)
+
+
+def test_a_deeper_wider_normal_head_counts_its_layers_and_loads_a_one_layer_head() -> None:
+    """``normal_head_width`` and ``normal_head_layers``: the head's parameters against their
+    count by hand (four 1 x 1 laterals, ``layers`` 3 x 3 convs, the 1 x 1 output), its map
+    the stride-4 shape; a one-layer head's state (the default, as in older checkpoints) loads
+    into the deeper one's first layers by name, the extra layers left as they are."""
+    from sq_mitsuba.model.heads import MaskHead
+
+    config = dict(encoder="efficientnet_lite0", latent="spatial", image_size=64,
+                  num_primitives=2, latent_dim=16, hidden_dim=16, spatial_channels=8,
+                  normal_head=True)
+    deep = SuperquadricNet(NetworkConfig(**config, normal_head_width=24, normal_head_layers=3))
+    channels = deep.encoder.pyramid_channels[:4]
+    width = 24
+    expected = sum(c * width + width for c in channels) + 3 * (9 * width * width + width) \
+        + (3 * width + 3)
+    assert sum(p.numel() for p in deep.normal_head.parameters()) == expected
+    out = deep(torch.rand(1, 1, 64, 64), Camera.default(64).matrix(torch.float32))
+    assert out.surface_normals.shape == (1, 3, 16, 16)
+    one = MaskHead(deep.encoder.pyramid_channels, width=width, outputs=3)
+    missing, unexpected = deep.normal_head.load_state_dict(one.state_dict(), strict=False)
+    assert unexpected == [] and sorted(missing) == sorted(
+        f"deeper.{i}.{p}" for i in (0, 1) for p in ("weight", "bias"))
+    assert torch.equal(deep.normal_head.smooth.weight, one.smooth.weight)
+    with pytest.raises(ValueError, match="layers"):
+        MaskHead(deep.encoder.pyramid_channels, layers=0)

@@ -13,6 +13,14 @@ eval``) of:
   surface point of each stride-4 cell), ordered by the true visible surface's extent (its
   depth map back-projected): what a perfect normal and depth map give;
 * ``true_normals_oracle``: the same frame, its best axis order (which axis is which told);
+* ``true_depth_oracle``: the frame of normals made from the true depth map itself (the cross
+  product of its differences between neighbouring cells, back-projected; a depth step of
+  more than 5 cm is an outline, not a face), its best axis order: what a perfect stride-4
+  depth map gives without normals;
+* ``edges_oracle`` (``--edges``): the rotation whose body axes, drawn through each edge pixel
+  of the full-resolution image (the 2,000 strongest grey-level gradients within 3 px of the
+  true mask), run along the most edges, its best axis order: straight edges as the cue
+  instead of normals, needing no training (:func:`edge_frame`);
 * ``head_normals`` (a checkpoint with a normal head, ``network.normal_head``): the frame of
   the head's normals in the cells its mask covers, ordered by the depth head's visible
   surface (``network.depth_head``) back-projected at the network's translation, or by the
@@ -24,7 +32,7 @@ eval``) of:
 and, per family, the medians; with a normal head, the head's mean angle to the true normals.
 
     .venv/bin/python eval/experiments/structure_axes.py --checkpoint MODEL --data DIR \\
-        [--images 96]
+        [--images 96] [--edges]
 """
 
 from __future__ import annotations
@@ -41,7 +49,10 @@ from spread_images import back_projected, folded_error_deg, open_spread_images
 
 from sq_mitsuba.data.spe3r.layout import model_points
 from sq_mitsuba.evaluation.split import collate
+from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.manhattan_frame import frame_by_extent, manhattan_frame
+from sq_mitsuba.geometry.rotation import axis_angle_to_matrix
+from sq_mitsuba.geometry.so3_grid import so3_grid
 from sq_mitsuba.model.losses import counted_surface_samples
 from sq_mitsuba.model.surface_depth import visible_depth_map
 from sq_mitsuba.model.surface_normals import visible_normal_map
@@ -60,6 +71,84 @@ def axis_orders() -> torch.Tensor:
             matrix[:, 2] *= -1
         found.append(matrix)
     return torch.stack(found)
+
+
+def depth_normals(depth: torch.Tensor, seen: torch.Tensor, depth_origin: float,
+                  camera: Camera, jump: float = 0.05) -> torch.Tensor:
+    """(V, 3) unit camera-frame normals, facing the camera, of a depth map (h, w; relative to
+    the body origin's depth) over its cells ``seen`` (h, w bool): at each cell whose right and
+    lower neighbours are seen too and lie within ``jump`` metres in depth, the cross product of
+    the two differences of the back-projected cell centres."""
+    rows, cols = torch.meshgrid(torch.arange(depth.shape[0]), torch.arange(depth.shape[1]),
+                                indexing="ij")
+    centres = torch.stack([cols, rows], -1).double().add(0.5).mul(STRIDE).reshape(-1, 2)
+    points = camera.unproject(centres, depth.double().reshape(-1) + depth_origin)
+    points = points.reshape(*depth.shape, 3)
+    right = points[:-1, 1:] - points[:-1, :-1]
+    down = points[1:, :-1] - points[:-1, :-1]
+    keep = seen[:-1, :-1] & seen[:-1, 1:] & seen[1:, :-1]
+    keep &= (right[..., 2].abs() < jump) & (down[..., 2].abs() < jump)
+    normals = F.normalize(torch.cross(right, down, dim=-1), dim=-1)
+    normals = torch.where(normals[..., 2:] > 0, -normals, normals)
+    return normals[keep]
+
+
+def edge_pixels(image: np.ndarray, mask: np.ndarray, camera: Camera, count: int = 2000
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The ``count`` strongest grey-level gradients (Sobel) of ``image`` (H, W uint8) within
+    3 px of ``mask`` (H, W, nonzero inside): their edge directions (P, 2) (unit, across the
+    gradient), their rays' normalised coordinates (P, 2) ((u - cx) / fx, (v - cy) / fy) and
+    their gradient magnitudes (P,)."""
+    grey = torch.as_tensor(np.array(image), dtype=torch.float64)[None, None] / 255.0
+    sobel = torch.tensor([[-1.0, 0.0, 1.0], [-2.0, 0.0, 2.0], [-1.0, 0.0, 1.0]],
+                         dtype=torch.float64) / 8.0
+    du = F.conv2d(grey, sobel[None, None], padding=1)[0, 0]
+    dv = F.conv2d(grey, sobel.T[None, None], padding=1)[0, 0]
+    near = F.max_pool2d(torch.from_numpy(mask > 0).double()[None, None], 7, 1, 3)[0, 0] > 0
+    near[:2], near[-2:], near[:, :2], near[:, -2:] = False, False, False, False
+    magnitude = torch.hypot(du, dv) * near
+    # Flat pixels' gradients are rounding noise (1e-17), not edges without a direction.
+    strength, index = magnitude.flatten().topk(min(count, int((magnitude > 1e-6).sum())))
+    rows, cols = index // magnitude.shape[1], index % magnitude.shape[1]
+    directions = F.normalize(torch.stack([-dv.flatten()[index], du.flatten()[index]], -1),
+                             dim=-1)
+    rays = torch.stack([(cols.double() + 0.5 - camera.cx) / camera.fx,
+                        (rows.double() + 0.5 - camera.cy) / camera.fy], -1)
+    return directions, rays, strength
+
+
+def edge_agreement(rotations: torch.Tensor, directions: torch.Tensor, rays: torch.Tensor,
+                   strength: torch.Tensor, sharpness: float = 8.0) -> torch.Tensor:
+    """(G,) how well the body axes of ``rotations`` (G, 3, 3), drawn through each edge pixel,
+    run along its edge: per pixel the best axis's cos^2 of the angle to the edge to the power
+    ``sharpness``, times its foreshortening (an axis seen end-on explains no edge), averaged
+    with the gradient magnitudes as weights. A camera-frame line of direction ``v`` through a
+    pixel of normalised ray ``(x, y)`` runs along ``(v_x - x v_z, v_y - y v_z)`` in the
+    image."""
+    axes = rotations.transpose(1, 2)  # (G, 3 axes, 3)
+    along = axes[:, :, None, :2] - rays[None, None] * axes[:, :, None, 2:]  # (G, 3, P, 2)
+    length = along.norm(dim=-1).clamp_min(1e-9)
+    cosine = (along * directions).sum(-1) / length
+    agreement = length.clamp(max=1.0) * (cosine * cosine) ** sharpness
+    return (agreement.amax(dim=1) * strength).sum(-1) / strength.sum()
+
+
+def edge_frame(directions: torch.Tensor, rays: torch.Tensor, strength: torch.Tensor,
+               grid: torch.Tensor, steps: int = 60) -> torch.Tensor:
+    """(3, 3) the rotation of ``grid`` (G, 3, 3) whose axes run along the most edges
+    (:func:`edge_agreement`), then refined by Adam on an axis-angle offset."""
+    scores = torch.cat([edge_agreement(grid[i:i + 1000], directions, rays, strength)
+                        for i in range(0, len(grid), 1000)])
+    start = grid[scores.argmax()]
+    offset = torch.zeros(3, dtype=torch.float64, requires_grad=True)
+    optimiser = torch.optim.Adam([offset], lr=0.01)
+    for _ in range(steps):
+        loss = -edge_agreement((start @ axis_angle_to_matrix(offset))[None], directions, rays,
+                               strength)[0]
+        optimiser.zero_grad()
+        loss.backward()
+        optimiser.step()
+    return (start @ axis_angle_to_matrix(offset)).detach()
 
 
 def draw(pictures: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]], path: Path
@@ -97,6 +186,9 @@ def options(parser: argparse.ArgumentParser) -> None:
     """This script's options beside the shared ones (spread_images.py)."""
     parser.add_argument("--band", type=float, default=0.0,
                         help="the true normal map's front band, metres (visible_normal_map)")
+    parser.add_argument("--edges", action="store_true",
+                        help="also the image's straight edges' frame (edges_oracle; about 3 s "
+                             "an image)")
     parser.add_argument("--figure", type=Path,
                         help="a PNG of the first 6 images: image, true normals, head's")
     parser.add_argument("--power", type=float, default=1.0,
@@ -111,6 +203,8 @@ def main() -> None:
     size, chosen = predictor.image_size, spread.chosen
     network = predictor.model.eval()
     orders = axis_orders()
+    grid = so3_grid(5000) if args.edges else None
+    full_camera = dataset.camera
     rows: list[dict[str, float | str]] = []
     pictures: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]] = []
     for start in range(0, len(chosen), 16):
@@ -142,6 +236,18 @@ def main() -> None:
             row["true_normals"] = folded_error_deg(frame_by_extent(frame, cloud), truth)
             row["true_normals_oracle"] = min(folded_error_deg(frame @ order, truth)
                                              for order in orders)
+            try:
+                frame, _ = manhattan_frame(depth_normals(true_depth[0, 0], seen,
+                                                         float(translation[2]), camera))
+                row["true_depth_oracle"] = min(folded_error_deg(frame @ order, truth)
+                                               for order in orders)
+            except ValueError:  # too few faces seen whole
+                row["true_depth_oracle"] = float("nan")
+            if grid is not None:
+                image, true_mask = dataset.read_pair(int(chosen[start + item]))
+                frame = edge_frame(*edge_pixels(image, true_mask, full_camera), grid)
+                row["edges_oracle"] = min(folded_error_deg(frame @ order, truth)
+                                          for order in orders)
             if output.surface_normals is not None:
                 mask = prediction.mask[item][None, None].float()
                 covered = F.avg_pool2d(mask, STRIDE)[0, 0] >= 0.5

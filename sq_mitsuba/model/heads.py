@@ -237,7 +237,8 @@ class MaskHead(nn.Module):
 
     Each of the stride 4, 8, 16 and 32 maps is projected to ``width`` channels (1 x 1 conv);
     from the coarsest, each level is upsampled (bilinear) to the next finer one and added;
-    a 3 x 3 conv (ReLU) and a 1 x 1 conv give one logit per stride-4 cell.
+    ``layers`` 3 x 3 convs (ReLU; one for the mask) and a 1 x 1 conv give one logit per
+    stride-4 cell.
 
     With ``full_resolution`` the stride-4 logits are upsampled (bilinear) to the input's size
     and a correction is added that is computed from the stride-4 features and the image itself
@@ -256,11 +257,18 @@ class MaskHead(nn.Module):
 
     def __init__(self, pyramid_channels: tuple[int, ...], width: int = 32, *,
                  full_resolution: bool = False, in_channels: int = 1,
-                 guide_width: int = 16, outputs: int = 1) -> None:
+                 guide_width: int = 16, outputs: int = 1, layers: int = 1) -> None:
         super().__init__()
+        if layers < 1:
+            raise ValueError(f"layers: expected at least 1, got {layers}")
         self.full_resolution = full_resolution
         self.lateral = nn.ModuleList(nn.Conv2d(c, width, 1) for c in pyramid_channels[:4])
         self.smooth = nn.Conv2d(width, width, 3, padding=1)
+        # Beyond the first (named as before, so that older checkpoints load): more context
+        # and nonlinearity per cell, for targets such as a face's normal that one layer of
+        # summed pyramid features cannot draw.
+        self.deeper = nn.ModuleList(nn.Conv2d(width, width, 3, padding=1)
+                                    for _ in range(layers - 1))
         self.to_logit = nn.Conv2d(width, outputs, 1)
         with torch.no_grad():
             self.to_logit.bias.fill_(math.log(0.25 / 0.75))
@@ -282,6 +290,8 @@ class MaskHead(nn.Module):
             x = F.interpolate(x, size=finer.shape[-2:], mode="bilinear", align_corners=False)
             x = x + self.lateral[level](finer)
         features = F.relu(self.smooth(x))
+        for layer in self.deeper:
+            features = F.relu(layer(features))
         logits = self.to_logit(features)
         if not self.full_resolution:
             return logits

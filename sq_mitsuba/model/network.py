@@ -337,7 +337,9 @@ class SuperquadricNet(nn.Module):
         if self.depth_head is not None:
             with torch.no_grad():  # depth 0 (the origin's) at first, not a mask's prior logit
                 self.depth_head.to_logit.bias.zero_()
-        self.normal_head = (MaskHead(self.encoder.pyramid_channels, outputs=3)
+        self.normal_head = (MaskHead(self.encoder.pyramid_channels,
+                                     width=config.normal_head_width, outputs=3,
+                                     layers=config.normal_head_layers)
                             if config.normal_head else None)
         if self.normal_head is not None:
             with torch.no_grad():  # facing the camera at first (z < 0), not a mask's prior

@@ -69,6 +69,10 @@ class NetworkConfig:
     """Also predict the camera-frame normal of the surface the camera sees, per stride-4 cell
     (NetworkOutput.surface_normals; the surface_normal loss term, model.surface_normals): the
     body axes as the camera sees them cluster the normals of every family alike."""
+    normal_head_width: int = in_range(1, 1024, default=32)
+    "Channels of the normal head's pyramid and convolutions (heads.MaskHead's width)."
+    normal_head_layers: int = in_range(1, 8, default=1)
+    "3 x 3 convolutions of the normal head at stride 4 (heads.MaskHead's layers)."
     mask_resolution: Literal["quarter", "full"] = "quarter"
     """The mask head's output: 'quarter' (a logit per stride-4 cell) or 'full' (the input's
     size, the stride-4 mask corrected from the image's own pixels; heads.MaskHead)."""
