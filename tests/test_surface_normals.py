@@ -144,7 +144,7 @@ def test_a_samples_file_without_good_normals_gives_zeros_and_no_cell(tmp_path) -
     another shape or holding NaN, reads as zeros, and no cell of the map counts."""
     import numpy as np
 
-    from sq_mitsuba.data.spe3r.layout import surface_normals
+    from sq_mitsuba.data.spe3r.layout import read_samples, usable_normals
 
     points = np.random.default_rng(0).uniform(-0.5, 0.5, (50, 3))
     good = points / np.linalg.norm(points, axis=1, keepdims=True)
@@ -154,7 +154,9 @@ def test_a_samples_file_without_good_normals_gives_zeros_and_no_cell(tmp_path) -
     for name, extra in cases.items():
         path = tmp_path / f"{name}.npz"
         np.savez(path, surface_points=points, **extra)
-        read = surface_normals(path, len(points))
+        samples = read_samples(path, ("surface_points",), optional=("surface_normals",))
+        assert ("surface_normals" in samples) == (name != "none")
+        read = usable_normals(samples.get("surface_normals"), len(points))
         assert read.shape == (50, 3)
         if name == "good":
             np.testing.assert_array_equal(read, good)

@@ -285,14 +285,16 @@ SAMPLE_ARRAYS: dict[str, str] = {
 }
 
 
-def read_samples(path: Path, keys: Iterable[str] = tuple(SAMPLE_ARRAYS)
-                 ) -> dict[str, np.ndarray]:
+def read_samples(path: Path, keys: Iterable[str] = tuple(SAMPLE_ARRAYS),
+                 optional: Iterable[str] = ()) -> dict[str, np.ndarray]:
     """The arrays ``keys`` (of :data:`SAMPLE_ARRAYS`) of a model's ``samples.npz``, checked.
 
     Point sets must be (N, 3) with N >= 1 and hold finite numbers only; inside flags must have
     one entry per point of their set (read along where not asked for). Every failure is a
     one-line :class:`DatasetError` naming the file and the array: an unreadable archive, a
     missing array (the message lists those it holds), a wrong shape, NaN or infinite values.
+    The arrays named in ``optional`` come along, unchecked, where the file holds them (read in
+    the same pass over the archive; the caller decides what a bad one means).
     """
     path = Path(path)
     wanted = list(dict.fromkeys(keys))
@@ -314,6 +316,8 @@ def read_samples(path: Path, keys: Iterable[str] = tuple(SAMPLE_ARRAYS)
                                    f"points; the file holds {held})")
             for key in wanted:
                 arrays[key] = np.asarray(samples[key])
+            extra = {key: np.asarray(samples[key]) for key in optional
+                     if key in samples.files and key not in arrays}
     except DatasetError:
         raise
     except Exception as error:  # numpy raises several kinds on corrupt archives
@@ -332,7 +336,7 @@ def read_samples(path: Path, keys: Iterable[str] = tuple(SAMPLE_ARRAYS)
         elif array.shape != (len(arrays[kind]),):
             raise DatasetError(f"{path}: {key}: expected one flag per point of {kind} "
                                f"({len(arrays[kind])}), got shape {array.shape}")
-    return {key: arrays[key] for key in wanted}
+    return {**{key: arrays[key] for key in wanted}, **extra}
 
 
 def check_model_points(model_dir: Path, keys: Iterable[str] = tuple(SAMPLE_ARRAYS)) -> None:
@@ -349,14 +353,11 @@ def check_model_points(model_dir: Path, keys: Iterable[str] = tuple(SAMPLE_ARRAY
                            "the model's points from)")
 
 
-def surface_normals(path: Path, count: int) -> np.ndarray:
-    """(count, 3) the unit outward normals of a ``samples.npz``'s surface points, or zeros
-    where the file holds none (an older release) or holds them in another shape or with
-    non-finite values: normals are an optional training target, not a reason to refuse a
-    model."""
-    with np.load(path) as samples:
-        normals = np.asarray(samples["surface_normals"]) if "surface_normals" in \
-            samples.files else None
+def usable_normals(normals: np.ndarray | None, count: int) -> np.ndarray:
+    """(count, 3) the unit outward normals of a ``samples.npz``'s ``count`` surface points as
+    read (its ``surface_normals``, None where it holds none: an older release), or zeros where
+    there are none or they come in another shape or with non-finite values: normals are an
+    optional training target, not a reason to refuse a model."""
     if normals is None or normals.shape != (count, 3) or not np.isfinite(normals).all():
         return np.zeros((count, 3), np.float32)
     return normals
@@ -369,11 +370,11 @@ def model_points(model_dir: Path) -> dict[str, np.ndarray]:
     samples of its mesh."""
     samples_path = model_dir / MODELS / SAMPLES_FILE
     if samples_path.is_file():
-        samples = read_samples(samples_path)
+        samples = read_samples(samples_path, optional=("surface_normals",))
         surface = samples["surface_points"]
         return {
             "surface": surface,
-            "normals": surface_normals(samples_path, len(surface)),
+            "normals": usable_normals(samples.get("surface_normals"), len(surface)),
             "points": np.concatenate([samples["uniform_points"], samples["near_points"]]),
             "inside": np.concatenate([samples["uniform_inside"],
                                       samples["near_inside"]]).astype(bool),
