@@ -14,6 +14,9 @@ from sq_mitsuba.geometry.rotation import random_rotations
 from sq_mitsuba.model.network import NetworkConfig, SuperquadricNet
 from sq_mitsuba.model.surface_normals import surface_normal_loss, visible_normal_map
 
+SMALL = dict(encoder="efficientnet_lite0", latent="spatial", image_size=64, num_primitives=2,
+             latent_dim=16, hidden_dim=16, spatial_channels=8, normal_head=True)
+"A small network with a normal head, cheap to run on 64 px images."
 K = torch.tensor([[60.0, 0.0, 31.0], [0.0, 64.0, 33.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
 
 
@@ -113,9 +116,7 @@ def test_the_normal_head_trains_through_its_term() -> None:
     )
 
     torch.manual_seed(1)
-    net = SuperquadricNet(NetworkConfig(encoder="efficientnet_lite0", latent="spatial",
-                                        image_size=64, num_primitives=2, latent_dim=16,
-                                        hidden_dim=16, spatial_channels=8, normal_head=True))
+    net = SuperquadricNet(NetworkConfig(**SMALL))
     k = Camera.default(64).matrix(torch.float32)
     images = torch.rand(2, 1, 64, 64, generator=torch.Generator().manual_seed(2))
     out = net(images, k)
@@ -187,10 +188,7 @@ def test_a_deeper_wider_normal_head_counts_its_layers_and_loads_a_one_layer_head
     into the deeper one's first layers by name, the extra layers left as they are."""
     from sq_mitsuba.model.heads import MaskHead
 
-    config = dict(encoder="efficientnet_lite0", latent="spatial", image_size=64,
-                  num_primitives=2, latent_dim=16, hidden_dim=16, spatial_channels=8,
-                  normal_head=True)
-    deep = SuperquadricNet(NetworkConfig(**config, normal_head_width=24, normal_head_layers=3))
+    deep = SuperquadricNet(NetworkConfig(**SMALL, normal_head_width=24, normal_head_layers=3))
     channels = deep.encoder.pyramid_channels[:4]
     width = 24
     expected = sum(c * width + width for c in channels) + 3 * (9 * width * width + width) \

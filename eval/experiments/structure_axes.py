@@ -79,11 +79,8 @@ def depth_normals(depth: torch.Tensor, seen: torch.Tensor, depth_origin: float,
     the body origin's depth) over its cells ``seen`` (h, w bool): at each cell whose right and
     lower neighbours are seen too and lie within ``jump`` metres in depth, the cross product of
     the two differences of the back-projected cell centres."""
-    rows, cols = torch.meshgrid(torch.arange(depth.shape[0]), torch.arange(depth.shape[1]),
-                                indexing="ij")
-    centres = torch.stack([cols, rows], -1).double().add(0.5).mul(STRIDE).reshape(-1, 2)
-    points = camera.unproject(centres, depth.double().reshape(-1) + depth_origin)
-    points = points.reshape(*depth.shape, 3)
+    every = torch.ones(depth.shape, dtype=torch.bool)  # row by row, as reshape reads them
+    points = back_projected(depth, every, depth_origin, camera, STRIDE).reshape(*depth.shape, 3)
     right = points[:-1, 1:] - points[:-1, :-1]
     down = points[1:, :-1] - points[:-1, :-1]
     keep = seen[:-1, :-1] & seen[:-1, 1:] & seen[1:, :-1]
@@ -112,8 +109,7 @@ def edge_pixels(image: np.ndarray, mask: np.ndarray, camera: Camera, count: int 
     rows, cols = index // magnitude.shape[1], index % magnitude.shape[1]
     directions = F.normalize(torch.stack([-dv.flatten()[index], du.flatten()[index]], -1),
                              dim=-1)
-    rays = torch.stack([(cols.double() + 0.5 - camera.cx) / camera.fx,
-                        (rows.double() + 0.5 - camera.cy) / camera.fy], -1)
+    rays = camera.unproject(torch.stack([cols, rows], -1).double().add(0.5), 1.0)[:, :2]
     return directions, rays, strength
 
 

@@ -29,7 +29,7 @@ from torch import Tensor
 
 from sq_mitsuba.checks import check_tensor
 
-__all__ = ["cells_at_pose", "surface_depth_loss", "visible_depth_map"]
+__all__ = ["cells_at_pose", "surface_depth_loss", "valid_cell_mean", "visible_depth_map"]
 
 
 def cells_at_pose(points: Tensor, rotation: Tensor, translation: Tensor, camera_matrix: Tensor,
@@ -105,6 +105,14 @@ def surface_depth_loss(predicted: Tensor, target: Tensor, valid: Tensor) -> Tens
         raise ValueError(f"predicted, target, valid: expected one shape, got "
                          f"{tuple(predicted.shape)}, {tuple(target.shape)}, "
                          f"{tuple(valid.shape)}")
-    weight = valid.to(predicted.dtype)
-    error = ((predicted - target.to(predicted)).abs() * weight).flatten(1).sum(1)
+    return valid_cell_mean((predicted - target.to(predicted)).abs(), valid)
+
+
+def valid_cell_mean(per_cell: Tensor, valid: Tensor) -> Tensor:
+    """The visible-surface maps' loss reduction (this module's and
+    :mod:`~sq_mitsuba.model.surface_normals`): ``per_cell`` (B, 1, h, w) averaged over each
+    item's ``valid`` (B, 1, h, w) cells, then over the batch; an item without a valid cell
+    counts 0."""
+    weight = valid.to(per_cell.dtype)
+    error = (per_cell * weight).flatten(1).sum(1)
     return (error / weight.flatten(1).sum(1).clamp_min(1.0)).mean()

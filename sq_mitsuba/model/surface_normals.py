@@ -32,7 +32,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from sq_mitsuba.model.surface_depth import cells_at_pose
+from sq_mitsuba.model.surface_depth import cells_at_pose, valid_cell_mean
 
 __all__ = ["surface_normal_loss", "visible_normal_map"]
 
@@ -103,7 +103,5 @@ def surface_normal_loss(predicted: Tensor, target: Tensor, valid: Tensor) -> Ten
         raise ValueError(f"predicted, target, valid: expected (B, 3, h, w) twice and "
                          f"(B, 1, h, w), got {tuple(predicted.shape)}, {tuple(target.shape)}, "
                          f"{tuple(valid.shape)}")
-    squared = (predicted - target.to(predicted)).square().sum(1, keepdim=True)
-    weight = valid.to(predicted.dtype)
-    error = (squared * weight).flatten(1).sum(1)
-    return (error / weight.flatten(1).sum(1).clamp_min(1.0)).mean()
+    return valid_cell_mean((predicted - target.to(predicted)).square().sum(1, keepdim=True),
+                           valid)
