@@ -336,7 +336,7 @@ def test_summary_ignores_nothing_it_should_show(demo):
     for row in _rows(out / "per_image.csv"):
         for metric in ("chamfer_l1_paper", "camera_chamfer", "iou_2d", "iou_3d",
                        "rotation_error_deg", "rotation_error_folded_deg",
-                       "translation_error_m"):
+                       "rotation_error_axes_deg", "translation_error_m"):
             assert math.isfinite(float(row[metric])), (row["method"], metric)
     assert "n/a" not in (out / "index.html").read_text()
 

@@ -47,7 +47,7 @@ from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer
 from sq_mitsuba.render.space import SpaceScene
 
 SHOWN = ("chamfer_l1_paper", "camera_chamfer", "iou_2d", "rotation_error_folded_deg",
-         "relative_rotation_deg")
+         "rotation_error_axes_deg", "relative_rotation_deg")
 
 
 def render_pass(model_dir: Path, camera: Camera, frames: int, seed: int, spp: int) -> dict:

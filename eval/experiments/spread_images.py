@@ -18,7 +18,7 @@ from sq_mitsuba.evaluation.split import collate, open_split
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.metrics import chamfer_l1, rotation_error_deg
-from sq_mitsuba.geometry.so3_grid import half_turns
+from sq_mitsuba.geometry.so3_grid import axis_turns, half_turns
 from sq_mitsuba.inference.loading import load_model
 from sq_mitsuba.inference.predictor import Predictor
 from sq_mitsuba.model.losses import counted_surface_samples
@@ -68,6 +68,14 @@ def folded_error_deg(rotation: torch.Tensor, truth: torch.Tensor) -> float:
     degrees, as ``sq-mitsuba eval``'s folded rotation."""
     return float(rotation_error_deg(rotation[None].double(), truth[None].double(),
                                     half_turns())[0])
+
+
+def axes_error_deg(rotation: torch.Tensor, truth: torch.Tensor) -> float:
+    """The rotation error (3, 3) against (3, 3) up to the 24 turns of the body axes (which
+    is called x, y or z and their ends), degrees, as ``sq-mitsuba eval``'s axes error: the
+    folded error with the axes' best order told."""
+    return float(rotation_error_deg(rotation[None].double(), truth[None].double(),
+                                    axis_turns())[0])
 
 
 def back_projected(depth: torch.Tensor, cells: torch.Tensor, depth_origin: float,

@@ -9,6 +9,8 @@ axes are), and prints the folded rotation error (up to the four half turns, as `
 eval``) of:
 
 * ``network``: the network's rotation;
+* ``network_oracle``: the same, its best axis order (how much of its error is which axis is
+  which);
 * ``true_normals``: the frame of the true visible surface's normals (the nearest true
   surface point of each stride-4 cell), ordered by the true visible surface's extent (its
   depth map back-projected): what a perfect normal and depth map give;
@@ -29,7 +31,10 @@ eval``) of:
   network's rotation stands: ``head_fallback`` is the share of such images);
 * ``head_normals_oracle``: the head's frame, its best axis order;
 
-and, per family, the medians; with a normal head, the head's mean angle to the true normals.
+and, per family, the medians; with a normal head, the head's mean angle to the true normals
+(``head_angle``) beside the constant's (``facing_angle``: every cell's normal read as pointing
+back along its own ray, at the camera, the best a head that reads nothing can do; over the
+same cells).
 
     .venv/bin/python eval/experiments/structure_axes.py --checkpoint MODEL --data DIR \\
         [--images 96] [--edges]
@@ -38,14 +43,18 @@ and, per family, the medians; with a normal head, the head's mean angle to the t
 from __future__ import annotations
 
 import argparse
-import itertools
 from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
 import torch
 import torch.nn.functional as F
-from spread_images import back_projected, folded_error_deg, open_spread_images
+from spread_images import (
+    axes_error_deg,
+    back_projected,
+    folded_error_deg,
+    open_spread_images,
+)
 
 from sq_mitsuba.data.spe3r.layout import model_points
 from sq_mitsuba.evaluation.split import collate
@@ -59,19 +68,6 @@ from sq_mitsuba.model.surface_normals import visible_normal_map
 
 STRIDE = 4
 """Cells of the maps, pixels at the network's input (the heads' stride)."""
-
-def axis_orders() -> torch.Tensor:
-    """(6, 3, 3) the proper signed permutations, one per order of the axes (the folded error
-    ignores the signs)."""
-    found = []
-    for order in itertools.permutations(range(3)):
-        matrix = torch.zeros(3, 3, dtype=torch.float64)
-        matrix[list(order), range(3)] = 1.0
-        if torch.linalg.det(matrix) < 0:
-            matrix[:, 2] *= -1
-        found.append(matrix)
-    return torch.stack(found)
-
 
 def depth_normals(depth: torch.Tensor, seen: torch.Tensor, depth_origin: float,
                   camera: Camera, jump: float = 0.05) -> torch.Tensor:
@@ -88,6 +84,21 @@ def depth_normals(depth: torch.Tensor, seen: torch.Tensor, depth_origin: float,
     normals = F.normalize(torch.cross(right, down, dim=-1), dim=-1)
     normals = torch.where(normals[..., 2:] > 0, -normals, normals)
     return normals[keep]
+
+
+def facing_angle(normals: torch.Tensor, cells: torch.Tensor, camera: Camera) -> float:
+    """Mean angle, degrees, between the normals (h, w, 3; camera frame) over ``cells`` (h, w
+    bool) and each cell's ray reversed (from its centre's point back to the camera): the
+    error of a constant reading, every face seen head on. NaN without cells."""
+    if not int(cells.sum()):
+        return float("nan")
+    h, w = cells.shape
+    v, u = torch.meshgrid(torch.arange(h, dtype=normals.dtype) * STRIDE + STRIDE / 2,
+                          torch.arange(w, dtype=normals.dtype) * STRIDE + STRIDE / 2,
+                          indexing="ij")
+    back = -F.normalize(camera.unproject(torch.stack((u, v), dim=-1), 1.0), dim=-1)
+    cosine = (F.normalize(normals[cells], dim=-1) * back[cells]).sum(-1)
+    return float(torch.rad2deg(torch.arccos(cosine.clamp(-1, 1))).mean())
 
 
 def edge_pixels(image: np.ndarray, mask: np.ndarray, camera: Camera, count: int = 2000
@@ -198,7 +209,6 @@ def main() -> None:
         spread.camera
     size, chosen = predictor.image_size, spread.chosen
     network = predictor.model.eval()
-    orders = axis_orders()
     grid = so3_grid(5000) if args.edges else None
     full_camera = dataset.camera
     rows: list[dict[str, float | str]] = []
@@ -225,25 +235,23 @@ def main() -> None:
             if output.surface_normals is not None:
                 row["head_fallback"] = 0.0
             row["network"] = folded_error_deg(prediction.rotation[item], truth)
+            row["network_oracle"] = axes_error_deg(prediction.rotation[item].double(), truth)
             vectors = true_normal[0].permute(1, 2, 0)[seen]
             frame, _ = manhattan_frame(vectors, vectors.norm(dim=1) ** args.power)
             cloud = back_projected(true_depth[0, 0], seen, float(translation[2]), camera,
                                    STRIDE)
             row["true_normals"] = folded_error_deg(frame_by_extent(frame, cloud), truth)
-            row["true_normals_oracle"] = min(folded_error_deg(frame @ order, truth)
-                                             for order in orders)
+            row["true_normals_oracle"] = axes_error_deg(frame, truth)
             try:
                 frame, _ = manhattan_frame(depth_normals(true_depth[0, 0], seen,
                                                          float(translation[2]), camera))
-                row["true_depth_oracle"] = min(folded_error_deg(frame @ order, truth)
-                                               for order in orders)
+                row["true_depth_oracle"] = axes_error_deg(frame, truth)
             except ValueError:  # too few faces seen whole
                 row["true_depth_oracle"] = float("nan")
             if grid is not None:
                 image, true_mask = dataset.read_pair(int(chosen[start + item]))
                 frame = edge_frame(*edge_pixels(image, true_mask, full_camera), grid)
-                row["edges_oracle"] = min(folded_error_deg(frame @ order, truth)
-                                          for order in orders)
+                row["edges_oracle"] = axes_error_deg(frame, truth)
             if output.surface_normals is not None:
                 mask = prediction.mask[item][None, None].float()
                 covered = F.avg_pool2d(mask, STRIDE)[0, 0] >= 0.5
@@ -265,13 +273,14 @@ def main() -> None:
                     samples, keep = counted_surface_samples(reading, 2)
                     cloud = samples[0][keep[0]].double() @ prediction.rotation[item].double().T
                 row["head_normals"] = folded_error_deg(frame_by_extent(frame, cloud), truth)
-                row["head_normals_oracle"] = min(folded_error_deg(frame @ order, truth)
-                                                 for order in orders)
+                row["head_normals_oracle"] = axes_error_deg(frame, truth)
                 both = covered & seen
                 cosine = (F.normalize(head[both], dim=-1) * F.normalize(
                     true_normal[0].permute(1, 2, 0)[both], dim=-1)).sum(-1)
                 row["head_angle"] = float(torch.rad2deg(torch.arccos(cosine.clamp(-1, 1)))
                                           .mean()) if int(both.sum()) else float("nan")
+                row["facing_angle"] = facing_angle(true_normal[0].permute(1, 2, 0), both,
+                                                   camera)
             if args.figure is not None and len(pictures) < 6:
                 head_map = None if output.surface_normals is None else \
                     output.surface_normals[item].double().permute(1, 2, 0).numpy()

@@ -25,6 +25,7 @@ PAGE_METRICS = {"chamfer_l1_paper": "Chamfer-L1 (paper)",
                 "iou_2d": "2D IoU", "iou_3d": "3D IoU",
                 "rotation_error_deg": "rotation error (deg)",
                 "rotation_error_folded_deg": "up to half turns (deg)",
+                "rotation_error_axes_deg": "up to the axes' names (deg)",
                 "translation_error_m": "translation error (m)"}
 
 

@@ -11,16 +11,17 @@ HELP = "evaluate a trained model on a dataset split (metrics, tables, figures)"
 DESCRIPTION = """\
 Run the network over the val or test split of an SPE3R-layout dataset (`sq-mitsuba dataset
 render`) and score every image: Chamfer-L1 (the paper's and the occnet convention), Chamfer-L2,
-2D IoU at the predicted pose, 3D IoU, rotation error (raw, over the model's symmetries and over
-the four half turns of the body frame), translation error, SPEED score and a camera-frame
-Chamfer. The trivial baseline (the mean training assembly at the mean training pose) is scored
-beside it. --refine adds render and compare: a global pose search (the network's rotation, or a
-uniform grid for a network without a rotation distribution head, times the four half turns,
-scored by Mitsuba silhouettes; --set search.candidates=hypotheses adds its top-K hypotheses;
-row 'search') and the search followed by refinement (row 'refined'), both against the mask read
-from the image (the network's mask head, or the threshold segmentation for a model without
-one; column mask_source), and the same against the ground-truth mask as an upper bound (row
-'refined_gt'). Silhouettes cannot tell apart poses with the same outline.
+2D IoU at the predicted pose, 3D IoU, rotation error (raw, over the model's symmetries, over
+the four half turns of the body frame, and over the 24 turns of its axes: which is x, y or z),
+translation error, SPEED score and a camera-frame Chamfer. The trivial baseline (the mean
+training assembly at the mean training pose) is scored beside it. --refine adds render and
+compare: a global pose search (the network's rotation, or a uniform grid for a network without
+a rotation distribution head, times the four half turns, scored by Mitsuba silhouettes; --set
+search.candidates=hypotheses adds its top-K hypotheses; row 'search') and the search followed
+by refinement (row 'refined'), both against the mask read from the image (the network's mask
+head, or the threshold segmentation for a model without one; column mask_source), and the same
+against the ground-truth mask as an upper bound (row 'refined_gt'). Silhouettes cannot tell
+apart poses with the same outline.
 
 Outputs in --out: per_image.csv (every metric and the label's lighting: phase angle, Earth in
 view, eclipse, visibility), per_model.{csv,md}, summary.{csv,md} (mean ± std and median),

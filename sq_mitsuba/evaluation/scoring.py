@@ -20,7 +20,7 @@ from torch import Tensor
 from sq_mitsuba.evaluation.split import collate, evenly
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.rotation import matrix_to_quaternion, mean_rotation
-from sq_mitsuba.geometry.so3_grid import half_turns
+from sq_mitsuba.geometry.so3_grid import axis_turns, half_turns
 from sq_mitsuba.inference.refine import raw_from_assembly
 
 __all__ = ["HIGHER_IS_BETTER", "METRICS", "ModelData", "baseline_prediction", "score",
@@ -29,7 +29,8 @@ __all__ = ["HIGHER_IS_BETTER", "METRICS", "ModelData", "baseline_prediction", "s
 #: Metric columns of ``per_image.csv``, in order.
 METRICS = ("chamfer_l1_paper", "chamfer_l1_occnet", "chamfer_l2", "iou_2d", "iou_3d",
            "rotation_error_deg", "rotation_error_sym_deg", "rotation_error_folded_deg",
-           "translation_error_m", "translation_error_rel", "speed_score", "camera_chamfer")
+           "translation_error_m", "translation_error_rel", "speed_score", "camera_chamfer",
+           "rotation_error_axes_deg")
 #: Metrics where higher is better (the others: lower is better).
 HIGHER_IS_BETTER = ("iou_2d", "iou_3d")
 
@@ -97,6 +98,7 @@ def score(assembly: Assembly, rotation: Tensor, translation: Tensor, batch: dict
         "speed_score": speed.total,
         "camera_chamfer": camera_frame_chamfer(points, rotation, translation, gt_points,
                                                gt_rotation, gt_translation, pred_mask=keep),
+        "rotation_error_axes_deg": rotation_error_deg(rotation, gt_rotation, axis_turns()),
     }
 
 

@@ -32,7 +32,7 @@ COLUMNS = ("model", "index", "filename", "method", *METRICS, *EXTRAS, "mask_sour
 #: Metrics shown in the Markdown tables (every metric is in the CSV files).
 SHOWN = ("chamfer_l1_paper", "chamfer_l1_occnet", "camera_chamfer", "iou_2d", "iou_3d",
          "rotation_error_deg", "rotation_error_sym_deg", "rotation_error_folded_deg",
-         "translation_error_rel")
+         "rotation_error_axes_deg", "translation_error_rel")
 
 
 def summarise(rows: Sequence[dict[str, Any]], keys: Sequence[str] = ("method",),

@@ -27,6 +27,7 @@ from sq_mitsuba.geometry.rotation import quaternion_to_matrix
 
 __all__ = [
     "HALF_TURNS",
+    "axis_turns",
     "covering_angle_deg",
     "half_turns",
     "nearest_grid_index",
@@ -115,6 +116,27 @@ def nearest_grid_index(rotations: Tensor, grid: Tensor) -> Tensor:
 def half_turns(dtype: torch.dtype = torch.float64, device: torch.device | None = None) -> Tensor:
     """The four half turns of :data:`HALF_TURNS` as (4, 3, 3) diagonal matrices."""
     return torch.diag_embed(torch.tensor(HALF_TURNS, dtype=dtype, device=device))
+
+
+def axis_turns(dtype: torch.dtype = torch.float64, device: torch.device | None = None) -> Tensor:
+    """The 24 rotations that map the body axes onto themselves (the cube's rotations, the
+    proper signed permutations) as (24, 3, 3), the identity first and the four half turns
+    among them: ``R`` and ``R @ P`` name the same three lines in space differently (which
+    axis is called x, y or z, and which end is "+").
+
+    Convention: the body axes' names come from the target's extents (longest on x), so where
+    two extents are nearly equal a reading can have every axis right and still swap two names;
+    the error up to these turns measures the axes alone.
+    """
+    found = []
+    for order in ((0, 1, 2), (1, 2, 0), (2, 0, 1), (0, 2, 1), (2, 1, 0), (1, 0, 2)):
+        for signs in HALF_TURNS:
+            matrix = torch.zeros(3, 3, dtype=torch.float64)
+            matrix[list(order), range(3)] = torch.tensor(signs, dtype=torch.float64)
+            if torch.linalg.det(matrix) < 0:  # an odd permutation: one more flip makes it proper
+                matrix = -matrix
+            found.append(matrix)
+    return torch.stack(found).to(dtype=dtype, device=device)
 
 
 def with_half_turns(rotations: Tensor) -> Tensor:
