@@ -14,6 +14,8 @@ import numpy as np
 import pytest
 import torch
 
+from sq_mitsuba.geometry.so3_grid import axis_turns
+
 EXPERIMENTS = Path(__file__).resolve().parents[1] / "eval" / "experiments"
 
 
@@ -151,14 +153,9 @@ def test_generalisation_script_refuses_bad_arguments_before_any_work(tmp_path):
 
 
 def test_body_frame_limits_scores_the_reading_five_ways(train_dataset, eval_checkpoint):
-    """The best of the 24 axis rotations includes the identity, so it is never worse than the
-    reading as it is; the 24 are distinct proper rotations."""
-    sys.path.insert(0, str(EXPERIMENTS))
-    try:
-        from body_frame_limits import axis_rotations
-    finally:
-        sys.path.remove(str(EXPERIMENTS))
-    turns = torch.stack(axis_rotations())
+    """The best of the 24 axis rotations (``so3_grid.axis_turns``, 24 distinct proper
+    rotations) includes the identity, so it is never worse than the reading as it is."""
+    turns = axis_turns()
     assert turns.shape == (24, 3, 3)
     assert torch.allclose(torch.linalg.det(turns), torch.ones(24, dtype=turns.dtype))
     assert len({tuple(t.flatten().tolist()) for t in turns}) == 24

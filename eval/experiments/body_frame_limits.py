@@ -14,8 +14,6 @@ the true surface (Chamfer-L1, the paper's) five ways:
 
 from __future__ import annotations
 
-import itertools
-
 import numpy as np
 import torch
 from spread_images import open_spread_images
@@ -24,20 +22,9 @@ from sq_mitsuba.data.mesh_processing import alignment_rotation
 from sq_mitsuba.evaluation.split import collate
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.metrics import chamfer_l1
+from sq_mitsuba.geometry.so3_grid import axis_turns
 from sq_mitsuba.inference.body_frame import canonical_frame, reframed
 from sq_mitsuba.model.losses import counted_surface_samples
-
-
-def axis_rotations() -> list[torch.Tensor]:
-    """The 24 proper rotations that map the axes onto the axes (signed permutations)."""
-    found = []
-    for order in itertools.permutations(range(3)):
-        for signs in itertools.product((1.0, -1.0), repeat=3):
-            matrix = np.zeros((3, 3))
-            matrix[range(3), order] = signs
-            if np.linalg.det(matrix) > 0:
-                found.append(torch.from_numpy(matrix))
-    return found
 
 
 def points(assembly: Assembly) -> torch.Tensor:
@@ -50,7 +37,7 @@ def main() -> None:
     spread = open_spread_images(__doc__.split("\n\n")[0], min_images=1)
     args, predictor, dataset = spread.args, spread.predictor, spread.dataset
     camera, chosen = spread.camera, spread.chosen
-    turns = axis_rotations()
+    turns = axis_turns()
     scores: dict[str, list[float]] = {name: [] for name in (
         "read", "axes_sorted", "oriented_box", "best_of_24", "true_pose")}
     for start in range(0, len(chosen), 16):

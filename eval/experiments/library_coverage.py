@@ -37,11 +37,11 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from body_frame_limits import axis_rotations
 from scipy.spatial import cKDTree
 from spread_images import open_spread_images, readings_and_truths, thinned
 
 from sq_mitsuba.evaluation.split import collate, open_split
+from sq_mitsuba.geometry.so3_grid import axis_turns
 
 #: Points of the coarse clouds that rank a library before the exact distances.
 COARSE_POINTS = 200
@@ -122,7 +122,7 @@ def nearest_turned(truth: torch.Tensor, library: list[Cloud]) -> float:
     """The exact distance from a (1, P, 3) cloud, turned by any of the 24 axis-aligned
     rotations, to its nearest library cloud: the CANDIDATES (turn, library cloud) pairs
     nearest by the coarse clouds, measured exactly."""
-    turned = [Cloud(truth @ turn.T) for turn in axis_rotations()]
+    turned = [Cloud(truth @ turn.T) for turn in axis_turns()]
     rough = np.array([[t.rough_distance(c) for c in library] for t in turned])
     pairs = np.argsort(rough, axis=None)[:CANDIDATES]
     return min(turned[k // len(library)].distance(library[k % len(library)]) for k in pairs)

@@ -92,12 +92,10 @@ def facing_angle(normals: torch.Tensor, cells: torch.Tensor, camera: Camera) -> 
     error of a constant reading, every face seen head on. NaN without cells."""
     if not int(cells.sum()):
         return float("nan")
-    h, w = cells.shape
-    v, u = torch.meshgrid(torch.arange(h, dtype=normals.dtype) * STRIDE + STRIDE / 2,
-                          torch.arange(w, dtype=normals.dtype) * STRIDE + STRIDE / 2,
-                          indexing="ij")
-    back = -F.normalize(camera.unproject(torch.stack((u, v), dim=-1), 1.0), dim=-1)
-    cosine = (F.normalize(normals[cells], dim=-1) * back[cells]).sum(-1)
+    # Each cell's centre at depth 1: its ray.
+    rays = back_projected(torch.zeros(cells.shape, dtype=torch.float64), cells, 1.0, camera,
+                          STRIDE)
+    cosine = (F.normalize(normals[cells].double(), dim=-1) * -F.normalize(rays, dim=-1)).sum(-1)
     return float(torch.rad2deg(torch.arccos(cosine.clamp(-1, 1))).mean())
 
 
