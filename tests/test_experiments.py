@@ -496,6 +496,39 @@ def test_depth_normals_and_edge_frame_read_a_known_plane_and_rectangle() -> None
     assert bool((in_image[:2] > math.cos(math.radians(5.0))).all())
 
 
+def test_visible_surface_fit_scores_depth_maps_against_the_truth():
+    """A head that reads the true visible depth and a reading that is the truth score 0; a
+    flat map scores the true depths' mean distance from the body origin's, by brute force."""
+    sys.path.insert(0, str(EXPERIMENTS))
+    try:
+        from visible_surface_fit import depth_errors
+    finally:
+        sys.path.remove(str(EXPERIMENTS))
+    from sq_mitsuba.geometry.assembly import Assembly
+    from sq_mitsuba.model.losses import counted_surface_samples
+    from sq_mitsuba.model.surface_depth import visible_depth_map
+
+    params = torch.zeros(1, 2, 16)
+    params[0, :, 0:3] = torch.tensor([[0.5, 0.2, 0.2], [0.15, 0.3, 0.1]])
+    params[0, :, 3:5] = torch.tensor([[0.3, 0.3], [1.0, 1.0]])
+    params[0, :, 5:8] = torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.0, 0.25]])
+    params[0, :, 8:14] = torch.tensor([1.0, 0.0, 0.0, 0.0, 1.0, 0.0])  # identity rotations
+    read = Assembly(params)
+    samples, keep = counted_surface_samples(read, 3)
+    truth = samples[0][keep[0]].detach()
+    rotation, translation = torch.eye(3), torch.tensor([0.0, 0.0, 3.0])
+    k = torch.tensor([[60.0, 0.0, 24.0], [0.0, 60.0, 24.0], [0.0, 0.0, 1.0]])
+    depth, valid = visible_depth_map(truth[None], rotation[None], translation[None], k, 48, 4)
+    errors = depth_errors(depth[0], read, truth, rotation, translation, k, 48, 4)
+    assert errors["depth_head"] == pytest.approx(0.0, abs=1e-6)
+    assert errors["depth_head_both"] == pytest.approx(0.0, abs=1e-6)
+    assert errors["depth_reading_both"] == pytest.approx(0.0, abs=1e-6)
+    assert errors["depth_flat"] == pytest.approx(float(depth[valid].abs().mean()), rel=1e-6)
+    assert errors["depth_flat"] > 0.05
+    shifted = depth_errors(depth[0] + 0.1, read, truth, rotation, translation, k, 48, 4)
+    assert shifted["depth_head"] == pytest.approx(0.1, abs=1e-5)
+
+
 def test_visible_surface_fit_keeps_one_point_per_cell_and_runs(train_dataset,
                                                                 eval_checkpoint):
     """The visible points are the nearest of each cell by brute force; the script prints a

@@ -19,6 +19,11 @@ the true surface (body-frame Chamfer-L1, the paper's):
 * ``surface``: fitted to the whole true surface (the representation's ceiling, as
   ``shape_capacity.py``).
 
+With a depth head, its map itself is scored too (``depth_*`` rows, metres, mean absolute error
+over the cells the true surface covers): the head's, a flat map at the body origin's depth
+(nothing learned), and on the cells that both cover, the reading's own visible depth at the
+true pose beside the head's (does the head know more of the depth than the shape reader?).
+
     .venv/bin/python eval/experiments/visible_surface_fit.py --checkpoint MODEL --data DIR \\
         [--images 96] [--steps 150] [--stride 4]
 """
@@ -45,7 +50,7 @@ from sq_mitsuba.geometry.rotation import axis_angle_to_matrix
 from sq_mitsuba.geometry.so3_grid import with_half_turns
 from sq_mitsuba.inference.refine import raw_from_assembly
 from sq_mitsuba.model.losses import counted_surface_samples, surface_chamfer_loss
-from sq_mitsuba.model.surface_depth import cells_at_pose
+from sq_mitsuba.model.surface_depth import cells_at_pose, visible_depth_map
 
 TRUTH_POINTS = 16000
 """True surface points per model for its visible surface (about 10 per covered cell)."""
@@ -151,6 +156,28 @@ def head_visible_points(surface_depth: torch.Tensor, mask: torch.Tensor,
     return (points.to(rotation) - translation) @ rotation
 
 
+def depth_errors(head_depth: torch.Tensor, read: Assembly, truth: torch.Tensor,
+                 rotation: torch.Tensor, translation: torch.Tensor, k: torch.Tensor, size: int,
+                 stride: int) -> dict[str, float]:
+    """Mean absolute errors (metres) of depth maps relative to the body origin's against the
+    true visible surface's (cells of ``stride`` px at the true pose): the head's map (1, h, w),
+    a flat map (0), and on the cells both cover, the reading's visible surface and the head."""
+    def depth_map(points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        depth, valid = visible_depth_map(points[None].float(), rotation[None], translation[None],
+                                         k, size, stride)
+        return depth[0, 0], valid[0, 0]
+
+    true_depth, true_valid = depth_map(truth)
+    samples, keep = counted_surface_samples(read, 3)
+    read_depth, read_valid = depth_map(samples[0][keep[0]].detach())
+    head = head_depth[0].float()
+    both = true_valid & read_valid
+    return {"depth_head": float((head - true_depth).abs()[true_valid].mean()),
+            "depth_flat": float(true_depth.abs()[true_valid].mean()),
+            "depth_head_both": float((head - true_depth).abs()[both].mean()),
+            "depth_reading_both": float((read_depth - true_depth).abs()[both].mean())}
+
+
 def positive(text: str) -> int:
     """An integer of at least 1 (argparse's one-line error otherwise)."""
     value = int(text)
@@ -223,6 +250,9 @@ def main() -> None:
                 clouds["head_at_reading"] = (head_visible_points(
                     head_depth[item], prediction.mask[item], net_rotation, net_translation,
                     camera, args.stride), net_rotation, net_translation)
+            if head_depth is not None:
+                row.update(depth_errors(head_depth[item], read, truth, rotation, translation,
+                                        k, size, args.stride))
             for name, (cloud, pose_r, pose_t) in clouds.items():
                 row[name] = score(fit(read, to_cloud(cloud, pose_r, pose_t), args.steps,
                                       args.lr))
@@ -248,7 +278,8 @@ def main() -> None:
             rows.append(row)
         print(f"{len(rows)} / {len(chosen)} images", flush=True)
     columns = [c for c in rows[0] if c != "model"]
-    print("\nbody-frame Chamfer-L1 (paper), mean (median) over", len(rows), "images")
+    print("\nbody-frame Chamfer-L1 (paper; depth_* rows: depth error in metres), mean "
+          "(median) over", len(rows), "images")
     for column in columns:
         values = np.array([r[column] for r in rows])
         print(f"  {column:24s} {values.mean():.4f} ({np.median(values):.4f})")
