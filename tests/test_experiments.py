@@ -497,8 +497,9 @@ def test_depth_normals_and_edge_frame_read_a_known_plane_and_rectangle() -> None
 
 
 def test_visible_surface_fit_scores_depth_maps_against_the_truth():
-    """A head that reads the true visible depth and a reading that is the truth score 0; a
-    flat map scores the true depths' mean distance from the body origin's, by brute force."""
+    """A head that reads the true visible depth and a reading that is the truth score 0, a
+    head 0.1 m off scores 0.1, and a flat map the true map's mean absolute depth
+    (``visible_depth_map`` itself is checked by brute force in test_surface_depth.py)."""
     sys.path.insert(0, str(EXPERIMENTS))
     try:
         from visible_surface_fit import depth_errors

@@ -250,7 +250,6 @@ def main() -> None:
                 clouds["head_at_reading"] = (head_visible_points(
                     head_depth[item], prediction.mask[item], net_rotation, net_translation,
                     camera, args.stride), net_rotation, net_translation)
-            if head_depth is not None:
                 row.update(depth_errors(head_depth[item], read, truth, rotation, translation,
                                         k, size, args.stride))
             for name, (cloud, pose_r, pose_t) in clouds.items():
