@@ -14,7 +14,8 @@ network's start may converge in fewer steps) on a small dataset rendered for the
   refinement alone, as before the search existed); the network and the global pose search
   (default :class:`~sq_mitsuba.inference.search.SearchOptions`: 4 + 1,024 candidate rotations
   scored at 32 px, the best 128 again at 64 px); the network and the search + refinement
-  (:func:`~sq_mitsuba.inference.search.search_and_refine` with its defaults); and
+  (:func:`~sq_mitsuba.inference.search.search_and_refine` with its defaults); the shipped
+  model's whole path with the default and with the outline refinement; and
   ``predict_files`` whole (network, overlay silhouette, OBJ, GLB, JSON and PNG writes).
 
 Everything runs on the CPU (Mitsuba's LLVM variant, scipy KD-trees); ``--device`` is not used.
@@ -54,6 +55,7 @@ def run(options: BenchOptions) -> Report:
     from sq_mitsuba.inference.predictor import Predictor
     from sq_mitsuba.inference.refine import RefineOptions, refine_pose_and_shape
     from sq_mitsuba.inference.search import (
+        OUTLINE_REFINEMENT,
         SearchOptions,
         pose_candidates,
         search_poses,
@@ -151,6 +153,16 @@ def run(options: BenchOptions) -> Report:
                      f"mask heads): the network, then {search.turns - 1} more in-plane turns of "
                      "the image, then the search of its rotation x 4 half turns against its own "
                      "mask and the default refinement"))
+
+            def shipped_outline() -> None:
+                shipped.predict(image, camera, refine=True, refinement=OUTLINE_REFINEMENT)
+
+            report.timings.append(Timing(
+                "predict: shipped model + rotation from turns + search + outline refinement, "
+                "per image",
+                time_callable(shipped_outline, max(1, min(options.repeats, 5)), warmup=1),
+                note="the same with OUTLINE_REFINEMENT (every shape parameter follows the mask "
+                     "too, 100 steps at most, patience 30)"))
         path = root / "input.png"
         from PIL import Image
 

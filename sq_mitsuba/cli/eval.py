@@ -40,7 +40,9 @@ write (e.g. the figures after --no-figures). Other settings: --set key=value on 
 options, e.g.
 --set refinement.steps=20 --set search.grid=576 --set mask=segmentation
 --set refinement.shape=free --set refinement.depth=fixed --set volume_points=20000
---set mesh_ranking=256."""
+--set mesh_ranking=256. The refinement that fits the outline rather than keeping the shape
+(OUTLINE_REFINEMENT: a higher 2D IoU, a worse 3D shape; docs/inference.md):
+--set refinement.shape=free --set refinement.steps=100 --set refinement.patience=30."""
 
 #: EvalOptions fields exposed as options; the rest are reachable through --set.
 FLAGS = {"split": "--split", "refine": "--refine", "limit": "--limit",

@@ -37,7 +37,9 @@ refines the best few, against its --mask (one per image, same size, target brigh
 without --mask, the network's mask head (the image's segmentation for a model without a mask
 head; --set mask=segmentation forces it); the line printed and pose.json name the mask
 fitted, the search's soft IoU (search_score, at search.resolution px) and the refined IoU
-(iou_after, at refinement.resolution px).
+(iou_after, at refinement.resolution px). The refinement keeps the network's shape; for a
+silhouette that follows the mask (a worse 3D shape), --set refinement.shape=free --set
+refinement.steps=100 --set refinement.patience=30 (docs/inference.md).
 Silhouettes cannot tell apart poses with the same outline. Every input is
 checked before the first prediction (a bad one is a one-line error, exit code 2, nothing
 written). Without --checkpoint the model shipped with the package is used.
