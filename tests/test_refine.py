@@ -13,11 +13,12 @@ from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.rotation import random_rotations
 from sq_mitsuba.inference.refine import (
+    OUTLINE_REFINEMENT,
     RefineOptions,
     raw_from_assembly,
     refine_pose_and_shape,
 )
-from sq_mitsuba.inference.search import OUTLINE_REFINEMENT, SEARCH_REFINEMENT
+from sq_mitsuba.inference.search import SEARCH_REFINEMENT
 from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer, mask_iou, render_assembly
 
 RESOLUTION = 64

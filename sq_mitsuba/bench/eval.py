@@ -53,9 +53,12 @@ def run(options: BenchOptions) -> Report:
     from sq_mitsuba.evaluation.evaluate import EvalOptions, evaluate
     from sq_mitsuba.inference.loading import load_model
     from sq_mitsuba.inference.predictor import Predictor
-    from sq_mitsuba.inference.refine import RefineOptions, refine_pose_and_shape
-    from sq_mitsuba.inference.search import (
+    from sq_mitsuba.inference.refine import (
         OUTLINE_REFINEMENT,
+        RefineOptions,
+        refine_pose_and_shape,
+    )
+    from sq_mitsuba.inference.search import (
         SearchOptions,
         pose_candidates,
         search_poses,

@@ -62,7 +62,6 @@ from sq_mitsuba.inference.refine import RefineOptions, RefineResult, refine_pose
 from sq_mitsuba.render.silhouette.batch import PoseSilhouettes
 
 __all__ = [
-    "OUTLINE_REFINEMENT",
     "SEARCH_REFINEMENT",
     "SearchOptions",
     "SearchRefineResult",
@@ -84,16 +83,6 @@ __all__ = [
 #: rotation from 24 to 34 deg median, for 0.013 of IoU); 25 steps at most.
 SEARCH_REFINEMENT = RefineOptions(steps=25, patience=10, shape="pose", depth="fixed",
                                   rotation_prior=1.0)
-
-#: The refinement for an outline rather than a shape: every shape parameter follows the mask
-#: too, for up to 100 steps (the rest as :data:`SEARCH_REFINEMENT`). On the model card's
-#: held-out families (the shipped model, 120 images) the 2D IoU after the search and this
-#: refinement is 0.728 where the default's is 0.580 (0.736 on all 400), and the body-frame
-#: Chamfer-L1 0.172 where the default's is 0.141 (the constant baseline's 0.152): an outline
-#: seen under a rotation tens of degrees off is carried into the shape. For overlays and
-#: tracking, not for the 3D shape.
-OUTLINE_REFINEMENT = RefineOptions(steps=100, patience=30, shape="free", depth="fixed",
-                                   rotation_prior=1.0)
 
 # Depth changes of the recentring step are clamped to this factor either way.
 _DEPTH_CLAMP = 2.0
