@@ -287,3 +287,39 @@ def test_a_dataset_of_test_models_only_is_scored_against_the_stored_baseline(
         error = float(torch.linalg.vector_norm(stored[2][0] - torch.tensor(true_t,
                                                                            dtype=torch.float64)))
         assert float(row["translation_error_m"]) == pytest.approx(error, rel=1e-6)
+
+
+def test_turned_copies_read_the_network_row(train_dataset, tmp_path):
+    """``turns=8``: the network row is the shipped model's reading of 8 turned copies of each
+    image (its rotation error that of ``predict(turns=8)``, not of one reading)."""
+    out = tmp_path / "turns"
+    code = main(["eval", "--data", str(train_dataset), "--split", "val", "--out", str(out),
+                 "--limit", "2", "--no-baseline", "--no-figures", "--turns", "8", *SMALL])
+    assert code == 0
+    dataset = Spe3rDataset(train_dataset, "val", image_size=96)
+    predictor = load_model()
+    items = [dataset[i] for i in (0, len(dataset) - 1)]  # --limit 2: the first and the last
+    images = torch.stack([item["image"] for item in items])
+    camera = dataset.camera.rescaled(96, 96)
+    turned = predictor.predict(images, camera, turns=8)
+    once = predictor.predict(images, camera)
+    rows = {(r["model"], int(r["index"])): r for r in read_rows(out / "per_image.csv")
+            if r["method"] == "network"}
+    for k, item in enumerate(items):
+        def angle(rotation: torch.Tensor, item=item) -> float:
+            relative = rotation.double().T @ item["rotation"].double()
+            return float(np.degrees(np.arccos(np.clip((float(torch.trace(relative)) - 1) / 2,
+                                                      -1, 1))))
+        measured = float(rows[(item["model"], item["index"])]["rotation_error_deg"])
+        assert measured == pytest.approx(angle(turned.rotation[k]), abs=0.05)
+        assert abs(angle(turned.rotation[k]) - angle(once.rotation[k])) > 0.1  # not one reading
+
+
+def test_turned_copies_without_a_distribution_head_are_one_line(eval_checkpoint, train_dataset,
+                                                                tmp_path, capsys):
+    out = tmp_path / "refused"
+    code = main(["eval", "--checkpoint", str(eval_checkpoint), "--data", str(train_dataset),
+                 "--split", "val", "--out", str(out), "--set", "turns=8", *SMALL])
+    line = error_line(capsys)
+    assert code == 2 and "turns: 8 turned copies need a rotation-distribution head" in line
+    assert not (out / "summary.csv").exists()

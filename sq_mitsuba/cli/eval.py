@@ -45,7 +45,7 @@ options, e.g.
 --set refinement.shape=free --set refinement.steps=100 --set refinement.patience=30."""
 
 #: EvalOptions fields exposed as options; the rest are reachable through --set.
-FLAGS = {"split": "--split", "refine": "--refine", "limit": "--limit",
+FLAGS = {"split": "--split", "turns": "--turns", "refine": "--refine", "limit": "--limit",
          "batch_size": "--batch-size", "baseline": "--baseline",
          "baseline_images": "--baseline-images", "figures": "--figures", "fast": "--fast"}
 
