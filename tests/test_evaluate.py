@@ -290,12 +290,14 @@ def test_a_dataset_of_test_models_only_is_scored_against_the_stored_baseline(
 
 
 def test_turned_copies_read_the_network_row(train_dataset, tmp_path):
-    """``turns=8``: the network row is the shipped model's reading of 8 turned copies of each
-    image (its rotation error that of ``predict(turns=8)``, not of one reading)."""
-    out = tmp_path / "turns"
-    code = main(["eval", "--data", str(train_dataset), "--split", "val", "--out", str(out),
-                 "--limit", "2", "--no-baseline", "--no-figures", "--turns", "8", *SMALL])
-    assert code == 0
+    """``--turns 8``: the network row is the shipped model's reading of 8 turned copies of each
+    image (its rotation error that of ``predict(turns=8)``, not of one reading); the search,
+    which reads its own copies, is the same as without it."""
+    common = ["eval", "--data", str(train_dataset), "--split", "val", "--limit", "2",
+              "--refine", "--no-baseline", "--no-figures", "--set", "refine_ground_truth=false",
+              *SMALL]
+    assert main([*common, "--out", str(tmp_path / "turns"), "--turns", "8"]) == 0
+    assert main([*common, "--out", str(tmp_path / "once")]) == 0
     dataset = Spe3rDataset(train_dataset, "val", image_size=96)
     predictor = load_model()
     items = [dataset[i] for i in (0, len(dataset) - 1)]  # --limit 2: the first and the last
@@ -303,16 +305,23 @@ def test_turned_copies_read_the_network_row(train_dataset, tmp_path):
     camera = dataset.camera.rescaled(96, 96)
     turned = predictor.predict(images, camera, turns=8)
     once = predictor.predict(images, camera)
-    rows = {(r["model"], int(r["index"])): r for r in read_rows(out / "per_image.csv")
-            if r["method"] == "network"}
+
+    def rows(name: str, method: str) -> dict[tuple[str, int], dict[str, str]]:
+        return {(r["model"], int(r["index"])): r for r in read_rows(tmp_path / name /
+                                                                    "per_image.csv")
+                if r["method"] == method}
+    network, search, search_once = rows("turns", "network"), rows("turns", "search"), \
+        rows("once", "search")
     for k, item in enumerate(items):
         def angle(rotation: torch.Tensor, item=item) -> float:
             relative = rotation.double().T @ item["rotation"].double()
             return float(np.degrees(np.arccos(np.clip((float(torch.trace(relative)) - 1) / 2,
                                                       -1, 1))))
-        measured = float(rows[(item["model"], item["index"])]["rotation_error_deg"])
-        assert measured == pytest.approx(angle(turned.rotation[k]), abs=0.05)
+        key = (item["model"], item["index"])
+        assert float(network[key]["rotation_error_deg"]) == pytest.approx(
+            angle(turned.rotation[k]), abs=0.05)
         assert abs(angle(turned.rotation[k]) - angle(once.rotation[k])) > 0.1  # not one reading
+        assert search[key]["rotation_error_deg"] == search_once[key]["rotation_error_deg"]
 
 
 def test_turned_copies_without_a_distribution_head_are_one_line(eval_checkpoint, train_dataset,

@@ -300,7 +300,10 @@ def _evaluate(predictor: Any, data_root: Path, out_dir: Path, options: EvalOptio
             if options.refine:
                 stage("search and refinement")
                 gt_masks = batch["mask"][:, 0] > 0.5
-                fitted = predictor.refine(batch["image"], prediction, camera, mask=options.mask,
+                # The search reads its own turned copies from the unturned reading.
+                unturned = prediction if options.turns == 1 else predictor.predict(
+                    batch["image"], camera)
+                fitted = predictor.refine(batch["image"], unturned, camera, mask=options.mask,
                                           search=options.search,
                                           refinement=options.refinement)
                 fit = fitted.fit
