@@ -242,3 +242,38 @@ def test_padding_gives_the_cameras_aspect_ratio_and_keeps_its_pixels(size):
         own = padding.crop_camera(full)
         assert (own.width, own.height) == (width, height)
         assert (own.cx, own.cy) == (full.cx - padding.left, full.cy - padding.top)
+
+
+def test_turned_copies_read_the_network_alone(inputs, tmp_path, capsys):
+    """``--turns 8`` (the shipped model): pose.json holds ``predict(turns=8)``'s reading, not
+    one reading's; with --refine, or a network without a distribution head, one line."""
+    from sq_mitsuba.geometry.rotation import quaternion_to_matrix
+    from sq_mitsuba.inference.loading import load_model
+
+    out = tmp_path / "turned"
+    assert main(["predict", str(inputs / "grey.png"), "--out", str(out), "--turns", "8",
+                 "--quiet"]) == 0
+    pose = json.loads((out / "grey.pose.json").read_text())
+    assert pose["turns"] == 8
+    image = torch.from_numpy(np.array(Image.open(inputs / "grey.png"))).float()[None] / 255
+    predictor = load_model()
+    turned, once = predictor.predict(image, turns=8), predictor.predict(image)
+    written = quaternion_to_matrix(torch.tensor(pose["q_vbs2tango"], dtype=torch.float64))
+
+    def angle(a: torch.Tensor, b: torch.Tensor) -> float:
+        cos = (float(torch.trace(a.double().T @ b.double())) - 1) / 2
+        return float(np.degrees(np.arccos(np.clip(cos, -1, 1))))
+    assert angle(written, turned.rotation[0]) < 0.1
+    assert angle(turned.rotation[0], once.rotation[0]) > 0.1
+    assert main(["predict", str(inputs / "grey.png"), "--out", str(tmp_path / "both"),
+                 "--turns", "8", "--refine", "--quiet"]) == 2
+    assert "turns: 8 is for the network's reading alone" in error_line(capsys)
+    assert not (tmp_path / "both").exists()
+
+
+def test_turned_copies_without_a_distribution_head_are_one_line(eval_checkpoint, inputs,
+                                                                tmp_path, capsys):
+    assert main(["predict", str(inputs / "grey.png"), "--checkpoint", str(eval_checkpoint),
+                 "--out", str(tmp_path / "no"), "--turns", "8", "--quiet"]) == 2
+    assert "turns: 8 turned copies need a rotation-distribution head" in error_line(capsys)
+    assert not (tmp_path / "no").exists()

@@ -51,7 +51,7 @@ fitted to every frame's mask at once). Writes sequence.assembly.json, sequence.g
 sequence.png (the assembly from six sides) and per frame <stem>.pose.json (its pose of that
 assembly) and <stem>.overlay.png (its own fit in red, the shared assembly in green)."""
 
-FLAGS = {"refine": "--refine", "level": "--level", "fast": "--fast"}
+FLAGS = {"refine": "--refine", "turns": "--turns", "level": "--level", "fast": "--fast"}
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
