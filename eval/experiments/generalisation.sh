@@ -18,7 +18,9 @@
 #
 # Environment: SQ (the command; default .venv/bin/sq-mitsuba), WORKERS (render processes,
 # default 2), REFINED (0 skips the two refined evaluations: the network's figures in a tenth
-# of the time). Every step is skipped when its output is there, so an interrupted call resumes.
+# of the time), TURNS (the network's rows read from that many turned copies of each image,
+# `eval --turns`; default 1). Every step is skipped when its output is there, so an
+# interrupted call resumes.
 set -euo pipefail
 [ $# -eq 3 ] || { echo "usage: $0 WORK CHECKPOINT NAME" >&2; exit 2; }
 WORK=$1; CHECKPOINT=$2; NAME=$3
@@ -56,8 +58,8 @@ run_eval() {  # DATA OUT [eval options...]
   [ -f "$out/summary.csv" ] || $SQ eval --checkpoint "$CHECKPOINT" --data "$data" \
     --split test --out "$out" --quiet "$@"
 }
-run_eval "$heldout/data" "$WORK/eval/${NAME}_heldout"
-run_eval "$infamily/data" "$WORK/eval/${NAME}_infamily"
+run_eval "$heldout/data" "$WORK/eval/${NAME}_heldout" --turns "${TURNS:-1}"
+run_eval "$infamily/data" "$WORK/eval/${NAME}_infamily" --turns "${TURNS:-1}"
 if [ "${REFINED:-1}" != 0 ]; then
   run_eval "$heldout/data" "$WORK/eval/${NAME}_heldout_refined" --refine --limit 120 \
     --set refine_ground_truth=false
