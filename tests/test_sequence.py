@@ -363,7 +363,9 @@ def test_predict_sequence_cli_writes_one_assembly_and_a_pose_per_frame(eval_chec
                  str(eval_checkpoint), "--out", str(tmp_path / "z")]) == 2
     assert main(["predict", *map(str, images), "--sequence", "--fit", "stepz=5",
                  "--checkpoint", str(eval_checkpoint), "--out", str(tmp_path / "w")]) == 2
-    assert all(not (tmp_path / name).exists() for name in "xyzw")
+    assert main(["predict", *map(str, images), "--sequence", "--turns", "8",
+                 "--checkpoint", str(eval_checkpoint), "--out", str(tmp_path / "v")]) == 2
+    assert all(not (tmp_path / name).exists() for name in "xyzwv")
 
 
 def test_the_start_is_the_reading_that_fits_every_frame(known_pass):

@@ -157,7 +157,8 @@ def _run_sequence(args: argparse.Namespace) -> int:
     from sq_mitsuba.inference.sequence import SequenceOptions
 
     unused = [flag for flag, given in (("--mask", args.mask), ("--refine", getattr(
-        args, "refine", None)), ("--set", getattr(args, "overrides", None))) if given]
+        args, "refine", None)), ("--turns", getattr(args, "turns", None)),
+        ("--set", getattr(args, "overrides", None))) if given]
     if unused:
         raise CLIError(f"{unused[0]}: not used with --sequence (every frame is refined)")
     try:
