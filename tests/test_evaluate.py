@@ -330,5 +330,6 @@ def test_turned_copies_without_a_distribution_head_are_one_line(eval_checkpoint,
     code = main(["eval", "--checkpoint", str(eval_checkpoint), "--data", str(train_dataset),
                  "--split", "val", "--out", str(out), "--set", "turns=8", *SMALL])
     line = error_line(capsys)
-    assert code == 2 and "turns: 8 turned copies need a rotation-distribution head" in line
+    assert code == 2 and ("turns: reading the rotation from turned copies needs a "
+                          "rotation-distribution head") in line
     assert not (out / "summary.csv").exists()

@@ -275,5 +275,6 @@ def test_turned_copies_without_a_distribution_head_are_one_line(eval_checkpoint,
                                                                 tmp_path, capsys):
     assert main(["predict", str(inputs / "grey.png"), "--checkpoint", str(eval_checkpoint),
                  "--out", str(tmp_path / "no"), "--turns", "8", "--quiet"]) == 2
-    assert "turns: 8 turned copies need a rotation-distribution head" in error_line(capsys)
+    assert ("turns: reading the rotation from turned copies needs a rotation-distribution "
+            "head") in error_line(capsys)
     assert not (tmp_path / "no").exists()

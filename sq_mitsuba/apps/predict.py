@@ -290,10 +290,7 @@ def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
         raise ValueError(f"turns: {options.turns} is for the network's reading alone; with "
                          "--refine the search reads its own turned copies (--set "
                          "search.turns=T)")
-    if options.turns > 1 and not predictor.can_turn(camera):
-        raise ValueError(f"turns: {options.turns} turned copies need a rotation-distribution "
-                         "head and a camera whose roll is an image turn, which this model and "
-                         "camera do not both have")
+    predictor.check_turns(options.turns, camera)
     out = check_output_folder(out_dir)
     predictor = with_fast_path(predictor, options.fast, min_target=options.min_target,
                                min_existence=options.min_existence)

@@ -238,10 +238,7 @@ def _evaluate(predictor: Any, data_root: Path, out_dir: Path, options: EvalOptio
             # is the one the checkpoint stores, the mean over the model's own training images.
             stored_baseline = getattr(predictor, "baseline", None)
     camera = dataset.camera.rescaled(image_size, image_size)
-    if options.turns > 1 and not predictor.can_turn(camera):
-        raise ValueError(f"turns: {options.turns} turned copies need a rotation-distribution "
-                         "head and a camera whose roll is an image turn, which this model and "
-                         "dataset do not both have (turns = 1 reads each image once)")
+    predictor.check_turns(options.turns, camera)
     # Every image of a dataset shows its target: the evaluation fits each one, whatever its
     # target-present score (min_target 0), so that the methods are scored on the same images.
     predictor = with_fast_path(predictor, options.fast, min_target=0.0)
@@ -285,10 +282,14 @@ def _evaluate(predictor: Any, data_root: Path, out_dir: Path, options: EvalOptio
                 # One untimed call first: the first run of a network sets up its kernels (over
                 # a second on a CPU), which would otherwise count as network time.
                 tick = time.perf_counter()
-                predictor.predict(batch["image"], camera, turns=options.turns)
+                predictor.predict(batch["image"], camera)
                 warmup_seconds = time.perf_counter() - tick
             tick = time.perf_counter()
-            prediction = predictor.predict(batch["image"], camera, turns=options.turns)
+            # The search starts from the unturned reading and reads its own turned copies;
+            # the network row's copies reuse that reading's pass (read_turns).
+            unturned = predictor.predict(batch["image"], camera)
+            prediction = unturned if options.turns == 1 else predictor.read_turns(
+                batch["image"], unturned, options.turns, camera)
             network_seconds += time.perf_counter() - tick
             model_indices = [int(m) for m in batch["model_index"]]
             symmetries = [models.symmetry(m) for m in model_indices]
@@ -300,9 +301,6 @@ def _evaluate(predictor: Any, data_root: Path, out_dir: Path, options: EvalOptio
             if options.refine:
                 stage("search and refinement")
                 gt_masks = batch["mask"][:, 0] > 0.5
-                # The search reads its own turned copies from the unturned reading.
-                unturned = prediction if options.turns == 1 else predictor.predict(
-                    batch["image"], camera)
                 fitted = predictor.refine(batch["image"], unturned, camera, mask=options.mask,
                                           search=options.search,
                                           refinement=options.refinement)

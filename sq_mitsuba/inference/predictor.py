@@ -198,8 +198,8 @@ class Predictor:
             if unused:
                 raise ValueError(f"{unused[0]}: only used with refine=True")
         x, camera = self._prepared(images, camera)
-        if turns is not None and (type(turns) is not int or turns != 1):  # True == 1, no count
-            self._check_turns(turns, camera.rescaled(self.image_size, self.image_size))
+        if turns is not None:
+            self.check_turns(turns, camera)
         network = self._predicted(x, camera)
         if refine:
             from sq_mitsuba.inference.pipeline import fit_prediction
@@ -353,12 +353,20 @@ class Predictor:
     def can_turn(self, camera: Camera | None = None) -> bool:
         """Whether ``predict(turns=T > 1)`` runs for images of ``camera`` (default: the
         predictor's): a distribution head, and a camera whose roll is an image rotation."""
-        camera = self.camera if camera is None else camera
         try:
-            self._check_turns(2, camera.rescaled(self.image_size, self.image_size))
+            self.check_turns(2, camera)
         except ValueError:
             return False
         return True
+
+    def check_turns(self, turns: int, camera: Camera | None = None) -> None:
+        """One-line ``ValueError`` naming ``turns`` unless ``predict(turns=turns)`` runs for
+        images of ``camera`` (default: the predictor's), so that a caller can refuse it before
+        any work; 1 (one reading) runs for every network and camera."""
+        if type(turns) is int and turns == 1:  # True == 1, but is no count
+            return
+        camera = self.camera if camera is None else camera
+        self._check_turns(turns, camera.rescaled(self.image_size, self.image_size))
 
     def _check_turns(self, turns: int, camera: Camera) -> None:
         """One-line ``ValueError`` naming ``turns`` unless ``predict(turns=T)`` can run."""
