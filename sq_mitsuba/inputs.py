@@ -21,6 +21,9 @@ missing file, a ``ValueError`` otherwise, raised before any work that depends on
   fails one of these, instead of giving poses that are silently wrong.
 - **Tables** (:func:`read_csv_table`, :func:`finite_number`): CSV files with the columns a
   reader needs, every row complete (a truncated file is an error), numbers finite.
+- **Quaternion lists** (:func:`read_quaternions`): a JSON list of one rotation per item,
+  each ``[w, x, y, z]`` of finite numbers and unit length (within :data:`UNIT_TOLERANCE`;
+  normalised), exactly as many as the items they go with.
 
 This module imports nothing of the project; torch, PIL and numpy are imported when used.
 """
@@ -46,6 +49,7 @@ __all__ = [
     "load_torch_file",
     "open_image",
     "read_csv_table",
+    "read_quaternions",
 ]
 
 MIN_IMAGE_SIDE = 8
@@ -54,6 +58,9 @@ MAX_IMAGE_PIXELS = 2**27
 """Largest image, in pixels (134 megapixels, e.g. 11,585 x 11,585; PIL warns from 89)."""
 MAX_FIELD_OF_VIEW_DEG = 160.0
 """Widest field of view a camera description may give across either image axis (degrees)."""
+UNIT_TOLERANCE = 1e-3
+"""How far from 1 a quaternion's length may be (rounding in a file written by hand or in
+single precision); it is normalised."""
 _MAX_REASON = 160
 
 
@@ -263,3 +270,49 @@ def read_csv_table(path: str | os.PathLike[str], columns: Sequence[str]) -> list
     if not rows:
         raise ValueError(f"{path}: no rows below the header")
     return rows
+
+
+# ----------------------------------------------------------------------------- quaternions
+
+
+def read_quaternions(path: str | os.PathLike[str], count: int, what: str) -> list[list[float]]:
+    """The ``count`` unit quaternions ``[w, x, y, z]`` a JSON file lists, normalised.
+
+    Args:
+        path: a JSON file holding a list of ``count`` lists of 4 numbers.
+        count: how many the file must hold (one per item it goes with).
+        what: what the items are, for the message (e.g. ``"image"``).
+
+    Raises:
+        FileNotFoundError: ``<path>: missing``.
+        ValueError: ``<path>: ...``: not JSON, not a list of ``count``, or an entry (named by
+            its index) that is not 4 finite numbers of length 1.
+    """
+    import json
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: missing")
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as error:
+        raise ValueError(f"{path}: not valid JSON ({error.msg}, line {error.lineno})") from None
+    except UnicodeDecodeError:
+        raise ValueError(f"{path}: not valid JSON (not UTF-8 text)") from None
+    if not isinstance(data, list):
+        raise ValueError(f"{path}: expected a list of quaternions [w, x, y, z], got a "
+                         f"{type(data).__name__}")
+    if len(data) != count:
+        raise ValueError(f"{path}: {len(data)} quaternions for {count} {what}s (one per "
+                         f"{what}, in their order)")
+    quaternions = []
+    for index, entry in enumerate(data):
+        where = f"{path}: quaternion {index}"
+        if not isinstance(entry, list) or len(entry) != 4:
+            raise ValueError(f"{where}: expected [w, x, y, z], got {entry!r:.{_MAX_REASON}}")
+        numbers = [finite_number(value, where) for value in entry]
+        length = math.sqrt(sum(v * v for v in numbers))
+        if abs(length - 1.0) > UNIT_TOLERANCE:
+            raise ValueError(f"{where}: expected unit length, got {length:.6g}")
+        quaternions.append([v / length for v in numbers])
+    return quaternions

@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import os
 import pickle
+import re
 import shutil
 import warnings
 from pathlib import Path
@@ -614,3 +615,29 @@ def test_the_demo_page_names_the_shipped_model_without_this_machines_path():
     assert str(SHIPPED_MODEL.parents[2]) not in shown  # the checkout's absolute path
     assert shown_model("") == shown
     assert shown_model("runs/cpu/best.pt") == "runs/cpu/best.pt"
+
+
+def test_quaternion_lists_are_normalised_and_bad_ones_are_one_line(tmp_path):
+    """``inputs.read_quaternions``: rounding within the tolerance is normalised away; a file
+    missing, of the wrong count or with a short, infinite or far-from-unit entry is refused."""
+    from sq_mitsuba.inputs import UNIT_TOLERANCE, read_quaternions
+
+    path = tmp_path / "q.json"
+    near = [1.0 + 0.5 * UNIT_TOLERANCE, 0.0, 0.0, 0.0]
+    path.write_text(json.dumps([near, [0.5, 0.5, 0.5, 0.5]]))
+    quaternions = read_quaternions(path, 2, "image")
+    assert quaternions[0] == [1.0, 0.0, 0.0, 0.0] and quaternions[1] == [0.5, 0.5, 0.5, 0.5]
+    with pytest.raises(FileNotFoundError, match="missing"):
+        read_quaternions(tmp_path / "absent.json", 2, "image")
+    unit = [1, 0, 0, 0]
+    for text, message in ((json.dumps({"q": unit}), "got a dict"),
+                          (json.dumps([unit]), "1 quaternions for 2 images"),
+                          (json.dumps([unit, [1, 0, 0, 0.2]]), "quaternion 1: expected unit"),
+                          ("[[1, 0, 0, 0], [Infinity, 0, 0, 0]]", "1: expected a finite"),
+                          (json.dumps([unit, [True, 0, 0, 0]]), "quaternion 1: expected a finite"),
+                          (json.dumps([unit, [1, 0, 0]]), "quaternion 1: expected [w, x, y, z]"),
+                          ("[[1, 0, 0, 0], ", "not valid JSON")):
+        path.write_text(text)
+        with pytest.raises(ValueError, match=re.escape(message)) as info:
+            read_quaternions(path, 2, "image")
+        assert str(path) in str(info.value) and "\n" not in str(info.value)

@@ -120,6 +120,7 @@ def test_predict_without_checkpoint_uses_the_shipped_model(eval_checkpoint, inpu
     assert main(["predict", str(inputs / "grey.png"), "--out", str(out), "--quiet"]) == 0
     pose = json.loads((out / "grey.pose.json").read_text())
     assert pose["checkpoint"] == str(eval_checkpoint)
+    assert "rotation_hypotheses" not in pose  # a regressing head: its one rotation is the pose
 
 
 def test_bad_inputs_are_one_line_naming_the_file(eval_checkpoint, inputs, tmp_path, capsys):
@@ -265,6 +266,17 @@ def test_turned_copies_read_the_network_alone(inputs, tmp_path, capsys):
         return float(np.degrees(np.arccos(np.clip(cos, -1, 1))))
     assert angle(written, turned.rotation[0]) < 0.1
     assert angle(turned.rotation[0], once.rotation[0]) > 0.1
+    # The reading's rotation hypotheses, best first, the first its own rotation.
+    listed = pose["rotation_hypotheses"]
+    assert len(listed) == predictor.hypotheses == turned.rotation_hypotheses.shape[1] > 1
+    probabilities = [h["probability"] for h in listed]
+    # (the command runs the fast path: its numbers agree to about 1e-5)
+    assert probabilities == pytest.approx(turned.rotation_scores[0].tolist(), abs=1e-4)
+    assert probabilities == sorted(probabilities, reverse=True) and 0 < sum(probabilities) <= 1
+    for h, expected in zip(listed, turned.rotation_hypotheses[0], strict=True):
+        assert angle(quaternion_to_matrix(torch.tensor(h["q_vbs2tango"], dtype=torch.float64)),
+                     expected) < 0.1
+    assert listed[0]["q_vbs2tango"] == pytest.approx(pose["q_vbs2tango"], abs=1e-6)
     assert main(["predict", str(inputs / "grey.png"), "--out", str(tmp_path / "both"),
                  "--turns", "8", "--refine", "--quiet"]) == 2
     assert "turns: 8 is for the network's reading alone" in error_line(capsys)

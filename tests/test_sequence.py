@@ -10,7 +10,7 @@ import math
 
 import pytest
 import torch
-from output_checks import one_torch_thread  # noqa: F401 (autouse fixture)
+from output_checks import error_line, one_torch_thread  # noqa: F401 (autouse fixture)
 
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.camera import Camera
@@ -366,6 +366,59 @@ def test_predict_sequence_cli_writes_one_assembly_and_a_pose_per_frame(eval_chec
     assert main(["predict", *map(str, images), "--sequence", "--turns", "8",
                  "--checkpoint", str(eval_checkpoint), "--out", str(tmp_path / "v")]) == 2
     assert all(not (tmp_path / name).exists() for name in "xyzwv")
+
+
+@pytest.mark.slow  # end to end: `make test` runs it, `make test-fast` not
+def test_predict_sequence_cli_keeps_the_relative_rotations_it_is_given(eval_checkpoint,
+                                                                       train_dataset, tmp_path,
+                                                                       capsys):
+    """--relative-rotations: the frames' true attitudes, all turned by one rotation the
+    command is not told (a navigation frame of its own); the poses it writes keep the true
+    rotations between frames, whatever the network read. A bad file is one line, before any
+    work, nothing written."""
+    import json
+
+    from sq_mitsuba.cli import main
+    from sq_mitsuba.geometry.rotation import matrix_to_quaternion, quaternion_to_matrix
+
+    model = next(line.split(",")[0] for line in
+                 (train_dataset / "splits.csv").read_text().splitlines()
+                 if line.endswith(",test"))
+    images = sorted((train_dataset / model / "images").glob("*.png"))[:3]
+    labels = {label["filename"]: label for label in
+              json.loads((train_dataset / model / "labels.json").read_text())}
+    truth = quaternion_to_matrix(torch.tensor(
+        [labels[image.name]["q_vbs2tango_true"] for image in images], dtype=torch.float64))
+    common = random_rotations(1, torch.Generator().manual_seed(3), dtype=torch.float64)[0]
+    attitudes = tmp_path / "attitudes.json"
+    attitudes.write_text(json.dumps(matrix_to_quaternion(truth @ common).tolist()))
+    out = tmp_path / "pass"
+    assert main(["predict", *map(str, images), "--sequence", "--checkpoint",
+                 str(eval_checkpoint), "--out", str(out), "--quiet", "--fit", "steps=5",
+                 "--relative-rotations", str(attitudes)]) == 0
+    written = quaternion_to_matrix(torch.tensor(
+        [json.loads((out / f"{image.stem}.pose.json").read_text())["q_vbs2tango"]
+         for image in images], dtype=torch.float64))
+    torch.testing.assert_close(written @ written[0].T, truth @ truth[0].T, atol=1e-5, rtol=0)
+
+    def refused(text: str, message: str, *extra: str) -> None:
+        attitudes.write_text(text)
+        target = tmp_path / "refused"
+        assert main(["predict", *map(str, images), *extra, "--checkpoint",
+                     str(eval_checkpoint), "--out", str(target), "--quiet",
+                     "--relative-rotations", str(attitudes)]) == 2
+        assert message in error_line(capsys) and not target.exists()
+
+    unit = [[1.0, 0.0, 0.0, 0.0]]
+    refused(json.dumps(unit * 2), "2 quaternions for 3 images", "--sequence")
+    refused(json.dumps(unit * 2 + [[1.0, 0.0, 0.0, 0.1]]), "quaternion 2: expected unit length",
+            "--sequence")
+    refused(json.dumps(unit * 2 + [[float("nan"), 0.0, 0.0, 0.0]]),  # NaN: JSON's extension
+            "quaternion 2: expected a finite number", "--sequence")
+    refused(json.dumps(unit * 2 + [[1.0, 0.0, 0.0]]), "quaternion 2: expected [w, x, y, z]",
+            "--sequence")
+    refused("[[1, 0, 0", "not valid JSON", "--sequence")
+    refused(json.dumps(unit * 3), "--relative-rotations: only with --sequence")
 
 
 def test_the_start_is_the_reading_that_fits_every_frame(known_pass):

@@ -7,7 +7,10 @@ Per input image ``<stem>`` the output folder receives (each file written atomica
 - ``<stem>.obj`` (one merged mesh) and ``<stem>.glb`` (one mesh per primitive), body frame;
 - ``<stem>.pose.json``: quaternion ``q_vbs2tango`` (w, x, y, z) and translation
   ``r_Vo2To_vbs`` (metres), body to camera in the OpenCV frame (``x_cam = R(q) x_body + r``),
-  the camera used, the image's size and mode, and the milliseconds taken;
+  the camera used, the image's size and mode, and the milliseconds taken; for a network with
+  a rotation-distribution head also ``rotation_hypotheses``, its distinct candidate rotations
+  best first, each ``{"q_vbs2tango": [w, x, y, z], "probability": p}`` (with ``--refine``,
+  those of the reading the search started from; the first is that reading's own rotation);
 - ``<stem>.overlay.png``: the image (grey) with the network's silhouette in red and, when
   refined, the refined silhouette in green and the outline of the target mask in yellow.
 
@@ -347,6 +350,7 @@ def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
                                      options.level)[0].numpy()
         layers = [(before, NETWORK_COLOUR)]
         outline = None
+        reading = prediction  # whose rotation hypotheses pose.json lists
         if options.refine:
             tick = time.perf_counter()
             # The shipped path (Predictor.refine): the turned copies' reading, the mask, the
@@ -357,6 +361,7 @@ def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
                 mask=torch.from_numpy(targets[k])[None] if given else options.mask,
                 search=options.search, refinement=options.refinement)
             fit = fitted.fit
+            reading = fit.start
             if not bool(fit.fitted[0]):
                 raise ValueError(f"image {path}: the network's mask of it is empty (no pixel "
                                  "above 0.5 after the turned copies' mean), nothing to refine "
@@ -388,6 +393,9 @@ def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
         })
         if options.turns > 1:
             pose["turns"] = options.turns  # the network's reading, from that many copies
+        hypotheses = _rotation_hypotheses(reading)
+        if hypotheses is not None:
+            pose["rotation_hypotheses"] = hypotheses
         if options.refine:
             pose.update(refine_ms=round(record.refine_ms, 3),
                         search_ms=round(record.search_ms, 3), search_score=record.iou_before,
@@ -408,6 +416,19 @@ def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
     out.mkdir(parents=True, exist_ok=True)
     return [_write_outputs(out / record.image.stem, record, pose, assembly, overlay,
                            options.level) for record, pose, assembly, overlay in outputs]
+
+
+def _rotation_hypotheses(reading: Any) -> list[dict[str, Any]] | None:
+    """The first item's rotation hypotheses of ``reading`` (a Prediction) for pose.json, best
+    first: ``q_vbs2tango`` (w, x, y, z; w >= 0) and the network's probability of each; None
+    for a network without a rotation-distribution head (its one rotation is the pose)."""
+    from sq_mitsuba.geometry.rotation import matrix_to_quaternion
+
+    if reading.rotation_log_probabilities is None:
+        return None
+    quaternions = matrix_to_quaternion(reading.rotation_hypotheses[0].double())
+    return [{"q_vbs2tango": [float(v) for v in q], "probability": float(p)}
+            for q, p in zip(quaternions, reading.rotation_scores[0], strict=True)]
 
 
 def _write_outputs(stem: Path, record: PredictRecord, pose: dict[str, Any], assembly: Any,

@@ -4,8 +4,12 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from sq_mitsuba.cli._options import add_config_options, add_set_option, config_from_args
+
+if TYPE_CHECKING:
+    from torch import Tensor
 
 HELP = "predict superquadric assemblies and poses from images"
 DESCRIPTION = """\
@@ -49,7 +53,12 @@ order they were taken): one assembly and every pose (Predictor.predict_sequence:
 by the --refine path, the half turns resolved across frames, then one shape and N poses
 fitted to every frame's mask at once). Writes sequence.assembly.json, sequence.glb,
 sequence.png (the assembly from six sides) and per frame <stem>.pose.json (its pose of that
-assembly) and <stem>.overlay.png (its own fit in red, the shared assembly in green)."""
+assembly) and <stem>.overlay.png (its own fit in red, the shared assembly in green).
+--relative-rotations FILE gives the rotations between the frames when they are known (e.g.
+from the servicer's navigation, for a target that holds its attitude): a JSON list of one
+quaternion [w, x, y, z] per image, in their order, each the target's rotation into that
+frame's camera up to one rotation common to every frame (only the rotations between frames
+are used); they take the place of the pass's own motion."""
 
 FLAGS = {"refine": "--refine", "turns": "--turns", "level": "--level", "fast": "--fast"}
 
@@ -79,6 +88,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="with --sequence: the frames are in the order they were taken, "
                              "equally spaced in time: they are kept on one constant-rate turn "
                              "(default: any order)")
+    parser.add_argument("--relative-rotations", type=Path, default=None, metavar="JSON",
+                        help="with --sequence: one quaternion [w, x, y, z] per image (a JSON "
+                             "list), each frame's rotation up to one common to all: the "
+                             "rotations between frames, when known (default: read from the "
+                             "images)")
     parser.add_argument("--fit", dest="fit_overrides", action="append", default=[],
                         metavar="KEY=VALUE",
                         help="with --sequence: override a field of the joint fit's options "
@@ -129,6 +143,8 @@ def _run(args: argparse.Namespace) -> int:
         raise CLIError("--ordered: only with --sequence")
     if args.fit_overrides and not args.sequence:
         raise CLIError("--fit: only with --sequence (--set changes a single image's options)")
+    if args.relative_rotations is not None and not args.sequence:
+        raise CLIError("--relative-rotations: only with --sequence")
     if args.sequence:
         return _run_sequence(args)
     options = config_from_args(PredictOptions, args)
@@ -166,7 +182,24 @@ def _run_sequence(args: argparse.Namespace) -> int:
     except ConfigError as error:
         raise CLIError(f"--fit {error}") from None
     camera = Camera.load(args.camera) if args.camera is not None else None
+    relative = None
+    if args.relative_rotations is not None:
+        relative = relative_rotations(args.relative_rotations, len(args.images))
     record = predict_sequence_files(args.images, args.out, load_model(args.checkpoint),
-                                    camera, options=options, ordered=args.ordered)
+                                    camera, relative_rotations=relative, options=options,
+                                    ordered=args.ordered)
     print(f"{record.describe()}; wrote {len(record.files)} files to {args.out}")
     return 0
+
+
+def relative_rotations(path: Path, count: int) -> Tensor:
+    """(N, 3, 3) ``Q_j = A_j A_0^T`` from a file of N quaternions ``A_j`` (each frame's
+    rotation up to one common to all, so ``Q_j = R_j R_0^T`` whatever it is), float64."""
+    import torch
+
+    from sq_mitsuba.geometry.rotation import quaternion_to_matrix
+    from sq_mitsuba.inputs import read_quaternions
+
+    attitudes = quaternion_to_matrix(torch.tensor(read_quaternions(path, count, "image"),
+                                                  dtype=torch.float64))
+    return attitudes @ attitudes[0].T
