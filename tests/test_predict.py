@@ -277,6 +277,13 @@ def test_turned_copies_read_the_network_alone(inputs, tmp_path, capsys):
         assert angle(quaternion_to_matrix(torch.tensor(h["q_vbs2tango"], dtype=torch.float64)),
                      expected) < 0.1
     assert listed[0]["q_vbs2tango"] == pytest.approx(pose["q_vbs2tango"], abs=1e-6)
+    # With --refine: the hypotheses of the reading the search started from (8 turned copies).
+    assert main(["predict", str(inputs / "grey.png"), "--out", str(tmp_path / "refined"),
+                 "--refine", *SMALL_REFINE, "--quiet"]) == 0
+    refined = json.loads((tmp_path / "refined" / "grey.pose.json").read_text())
+    assert refined["refined"] is True
+    assert [h["probability"] for h in refined["rotation_hypotheses"]] == pytest.approx(
+        probabilities, abs=1e-4)
     assert main(["predict", str(inputs / "grey.png"), "--out", str(tmp_path / "both"),
                  "--turns", "8", "--refine", "--quiet"]) == 2
     assert "turns: 8 is for the network's reading alone" in error_line(capsys)
