@@ -184,7 +184,7 @@ def _run_sequence(args: argparse.Namespace) -> int:
     camera = Camera.load(args.camera) if args.camera is not None else None
     relative = None
     if args.relative_rotations is not None:
-        relative = relative_rotations(args.relative_rotations, len(args.images))
+        relative = _relative_rotations(args.relative_rotations, len(args.images))
     record = predict_sequence_files(args.images, args.out, load_model(args.checkpoint),
                                     camera, relative_rotations=relative, options=options,
                                     ordered=args.ordered)
@@ -192,7 +192,7 @@ def _run_sequence(args: argparse.Namespace) -> int:
     return 0
 
 
-def relative_rotations(path: Path, count: int) -> Tensor:
+def _relative_rotations(path: Path, count: int) -> Tensor:
     """(N, 3, 3) ``Q_j = A_j A_0^T`` from a file of N quaternions ``A_j`` (each frame's
     rotation up to one common to all, so ``Q_j = R_j R_0^T`` whatever it is), float64."""
     import torch
