@@ -565,3 +565,40 @@ def test_visible_surface_fit_keeps_one_point_per_cell_and_runs(train_dataset,
              if line.startswith("  ")}
     assert {"read", "visible", "visible_at_reading", "registered"} <= set(means)
     assert all(0 < value < 10 for name, value in means.items() if "folded" not in name)
+
+
+def test_hypotheses_coverage_takes_the_best_of_the_first_k(train_dataset):
+    """``best_of_first`` is the running minimum along the hypotheses; the script on the
+    fixture with the shipped model (a distribution head, 8 hypotheses): the best of more
+    hypotheses is never farther, and the first alone is the reading's own rotation."""
+    sys.path.insert(0, str(EXPERIMENTS))
+    try:
+        from hypotheses_coverage import best_of_first
+        from spread_images import folded_error_deg
+    finally:
+        sys.path.remove(str(EXPERIMENTS))
+    errors = np.array([[30.0, 10.0, 20.0, 5.0], [1.0, 50.0, 2.0, 0.5]])
+    assert best_of_first(errors).tolist() == [[30, 10, 10, 5], [1, 1, 1, 0.5]]
+    from sq_mitsuba.data.spe3r import Spe3rDataset
+    from sq_mitsuba.evaluation.split import collate
+    from sq_mitsuba.inference.loading import load_model
+    from sq_mitsuba.model.checkpoint import SHIPPED_MODEL
+
+    command = [sys.executable, str(EXPERIMENTS / "hypotheses_coverage.py"), "--checkpoint",
+               str(SHIPPED_MODEL), "--data", str(train_dataset), "--images", "4", "--turns", "2"]
+    result = _run_script(command)
+    assert result.returncode == 0, result.stderr
+    medians = {int(k): float(m) for k, m in
+               re.findall(r"first (\d+): median (\S+) deg", result.stdout)}
+    assert sorted(medians) == [1, 2, 4, 8]
+    assert all(medians[a] >= medians[b] for a, b in ((1, 2), (2, 4), (4, 8)))
+    predictor = load_model(SHIPPED_MODEL)
+    dataset = Spe3rDataset(train_dataset, "test", image_size=predictor.image_size,
+                           num_surface=10, num_occupancy=2)
+    chosen = np.linspace(0, len(dataset) - 1, min(4, len(dataset))).round()
+    batch = collate([dataset[int(i)] for i in chosen])
+    camera = dataset.camera.rescaled(predictor.image_size, predictor.image_size)
+    reading = predictor.predict(batch["image"], camera, turns=2)
+    first = [folded_error_deg(r, t) for r, t in zip(reading.rotation, batch["rotation"],
+                                                     strict=True)]
+    assert medians[1] == pytest.approx(float(np.median(first)), abs=0.051)
