@@ -5,6 +5,7 @@ segmented masks, the shipped-model path, and one-line errors naming the file."""
 from __future__ import annotations
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -269,6 +270,7 @@ def test_turned_copies_read_the_network_alone(inputs, tmp_path, capsys):
     # The reading's rotation hypotheses, best first, the first its own rotation.
     listed = pose["rotation_hypotheses"]
     assert len(listed) == predictor.hypotheses == turned.rotation_hypotheses.shape[1] > 1
+    assert bool((turned.rotation_scores[0] > 0).all())  # 8 separate modes: no padding here
     probabilities = [h["probability"] for h in listed]
     # (the command runs the fast path: its numbers agree to about 1e-5)
     assert probabilities == pytest.approx(turned.rotation_scores[0].tolist(), abs=1e-4)
@@ -297,3 +299,26 @@ def test_turned_copies_without_a_distribution_head_are_one_line(eval_checkpoint,
     assert ("turns: reading the rotation from turned copies needs a rotation-distribution "
             "head") in error_line(capsys)
     assert not (tmp_path / "no").exists()
+
+
+def test_pose_json_leaves_out_the_padding_of_a_short_hypothesis_list():
+    """A distribution with fewer separate modes than the predictor lists fills the list with
+    rotations of probability 0 (``rotation_grid.rotation_hypotheses``); pose.json keeps the
+    real ones, best first, and a regressing head's reading lists none."""
+    from types import SimpleNamespace
+
+    from sq_mitsuba.apps.predict import _rotation_hypotheses
+    from sq_mitsuba.geometry.so3_grid import so3_grid
+    from sq_mitsuba.model.rotation_grid import rotation_hypotheses
+
+    grid = so3_grid(576)
+    logits = torch.full((1, len(grid)), -torch.inf)
+    logits[0, 10], logits[0, 400] = 2.0, 1.0  # two modes, every other cell impossible
+    rotations, scores = rotation_hypotheses(logits, grid, 8)
+    assert scores.shape == (1, 8) and int((scores > 0).sum()) == 2
+    reading = SimpleNamespace(rotation_log_probabilities=logits.log_softmax(-1),
+                              rotation_hypotheses=rotations, rotation_scores=scores)
+    listed = _rotation_hypotheses(reading)
+    assert [h["probability"] for h in listed] == pytest.approx(
+        [1 / (1 + math.exp(-1.0)), 1 / (1 + math.exp(1.0))])
+    assert _rotation_hypotheses(SimpleNamespace(rotation_log_probabilities=None)) is None

@@ -9,8 +9,9 @@ Per input image ``<stem>`` the output folder receives (each file written atomica
   ``r_Vo2To_vbs`` (metres), body to camera in the OpenCV frame (``x_cam = R(q) x_body + r``),
   the camera used, the image's size and mode, and the milliseconds taken; for a network with
   a rotation-distribution head also ``rotation_hypotheses``, its distinct candidate rotations
-  best first, each ``{"q_vbs2tango": [w, x, y, z], "probability": p}`` (with ``--refine``,
-  those of the reading the search started from; the first is that reading's own rotation);
+  best first, each ``{"q_vbs2tango": [w, x, y, z], "probability": p}`` (p: of the
+  hypothesis' cell of the head's grid; with ``--refine``, those of the reading the search
+  started from; the first is that reading's own rotation);
 - ``<stem>.overlay.png``: the image (grey) with the network's silhouette in red and, when
   refined, the refined silhouette in green and the outline of the target mask in yellow.
 
@@ -420,15 +421,18 @@ def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
 
 def _rotation_hypotheses(reading: Any) -> list[dict[str, Any]] | None:
     """The first item's rotation hypotheses of ``reading`` (a Prediction) for pose.json, best
-    first: ``q_vbs2tango`` (w, x, y, z; w >= 0) and the network's probability of each; None
-    for a network without a rotation-distribution head (its one rotation is the pose)."""
+    first: ``q_vbs2tango`` (w, x, y, z; w >= 0) and the probability the network gives the
+    hypothesis' cell of its grid; None for a network without a rotation-distribution head
+    (its one rotation is the pose). Where the distribution has fewer separate modes than the
+    predictor lists, the list pads with the best at probability 0: those are left out."""
     from sq_mitsuba.geometry.rotation import matrix_to_quaternion
 
     if reading.rotation_log_probabilities is None:
         return None
     quaternions = matrix_to_quaternion(reading.rotation_hypotheses[0].double())
     return [{"q_vbs2tango": [float(v) for v in q], "probability": float(p)}
-            for q, p in zip(quaternions, reading.rotation_scores[0], strict=True)]
+            for k, (q, p) in enumerate(zip(quaternions, reading.rotation_scores[0],
+                                           strict=True)) if k == 0 or float(p) > 0]
 
 
 def _write_outputs(stem: Path, record: PredictRecord, pose: dict[str, Any], assembly: Any,
