@@ -177,6 +177,12 @@ def test_outline_preset_fits_a_mis_sized_shape_where_the_default_keeps_it(pertur
         assert torch.equal(result.translation[:, 2], translation[:, 2])
 
 
+def test_outline_preset_is_the_search_default_with_the_shape_free_for_longer():
+    # Written out in refine.py (search.py imports refine.py, not the other way): the depth,
+    # the rotation prior and every other field are the search's default refinement's.
+    assert OUTLINE_REFINEMENT == replace(SEARCH_REFINEMENT, steps=100, patience=30, shape="free")
+
+
 def test_bad_input_is_refused(perturbed):
     _, rotation, translation, masks, camera, start, *_ = perturbed
     with pytest.raises(ValueError, match="masks: size"):
