@@ -602,3 +602,14 @@ def test_hypotheses_coverage_takes_the_best_of_the_first_k(train_dataset):
     first = [folded_error_deg(r, t) for r, t in zip(reading.rotation, batch["rotation"],
                                                      strict=True)]
     assert medians[1] == pytest.approx(float(np.median(first)), abs=0.051)
+
+
+
+def test_hypotheses_coverage_refuses_turns_a_network_cannot_read(train_dataset,
+                                                                 eval_checkpoint):
+    command = [sys.executable, str(EXPERIMENTS / "hypotheses_coverage.py"), "--checkpoint",
+               str(eval_checkpoint), "--data", str(train_dataset), "--images", "2",
+               "--turns", "8"]
+    result = _run_script(command)
+    assert result.returncode == 1 and result.stdout == ""
+    assert "turns" in result.stderr and len(result.stderr.strip().splitlines()) == 1

@@ -15,6 +15,7 @@ its median and the share of images within 20 and 30 deg. The choice of the best 
 from __future__ import annotations
 
 import argparse
+import sys
 
 import numpy as np
 import torch
@@ -38,8 +39,10 @@ def best_of_first(errors: np.ndarray) -> np.ndarray:
 def main() -> None:
     spread = open_spread_images(__doc__.split("\n\n")[0], add_arguments=add_turns)
     predictor, turns = spread.predictor, spread.args.turns
-    if turns > 1:
+    try:
         predictor.check_turns(turns, spread.camera)
+    except ValueError as error:  # a regressing head, or a camera that cannot turn: one line
+        sys.exit(str(error))
     rows = []
     for start in range(0, len(spread.chosen), 16):
         batch = collate([spread.dataset[int(i)] for i in spread.chosen[start:start + 16]])
