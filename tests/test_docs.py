@@ -1,5 +1,6 @@
 """The documentation runs as written: the Python snippets of the README and of the guides
-under docs/ execute, their command lines and the ``--set`` examples of every ``--help`` parse."""
+under docs/ execute, their command lines and the ``--set`` examples of every ``--help`` parse,
+and every relative link of every page reaches its file and heading."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ import shlex
 import shutil
 import subprocess
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -178,3 +180,51 @@ def test_every_optional_value_shows_its_default():
             if "default" not in (action.help or ""):
                 missing.append(f"{' '.join(path)} {action.option_strings[0]}")
     assert not missing, missing
+
+
+# Every markdown page of the repository (the virtual environment and build outputs aside).
+_SKIPPED = {".venv", "demo_output", ".pytest_cache"}
+_PAGES = sorted(path for path in ROOT.rglob("*.md")
+                if not _SKIPPED & set(path.relative_to(ROOT).parts))
+_FENCE = re.compile(r"^(```|~~~).*?^\1", re.M | re.S)
+_CODE_SPAN = re.compile(r"`[^`\n]*`")
+_LINK = re.compile(r"\]\(([^)\s]+)\)")
+
+
+def _slugs(page: Path) -> Iterator[str]:
+    """The anchors GitHub gives a page's headings: lower case, punctuation dropped, spaces as
+    hyphens, a repeated heading numbered -1, -2, ..."""
+    seen: dict[str, int] = {}
+    for line in _FENCE.sub("", page.read_text(encoding="utf-8")).splitlines():
+        heading = re.match(r"#{1,6}\s+(.*?)\s*#*\s*$", line)
+        if not heading:
+            continue
+        text = re.sub(r"\[([^\]]*)\]\([^)]*\)", r"\1", heading.group(1))
+        slug = re.sub(r"[^\w\- ]", "", text.lower()).replace(" ", "-")
+        count = seen.get(slug, 0)
+        seen[slug] = count + 1
+        yield slug if count == 0 else f"{slug}-{count}"
+
+
+def test_the_pages_were_found():
+    names = {path.relative_to(ROOT).as_posix() for path in _PAGES}
+    assert {"README.md", "eval/MODEL_CARD.md", "eval/experiments/README.md"} <= names
+
+
+@pytest.mark.parametrize("page", _PAGES, ids=lambda path: path.relative_to(ROOT).as_posix())
+def test_relative_links_reach_a_file_and_heading(page: Path):
+    """A link to a file of the repository names one that exists, and a link to a heading
+    (``page.md#anchor`` or ``#anchor``) names one that page has: moving a section or a file
+    cannot leave a dead link behind."""
+    text = _CODE_SPAN.sub("", _FENCE.sub("", page.read_text(encoding="utf-8")))
+    dead = []
+    for target in _LINK.findall(text):
+        if re.match(r"[a-z]+:", target):  # http:, https:, mailto:
+            continue
+        path, _, anchor = target.partition("#")
+        linked = (page.parent / path).resolve() if path else page
+        if not linked.exists():
+            dead.append(f"{target} (no such file)")
+        elif anchor and linked.suffix == ".md" and anchor not in set(_slugs(linked)):
+            dead.append(f"{target} (no such heading)")
+    assert not dead, f"{page.relative_to(ROOT)}: dead links: {dead}"

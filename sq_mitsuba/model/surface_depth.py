@@ -2,9 +2,10 @@
 
 One image does not show how deep each part of a spacecraft is; a reader of single images
 fills that in from the families it trained on, which is what does not carry to new ones (the
-model card's "What one image shows"). The depth of the surface the camera sees is a per-pixel
-target that every spacecraft has alike, and readers trained through such 2.5D maps were found
-to reconstruct unseen classes better (MarrNet, Wu et al. 2017; GenRe, Zhang et al. 2018).
+lab notebook, eval/experiments/README.md: "What one image shows"). The depth of the surface
+the camera sees is a per-pixel target that every spacecraft has alike, and readers trained
+through such 2.5D maps were found to reconstruct unseen classes better (MarrNet, Wu et al.
+2017; GenRe, Zhang et al. 2018).
 
 The target is made from what a training batch already holds, the model's surface points and
 the true pose: each point is projected through K into a cell of a grid at ``stride`` pixels,
