@@ -66,6 +66,32 @@ def test_fit_command_writes_assembly_mesh_and_figure(fit_inputs, tmp_path, capsy
     assert not list(out.glob(".*tmp*"))  # atomic writes leave no temporary files
 
 
+def test_default_camera_keeps_square_pixels_at_any_aspect(tmp_path):
+    """Without --camera, masks of 48 x 32 px are fitted with the SPEED field of view across
+    their width and square pixels (fx = fy), as the SPEED camera's own 1920 x 1200 frames."""
+    camera = Camera.from_fov(Camera.default().fov_x_deg, 48, 32)
+    target = Assembly.from_values(torch.tensor([[[0.3, 0.2, 0.15]]], dtype=torch.float64),
+                                  torch.tensor([[[0.1, 0.1]]], dtype=torch.float64))
+    rotation = torch.eye(3, dtype=torch.float64)[None]
+    translation = torch.tensor([[0.0, 0.0, 2.5]], dtype=torch.float64)
+    with torch.no_grad():
+        mask = render_assembly(target, rotation, translation,
+                               SilhouetteRenderer(camera, spp=16))[0] > 0.5
+    path = tmp_path / "img000000.png"
+    Image.fromarray((mask.numpy() * 255).astype(np.uint8)).save(path)
+    (tmp_path / "labels.json").write_text(json.dumps([
+        {"filename": path.name, "q_vbs2tango_true": [1.0, 0.0, 0.0, 0.0],
+         "r_Vo2To_vbs_true": translation[0].tolist()}]))
+    out = tmp_path / "fit"
+    assert main(["fit", "--masks", str(path), "--poses", str(tmp_path / "labels.json"),
+                 "--primitives", "1", "--steps", "1", "--resolution", "24", "--out", str(out),
+                 "--quiet"]) == 0
+    used = Camera.from_speed_dict(json.loads((out / "fit_log.json").read_text())["camera"])
+    assert (used.width, used.height) == (48, 32)
+    assert used.fx == pytest.approx(used.fy) == pytest.approx(camera.fx)
+    assert used.fov_x_deg == pytest.approx(Camera.default().fov_x_deg)
+
+
 def test_fit_help_documents_the_input_format(capsys):
     with pytest.raises(SystemExit):
         main(["fit", "--help"])

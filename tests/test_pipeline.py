@@ -141,6 +141,13 @@ def test_the_fit_records_what_was_fitted_and_keeps_the_networks_reading(eval_che
                              reuse=fit)
     assert again.fit.mask_source == "given" and torch.equal(again.fit.mask, other)
     assert again.fit.start is fit.start
+    # A fit of other images, or from other turned copies, is not reused.
+    flipped = image.flip(-1)
+    with pytest.raises(ValueError, match=r"^reuse: expected the fit of these 1 images"):
+        predictor.refine(flipped, predictor.predict(flipped), mask=other, search=SEARCH,
+                         refinement=REFINEMENT, reuse=fit)
+    with pytest.raises(ValueError, match=r"^reuse: "):
+        predictor.refine(image, network, mask=other, turns=fit.turns + 1, reuse=fit)
 
 
 def test_an_empty_mask_keeps_the_start_with_nan_scores(eval_checkpoint, train_dataset):

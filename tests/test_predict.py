@@ -143,6 +143,10 @@ def test_bad_inputs_are_one_line_naming_the_file(eval_checkpoint, inputs, tmp_pa
         ([str(inputs / "grey.png")], ["--camera", str(tmp_path / "nocam.json")],
          f"camera {tmp_path / 'nocam.json'}: no such file"),
     ]
+    # The fit's settings without --refine would be ignored: refused, as the API refuses them.
+    for setting in ("search.turns=4", "refinement.steps=5", "mask=segmentation"):
+        cases.append(([str(inputs / "grey.png")], ["--set", setting],
+                      f"--set {setting}: only used with --refine"))
     strip = tmp_path / "strip.png"
     Image.fromarray(np.zeros((8, 64), np.uint8)).save(strip)
     cases.append(([str(strip)], [], f"image {strip}: 64 x 8 px is too far from the camera's"))

@@ -121,6 +121,21 @@ def test_the_mask_heads_score_tells_spacecraft_from_black_noise_and_the_earth(sc
     assert float(logits.flatten(1).amax(1).sigmoid().max()) > 0.95
 
 
+def test_neighbour_correlation_of_strips_and_large_images():
+    """Noise has uncorrelated neighbours and a picture correlated ones, whatever the shape:
+    a strip thinner than the block size (8 x 5000 px, either way) and an image above 512 px
+    measured on block means."""
+    from sq_mitsuba.inference.images import neighbour_correlation
+
+    generator = torch.Generator().manual_seed(0)
+    for height, width in ((8, 5000), (5000, 8), (700, 1100), (1, 3000)):
+        noise = torch.rand(1, 3, height, width, generator=generator)
+        ramp = torch.linspace(0, 1, height * width).reshape(1, 1, height, width).expand(
+            1, 3, height, width)
+        assert abs(float(neighbour_correlation(noise)[0])) < 0.05, (height, width)
+        assert float(neighbour_correlation(ramp)[0]) > 0.99, (height, width)
+
+
 def test_without_a_mask_head_the_segmentation_scores_the_target(scenes, eval_checkpoint):
     """A network without a mask head falls back on the image's segmentation: the lit
     spacecraft are targets, black, noise and the Earth alone are not."""
@@ -454,6 +469,23 @@ def test_predict_refuses_an_option_given_twice(eval_checkpoint, tmp_path, capsys
                  str(out), *extra, "--quiet"]) == 2
     assert needle in error_line(capsys)
     assert not out.exists()
+
+
+@pytest.mark.parametrize(("argv", "needle"), [
+    (["fit", "--masks", "m.png", "--poses", "p.json", "--out", "o", "--steps", "5", "--set",
+      "steps=7"], "--set steps=7: steps is also given by --steps; give it once"),
+    (["eval", "--checkpoint", "c.pt", "--data", "d", "--out", "o", "--refine", "--set",
+      "refine=false"], "--set refine=false: refine is also given by --refine / --no-refine"),
+    (["eval", "--checkpoint", "c.pt", "--data", "d", "--out", "o", "--set", "search.grid=64",
+      "--set", "search=null"], "--set search=null: search.grid is also given by --set"),
+])
+def test_every_command_refuses_a_field_given_twice(tmp_path, monkeypatch, capsys, argv, needle):
+    """A field set by its option and by --set (or by --set twice) is one line before any
+    work, in every command: the later would silently win."""
+    monkeypatch.chdir(tmp_path)
+    assert main(argv) == 2
+    assert needle in error_line(capsys)
+    assert not (tmp_path / "o").exists()
 
 
 @pytest.mark.parametrize(("quaternion", "translation", "needle"), [

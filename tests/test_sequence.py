@@ -333,7 +333,8 @@ def test_bad_sequences_are_one_line_errors(eval_checkpoint, train_dataset, case,
 
 @pytest.mark.slow  # end to end: `make test` runs it, `make test-fast` not
 def test_predict_sequence_cli_writes_one_assembly_and_a_pose_per_frame(eval_checkpoint,
-                                                                      train_dataset, tmp_path):
+                                                                      train_dataset, tmp_path,
+                                                                      capsys):
     import json
 
     from sq_mitsuba.cli import main
@@ -363,9 +364,27 @@ def test_predict_sequence_cli_writes_one_assembly_and_a_pose_per_frame(eval_chec
                  str(eval_checkpoint), "--out", str(tmp_path / "z")]) == 2
     assert main(["predict", *map(str, images), "--sequence", "--fit", "stepz=5",
                  "--checkpoint", str(eval_checkpoint), "--out", str(tmp_path / "w")]) == 2
-    assert main(["predict", *map(str, images), "--sequence", "--turns", "8",
-                 "--checkpoint", str(eval_checkpoint), "--out", str(tmp_path / "v")]) == 2
-    assert all(not (tmp_path / name).exists() for name in "xyzwv")
+    # The single image's options are refused, not ignored.
+    for extra, name in ((["--turns", "8"], "v"), (["--level", "5"], "u"), (["--no-fast"], "t"),
+                        (["--refine"], "s")):
+        capsys.readouterr()
+        assert main(["predict", *map(str, images), "--sequence", *extra, "--checkpoint",
+                     str(eval_checkpoint), "--out", str(tmp_path / name)]) == 2
+        line = error_line(capsys)
+        flag = extra[0].replace("--no-", "--")
+        assert line.startswith(f"sq-mitsuba predict: error: {flag}"), line
+        assert "not used with --sequence" in line
+    # Frames of another aspect ratio than the camera: one line naming the first frame.
+    from PIL import Image
+    wide = []
+    for k, image in enumerate(images[:2]):
+        wide.append(tmp_path / f"wide{k}.png")
+        Image.open(image).crop((0, 0, 64, 48)).save(wide[-1])
+    capsys.readouterr()
+    assert main(["predict", *map(str, wide), "--sequence", "--checkpoint",
+                 str(eval_checkpoint), "--out", str(tmp_path / "r")]) == 2
+    assert f"image {wide[0]}: 64 x 48 px, another aspect ratio" in error_line(capsys)
+    assert all(not (tmp_path / name).exists() for name in "xyzwvutsr")
 
 
 @pytest.mark.slow  # end to end: `make test` runs it, `make test-fast` not
@@ -469,3 +488,17 @@ def test_a_shared_shape_is_one_assembly_in_the_refinement():
     with pytest.raises(ValueError, match="relative_rotations: only with a shared shape"):
         refine_pose_and_shape(body, rotations[:1], translations[:1], masks[:1], CAMERA,
                               relative_rotations=rotations[:1])
+
+
+def test_each_side_of_the_picture_is_seen_from_the_axis_it_names():
+    """``sequence.png``'s tile "seen from +x" puts the camera on the body's +x axis: its
+    centre, -R^T t in the body frame, lies along the named axis (and so for every side)."""
+    from sq_mitsuba.apps.predict_sequence import _SIDES, _side_rotation
+
+    translation = torch.tensor([0.0, 0.0, 2.2], dtype=torch.float64)
+    for label, (pitch, yaw) in _SIDES:
+        rotation = _side_rotation(pitch, yaw)
+        centre = -rotation.T @ translation
+        axis = torch.zeros(3, dtype=torch.float64)
+        axis["xyz".index(label[1])] = 1.0 if label[0] == "+" else -1.0
+        assert torch.allclose(centre / centre.norm(), axis, atol=1e-12), label

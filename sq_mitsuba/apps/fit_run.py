@@ -131,7 +131,9 @@ def run_fit(masks: Sequence[str | Path], poses: str | Path, out: str | Path,
                          "the camera (r_Vo2To_vbs_true z <= 0)")
     camera_path = None if camera is None else Path(camera)
     if camera_path is None:
-        fit_camera = Camera.default(width).rescaled(width, height)
+        # Square pixels and the SPEED horizontal field of view at any aspect ratio, as the
+        # SPEED camera itself (1920 x 1200, fx = fy): rescaling a square camera would stretch them.
+        fit_camera = Camera.from_fov(Camera.default().fov_x_deg, width, height)
     else:
         check_not_folder(camera_path, "camera")
         if not camera_path.is_file():

@@ -124,7 +124,7 @@ class PredictRecord:
         image: the input; files: the files written (:data:`OUTPUT_SUFFIXES` order).
         network_ms: the network's time for this image (after one untimed warm-up call on
             the first image); refine_ms: the search and refinement's (0 when not refined),
-            search_ms: the search's part of it.
+            search_ms: the search's part of it (the turned copies it starts from included).
         iou_before, iou_after: the search's best soft IoU (at ``search_resolution`` px) and
             the refinement's IoU (at ``refine_resolution`` px) against the mask; mask_source:
             the mask fitted ("file", "network" or "segmentation"); warning: the

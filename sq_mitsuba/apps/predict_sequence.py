@@ -28,8 +28,9 @@ import torch
 
 __all__ = ["SequenceRecord", "predict_sequence_files"]
 
-#: The views of ``sequence.png``: (label, body -> camera rotation), the assembly at the centre.
-_SIDES = (("+x", (0.0, -90.0)), ("-x", (0.0, 90.0)), ("+y", (90.0, 0.0)), ("-y", (-90.0, 0.0)),
+#: The views of ``sequence.png``: (label, (pitch, yaw) in degrees of the body -> camera
+#: rotation), the assembly at the centre; "seen from +x" puts the camera on the body's +x axis.
+_SIDES = (("+x", (0.0, 90.0)), ("-x", (0.0, -90.0)), ("+y", (-90.0, 0.0)), ("-y", (90.0, 0.0)),
           ("+z", (0.0, 180.0)), ("-z", (0.0, 0.0)))
 
 
@@ -91,7 +92,8 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
 
     Raises:
         ValueError: one line naming the image or argument: fewer than two images, sizes that
-            differ, a name twice, an unreadable image, a frame without a target.
+            differ, frames of another aspect ratio than the camera, a name twice, an
+            unreadable image, a frame without a target.
     """
     from PIL import Image
 
@@ -113,6 +115,13 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
             raise ValueError(f"image {path}: {picture.shape[1]} x {picture.shape[0]} px, the "
                              f"first frame {paths[0]} is {pictures[0].shape[1]} x "
                              f"{pictures[0].shape[0]} px (a sequence has one size)")
+    height, width = pictures[0].shape[:2]
+    given = predictor.camera if camera is None else camera
+    if abs(given.width * height / (given.height * width) - 1.0) > 1e-3:
+        where = "the checkpoint's camera" if camera is None else "the camera given"
+        raise ValueError(f"image {paths[0]}: {width} x {height} px, another aspect ratio than "
+                         f"{where} ({given.width} x {given.height}); a pass is not padded to "
+                         "it: give the frames' own camera (--camera)")
     out = check_output_folder(out_dir)
     predictor = with_fast_path(predictor, True)
     record = SequenceRecord()

@@ -132,6 +132,8 @@ def config_from_args(config_class: type, args: argparse.Namespace, base: Any = N
     values = to_dict(base)
     given = {name: getattr(args, name) for name in flags if hasattr(args, name)}
     given.update(extra)
+    overrides = getattr(args, "overrides", None) or []
+    _check_given_once(config_class, flags, list(given), overrides)
     for name, value in given.items():
         values[name] = list(value) if isinstance(value, tuple) else (
             str(value) if isinstance(value, Path) else value)
@@ -144,13 +146,33 @@ def config_from_args(config_class: type, args: argparse.Namespace, base: Any = N
                 message = flag + message[len(name):]
                 break
         raise CLIError(message) from None
-    overrides = getattr(args, "overrides", None) or []
     if overrides:
         try:
             config = apply_overrides(config, overrides)
         except ConfigError as error:
             raise CLIError(f"--set {error}") from None
     return config
+
+
+def _check_given_once(config_class: type, flags: Mapping[str, str], given: list[str],
+                      overrides: list[str]) -> None:
+    """Refuse a field set twice, by its option and by ``--set`` (``--no-refine --set
+    refine=true``) or by two ``--set`` of one key (or of a key and a field within it): the
+    later would silently win. One line naming both."""
+    defaults = config_class()
+    seen: dict[str, str] = {}
+    for name in given:
+        flag = flags.get(name, f"--{name.replace('_', '-')}")
+        boolean = isinstance(getattr(defaults, name, None), bool)
+        seen[name] = f"{flag} / --no-{flag[2:]}" if boolean else flag
+    for override in overrides:
+        key = override.split("=", 1)[0].strip()
+        for earlier_key, earlier in seen.items():
+            if key == earlier_key or key.startswith(f"{earlier_key}.") \
+                    or earlier_key.startswith(f"{key}."):
+                raise CLIError(f"--set {override}: {earlier_key} is also given by {earlier}; "
+                               "give it once")
+        seen[key] = f"--set {override}"
 
 
 def field_default(config_class: type, name: str) -> Any:

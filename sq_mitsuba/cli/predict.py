@@ -112,33 +112,10 @@ def _sequence_fields() -> str:
     return settable_fields(SequenceOptions)
 
 
-def check_conflicts(args: argparse.Namespace) -> None:
-    """Refuse a field set twice: by its option and by ``--set`` (``--no-refine --set
-    refine=true``), or by two ``--set`` of one key; one line naming both."""
-    from sq_mitsuba.apps.predict import PredictOptions
-    from sq_mitsuba.cli import CLIError
-
-    defaults = PredictOptions()
-    seen: dict[str, str] = {}
-    for name, flag in FLAGS.items():
-        if hasattr(args, name):
-            boolean = isinstance(getattr(defaults, name), bool)
-            seen[name] = f"{flag} / --no-{flag[2:]}" if boolean else flag
-    for override in getattr(args, "overrides", None) or []:
-        key = override.split("=", 1)[0].strip()
-        for earlier_key, earlier in seen.items():
-            if key == earlier_key or key.startswith(f"{earlier_key}.") \
-                    or earlier_key.startswith(f"{key}."):
-                raise CLIError(f"--set {override}: {earlier_key} is also given by {earlier}; "
-                               "give it once")
-        seen[key] = f"--set {override}"
-
-
 def _run(args: argparse.Namespace) -> int:
     from sq_mitsuba.apps.predict import PredictOptions, predict_images
     from sq_mitsuba.cli import CLIError
 
-    check_conflicts(args)
     if args.ordered and not args.sequence:
         raise CLIError("--ordered: only with --sequence")
     if args.fit_overrides and not args.sequence:
@@ -148,6 +125,11 @@ def _run(args: argparse.Namespace) -> int:
     if args.sequence:
         return _run_sequence(args)
     options = config_from_args(PredictOptions, args)
+    if not options.refine:  # the fit's settings would be ignored: refused, as the API does
+        for override in getattr(args, "overrides", None) or []:
+            if override.split("=", 1)[0].strip().split(".")[0] in ("mask", "search",
+                                                                   "refinement"):
+                raise CLIError(f"--set {override}: only used with --refine")
     records = predict_images(args.images, args.out, args.checkpoint, args.camera, args.mask,
                              options, progress=not args.quiet)
     for record in records:
@@ -172,11 +154,15 @@ def _run_sequence(args: argparse.Namespace) -> int:
     from sq_mitsuba.inference.loading import load_model
     from sq_mitsuba.inference.sequence import SequenceOptions
 
-    unused = [flag for flag, given in (("--mask", args.mask), ("--refine", getattr(
-        args, "refine", None)), ("--turns", getattr(args, "turns", None)),
-        ("--set", getattr(args, "overrides", None))) if given]
+    # A pass refines every frame, on the fast path, and draws its own overlays: the single
+    # image's options would be silently ignored.
+    unused = [flag for flag, given in (("--mask", args.mask), ("--refine", hasattr(
+        args, "refine")), ("--turns", hasattr(args, "turns")), ("--level", hasattr(args, "level")),
+        ("--fast / --no-fast", hasattr(args, "fast")), ("--set", getattr(args, "overrides", None)))
+        if given]
     if unused:
-        raise CLIError(f"{unused[0]}: not used with --sequence (every frame is refined)")
+        raise CLIError(f"{unused[0]}: not used with --sequence (every frame is refined, on the "
+                       "fast path; --fit sets the joint fit)")
     try:
         options = apply_overrides(SequenceOptions(), args.fit_overrides)
     except ConfigError as error:

@@ -127,12 +127,15 @@ def neighbour_correlation(images: Tensor) -> Tensor:
     A picture of anything has strongly correlated neighbours (a space scene: 0.2 to 0.97,
     lower for a grainy render or a barely lit target); per-pixel noise has none (|r| < 0.04).
     An image larger than 512 px is measured on its means over k x k blocks (k the smallest
-    integer that brings it to 512 px or less), which keep both so.
+    integer that brings it to 512 px or less; no taller or wider than the image), which keep
+    both so.
     """
     grey = images.detach().float().mean(dim=1, keepdim=True)
-    factor = -(-max(grey.shape[-2:]) // _CORRELATION_SIDE)
+    height, width = grey.shape[-2:]
+    factor = -(-max(height, width) // _CORRELATION_SIDE)
     if factor > 1:  # block means: white noise stays white, a picture stays a picture
-        grey = F.avg_pool2d(grey, factor, stride=factor, ceil_mode=False)
+        block = (min(factor, height), min(factor, width))  # a strip keeps one row of blocks
+        grey = F.avg_pool2d(grey, block, stride=block, ceil_mode=False)
     grey = grey[:, 0]
     first = torch.cat([grey[..., :, :-1].flatten(1), grey[..., :-1, :].flatten(1)], dim=1)
     second = torch.cat([grey[..., :, 1:].flatten(1), grey[..., 1:, :].flatten(1)], dim=1)

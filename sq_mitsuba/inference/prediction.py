@@ -52,7 +52,7 @@ class Fit:
             (B, N) their soft IoUs at the coarse resolution (NaN rows where not fitted).
         iou: (B,) the IoU after refinement at the refinement resolution.
         turns_seconds, search_seconds, seconds: wall time of reading the turned copies, of
-            the search, and of the whole fit (the turned copies included).
+            the search with them (its start is their reading), and of the whole fit.
     """
 
     mask: Tensor

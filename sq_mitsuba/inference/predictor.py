@@ -84,8 +84,7 @@ _FINGERPRINT_TOLERANCE = 1e-3
 
 
 class _Prepared(NamedTuple):
-    """Images ready for the network, and the size they were given at (for the mask's and
-    the pixel's scale back)."""
+    """Images ready for the network, and their given size (for the mask's and pixel's scale)."""
 
     images: Tensor  # (B, C, S, S) on the network's device and dtype
     height: int
@@ -147,8 +146,7 @@ class Predictor:
 
     @property
     def num_primitives(self) -> int:
-        """Superquadrics the network predicts per image (M; with existence probabilities a
-        prediction keeps those that exist)."""
+        """M, the superquadrics the network predicts per image (before existence drops any)."""
         return self.model.config.num_primitives
 
     def predict(self, images: Tensor | np.ndarray, camera: Camera | None = None, *,
@@ -224,7 +222,7 @@ class Predictor:
             The others: see :meth:`predict`.
 
         Raises:
-            ValueError: naming ``images``, ``camera``, ``turns``, ``mask`` or ``network``.
+            ValueError: naming ``images``, ``camera``, ``turns``, ``mask``, ``network``, ``reuse``.
         """
         from sq_mitsuba.inference.pipeline import fit_prediction
 
@@ -238,6 +236,10 @@ class Predictor:
         if not self._same_images(network, x):
             raise ValueError(f"network: a reading of other images than these {count} (its "
                              "fingerprint differs); read these with predict(images)")
+        if reuse is not None and not (isinstance(reuse, Fit) and turns in (None, reuse.turns)
+                                      and self._same_images(reuse.start, x)):
+            raise ValueError(f"reuse: expected the fit of these {count} images, from as many "
+                             "turned copies as turns asks (its start's fingerprint differs)")
         return fit_prediction(self, x.checked, network, turns=turns, mask=mask, search=search,
                               refinement=refinement, reuse=reuse)
 
