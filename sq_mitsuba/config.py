@@ -541,8 +541,12 @@ def read_mapping(path: str | PathLike[str]) -> Mapping[str, Any]:
             return tomllib.loads(text)
         except tomllib.TOMLDecodeError as exc:
             raise ConfigError(f"{path}: malformed TOML: {exc}") from None
+        except RecursionError:  # arrays nested deeper than the parser's stack
+            raise ConfigError(f"{path}: malformed TOML: nested too deeply") from None
     try:
         data = json.loads(text, object_pairs_hook=_no_duplicate_keys)
+    except RecursionError:
+        raise ConfigError(f"{path}: malformed JSON: nested too deeply") from None
     except json.JSONDecodeError as exc:
         where = f"line {exc.lineno}, column {exc.colno}"
         raise ConfigError(f"{path}: malformed JSON at {where}: {exc.msg}") from None

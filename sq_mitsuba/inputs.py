@@ -98,14 +98,16 @@ def open_image(path: str | os.PathLike[str], what: str = "image", verify: bool =
 
     Raises:
         FileNotFoundError: ``<what> <path>: no such file``.
-        ValueError: ``<what> <path>: ...``: not an image, corrupt or truncated, or of a size
-            :func:`check_image_size` refuses.
+        ValueError: ``<what> <path>: ...``: not a regular file, not an image, corrupt or
+            truncated, or of a size :func:`check_image_size` refuses.
     """
     from PIL import Image, UnidentifiedImageError
 
     path = Path(path)
     where = _label(what, path)
     if not path.is_file():
+        if path.exists():  # a device, a pipe, a socket: reading it could block or never end
+            raise ValueError(f"{where}: not a regular file (a device, pipe or socket)")
         raise FileNotFoundError(f"{where}: no such file")
     try:
         with warnings.catch_warnings():
@@ -292,6 +294,8 @@ def read_quaternions(path: str | os.PathLike[str], count: int, what: str) -> lis
 
     path = Path(path)
     if not path.is_file():
+        if path.exists():  # a folder, device or pipe: reading could block, or never end
+            raise ValueError(f"{path}: not a regular file (a folder, device, pipe or socket)")
         raise FileNotFoundError(f"{path}: missing")
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
@@ -299,6 +303,8 @@ def read_quaternions(path: str | os.PathLike[str], count: int, what: str) -> lis
         raise ValueError(f"{path}: not valid JSON ({error.msg}, line {error.lineno})") from None
     except UnicodeDecodeError:
         raise ValueError(f"{path}: not valid JSON (not UTF-8 text)") from None
+    except RecursionError:  # arrays nested deeper than the parser's stack
+        raise ValueError(f"{path}: not valid JSON here (nested too deeply)") from None
     if not isinstance(data, list):
         raise ValueError(f"{path}: expected a list of quaternions [w, x, y, z], got a "
                          f"{type(data).__name__}")

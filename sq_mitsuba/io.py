@@ -69,15 +69,19 @@ def read_json(path: str | Path) -> Any:
 
     Raises:
         FileNotFoundError: ``path`` does not exist.
-        ValueError: ``"<path>: not valid JSON (<reason>, line <n>)"``.
+        ValueError: ``"<path>: not valid JSON (<reason>, line <n>)"``, or not a regular file.
     """
     path = Path(path)
+    if path.exists() and not path.is_file():  # a device or pipe could block, or never end
+        raise ValueError(f"{path}: not a regular file (a folder, device, pipe or socket)")
     try:
         return json.loads(path.read_text(encoding="utf-8"))
     except json.JSONDecodeError as error:
         raise ValueError(f"{path}: not valid JSON ({error.msg}, line {error.lineno})") from None
     except UnicodeDecodeError:
         raise ValueError(f"{path}: not valid JSON (not UTF-8 text)") from None
+    except RecursionError:  # arrays or objects nested deeper than the parser's stack
+        raise ValueError(f"{path}: not valid JSON here (nested too deeply)") from None
 
 
 def save_figure(figure: Any, path: str | Path, dpi: int = 110) -> Path:
@@ -103,6 +107,8 @@ def check_output_folder(out: str | Path) -> Path:
     Raises:
         ValueError: ``out`` or an ancestor is a file, or the folder is not writable.
     """
+    if not str(out).strip():  # Path("") is the working folder: never what was meant
+        raise ValueError("out: an empty path; give an output folder")
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise ValueError(f"out {out}: exists and is not a folder")
@@ -120,3 +126,18 @@ def check_output_folder(out: str | Path) -> Path:
     with contextlib.suppress(FileNotFoundError):
         os.unlink(probe)
     return out
+
+
+def check_inputs_kept(inputs: list[Path], outputs: list[Path]) -> None:
+    """Refuse a run that would overwrite one of its own inputs with one of its outputs (an
+    image named like another's overlay, say): one line naming the input.
+
+    Raises:
+        ValueError: ``"<input>: ... would overwrite it ..."``.
+    """
+    written = {os.path.realpath(path) for path in outputs}
+    for path in inputs:
+        if os.path.realpath(path) in written:
+            raise ValueError(f"{path}: an output of this run would overwrite it (an input in "
+                             "the output folder, named like an output); write elsewhere (--out)")
+

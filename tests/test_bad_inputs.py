@@ -636,8 +636,17 @@ def test_quaternion_lists_are_normalised_and_bad_ones_are_one_line(tmp_path):
                           ("[[1, 0, 0, 0], [Infinity, 0, 0, 0]]", "1: expected a finite"),
                           (json.dumps([unit, [True, 0, 0, 0]]), "quaternion 1: expected a finite"),
                           (json.dumps([unit, [1, 0, 0]]), "quaternion 1: expected [w, x, y, z]"),
-                          ("[[1, 0, 0, 0], ", "not valid JSON")):
+                          ("[[1, 0, 0, 0], ", "not valid JSON"),
+                          ("[" * 100_000 + "]" * 100_000, "nested too deeply")):
         path.write_text(text)
         with pytest.raises(ValueError, match=re.escape(message)) as info:
             read_quaternions(path, 2, "image")
         assert str(path) in str(info.value) and "\n" not in str(info.value)
+    # Every JSON file the tools read (cameras, labels, scenes) goes through read_json.
+    from sq_mitsuba.io import read_json
+
+    with pytest.raises(ValueError, match=re.escape(f"{path}: not valid JSON here (nested")):
+        read_json(path)
+    for reader in (read_json, lambda device: read_quaternions(device, 2, "image")):
+        with pytest.raises(ValueError, match=r"^/dev/null: not a regular file"):
+            reader("/dev/null")  # a device could block, or never end (/dev/urandom)

@@ -103,3 +103,17 @@ def test_bad_arguments(tmp_path):
     bad.write_text("{not json")
     with pytest.raises(ValueError, match="camera"):
         Camera.load(bad)
+
+
+def test_the_metre_fields_are_checked_beside_the_matrix_and_the_pitch_named():
+    """A NaN or a string in a field the matrix makes unused is still a broken file; a pitch
+    that is not positive is named as the pitch, not as the focal length."""
+    speed = Camera.default(64).to_speed_dict()
+    for key, value in (("fx", float("nan")), ("ppx", "abc"), ("ccx", None)):
+        with pytest.raises(ValueError, match=rf"^camera\.json: {key} must be"):
+            Camera.from_speed_dict({**speed, key: value}, "camera.json")
+    metric = {key: value for key, value in speed.items() if key != "cameraMatrix"}
+    with pytest.raises(ValueError, match=r"^camera\.json: ppx \(the pixel pitch, metres\) "
+                                         r"must be > 0, got -1"):
+        Camera.from_speed_dict({**metric, "ppx": -1}, "camera.json")
+    assert Camera.from_speed_dict(metric).fx == pytest.approx(Camera.default(64).fx, rel=1e-6)

@@ -330,6 +330,10 @@ def test_malformed_files(tmp_path):
     assert error(load, RunConfig, js) == f"{js}: expected a JSON object at the top, got list"
     js.write_text('{"steps": 1, "steps": 2}')
     assert error(load, RunConfig, js) == f"{js}: duplicate key 'steps'"
+    js.write_text("[" * 100_000 + "]" * 100_000)  # deeper than the parser's stack
+    assert error(load, RunConfig, js) == f"{js}: malformed JSON: nested too deeply"
+    toml.write_text("a = " + "[" * 100_000 + "]" * 100_000)
+    assert error(load, RunConfig, toml) == f"{toml}: malformed TOML: nested too deeply"
     other = tmp_path / "run.yaml"
     other.write_text("steps: 1")
     assert error(load, RunConfig, other).startswith(f"{other}: unsupported config file type")

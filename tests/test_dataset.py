@@ -392,6 +392,11 @@ def test_check_finds_a_wrong_mask_and_preview_draws(dataset, tmp_path, capsys):
     out = tmp_path / "sheet.png"
     assert main(["dataset", "preview", str(dataset), "--out", str(out), "--count", "4"]) == 0
     assert Image.open(out).size[0] > 300
+    capsys.readouterr()
+    jpeg = tmp_path / "sheet.jpg"  # a preview is PNG: never written under another format's name
+    assert main(["dataset", "preview", str(dataset), "--out", str(jpeg)]) == 2
+    assert f"out {jpeg}: a preview is written as PNG" in capsys.readouterr().err
+    assert not jpeg.exists()
 
 
 def test_exr_holds_linear_radiance_depth_and_coverage(model_library, tmp_path):

@@ -66,6 +66,11 @@ def test_export_refuses_bad_input_before_writing(eval_checkpoint, tmp_path, caps
                  "--out", str(out)]) == 2
     assert error_line(capsys)
     assert not out.exists()
+    assert main(["export", "--checkpoint", str(eval_checkpoint), "--start-share", "0.5",
+                 "--out", str(out)]) == 2
+    assert error_line(capsys).endswith("--start-share: only with --start (the share of the "
+                                       "start's weights)")
+    assert not out.exists()
 
 
 @pytest.mark.skipif(not SHIPPED_MODEL.is_file(), reason="no shipped model in this checkout")

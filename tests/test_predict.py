@@ -162,6 +162,35 @@ def test_bad_inputs_are_one_line_naming_the_file(eval_checkpoint, inputs, tmp_pa
         assert not out.exists()  # nothing written, not even the folder
 
 
+def test_an_input_an_output_would_overwrite_is_refused(eval_checkpoint, inputs, tmp_path,
+                                                      capsys):
+    """Inputs in the output folder named like an output (q.overlay.png beside q.png, an image
+    called sequence.png in a pass) are refused before any work and left as they were; an
+    empty --out is not taken for the working folder."""
+    folder = tmp_path / "work"
+    folder.mkdir()
+    grey = (inputs / "grey.png").read_bytes()
+    for name in ("q.png", "q.overlay.png", "sequence.png", "f2.png"):
+        (folder / name).write_bytes(grey)
+    runs = [(["q.png", "q.overlay.png"], [], "q.overlay.png: an output of this run would "
+                                             "overwrite it"),
+            (["sequence.png", "f2.png"], ["--sequence"], "sequence.png: an output of this run "
+                                                         "would overwrite it")]
+    for names, extra, expected in runs:
+        before = sorted(p.name for p in folder.iterdir())
+        assert main(["predict", *(str(folder / n) for n in names), *extra, "--checkpoint",
+                     str(eval_checkpoint), "--out", str(folder), "--quiet"]) == 2
+        assert expected in error_line(capsys)
+        assert sorted(p.name for p in folder.iterdir()) == before
+        assert all((folder / n).read_bytes() == grey for n in names)
+    with pytest.raises(SystemExit) as exited:  # argparse: usage, then the error line
+        main(["predict", str(folder / "q.png"), "--checkpoint", str(eval_checkpoint), "--out",
+              "", "--quiet"])
+    assert exited.value.code == 2
+    assert capsys.readouterr().err.strip().splitlines()[-1].endswith(
+        "argument --out: an empty path; give the output's path")
+
+
 def test_other_size_same_aspect_ratio_is_rescaled(eval_checkpoint, inputs, tmp_path):
     grey = Image.open(inputs / "grey.png")
     grey.resize((128, 128), Image.BILINEAR).save(tmp_path / "large.png")

@@ -11,9 +11,11 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import re
 import subprocess
 import sys
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -387,6 +389,50 @@ def test_assembly_write_errors_name_the_target_not_the_temporary_file(assembly, 
 # --- minors: files, cameras, conflicting options ------------------------------------------
 
 
+def test_float_images_and_masks_with_pixels_not_finite_are_refused(eval_checkpoint, tmp_path,
+                                                                   capsys):
+    """A float TIFF with a NaN or an infinite pixel, as an image or a mask, is one line naming
+    it before any work (clipping would silently make it black or white)."""
+    from PIL import Image
+
+    from sq_mitsuba.data.masks import read_gray_image, read_mask
+
+    good = np.full((16, 16), 0.25, np.float32)
+    Image.fromarray(good, mode="F").save(tmp_path / "good.tiff")
+    assert read_gray_image(tmp_path / "good.tiff") == pytest.approx(np.full((16, 16), 0.25))
+    for name, value in (("nan.tiff", np.nan), ("inf.tiff", np.inf)):
+        bad = good.copy()
+        bad[3, 4] = value
+        Image.fromarray(bad, mode="F").save(tmp_path / name)
+        with pytest.raises(ValueError, match=f"^image {tmp_path / name}: 1 pixel"):
+            read_gray_image(tmp_path / name)
+        with pytest.raises(ValueError, match=f"^mask {tmp_path / name}: 1 pixel"):
+            read_mask(tmp_path / name)
+    out = tmp_path / "out"
+    Image.fromarray(np.full((64, 64), 90, np.uint8)).save(tmp_path / "first.png")
+    assert main(["predict", str(tmp_path / "first.png"), str(tmp_path / "nan.tiff"),
+                 "--checkpoint", str(eval_checkpoint), "--out", str(out), "--quiet"]) == 2
+    assert f"image {tmp_path / 'nan.tiff'}: 1 pixel(s) not finite" in error_line(capsys)
+    assert not out.exists()
+
+
+def test_an_obj_with_a_face_past_its_vertices_or_a_nan_vertex_is_one_line(tmp_path):
+    from sq_mitsuba.data.mesh_io import read_obj
+
+    path = tmp_path / "bad.obj"
+    triangle = "v 0 0 0\nv 1 0 0\nv 0 1 0\n"
+    for text, message in ((triangle + "f 1 2 3\nf 1 2 7\n", "triangle 1 refers to a vertex it "
+                                                            "does not have (the file has 3"),
+                          (triangle + "f 1 2 -4\n", "triangle 0 refers to a vertex"),
+                          (triangle.replace("v 1 0 0", "v nan 0 0") + "f 1 2 3\n",
+                           "a vertex is not finite")):
+        path.write_text(text)
+        with pytest.raises(ValueError, match=re.escape(f"{path}: {message}")):
+            read_obj(path)
+    path.write_text(triangle + "f 1 2 3\nf -1 -2 -3\n")  # negative indices count from the end
+    assert read_obj(path)[1].tolist() == [[0, 1, 2], [2, 1, 0]]
+
+
 def test_a_folder_is_reported_as_a_folder(eval_checkpoint, tmp_path, capsys):
     from sq_mitsuba.data.masks import read_gray_image
     from sq_mitsuba.data.mesh_io import read_obj
@@ -395,6 +441,10 @@ def test_a_folder_is_reported_as_a_folder(eval_checkpoint, tmp_path, capsys):
     folder.mkdir()
     with pytest.raises(IsADirectoryError, match=f"^image {folder}: is a folder, not a file$"):
         read_gray_image(folder)
+    device = Path("/dev/null")  # exists, but not a file: reading a device may never end
+    if device.exists():
+        with pytest.raises(ValueError, match=r"^image /dev/null: not a regular file"):
+            read_gray_image(device)
     with pytest.raises(IsADirectoryError, match=f"^{folder}: is a folder, not a mesh file$"):
         read_obj(folder)
     out = tmp_path / "out"
@@ -485,6 +535,16 @@ def test_every_command_refuses_a_field_given_twice(tmp_path, monkeypatch, capsys
     monkeypatch.chdir(tmp_path)
     assert main(argv) == 2
     assert needle in error_line(capsys)
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("label", ["a\nb", "a|b", " "])
+def test_eval_refuses_a_label_that_would_break_the_reports_tables(tmp_path, monkeypatch, capsys,
+                                                                 label):
+    monkeypatch.chdir(tmp_path)
+    assert main(["eval", "--checkpoint", "c.pt", "--data", "d", "--out", "o", "--label",
+                 label]) == 2
+    assert "expected one line without '|'" in error_line(capsys)
     assert not (tmp_path / "o").exists()
 
 

@@ -306,7 +306,7 @@ def test_predict_sequence_returns_one_assembly_and_every_pose(eval_checkpoint, t
     ("one", "images: a sequence needs at least 2 frames"),
     ("nan", "images: contains NaN"),
     ("list", "images: expected a torch.Tensor or numpy array"),
-    ("dark", "images: frame 1 has no target in its mask"),
+    ("dark", "images: frame 1 shows no target"),
     ("relative", r"relative_rotations: expected \(3, 3, 3\)"),
     ("not_rotations", "relative_rotations: not rotation matrices"),
 ])

@@ -364,6 +364,16 @@ def test_unwritable_out_is_refused_before_work(tmp_path, capsys, train_dataset):
     code, err = _cli(["train", "--config", str(TINY), "--data", str(train_dataset), "--out",
                       str(blocker / "run")], capsys)
     assert code == 2 and "not writable" in err and err.count("\n") == 1
+    inside = train_dataset / "run"  # the run's files would join the dataset
+    code, err = _cli(["train", "--config", str(TINY), "--data", str(train_dataset), "--out",
+                      str(inside)], capsys)
+    assert code == 2 and "inside the dataset folder" in err and err.count("\n") == 1
+    assert not inside.exists()
+    code, err = _cli(["train", "--config", str(TINY), "--data", str(train_dataset), "--out",
+                      str(tmp_path / "run"), "--set", f"data.cache_dir={blocker / 'cache'}"],
+                     capsys)
+    assert code == 2 and err.count("\n") == 1
+    assert f"data.cache_dir: {blocker / 'cache'}:" in err and not (tmp_path / "run").exists()
 
 
 def test_visibility_threshold_filters_training_images(train_dataset, cache_dir, tmp_path,

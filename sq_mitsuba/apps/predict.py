@@ -278,7 +278,7 @@ def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
     from tqdm import tqdm
 
     from sq_mitsuba.inference.loading import with_fast_path
-    from sq_mitsuba.io import check_output_folder
+    from sq_mitsuba.io import check_inputs_kept, check_output_folder
     from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer, render_assembly
 
     options = options or PredictOptions()
@@ -296,6 +296,9 @@ def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
                          "search.turns=T)")
     predictor.check_turns(options.turns, camera)
     out = check_output_folder(out_dir)
+    check_inputs_kept([*paths, *(mask_paths or [])],
+                      [out / f"{path.stem}{suffix}" for path in paths
+                       for suffix in OUTPUT_SUFFIXES])
     predictor = with_fast_path(predictor, options.fast, min_target=options.min_target,
                                min_existence=options.min_existence)
     # One untimed call first: the first run of a network sets up its kernels (~1 s), which

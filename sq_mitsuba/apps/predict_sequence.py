@@ -18,6 +18,7 @@ twice.
 from __future__ import annotations
 
 import math
+import re
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -102,7 +103,12 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
     from sq_mitsuba.data.masks import read_gray_image
     from sq_mitsuba.geometry.assembly import Assembly
     from sq_mitsuba.inference.loading import with_fast_path
-    from sq_mitsuba.io import atomic_path, atomic_write_json, check_output_folder
+    from sq_mitsuba.io import (
+        atomic_path,
+        atomic_write_json,
+        check_inputs_kept,
+        check_output_folder,
+    )
     from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer, render_assembly
 
     paths = [Path(p) for p in images]
@@ -123,13 +129,23 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
                          f"{where} ({given.width} x {given.height}); a pass is not padded to "
                          "it: give the frames' own camera (--camera)")
     out = check_output_folder(out_dir)
+    check_inputs_kept(paths, [out / name for name in ("sequence.assembly.json", "sequence.glb",
+                                                      "sequence.png")]
+                      + [out / f"{path.stem}{suffix}" for path in paths
+                         for suffix in (".pose.json", ".overlay.png")])
     predictor = with_fast_path(predictor, True)
     record = SequenceRecord()
     started = time.perf_counter()
     frames = torch.from_numpy(np.stack(pictures)).float()
     kwargs = {} if options is None else {"options": options}
-    result = predictor.predict_sequence(frames, camera, relative_rotations=relative_rotations,
-                                        ordered=ordered, **kwargs)
+    try:
+        result = predictor.predict_sequence(frames, camera, relative_rotations=relative_rotations,
+                                            ordered=ordered, **kwargs)
+    except ValueError as error:  # "images: frame k ..." named by its file
+        found = re.match(r"images: frame (\d+) (.*)", str(error), re.S)
+        if found is None:
+            raise
+        raise ValueError(f"image {paths[int(found[1])]}: {found[2]}") from None
     record.seconds = time.perf_counter() - started
     record.iou = [float(v) for v in result.iou]
     record.frame_iou = [float(v) for v in result.frame_iou]

@@ -175,6 +175,14 @@ def _check_given_once(config_class: type, flags: Mapping[str, str], given: list[
         seen[key] = f"--set {override}"
 
 
+def output_path(text: str) -> Path:
+    """The argparse type of an output path: an empty one is refused, not taken for the working
+    folder (``Path("")`` is ``.``)."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("an empty path; give the output's path")
+    return Path(text)
+
+
 def field_default(config_class: type, name: str) -> Any:
     """The default of field ``name`` of ``config_class`` (for help texts of positional args)."""
     for item in dataclasses.fields(config_class):

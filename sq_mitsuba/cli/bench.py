@@ -7,7 +7,7 @@ from pathlib import Path
 
 import sq_mitsuba.bench as bench
 from sq_mitsuba.cli import CLIError
-from sq_mitsuba.cli._options import add_config_options, config_from_args
+from sq_mitsuba.cli._options import add_config_options, config_from_args, output_path
 
 FLAGS = {"repeats": "--repeats", "warmup": "--warmup", "threads": "--threads",
          "device": "--device", "batch": "--batch", "step_only": "--step-only"}
@@ -31,7 +31,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     curves.add_argument("--minutes", type=float, metavar="M",
                         help="training wall time of each config, > 0 (default: none; "
                              "required by curves)")
-    curves.add_argument("--out", type=Path, metavar="DIR",
+    curves.add_argument("--out", type=output_path, metavar="DIR",
                         help="folder of the runs, one per config (default: none; required "
                              "by curves)")
     curves.add_argument("--configs", nargs="+", metavar="LABEL",

@@ -6,7 +6,12 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from sq_mitsuba.cli._options import add_config_options, add_set_option, config_from_args
+from sq_mitsuba.cli._options import (
+    add_config_options,
+    add_set_option,
+    config_from_args,
+    output_path,
+)
 
 HELP = "render, check and preview datasets in the SPE3R layout"
 RENDER_DESCRIPTION = """\
@@ -48,7 +53,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "render", help="path-trace images, masks and labels of every model",
         description=RENDER_DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
     render.add_argument("--models", type=Path, required=True, help="model library folder")
-    render.add_argument("--out", type=Path, required=True, help="dataset folder to write")
+    render.add_argument("--out", type=output_path, required=True, help="dataset folder to write")
     add_config_options(render, RenderOptions, RENDER_FLAGS,
                        metavars={"camera": "JSON", "shard": "I/N"})
     render.add_argument("--scene", type=Path, default=None, metavar="FILE",
@@ -74,7 +79,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     preview = commands.add_parser(
         "preview", help="contact sheet of images with mask outlines and pose axes")
     preview.add_argument("root", type=Path, help="dataset folder")
-    preview.add_argument("--out", type=Path, default=None, metavar="PNG",
+    preview.add_argument("--out", type=output_path, default=None, metavar="PNG",
                          help="PNG to write (default ROOT_preview.png beside the dataset "
                               "folder, which is only read)")
     add_config_options(preview, PreviewOptions, PREVIEW_FLAGS)

@@ -6,7 +6,12 @@ import argparse
 from pathlib import Path
 
 from sq_mitsuba.cli import CLIError
-from sq_mitsuba.cli._options import add_config_options, add_set_option, config_from_args
+from sq_mitsuba.cli._options import (
+    add_config_options,
+    add_set_option,
+    config_from_args,
+    output_path,
+)
 
 HELP = "the front door: predict unseen spacecraft from single images, as a web page"
 DESCRIPTION = """\
@@ -60,7 +65,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--size", default=DemoOptions().size, metavar="{" + ",".join(SIZES) + "}",
                         help=" ".join(field_docs(DemoOptions)["size"].split()).rstrip(".")
                         + f" (default: {DemoOptions().size})")
-    parser.add_argument("--out", type=Path, default=Path("demo_output"), metavar="DIR",
+    parser.add_argument("--out", type=output_path, default=Path("demo_output"), metavar="DIR",
                         help="output folder, replaced as a whole (default: demo_output)")
     parser.add_argument("--checkpoint", type=Path, default=None, metavar="PT",
                         help="checkpoint file (default: the model shipped with the package)")

@@ -5,7 +5,12 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from sq_mitsuba.cli._options import add_config_options, add_set_option, config_from_args
+from sq_mitsuba.cli._options import (
+    add_config_options,
+    add_set_option,
+    config_from_args,
+    output_path,
+)
 
 HELP = "evaluate a trained model on a dataset split (metrics, tables, figures)"
 DESCRIPTION = """\
@@ -60,7 +65,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="checkpoint file (default: the model shipped with the package)")
     parser.add_argument("--data", type=Path, required=True, metavar="DIR",
                         help="dataset folder in the SPE3R layout")
-    parser.add_argument("--out", type=Path, required=True, metavar="DIR",
+    parser.add_argument("--out", type=output_path, required=True, metavar="DIR",
                         help="output folder (created)")
     parser.add_argument("--label", default=None,
                         help="name of the run in eval.json and the report (default: the "
@@ -74,6 +79,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def _run(args: argparse.Namespace) -> int:
     from sq_mitsuba.evaluation.evaluate import EvalOptions, evaluate_checkpoint
 
+    if args.label is not None and (not args.label.strip() or set(args.label) & set("|\n\r")):
+        from sq_mitsuba.cli import CLIError
+
+        raise CLIError(f"--label {args.label!r}: expected one line without '|' (it names a "
+                       "row of report.md's tables)")
     options = config_from_args(EvalOptions, args)
     result = evaluate_checkpoint(args.checkpoint, args.data, args.out, options,
                                  progress=not args.quiet, label=args.label)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from sq_mitsuba.cli._options import add_config_options, config_from_args
+from sq_mitsuba.cli._options import add_config_options, config_from_args, output_path
 
 HELP = "export a training checkpoint for inference (what the package ships)"
 DESCRIPTION = """\
@@ -42,7 +42,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                              "their weights averaged")
     parser.add_argument("--data", type=Path, default=None, metavar="DIR",
                         help="the training dataset, for the baseline (default: no baseline)")
-    parser.add_argument("--out", type=Path, required=True, metavar="PT",
+    parser.add_argument("--out", type=output_path, required=True, metavar="PT",
                         help="inference checkpoint to write")
     parser.add_argument("--start", type=Path, default=None, metavar="PT",
                         help="the checkpoint the --checkpoint files were fine-tuned from "
@@ -59,7 +59,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def _run(args: argparse.Namespace) -> int:
     from sq_mitsuba.apps.export import ExportOptions, export_model
+    from sq_mitsuba.cli import CLIError
 
+    if hasattr(args, "start_share") and args.start is None:
+        raise CLIError("--start-share: only with --start (the share of the start's weights)")
     notes: list[str] = []
     checkpoint = args.checkpoint[0] if len(args.checkpoint) == 1 else args.checkpoint
     path = export_model(checkpoint, args.data, args.out,

@@ -5,7 +5,12 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from sq_mitsuba.cli._options import add_config_options, add_set_option, config_from_args
+from sq_mitsuba.cli._options import (
+    add_config_options,
+    add_set_option,
+    config_from_args,
+    output_path,
+)
 
 HELP = "fit superquadrics to masks seen from known poses"
 DESCRIPTION = """\
@@ -54,7 +59,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="SPE3R-style labels.json with a pose per mask")
     parser.add_argument("--camera", type=Path, metavar="JSON",
                         help="SPEED-style camera.json (default: the default camera)")
-    parser.add_argument("--out", required=True, type=Path, metavar="DIR",
+    parser.add_argument("--out", required=True, type=output_path, metavar="DIR",
                         help="output folder (created)")
     add_config_options(parser, FitOptions, FLAGS, metavars={"num_primitives": "M",
                                                             "steps": "N"})

@@ -6,7 +6,12 @@ import argparse
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from sq_mitsuba.cli._options import add_config_options, add_set_option, config_from_args
+from sq_mitsuba.cli._options import (
+    add_config_options,
+    add_set_option,
+    config_from_args,
+    output_path,
+)
 
 if TYPE_CHECKING:
     from torch import Tensor
@@ -71,7 +76,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("images", nargs="+", type=Path, metavar="IMAGE", help="input images")
     parser.add_argument("--checkpoint", type=Path, default=None, metavar="PT",
                         help="checkpoint file (default: the model shipped with the package)")
-    parser.add_argument("--out", type=Path, required=True, metavar="DIR",
+    parser.add_argument("--out", type=output_path, required=True, metavar="DIR",
                         help="output folder (created)")
     parser.add_argument("--camera", type=Path, default=None, metavar="JSON",
                         help="SPEED-style camera.json of the images (default: the "

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from sq_mitsuba.cli._options import output_path
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     from sq_mitsuba.evaluation.report import PAPER_TABLES
@@ -19,7 +21,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "eval --label).")
     parser.add_argument("folders", nargs="+", type=Path, metavar="EVAL_DIR",
                         help="evaluation folders (holding eval.json and summary.csv)")
-    parser.add_argument("--out", type=Path, required=True, metavar="DIR",
+    parser.add_argument("--out", type=output_path, required=True, metavar="DIR",
                         help="output folder for report.md and report.csv")
     parser.add_argument("--paper", type=Path, default=None, metavar="TOML",
                         help="the paper's published tables, read strictly (default: "

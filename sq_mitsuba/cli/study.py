@@ -6,7 +6,12 @@ import argparse
 from pathlib import Path
 
 from sq_mitsuba.cli import CLIError
-from sq_mitsuba.cli._options import add_config_options, add_set_option, config_from_args
+from sq_mitsuba.cli._options import (
+    add_config_options,
+    add_set_option,
+    config_from_args,
+    output_path,
+)
 
 HELP = "studies of a trained model (illumination: phase angle, Earth, eclipse)"
 DESCRIPTION = """\
@@ -51,7 +56,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     illumination.add_argument("--checkpoint", type=Path, default=None, metavar="PT",
                               help="checkpoint file (default: the model shipped with the "
                                    "package)")
-    illumination.add_argument("--out", type=Path, default=None, metavar="DIR",
+    illumination.add_argument("--out", type=output_path, default=None, metavar="DIR",
                               help="output folder (required with --models; default with "
                                    "--eval: EVAL_DIR)")
     add_config_options(illumination, StudyOptions, FLAGS, metavars={"max_models": "N"})

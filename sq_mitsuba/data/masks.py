@@ -76,9 +76,10 @@ def read_gray_image(path: str | Path, what: str = "image") -> np.ndarray:
     Raises:
         FileNotFoundError: ``path`` does not exist; IsADirectoryError: it is a folder.
         ValueError: not an image, a corrupt or truncated one, one of several frames (an
-            animated GIF, a multi-page TIFF: which frame is meant is not guessed), or one
-            outside the size bounds of :func:`sq_mitsuba.inputs.open_image` (at least 8 x 8
-            px); one line naming ``what`` and ``path``.
+            animated GIF, a multi-page TIFF: which frame is meant is not guessed), one with
+            pixels not finite (a float image), or one outside the size bounds of
+            :func:`sq_mitsuba.inputs.open_image` (at least 8 x 8 px); one line naming
+            ``what`` and ``path``.
     """
     from PIL import Image
 
@@ -93,6 +94,9 @@ def read_gray_image(path: str | Path, what: str = "image") -> np.ndarray:
     gray, top = _gray(image, path)
     if gray.ndim != 2:
         raise ValueError(f"{what} {path}: expected one image channel, got shape {gray.shape}")
+    if not np.isfinite(gray).all():  # a float image (TIFF) can hold them; clipping would hide
+        bad = int((~np.isfinite(gray)).sum())
+        raise ValueError(f"{what} {path}: {bad} pixel(s) not finite (NaN or infinite)")
     return np.clip(gray / top, 0.0, 1.0)
 
 

@@ -55,7 +55,8 @@ def read_obj(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
     Raises:
         FileNotFoundError: no such file; IsADirectoryError: ``<path>: is a folder, not a
-            mesh file``; ValueError: no triangles.
+            mesh file``; ValueError: no triangles, a face index out of range or a vertex not
+            finite.
     """
     path = Path(path)
     if path.is_dir():
@@ -83,8 +84,15 @@ def read_obj(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
                     tags.append(current)
     if not vertices or not faces:
         raise ValueError(f"{path}: no triangles")
-    return (np.asarray(vertices, float), np.asarray(faces, np.int64),
-            np.asarray(tags, np.int16))
+    points, triangles = np.asarray(vertices, float), np.asarray(faces, np.int64)
+    outside = (triangles < 0) | (triangles >= len(points))
+    if outside.any():
+        face = int(np.argwhere(outside)[0, 0])
+        raise ValueError(f"{path}: triangle {face} refers to a vertex it does not have (the "
+                         f"file has {len(points)} vertices)")
+    if not np.isfinite(points).all():
+        raise ValueError(f"{path}: a vertex is not finite (NaN or infinite)")
+    return points, triangles, np.asarray(tags, np.int16)
 
 
 def read_tagged_obj(path: str | Path) -> TaggedMesh:

@@ -114,7 +114,14 @@ class Camera:
                                  "an intrinsic matrix's is [0, 0, 1] (divide the matrix by "
                                  "its [2][2] entry)")
             fx, fy, cx, cy = values[0][0], values[1][1], values[0][2], values[1][2]
+            for key in ("fx", "fy", "ppx", "ppy", "ccx", "ccy"):  # unused beside the matrix,
+                if key in data:  # but a NaN or a string there is a broken file all the same
+                    _number(data[key], f"{where}: {key}")
         else:
+            for key in ("ppx", "ppy"):
+                if _number(data[key], f"{where}: {key}") <= 0:
+                    raise ValueError(f"{where}: {key} (the pixel pitch, metres) must be > 0, "
+                                     f"got {data[key]!r}")
             fx = _number(data["fx"], f"{where}: fx") / _number(data["ppx"], f"{where}: ppx")
             fy = _number(data["fy"], f"{where}: fy") / _number(data["ppy"], f"{where}: ppy")
             cx = _number(data.get("ccx", width / 2), f"{where}: ccx")

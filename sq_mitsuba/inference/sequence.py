@@ -373,9 +373,18 @@ def predict_sequence(predictor: Any, images: Tensor | np.ndarray, camera: Camera
     relative = _check_relative(relative_rotations, count)
     if not isinstance(ordered, bool):
         raise ValueError(f"ordered: expected True or False, got {ordered!r}")
-    frames = predictor.predict(checked, camera, refine=True, mask=mask,
-                               search=search or FRAMES_SEARCH,
-                               refinement=refinement or FRAMES_REFINEMENT)
+    # The network's pass first (milliseconds): a frame it sees no target in is refused before
+    # the search of every frame (a mask given is fitted whatever the score).
+    network = predictor.predict(checked, camera)
+    if network.target is not None and (mask is None or isinstance(mask, str)):
+        absent = [k for k in range(count) if not bool(network.target[k])]
+        if absent:
+            raise ValueError(f"images: frame {absent[0]} shows no target (its score "
+                             f"{float(network.target_score[absent[0]]):.2f}); leave it out of "
+                             "the sequence or pass its mask")
+    frames = predictor.refine(checked, network, camera, mask=mask,
+                              search=search or FRAMES_SEARCH,
+                              refinement=refinement or FRAMES_REFINEMENT)
     empty = [k for k in range(count) if not bool(frames.fit.fitted[k])]
     if empty:
         raise ValueError(f"images: frame {empty[0]} has no target in its mask "

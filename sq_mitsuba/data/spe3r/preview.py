@@ -63,6 +63,8 @@ def preview_dataset(root: str | Path, out: str | Path | None = None,
     count, axis_length = options.count, options.axis_length
     root = Path(root)
     out = Path(out) if out is not None else default_preview_path(root)
+    if out.suffix.lower() != ".png":  # never a file whose name says another format
+        raise DatasetError(f"out {out}: a preview is written as PNG; name it .png")
     for required in ("camera.json", "splits.csv"):
         if not (root / required).is_file():
             raise DatasetError(f"{root / required}: missing")
