@@ -53,6 +53,14 @@ def test_bench_refuses_a_device_that_is_not_one(suite, capsys, no_suite_runs):
                                   "expected cpu, cuda or cuda:N")
 
 
+@pytest.mark.parametrize("extra", [["--data", "d"], ["--minutes", "1"], ["--out", "o"],
+                                   ["--configs", "cpu"]])
+def test_bench_refuses_the_curves_options_for_another_suite(extra, capsys, no_suite_runs):
+    assert main(["bench", "geometry", *extra]) == EXIT_ERROR
+    assert error_line(capsys) == (f"sq-mitsuba bench: error: {extra[0]}: only used by the "
+                                  "curves suite")
+
+
 @pytest.mark.parametrize("device", ["gpu", "cuda:", "cuda:x", "CPU", "cuda0", ""])
 def test_bench_refuses_malformed_device_names(device, capsys, no_suite_runs):
     assert main(["bench", "geometry", "--device", device]) == EXIT_ERROR

@@ -111,6 +111,12 @@ def test_breakdown_of_an_evaluation_by_recorded_lighting(eval_checkpoint, train_
 def test_bad_study_input_is_one_line(eval_checkpoint, train_dataset, tmp_path, capsys):
     assert main(["study", "illumination", "--eval", str(tmp_path)]) == 2
     assert "per_image.csv: missing" in error_line(capsys)
+    for extra in (["--poses", "4"], ["--max-models", "2"], ["--split", "all"],
+                  ["--set", "render.resolution=64"]):  # what --models renders: the eval's done
+        assert main(["study", "illumination", "--eval", str(tmp_path), *extra]) == 2
+        named = " ".join(extra) if extra[0] == "--set" else extra[0]
+        assert error_line(capsys).endswith(f"{named}: not used with --eval (the evaluation is "
+                                           "done; only --step applies)")
     assert main(["study", "illumination", "--models", str(train_dataset),
                  "--checkpoint", str(eval_checkpoint)]) == 2
     assert "--out: required" in error_line(capsys)

@@ -47,6 +47,10 @@ def _run(args: argparse.Namespace) -> int:
         raise CLIError(f"--{error}") from None
     if args.suite == "curves":
         return _curves(args)
+    for flag, value in (("--data", args.data), ("--minutes", args.minutes), ("--out", args.out),
+                        ("--configs", args.configs)):
+        if value is not None:  # would be silently ignored by every other suite
+            raise CLIError(f"{flag}: only used by the curves suite")
     for report in bench.run_suites([args.suite], options, write=args.write):
         print(report.to_markdown())
         if args.write:

@@ -72,6 +72,12 @@ def _illumination(args: argparse.Namespace) -> int:
     if args.eval_dir is not None:
         if args.checkpoint is not None:
             raise CLIError("--checkpoint: not used with --eval (the evaluation is done)")
+        unused = [flag for name, flag in FLAGS.items() if name != "step" and hasattr(args, name)]
+        unused += [f"--set {s}" for s in getattr(args, "overrides", None) or []
+                   if s.split("=", 1)[0].strip() != "step"]
+        if unused:  # they choose what to render and score: the evaluation has done both
+            raise CLIError(f"{unused[0]}: not used with --eval (the evaluation is done; only "
+                           "--step applies)")
         result = lighting_breakdown(args.eval_dir, args.out, options.step)
     else:
         if args.out is None:
