@@ -538,6 +538,15 @@ def test_every_command_refuses_a_field_given_twice(tmp_path, monkeypatch, capsys
     assert not (tmp_path / "o").exists()
 
 
+def test_eval_names_a_dataset_folder_that_is_not_there(tmp_path, capsys):
+    (tmp_path / "file").write_text("x")
+    for data, message in ((tmp_path / "absent", "dataset folder not found"),
+                          (tmp_path / "file", "not a folder (a dataset is a folder)")):
+        assert main(["eval", "--data", str(data), "--out", str(tmp_path / "o"), "--quiet"]) == 2
+        assert error_line(capsys).endswith(f"{data}: {message}")
+    assert not (tmp_path / "o").exists()
+
+
 @pytest.mark.parametrize("label", ["a\nb", "a|b", " "])
 def test_eval_refuses_a_label_that_would_break_the_reports_tables(tmp_path, monkeypatch, capsys,
                                                                  label):

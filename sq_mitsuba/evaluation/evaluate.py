@@ -200,10 +200,18 @@ def evaluate(predictor: Any, data_root: str | Path, out_dir: str | Path,
     validate(options)
     check_predictor(predictor)
     data_root, out_dir = Path(data_root), Path(out_dir)
+    _check_data_folder(data_root)
     check_output_folder(out_dir)
     check_outside_data(out_dir, data_root)
     with output_lock(out_dir, command="sq-mitsuba eval"):  # re-entrant: the CLI holds it
         return _evaluate(predictor, data_root, out_dir, options, progress, label)
+
+
+def _check_data_folder(data_root: Path) -> None:
+    """A dataset folder that is not there is named as such (not by the first file missing)."""
+    if not data_root.is_dir():
+        raise ValueError(f"{data_root}: dataset folder not found" if not data_root.exists()
+                         else f"{data_root}: not a folder (a dataset is a folder)")
 
 
 def check_outside_data(out_dir: Path, data_root: Path) -> None:
@@ -450,6 +458,7 @@ def evaluate_checkpoint(checkpoint: str | Path | None, data_root: str | Path,
 
     options = options or EvalOptions()
     validate(options)
+    _check_data_folder(Path(data_root))  # before the model loads (seconds)
     predictor = load_model(checkpoint)  # evaluate folds it once the inputs are checked
     return evaluate(predictor, data_root, out_dir, options, progress=progress, label=label)
 
