@@ -277,6 +277,11 @@ def test_padding_gives_the_cameras_aspect_ratio_and_keeps_its_pixels(size):
         own = padding.crop_camera(full)
         assert (own.width, own.height) == (width, height)
         assert (own.cx, own.cy) == (full.cx - padding.left, full.cy - padding.top)
+        # In pose.json's metres the crop keeps the padded picture's lens and pixel pitch.
+        metres, padded_metres = own.to_speed_dict(padding.pixel_pitch_m()), full.to_speed_dict()
+        for key in ("fx", "fy", "ppx", "ppy"):
+            assert metres[key] == pytest.approx(padded_metres[key], rel=1e-12), key
+        assert metres["fx"] / metres["ppx"] == pytest.approx(own.fx, rel=1e-12)
 
 
 def test_turned_copies_read_the_network_alone(inputs, tmp_path, capsys):

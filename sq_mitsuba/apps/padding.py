@@ -46,6 +46,13 @@ class Padding:
         return replace(camera, cx=camera.cx - self.left, cy=camera.cy - self.top,
                        width=self.width, height=self.height)
 
+    def pixel_pitch_m(self) -> float:
+        """The padded picture's pixel pitch in metres (the SPEED sensor's width over its
+        width), which its crop keeps: ``crop_camera(c).to_speed_dict(pixel_pitch_m())``."""
+        from sq_mitsuba.geometry.camera import SPEED_PIXEL_PITCH_M, SPEED_WIDTH_PX
+
+        return SPEED_PIXEL_PITCH_M * SPEED_WIDTH_PX / self.padded_width
+
     def describe(self) -> str:
         return (f"{self.width} x {self.height} px, another aspect ratio than the model's camera: "
                 f"padded with black to {self.padded_width} x {self.padded_height} px, the "

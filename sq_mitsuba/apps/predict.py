@@ -359,13 +359,14 @@ def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
         record = records.get(k, record)  # the first pass's timing, where there was one
         padding = paddings[k]
         own_camera = image_camera if padding is None else padding.crop_camera(image_camera)
+        pitch = None if padding is None else padding.pixel_pitch_m()  # the lens in metres kept
         pose: dict[str, Any] = {
             "image": str(path), "width": own_camera.width, "height": own_camera.height,
             "image_mode": _image_mode(path), "target": record.target,
             "target_score": record.target_score, "min_target": record.min_target,
         }
         if not record.target:
-            pose.update(camera=own_camera.to_speed_dict(),
+            pose.update(camera=own_camera.to_speed_dict(pitch),
                         checkpoint=str(getattr(predictor, "source", None) or ""),
                         refined=False, network_ms=round(record.network_ms, 3))
             if padding is not None:
@@ -421,7 +422,7 @@ def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
             "r_Vo2To_vbs": [float(v) for v in translation[0]],
             "convention": "x_cam = R(q) x_body + r; OpenCV camera frame (x right, y down, "
                           "z forward); q = (w, x, y, z); metres",
-            "camera": own_camera.to_speed_dict(),
+            "camera": own_camera.to_speed_dict(pitch),
             "checkpoint": str(getattr(predictor, "source", None) or ""),
             "refined": options.refine, "network_ms": round(record.network_ms, 3),
         })

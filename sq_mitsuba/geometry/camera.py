@@ -153,10 +153,13 @@ class Camera:
             raise ValueError(f"camera: {path} must hold a JSON object")
         return cls.from_speed_dict(data, str(path))
 
-    def to_speed_dict(self) -> dict[str, Any]:
+    def to_speed_dict(self, pixel_pitch_m: float | None = None) -> dict[str, Any]:
         """SPEED-style dictionary: ``cameraMatrix`` in pixels; focal lengths in metres with the
-        SPEED sensor's physical width spread over ``width`` pixels (so ``fx / ppx`` is pixels)."""
-        pitch_x = SPEED_PIXEL_PITCH_M * SPEED_WIDTH_PX / self.width
+        pixel pitch ``pixel_pitch_m`` (default: the SPEED sensor's physical width spread over
+        ``width`` pixels; a crop of a larger picture passes the picture's, so the lens in
+        metres stays the picture's), so that ``fx / ppx`` is pixels either way."""
+        pitch_x = pixel_pitch_m if pixel_pitch_m is not None else \
+            SPEED_PIXEL_PITCH_M * SPEED_WIDTH_PX / self.width
         return {
             "Nu": self.width, "Nv": self.height,
             "ppx": pitch_x, "ppy": pitch_x,
