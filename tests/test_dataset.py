@@ -497,6 +497,9 @@ def test_passes_are_frames_of_one_tumble_in_order(model_library, dataset, tmp_pa
         assert [(e["pass"], e["frame_in_pass"]) for e in labels] == [(0, k) for k in
                                                                     range(IMAGES)]
         assert labels[0]["q_vbs2tango_true"] == single[0]["q_vbs2tango_true"]
+        # Every frame has its own seed (its own render noise), the first the image's 0.
+        seeds = [e["seed"] for e in labels]
+        assert seeds[0] == single[0]["seed"] and len(set(seeds)) == IMAGES
         rotations = quaternion_to_matrix(torch.tensor([e["q_vbs2tango_true"] for e in labels],
                                                       dtype=torch.float64))
         steps = [rotations[k + 1] @ rotations[k].T for k in range(IMAGES - 1)]

@@ -4,6 +4,7 @@ option ranges."""
 from __future__ import annotations
 
 import json
+import re
 import struct
 from pathlib import Path
 
@@ -296,3 +297,15 @@ def test_contact_sheet_size_checked_before_rendering(library, tmp_path) -> None:
     with pytest.raises(ConfigError, match="spp"):
         contact_sheet(library, ContactSheetOptions(spp=0))
     assert not (tmp_path / "sheet.png").exists()
+
+
+def test_a_model_in_both_splits_is_refused_naming_the_line(tmp_path):
+    from sq_mitsuba.data.spe3r.layout import DatasetError
+
+    path = tmp_path / "splits.csv"
+    path.write_text("a,train\nb,test\na,train\n")  # a repeat in the same split is harmless
+    assert read_splits(path) == {"a": "train", "b": "test"}
+    path.write_text("a,train\nb,test\na,test\n")
+    with pytest.raises(DatasetError, match=rf"^{re.escape(str(path))}:3: 'a' is listed as "
+                                           "train above and as test here$"):
+        read_splits(path)

@@ -240,3 +240,37 @@ def test_import_writes_spe3r_layout_and_materials_round_trip(tmp_path) -> None:
     assert len(samples["surface_points"]) == 1000
     assert edge_manifold(faces) == (True, True)
     assert np.ptp(vertices, axis=0).max() == pytest.approx(1.0, abs=1e-6)
+
+
+def test_a_rewrite_cut_between_its_renames_keeps_the_old_model(tmp_path, monkeypatch) -> None:
+    """Writing a model again renames the old folder aside, then the new one in: cut between
+    the two (Ctrl-C), the old one comes back; a leftover from a killed write is restored or
+    swept by the next write."""
+    import os
+
+    import sq_mitsuba.data.mesh_processing as processing
+
+    mesh = trimesh.creation.box(extents=(1.0, 0.5, 0.25))
+    path = tmp_path / "box.glb"
+    trimesh.Scene({"a": mesh}).export(path)
+    folder = import_model(path, tmp_path / "lib", points=300)
+    before = (folder / "model_normalized.obj").read_bytes()
+    real_replace, calls = os.replace, []
+
+    def cut_after_the_first(source, target):
+        calls.append(source)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        real_replace(source, target)
+
+    monkeypatch.setattr(processing.os, "replace", cut_after_the_first)
+    with pytest.raises(KeyboardInterrupt):
+        import_model(path, tmp_path / "lib", points=300)
+    monkeypatch.setattr(processing.os, "replace", real_replace)
+    assert (folder / "model_normalized.obj").read_bytes() == before
+    assert sorted(p.name for p in folder.parent.iterdir()) == ["models"]
+    # A killed write leaves the old folder aside and no models/: the next write restores and
+    # replaces it, leaving nothing else.
+    real_replace(folder, folder.parent / ".models.old.99999")
+    assert import_model(path, tmp_path / "lib", points=300) == folder
+    assert sorted(p.name for p in folder.parent.iterdir()) == ["models"]

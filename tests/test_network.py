@@ -192,10 +192,10 @@ def test_translation_back_projects_to_the_predicted_pixel():
     torch.testing.assert_close(other.project(translation[2:]), pixel[2:], rtol=0, atol=1e-4)
     # Same image: same image position; the depth scales with the focal length in pixels.
     # (Relative tolerance: oneDNN's float32 kernels may round one image differently at
-    # another batch position, seen at 5e-6 on an AVX2-only CPU.)
+    # another batch position, seen at 5e-6 on an AVX2-only CPU and 1.4e-5 on the depth.)
     torch.testing.assert_close(pixel[2:], pixel[:2], rtol=2e-5, atol=1e-4)
     ratio = math.sqrt(other.fx * other.fy) / first.fx
-    torch.testing.assert_close(depth[2:], depth[:2] * ratio, rtol=1e-5, atol=0)
+    torch.testing.assert_close(depth[2:], depth[:2] * ratio, rtol=5e-5, atol=0)
     torch.testing.assert_close(translation[2:], other.unproject(pixel[:2], depth[2:]),
                                rtol=0, atol=1e-5)
     # A single (3, 3) K acts as the same K for every item.

@@ -6,6 +6,7 @@ the ``parts`` term training two steps."""
 from __future__ import annotations
 
 import itertools
+import re
 import shutil
 
 import numpy as np
@@ -127,6 +128,14 @@ def test_part_target_files_round_trip_and_bad_ones_are_one_line_errors(train_dat
     np.savez(part_targets_path(data, models[1]), raw=np.full((2, 16), np.nan))
     with pytest.raises(PartTargetError, match="NaN"):
         load_part_targets(data, models[:2], 2)
+    # A file cut in half (a zip archive without its directory) is refused naming it, and
+    # fit-parts fits that model again instead of stopping.
+    path = part_targets_path(data, models[0])
+    path.write_bytes(path.read_bytes()[: len(path.read_bytes()) // 2])
+    with pytest.raises(PartTargetError, match=f"{re.escape(str(path))}: cannot read"):
+        load_part_targets(data, models[:1], 2)
+    assert fit_part_targets(data, models[:1], 2, steps=5, progress=False) == 1
+    assert load_part_targets(data, models[:1], 2).shape == (1, 2, 16)
 
 
 def test_the_parts_term_trains_once_the_targets_are_fitted(train_dataset, tmp_path, capsys):

@@ -348,6 +348,7 @@ def test_bad_config_is_one_line_naming_the_field(tmp_path, capsys, train_dataset
         (["--config", str(TINY), "--set", "augment.gamma_range=[2.0, 1.0]"],
          ["gamma_range"]),
         (["--config", str(tmp_path / "missing.toml")], ["no such file"]),
+        (["--config", str(TINY), "--set", f"seed={2**64}"], ["--set seed", "[0, "]),
     ]
     for extra, needles in cases:
         code, err = _cli(["train", *extra, *common], capsys)
@@ -356,6 +357,45 @@ def test_bad_config_is_one_line_naming_the_field(tmp_path, capsys, train_dataset
         for needle in needles:
             assert needle in err, (needle, err)
     assert not out.exists()  # refused before any work
+
+
+def test_a_run_stopped_before_its_first_checkpoint_starts_over(train_dataset, cache_dir,
+                                                                tmp_path, capsys):
+    """A folder with a run's config and logs but no checkpoint (killed before its first) holds
+    nothing to resume: a new run starts over in it; one with last.pt is still refused."""
+    out = tmp_path / "run"
+    common = ["train", "--config", str(TINY), "--data", str(train_dataset), "--out", str(out),
+              "--quiet", "--set", f"data.cache_dir={cache_dir}"]
+    code, err = _cli([*common, "--max-steps", "0"], capsys)
+    assert code == 0, err
+    assert (out / "log.csv").is_file() and not (out / "last.pt").exists()
+    code, err = _cli([*common, "--resume"], capsys)
+    assert code == 2 and "nothing to resume" in err
+    code, err = _cli([*common, "--max-steps", "1"], capsys)
+    assert code == 0, err
+    assert [row["step"] for row in _rows(out / "log.csv")] == ["1"]
+    code, err = _cli([*common, "--max-steps", "1"], capsys)
+    assert code == 2 and "already holds a training run" in err
+
+
+def test_resume_does_not_need_the_start_it_was_initialised_from(train_dataset, cache_dir,
+                                                                tmp_path, capsys):
+    """init_from's weights are replaced by the checkpoint on resume: the file may be gone."""
+    import shutil
+
+    common = ["train", "--config", str(TINY), "--data", str(train_dataset), "--quiet", "--set",
+              f"data.cache_dir={cache_dir}"]
+    code, err = _cli([*common, "--out", str(tmp_path / "a"), "--max-steps", "1"], capsys)
+    assert code == 0, err
+    start = tmp_path / "start.pt"
+    shutil.copy(tmp_path / "a" / "last.pt", start)
+    run = ["--out", str(tmp_path / "b"), "--set", f'init_from="{start}"']
+    code, err = _cli([*common, *run, "--max-steps", "1"], capsys)
+    assert code == 0, err
+    start.unlink()
+    code, err = _cli([*common, *run, "--resume", "--max-steps", "2"], capsys)
+    assert code == 0, err
+    assert [row["step"] for row in _rows(tmp_path / "b" / "log.csv")] == ["1", "2"]
 
 
 def test_unwritable_out_is_refused_before_work(tmp_path, capsys, train_dataset):

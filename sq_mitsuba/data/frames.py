@@ -241,7 +241,7 @@ def sample_pass_frame(vertices: np.ndarray, camera: Camera, config: SceneConfig,
     phase = math.degrees(math.acos(float(np.clip(np.asarray(start.sun_direction) @ to_camera,
                                                  -1, 1))))
     return Frame(
-        index=index, seed=start.seed,
+        index=index, seed=frame_seed(dataset_seed, model, index),  # its own noise, as any image
         quaternion=tuple(float(v) for v in quaternion),
         translation=tuple(float(v) for v in translation),
         sun_direction=start.sun_direction, phase_angle_deg=phase,

@@ -686,14 +686,19 @@ def write_model(out_root: str | Path, name: str, model: ProcessedModel,
     created = not model_dir.exists()
     model_dir.mkdir(parents=True, exist_ok=True)
     final = model_dir / "models"
+    for stale in model_dir.glob(".models.old.*"):  # an earlier write cut between its renames
+        if final.exists():
+            shutil.rmtree(stale, ignore_errors=True)
+        else:
+            os.replace(stale, final)
     tmp = Path(tempfile.mkdtemp(prefix=".models.", dir=model_dir))
+    old = None
     try:
         atomic_write_text(tmp / "model_normalized.obj", obj_text(model.mesh))
         atomic_write_bytes(tmp / "model_normalized.glb", glb_bytes(model.mesh, name))
         with atomic_path(tmp / SAMPLES_FILE) as path:
             np.savez_compressed(path, **samples)
         atomic_write_json(tmp / "model_card.json", card)
-        old = None
         if final.exists():
             old = model_dir / f".models.old.{os.getpid()}"
             os.replace(final, old)
@@ -702,6 +707,8 @@ def write_model(out_root: str | Path, name: str, model: ProcessedModel,
             shutil.rmtree(old, ignore_errors=True)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
+        if old is not None and old.exists() and not final.exists():
+            os.replace(old, final)  # cut between the two renames: the old model comes back
         if created:
             with contextlib.suppress(OSError):
                 model_dir.rmdir()

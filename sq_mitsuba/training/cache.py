@@ -5,7 +5,7 @@ on a small CPU, so training reads a cache instead:
 
 - :class:`ImageCache`: the images and masks of a split (or a subset of it) at the training
   resolution S, as uint8 memory maps (``images.u8`` (N, S, S), ``masks.u8`` (N, S, ceil(S / 8))
-  bit-packed along the rows), with each item's pose, model and label record in ``items.npz``;
+  bit-packed along the rows), with each item's pose, model and visibility in ``items.npz``;
 - :class:`PointCache`: each model's surface samples and labelled occupancy points, concatenated
   into float32 / uint8 memory maps with per-model offsets (loaded once, shared by all items
   and, through the page cache, by all processes of a distributed run).
@@ -50,7 +50,6 @@ __all__ = ["CACHE_VERSION", "ImageCache", "PointCache", "dataset_fingerprint", "
 
 CACHE_VERSION = 2
 MANIFEST = "dataset.json"
-_LABEL_RECORD = ("target_visibility", "phase_angle_deg", "eclipse", "earth_in_view")
 
 
 def dataset_fingerprint(root: str | Path) -> str:
@@ -267,7 +266,6 @@ def open_image_cache(dataset: Any, split: str, cache_root: str | Path, fingerpri
         model_index = np.zeros(count, dtype=np.int64)
         image_index = np.zeros(count, dtype=np.int64)
         visibility = np.full(count, np.nan)
-        records: list[dict[str, Any]] = []
 
         def work(position: int) -> tuple[int, np.ndarray, np.ndarray, dict[str, Any]]:
             return (position, *_decode(dataset, chosen[position]))
@@ -291,7 +289,6 @@ def open_image_cache(dataset: Any, split: str, cache_root: str | Path, fingerpri
                 value = label.get("target_visibility")
                 if isinstance(value, int | float) and not isinstance(value, bool):
                     visibility[position] = float(value)
-                records.append({k: label[k] for k in _LABEL_RECORD if k in label})
                 if bar is not None:
                     bar.update(1)
         if bar is not None:

@@ -212,7 +212,7 @@ class TrainConfig:
     "Label-preserving augmentation (all off by default, as the paper)."
     validation: ValidationConfig = field(default_factory=ValidationConfig)
     "Validation during training."
-    seed: int = non_negative(42)
+    seed: int = in_range(0, 2**63 - 1, default=42)  # torch.manual_seed takes 64-bit seeds
     "Seeds the network's initialisation, the data order, point sampling and augmentation."
     device: Literal["auto", "cpu", "cuda"] = "auto"
     "Where to train: auto = CUDA when available (Mitsuba's cuda variant), else the CPU."

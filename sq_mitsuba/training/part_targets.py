@@ -11,6 +11,7 @@ how they are fitted.
 from __future__ import annotations
 
 import io
+import zipfile
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -47,8 +48,10 @@ def _read(path: Path, num_primitives: int) -> np.ndarray:
     except FileNotFoundError:
         raise PartTargetError(f"{path}: missing (make it with `sq-mitsuba dataset fit-parts "
                               f"--data {path.parents[2]} --primitives {num_primitives}`)") from None
-    except (OSError, KeyError, ValueError) as error:
-        raise PartTargetError(f"{path}: cannot read part targets ({error})") from None
+    except (OSError, KeyError, ValueError, zipfile.BadZipFile, EOFError) as error:
+        # A truncated archive is a BadZipFile (or an EOFError inside it), not an OSError.
+        raise PartTargetError(f"{path}: cannot read part targets "
+                              f"({type(error).__name__}: {error})") from None
     if raw.shape != (num_primitives, NUM_PARAMS):
         raise PartTargetError(f"{path}: holds {raw.shape[0] if raw.ndim else 0} primitives "
                               f"of shape {raw.shape}, the network has {num_primitives} (fit "

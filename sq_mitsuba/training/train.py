@@ -134,8 +134,8 @@ def train(config: TrainConfig | None, data_root: str | Path, out_dir: str | Path
 
     Args:
         config: the run's config; None takes the checkpoint's when resuming, else the
-            defaults. Resuming with a config that differs (other than in ``data.cache_dir``
-            and ``reprojection.workers``) is refused, naming the first differing field.
+            defaults. Resuming with a config that differs (other than in the fields of
+            ``run.folder.RESUME_FREE``) is refused, naming the first differing field.
         data_root: SPE3R-layout dataset (``train`` split for training, ``val`` for validation).
         out_dir: run folder (created; must not hold a run unless ``resume``).
         resume: continue from ``out_dir/last.pt``.
@@ -195,7 +195,7 @@ def _train(config: TrainConfig | None, data_root: Path, out_dir: Path, resume: b
         fingerprint = dataset_fingerprint(data_root)
     if checkpoint is not None:
         _check_resumable(checkpoint, config, fingerprint, out_dir, data_root)
-    model = _build_network(config, sources)
+    model = _build_network(config, sources, resuming=checkpoint is not None)
     device = _device_of(config)
     world = start_distributed(device)
     run = TrainRun(config, data_root, out_dir, fingerprint, device, world, checkpoint,
@@ -241,9 +241,9 @@ def _check_resumable(checkpoint: dict[str, Any], config: TrainConfig, fingerprin
                          f"{str(recorded)[:12]}), {data_root} has {fingerprint[:12]}")
 
 
-def _build_network(config: TrainConfig, sources: DataSources) -> nn.Module:
-    """The network, initialised from the seed (every process alike), after checking that it
-    can be built (``network.pretrained`` loads) and feeds every weighted loss term."""
+def _build_network(config: TrainConfig, sources: DataSources, resuming: bool) -> nn.Module:
+    """The network from the seed (every process alike) and ``init_from`` (not when resuming),
+    after checking that it builds (``network.pretrained`` loads) and feeds every loss term."""
     torch.manual_seed(config.seed)
     try:
         model = SuperquadricNet(config.network)
@@ -254,7 +254,7 @@ def _build_network(config: TrainConfig, sources: DataSources) -> nn.Module:
                          f"as a weights file ({type(error).__name__})") from None
     if config.validation.metric == "mask_iou" and model.mask_head is None:
         raise TrainError("validation.metric: 'mask_iou' needs a mask head (network.mask_head)")
-    if config.init_from is not None:
+    if config.init_from is not None and not resuming:  # the start may be gone by now
         _load_initial_weights(model, config.init_from)
     try:
         model.freeze_except(config.optim.trainable)

@@ -58,7 +58,10 @@ def _nearest_existing(path: Path) -> Path:
 
 def check_out_dir(out_dir: Path, resume: bool) -> None:
     """Refuse (one line) a run folder that cannot be written, or (without ``resume``) one that
-    holds a run, or (with it) one without ``last.pt``. Creates nothing."""
+    holds a run's checkpoint, or (with it) one without ``last.pt``. Creates nothing.
+
+    A folder whose run stopped before its first checkpoint (its ``config.json`` and logs
+    alone) holds nothing to resume: a new run starts over in it, rewriting them."""
     existing = _nearest_existing(out_dir)
     if existing != out_dir.absolute() and not existing.is_dir():
         raise TrainError(f"{out_dir}: output folder is not writable ({existing} is a file)")
@@ -67,7 +70,7 @@ def check_out_dir(out_dir: Path, resume: bool) -> None:
                          f"{existing})")
     if resume and not (out_dir / LAST).is_file():
         raise TrainError(f"{out_dir}: nothing to resume (no {LAST})")
-    if not resume and any((out_dir / name).exists() for name in (LAST, LOG_FILE)):
+    if not resume and any((out_dir / name).exists() for name in (LAST, BEST)):
         raise TrainError(f"{out_dir}: already holds a training run; resume it (--resume) or "
                          "choose another output folder")
 
