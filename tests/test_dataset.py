@@ -428,6 +428,25 @@ def test_exr_holds_linear_radiance_depth_and_coverage(model_library, tmp_path):
                                   image)
 
 
+def test_the_depth_is_camera_frame_z_not_the_distance_along_the_ray():
+    """A plate facing the camera at z = 2 m has depth 2 at every pixel it covers, the corners
+    included, where the ray is 9 % longer (the EXR channel 'Z' is this depth)."""
+    import dataclasses
+
+    from sq_mitsuba.render.space import SpaceScene, _warm_up_frame
+
+    camera = Camera.default(64)
+    plate = np.array([[-3.0, -3.0, 0.0], [3.0, -3.0, 0.0], [3.0, 3.0, 0.0], [-3.0, 3.0, 0.0]])
+    scene = SpaceScene(plate, np.array([[0, 1, 2], [0, 2, 3]]), None, camera, SceneConfig(),
+                       spp=1, with_depth=True)
+    frame = dataclasses.replace(_warm_up_frame(), translation=(0.0, 0.0, 2.0))
+    rendered = scene.render(frame, radiance=False)
+    assert float(rendered.coverage.min()) > 0.99  # the plate fills the image
+    np.testing.assert_allclose(rendered.depth, 2.0, rtol=1e-3)  # (Mitsuba: 1.999 at the centre)
+    corner = np.hypot((0.5 - camera.cx) / camera.fx, (0.5 - camera.cy) / camera.fy)
+    assert math.sqrt(1 + corner**2) > 1.09  # the ray length there would be 9 % off
+
+
 @pytest.mark.slow
 def test_parallel_workers_write_the_same_dataset(dataset, model_library, tmp_path):
     out = tmp_path / "parallel"

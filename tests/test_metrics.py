@@ -82,6 +82,11 @@ def test_perfect_prediction_scores_zero_and_one():
     masks = torch.rand(2, 16, 16, generator=generator) > 0.5
     assert torch.all(mask_iou(masks.float(), masks.float()) == 1)
     assert torch.all(volumetric_iou(masks.flatten(1), masks.flatten(1)) == 1)
+    # Shapes that would broadcast into a wrong answer are refused, not scored.
+    with pytest.raises(ValueError, match="expected equal shapes"):
+        mask_iou(masks.float(), masks.float()[:, None])
+    with pytest.raises(ValueError, match="batch sizes differ"):
+        camera_frame_chamfer(points, rotation[:1], translation, points, rotation, translation)
 
 
 def test_masks_select_points():

@@ -152,7 +152,7 @@ def write_demo_page(out: Path, options: Any, records: Sequence[dict[str, Any]],
         "body frame; the camera-frame Chamfer compares the posed clouds, over the true "
         "distance. Rotation error up to half turns: the least over the four half turns of the "
         "body frame (which end of an axis is '+' cannot be seen on an unknown model; chance "
-        "77 deg median).",
+        "79 deg median).",
         "Times: " + ", ".join(f"{k} {v:.0f} s" for k, v in stages.items())
         + f"; {wall:.0f} s in all before this page.",
     ]

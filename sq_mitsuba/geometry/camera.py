@@ -1,9 +1,10 @@
 """Pinhole camera intrinsics in the OpenCV frame (x right, y down, z forward): pure torch.
 
-Convention: pixel coordinates are continuous; pixel (i, j) covers [i, i + 1) x [j, j + 1), so
-its centre is (i + 0.5, j + 0.5) and the centre of a W x H image is (W / 2, H / 2), as in
-Mitsuba's film and SPEED's ``camera.json`` (``ccx = Nu / 2``). ``u`` runs right along x, ``v``
-down along y: ``u = fx x / z + cx``, ``v = fy y / z + cy``.
+Convention: pixel coordinates (u, v) are continuous; the pixel of row i and column j covers
+[j, j + 1) x [i, i + 1), so its centre is (u, v) = (j + 0.5, i + 0.5) and the centre of a
+W x H image is (W / 2, H / 2), as in Mitsuba's film and SPEED's ``camera.json`` (``ccx =
+Nu / 2``). ``u`` runs right along x, ``v`` down along y: ``u = fx x / z + cx``, ``v = fy y /
+z + cy``.
 
 The conversion to a Mitsuba sensor lives in the rendering layer
 (:mod:`sq_mitsuba.render.silhouette.renderer`); nothing here imports Mitsuba.

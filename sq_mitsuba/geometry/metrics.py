@@ -128,6 +128,12 @@ def camera_frame_chamfer(pred_points: Tensor, pred_rotation: Tensor, pred_transl
                                   ("pred_translation", pred_translation, (3,)),
                                   ("gt_translation", gt_translation, (3,))):
         check_tensor(name, value, trailing)
+    batch = {name: value.shape[0] for name, value in (
+        ("pred_points", pred_points), ("pred_rotation", pred_rotation),
+        ("pred_translation", pred_translation), ("gt_points", gt_points),
+        ("gt_rotation", gt_rotation), ("gt_translation", gt_translation))}
+    if len(set(batch.values())) != 1:  # a (1, 3, 3) pose would broadcast over B items
+        raise ValueError(f"camera_frame_chamfer: batch sizes differ: {batch}")
     dtype = torch.float64
     placed_pred = pred_points.to(dtype) @ pred_rotation.to(dtype).transpose(-1, -2) + \
         pred_translation.to(dtype)[:, None]
@@ -139,7 +145,11 @@ def camera_frame_chamfer(pred_points: Tensor, pred_rotation: Tensor, pred_transl
 
 def mask_iou(prediction: Tensor, target: Tensor, threshold: float = 0.5) -> Tensor:
     """2D IoU (...,) of images (..., H, W) thresholded at ``threshold`` (an empty union gives
-    1): the predicted silhouette against the mask."""
+    1): the predicted silhouette against the mask, of one shape (no broadcasting: a (B, H, W)
+    against a (B, 1, H, W) would score every pair)."""
+    if prediction.shape != target.shape:
+        raise ValueError(f"prediction, target: expected equal shapes (..., H, W), got "
+                         f"{tuple(prediction.shape)} and {tuple(target.shape)}")
     a, b = prediction > threshold, target > threshold
     inter = (a & b).flatten(-2).sum(-1).double()
     union = (a | b).flatten(-2).sum(-1).double()

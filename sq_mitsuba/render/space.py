@@ -361,6 +361,13 @@ class SpaceScene:
         return np.array(self.mi.render(self.mask_scene, integrator=integrator,
                                        seed=_render_seed(frame)), dtype=np.float64)
 
+    def _ray_cosine(self) -> np.ndarray:
+        """(H, W) the cosine between each pixel centre's ray and the optical axis."""
+        camera = self.camera
+        x = (np.arange(camera.width) + 0.5 - camera.cx) / camera.fx  # pixel centres
+        y = (np.arange(camera.height) + 0.5 - camera.cy) / camera.fy
+        return 1.0 / np.sqrt(x[None, :] ** 2 + y[:, None] ** 2 + 1.0)
+
     def render(self, frame: Frame, radiance: bool = True) -> RenderedFrame:
         """Path-trace ``frame`` (and its mask). ``radiance=False`` renders the mask only."""
         mi = self.mi
@@ -370,9 +377,12 @@ class SpaceScene:
         coverage = np.clip(1.0 - channels[..., 0], 0.0, 1.0)
         depth = None
         if self.with_depth:
-            # Missed samples add depth 0 to the pixel average: divide by the coverage.
-            depth = np.where(coverage > 1e-6, channels[..., 1] / np.maximum(coverage, 1e-6),
-                             0.0)
+            # Missed samples add depth 0 to the pixel average: divide by the coverage. The aov
+            # is the distance along each ray; the depth is camera-frame z (the project's
+            # convention), that distance times the cosine of the pixel's ray to the axis.
+            distance = np.where(coverage > 1e-6, channels[..., 1] / np.maximum(coverage, 1e-6),
+                                0.0)
+            depth = distance * self._ray_cosine()
         if not radiance:
             return RenderedFrame(np.zeros_like(coverage), coverage, depth, self.exposure)
 
