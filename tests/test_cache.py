@@ -50,6 +50,7 @@ def test_point_cache_samples_like_the_dataset(train_dataset, tmp_path):
     dataset = _dataset(train_dataset)
     points = open_point_cache(dataset, tmp_path, dataset_fingerprint(train_dataset))
     assert points.models == dataset.models
+    assert not dataset._points  # the cache holds them: the dataset does not keep a copy
     for model_index in range(len(dataset.models)):
         reference = dataset.model_points(model_index)
         rng = np.random.default_rng(0)

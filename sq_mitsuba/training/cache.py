@@ -306,6 +306,7 @@ def open_image_cache(dataset: Any, split: str, cache_root: str | Path, fingerpri
         _publish(tmp, folder)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
+        _release_points(dataset)
     return ImageCache(folder)
 
 
@@ -447,4 +448,13 @@ def open_point_cache(dataset: Any, cache_root: str | Path, fingerprint: str,
     finally:
         with contextlib.suppress(OSError):
             shutil.rmtree(tmp, ignore_errors=True)
+        _release_points(dataset)
     return PointCache(folder)
+
+
+def _release_points(dataset: Any) -> None:
+    """Let the dataset forget the model points it read while a cache was built: the cache
+    holds them now, and 2,000 models' points would keep about 10 GB for the whole run."""
+    release = getattr(dataset, "release_points", None)
+    if release is not None:
+        release()

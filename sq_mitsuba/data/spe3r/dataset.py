@@ -148,6 +148,11 @@ class Spe3rDataset(torch.utils.data.Dataset):
             if points:
                 check_model_points(self.root / model)
 
+    def release_points(self) -> None:
+        """Forget the model points read so far (a cache built from them holds its own copy);
+        :meth:`model_points` reads them again if asked."""
+        self._points.clear()
+
     def model_points(self, model_index: int) -> dict[str, np.ndarray]:
         """Surface and labelled occupancy points of a model (from samples.npz, or the mesh)."""
         if model_index not in self._points:
