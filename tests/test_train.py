@@ -283,6 +283,15 @@ def test_resume_refuses_another_config_or_dataset(train_dataset, cache_dir, tmp_
     code, err = _cli(base, capsys)  # not resuming: the folder holds a run
     assert code == 2 and "--resume" in err
     assert (out / "last.pt").read_bytes() == before
+    # An exported model in last.pt's place (weights without the run's state) is named as such.
+    exported = tmp_path / "exported"
+    exported.mkdir()
+    assert main(["export", "--checkpoint", str(out / "last.pt"), "--data", str(train_dataset),
+                 "--out", str(exported / "last.pt")]) == 0
+    capsys.readouterr()
+    code, err = _cli([*base[:6], str(exported), *base[7:], "--resume"], capsys)
+    assert code == 2 and err.count("\n") == 1
+    assert "not a training checkpoint (no optimizer: an exported model?)" in err
 
 
 def test_a_new_head_trains_alone_on_a_trained_network(reference_run, train_dataset, cache_dir,

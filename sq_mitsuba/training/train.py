@@ -102,6 +102,7 @@ from sq_mitsuba.training.run.folder import (
     copy_checkpoint,
     git_commit,
     not_finite_error,
+    read_resumed,
     remove_stale_temporaries,
     save_checkpoint,
 )
@@ -179,7 +180,7 @@ def _train(config: TrainConfig | None, data_root: Path, out_dir: Path, resume: b
     # network.
     if main_process:
         check_out_dir(out_dir, resume)
-    checkpoint = _read_resumed(out_dir) if resume else None
+    checkpoint = read_resumed(out_dir) if resume else None
     if config is None:
         config = TrainConfig() if checkpoint is None else from_dict(TrainConfig,
                                                                     checkpoint["config"])
@@ -215,13 +216,6 @@ def _train(config: TrainConfig | None, data_root: Path, out_dir: Path, resume: b
             import torch.distributed as dist
 
             dist.destroy_process_group()
-
-
-def _read_resumed(out_dir: Path) -> dict[str, Any]:
-    try:
-        return read_checkpoint(out_dir / LAST)
-    except (OSError, ValueError, RuntimeError) as error:
-        raise TrainError(f"{out_dir / LAST}: cannot read checkpoint ({error})") from None
 
 
 def _check_resumable(checkpoint: dict[str, Any], config: TrainConfig, fingerprint: str,

@@ -37,6 +37,7 @@ __all__ = [
     "config_difference",
     "git_commit",
     "not_finite_error",
+    "read_resumed",
     "remove_stale_temporaries",
     "save_checkpoint",
 ]
@@ -73,6 +74,20 @@ def check_out_dir(out_dir: Path, resume: bool) -> None:
     if not resume and any((out_dir / name).exists() for name in (LAST, BEST)):
         raise TrainError(f"{out_dir}: already holds a training run; resume it (--resume) or "
                          "choose another output folder")
+
+
+def read_resumed(out_dir: Path) -> dict[str, Any]:
+    """The run's ``last.pt``, to resume from; one-line TrainError for a file that cannot be
+    read or is not a training checkpoint (an exported model holds weights, not the run)."""
+    try:
+        checkpoint = read_checkpoint(out_dir / LAST)
+    except (OSError, ValueError, RuntimeError) as error:
+        raise TrainError(f"{out_dir / LAST}: cannot read checkpoint ({error})") from None
+    missing = [key for key in ("optimizer", "scheduler", "config", "step") if key not in checkpoint]
+    if missing:
+        raise TrainError(f"{out_dir / LAST}: not a training checkpoint (no {missing[0]}: an "
+                         "exported model?); resume from the run's own last.pt")
+    return checkpoint
 
 
 def remove_stale_temporaries(out_dir: Path) -> list[Path]:
