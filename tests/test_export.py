@@ -53,6 +53,22 @@ def test_export_stores_the_baseline_of_the_exported_weights(exported, train_data
                           atol=1e-5)
 
 
+def test_an_exported_file_exported_again_keeps_its_record(eval_checkpoint, train_dataset,
+                                                           tmp_path):
+    """Exported without a baseline, then again with --data to add one: the second file keeps
+    the first's record whole (the training step and checkpoint; for a real run also the
+    dataset, which the check of --data against the training dataset reads)."""
+    first, second = tmp_path / "first.pt", tmp_path / "second.pt"
+    assert main(["export", "--checkpoint", str(eval_checkpoint), "--out", str(first)]) == 0
+    assert main(["export", "--checkpoint", str(first), "--data", str(train_dataset), "--out",
+                 str(second), "--baseline-images", "4"]) == 0
+    record, earlier = read_checkpoint(second)["source"], read_checkpoint(first)["source"]
+    assert earlier["step"] == 8 and earlier["checkpoint"] == eval_checkpoint.name
+    assert record.pop("exported_again_from") == first.name
+    record.pop("baseline_data", None)  # the second export's own addition
+    assert record == earlier
+
+
 def test_export_refuses_bad_input_before_writing(eval_checkpoint, tmp_path, capsys):
     corrupt = tmp_path / "corrupt.pt"
     corrupt.write_bytes(b"not a checkpoint")

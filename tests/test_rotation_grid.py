@@ -49,6 +49,12 @@ def test_targets_sum_to_one_and_peak_at_every_equivalent() -> None:
         near = rotation_angle(grid, truth[item].expand_as(grid)) < math.radians(55)
         near |= rotation_angle(grid, (truth[item] @ turns[0, 1]).expand_as(grid)) < math.radians(55)
         assert float(targets[item, near].sum()) > 0.93
+    # Padding a model's symmetries with identities (to a batch's S) leaves its targets as
+    # they are: the padded identities do not add weight to the identity's mode.
+    identity = torch.eye(3, dtype=torch.float64).expand(4, 2, 3, 3)
+    padded = soft_rotation_targets(truth, torch.cat([turns, identity], dim=1),
+                                   head.quaternions.double())
+    torch.testing.assert_close(padded, targets, rtol=0, atol=1e-12)
     with pytest.raises(ValueError):
         soft_rotation_targets(truth, turns[:2], head.quaternions)
 

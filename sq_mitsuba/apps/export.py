@@ -203,6 +203,9 @@ def export_model(checkpoint: str | Path | Sequence[str | Path], data_root: str |
     if averaged:  # an exported ingredient keeps its record in "source"
         sources = [{**record, "source": each["source"]} if "source" in each else record
                    for record, each in zip(sources, payloads, strict=True)]
+    elif isinstance(payload.get("source"), dict):  # an exported file exported again (to add
+        # a baseline, say): its record stays whole (step, dataset, commit), the file named
+        sources = [{**payload["source"], "exported_again_from": paths[0].name}]
     exported: dict[str, Any] = {
         "format": FORMAT,
         "version": VERSION,

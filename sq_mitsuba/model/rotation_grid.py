@@ -137,7 +137,8 @@ def soft_rotation_targets(rotation: Tensor, symmetries: Tensor, grid_quaternions
     Args:
         rotation: (B, 3, 3) true body -> camera rotations.
         symmetries: (B, S, 3, 3) rotations of the body frame that leave each model unchanged
-            (identity included; padded rows repeat the identity, which only re-counts it).
+            (identity included; padded rows repeat the identity: a repeated rotation counts
+            once, so padding a model's set to a batch's S leaves its targets as they are).
         grid_quaternions: (G, 4) the head's cells.
         sigma_deg: spread of each mode (default: the grid's covering angle).
 
@@ -156,7 +157,12 @@ def soft_rotation_targets(rotation: Tensor, symmetries: Tensor, grid_quaternions
     angle = 2.0 * torch.acos(cosine)
     log_density = -0.5 * (angle / sigma) ** 2
     per_mode = F.softmax(log_density, dim=-1)  # each equivalent normalised on its own
-    return per_mode.mean(dim=1)
+    # An equivalent equal to an earlier one (the padding's identities) gets no weight of its
+    # own: otherwise the identity's mode would outweigh the others by the padding's count.
+    same = (q @ q.transpose(-1, -2)).abs() > 1.0 - 1e-6  # (B, S, S), q and -q alike
+    repeated = torch.tril(same, diagonal=-1).any(dim=-1)  # equals an earlier row
+    weight = (~repeated).to(per_mode)[..., None]
+    return (per_mode * weight).sum(dim=1) / weight.sum(dim=1)
 
 
 @torch.no_grad()
