@@ -128,6 +128,12 @@ def check_output_folder(out: str | Path) -> Path:
     return out
 
 
+def inside_folder(path: str | Path, folder: str | Path) -> bool:
+    """Whether ``path`` is ``folder`` or lies inside it (both resolved: links followed)."""
+    resolved, root = Path(path).resolve(), Path(folder).resolve()
+    return resolved == root or root in resolved.parents
+
+
 def check_inputs_kept(inputs: list[Path], outputs: list[Path]) -> None:
     """Refuse a run that would overwrite one of its own inputs with one of its outputs (an
     image named like another's overlay, say): one line naming the input.

@@ -255,24 +255,31 @@ class _Inputs:
     masks: list[Path] | None
     segmented: bool
 
-    def picture(self, k: int) -> np.ndarray:
+    def raw(self, k: int) -> np.ndarray:
+        """Image k as given (unpadded)."""
         from sq_mitsuba.data.masks import read_gray_image
 
-        picture = read_gray_image(self.paths[k])
-        return picture if self.paddings[k] is None else self.paddings[k].pad(picture)
+        return read_gray_image(self.paths[k])
 
-    def target(self, k: int) -> np.ndarray | None:
-        """The mask to fit (padded alike), or None: the network's own."""
-        from sq_mitsuba.data.masks import read_gray_image, read_mask
+    def padded(self, k: int, array: np.ndarray) -> np.ndarray:
+        """An array of image k's size padded as image k is."""
+        return array if self.paddings[k] is None else self.paddings[k].pad(array)
+
+    def picture(self, k: int) -> np.ndarray:
+        """Image k, padded where it needs it."""
+        return self.padded(k, self.raw(k))
+
+    def target(self, k: int, raw: np.ndarray) -> np.ndarray | None:
+        """The mask to fit for image k (its unpadded picture ``raw``, decoded once by the
+        caller, for the segmentation), padded alike; None: the network's own."""
+        from sq_mitsuba.data.masks import read_mask
         from sq_mitsuba.data.segmentation import segment_target
 
         if self.masks is not None:
-            target = read_mask(self.masks[k])
-        elif self.segmented:
-            target = segment_target(read_gray_image(self.paths[k])).mask
-        else:
-            return None
-        return target if self.paddings[k] is None else self.paddings[k].pad(target)
+            return self.padded(k, read_mask(self.masks[k]))
+        if self.segmented:
+            return self.padded(k, segment_target(raw).mask)
+        return None
 
 
 def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
@@ -354,7 +361,8 @@ def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
     outputs: list[tuple[PredictRecord, dict[str, Any], Any, bytes | None]] = []
     renderers: dict[Any, Any] = {}
     for k, path in enumerate(tqdm(paths, desc="predict", unit="img", disable=not progress)):
-        picture = inputs.picture(k)
+        raw = inputs.raw(k)
+        picture = inputs.padded(k, raw)
         image_camera, prediction, record = read(k, picture)
         record = records.get(k, record)  # the first pass's timing, where there was one
         padding = paddings[k]
@@ -389,7 +397,7 @@ def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
             tick = time.perf_counter()
             # The shipped path (Predictor.refine): the turned copies' reading, the mask, the
             # search and the refinement; the mask given or segmented was read before the work.
-            target = inputs.target(k)
+            target = inputs.target(k, raw)
             given = target is not None
             fitted = predictor.refine(
                 torch.from_numpy(picture).float()[None], prediction, image_camera,

@@ -99,6 +99,7 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
     from PIL import Image
 
     from sq_mitsuba.apps.overlay import NETWORK_COLOUR, REFINED_COLOUR, overlay_image
+    from sq_mitsuba.apps.padding import padding_to_aspect
     from sq_mitsuba.apps.predict import check_unique_stems
     from sq_mitsuba.data.masks import read_gray_image
     from sq_mitsuba.geometry.assembly import Assembly
@@ -123,7 +124,7 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
                              f"{pictures[0].shape[0]} px (a sequence has one size)")
     height, width = pictures[0].shape[:2]
     given = predictor.camera if camera is None else camera
-    if abs(given.width * height / (given.height * width) - 1.0) > 1e-3:
+    if padding_to_aspect(width, height, given) is not None:  # the single image's test
         where = "the checkpoint's camera" if camera is None else "the camera given"
         raise ValueError(f"image {paths[0]}: {width} x {height} px, another aspect ratio than "
                          f"{where} ({given.width} x {given.height}); a pass is not padded to "

@@ -73,10 +73,6 @@ def _run(args: argparse.Namespace) -> int:
 
     if args.max_steps is not None and args.max_steps < 0:
         raise CLIError(f"--max-steps: expected >= 0, got {args.max_steps}")
-    out, data = args.out.resolve(), args.data.resolve()
-    if out == data or data in out.parents:  # the run's files would become part of the dataset
-        raise CLIError(f"--out {args.out}: inside the dataset folder {args.data}, which "
-                       "training only reads; choose a run folder outside it")
     config = None
     if args.config is not None:
         config = load_train_config(args.config)
@@ -87,14 +83,6 @@ def _run(args: argparse.Namespace) -> int:
             config = apply_overrides(config or TrainConfig(), args.overrides)
         except ConfigError as error:
             raise CLIError(f"--set {error}") from None
-    cache = config.data.cache_dir if config is not None else None
-    if cache is not None:  # checked before any work, and named as the field it is
-        from sq_mitsuba.io import check_output_folder
-
-        try:
-            check_output_folder(cache)
-        except ValueError as error:
-            raise CLIError(f"data.cache_dir: {str(error).removeprefix('out ')}") from None
     result = train(config, args.data, args.out, resume=args.resume, max_steps=args.max_steps,
                    progress=not args.quiet)
     rate = "" if result.images_per_second != result.images_per_second else (

@@ -221,8 +221,9 @@ def _check_data_folder(data_root: Path) -> None:
 def check_outside_data(out_dir: Path, data_root: Path) -> None:
     """Refuse an output folder that is the dataset folder or lies inside it (an evaluation
     only reads its dataset)."""
-    out, data = out_dir.resolve(), data_root.resolve()
-    if out == data or data in out.parents:
+    from sq_mitsuba.io import inside_folder
+
+    if inside_folder(out_dir, data_root):
         raise ValueError(f"out {out_dir}: inside the dataset folder {data_root}, which "
                          "evaluation only reads; choose an output folder outside it")
 

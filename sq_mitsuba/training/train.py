@@ -97,6 +97,7 @@ from sq_mitsuba.training.run.folder import (
     CONFIG_FILE,
     CURVES_FILE,
     LAST,
+    check_cache_dir,
     check_out_dir,
     config_difference,
     copy_checkpoint,
@@ -160,7 +161,7 @@ def train(config: TrainConfig | None, data_root: str | Path, out_dir: str | Path
         raise TrainError(f"max_seconds: expected > 0, got {max_seconds}")
     main_process = int(os.environ.get("RANK", "0")) == 0
     if main_process:
-        check_out_dir(out_dir, resume)
+        check_out_dir(out_dir, resume, data_root)
     created = not out_dir.exists()
     # One run at a time in a run folder: rank 0 holds its lock from here to the end (a second
     # run into it stops with one line; the lock goes with the process, kill -9 included), and
@@ -179,12 +180,13 @@ def _train(config: TrainConfig | None, data_root: Path, out_dir: Path, resume: b
     # the lock: a run that ended meanwhile), the checkpoint, the config, the dataset, the
     # network.
     if main_process:
-        check_out_dir(out_dir, resume)
+        check_out_dir(out_dir, resume, data_root)
     checkpoint = read_resumed(out_dir) if resume else None
     if config is None:
         config = TrainConfig() if checkpoint is None else from_dict(TrainConfig,
                                                                     checkpoint["config"])
     validate_config(config)
+    check_cache_dir(config.data.cache_dir)
     # The fingerprint first: a point cache already built for it spares reading every model's
     # points again (open_datasets). A dataset it cannot be taken of gets open_datasets' error.
     try:
