@@ -7,6 +7,7 @@ from pathlib import Path
 
 from sq_mitsuba.cli import CLIError
 from sq_mitsuba.cli._options import output_path
+from sq_mitsuba.io import inside_folder
 
 HELP = "train the network on a dataset"
 DESCRIPTION = """\
@@ -73,6 +74,9 @@ def _run(args: argparse.Namespace) -> int:
 
     if args.max_steps is not None and args.max_steps < 0:
         raise CLIError(f"--max-steps: expected >= 0, got {args.max_steps}")
+    if inside_folder(args.out, args.data):  # the run's files would become part of the dataset
+        raise CLIError(f"--out {args.out}: inside the dataset folder {args.data}, which "
+                       "training only reads; choose a run folder outside it")
     config = None
     if args.config is not None:
         config = load_train_config(args.config)

@@ -161,7 +161,7 @@ def train(config: TrainConfig | None, data_root: str | Path, out_dir: str | Path
         raise TrainError(f"max_seconds: expected > 0, got {max_seconds}")
     main_process = int(os.environ.get("RANK", "0")) == 0
     if main_process:
-        check_out_dir(out_dir, resume, data_root)
+        check_out_dir(out_dir, resume)
     created = not out_dir.exists()
     # One run at a time in a run folder: rank 0 holds its lock from here to the end (a second
     # run into it stops with one line; the lock goes with the process, kill -9 included), and
@@ -180,7 +180,7 @@ def _train(config: TrainConfig | None, data_root: Path, out_dir: Path, resume: b
     # the lock: a run that ended meanwhile), the checkpoint, the config, the dataset, the
     # network.
     if main_process:
-        check_out_dir(out_dir, resume, data_root)
+        check_out_dir(out_dir, resume)
     checkpoint = read_resumed(out_dir) if resume else None
     if config is None:
         config = TrainConfig() if checkpoint is None else from_dict(TrainConfig,

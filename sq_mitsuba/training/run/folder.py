@@ -19,7 +19,7 @@ import torch
 from torch import Tensor, nn
 
 from sq_mitsuba.config import to_dict
-from sq_mitsuba.io import atomic_path, check_output_folder, inside_folder
+from sq_mitsuba.io import atomic_path, check_output_folder
 from sq_mitsuba.model.checkpoint import read_checkpoint, write_checkpoint
 from sq_mitsuba.training.cache import manifest_hash
 from sq_mitsuba.training.distributed import unwrap
@@ -58,16 +58,12 @@ def _nearest_existing(path: Path) -> Path:
     return path
 
 
-def check_out_dir(out_dir: Path, resume: bool, data_root: Path) -> None:
-    """Refuse (one line) a run folder that cannot be written or lies inside the dataset
-    ``data_root`` (the run's files would join it), or (without ``resume``) one that holds a
-    run's checkpoint, or (with it) one without ``last.pt``. Creates nothing.
+def check_out_dir(out_dir: Path, resume: bool) -> None:
+    """Refuse (one line) a run folder that cannot be written, or (without ``resume``) one that
+    holds a run's checkpoint, or (with it) one without ``last.pt``. Creates nothing.
 
     A folder whose run stopped before its first checkpoint (its ``config.json`` and logs
     alone) holds nothing to resume: a new run starts over in it, rewriting them."""
-    if inside_folder(out_dir, data_root):
-        raise TrainError(f"{out_dir}: inside the dataset folder {data_root}, which training "
-                         "only reads; choose a run folder outside it")
     existing = _nearest_existing(out_dir)
     if existing != out_dir.absolute() and not existing.is_dir():
         raise TrainError(f"{out_dir}: output folder is not writable ({existing} is a file)")
