@@ -102,6 +102,24 @@ def check_tensor(
     return value
 
 
+def check_nonzero(name: str, value: torch.Tensor) -> torch.Tensor:
+    """Check that no vector ``value[..., :]`` is zero: a quaternion to normalise, a true
+    translation to divide by. A value check, skipped while :func:`value_checks_enabled` is
+    false.
+
+    Raises:
+        ValueError: naming ``name`` and the first zero vector's index.
+    """
+    if _VALUE_CHECKS.get():
+        zero = (value == 0).all(-1)
+        if bool(zero.any()):
+            index = tuple(int(i) for i in torch.nonzero(zero)[0])
+            where = f" at {index[0] if len(index) == 1 else index}" if index else ""
+            raise ValueError(f"{name}: zero vector{where} (a quaternion or distance of 0 "
+                             "has no direction or scale)")
+    return value
+
+
 def check_broadcast(**tensors: torch.Tensor) -> torch.Size:
     """Broadcast shape of the batch dims (all but the last) of the named tensors."""
     try:

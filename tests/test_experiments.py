@@ -137,6 +137,15 @@ def test_generalisation_row_reads_the_four_evaluations(tmp_path):
     missing = subprocess.run([sys.executable, str(EXPERIMENTS / "generalisation_row.py"),
                               str(tmp_path / "absent"), "m"], capture_output=True, text=True)
     assert missing.returncode == 2 and "not a folder" in missing.stderr
+    # A checkpoint exported without --data stores no baseline: its figures without a margin.
+    _summary(tmp_path / "n_heldout", {
+        ("network", "chamfer_l1_paper"): (0.12, 0.11), ("network", "camera_chamfer"): (0.05, 0.0),
+        ("network", "iou_2d"): (0.5, 0.5), ("network", "rotation_error_folded_deg"): (40, 41.25)})
+    bare = subprocess.run([sys.executable, str(EXPERIMENTS / "generalisation_row.py"),
+                           str(tmp_path), "n"], capture_output=True, text=True, timeout=60)
+    assert bare.returncode == 0, bare.stderr
+    assert bare.stdout.strip().splitlines()[-1].startswith(
+        "| n | 0.1200 (no baseline) | 0.0500 (no baseline) | 0.500 / - |")
 
 
 def test_generalisation_script_refuses_bad_arguments_before_any_work(tmp_path):

@@ -147,3 +147,31 @@ def test_volumetric_iou_and_translation_error_by_hand(device):
         chamfer_l1(t_pred[:, None], t_true[:, None], "l3")  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="pred_inside, gt_inside"):
         volumetric_iou(pred, gt[:, :3])
+
+
+def test_a_zero_quaternion_or_true_distance_is_an_error_not_nan():
+    """A zero quaternion has no rotation and a zero true translation no distance to divide by:
+    both gave NaN (or 180 deg) in the metrics; now one line naming the argument and item."""
+    from sq_mitsuba.checks import value_checks
+    from sq_mitsuba.geometry.metrics import speed_score
+    from sq_mitsuba.geometry.rotation import quaternion_angle, quaternion_to_matrix
+
+    q = torch.tensor([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0]], dtype=torch.float64)
+    t = torch.tensor([[0.0, 0.0, 2.0], [0.0, 0.0, 0.0]], dtype=torch.float64)
+    with pytest.raises(ValueError, match=r"^quaternion: zero vector at 1 "):
+        quaternion_to_matrix(q)
+    with pytest.raises(ValueError, match=r"^quaternion_b: zero vector at 1 "):
+        quaternion_angle(q[:1].expand(2, 4), q)
+    with pytest.raises(ValueError, match=r"^translation_true: zero vector at 1 "):
+        speed_score(q[:1].expand(2, 4), q[:1].expand(2, 4), t, t)
+    with pytest.raises(ValueError, match=r"^gt_translation: zero vector at 1 "):
+        translation_error(t, t, relative=True)
+    points = torch.rand(2, 10, 3, dtype=torch.float64)
+    rotation = torch.eye(3, dtype=torch.float64).expand(2, 3, 3)
+    with pytest.raises(ValueError, match=r"^gt_translation: zero vector at 1 "):
+        camera_frame_chamfer(points, rotation, t, points, rotation, t)
+    # The absolute translation error of a target at the camera is defined: no error there.
+    assert translation_error(t, t).tolist() == [0.0, 0.0]
+    # Value checks switched off (a hot loop): no check, the arithmetic's own result.
+    with value_checks(False):
+        assert bool(torch.isnan(quaternion_to_matrix(q)[1]).all())

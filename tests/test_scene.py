@@ -16,7 +16,7 @@ from scipy import stats
 
 from sq_mitsuba.cli import main
 from sq_mitsuba.config import ConfigError, apply_overrides, config_hash
-from sq_mitsuba.data.frames import sample_frame
+from sq_mitsuba.data.frames import sample_frame, sample_pass_frame
 from sq_mitsuba.data.library import generate_model
 from sq_mitsuba.data.spacecraft import catalogue
 from sq_mitsuba.data.spe3r import RenderOptions, load_model, render_image
@@ -190,6 +190,41 @@ def test_default_phase_angles_are_uniform_in_0_120_without_eclipses():
     # Same image, same frame; the next image, another sun.
     assert sample_frame(BOX, Camera.default(128), config, 3, "box", 7) == frames[7]
     assert frames[8].sun_direction != frames[7].sun_direction
+
+
+def _projected_extent(points: np.ndarray, frame, camera: Camera) -> tuple[float, float]:
+    """Smallest distance in pixels from the image's edge of the frame's projected points, by
+    brute-force projection (independent of the sampler's own test)."""
+    cam = points @ frame.rotation.T + np.asarray(frame.translation)
+    u = camera.fx * cam[:, 0] / cam[:, 2] + camera.cx
+    v = camera.fy * cam[:, 1] / cam[:, 2] + camera.cy
+    return min(u.min(), v.min(), camera.width - u.max(), camera.height - v.max()), cam[:, 2].min()
+
+
+def test_every_frame_of_a_pass_holds_the_whole_target():
+    """A long rod tumbling 10-15 deg a frame left the image in half of its passes (the start
+    frame framed it, a turned frame did not): the pass is moved back as a whole until every
+    frame holds it, and one that fits is left as drawn (its last frame at the start's
+    distance)."""
+    rod = np.array([[x, y, z] for x in (-0.5, 0.5) for y in (-0.05, 0.05) for z in (-0.05, 0.05)])
+    camera, config, count = Camera.default(64), SceneConfig(), 8
+    moved = 0
+    for seed in range(12):
+        start = sample_frame(rod, camera, config, seed, "rod", 0)
+        frames = [sample_pass_frame(rod, camera, config, seed, "rod", k, count,
+                                    tumble_deg=(10.0, 15.0)) for k in range(count)]
+        for frame in frames:
+            edge, nearest = _projected_extent(rod, frame, camera)
+            assert nearest > 0 and edge >= config.pose.margin_px - 1e-9
+        # Still one pass: the same line of sight, closing in, the first frame the image's.
+        np.testing.assert_allclose(frames[0].rotation, start.rotation, atol=1e-12)
+        directions = np.array([f.translation for f in frames])
+        directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+        np.testing.assert_allclose(directions, directions[:1].repeat(count, 0), atol=1e-12)
+        scale = frames[-1].translation[2] / start.translation[2]
+        assert scale >= 1 - 1e-12
+        moved += scale > 1 + 1e-9
+    assert 0 < moved < 12  # some passes had to move back, some did not
 
 
 @pytest.mark.parametrize("low, high", [(0.0, 180.0), (30.0, 60.0)])

@@ -344,6 +344,8 @@ def test_bad_config_is_one_line_naming_the_field(tmp_path, capsys, train_dataset
     bad_key.write_text(f'base = "{TINY.as_posix()}"\n[optim]\nlrr = 1e-3\n')
     bad_value = tmp_path / "bad_value.toml"
     bad_value.write_text("[optim]\nbatch_size = 0\n")
+    bad_encoder = tmp_path / "bad_encoder.toml"
+    bad_encoder.write_text(f'base = "{TINY.as_posix()}"\n[network]\nencoder = "resnet50"\n')
     loop_a, loop_b = tmp_path / "loop_a.toml", tmp_path / "loop_b.toml"
     loop_a.write_text('base = "loop_b.toml"\n')
     loop_b.write_text('base = "loop_a.toml"\n')
@@ -351,6 +353,8 @@ def test_bad_config_is_one_line_naming_the_field(tmp_path, capsys, train_dataset
         (["--config", str(bad_key)], ["optim.lrr", "unknown key", "did you mean 'lr'"]),
         (["--config", str(bad_value)], ["optim.batch_size", "[1, 4096]"]),
         (["--config", str(loop_a)], ["loops"]),
+        (["--config", str(bad_encoder)], [str(bad_encoder), "encoder", "'resnet50'",
+                                          "efficientnet_lite0"]),
         (["--config", str(TINY), "--set", "optim.lr=-1"], ["--set", "optim.lr", "> 0"]),
         (["--config", str(TINY), "--set", "network.num_primitives=abc"],
          ["network.num_primitives", "integer"]),

@@ -80,6 +80,23 @@ def _random_rotation(rng: np.random.Generator) -> np.ndarray:
     return quaternion_to_matrix(random_quaternions(1, gen, torch.float64))[0].numpy()
 
 
+def _image_bounds(points_cam: np.ndarray, camera: Camera) -> tuple[float, float, float, float]:
+    """Pixel extent (u_min, u_max, v_min, v_max) of camera-frame points (V, 3) in front."""
+    u = camera.fx * points_cam[:, 0] / points_cam[:, 2] + camera.cx
+    v = camera.fy * points_cam[:, 1] / points_cam[:, 2] + camera.cy
+    return float(u.min()), float(u.max()), float(v.min()), float(v.max())
+
+
+def in_view(points_cam: np.ndarray, camera: Camera, margin_px: float) -> bool:
+    """Whether every camera-frame point (V, 3) is in front of the camera and projects at
+    least ``margin_px`` pixels inside the image."""
+    if points_cam[:, 2].min() <= 1e-3:
+        return False
+    u0, u1, v0, v1 = _image_bounds(points_cam, camera)
+    return u0 >= margin_px and v0 >= margin_px and u1 <= camera.width - margin_px and \
+        v1 <= camera.height - margin_px
+
+
 def place_target(vertices_cam: np.ndarray, camera: Camera, config: PoseConfig,
                  rng: np.random.Generator) -> np.ndarray:
     """Translation t that keeps the rotated target (vertices R x, (V, 3)) wholly in view.
@@ -94,17 +111,10 @@ def place_target(vertices_cam: np.ndarray, camera: Camera, config: PoseConfig,
     margin = config.margin_px
 
     def bounds(t: np.ndarray) -> tuple[float, float, float, float]:
-        p = vertices_cam + t
-        u = camera.fx * p[:, 0] / p[:, 2] + camera.cx
-        v = camera.fy * p[:, 1] / p[:, 2] + camera.cy
-        return u.min(), u.max(), v.min(), v.max()
+        return _image_bounds(vertices_cam + t, camera)
 
     def fits(t: np.ndarray) -> bool:
-        if (vertices_cam[:, 2] + t[2]).min() <= 1e-3:
-            return False
-        u0, u1, v0, v1 = bounds(t)
-        return u0 >= margin and v0 >= margin and u1 <= camera.width - margin and \
-            v1 <= camera.height - margin
+        return in_view(vertices_cam + t, camera, margin)
 
     t = np.array([0.0, 0.0, depth])
     for _ in range(200):
@@ -214,8 +224,10 @@ def sample_pass_frame(vertices: np.ndarray, camera: Camera, config: SceneConfig,
     uniformly on the sphere at a rate drawn from ``tumble_deg`` (degrees per frame), and the
     camera approaches along its line of sight from ``1 + a`` times the start distance to the
     start distance (``a`` drawn from ``approach``), so the last frame is framed as the start
-    frame was; the sun, the Earth and the stars keep their directions in the camera frame
-    (an inertially pointed camera), and the phase angle follows the target's direction.
+    frame was, unless a frame would then cut the turned target at the image's edge: the whole
+    pass is moved back (by factors of 1.05) until every frame holds it; the sun, the Earth
+    and the stars keep their directions in the camera frame (an inertially pointed camera),
+    and the phase angle follows the target's direction.
 
     Convention: ``R_k = Rot(axis, k * rate) R_0``, the tumble about an axis fixed in the camera
     frame; so the relative rotation between frames i and j is ``R_j R_i^T = Rot(axis,
@@ -231,12 +243,25 @@ def sample_pass_frame(vertices: np.ndarray, camera: Camera, config: SceneConfig,
     axis /= np.linalg.norm(axis)
     rate = math.radians(rng.uniform(*tumble_deg))
     closing = rng.uniform(*approach)
-    angle = step * rate
-    turn = axis_angle_to_matrix(torch.from_numpy(axis * angle)).numpy()
-    rotation = turn @ start.rotation
+
+    def pose(k: int) -> tuple[np.ndarray, np.ndarray]:
+        turn = axis_angle_to_matrix(torch.from_numpy(axis * (k * rate))).numpy()
+        remaining = (frames_per_pass - 1 - k) / max(frames_per_pass - 1, 1)
+        return turn @ start.rotation, np.asarray(start.translation) * (1.0 + closing * remaining)
+
+    # The start frame holds the whole target, but turned it may not: the whole pass is then
+    # moved back along the start's line of sight (every frame's image position of the body
+    # origin kept) until every frame holds it, as any single image does.
+    poses = [pose(k) for k in range(frames_per_pass)]
+    distance = 1.0
+    for _ in range(200):
+        if all(in_view(vertices @ r.T + t * distance, camera, config.pose.margin_px)
+               for r, t in poses):
+            break
+        distance *= 1.05
+    rotation, translation = poses[step]
+    translation = translation * distance
     quaternion = matrix_to_quaternion(torch.from_numpy(rotation))
-    remaining = (frames_per_pass - 1 - step) / max(frames_per_pass - 1, 1)
-    translation = np.asarray(start.translation) * (1.0 + closing * remaining)
     to_camera = -translation / np.linalg.norm(translation)
     phase = math.degrees(math.acos(float(np.clip(np.asarray(start.sun_direction) @ to_camera,
                                                  -1, 1))))

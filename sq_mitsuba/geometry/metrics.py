@@ -28,7 +28,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from sq_mitsuba.checks import check_tensor
+from sq_mitsuba.checks import check_nonzero, check_tensor
 from sq_mitsuba.geometry.nearest import nearest_neighbours
 from sq_mitsuba.geometry.rotation import quaternion_angle, rotation_angle
 
@@ -128,6 +128,7 @@ def camera_frame_chamfer(pred_points: Tensor, pred_rotation: Tensor, pred_transl
                                   ("pred_translation", pred_translation, (3,)),
                                   ("gt_translation", gt_translation, (3,))):
         check_tensor(name, value, trailing)
+    check_nonzero("gt_translation", gt_translation)
     batch = {name: value.shape[0] for name, value in (
         ("pred_points", pred_points), ("pred_rotation", pred_rotation),
         ("pred_translation", pred_translation), ("gt_points", gt_points),
@@ -196,6 +197,7 @@ def translation_error(pred_translation: Tensor, gt_translation: Tensor,
     check_tensor("gt_translation", gt_translation, (3,))
     error = torch.linalg.vector_norm(gt_translation - pred_translation, dim=-1)
     if relative:
+        check_nonzero("gt_translation", gt_translation)
         error = error / torch.linalg.vector_norm(gt_translation, dim=-1)
     return error
 
@@ -230,6 +232,7 @@ def speed_score(
     """
     check_tensor("translation_pred", translation_pred, (3,))
     check_tensor("translation_true", translation_true, (3,))
+    check_nonzero("translation_true", translation_true)
     e_q = quaternion_angle(quaternion_pred, quaternion_true)
     e_t = torch.linalg.vector_norm(translation_true - translation_pred, dim=-1) / \
         torch.linalg.vector_norm(translation_true, dim=-1)

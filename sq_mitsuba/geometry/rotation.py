@@ -18,7 +18,7 @@ import torch
 from torch import Tensor
 from torch.nn import functional as F
 
-from sq_mitsuba.checks import check_tensor
+from sq_mitsuba.checks import check_nonzero, check_tensor
 
 __all__ = [
     "axis_angle_to_matrix",
@@ -72,6 +72,7 @@ def quaternion_to_matrix(quaternion: Tensor) -> Tensor:
         (..., 3, 3).
     """
     check_tensor("quaternion", quaternion, (4,))
+    check_nonzero("quaternion", quaternion)
     w, x, y, z = quaternion.unbind(-1)
     two_s = 2.0 / (quaternion * quaternion).sum(-1)
     rows = (
@@ -181,6 +182,8 @@ def quaternion_angle(quaternion_a: Tensor, quaternion_b: Tensor) -> Tensor:
     """SPEED rotation error 2 arccos(min(1, |<q_a, q_b>|)) in radians, (..., 4) -> (...)."""
     check_tensor("quaternion_a", quaternion_a, (4,))
     check_tensor("quaternion_b", quaternion_b, (4,))
+    check_nonzero("quaternion_a", quaternion_a)
+    check_nonzero("quaternion_b", quaternion_b)
     dot = (F.normalize(quaternion_a, dim=-1) * F.normalize(quaternion_b, dim=-1)).sum(-1)
     return 2.0 * torch.arccos(dot.abs().clamp_max(1.0))
 

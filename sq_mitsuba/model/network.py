@@ -268,9 +268,9 @@ def check_camera_matrix(camera_matrix: Tensor, batch: int) -> Tensor:
 
 
 def _check_names(config: NetworkConfig) -> None:
-    """Raise ValueError (one line) for an unknown encoder, head or normalisation."""
-    for field, registry in (("encoder", ENCODERS), ("latent", LATENT_HEADS),
-                            ("pose_head", POSE_HEADS)):
+    """Raise ValueError (one line) for an unknown head or normalisation (the encoder is
+    checked by the config itself)."""
+    for field, registry in (("latent", LATENT_HEADS), ("pose_head", POSE_HEADS)):
         value = getattr(config, field)
         if value not in registry:
             raise ValueError(f"network.{field}: unknown {value!r}; "

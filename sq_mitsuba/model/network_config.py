@@ -105,6 +105,14 @@ class NetworkConfig:
     init_gain: float = in_range(0.0, 1.0, default=0.01)
     "Scale of the last layers' initial weights (small: the initial prediction is the biases')."
 
+    def __post_init__(self) -> None:
+        # The encoders are this file's table, so a config file naming another one is refused
+        # as it loads, naming the file; heads are checked when the network is built, since a
+        # user's own heads may be registered after the config is read.
+        if self.encoder not in ENCODERS:
+            raise ValueError(f"encoder: unknown {self.encoder!r}; expected one of "
+                             f"{', '.join(sorted(ENCODERS))}")
+
     def normalisation(self) -> tuple[float, float]:
         """(mean, std) subtracted from and dividing the [0, 1] input."""
         _, mean, std = ENCODERS[self.encoder]
