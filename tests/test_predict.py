@@ -317,6 +317,18 @@ def test_turned_copies_read_the_network_alone(inputs, tmp_path, capsys):
         assert angle(quaternion_to_matrix(torch.tensor(h["q_vbs2tango"], dtype=torch.float64)),
                      expected) < 0.1
     assert listed[0]["q_vbs2tango"] == pytest.approx(pose["q_vbs2tango"], abs=1e-6)
+    # Without --turns the reading is the 8 copies' where the network and camera turn; --turns 1
+    # reads the image once.
+    assert main(["predict", str(inputs / "grey.png"), "--out", str(tmp_path / "default"),
+                 "--quiet"]) == 0
+    default = json.loads((tmp_path / "default" / "grey.pose.json").read_text())
+    assert default["turns"] == 8 and default["q_vbs2tango"] == pose["q_vbs2tango"]
+    assert main(["predict", str(inputs / "grey.png"), "--out", str(tmp_path / "once"),
+                 "--turns", "1", "--quiet"]) == 0
+    single = json.loads((tmp_path / "once" / "grey.pose.json").read_text())
+    assert "turns" not in single
+    assert angle(quaternion_to_matrix(torch.tensor(single["q_vbs2tango"], dtype=torch.float64)),
+                 once.rotation[0]) < 0.1
     # With --refine: the hypotheses of the reading the search started from (8 turned copies).
     assert main(["predict", str(inputs / "grey.png"), "--out", str(tmp_path / "refined"),
                  "--refine", *SMALL_REFINE, "--quiet"]) == 0
@@ -337,6 +349,10 @@ def test_turned_copies_without_a_distribution_head_are_one_line(eval_checkpoint,
     assert ("turns: reading the rotation from turned copies needs a rotation-distribution "
             "head") in error_line(capsys)
     assert not (tmp_path / "no").exists()
+    # By default such a network reads each image once.
+    assert main(["predict", str(inputs / "grey.png"), "--checkpoint", str(eval_checkpoint),
+                 "--out", str(tmp_path / "once"), "--quiet"]) == 0
+    assert "turns" not in json.loads((tmp_path / "once" / "grey.pose.json").read_text())
 
 
 def test_pose_json_leaves_out_the_padding_of_a_short_hypothesis_list():

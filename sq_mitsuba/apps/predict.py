@@ -70,7 +70,7 @@ import io
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 import torch
@@ -83,6 +83,13 @@ from sq_mitsuba.inference.predictor import DEFAULT_MIN_EXISTENCE
 from sq_mitsuba.inference.refine import RefineOptions
 from sq_mitsuba.inference.search import SEARCH_REFINEMENT, SearchOptions
 
+if TYPE_CHECKING:
+    from sq_mitsuba.geometry.camera import Camera
+
+#: Turned copies of each image the network's reading comes from by default, where the network
+#: and the camera allow it: as many as the search reads.
+DEFAULT_TURNS = SearchOptions().turns
+
 #: Suffixes of the files written per image, in order.
 OUTPUT_SUFFIXES = (".assembly.json", ".obj", ".glb", ".pose.json", ".overlay.png")
 
@@ -94,11 +101,13 @@ class PredictOptions:
     refine: bool = False
     ("Search the pose and refine it at test time against a mask: --mask, else the network's "
      "mask head (the image's segmentation for a model without one)")
-    turns: int = in_range(1, 360, default=1)
+    turns: int | None = in_range(1, 360, default=None)
     ("Without --refine: read each image from this many in-plane turned copies (the rotation's "
      "distributions multiplied, the rest averaged; a distribution head only): on the held-out "
-     "families 8 read the rotation 7 deg nearer, for 8 x the network's time. With --refine "
-     "the search reads search.turns copies")
+     "families 8 read the rotation 7 deg nearer, for 8 x the network's time. Default: 8 where "
+     "the network has a distribution head and the image's camera turns exactly (square "
+     "pixels, the principal point at the centre), else 1; 1 reads each image once. With "
+     "--refine the search reads search.turns copies")
     mask: Literal["network", "segmentation"] = "network"
     ("Without --mask, the mask to refine against: 'network' (the network's mask head; the "
      "image's segmentation for a model without one) or 'segmentation'")
@@ -320,11 +329,12 @@ def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
     paddings, problems, warnings = _check_inputs(paths, camera, mask_paths, options,
                                                  pad=not explicit_camera, segmented=segmented)
     inputs = _Inputs(paths, paddings, mask_paths, segmented)
-    if options.turns > 1 and options.refine:
+    if options.turns is not None and options.turns > 1 and options.refine:
         raise ValueError(f"turns: {options.turns} is for the network's reading alone; with "
                          "--refine the search reads its own turned copies (--set "
                          "search.turns=T)")
-    predictor.check_turns(options.turns, camera)
+    if options.turns is not None:
+        predictor.check_turns(options.turns, camera)
     out = check_output_folder(out_dir)
     check_inputs_kept([*paths, *(mask_paths or [])],
                       [out / f"{path.stem}{suffix}" for path in paths
@@ -332,12 +342,19 @@ def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
     predictor = with_fast_path(predictor, options.fast, min_target=options.min_target,
                                min_existence=options.min_existence)
 
+    def reading_turns(image_camera: Camera) -> int:
+        """The turned copies the network's reading of an image comes from (with --refine the
+        search reads its own: the reading it is given is the unturned one)."""
+        if options.turns is not None:
+            return options.turns
+        return DEFAULT_TURNS if not options.refine and predictor.can_turn(image_camera) else 1
+
     def read(k: int, picture: np.ndarray) -> tuple[Any, Any, PredictRecord]:
         """The network's reading of image k: its camera, prediction and record."""
         image_camera = padded_camera(camera, picture.shape[1], picture.shape[0])
         tick = time.perf_counter()
         prediction = predictor.predict(torch.from_numpy(picture).float()[None], image_camera,
-                                       turns=options.turns)
+                                       turns=reading_turns(image_camera))
         record = PredictRecord(paths[k], [], 1000 * (time.perf_counter() - tick),
                                warning=warnings[k], target=bool(prediction.target[0]),
                                target_score=float(prediction.target_score[0]),
@@ -434,8 +451,8 @@ def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
             "checkpoint": str(getattr(predictor, "source", None) or ""),
             "refined": options.refine, "network_ms": round(record.network_ms, 3),
         })
-        if options.turns > 1:
-            pose["turns"] = options.turns  # the network's reading, from that many copies
+        if reading_turns(image_camera) > 1:
+            pose["turns"] = reading_turns(image_camera)  # the reading, from that many copies
         hypotheses = _rotation_hypotheses(reading)
         if hypotheses is not None:
             pose["rotation_hypotheses"] = hypotheses
