@@ -120,6 +120,25 @@ def test_a_manifest_from_before_passes_resumes_as_independent_images(reference, 
     assert render_cli(library, out, "--pass-frames", "2") == 2  # another dataset
 
 
+def test_a_pass_dataset_of_an_earlier_framing_is_not_resumed(library, tmp_path, capsys):
+    """A pass dataset records how its passes were placed; one placed by an earlier version (a
+    turned frame could cut the target at the image's edge) is refused, not grown with frames
+    placed another way."""
+    out = tmp_path / "passes"
+    assert render_cli(library, out, "--pass-frames", "2") == 0
+    manifest = json.loads((out / "dataset.json").read_text())
+    assert manifest["settings"]["pass_frames"] == 2 and manifest["settings"]["pass_framing"] == 2
+    assert render_cli(library, out, "--pass-frames", "2") == 0  # the same framing resumes
+    del manifest["settings"]["pass_framing"]
+    (out / "dataset.json").write_text(json.dumps(manifest))
+    before = tree(out)
+    capsys.readouterr()
+    assert render_cli(library, out, "--pass-frames", "2") == 2
+    error = capsys.readouterr().err
+    assert "passes placed by an earlier framing (1; this run: 2" in error
+    assert error.count("\n") == 1 and tree(out) == before
+
+
 @pytest.mark.parametrize("extra, named", [
     (["--resolution", "40"], "resolution 32 (this run: 40)"),
     (["--seed", "12"], "seed 11 (this run: 12)"),

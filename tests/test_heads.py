@@ -164,7 +164,7 @@ def test_unknown_names_are_one_line_errors() -> None:
             SuperquadricNet(NetworkConfig(**{field: value}, image_size=64))
     # The encoders are the config's own table: refused by the config itself (a file naming
     # one is then refused as it loads, with the file's name: tests/test_train.py).
-    with pytest.raises(ValueError, match=r"^encoder: unknown 'resnet'; expected one of "):
+    with pytest.raises(ValueError, match=r"^unknown encoder 'resnet'; expected one of "):
         NetworkConfig(encoder="resnet")
     assert {"6d", "grid"} <= set(POSE_HEADS)
 

@@ -202,7 +202,7 @@ def _projected_extent(points: np.ndarray, frame, camera: Camera) -> tuple[float,
 
 
 def test_every_frame_of_a_pass_holds_the_whole_target():
-    """A long rod tumbling 10-15 deg a frame left the image in half of its passes (the start
+    """A long rod tumbling 10-15 deg a frame left the image in a third of its passes (the start
     frame framed it, a turned frame did not): the pass is moved back as a whole until every
     frame holds it, and one that fits is left as drawn (its last frame at the start's
     distance)."""

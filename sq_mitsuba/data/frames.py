@@ -212,6 +212,13 @@ def sample_frame(vertices: np.ndarray, camera: Camera, config: SceneConfig, data
     )
 
 
+#: How :func:`sample_pass_frame` places a pass, recorded in a pass dataset's manifest so that
+#: one rendered by an earlier placement is not resumed with this one: 1, the first frame framed
+#: as a single image (a turned frame could cut the target at the image's edge); 2, the whole
+#: pass moved back until every frame holds the target.
+PASS_FRAMING = 2
+
+
 def sample_pass_frame(vertices: np.ndarray, camera: Camera, config: SceneConfig,
                       dataset_seed: int, model: str, index: int, frames_per_pass: int,
                       tumble_deg: tuple[float, float] = (3.0, 15.0),
@@ -259,6 +266,9 @@ def sample_pass_frame(vertices: np.ndarray, camera: Camera, config: SceneConfig,
                for r, t in poses):
             break
         distance *= 1.05
+    else:  # the body origin's image lies inside the margin, so moving back always ends
+        raise ValueError(f"{model}: pass {index // frames_per_pass} cannot be framed in view "
+                         "(is the model unit size and centred?)")
     rotation, translation = poses[step]
     translation = translation * distance
     quaternion = matrix_to_quaternion(torch.from_numpy(rotation))

@@ -110,7 +110,7 @@ class NetworkConfig:
         # as it loads, naming the file; heads are checked when the network is built, since a
         # user's own heads may be registered after the config is read.
         if self.encoder not in ENCODERS:
-            raise ValueError(f"encoder: unknown {self.encoder!r}; expected one of "
+            raise ValueError(f"unknown encoder {self.encoder!r}; expected one of "
                              f"{', '.join(sorted(ENCODERS))}")
 
     def normalisation(self) -> tuple[float, float]:

@@ -49,7 +49,7 @@ from typing import Any
 import numpy as np
 
 from sq_mitsuba.config import config_hash, in_range, to_dict, validate
-from sq_mitsuba.data.frames import sample_frame, sample_pass_frame
+from sq_mitsuba.data.frames import PASS_FRAMING, sample_frame, sample_pass_frame
 from sq_mitsuba.data.spe3r.layout import (
     EXR,
     FAILURE_MARKS,
@@ -99,9 +99,11 @@ MAX_SAMPLES_PER_RENDER = 2**32 - 1
 OVERWRITE_DELETES = (MANIFEST, "camera.json", "splits.csv", FAILURES, "preview.png")
 _MODEL_FOLDER_SIGNS = ("labels.json", IMAGES, MASKS, EXR, PROGRESS)
 #: Settings compared between a run and the manifest of its output folder, in message order.
-IDENTITY = ("seed", "resolution", "spp", "exr", "camera", "scene_hash", "pass_frames")
-# What a manifest written before a setting existed meant by it.
-_IDENTITY_BEFORE = {"pass_frames": 1}
+IDENTITY = ("seed", "resolution", "spp", "exr", "camera", "scene_hash", "pass_frames",
+            "pass_framing")
+# What a manifest written before a setting existed meant by it (a dataset of independent
+# images records no pass framing at all).
+_IDENTITY_BEFORE = {"pass_frames": 1, "pass_framing": None}
 
 # ------------------------------------------------------------------------ writer
 
@@ -525,6 +527,8 @@ def dataset_settings(options: RenderOptions, camera: Camera) -> dict[str, Any]:
     settings = {"seed": options.seed, "resolution": options.resolution, "spp": options.spp,
                 "exr": options.exr, "camera": camera.to_speed_dict(),
                 "scene_hash": config_hash(options.scene), "pass_frames": options.pass_frames}
+    if options.pass_frames > 1:
+        settings["pass_framing"] = PASS_FRAMING
     return json.loads(json.dumps(settings))  # as read back from the file
 
 
@@ -579,7 +583,15 @@ def _settings_differences(manifest: dict[str, Any], settings: dict[str, Any],
     stored = manifest["settings"]
     differences = []
     for key in IDENTITY:
-        if stored.get(key, _IDENTITY_BEFORE.get(key)) == settings[key]:
+        if stored.get(key, _IDENTITY_BEFORE.get(key)) == settings.get(key,
+                                                                     _IDENTITY_BEFORE.get(key)):
+            continue
+        if key == "pass_framing":  # only news where the pass length is the same
+            if stored.get("pass_frames", 1) == settings["pass_frames"]:
+                differences.append(f"passes placed by an earlier framing ("
+                                   f"{json.dumps(stored.get(key, 1))}; this run: "
+                                   f"{json.dumps(settings[key])}, every frame holding the "
+                                   "whole target)")
             continue
         if key == "camera":
             differences.append(f"camera {_describe_camera(stored.get(key))} (this run: "
