@@ -144,6 +144,15 @@ def run(options: BenchOptions) -> Report:
                  "(pose only, rotation prior 1)"))
         if SHIPPED_MODEL.is_file():
             shipped = load_model(fast=True)
+            for turns, what in ((1, "network alone"),
+                                (search.turns, f"network from {search.turns} turned copies "
+                                               "(what `predict` writes by default)")):
+                report.timings.append(Timing(
+                    f"predict: shipped model, {what}, per image",
+                    time_callable(lambda t=turns: shipped.predict(image, camera, turns=t),
+                                  options.repeats, options.warmup),
+                    note=f"batch of 1, {RESOLUTION} px image, the {shipped.image_size} px "
+                         "network, fast path"))
 
             def shipped_turned_search_refine() -> None:
                 shipped.predict(image, camera, refine=True)
