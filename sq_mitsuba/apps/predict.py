@@ -451,8 +451,9 @@ def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
             "checkpoint": str(getattr(predictor, "source", None) or ""),
             "refined": options.refine, "network_ms": round(record.network_ms, 3),
         })
-        if reading_turns(image_camera) > 1:
-            pose["turns"] = reading_turns(image_camera)  # the reading, from that many copies
+        turns = reading_turns(image_camera)
+        if turns > 1:
+            pose["turns"] = turns  # the network's reading, from that many copies
         hypotheses = _rotation_hypotheses(reading)
         if hypotheses is not None:
             pose["rotation_hypotheses"] = hypotheses

@@ -260,10 +260,11 @@ def sample_pass_frame(vertices: np.ndarray, camera: Camera, config: SceneConfig,
     # moved back along the start's line of sight (every frame's image position of the body
     # origin kept) until every frame holds it, as any single image does.
     poses = [pose(k) for k in range(frames_per_pass)]
+    turned = [(vertices @ r.T, t) for r, t in poses]  # each frame's target, turned once
     distance = 1.0
     for _ in range(200):
-        if all(in_view(vertices @ r.T + t * distance, camera, config.pose.margin_px)
-               for r, t in poses):
+        if all(in_view(points + t * distance, camera, config.pose.margin_px)
+               for points, t in turned):
             break
         distance *= 1.05
     else:  # the body origin's image lies inside the margin, so moving back always ends

@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.frames import orthonormal_basis
@@ -362,11 +363,11 @@ class SpaceScene:
                                        seed=_render_seed(frame)), dtype=np.float64)
 
     def _ray_cosine(self) -> np.ndarray:
-        """(H, W) the cosine between each pixel centre's ray and the optical axis."""
+        """(H, W) the cosine between each pixel centre's ray and the optical axis: one over
+        the length of the ray's point at depth 1."""
         camera = self.camera
-        x = (np.arange(camera.width) + 0.5 - camera.cx) / camera.fx  # pixel centres
-        y = (np.arange(camera.height) + 0.5 - camera.cy) / camera.fy
-        return 1.0 / np.sqrt(x[None, :] ** 2 + y[:, None] ** 2 + 1.0)
+        at_unit_depth = camera.unproject(camera.pixel_centers(torch.float64), 1.0)
+        return (1.0 / torch.linalg.vector_norm(at_unit_depth, dim=-1)).numpy()
 
     def render(self, frame: Frame, radiance: bool = True) -> RenderedFrame:
         """Path-trace ``frame`` (and its mask). ``radiance=False`` renders the mask only."""
