@@ -21,7 +21,7 @@ missing file, a ``ValueError`` otherwise, raised before any work that depends on
   fails one of these, instead of giving poses that are silently wrong.
 - **Tables** (:func:`read_csv_table`, :func:`finite_number`): CSV files with the columns a
   reader needs, every row complete (a truncated file is an error), numbers finite.
-- **Quaternion lists** (:func:`read_quaternions`): a JSON list of one rotation per item,
+- **Quaternion lists** (:func:`check_quaternions`): a parsed JSON list of one rotation per item,
   each ``[w, x, y, z]`` of finite numbers and unit length (within :data:`UNIT_TOLERANCE`;
   normalised), exactly as many as the items they go with.
 
@@ -45,11 +45,11 @@ __all__ = [
     "check_camera_intrinsics",
     "check_finite_tensors",
     "check_image_size",
+    "check_quaternions",
     "finite_number",
     "load_torch_file",
     "open_image",
     "read_csv_table",
-    "read_quaternions",
 ]
 
 MIN_IMAGE_SIDE = 8
@@ -277,48 +277,34 @@ def read_csv_table(path: str | os.PathLike[str], columns: Sequence[str]) -> list
 # ----------------------------------------------------------------------------- quaternions
 
 
-def read_quaternions(path: str | os.PathLike[str], count: int, what: str) -> list[list[float]]:
-    """The ``count`` unit quaternions ``[w, x, y, z]`` a JSON file lists, normalised.
+def check_quaternions(data: Any, count: int, what: str, where: str) -> list[list[float]]:
+    """The ``count`` unit quaternions ``[w, x, y, z]`` a parsed JSON value lists, normalised.
 
     Args:
-        path: a JSON file holding a list of ``count`` lists of 4 numbers.
-        count: how many the file must hold (one per item it goes with).
+        data: the value (e.g. :func:`sq_mitsuba.io.read_json` of a file): a list of ``count``
+            lists of 4 numbers.
+        count: how many it must hold (one per item it goes with).
         what: what the items are, for the message (e.g. ``"image"``).
+        where: where the value came from (a file's path), the message's start.
 
     Raises:
-        FileNotFoundError: ``<path>: missing``.
-        ValueError: ``<path>: ...``: not JSON, not a list of ``count``, or an entry (named by
-            its index) that is not 4 finite numbers of length 1.
+        ValueError: ``<where>: ...``: not a list of ``count``, or an entry (named by its
+            index) that is not 4 finite numbers of length 1 (within :data:`UNIT_TOLERANCE`).
     """
-    import json
-
-    path = Path(path)
-    if not path.is_file():
-        if path.exists():  # a folder, device or pipe: reading could block, or never end
-            raise ValueError(f"{path}: not a regular file (a folder, device, pipe or socket)")
-        raise FileNotFoundError(f"{path}: missing")
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except json.JSONDecodeError as error:
-        raise ValueError(f"{path}: not valid JSON ({error.msg}, line {error.lineno})") from None
-    except UnicodeDecodeError:
-        raise ValueError(f"{path}: not valid JSON (not UTF-8 text)") from None
-    except RecursionError:  # arrays nested deeper than the parser's stack
-        raise ValueError(f"{path}: not valid JSON here (nested too deeply)") from None
     if not isinstance(data, list):
-        raise ValueError(f"{path}: expected a list of quaternions [w, x, y, z], got a "
+        raise ValueError(f"{where}: expected a list of quaternions [w, x, y, z], got a "
                          f"{type(data).__name__}")
     if len(data) != count:
-        raise ValueError(f"{path}: {len(data)} quaternions for {count} {what}s (one per "
+        raise ValueError(f"{where}: {len(data)} quaternions for {count} {what}s (one per "
                          f"{what}, in their order)")
     quaternions = []
     for index, entry in enumerate(data):
-        where = f"{path}: quaternion {index}"
+        named = f"{where}: quaternion {index}"
         if not isinstance(entry, list) or len(entry) != 4:
-            raise ValueError(f"{where}: expected [w, x, y, z], got {entry!r:.{_MAX_REASON}}")
-        numbers = [finite_number(value, where) for value in entry]
+            raise ValueError(f"{named}: expected [w, x, y, z], got {entry!r:.{_MAX_REASON}}")
+        numbers = [finite_number(value, named) for value in entry]
         length = math.sqrt(sum(v * v for v in numbers))
         if abs(length - 1.0) > UNIT_TOLERANCE:
-            raise ValueError(f"{where}: expected unit length, got {length:.6g}")
+            raise ValueError(f"{named}: expected unit length, got {length:.6g}")
         quaternions.append([v / length for v in numbers])
     return quaternions

@@ -618,17 +618,23 @@ def test_the_demo_page_names_the_shipped_model_without_this_machines_path():
 
 
 def test_quaternion_lists_are_normalised_and_bad_ones_are_one_line(tmp_path):
-    """``inputs.read_quaternions``: rounding within the tolerance is normalised away; a file
-    missing, of the wrong count or with a short, infinite or far-from-unit entry is refused."""
-    from sq_mitsuba.inputs import UNIT_TOLERANCE, read_quaternions
+    """``inputs.check_quaternions`` on a file ``io.read_json`` parsed (as ``predict
+    --relative-rotations`` reads one): rounding within the tolerance is normalised away; a file
+    missing, not JSON, of the wrong count or with a short, infinite or far-from-unit entry is
+    refused in one line naming it."""
+    from sq_mitsuba.inputs import UNIT_TOLERANCE, check_quaternions
+    from sq_mitsuba.io import read_json
+
+    def read(path):
+        return check_quaternions(read_json(path), 2, "image", str(path))
 
     path = tmp_path / "q.json"
     near = [1.0 + 0.5 * UNIT_TOLERANCE, 0.0, 0.0, 0.0]
     path.write_text(json.dumps([near, [0.5, 0.5, 0.5, 0.5]]))
-    quaternions = read_quaternions(path, 2, "image")
+    quaternions = read(path)
     assert quaternions[0] == [1.0, 0.0, 0.0, 0.0] and quaternions[1] == [0.5, 0.5, 0.5, 0.5]
-    with pytest.raises(FileNotFoundError, match="missing"):
-        read_quaternions(tmp_path / "absent.json", 2, "image")
+    with pytest.raises(FileNotFoundError):
+        read(tmp_path / "absent.json")
     unit = [1, 0, 0, 0]
     for text, message in ((json.dumps({"q": unit}), "got a dict"),
                           (json.dumps([unit]), "1 quaternions for 2 images"),
@@ -640,13 +646,7 @@ def test_quaternion_lists_are_normalised_and_bad_ones_are_one_line(tmp_path):
                           ("[" * 100_000 + "]" * 100_000, "nested too deeply")):
         path.write_text(text)
         with pytest.raises(ValueError, match=re.escape(message)) as info:
-            read_quaternions(path, 2, "image")
-        assert str(path) in str(info.value) and "\n" not in str(info.value)
-    # Every JSON file the tools read (cameras, labels, scenes) goes through read_json.
-    from sq_mitsuba.io import read_json
-
-    with pytest.raises(ValueError, match=re.escape(f"{path}: not valid JSON here (nested")):
-        read_json(path)
-    for reader in (read_json, lambda device: read_quaternions(device, 2, "image")):
-        with pytest.raises(ValueError, match=r"^/dev/null: not a regular file"):
-            reader("/dev/null")  # a device could block, or never end (/dev/urandom)
+            read(path)
+        assert str(info.value).startswith(f"{path}: ") and "\n" not in str(info.value)
+    with pytest.raises(ValueError, match=r"^/dev/null: not a regular file"):
+        read_json("/dev/null")  # a device could block, or never end (/dev/urandom)

@@ -89,7 +89,8 @@ done
 
 MODEL=sq_mitsuba/model/weights/model.pt
 # 4b. The inference checkpoint the package ships: a quarter of the way from the archetype model
-#     to the fine-tunes' average (eval/MODEL_CARD.md "Back towards the start"), half precision,
+#     to the fine-tunes' average (eval/experiments/README.md, "Averaged weights and the share
+#     of the start"), half precision,
 #     with the trivial baseline over the archetype library.
 $SQ export --checkpoint "$WORK/broad_1/run/last.pt" "$WORK/broad_2/run/last.pt" \
   --start "$WORK/model_archetypes.pt" --start-share 0.75 --data "$WORK/data" \

@@ -6,7 +6,8 @@ the held-out families of the compositional catalogue of that seed), in the defau
 scene (:func:`sq_mitsuba.data.frames.sample_pass_frame`: the target tumbling about a random
 axis, the camera approaching), then scores, for N in ``--counts``, the first N frames of each
 pass: the single-image shipped path (``Predictor.predict(refine=True)``, each frame alone)
-(run once per pass on all its frames, the first N taken) against
+(run once per pass on all its frames, the first N taken) and, within it, the network's own
+reading of each frame (method "network": one pass, no turned copies), against
 ``Predictor.predict_sequence`` (one assembly, N poses; ``--set`` its options), with the metrics of
 ``sq-mitsuba eval`` (:func:`sq_mitsuba.evaluation.scoring.score`) per frame, and the error of
 the relative rotations between consecutive frames. Writes ``sequence_passes.csv`` (one row per
@@ -111,6 +112,16 @@ def sequence_options(settings: list[str]) -> SequenceOptions:
     return dataclasses.replace(options, **changes)
 
 
+def _mean_and_median(values: list[float]) -> tuple[float, float]:
+    """Mean and median of the finite values (NaN for a metric a method has no value of, such as
+    the network's seconds or frame 0's relative rotation)."""
+    finite = np.asarray(values, dtype=float)
+    finite = finite[np.isfinite(finite)]
+    if finite.size == 0:
+        return float("nan"), float("nan")
+    return float(finite.mean()), float(np.median(finite))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, required=True)
@@ -173,8 +184,11 @@ def main() -> None:
                      "translation": shot["translation"][:count].double(),
                      "surface_points": surface.expand(count, -1, -1)}
             batch["quaternion"] = matrix_to_quaternion(batch["rotation"])
+            network = alone.network  # the network's own reading (one pass, no turned copies)
             methods = {"single": (alone.assembly[:count], alone.rotation[:count].double(),
-                                  alone.translation[:count].double(), alone_seconds * count)}
+                                  alone.translation[:count].double(), alone_seconds * count),
+                       "network": (network.assembly[:count], network.rotation[:count].double(),
+                                   network.translation[:count].double(), float("nan"))}
             for name, variant in variants.items() if count >= 2 else ():
                 tick = time.perf_counter()
                 sequence = predictor.predict_sequence(images, camera, ordered=True,
@@ -200,12 +214,11 @@ def main() -> None:
         writer.writerows(rows)
     summary = {}
     for count in args.counts:
-        for method in ("single", *variants, "oracle_pose", "oracle_fit"):
+        for method in ("single", "network", *variants, "oracle_pose", "oracle_fit"):
             chosen = [r for r in rows if r["frames"] == count and r["method"] == method]
             if not chosen:
                 continue
-            stats = {name: (float(np.nanmean([r[name] for r in chosen])),
-                            float(np.nanmedian([r[name] for r in chosen])))
+            stats = {name: _mean_and_median([r[name] for r in chosen])
                      for name in (*SHOWN, "seconds_per_frame")}
             summary[(count, method)] = stats
             print(f"N={count:2d} {method:8s} " + "  ".join(
@@ -222,8 +235,8 @@ def main() -> None:
               ("relative_rotation_deg", "relative rotation (median, deg)")]
     for axis, (name, label) in zip(axes, panels, strict=True):
         which = 1 if "median" in label else 0
-        colours = ("tab:red", "tab:green", "tab:blue", "tab:orange", "tab:purple")
-        for method, colour in zip(("single", *variants), colours, strict=False):
+        colours = ("tab:red", "tab:gray", "tab:green", "tab:blue", "tab:orange", "tab:purple")
+        for method, colour in zip(("single", "network", *variants), colours, strict=False):
             counts = [c for c in args.counts if (c, method) in summary]
             axis.plot(counts, [summary[(c, method)][name][which] for c in counts], "o-",
                       color=colour, label=method)

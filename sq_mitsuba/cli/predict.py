@@ -189,8 +189,9 @@ def _relative_rotations(path: Path, count: int) -> Tensor:
     import torch
 
     from sq_mitsuba.geometry.rotation import quaternion_to_matrix
-    from sq_mitsuba.inputs import read_quaternions
+    from sq_mitsuba.inputs import check_quaternions
+    from sq_mitsuba.io import read_json
 
-    attitudes = quaternion_to_matrix(torch.tensor(read_quaternions(path, count, "image"),
-                                                  dtype=torch.float64))
+    quaternions = check_quaternions(read_json(path), count, "image", str(path))
+    attitudes = quaternion_to_matrix(torch.tensor(quaternions, dtype=torch.float64))
     return attitudes @ attitudes[0].T
