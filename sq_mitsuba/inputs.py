@@ -225,8 +225,12 @@ def check_camera_intrinsics(width: int, height: int, fx: float, fy: float, cx: f
 # ----------------------------------------------------------------------------- tables
 
 
-def finite_number(value: Any, where: str) -> float:
-    """``value`` as a finite float; ``where`` starts the one-line message otherwise."""
+def finite_number(value: Any, where: str, text: bool = True) -> float:
+    """``value`` as a finite float; ``where`` starts the one-line message otherwise. ``text``
+    False refuses a number written as text (``"0.5"``: a JSON file's numbers are numbers, a
+    CSV file's are text)."""
+    if not text and isinstance(value, str):
+        raise ValueError(f"{where}: expected a number, got the text {value!r:.{_MAX_REASON}}")
     try:
         number = float(value)
     except (TypeError, ValueError):
@@ -302,7 +306,7 @@ def check_quaternions(data: Any, count: int, what: str, where: str) -> list[list
         named = f"{where}: quaternion {index}"
         if not isinstance(entry, list) or len(entry) != 4:
             raise ValueError(f"{named}: expected [w, x, y, z], got {entry!r:.{_MAX_REASON}}")
-        numbers = [finite_number(value, named) for value in entry]
+        numbers = [finite_number(value, named, text=False) for value in entry]
         length = math.sqrt(sum(v * v for v in numbers))
         if abs(length - 1.0) > UNIT_TOLERANCE:
             raise ValueError(f"{named}: expected unit length, got {length:.6g}")

@@ -10,7 +10,7 @@ import contextlib
 import json
 import os
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -97,15 +97,26 @@ def save_figure(figure: Any, path: str | Path, dpi: int = 110) -> Path:
     return path
 
 
-def check_output_folder(out: str | Path) -> Path:
-    """``out`` as a Path, if it is (or can be created as) a writable folder.
+def check_output_folder(out: str | Path, files: Sequence[str | Path] = (),
+                        keep: Sequence[str | Path] = ()) -> Path:
+    """``out`` as a Path, if it is (or can be created as) a writable folder that can take the
+    run's ``files`` without losing one of its inputs.
 
     Probes by creating and removing a temporary file in ``out`` or its nearest existing
     ancestor: permission bits alone do not tell (root ignores them; read-only mounts).
     Creates nothing that stays.
 
+    Args:
+        out: the output folder.
+        files: the files the run will write there (names, or paths, relative to ``out``):
+            one that exists as a folder (or another non-file) is refused now, not after the
+            work.
+        keep: the run's input files: one that ``files`` would overwrite is refused
+            (:func:`check_inputs_kept`).
+
     Raises:
-        ValueError: ``out`` or an ancestor is a file, or the folder is not writable.
+        ValueError: ``out`` or an ancestor is a file, the folder is not writable, an output
+            is not a file, or an output is one of ``keep``.
     """
     if not str(out).strip():  # Path("") is the working folder: never what was meant
         raise ValueError("out: an empty path; give an output folder")
@@ -125,6 +136,12 @@ def check_output_folder(out: str | Path) -> Path:
     os.close(fd)
     with contextlib.suppress(FileNotFoundError):
         os.unlink(probe)
+    written = [out / name for name in files]
+    check_inputs_kept([Path(path) for path in keep], written)
+    for path in written:
+        if path.exists() and not path.is_file():
+            raise ValueError(f"{path}: an output of this run, but a folder (or another "
+                             "non-file) is there; move it or write elsewhere (--out)")
     return out
 
 
@@ -144,6 +161,6 @@ def check_inputs_kept(inputs: list[Path], outputs: list[Path]) -> None:
     written = {os.path.realpath(path) for path in outputs}
     for path in inputs:
         if os.path.realpath(path) in written:
-            raise ValueError(f"{path}: an output of this run would overwrite it (an input in "
-                             "the output folder, named like an output); write elsewhere (--out)")
+            raise ValueError(f"{path}: an output of this run would overwrite it; write "
+                             "elsewhere (--out)")
 

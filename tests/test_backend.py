@@ -21,9 +21,28 @@ def test_kernel_cache_is_configured():
     assert os.environ.get(backend.CACHE_ENV)
 
 
-def test_unknown_variant_raises_one_clear_error():
-    with pytest.raises(backend.BackendError, match="no Mitsuba variant"):
+def test_unknown_variant_raises_one_clear_error(monkeypatch):
+    with pytest.raises(ValueError, match=r"^variant='no_such_variant': not a variant "):
         backend.mitsuba("no_such_variant")
+    # A variant Mitsuba has but the tool cannot render with fails here, not inside a render.
+    monkeypatch.setenv(backend.VARIANT_ENV, "scalar_rgb")
+    with pytest.raises(ValueError, match=r"^SQ_MITSUBA_VARIANT='scalar_rgb': not a variant "
+                                         r"sq-mitsuba renders with; use cuda_ad_mono or "
+                                         r"llvm_ad_mono"):
+        backend.mitsuba()
+
+
+def test_a_bad_variant_in_the_environment_stops_every_command_first(monkeypatch, tmp_path,
+                                                                     capsys):
+    from output_checks import error_line
+
+    from sq_mitsuba.cli import main
+
+    monkeypatch.setenv(backend.VARIANT_ENV, "bogus")
+    out = tmp_path / "library"
+    assert main(["models", "generate", "--count", "1", "--out", str(out)]) == 2
+    assert error_line(capsys).startswith("sq-mitsuba models: error: SQ_MITSUBA_VARIANT='bogus'")
+    assert not out.exists()
 
 
 def test_describe_reports_versions_and_device():

@@ -282,6 +282,18 @@ REPORT_CASES = {
         ["--paper", _paper_with(t, PAPER_TABLES.read_text().replace("[0.054, 0.026]",
                                                                     "[nan, 0.026]", 1))],
         t / "paper.toml", "table1.a.val.chamfer_l1: expected a finite number"),
+    "paper has a number as text": lambda f, t: (
+        ["--paper", _paper_with(t, PAPER_TABLES.read_text().replace("[0.054, 0.026]",
+                                                                    '["0.054", 0.026]', 1))],
+        t / "paper.toml", "table1.a.val.chamfer_l1: expected a number, got the text '0.054'"),
+    "paper has a negative Chamfer": lambda f, t: (
+        ["--paper", _paper_with(t, PAPER_TABLES.read_text().replace("[0.054, 0.026]",
+                                                                    "[-5, 0.026]", 1))],
+        t / "paper.toml", "table1.a.val.chamfer_l1: mean -5 outside [0, inf]"),
+    "paper has an IoU above 1": lambda f, t: (
+        ["--paper", _paper_with(t, PAPER_TABLES.read_text().replace("iou_2d = [0.594, 0.183]",
+                                                                    "iou_2d = [59.4, 0.183]", 1))],
+        t / "paper.toml", "table1.a.val.iou_2d: mean 59.4 outside [0, 1]"),
     "paper syntax error": lambda f, t: (["--paper", _paper_with(t, "[table1\nlabel = 1\n")],
                                         t / "paper.toml", "malformed TOML"),
     "summary has NaN": lambda f, t: ([], _edit_summary(f, _nan_cell),
@@ -384,6 +396,62 @@ def test_study_of_a_bad_evaluation_names_file_and_column(case, tmp_path, capsys)
 
 
 # ----------------------------------------------------------------- export, models, dataset
+
+
+def _labels_for(mask: Path, path: Path) -> Path:
+    """A labels file posing ``mask`` 3 m in front of the camera."""
+    path.write_text(json.dumps([{"filename": mask.name, "q_vbs2tango_true": [1, 0, 0, 0],
+                                 "r_Vo2To_vbs_true": [0, 0, 3]}]))
+    return path
+
+
+def test_no_output_overwrites_an_input(bad, eval_checkpoint, train_dataset, tmp_path, capsys):
+    """Every input file a command reads (a camera, relative rotations, a fit's masks and poses,
+    the checkpoints an export reads) is refused as an output before any work, and kept."""
+    out = tmp_path / "out"
+    out.mkdir()
+    shutil.copyfile(bad / "image.png", out / "a.png")
+    shutil.copyfile(bad / "image.png", out / "b.png")
+    camera = out / "a.pose.json"  # a camera file named like a.png's pose
+    shutil.copyfile(train_dataset / "camera.json", camera)
+    rotations = out / "sequence.assembly.json"
+    rotations.write_text(json.dumps([[1, 0, 0, 0], [1, 0, 0, 0]]))
+    mask = out / "fit.png"  # a mask named like the fit's figure
+    Image.fromarray(np.pad(np.full((20, 28), 255, np.uint8), ((22, 22), (18, 18)))).save(mask)
+    labels = _labels_for(mask, out / "labels.json")
+    checkpoint = out / "model.pt"
+    shutil.copyfile(eval_checkpoint, checkpoint)
+    kept = {path: path.read_bytes() for path in out.iterdir()}
+    model = ["--checkpoint", checkpoint]
+    runs = [(["predict", out / "a.png", "--camera", camera, *model], camera),
+            (["predict", out / "a.png", out / "b.png", "--sequence", "--relative-rotations",
+              rotations, *model], rotations),
+            (["fit", "--masks", mask, "--poses", labels, "--steps", "2"], mask)]
+    for argv, victim in runs:
+        line = _run(capsys, [*argv, "--out", out])
+        assert line.endswith(f"{victim}: an output of this run would overwrite it; write "
+                             "elsewhere (--out)"), line
+    line = _run(capsys, ["export", "--checkpoint", checkpoint, "--out", checkpoint])
+    assert line.endswith(f"{checkpoint}: an output of this run would overwrite it; write "
+                         "elsewhere (--out)"), line
+    assert {path: path.read_bytes() for path in out.iterdir()} == kept
+
+
+def test_a_folder_in_an_outputs_place_is_refused_before_the_work(bad, tmp_path, capsys):
+    """A folder where a command would write one of its files stops it before the work, with
+    nothing of its own written (it was found only when writing that file, after the fit)."""
+    mask = tmp_path / "view.png"
+    Image.fromarray(np.pad(np.full((20, 28), 255, np.uint8), ((22, 22), (18, 18)))).save(mask)
+    labels = _labels_for(mask, tmp_path / "labels.json")
+    runs = [(["fit", "--masks", mask, "--poses", labels, "--steps", "2"], "fit.png"),
+            (["predict", bad / "image.png"], "image.overlay.png")]
+    for argv, name in runs:
+        out = tmp_path / f"out_{argv[0]}"
+        (out / name).mkdir(parents=True)
+        line = _run(capsys, [*argv, "--out", out])
+        assert line.endswith(f"{out / name}: an output of this run, but a folder (or another "
+                             "non-file) is there; move it or write elsewhere (--out)"), line
+        assert _entries(out) == [name]
 
 
 def test_export_to_a_folder_is_refused_before_the_work(eval_checkpoint, tmp_path, capsys):
@@ -641,6 +709,8 @@ def test_quaternion_lists_are_normalised_and_bad_ones_are_one_line(tmp_path):
                           (json.dumps([unit, [1, 0, 0, 0.2]]), "quaternion 1: expected unit"),
                           ("[[1, 0, 0, 0], [Infinity, 0, 0, 0]]", "1: expected a finite"),
                           (json.dumps([unit, [True, 0, 0, 0]]), "quaternion 1: expected a finite"),
+                          (json.dumps([unit, ["1", 0, 0, 0]]), "quaternion 1: expected a number, "
+                                                              "got the text '1'"),
                           (json.dumps([unit, [1, 0, 0]]), "quaternion 1: expected [w, x, y, z]"),
                           ("[[1, 0, 0, 0], ", "not valid JSON"),
                           ("[" * 100_000 + "]" * 100_000, "nested too deeply")):
@@ -650,3 +720,29 @@ def test_quaternion_lists_are_normalised_and_bad_ones_are_one_line(tmp_path):
         assert str(info.value).startswith(f"{path}: ") and "\n" not in str(info.value)
     with pytest.raises(ValueError, match=r"^/dev/null: not a regular file"):
         read_json("/dev/null")  # a device could block, or never end (/dev/urandom)
+
+
+def test_an_image_of_a_mode_without_grey_is_named_as_an_image_not_a_mask(tmp_path):
+    """A picture PIL cannot turn grey (a CIELAB TIFF) is refused naming what it was given as."""
+    from sq_mitsuba.data.masks import read_gray_image, read_mask
+
+    path = tmp_path / "lab.tiff"
+    Image.new("LAB", (16, 16)).save(path)
+    for reader, what in ((read_gray_image, "image"), (read_mask, "mask")):
+        with pytest.raises(ValueError, match=rf"^{what} {re.escape(str(path))}: cannot convert "
+                                             r"PIL mode 'LAB' to gray"):
+            reader(path)
+
+
+def test_a_dataset_image_with_pixels_not_finite_is_refused(tmp_path):
+    """A float TIFF in a dataset's place of an image: its NaN would become a grey value."""
+    from sq_mitsuba.data.spe3r.layout import DatasetError, read_gray
+
+    path = tmp_path / "000004.png"
+    pixels = np.full((16, 16), 0.5, np.float32)
+    pixels[3, 4] = np.nan
+    Image.fromarray(pixels, "F").save(path, format="TIFF")
+    with pytest.raises(DatasetError, match=rf"^{re.escape(str(path))}: 1 pixel\(s\) not finite"):
+        read_gray(path)
+    Image.fromarray(np.nan_to_num(pixels), "F").save(path, format="TIFF")
+    assert read_gray(path).shape == (16, 16)

@@ -69,6 +69,15 @@ def test_cli_curves_needs_data_minutes_and_out(tmp_path, capsys):
     assert "--data: required by the curves suite" in capsys.readouterr().err
 
 
+def test_the_train_suites_options_are_refused_by_the_others(capsys):
+    """--batch and --step-only change the train suite alone: given to another suite they
+    would be silently ignored, so they are refused before it runs."""
+    for flag in (["--batch", "4"], ["--step-only"]):
+        assert main(["bench", "geometry", *flag, "--repeats", "1"]) == 2
+        assert capsys.readouterr().err.strip().endswith(f"{flag[0]}: only used by the train "
+                                                        "suite")
+
+
 def test_decomposed_step_applies_the_same_update_as_the_training_step():
     """The timed parts of ``bench train`` add up to the loop's step: same parameters after;
     one part per weighted loss term of the registry."""

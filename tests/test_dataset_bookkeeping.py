@@ -17,6 +17,7 @@ import sys
 import warnings
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from sq_mitsuba.cli import main
@@ -330,6 +331,23 @@ def test_failed_models_are_left_out_of_the_splits(reference, library, tmp_path):
     assert set(summary.failures) == {"missing_model"}
     assert set(json.loads((out / "failures.json").read_text())) == {"missing_model"}
     assert "broken_model,train" in (out / "splits.csv").read_text()
+
+
+def test_a_model_whose_points_hold_nan_fails_at_render_not_later(library, tmp_path):
+    """A library model with a NaN surface point is a failed model of the render (it was
+    copied into the dataset, and found only by `dataset check` or a training run)."""
+    models = tmp_path / "models"
+    shutil.copytree(library, models)
+    model = sorted(p.name for p in models.iterdir() if p.is_dir())[0]
+    path = models / model / "models" / "samples.npz"
+    with np.load(path) as samples:
+        arrays = {key: samples[key] for key in samples.files}
+    arrays["surface_points"] = arrays["surface_points"].copy()
+    arrays["surface_points"][0, 0] = np.nan
+    np.savez(path, **arrays)
+    summary = render_dataset(models, tmp_path / "data", RenderOptions(**TINY), progress=False)
+    assert set(summary.failures) == {model}
+    assert "samples.npz" in summary.failures[model] and "finite" in summary.failures[model]
 
 
 def test_reader_skips_a_listed_model_that_is_missing(reference, tmp_path):

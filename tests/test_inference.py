@@ -382,3 +382,27 @@ def test_reading_from_turned_copies_turns_with_the_image(train_dataset):
     assert not shipped.can_turn(off_centre)
     with pytest.raises(ValueError, match=r"^turns: augment\.rotation: needs the principal point"):
         shipped.predict(image, off_centre, turns=4)
+
+
+def test_the_turned_copies_mask_is_their_mean_computed_copy_by_copy():
+    """``turned_back_mask`` resizes one copy at a time (a 4,000 px image's 8 copies at once held
+    2 GB): equal to the mean over every copy resized at once, the unturned copy's mask
+    included and each turned copy weighted by where it covers the image."""
+    import torch.nn.functional as F
+
+    from sq_mitsuba.geometry.image_turns import rotate_batch, turned_back_mask
+
+    generator = torch.Generator().manual_seed(0)
+    batch, copies, height, width = 2, 3, 40, 56
+    mask = torch.rand(batch, height, width, generator=generator, dtype=torch.float64)
+    logits = torch.randn(copies * batch, 1, 12, 12, generator=generator)
+    angles = torch.tensor([0.7, 2.0, 4.1])
+    undo = -angles.repeat_interleave(batch)
+    back = rotate_batch(logits, undo)
+    cover = rotate_batch(torch.ones_like(back), undo)
+    back, cover = (F.interpolate(t, size=(height, width), mode="bilinear",
+                                 align_corners=False)[:, 0] for t in (back, cover))
+    cover = cover.clamp(0, 1).reshape(copies, batch, height, width).double()
+    probability = back.sigmoid().reshape(copies, batch, height, width).double()
+    expected = (mask + (cover * probability).sum(0)) / (1 + cover.sum(0))
+    torch.testing.assert_close(turned_back_mask(mask, logits, angles, height, width), expected)

@@ -376,3 +376,58 @@ def test_pose_json_leaves_out_the_padding_of_a_short_hypothesis_list():
     assert [h["probability"] for h in listed] == pytest.approx(
         [1 / (1 + math.exp(-1.0)), 1 / (1 + math.exp(1.0))])
     assert _rotation_hypotheses(SimpleNamespace(rotation_log_probabilities=None)) is None
+
+
+def test_a_large_images_overlay_silhouette_is_rendered_smaller_and_lands_in_place():
+    """An image wider than OVERLAY_MAX_SIDE has its overlay's silhouettes rendered at that
+    size and resized back: where the full-size render puts them (the pixel-centre convention
+    kept through Camera.rescaled and the resize), to within the edges' pixels."""
+    from sq_mitsuba.apps.predict import OVERLAY_MAX_SIDE, overlay_camera, resized_coverage
+    from sq_mitsuba.geometry.camera import Camera
+    from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer, render_assembly
+
+    camera = Camera.default(256).rescaled(int(1.5 * OVERLAY_MAX_SIDE), OVERLAY_MAX_SIDE)
+    small = overlay_camera(camera)
+    assert (small.width, small.height) == (OVERLAY_MAX_SIDE, round(OVERLAY_MAX_SIDE / 1.5))
+    assert overlay_camera(small) == small  # at or below the size: the camera itself
+    params = torch.zeros(1, 2, 16)
+    params[0, :, :3] = torch.tensor([[0.5, 0.12, 0.1], [0.1, 0.3, 0.2]])
+    params[0, :, 3:5] = 0.2
+    params[0, 1, 5:8] = torch.tensor([0.2, 0.1, 0.0])
+    params[0, :, 8:14] = torch.tensor([1.0, 0, 0, 0, 1, 0])
+    rotation = torch.eye(3)[None]
+    translation = torch.tensor([[0.3, -0.2, 4.0]])
+    full, reduced = (render_assembly(Assembly(params), rotation, translation,
+                                     SilhouetteRenderer(c, spp=4), level=3)[0].numpy()
+                     for c in (camera, small))
+    resized = resized_coverage(reduced, camera.width, camera.height)
+    assert resized.shape == full.shape and resized.dtype == np.float32
+    inside, outside = full > 0.5, resized > 0.5
+    iou = (inside & outside).sum() / (inside | outside).sum()
+    assert iou > 0.97, iou
+    # Shifted by two pixels, it would not be: the test can tell a misplaced resize.
+    shifted = np.roll(outside, 3, axis=1)
+    assert (inside & shifted).sum() / (inside | shifted).sum() < iou - 0.01
+
+
+def test_the_overlay_blends_as_the_formula_says():
+    """overlay_image (float32, in place) against the formula in float64: the image dimmed to
+    0.8, each coverage blended in its colour at 45 %, the mask's edge on top."""
+    from sq_mitsuba.apps.overlay import MASK_COLOUR, overlay_image
+
+    rng = np.random.default_rng(0)
+    image = rng.random((20, 30))
+    layers = [(rng.random((20, 30)), (1.0, 0.15, 0.1)), (rng.random((20, 30)), (0.1, 0.9, 0.2))]
+    outline = np.zeros((20, 30), bool)
+    outline[5:15, 8:22] = True
+    expected = np.repeat(image[..., None], 3, axis=-1) * 0.8
+    for coverage, colour in layers:
+        alpha = 0.45 * coverage[..., None]
+        expected = expected * (1 - alpha) + alpha * np.asarray(colour)
+    edge = outline.copy()
+    edge[6:14, 9:21] = False
+    expected[edge] = MASK_COLOUR
+    expected = (np.clip(expected, 0, 1) * 255 + 0.5).astype(np.uint8)
+    got = overlay_image(image, layers, outline)
+    assert got.dtype == np.uint8 and got.shape == (20, 30, 3)
+    assert np.abs(got.astype(int) - expected).max() <= 1

@@ -75,6 +75,58 @@ def test_half_turns_in_order_follow_the_motion_where_the_shape_cannot_tell():
         torch.testing.assert_close(found[j], turns[chosen[2]] @ turns[k])
 
 
+def test_the_reference_keeps_its_frame_when_its_own_rotation_is_misread():
+    """Many frames of one slow tumble, every reading in one body frame, the reference's
+    rotation alone read a half turn off: the readings' shapes agree in that frame, and the
+    search must not turn every other frame to follow the reference's one misread rotation
+    (it did, when the reference's own half turn was free: 49 frames' shape cost counted as
+    one). The documented cost of the answer is the least of the two candidates."""
+    from sq_mitsuba.geometry.rotation import axis_angle_to_matrix
+    from sq_mitsuba.inference.body_frame import _chamfer, _surface, align_half_turns_in_order
+
+    count, reference = 50, 25
+    turns = half_turns()
+    body = _asymmetric_assembly()
+    axis = torch.tensor([0.3, 0.5, 0.8], dtype=torch.float64)
+    truth = torch.stack([axis_angle_to_matrix(axis / axis.norm() * 0.02 * k)
+                         for k in range(count)])
+    read = truth.clone()
+    read[reference] = truth[reference] @ turns[2]
+    readings = Assembly(body.params.expand(count, -1, -1))
+    weight = 2.0  # the shape outweighs the one misread step: the right answer is no turn
+    found = align_half_turns_in_order(readings, read, reference, shape_weight=weight)
+
+    clouds = _surface(readings, 2)
+    target = clouds[reference]
+    extent = float((target.amax(0) - target.amin(0)).norm())
+
+    def cost(chosen: torch.Tensor) -> float:
+        poses = read @ chosen
+        steps = ((poses[1:] * poses[:-1]).sum((-1, -2)) - 1).div(2).clamp(-1, 1).arccos()
+        shapes = _chamfer(clouds * torch.diagonal(chosen, dim1=-2, dim2=-1)[:, None],
+                          target[None].expand(count, -1, -1))
+        return float(steps.sum() + weight * shapes.sum() / extent)
+
+    identity = turns[[0] * count]
+    followed = turns[[2] * count]
+    followed[reference] = turns[0]
+    assert cost(identity) < cost(followed)
+    assert cost(found) <= cost(identity) + 1e-9
+    torch.testing.assert_close(found, identity)
+
+
+def test_the_shape_first_stage_moves_what_the_shape_option_allows():
+    """``shape="size"`` moves the sizes alone in the shape-first stage too; growing
+    primitives needs a free shape, and asking for both is one line, not a silent no-op."""
+    from sq_mitsuba.inference.sequence import stage_refine_options
+
+    options = SequenceOptions(shape="size", shape_steps=20)
+    assert stage_refine_options(options, 20, poses=False).shape == "size"
+    assert stage_refine_options(options, 60, poses=True).shape == "size"
+    with pytest.raises(ValueError, match=r"^grow: 2 primitives grown need shape 'free'"):
+        SequenceOptions(shape="size", grow=2)
+
+
 def test_the_canonical_frame_sorts_the_extents_and_keeps_the_posed_shape():
     from sq_mitsuba.inference.body_frame import canonical_frame, reframed
 

@@ -36,7 +36,7 @@ import torch
 
 from sq_mitsuba.config import in_range, validate
 from sq_mitsuba.inference.predictor import Predictor
-from sq_mitsuba.io import check_output_folder
+from sq_mitsuba.io import check_inputs_kept, check_output_folder
 from sq_mitsuba.model.checkpoint import (
     FORMAT,
     VERSION,
@@ -160,6 +160,7 @@ def export_model(checkpoint: str | Path | Sequence[str | Path], data_root: str |
     if out.is_dir():
         raise ValueError(f"out {out}: is a folder; give the file to write (e.g. "
                          f"{out / 'model.pt'})")
+    check_inputs_kept([*paths, *([Path(start)] if start is not None else [])], [out])
     payloads = [read_checkpoint(path) for path in paths]
     for path, payload in zip(paths, payloads, strict=True):
         model_from_checkpoint(payload, str(path))  # refuse a mismatched file early

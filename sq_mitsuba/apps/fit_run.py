@@ -116,7 +116,8 @@ def run_fit(masks: Sequence[str | Path], poses: str | Path, out: str | Path,
     validate(options)
     mask_paths = [Path(p) for p in masks]
     poses = Path(poses)
-    out = check_output_folder(out)
+    out = check_output_folder(out, OUTPUT_FILES,
+                              keep=[*mask_paths, poses, *([camera] if camera else [])])
     # Cheap checks first: files present, a label per mask; then the images are decoded.
     for path in mask_paths:
         check_not_folder(path, "mask")

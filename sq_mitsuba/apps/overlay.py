@@ -17,13 +17,20 @@ def overlay_image(image: np.ndarray, silhouettes: list[tuple[np.ndarray, tuple[f
                   outline: np.ndarray | None) -> np.ndarray:
     """RGB (H, W, 3) uint8: the grey image (H, W) in [0, 1], dimmed, with each coverage
     (H, W) blended in its colour (45 %) and the edge of ``outline`` (H, W) bool on top."""
-    rgb = np.repeat(image[..., None], 3, axis=-1) * 0.8
+    # float32 and in place: a large image's picture is the largest array predict holds.
+    rgb = np.repeat(np.asarray(image, dtype=np.float32)[..., None], 3, axis=-1)
+    rgb *= 0.8
     for coverage, colour in silhouettes:
-        alpha = 0.45 * np.clip(coverage, 0, 1)[..., None]
-        rgb = rgb * (1 - alpha) + alpha * np.asarray(colour)
+        alpha = np.clip(np.asarray(coverage, dtype=np.float32), 0, 1)
+        alpha *= 0.45
+        for channel, value in enumerate(colour):  # rgb = rgb (1 - alpha) + alpha colour
+            rgb[..., channel] += alpha * (np.float32(value) - rgb[..., channel])
     if outline is not None:
         from scipy import ndimage
 
         edge = outline & ~ndimage.binary_erosion(outline)
         rgb[edge] = MASK_COLOUR
-    return (np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8)
+    np.clip(rgb, 0, 1, out=rgb)
+    rgb *= 255
+    rgb += 0.5
+    return rgb.astype(np.uint8)

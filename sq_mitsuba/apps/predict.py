@@ -68,6 +68,7 @@ from __future__ import annotations
 
 import io
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
@@ -92,6 +93,10 @@ DEFAULT_TURNS = SearchOptions().turns
 
 #: Suffixes of the files written per image, in order.
 OUTPUT_SUFFIXES = (".assembly.json", ".obj", ".glb", ".pose.json", ".overlay.png")
+#: Longest side (pixels) at which the overlay's silhouettes are rendered; a larger image's
+#: are rendered at this size and resized to it. The overlay is a picture: at 16 samples a
+#: pixel, a 4,000 px image's silhouettes took most of `predict`'s time and memory.
+OVERLAY_MAX_SIDE = 1024
 
 
 @dataclass(frozen=True)
@@ -294,7 +299,8 @@ class _Inputs:
 def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
                   options: PredictOptions | None = None, camera: Any = None,
                   masks: list[str | Path] | None = None,
-                  progress: bool = True) -> list[PredictRecord]:
+                  progress: bool = True,
+                  other_inputs: Sequence[str | Path] = ()) -> list[PredictRecord]:
     """Predict every image and write its files (see the module docstring).
 
     Args:
@@ -306,6 +312,8 @@ def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
             of the same aspect ratio (default: the predictor's).
         masks: with refinement, one mask per image (default: segmented from the image).
         progress: show a progress bar.
+        other_inputs: the run's other input files (a camera file, say), refused if an
+            output would overwrite one.
 
     Returns:
         One :class:`PredictRecord` per image, in order.
@@ -313,8 +321,8 @@ def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
     from tqdm import tqdm
 
     from sq_mitsuba.inference.loading import with_fast_path
-    from sq_mitsuba.io import check_inputs_kept, check_output_folder
-    from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer, render_assembly
+    from sq_mitsuba.io import check_output_folder
+    from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer
 
     options = options or PredictOptions()
     validate(options)
@@ -335,10 +343,9 @@ def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
                          "search.turns=T)")
     if options.turns is not None:
         predictor.check_turns(options.turns, camera)
-    out = check_output_folder(out_dir)
-    check_inputs_kept([*paths, *(mask_paths or [])],
-                      [out / f"{path.stem}{suffix}" for path in paths
-                       for suffix in OUTPUT_SUFFIXES])
+    out = check_output_folder(out_dir, [f"{path.stem}{suffix}" for path in paths
+                                        for suffix in OUTPUT_SUFFIXES],
+                              keep=[*paths, *(mask_paths or []), *other_inputs])
     predictor = with_fast_path(predictor, options.fast, min_target=options.min_target,
                                min_existence=options.min_existence)
 
@@ -399,14 +406,14 @@ def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
             outputs.append((record, pose, None, None))
             continue
         if image_camera not in renderers:
-            renderers[image_camera] = SilhouetteRenderer(image_camera, spp=options.overlay_spp)
+            renderers[image_camera] = SilhouetteRenderer(overlay_camera(image_camera),
+                                                         spp=options.overlay_spp)
         renderer = renderers[image_camera]
         assembly, rotation, translation = (prediction.assembly, prediction.rotation,
                                            prediction.translation)
         quaternion = prediction.quaternion
-        with torch.no_grad():
-            before = render_assembly(assembly, rotation, translation, renderer,
-                                     options.level)[0].numpy()
+        before = _overlay_silhouette(assembly, rotation, translation, renderer, options.level,
+                                     picture.shape)
         layers = [(before, NETWORK_COLOUR)]
         outline = None
         reading = prediction  # whose rotation hypotheses pose.json lists
@@ -438,10 +445,8 @@ def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
             record.iou_after = float(fit.iou[0])
             record.search_resolution = options.search.resolution
             record.refine_resolution = options.refinement.resolution
-            with torch.no_grad():
-                after = render_assembly(assembly, rotation, translation, renderer,
-                                        options.level)[0].numpy()
-            layers.append((after, REFINED_COLOUR))
+            layers.append((_overlay_silhouette(assembly, rotation, translation, renderer,
+                                               options.level, picture.shape), REFINED_COLOUR))
         pose.update({
             "q_vbs2tango": [float(v) for v in quaternion[0]],
             "r_Vo2To_vbs": [float(v) for v in translation[0]],
@@ -477,6 +482,38 @@ def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
     out.mkdir(parents=True, exist_ok=True)
     return [_write_outputs(out / record.image.stem, record, pose, assembly, overlay,
                            options.level) for record, pose, assembly, overlay in outputs]
+
+
+def overlay_camera(camera: Camera) -> Camera:
+    """The camera the overlay's silhouettes are rendered with: ``camera``, or for an image
+    whose longer side exceeds :data:`OVERLAY_MAX_SIDE` the same camera on that many pixels."""
+    side = max(camera.width, camera.height)
+    if side <= OVERLAY_MAX_SIDE:
+        return camera
+    scale = OVERLAY_MAX_SIDE / side
+    return camera.rescaled(max(1, round(camera.width * scale)),
+                           max(1, round(camera.height * scale)))
+
+
+def _overlay_silhouette(assembly: Any, rotation: Any, translation: Any, renderer: Any,
+                        level: int, shape: tuple[int, ...]) -> np.ndarray:
+    """The coverage (H, W) = ``shape`` of one assembly at its pose, rendered by ``renderer``
+    (with :func:`overlay_camera`) and resized to the picture."""
+    from sq_mitsuba.render.silhouette.renderer import render_assembly
+
+    with torch.no_grad():
+        coverage = render_assembly(assembly, rotation, translation, renderer, level)[0].numpy()
+    return resized_coverage(coverage, shape[1], shape[0])
+
+
+def resized_coverage(coverage: np.ndarray, width: int, height: int) -> np.ndarray:
+    """A coverage (h, w) in [0, 1] resized bilinearly to (height, width), float32."""
+    from PIL import Image
+
+    if coverage.shape == (height, width):
+        return coverage.astype(np.float32, copy=False)
+    picture = Image.fromarray(np.ascontiguousarray(coverage, dtype=np.float32), "F")
+    return np.asarray(picture.resize((width, height), Image.BILINEAR))
 
 
 def _rotation_hypotheses(reading: Any) -> list[dict[str, Any]] | None:
@@ -555,4 +592,6 @@ def predict_images(images: list[str | Path], out_dir: str | Path,
             raise ValueError(message if str(camera) in message else f"camera {camera}: "
                              f"{message}") from None
     predictor = load_model(checkpoint)  # predict_files folds it once the inputs are checked
-    return predict_files(images, out_dir, predictor, options, image_camera, masks, progress)
+    inputs = [path for path in (checkpoint, camera) if path is not None]
+    return predict_files(images, out_dir, predictor, options, image_camera, masks, progress,
+                         other_inputs=inputs)

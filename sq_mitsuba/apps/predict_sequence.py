@@ -20,6 +20,7 @@ from __future__ import annotations
 import math
 import re
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -87,14 +88,18 @@ def _sides_picture(assembly: Any, path: Path) -> Path:
 
 def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
                            camera: Any = None, relative_rotations: Any = None,
-                           options: Any = None, ordered: bool = False) -> SequenceRecord:
+                           options: Any = None, ordered: bool = False,
+                           other_inputs: Sequence[str | Path] = ()) -> SequenceRecord:
     """Predict one assembly and every pose from ``images`` (frames of one spacecraft) and write
-    the files of the module docstring into ``out_dir``.
+    the files of the module docstring into ``out_dir``. ``other_inputs``: the run's other
+    input files (the checkpoint, a camera or rotations file), refused if an output would
+    overwrite one.
 
     Raises:
         ValueError: one line naming the image or argument: fewer than two images, sizes that
             differ, frames of another aspect ratio than the camera, a name twice, an
-            unreadable image, a frame without a target.
+            unreadable image, a frame without a target, an output that would overwrite an
+            input or that a folder stands in the way of.
     """
     from PIL import Image
 
@@ -107,7 +112,6 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
     from sq_mitsuba.io import (
         atomic_path,
         atomic_write_json,
-        check_inputs_kept,
         check_output_folder,
     )
     from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer, render_assembly
@@ -129,11 +133,10 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
         raise ValueError(f"image {paths[0]}: {width} x {height} px, another aspect ratio than "
                          f"{where} ({given.width} x {given.height}); a pass is not padded to "
                          "it: give the frames' own camera (--camera)")
-    out = check_output_folder(out_dir)
-    check_inputs_kept(paths, [out / name for name in ("sequence.assembly.json", "sequence.glb",
-                                                      "sequence.png")]
-                      + [out / f"{path.stem}{suffix}" for path in paths
-                         for suffix in (".pose.json", ".overlay.png")])
+    out = check_output_folder(out_dir, ["sequence.assembly.json", "sequence.glb", "sequence.png"]
+                              + [f"{path.stem}{suffix}" for path in paths
+                                 for suffix in (".pose.json", ".overlay.png")],
+                              keep=[*paths, *other_inputs])
     predictor = with_fast_path(predictor, True)
     record = SequenceRecord()
     started = time.perf_counter()

@@ -21,6 +21,7 @@ import traceback
 import warnings
 from collections.abc import Sequence
 
+from sq_mitsuba.render.backend import BackendError, check_variant_environment
 from sq_mitsuba.version import __version__
 
 EXIT_ERROR = 2
@@ -142,6 +143,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     kind = ALL_OR_NOTHING.get(args.command)
     try:
+        check_variant_environment()  # a misspelled variant: before any work, not mid-render
         with warnings.catch_warnings(), all_or_nothing(getattr(args, "out", None) if kind
                                                        else None, kind == "file"):
             if not show_traceback:  # warnings as one line each (--traceback: Python's own)
@@ -155,7 +157,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             return EXIT_INTERRUPTED
         if show_traceback:
             raise
-        if isinstance(error, CLIError | ValueError | OSError):  # bad input
+        if isinstance(error, CLIError | ValueError | OSError | BackendError):  # bad input
             print(f"sq-mitsuba {args.command}: error: {_one_line(error)}", file=sys.stderr)
             return EXIT_ERROR
         # A bug: still one line, but named as such, and how to see more.

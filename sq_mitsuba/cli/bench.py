@@ -51,6 +51,11 @@ def _run(args: argparse.Namespace) -> int:
                         ("--configs", args.configs)):
         if value is not None:  # would be silently ignored by every other suite
             raise CLIError(f"{flag}: only used by the curves suite")
+    if args.suite not in ("train", "all"):  # the train suite's own options
+        for flag, used in (("--batch", options.batch is not None),
+                           ("--step-only", options.step_only)):
+            if used:
+                raise CLIError(f"{flag}: only used by the train suite")
     for report in bench.run_suites([args.suite], options, write=args.write):
         print(report.to_markdown())
         if args.write:

@@ -176,9 +176,11 @@ def _run_sequence(args: argparse.Namespace) -> int:
     relative = None
     if args.relative_rotations is not None:
         relative = _relative_rotations(args.relative_rotations, len(args.images))
+    inputs = [path for path in (args.checkpoint, args.camera, args.relative_rotations)
+              if path is not None]
     record = predict_sequence_files(args.images, args.out, load_model(args.checkpoint),
                                     camera, relative_rotations=relative, options=options,
-                                    ordered=args.ordered)
+                                    ordered=args.ordered, other_inputs=inputs)
     print(f"{record.describe()}; wrote {len(record.files)} files to {args.out}")
     return 0
 

@@ -36,7 +36,7 @@ _GRAY_RANGE = {"1": 1.0, "L": 255.0, "I;16": 65535.0, "I;16B": 65535.0, "I;16L":
                "I;16N": 65535.0, "I": 65535.0, "F": 1.0}
 
 
-def _gray(image: Any, path: Path) -> tuple[np.ndarray, float]:
+def _gray(image: Any, path: Path, what: str) -> tuple[np.ndarray, float]:
     """One gray channel (H, W) float64 of a PIL image and the largest value of its range.
 
     Convention: colour images become luminance (ITU-R 601, PIL's ``convert("L")``); alpha, where
@@ -54,7 +54,7 @@ def _gray(image: Any, path: Path) -> tuple[np.ndarray, float]:
     try:
         return np.asarray(image.convert("L"), dtype=np.float64), 255.0
     except (ValueError, OSError) as error:
-        raise ValueError(f"mask {path}: cannot convert PIL mode {mode!r} to gray "
+        raise ValueError(f"{what} {path}: cannot convert PIL mode {mode!r} to gray "
                          f"({_one_line(error)})") from None
 
 
@@ -91,7 +91,7 @@ def read_gray_image(path: str | Path, what: str = "image") -> np.ndarray:
     if frames > 1:
         raise ValueError(f"{what} {path}: holds {frames} frames (an animation or a multi-page "
                          "file); save the one frame to use as an image of its own")
-    gray, top = _gray(image, path)
+    gray, top = _gray(image, path, what)
     if gray.ndim != 2:
         raise ValueError(f"{what} {path}: expected one image channel, got shape {gray.shape}")
     if not np.isfinite(gray).all():  # a float image (TIFF) can hold them; clipping would hide

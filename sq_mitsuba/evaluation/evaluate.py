@@ -205,7 +205,7 @@ def evaluate(predictor: Any, data_root: str | Path, out_dir: str | Path,
     check_predictor(predictor)
     data_root, out_dir = Path(data_root), Path(out_dir)
     _check_data_folder(data_root)
-    check_output_folder(out_dir)
+    check_output_folder(out_dir, (*OUTPUT_FILES, MESH_RANKING_FILE))
     check_outside_data(out_dir, data_root)
     with output_lock(out_dir, command="sq-mitsuba eval"):  # re-entrant: the CLI holds it
         return _evaluate(predictor, data_root, out_dir, options, progress, label)

@@ -16,6 +16,7 @@ a number is due is a one-line error naming the file, before anything is written.
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any
 
@@ -113,11 +114,20 @@ def _cell(text: str, where: str, required: bool) -> float | None:
     return finite_number(text, where)
 
 
-def _pair(value: Any, where: str) -> tuple[float, float]:
-    """A paper entry's ``[mean, std]``: two finite numbers, std >= 0."""
+#: The range of each paper metric's mean (Chamfer-L1 >= 0, an angle in degrees, an IoU).
+PAPER_RANGES = {"chamfer_l1": (0.0, math.inf), "rotation_error_deg": (0.0, 180.0),
+                "iou_2d": (0.0, 1.0)}
+
+
+def _pair(value: Any, where: str, metric: str) -> tuple[float, float]:
+    """A paper entry's ``[mean, std]``: two finite numbers (not text), the mean within
+    ``metric``'s range (:data:`PAPER_RANGES`), std >= 0."""
     if not isinstance(value, list) or len(value) != 2:
         raise ValueError(f"{where}: expected [mean, std], got {value!r}")
-    mean, std = (finite_number(v, where) for v in value)
+    mean, std = (finite_number(v, where, text=False) for v in value)
+    low, high = PAPER_RANGES[metric]
+    if not low <= mean <= high:
+        raise ValueError(f"{where}: mean {mean:g} outside [{low:g}, {high:g}]")
     if std < 0:
         raise ValueError(f"{where}: std {std:g} is negative")
     return mean, std
@@ -170,7 +180,7 @@ def read_paper_tables(path: str | Path) -> tuple[list[dict], list[dict]]:
                     got = sorted(metrics) if isinstance(metrics, dict) else metrics
                     raise ValueError(f"{at}.{split}: expected the metrics {sorted(names)}, "
                                      f"got {got}")
-                row[split] = {k: _pair(v, f"{at}.{split}.{k}") for k, v in metrics.items()}
+                row[split] = {k: _pair(v, f"{at}.{split}.{k}", k) for k, v in metrics.items()}
             rows.append(row)
         tables.append(rows)
     if not tables[0] and not tables[1]:

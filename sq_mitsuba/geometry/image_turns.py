@@ -19,7 +19,7 @@ from torch import Tensor
 
 from sq_mitsuba.geometry.camera import Camera
 
-__all__ = ["check_rotation_exact", "rotate_batch", "z_rotation"]
+__all__ = ["check_rotation_exact", "rotate_batch", "turned_back_mask", "z_rotation"]
 
 _PRINCIPAL_POINT_TOLERANCE_PX = 1e-3
 _FOCAL_TOLERANCE = 1e-6
@@ -67,3 +67,28 @@ def rotate_batch(images: Tensor, angles: Tensor) -> Tensor:
     grid = F.affine_grid(theta.to(images.dtype), list(images.shape), align_corners=False)
     return F.grid_sample(images, grid, mode="bilinear", padding_mode="zeros",
                          align_corners=False)
+
+
+def turned_back_mask(mask: Tensor, turned_logits: Tensor, angles: Tensor, height: int,
+                     width: int) -> Tensor:
+    """The mean over turned copies of an image of a mask probability (B, H, W): the unturned
+    copy's ``mask`` (B, H, W) with the turned copies' logits ((T - 1) B, 1, s, s), copy-major,
+    turned back by their ``angles`` (T - 1,) and scaled to ``height`` x ``width``, each where
+    it covers the image (a turned copy leaves the corners out).
+
+    The copies are scaled up one at a time: all at once held 2 (T - 1) images' worth of floats
+    (2 GB for a 4,000 px image and 8 copies).
+    """
+    batch = mask.shape[0]
+    undo = -angles.to(turned_logits).repeat_interleave(batch).float()
+    logits = rotate_batch(turned_logits.float(), undo)
+    covered = rotate_batch(torch.ones_like(logits), undo)
+    weighted, weights = torch.zeros_like(mask), torch.zeros_like(mask)
+    for copy in range(len(angles)):
+        rows = slice(copy * batch, (copy + 1) * batch)
+        logit, cover = (F.interpolate(t[rows], size=(height, width), mode="bilinear",
+                                      align_corners=False)[:, 0] for t in (logits, covered))
+        cover = cover.clamp(0, 1).to(mask)
+        weighted += cover * logit.sigmoid().to(mask)
+        weights += cover
+    return (mask + weighted) / (1 + weights)

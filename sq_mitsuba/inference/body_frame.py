@@ -70,8 +70,8 @@ def align_half_turns_in_order(assembly: Assembly, rotation: Tensor, reference: i
     ``S_j`` minimise, over the whole pass, the rotation angles between consecutive frames
     (``R_j S_j`` against ``R_{j-1} S_{j-1}``: a tumbling target turns little between two
     frames) plus ``shape_weight`` times each reading's Chamfer distance to the reference's
-    (relative to the reference's extent), by dynamic programming over the 4^N choices; then
-    expressed relative to the reference (``S_ref = I``).
+    (relative to the reference's extent), by dynamic programming over the 4^N choices with
+    ``S_ref = I``.
 
     Args:
         assembly: N readings (batch size N), in the frames' order.
@@ -86,6 +86,10 @@ def align_half_turns_in_order(assembly: Assembly, rotation: Tensor, reference: i
     extent = float((target.amax(0) - target.amin(0)).norm()) or 1.0
     unary = shape_weight * _chamfer(turned.flatten(0, 1), target[None].expand(
         count * 4, -1, -1)).reshape(count, 4) / extent  # (N, 4)
+    # The reference keeps its frame (S_ref = I): the readings' shapes are compared with its
+    # own. Left free, a reference turned by G would have every other reading compared with
+    # G x_ref, and its one shape cost could outweigh the other frames' together.
+    unary[reference, 1:] = torch.inf
     poses = rotation.double()[:, None] @ turns  # (N, 4, 3, 3)
 
     def angle(a: Tensor, b: Tensor) -> Tensor:  # (4, 3, 3) x (4, 3, 3) -> (4, 4) radians
@@ -102,8 +106,7 @@ def align_half_turns_in_order(assembly: Assembly, rotation: Tensor, reference: i
     for arg in reversed(back):
         choice.append(int(arg[choice[-1]]))
     choice.reverse()
-    chosen = turns[torch.tensor(choice)]
-    return chosen[reference] @ chosen  # relative to the reference: S_ref = I
+    return turns[torch.tensor(choice)]
 
 
 def canonical_frame(assembly: Assembly, level: int = 3) -> tuple[Tensor, Tensor]:

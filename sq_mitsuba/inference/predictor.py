@@ -404,7 +404,7 @@ class Predictor:
         """``prediction`` (the unturned pass on ``x``) read again from ``turns`` in-plane turns
         of the prepared images ``x``: the rotation from the product of the copies'
         distributions, the rest as means over the copies, each mapped back to the image."""
-        from sq_mitsuba.geometry.image_turns import rotate_batch, z_rotation
+        from sq_mitsuba.geometry.image_turns import rotate_batch, turned_back_mask, z_rotation
         from sq_mitsuba.model.rotation_grid import turned_cells, turned_log_probabilities
 
         head = self.model.pose_head
@@ -451,31 +451,12 @@ class Predictor:
         depth = torch.cat([prediction.depth[None], per_copy(output.depth).to(dtype)]).mean(0)
         mask = prediction.mask
         if mask is not None and output.mask_logits is not None:
-            mask = self._turned_mask(mask, output.mask_logits, angles[1:], x)
+            mask = turned_back_mask(mask, output.mask_logits, angles[1:], x.height, x.width)
         return replace(prediction, assembly=Assembly(params.mean(dim=0)), rotation=rotation,
                        quaternion=matrix_to_quaternion(rotation), pixel=pixel * scale,
                        depth=depth, translation=network_camera.unproject(pixel, depth),
                        mask=mask, rotation_hypotheses=hypotheses, rotation_scores=scores,
                        rotation_log_probabilities=combined.to(rotation))
-
-    @staticmethod
-    def _turned_mask(mask: Tensor, turned_logits: Tensor, angles: Tensor,
-                     x: _Prepared) -> Tensor:
-        """The mean over the copies of the mask probability (B, H, W): the unturned copy's
-        ``mask`` with the turned copies' logits ((T - 1) B, 1, s, s) turned back by
-        ``angles`` (T - 1,) and scaled to H x W, where they cover the image (a turned copy
-        leaves the corners out)."""
-        from sq_mitsuba.geometry.image_turns import rotate_batch
-
-        batch, copies = mask.shape[0], len(angles)
-        undo = -angles.to(turned_logits).repeat_interleave(batch)
-        logits = rotate_batch(turned_logits.float(), undo.float())
-        covered = rotate_batch(torch.ones_like(logits), undo.float())
-        logits, covered = (F.interpolate(t, size=(x.height, x.width), mode="bilinear",
-                                         align_corners=False)[:, 0] for t in (logits, covered))
-        covered = covered.clamp(0, 1).reshape(copies, batch, x.height, x.width).to(mask)
-        probability = logits.sigmoid().reshape(copies, batch, x.height, x.width).to(mask)
-        return (mask + (covered * probability).sum(0)) / (1 + covered.sum(0))
 
     def _hypotheses(self, logits: Tensor | None, rotation: Tensor) -> tuple[Tensor, Tensor]:
         """(B, K, 3, 3) rotation hypotheses and (B, K) scores from a distribution head's (B, G)

@@ -166,6 +166,11 @@ class SequenceOptions:
     moved the folded rotation error from 44-88 to 40-96 deg median per model, better on one,
     worse on two (the fitted shape's box is not yet the true one's)."""
 
+    def __post_init__(self) -> None:
+        if self.grow and self.shape != "free":
+            raise ValueError(f"grow: {self.grow} primitives grown need shape 'free' (a grown "
+                             f"primitive changes the shape), got shape {self.shape!r}")
+
 
 @dataclass(frozen=True)
 class SequencePrediction:
@@ -206,7 +211,7 @@ def stage_refine_options(options: SequenceOptions, steps: int, poses: bool) -> R
     rotations and depths (a shape-only stage; the frames' image-plane shifts still move)."""
     return RefineOptions(steps=steps, lr=options.lr, resolution=options.resolution,
                          level=options.level, prior_weight=options.prior_weight,
-                         shape=options.shape if poses else "free", loss="iou",
+                         shape=options.shape, loss="iou",
                          rotation="free" if poses else "fixed",
                          depth="free" if poses else "fixed", patience=options.patience,
                          spp=options.spp, seed=options.seed)
@@ -243,7 +248,7 @@ def fit_sequence(assembly: Assembly, rotation: Tensor, translation: Tensor, mask
     stages = [(options.shape_steps, False)] if options.shape_steps and \
         options.shape != "pose" else []
     stages.append((options.steps, True))
-    grows_left = options.grow if options.shape == "free" else 0
+    grows_left = options.grow
     steps, losses, ious = 0, [], None
     while stages:
         count, poses = stages.pop(0)
@@ -381,15 +386,15 @@ def predict_sequence(predictor: Any, images: Tensor | np.ndarray, camera: Camera
         if absent:
             raise ValueError(f"images: frame {absent[0]} shows no target (its score "
                              f"{float(network.target_score[absent[0]]):.2f}); leave it out of "
-                             "the sequence or pass its mask")
+                             "the sequence, or give the frames' masks (predict_sequence's mask)")
     frames = predictor.refine(checked, network, camera, mask=mask,
                               search=search or FRAMES_SEARCH,
                               refinement=refinement or FRAMES_REFINEMENT)
     empty = [k for k in range(count) if not bool(frames.fit.fitted[k])]
     if empty:
         raise ValueError(f"images: frame {empty[0]} has no target in its mask "
-                         f"({frames.fit.mask_source}); leave it out of the sequence or pass "
-                         "its mask")
+                         f"({frames.fit.mask_source}); leave it out of the sequence, or give "
+                         "the frames' masks (predict_sequence's mask)")
     return sequence_from_frames(frames, relative, ordered, options, started=started,
                                 frames_seconds=time.perf_counter() - started)
 

@@ -26,7 +26,28 @@ PROJECT_ROOT = Path(__file__).resolve().parents[2]
 
 
 class BackendError(RuntimeError):
-    """No Mitsuba variant can run on this machine."""
+    """No Mitsuba variant can run on this machine (what to install, not a bug: the CLI exits
+    with its bad-input code)."""
+
+
+def check_variant_name(name: str, where: str = VARIANT_ENV) -> str:
+    """``name`` if it is one of :data:`PREFERRED_VARIANTS` (the tool renders with Dr.Jit's
+    differentiable JIT variants only: a scalar or spectral one would fail deep in a render).
+
+    Raises:
+        ValueError: ``"<where>=<name>: not a variant sq-mitsuba renders with; ..."``.
+    """
+    if name not in PREFERRED_VARIANTS:
+        raise ValueError(f"{where}={name!r}: not a variant sq-mitsuba renders with; use "
+                         f"{' or '.join(PREFERRED_VARIANTS)}, or unset it to choose")
+    return name
+
+
+def check_variant_environment() -> None:
+    """Refuse a misspelled or unusable ``$SQ_MITSUBA_VARIANT`` before any work (one line)."""
+    requested = os.environ.get(VARIANT_ENV)
+    if requested:
+        check_variant_name(requested)
 
 
 def _configure_cache() -> None:
@@ -104,8 +125,13 @@ def mitsuba(variant: str | None = None) -> ModuleType:
             the first of :data:`PREFERRED_VARIANTS` whose backend works.
 
     Raises:
+        ValueError: ``variant`` or ``$SQ_MITSUBA_VARIANT`` is not one of
+            :data:`PREFERRED_VARIANTS`.
         BackendError: no variant can run (one line saying what to install).
     """
+    if variant is not None:
+        check_variant_name(variant, "variant")
+    check_variant_environment()
     mi = sys.modules.get("mitsuba")
     current = mi.variant() if mi is not None and hasattr(mi, "variant") else None
     if current is not None and (variant or os.environ.get(VARIANT_ENV)) in (None, current):

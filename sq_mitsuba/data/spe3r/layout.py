@@ -176,8 +176,13 @@ def read_image(path: Path, verify: bool = False) -> Image.Image:
 
 
 def read_gray(path: Path) -> np.ndarray:
-    """An 8-bit grayscale image (H, W) uint8, decoded completely (see :func:`read_image`)."""
+    """An 8-bit grayscale image (H, W) uint8, decoded completely (see :func:`read_image`); a
+    float image with pixels not finite is refused (converting would hide them)."""
     image = read_image(path)
+    if image.mode == "F":
+        bad = int((~np.isfinite(np.asarray(image))).sum())
+        if bad:
+            raise DatasetError(f"{path}: {bad} pixel(s) not finite (NaN or infinite)")
     return np.asarray(image if image.mode == "L" else image.convert("L"))
 
 

@@ -63,6 +63,7 @@ from sq_mitsuba.data.spe3r.layout import (
     PROGRESS,
     SAMPLES_FILE,
     DatasetError,
+    check_model_points,
     load_model,
     read_labels,
     read_manifest,
@@ -450,6 +451,7 @@ def render_model(models_dir: Path, out_dir: Path, model: str, camera: Camera,
     tick(skipped)
     if todo:
         vertices, faces, tags = load_model(models_dir / model)
+        check_model_points(models_dir / model)  # a NaN point would pass on to every reader
         has_images = bool(assembled) or any((model_out / PROGRESS).glob("*.json"))
         _copy_model_files(models_dir / model / MODELS, model_out / MODELS, has_images)
         (model_out / PROGRESS).mkdir(parents=True, exist_ok=True)
