@@ -554,3 +554,40 @@ def test_each_side_of_the_picture_is_seen_from_the_axis_it_names():
         axis = torch.zeros(3, dtype=torch.float64)
         axis["xyz".index(label[1])] = 1.0 if label[0] == "+" else -1.0
         assert torch.allclose(centre / centre.norm(), axis, atol=1e-12), label
+
+
+def test_predict_sequence_cli_fits_the_masks_it_is_given(eval_checkpoint, train_dataset,
+                                                         tmp_path, capsys):
+    """--mask with --sequence: one mask per frame, fitted in place of the network's; an empty
+    one, a wrong count or size is one line before any work."""
+    import json
+
+    import numpy as np
+    from PIL import Image
+
+    from sq_mitsuba.cli import main
+
+    model = next(line.split(",")[0] for line in
+                 (train_dataset / "splits.csv").read_text().splitlines()
+                 if line.endswith(",test"))
+    images = sorted((train_dataset / model / "images").glob("*.png"))[:2]
+    masks = [train_dataset / model / "masks" / image.name for image in images]
+    base = ["predict", *map(str, images), "--sequence", "--checkpoint", str(eval_checkpoint),
+            "--quiet", "--fit", "steps=2"]
+    out = tmp_path / "pass"
+    assert main([*base, "--mask", *map(str, masks), "--out", str(out)]) == 0
+    for image in images:
+        pose = json.loads((out / f"{image.stem}.pose.json").read_text())
+        assert pose["sequence"]["mask_source"] == "file"
+    empty = tmp_path / "empty.png"
+    Image.fromarray(np.zeros((64, 64), np.uint8)).save(empty)
+    small = tmp_path / "small.png"
+    Image.fromarray(np.full((32, 32), 255, np.uint8)).save(small)
+    for given, expected in (([masks[0], empty], f"mask {empty}: empty"),
+                            ([masks[0]], "mask: 1 masks for 2 images"),
+                            ([masks[0], small], f"mask {small}: 32 x 32 px, the frames are "
+                                                "64 x 64 px")):
+        capsys.readouterr()
+        assert main([*base, "--mask", *map(str, given), "--out", str(tmp_path / "o")]) == 2
+        assert expected in error_line(capsys)
+    assert not (tmp_path / "o").exists()

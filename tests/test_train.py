@@ -544,6 +544,30 @@ def test_channels_last_training_step_matches_channels_first():
 # ------------------------------------------------------------------------ distributed
 
 
+def test_the_cpu_sync_batchnorm_keeps_frozen_layers_frozen():
+    """Converting for DDP on the CPU keeps each BatchNorm's very parameters (as torch's own
+    converter on CUDA): a layer frozen by ``optim.trainable`` stays frozen, so the optimiser
+    and ``train()`` see what they saw before (it trained the frozen layers' weights)."""
+    from torch import nn
+
+    from sq_mitsuba.training.distributed import CpuSyncBatchNorm, convert_cpu_sync_batchnorm
+
+    net = nn.Sequential(nn.Conv2d(1, 4, 3), nn.BatchNorm2d(4), nn.ReLU(),
+                        nn.Sequential(nn.Conv2d(4, 4, 1), nn.BatchNorm2d(4)))
+    net[1].running_mean.fill_(0.5)
+    for parameter in [*net[0].parameters(), *net[1].parameters()]:
+        parameter.requires_grad_(False)
+    before = {name: (p, p.requires_grad) for name, p in net.named_parameters()}
+    convert_cpu_sync_batchnorm(net)
+    assert isinstance(net[1], CpuSyncBatchNorm) and isinstance(net[3][1], CpuSyncBatchNorm)
+    after = dict(net.named_parameters())
+    assert after.keys() == before.keys()
+    for name, (parameter, trainable) in before.items():
+        assert after[name] is parameter and after[name].requires_grad == trainable, name
+    assert torch.equal(net[1].running_mean, torch.full((4,), 0.5))
+
+
+
 @pytest.mark.slow
 def test_torchrun_two_processes_match_one(train_dataset, cache_dir, tmp_path):
     """3 steps of 2 gloo processes x 2 images = 3 steps of 1 process x 4 images.

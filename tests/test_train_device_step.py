@@ -199,6 +199,22 @@ def test_prefetched_batches_equal_the_streams_own(stream, device, workers):
                        stream.batch(1, World(), device).image)
 
 
+@pytest.mark.parametrize("workers", [0, 1])
+def test_prefetching_leaves_the_global_random_state_alone(stream, workers):
+    """The encoder's stochastic depth draws from torch's global generator, which a resumed
+    run restores before it makes its prefetcher again: making the workers' loader must not
+    draw from it (it took one draw for its base seed), or a run and its resume part ways."""
+    from sq_mitsuba.training.distributed import World
+    from sq_mitsuba.training.prefetch import BatchPrefetcher
+
+    torch.manual_seed(3)
+    before = torch.get_rng_state()
+    with BatchPrefetcher(stream, World(), "cpu", end_step=4, workers=workers) as prefetcher:
+        prefetcher.batch(0)
+        prefetcher.batch(2)  # a jump: the loader made again
+    assert torch.equal(torch.get_rng_state(), before)
+
+
 @pytest.mark.parametrize("workers", [0, 2])
 def test_a_prefetch_error_comes_back_as_raised(stream, workers, monkeypatch):
     """An error met while making a batch ahead reaches the training process as it was raised

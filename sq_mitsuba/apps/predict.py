@@ -412,8 +412,8 @@ def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
         assembly, rotation, translation = (prediction.assembly, prediction.rotation,
                                            prediction.translation)
         quaternion = prediction.quaternion
-        before = _overlay_silhouette(assembly, rotation, translation, renderer, options.level,
-                                     picture.shape)
+        before = overlay_silhouettes(assembly, rotation, translation, renderer, options.level,
+                                     picture.shape)[0]
         layers = [(before, NETWORK_COLOUR)]
         outline = None
         reading = prediction  # whose rotation hypotheses pose.json lists
@@ -445,8 +445,8 @@ def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
             record.iou_after = float(fit.iou[0])
             record.search_resolution = options.search.resolution
             record.refine_resolution = options.refinement.resolution
-            layers.append((_overlay_silhouette(assembly, rotation, translation, renderer,
-                                               options.level, picture.shape), REFINED_COLOUR))
+            layers.append((overlay_silhouettes(assembly, rotation, translation, renderer,
+                                               options.level, picture.shape)[0], REFINED_COLOUR))
         pose.update({
             "q_vbs2tango": [float(v) for v in quaternion[0]],
             "r_Vo2To_vbs": [float(v) for v in translation[0]],
@@ -495,15 +495,16 @@ def overlay_camera(camera: Camera) -> Camera:
                            max(1, round(camera.height * scale)))
 
 
-def _overlay_silhouette(assembly: Any, rotation: Any, translation: Any, renderer: Any,
-                        level: int, shape: tuple[int, ...]) -> np.ndarray:
-    """The coverage (H, W) = ``shape`` of one assembly at its pose, rendered by ``renderer``
-    (with :func:`overlay_camera`) and resized to the picture."""
+def overlay_silhouettes(assembly: Any, rotation: Any, translation: Any, renderer: Any,
+                        level: int, shape: tuple[int, ...]) -> list[np.ndarray]:
+    """The coverages (H, W) = ``shape[:2]`` of B assemblies at their poses (rotation (B, 3, 3),
+    translation (B, 3)), rendered in one launch by ``renderer`` (its camera from
+    :func:`overlay_camera`) and each resized to the picture."""
     from sq_mitsuba.render.silhouette.renderer import render_assembly
 
     with torch.no_grad():
-        coverage = render_assembly(assembly, rotation, translation, renderer, level)[0].numpy()
-    return resized_coverage(coverage, shape[1], shape[0])
+        coverage = render_assembly(assembly, rotation, translation, renderer, level).numpy()
+    return [resized_coverage(item, shape[1], shape[0]) for item in coverage]
 
 
 def resized_coverage(coverage: np.ndarray, width: int, height: int) -> np.ndarray:

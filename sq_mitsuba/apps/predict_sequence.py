@@ -11,8 +11,8 @@ Files written to the output folder (each atomically; the folder is all or nothin
   (red), the shared assembly's at the frame's pose (green) and the mask's outline (yellow);
 - ``sequence.png``: the shared assembly from six sides (one colour per primitive).
 
-Every image is read and checked before the work: one size for all, at least two, no name
-twice.
+Every image (and mask, where given: one per frame, the frame's size, target bright) is read
+and checked before the work: one size for all, at least two, no name twice.
 """
 
 from __future__ import annotations
@@ -89,11 +89,13 @@ def _sides_picture(assembly: Any, path: Path) -> Path:
 def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
                            camera: Any = None, relative_rotations: Any = None,
                            options: Any = None, ordered: bool = False,
-                           other_inputs: Sequence[str | Path] = ()) -> SequenceRecord:
+                           other_inputs: Sequence[str | Path] = (),
+                           masks: Sequence[str | Path] | None = None) -> SequenceRecord:
     """Predict one assembly and every pose from ``images`` (frames of one spacecraft) and write
     the files of the module docstring into ``out_dir``. ``other_inputs``: the run's other
     input files (the checkpoint, a camera or rotations file), refused if an output would
-    overwrite one.
+    overwrite one. ``masks``: one mask file per frame, in their order, fitted instead of the
+    network's masks (default: the network's mask head, or the segmentation).
 
     Raises:
         ValueError: one line naming the image or argument: fewer than two images, sizes that
@@ -105,8 +107,8 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
 
     from sq_mitsuba.apps.overlay import NETWORK_COLOUR, REFINED_COLOUR, overlay_image
     from sq_mitsuba.apps.padding import padding_to_aspect
-    from sq_mitsuba.apps.predict import check_unique_stems
-    from sq_mitsuba.data.masks import read_gray_image
+    from sq_mitsuba.apps.predict import check_unique_stems, overlay_camera, overlay_silhouettes
+    from sq_mitsuba.data.masks import read_gray_image, read_mask
     from sq_mitsuba.geometry.assembly import Assembly
     from sq_mitsuba.inference.loading import with_fast_path
     from sq_mitsuba.io import (
@@ -114,7 +116,7 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
         atomic_write_json,
         check_output_folder,
     )
-    from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer, render_assembly
+    from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer
 
     paths = [Path(p) for p in images]
     if len(paths) < 2:
@@ -127,6 +129,17 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
                              f"first frame {paths[0]} is {pictures[0].shape[1]} x "
                              f"{pictures[0].shape[0]} px (a sequence has one size)")
     height, width = pictures[0].shape[:2]
+    mask_paths = None if masks is None else [Path(m) for m in masks]
+    given_masks = None
+    if mask_paths is not None:
+        if len(mask_paths) != len(paths):
+            raise ValueError(f"mask: {len(mask_paths)} masks for {len(paths)} images (one per "
+                             "frame, in their order)")
+        given_masks = [read_mask(m) for m in mask_paths]
+        for mask_path, mask in zip(mask_paths, given_masks, strict=True):
+            if mask.shape != (height, width):
+                raise ValueError(f"mask {mask_path}: {mask.shape[1]} x {mask.shape[0]} px, the "
+                                 f"frames are {width} x {height} px")
     given = predictor.camera if camera is None else camera
     if padding_to_aspect(width, height, given) is not None:  # the single image's test
         where = "the checkpoint's camera" if camera is None else "the camera given"
@@ -136,12 +149,14 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
     out = check_output_folder(out_dir, ["sequence.assembly.json", "sequence.glb", "sequence.png"]
                               + [f"{path.stem}{suffix}" for path in paths
                                  for suffix in (".pose.json", ".overlay.png")],
-                              keep=[*paths, *other_inputs])
+                              keep=[*paths, *(mask_paths or []), *other_inputs])
     predictor = with_fast_path(predictor, True)
     record = SequenceRecord()
     started = time.perf_counter()
     frames = torch.from_numpy(np.stack(pictures)).float()
-    kwargs = {} if options is None else {"options": options}
+    kwargs: dict[str, Any] = {} if options is None else {"options": options}
+    if given_masks is not None:
+        kwargs["mask"] = torch.from_numpy(np.stack(given_masks))
     try:
         result = predictor.predict_sequence(frames, camera, relative_rotations=relative_rotations,
                                             ordered=ordered, **kwargs)
@@ -159,13 +174,13 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
     record.files.append(_sides_picture(result.assembly, out / "sequence.png"))
     own = result.frames
     image_camera = own.camera
-    renderer = SilhouetteRenderer(image_camera, spp=4)
+    renderer = SilhouetteRenderer(overlay_camera(image_camera), spp=4)
     count = len(paths)
-    with torch.no_grad():
-        shared = render_assembly(Assembly(result.assembly.params.expand(count, -1, -1)),
-                                 result.rotation, result.translation, renderer, 3).numpy()
-        alone = render_assembly(Assembly(own.assembly.params.double()), own.rotation.double(),
-                                own.translation.double(), renderer, 3).numpy()
+    shape = pictures[0].shape
+    shared = overlay_silhouettes(Assembly(result.assembly.params.expand(count, -1, -1)),
+                                 result.rotation, result.translation, renderer, 3, shape)
+    alone = overlay_silhouettes(Assembly(own.assembly.params.double()), own.rotation.double(),
+                                own.translation.double(), renderer, 3, shape)
     for k, (path, picture) in enumerate(zip(paths, pictures, strict=True)):
         pose = {
             "image": str(path), "width": image_camera.width, "height": image_camera.height,
@@ -179,7 +194,8 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
             "sequence": {"frame": k, "frames": count, "reference": result.reference,
                          "iou": record.iou[k], "frame_iou": record.frame_iou[k],
                          "half_turn": [[float(v) for v in row] for row in result.half_turns[k]],
-                         "mask_source": own.fit.mask_source, "steps": result.steps},
+                         "mask_source": "file" if mask_paths is not None
+                         else own.fit.mask_source, "steps": result.steps},
         }
         atomic_write_json(out / f"{path.stem}.pose.json", pose)
         record.files.append(out / f"{path.stem}.pose.json")

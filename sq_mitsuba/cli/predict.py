@@ -59,6 +59,7 @@ by the --refine path, the half turns resolved across frames, then one shape and 
 fitted to every frame's mask at once). Writes sequence.assembly.json, sequence.glb,
 sequence.png (the assembly from six sides) and per frame <stem>.pose.json (its pose of that
 assembly) and <stem>.overlay.png (its own fit in red, the shared assembly in green).
+--mask gives each frame's mask (one per image, in their order) in place of the network's.
 --relative-rotations FILE gives the rotations between the frames when they are known (e.g.
 from the servicer's navigation, for a target that holds its attitude): a JSON list of one
 quaternion [w, x, y, z] per image, in their order, each the target's rotation into that
@@ -82,7 +83,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="SPEED-style camera.json of the images (default: the "
                              "checkpoint's camera, rescaled to each image)")
     parser.add_argument("--mask", nargs="+", type=Path, default=None, metavar="MASK",
-                        help="with --refine: one mask per image, in the same order "
+                        help="with --refine or --sequence: one mask per image, in the same order "
                              "(default, without --mask: the network's mask head, or the "
                              "image's segmentation for a model without one; --set "
                              "mask=segmentation forces the segmentation)")
@@ -161,7 +162,7 @@ def _run_sequence(args: argparse.Namespace) -> int:
 
     # A pass refines every frame, on the fast path, and draws its own overlays: the single
     # image's options would be silently ignored.
-    unused = [flag for flag, given in (("--mask", args.mask), ("--refine", hasattr(
+    unused = [flag for flag, given in (("--refine", hasattr(
         args, "refine")), ("--turns", hasattr(args, "turns")), ("--level", hasattr(args, "level")),
         ("--fast / --no-fast", hasattr(args, "fast")), ("--set", getattr(args, "overrides", None)))
         if given]
@@ -180,7 +181,8 @@ def _run_sequence(args: argparse.Namespace) -> int:
               if path is not None]
     record = predict_sequence_files(args.images, args.out, load_model(args.checkpoint),
                                     camera, relative_rotations=relative, options=options,
-                                    ordered=args.ordered, other_inputs=inputs)
+                                    ordered=args.ordered, other_inputs=inputs,
+                                    masks=args.mask)
     print(f"{record.describe()}; wrote {len(record.files)} files to {args.out}")
     return 0
 

@@ -76,12 +76,16 @@ class CpuSyncBatchNorm(nn.BatchNorm2d):
 
 
 def convert_cpu_sync_batchnorm(module: nn.Module) -> nn.Module:
-    """Replace every BatchNorm2d of ``module`` by a :class:`CpuSyncBatchNorm` with its state."""
+    """Replace every BatchNorm2d of ``module`` by a :class:`CpuSyncBatchNorm` with its state,
+    its very parameters included (as torch's ``SyncBatchNorm.convert_sync_batchnorm``): a
+    frozen layer's stay frozen (``optim.trainable``), and an optimiser sees the same ones."""
     for name, child in module.named_children():
         if isinstance(child, nn.BatchNorm2d) and not isinstance(child, CpuSyncBatchNorm):
             sync = CpuSyncBatchNorm(child.num_features, child.eps, child.momentum,
                                     child.affine, child.track_running_stats)
             sync.load_state_dict(child.state_dict())
+            if child.affine:
+                sync.weight, sync.bias = child.weight, child.bias
             sync.train(child.training)
             setattr(module, name, sync)
         else:

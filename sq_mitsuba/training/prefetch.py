@@ -123,7 +123,11 @@ class BatchPrefetcher:
                 _HostBatches(self.stream, self.world), batch_size=None,
                 sampler=range(step, self.end_step), num_workers=self.workers,
                 prefetch_factor=self.depth, pin_memory=self.pin,
-                multiprocessing_context="fork"))
+                multiprocessing_context="fork",
+                # Its own generator: the loader's base seed would otherwise be a draw from
+                # the global RNG (the encoder's stochastic depth), which a resume restores
+                # before the loader is made again. The batches are seeded by step anyway.
+                generator=torch.Generator().manual_seed(step)))
         host = next(self._loader)
         self._next = step + 1
         if isinstance(host, _Failed):
