@@ -97,6 +97,10 @@ OUTPUT_SUFFIXES = (".assembly.json", ".obj", ".glb", ".pose.json", ".overlay.png
 #: are rendered at this size and resized to it. The overlay is a picture: at 16 samples a
 #: pixel, a 4,000 px image's silhouettes took most of `predict`'s time and memory.
 OVERLAY_MAX_SIDE = 1024
+#: Memory one image takes in `predict`, per pixel of the (padded) image, beyond the model's:
+#: measured 50 bytes (a 4,000 x 4,000 px image peaks 0.8 GB above the loaded model), with a
+#: margin; the image's floats, its turned copies' mask, the overlay.
+PREDICT_BYTES_PER_PIXEL = 64
 
 
 @dataclass(frozen=True)
@@ -217,7 +221,9 @@ def _check_inputs(paths: list[Path], camera: Any, masks: list[Path] | None,
     shows a target, known after the network's pass), and a warning per image."""
     from sq_mitsuba.data.masks import read_gray_image, read_mask
     from sq_mitsuba.data.segmentation import segment_target
+    from sq_mitsuba.data.spe3r.writer import available_memory
 
+    memory = available_memory()
     if not paths:
         raise ValueError("images: give at least one image")
     if masks is not None and not options.refine:
@@ -229,6 +235,7 @@ def _check_inputs(paths: list[Path], camera: Any, masks: list[Path] | None,
     problems: list[str | None] = [None] * len(paths)
     warnings: list[str | None] = [None] * len(paths)
     for k, path in enumerate(paths):
+        check_image_memory(path, camera, memory)  # from the header, before the pixels are decoded
         picture = read_gray_image(path)
         padding = padding_to_aspect(picture.shape[1], picture.shape[0], camera)
         if padding is not None and not pad:
@@ -257,6 +264,28 @@ def _check_inputs(paths: list[Path], camera: Any, masks: list[Path] | None,
         if padding is not None:
             warnings[k] = "; ".join(w for w in (padding.describe(), warnings[k]) if w)
     return paddings, problems, warnings
+
+
+def check_image_memory(path: Path, camera: Any, memory: int | None) -> None:
+    """One line when the image at ``path``, padded as it would be, needs more memory than
+    ``memory`` bytes (:data:`PREDICT_BYTES_PER_PIXEL`); nothing where its header cannot be
+    read (decoding it says why) or the memory is unknown."""
+    from PIL import Image
+
+    if memory is None:
+        return
+    try:
+        with Image.open(path) as header:
+            width, height = header.size
+    except Exception:  # not an image, a folder, ...: read_gray_image's one line says what
+        return
+    padding = padding_to_aspect(width, height, camera)
+    pixels = width * height if padding is None else padding.padded_width * padding.padded_height
+    if pixels * PREDICT_BYTES_PER_PIXEL > memory:
+        raise ValueError(f"image {path}: {width} x {height} px needs about "
+                         f"{pixels * PREDICT_BYTES_PER_PIXEL / 2**30:.1f} GiB of memory "
+                         f"({PREDICT_BYTES_PER_PIXEL} bytes a pixel), more than the "
+                         f"{memory / 2**30:.1f} GiB of this machine; scale it down")
 
 
 @dataclass

@@ -107,8 +107,14 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
 
     from sq_mitsuba.apps.overlay import NETWORK_COLOUR, REFINED_COLOUR, overlay_image
     from sq_mitsuba.apps.padding import padding_to_aspect
-    from sq_mitsuba.apps.predict import check_unique_stems, overlay_camera, overlay_silhouettes
+    from sq_mitsuba.apps.predict import (
+        check_image_memory,
+        check_unique_stems,
+        overlay_camera,
+        overlay_silhouettes,
+    )
     from sq_mitsuba.data.masks import read_gray_image, read_mask
+    from sq_mitsuba.data.spe3r.writer import available_memory
     from sq_mitsuba.geometry.assembly import Assembly
     from sq_mitsuba.inference.loading import with_fast_path
     from sq_mitsuba.io import (
@@ -122,6 +128,10 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
     if len(paths) < 2:
         raise ValueError(f"images: a sequence needs at least 2 images, got {len(paths)}")
     check_unique_stems(paths)
+    memory = available_memory()
+    for path in paths:  # every frame is held at once: each gets its share of the memory
+        check_image_memory(path, predictor.camera if camera is None else camera,
+                           None if memory is None else memory // len(paths))
     pictures = [read_gray_image(p) for p in paths]
     for path, picture in zip(paths[1:], pictures[1:], strict=True):
         if picture.shape != pictures[0].shape:
