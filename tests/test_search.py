@@ -66,6 +66,22 @@ def test_batched_silhouettes_match_the_differentiable_renderer(scene):
     assert float(behind.sum()) == 0.0
 
 
+def test_batched_views_share_their_sub_pixel_samples(scene):
+    """With several samples a pixel, every view of one call samples the same sub-pixel
+    positions (the module's convention): the same pose three times gives three identical
+    images, so two candidates' scores never differ by sampling noise; another call draws
+    other positions."""
+    truth, rotation, translation, _, camera = scene
+    vertices, faces = truth.merged_mesh(2)
+    renderer = PoseSilhouettes(camera, spp=4)
+    same = renderer.render(vertices[0], faces, rotation[:1].expand(3, 3, 3),
+                           translation[:1].expand(3, 3))
+    assert torch.equal(same[0], same[1]) and torch.equal(same[0], same[2])
+    assert ((same[0] > 0) & (same[0] < 1)).any()  # edge pixels are sampled, not all-or-none
+    again = renderer.render(vertices[0], faces, rotation[:1], translation[:1])
+    assert not torch.equal(again[0], same[0])
+
+
 def test_search_finds_the_pose_from_a_grid_within_its_spacing(scene):
     """Acceptance: the true pose, found again from the silhouette alone, from a uniform grid
     (the 'network' rotation is a half turn away from the truth), to within the grid's spacing;

@@ -69,22 +69,39 @@ def _agreement(readings: Tensor, predicted: Tensor) -> tuple[Tensor, Tensor]:
     return angles.min(dim=-1)
 
 
+def _left_jacobian(vector: Tensor) -> Tensor:
+    """(K, 3) rotation vectors -> (K, 3, 3) the left Jacobian of SO(3) at each:
+    ``exp(v + e) = exp(J(v) e) exp(v)`` to first order in ``e``."""
+    angle = vector.norm(dim=-1)[:, None, None]
+    small = angle < 1e-6
+    safe = torch.where(small, torch.ones_like(angle), angle)
+    first = torch.where(small, torch.full_like(angle, 0.5), (1 - torch.cos(safe)) / safe**2)
+    second = torch.where(small, torch.full_like(angle, 1 / 6), (safe - torch.sin(safe)) / safe**3)
+    x, y, z = vector.unbind(-1)
+    zero = torch.zeros_like(x)
+    skew = torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], dim=-1).reshape(-1, 3, 3)
+    return torch.eye(3, dtype=vector.dtype) + first * skew + second * skew @ skew
+
+
 def _refit(rate: Tensor, start: Tensor, readings: Tensor, times: Tensor,
            iterations: int = 8) -> tuple[Tensor, Tensor]:
     """The motion (rate (3,), start (3, 3)) nearest the agreeing frames' readings (K, 3, 3) at
     their times (K,), from the pair's motion: the pair's own noise otherwise grows along the
-    pass with the distance from the pair. Gauss-Newton on the residual turns: each reading is
-    ``exp([r_k]) R(t_k)``, and the line ``r_k = a + t_k d`` fitted by least squares moves the
-    start by ``a`` and the rate by ``d`` (turns compose to first order, as they do when the
-    agreeing frames lie within the threshold of the motion)."""
-    centred = times - times.mean()
-    spread = centred.square().sum()
+    pass with the distance from the pair. Gauss-Newton on the residual turns ``r_k`` (each
+    reading is ``exp([r_k]) R(t_k)``): turning the start by ``a`` and adding ``d`` to the
+    rate turns frame k's motion by ``exp(t_k [w]) a + t_k J(t_k w) d`` (J: SO(3)'s left
+    Jacobian), which the step fits to the ``r_k`` by least squares; exact to first order
+    however far the pass turns (a step that treated the turns as a line in ``t_k`` diverged
+    on passes turning more than about 2 rad)."""
     for _ in range(iterations):
-        motion = axis_angle_to_matrix(times[:, None] * rate) @ start
-        residual = matrix_to_axis_angle(readings @ motion.transpose(-1, -2))  # (K, 3)
-        slope = (centred[:, None] * residual).sum(0) / spread
-        offset = residual.mean(0) - slope * times.mean()
-        rate, start = rate + slope, axis_angle_to_matrix(offset) @ start
+        turn = axis_angle_to_matrix(times[:, None] * rate)  # (K, 3, 3)
+        residual = matrix_to_axis_angle(readings @ (turn @ start).transpose(-1, -2))  # (K, 3)
+        jacobian = torch.cat([turn, times[:, None, None] * _left_jacobian(times[:, None] * rate)],
+                             dim=-1)  # (K, 3, 6)
+        step = torch.linalg.lstsq(jacobian.reshape(-1, 6), residual.reshape(-1, 1)).solution[:, 0]
+        start, rate = axis_angle_to_matrix(step[:3]) @ start, rate + step[3:]
+        if float(step.norm()) < 1e-12:
+            break
     return rate, start
 
 

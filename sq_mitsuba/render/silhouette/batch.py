@@ -173,10 +173,11 @@ class PoseSilhouettes:
         if spp == 1:
             du = dv = dr.opaque(mi.Float, 0.5)
         else:
-            state = (self.seed + _SEED_STRIDE * self._calls) & 0xFFFFFFFF
-            rng = mi.PCG32(size=views * pixels * spp,
-                           initstate=sample + dr.opaque(mi.UInt32, state))
-            du, dv = rng.next_float32(), rng.next_float32()
+            # A hash of (pixel and sub-sample, call): the same in every view. (A PCG32 of
+            # views x pixels lanes would give every lane, so every view, its own stream.)
+            state = (2 * (self.seed + _SEED_STRIDE * self._calls)) & 0xFFFFFFFF
+            du = mi.sample_tea_float32(sample, dr.opaque(mi.UInt32, state))
+            dv = mi.sample_tea_float32(sample, dr.opaque(mi.UInt32, (state + 1) & 0xFFFFFFFF))
         x = (mi.Float(column) + du - dr.opaque(mi.Float, camera.cx)) / dr.opaque(
             mi.Float, camera.fx)
         y = (mi.Float(row) + dv - dr.opaque(mi.Float, camera.cy)) / dr.opaque(
