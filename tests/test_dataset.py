@@ -208,6 +208,23 @@ def test_reader_reads_what_the_writer_wrote(dataset):
     assert item["surface_points"].abs().max() <= 0.51
 
 
+def test_a_mask_read_at_half_size_is_its_area_share_not_a_corner(dataset):
+    """A mask downsized by two: each output pixel is on where at least half of its 2 x 2 block
+    is (the brute-force area share), centred with the image and its rescaled camera; a
+    nearest-neighbour resize took one corner of each block, a quarter pixel off."""
+    full_size = Camera.load(dataset / "camera.json").width
+    half = full_size // 2
+    train = Spe3rDataset(dataset, "train", image_size=half, num_surface=10, num_occupancy=10)
+    for item in range(len(train)):
+        model, _, label = train.items[item]
+        full = np.asarray(Image.open(dataset / train.models[model] / "masks"
+                                     / label["filename"])) >= 128
+        share = full.reshape(half, 2, half, 2).mean(axis=(1, 3))
+        decided = np.abs(share - 0.5) > 0.1  # ties at exactly half may round either way
+        got = train[item]["mask"][0].numpy() > 0.5
+        assert np.array_equal(got[decided], share[decided] >= 0.5), item
+
+
 def test_reader_reads_an_spe3r_shaped_fixture_with_jpg_images(tmp_path):
     """SPE3R release shape: .jpg images, SPEED camera.json in metres, no samples.npz."""
     import trimesh

@@ -437,3 +437,19 @@ def test_resolution_is_bounded_by_memory():
         spe3r_writer.check_render_resources(options.dataset_camera(), options,
                                             memory=need - 1)
     assert RenderOptions(seed=2**32 - 1).seed == 2**32 - 1
+
+
+def test_a_model_folder_without_a_row_in_the_librarys_splits_is_refused(library, tmp_path):
+    """A library whose splits.csv lacks a model folder (an interrupted parallel `models
+    generate`): its split is not guessed as train (a held-out model would silently train);
+    the render stops before any work, naming it."""
+    models = tmp_path / "models"
+    shutil.copytree(library, models)
+    rows = (models / "splits.csv").read_text().splitlines()
+    dropped = rows[-1].split(",")[0]
+    (models / "splits.csv").write_text("\n".join(rows[:-1]) + "\n")
+    out = tmp_path / "data"
+    with pytest.raises(DatasetError, match=rf"splits.csv: no row for 1 model folder\(s\) "
+                                           rf"\({dropped}\)"):
+        render_dataset(models, out, RenderOptions(**TINY), progress=False)
+    assert not out.exists()

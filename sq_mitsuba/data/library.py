@@ -13,7 +13,9 @@ Each model lands in ``<root>/<model>/models/`` (see
   that earlier model's files are still there).
 
 Both files are rewritten atomically after every model, so an interrupted batch leaves them
-consistent with the model folders on disk.
+consistent with the model folders written so far; with ``workers``, a few models built ahead
+of the bookkeeping may be on disk without a row (``dataset render`` refuses such a library,
+naming them, until the batch is run again).
 
 One batch at a time per library: ``generate`` and ``import`` hold the library's lock
 (:func:`sq_mitsuba.outputs.output_lock`) from before they read ``splits.csv`` to their end,

@@ -2,10 +2,11 @@
 
 A rotation S with ``S(model) = model`` makes the poses R and R S show the same image, so a pose
 loss or error must not tell them apart (:func:`sq_mitsuba.model.losses.pose_loss`,
-:func:`sq_mitsuba.geometry.metrics.rotation_error_deg`). Processed models are principal-axis
-aligned (extents x >= y >= z, centre of mass at the origin), so the candidates are the half
-turns about the body axes x, y and z; each is tested by the Chamfer distance between the
-surface and its turned copy.
+:func:`sq_mitsuba.geometry.metrics.rotation_error_deg`). Processed models keep the axes they
+were built along, ordered by extent (x >= y >= z, centre of mass at the origin), so the
+candidates are the half turns about the body axes x, y and z (a symmetry about an axis the
+model was not built along is not looked for); each is tested by the Chamfer distance between
+the surface and its turned copy.
 
 Convention: the distance is the occnet Chamfer distance, ``0.5 (mean_a min_b |a - b| +
 mean_b min_a |a - b|)`` (Euclidean, nearest neighbours from KD-trees), between two disjoint

@@ -48,7 +48,7 @@ from sq_mitsuba.io import atomic_write_json
 __all__ = ["CACHE_VERSION", "ImageCache", "PointCache", "dataset_fingerprint", "decode_pixels",
            "manifest_hash", "open_image_cache", "open_point_cache"]
 
-CACHE_VERSION = 2
+CACHE_VERSION = 3  # 3: masks resized by area (were nearest-neighbour)
 MANIFEST = "dataset.json"
 
 

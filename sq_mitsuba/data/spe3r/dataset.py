@@ -179,7 +179,9 @@ class Spe3rDataset(torch.utils.data.Dataset):
         size = self.image_size
         image, mask = self.read_pair(item)
         image = resize(image, size, Image.BILINEAR)
-        mask = resize(mask, size, Image.NEAREST)
+        # The mask by area (its share of each output pixel, then >= half): nearest-neighbour
+        # picked one corner of each block, a quarter pixel off the image at half size.
+        mask = resize(mask, size, Image.BOX)
         quaternion = torch.tensor(label["q_vbs2tango_true"], dtype=torch.float32)
         camera = self.camera.rescaled(size, size)
         points = self.model_points(model_index)

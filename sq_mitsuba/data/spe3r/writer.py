@@ -732,6 +732,13 @@ def prepare_dataset(models_dir: Path, out_dir: Path, options: RenderOptions
                            f"another folder")
     library_splits = read_splits(models_dir / "splits.csv") \
         if (models_dir / "splits.csv").is_file() else {}
+    unlisted = [model for model in found if library_splits and model not in library_splits]
+    if unlisted:  # a split is not guessed: a held-out model would silently train
+        raise DatasetError(f"{models_dir / 'splits.csv'}: no row for {len(unlisted)} model "
+                           f"folder(s) ({', '.join(unlisted[:3])}"
+                           f"{', ...' if len(unlisted) > 3 else ''}), so their split is not "
+                           "known (an interrupted `models generate`? run it again to finish "
+                           "the library, or add their rows)")
     manifest = _existing_manifest(out_dir, options.overwrite)
     if manifest is None and not options.overwrite:
         unmanaged = [p for p in ("camera.json", "splits.csv") if (out_dir / p).exists()] + \
