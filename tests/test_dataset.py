@@ -550,3 +550,21 @@ def test_passes_are_frames_of_one_tumble_in_order(model_library, dataset, tmp_pa
     assert main(["dataset", "render", "--models", str(model_library), "--out", str(out),
                  "--images-per-model", str(IMAGES), "--seed", "7", "--resolution",
                  str(RESOLUTION), "--spp", str(SPP), "--quiet"]) == 2
+
+
+def test_a_pass_lies_whole_in_one_split():
+    """Passes of 12 frames over 40 images: each pass takes its first frame's split (the pass
+    of frames 12-23 straddled val's 16-19), and a dataset without passes keeps the index rule."""
+    from sq_mitsuba.data.spe3r import is_validation
+    from sq_mitsuba.data.spe3r.dataset import split_index
+
+    count, frames = 40, 12
+    val = [k for k in range(count)
+           if is_validation(split_index(k, {"frame_in_pass": k % frames}), count)]
+    assert val == [36, 37, 38, 39]  # the pass that starts at 36; 12-23 all train
+    for start in range(0, count, frames):
+        chosen = {is_validation(split_index(k, {"frame_in_pass": k - start}), count)
+                  for k in range(start, min(start + frames, count))}
+        assert len(chosen) == 1, start
+    assert [k for k in range(count) if is_validation(split_index(k, {}), count)] == \
+        [16, 17, 18, 19, 36, 37, 38, 39]

@@ -34,6 +34,16 @@ class MissingModelWarning(UserWarning):
     """A model listed in ``splits.csv`` has no ``labels.json``: it is left out."""
 
 
+def split_index(index: int, label: Any) -> int:
+    """The image index that decides an image's split (:func:`is_validation`): its own, or in
+    a pass dataset (labels with ``frame_in_pass``) its pass's first frame's, so that a pass
+    lies whole in ``train`` or ``val`` (frames a few degrees apart on both sides would leak)."""
+    frame = label.get("frame_in_pass") if isinstance(label, dict) else None
+    if isinstance(frame, int) and not isinstance(frame, bool) and 0 <= frame <= index:
+        return index - frame
+    return index
+
+
 class Spe3rDataset(torch.utils.data.Dataset):
     """A torch Dataset over an SPE3R-layout folder (ours, or the SPE3R release).
 
@@ -103,7 +113,8 @@ class Spe3rDataset(torch.utils.data.Dataset):
             model_index = len(self.models)
             self.models.append(model)
             for index, label in enumerate(labels):
-                if split == "test" or (split == "val") == is_validation(index, len(labels)):
+                if split == "test" or (split == "val") == is_validation(
+                        split_index(index, label), len(labels)):
                     self.items.append((model_index, index, label))
         self._points: dict[int, dict[str, np.ndarray]] = {}
 
