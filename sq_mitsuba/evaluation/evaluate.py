@@ -16,8 +16,9 @@ up to four methods:
   the network's mask head when it has one (``mask = "network"``), else the threshold
   segmentation of the image (:func:`sq_mitsuba.data.segmentation.segment_target`), named in
   the ``mask_source`` column; an image with nothing to segment (an eclipse, a black frame),
-  or whose segmentation warns of a lit Earth merged with the target, keeps the network's
-  prediction, with blank search columns;
+  or whose segmentation warns of a lit Earth merged with the target, keeps the search's start
+  (the network's reading from the search's turned copies, 8 by default, not the ``network``
+  row's single reading), with blank search columns;
 - ``refined_gt``: search and refinement against the ground-truth mask, an upper bound
   (``refine`` and ``refine_ground_truth``);
 - ``baseline``: a trivial floor, the mean training assembly (the mean of the network's raw
