@@ -2,8 +2,10 @@
 
 Convention: a :class:`TaggedMesh` carries one material index per face (into
 :data:`sq_mitsuba.render.materials.MATERIALS`). A processed model's OBJ is one object with
-shared vertices and no ``usemtl`` groups, so any reader (``trimesh.load(path,
-force="mesh")`` included) gets the one closed surface; its per-face tags live beside it, as
+shared vertices and no ``usemtl`` groups, so a reader that keeps its vertices
+(``trimesh.load(path, force="mesh", process=False)``) gets the one closed surface (merging
+vertices by position can pinch it where two parts touch at a point, where the union keeps two
+vertices); its per-face tags live beside it, as
 ``face_material`` in ``samples.npz`` (in OBJ face order), and ``model_normalized.glb`` carries
 them as glTF materials for viewers and Blender. :func:`read_obj` still reads the ``usemtl``
 groups of older files and of other tools.
