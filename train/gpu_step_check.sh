@@ -28,7 +28,7 @@
 #   batch; TRAIN_SECONDS [110]: cap of each run's training (a run cut by it is reported as not
 #   comparable); BENCH_SECONDS [180]; TOTAL_SECONDS [540]: every stage ends by then (the
 #   script's own limit); REPEATS [10]: bench pairs; PYTHON [python3]; WORK: folder kept for
-#   the dataset and runs (default temporary); STAGES ["bench dataset learn"].
+#   the dataset and runs (default temporary); STAGES ["bench dataset stream learn"].
 set -u -o pipefail
 
 repo=$(cd "$(dirname "$0")/.." && pwd)

@@ -29,10 +29,12 @@ SQ=${SQ:-$HERE/../../.venv/bin/sq-mitsuba}
 WORKERS=${WORKERS:-2}
 [ -f "$CHECKPOINT" ] || { echo "$0: checkpoint not found: $CHECKPOINT" >&2; exit 2; }
 mkdir -p "$WORK/eval"
+rows() { [ -f "$1" ] && [ "$(wc -l < "$1")" -ge "$2" ]; }  # FILE N: a library of N models
 
 heldout=$WORK/heldout
 if [ ! -f "$heldout/data/splits.csv" ]; then
-  [ -f "$heldout/models/splits.csv" ] || $SQ models generate --generator composed \
+  # Complete once splits.csv lists every model (an interrupted batch is run again to finish).
+  rows "$heldout/models/splits.csv" 100 || $SQ models generate --generator composed \
     --families held-out --count 100 --seed 7 --points 20000 --out "$heldout/models" \
     --workers "$WORKERS"
   $SQ dataset render --models "$heldout/models" --out "$heldout/data" --images-per-model 4 \
@@ -41,7 +43,7 @@ fi
 
 infamily=$WORK/infamily
 if [ ! -f "$infamily/data/splits.csv" ]; then
-  [ -f "$infamily/catalogue/splits.csv" ] || $SQ models generate --count 192 --seed 0 \
+  rows "$infamily/catalogue/splits.csv" 192 || $SQ models generate --count 192 --seed 0 \
     --points 20000 --out "$infamily/catalogue" --workers "$WORKERS"
   # A models folder of the test split alone (links), so only those models are rendered.
   rm -rf "$infamily/models"; mkdir -p "$infamily/models"

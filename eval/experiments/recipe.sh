@@ -25,7 +25,7 @@ CONFIGS=("$@")
 [ ${#CONFIGS[@]} -gt 0 ] || CONFIGS=("$HERE"/recipe/*.toml)
 mkdir -p "$WORK/runs"
 
-if [ ! -f "$WORK/models/splits.csv" ]; then
+if [ ! -f "$WORK/models/splits.csv" ] || [ "$(wc -l < "$WORK/models/splits.csv")" -lt "$MODELS" ]; then
   $SQ models generate --count "$MODELS" --seed 0 --out "$WORK/models"
 fi
 # Training resolution, few samples per pixel (the masks' 16 at 256 px are 114 at 96 px).

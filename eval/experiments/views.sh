@@ -25,7 +25,9 @@ DEVICE=${DEVICE:-cpu}
 ALL=("$@")
 [ ${#ALL[@]} -gt 0 ] || ALL=(16 40 64)
 mkdir -p "$WORK/runs"
-[ -f "$WORK/models/splits.csv" ] || $SQ models generate --count 96 --seed 0 --out "$WORK/models"
+if [ ! -f "$WORK/models/splits.csv" ] || [ "$(wc -l < "$WORK/models/splits.csv")" -lt 96 ]; then
+  $SQ models generate --count 96 --seed 0 --out "$WORK/models"  # again: finishes a library cut short
+fi
 
 render() {  # Images never depend on the count: data_V's first images are every other's.
   $SQ dataset render --models "$WORK/models" --out "$WORK/data_$1" --images-per-model "$1" \
