@@ -10,7 +10,9 @@
   them: a failed run leaves the folder as it found it, apart from files it replaced, which
   atomic writes replace whole or not at all.
 
-A run interrupted with Ctrl-C keeps what it wrote (``study illumination`` resumes its renders).
+A run interrupted with Ctrl-C keeps what it wrote (``study illumination`` resumes its renders),
+also where the interrupt comes out of Dr.Jit as a ``RuntimeError`` caused by it
+(:func:`interrupted`); the CLI handles SIGTERM as Ctrl-C.
 
 One output takes one run at a time (a second run into it would see the first one's temporary
 files as strays, and the two would mix their files): :func:`output_lock` holds an exclusive
@@ -48,8 +50,8 @@ import sys
 from collections.abc import Iterator
 from pathlib import Path
 
-__all__ = ["LOCK_NAME", "TEMPORARY_NAME", "OutputBusyError", "all_or_nothing", "lock_path",
-           "output_lock", "remove_stray_temporaries"]
+__all__ = ["LOCK_NAME", "TEMPORARY_NAME", "OutputBusyError", "all_or_nothing", "interrupted",
+           "lock_path", "output_lock", "remove_stray_temporaries"]
 
 #: The lock file of :func:`output_lock` inside an output folder.
 LOCK_NAME = ".sq-mitsuba.lock"
@@ -259,9 +261,25 @@ def all_or_nothing(out: str | Path | None, file: bool = False, lock: bool = True
             remove_stray_temporaries(out)
         try:
             yield
-        except Exception:
-            _remove_added(out, created, before)
+        except Exception as error:
+            if not interrupted(error):  # Ctrl-C inside Dr.Jit comes as a RuntimeError
+                _remove_added(out, created, before)
             raise
+
+
+def interrupted(error: BaseException) -> bool:
+    """Whether ``error`` is a Ctrl-C in disguise: a ``KeyboardInterrupt`` in its chain of causes
+    and contexts. Raised inside Dr.Jit or Mitsuba (Python code run from C++), one comes out as
+    a ``RuntimeError`` caused by it (``drjit.switch(): encountered an exception``, or
+    ``@drjit.syntax`` "could not be compiled" followed by a page of generated code), and an
+    error raised while handling it carries it as context."""
+    seen: set[int] = set()
+    while error is not None and id(error) not in seen:
+        if isinstance(error, KeyboardInterrupt):
+            return True
+        seen.add(id(error))
+        error = error.__cause__ or error.__context__
+    return False
 
 
 def _remove_added(out: Path, created: Path | None, before: set[Path] | None) -> None:

@@ -617,6 +617,14 @@ def test_all_or_nothing_removes_what_a_failed_run_added(tmp_path):
         (old / "resumable").mkdir()
         raise KeyboardInterrupt
     assert _entries(old) == ["before.txt", "resumable"]  # Ctrl-C keeps what was written
+    # Ctrl-C inside Dr.Jit comes out as a RuntimeError caused by it: still kept.
+    with pytest.raises(RuntimeError), all_or_nothing(old):
+        (old / "rendered").mkdir()
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt as ctrl_c:
+            raise RuntimeError("drjit.switch(): encountered an exception") from ctrl_c
+    assert _entries(old) == ["before.txt", "rendered", "resumable"]
     with all_or_nothing(old):
         (old / "done.txt").write_text("ok")
     assert "done.txt" in _entries(old)

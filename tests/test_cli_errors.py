@@ -127,6 +127,37 @@ def test_interrupt_stays_exit_130(monkeypatch, capsys, no_env_traceback):
     assert "Traceback" in err and err.strip().endswith("sq-mitsuba doctor: interrupted")
 
 
+def test_a_terminated_run_stops_as_an_interrupted_one(tmp_path):
+    """SIGTERM (``kill``, ``timeout``) is handled as Ctrl-C: one line, exit 130, the lock
+    released and a folder the run made but wrote nothing into removed (killed outright, it
+    left the folder holding a stale lock file)."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "out"
+    code = ("import time\n"
+            "from sq_mitsuba.cli import main\n"
+            "import sq_mitsuba.cli.report as report\n"
+            "def slow(args):\n"
+            "    print('started', flush=True)\n"
+            "    time.sleep(60)\n"
+            "report._run = slow\n"
+            f"raise SystemExit(main(['report', {str(tmp_path)!r}, '--out', {str(out)!r}]))\n")
+    process = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, text=True)
+    assert process.stdout.readline().strip() == "started"
+    assert (out / ".sq-mitsuba.lock").exists()
+    process.send_signal(signal.SIGTERM)
+    started = time.monotonic()
+    _, err = process.communicate(timeout=30)
+    assert time.monotonic() - started < 10
+    assert process.returncode == 130, err
+    assert err.strip().splitlines()[-1] == "sq-mitsuba report: interrupted"
+    assert not out.exists()
+
+
 def test_traceback_flag_goes_before_the_command(tmp_path, capsys):
     with pytest.raises(SystemExit) as stop:
         main([*_report(tmp_path), "--traceback"])

@@ -13,14 +13,18 @@ classes inside ``register``, and is then listed without being registered.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import os
 import pkgutil
+import signal
 import sys
+import threading
 import traceback
 import warnings
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 
+from sq_mitsuba.outputs import interrupted
 from sq_mitsuba.render.backend import BackendError, check_variant_environment
 from sq_mitsuba.version import __version__
 
@@ -93,21 +97,6 @@ def _one_line(error: BaseException) -> str:
     return "; ".join(lines) or type(error).__name__
 
 
-def interrupted(error: BaseException) -> bool:
-    """Whether ``error`` is a Ctrl-C in disguise: a ``KeyboardInterrupt`` in its chain of causes
-    and contexts. Raised inside Dr.Jit or Mitsuba (Python code run from C++), one comes out as
-    a ``RuntimeError`` caused by it (``drjit.switch(): encountered an exception``, or
-    ``@drjit.syntax`` "could not be compiled" followed by a page of generated code), and an
-    error raised while handling it carries it as context."""
-    seen: set[int] = set()
-    while error is not None and id(error) not in seen:
-        if isinstance(error, KeyboardInterrupt):
-            return True
-        seen.add(id(error))
-        error = error.__cause__ or error.__context__
-    return False
-
-
 def _warning_printer(command: str):
     """A ``warnings.showwarning`` that prints a warning as one line, ``sq-mitsuba COMMAND:
     warning: ...``, without Python's file, line number and source line."""
@@ -129,8 +118,39 @@ def traceback_from_environment() -> bool:
     return value not in ("", "0", "false", "no", "off")
 
 
+@contextlib.contextmanager
+def _terminate_as_interrupt() -> Iterator[None]:
+    """SIGTERM (``kill``, ``timeout``, a scheduler's stop) handled as Ctrl-C while a command
+    runs: its output keeps what it wrote and its lock is released (killed outright, a run
+    left an empty folder holding a stale lock file). Main thread only; the previous handler
+    comes back afterwards."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    owner = os.getpid()
+
+    def stop(signum: int, frame: object) -> None:
+        if os.getpid() != owner:  # a forked worker: stopped as it would have been
+            signal.signal(signum, signal.SIG_DFL)
+            os.kill(os.getpid(), signum)
+            return
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, stop)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run ``sq-mitsuba argv``; returns the exit code (see the module docstring for errors)."""
+    with _terminate_as_interrupt():
+        return _main(argv)
+
+
+def _main(argv: Sequence[str] | None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     # The command is the first word after the global options (only --traceback).
     first = next((i for i, word in enumerate(argv) if word != TRACEBACK_FLAG), len(argv))
