@@ -128,10 +128,10 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
     if len(paths) < 2:
         raise ValueError(f"images: a sequence needs at least 2 images, got {len(paths)}")
     check_unique_stems(paths)
+    given = predictor.camera if camera is None else camera
     memory = available_memory()
     for path in paths:  # every frame is held at once: each gets its share of the memory
-        check_image_memory(path, predictor.camera if camera is None else camera,
-                           None if memory is None else memory // len(paths))
+        check_image_memory(path, given, None if memory is None else memory // len(paths))
     pictures = [read_gray_image(p) for p in paths]
     for path, picture in zip(paths[1:], pictures[1:], strict=True):
         if picture.shape != pictures[0].shape:
@@ -150,7 +150,6 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
             if mask.shape != (height, width):
                 raise ValueError(f"mask {mask_path}: {mask.shape[1]} x {mask.shape[0]} px, the "
                                  f"frames are {width} x {height} px")
-    given = predictor.camera if camera is None else camera
     if padding_to_aspect(width, height, given) is not None:  # the single image's test
         where = "the checkpoint's camera" if camera is None else "the camera given"
         raise ValueError(f"image {paths[0]}: {width} x {height} px, another aspect ratio than "

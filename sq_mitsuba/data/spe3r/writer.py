@@ -732,7 +732,8 @@ def prepare_dataset(models_dir: Path, out_dir: Path, options: RenderOptions
                            f"another folder")
     library_splits = read_splits(models_dir / "splits.csv") \
         if (models_dir / "splits.csv").is_file() else {}
-    unlisted = [model for model in found if library_splits and model not in library_splits]
+    unlisted = [model for model in found if model not in library_splits] if library_splits \
+        else []
     if unlisted:  # a split is not guessed: a held-out model would silently train
         raise DatasetError(f"{models_dir / 'splits.csv'}: no row for {len(unlisted)} model "
                            f"folder(s) ({', '.join(unlisted[:3])}"
