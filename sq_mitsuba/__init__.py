@@ -2,7 +2,7 @@
 
 Layers, one folder each, lowest first (a module imports only its own layer and those below;
 ``tests/test_layers.py`` enforces it): the shared utilities at the top level (``checks``,
-``config``, ``inputs``, ``io``, ``llvm``, ``outputs``), then ``geometry``, ``render``,
+``config``, ``inputs``, ``io``, ``llvm``, ``machine``, ``outputs``), then ``geometry``, ``render``,
 ``data``, ``model`` (the network), ``training`` and ``inference`` side by side (neither
 imports the other), ``evaluation`` (the protocol), ``apps`` (predict, demo, export, fit),
 ``bench`` (benchmarks) and ``cli``.

@@ -760,15 +760,15 @@ def test_an_image_beyond_the_machines_memory_is_refused_before_it_is_read(bad, t
                                                                         capsys, monkeypatch):
     """predict estimates an image's memory from its header (PREDICT_BYTES_PER_PIXEL) and
     refuses one this machine cannot hold, before decoding it or starting the network."""
+    from sq_mitsuba import machine
     from sq_mitsuba.apps.predict import PREDICT_BYTES_PER_PIXEL
-    from sq_mitsuba.data.spe3r import writer
 
     pixels = 64 * 64  # the fixture's image
-    monkeypatch.setattr(writer, "available_memory", lambda: pixels * PREDICT_BYTES_PER_PIXEL - 1)
+    monkeypatch.setattr(machine, "available_memory", lambda: pixels * PREDICT_BYTES_PER_PIXEL - 1)
     out = tmp_path / "out"
     line = _run(capsys, ["predict", bad / "image.png", "--out", out])
-    assert f"image {bad / 'image.png'}: 64 x 64 px needs about 0.0 GiB of memory" in line, line
-    assert "more than the 0.0 GiB of this machine; scale it down" in line
+    assert (f"image {bad / 'image.png'}: 64 x 64 px (64 bytes a pixel) needs about 256 KiB of "
+            "memory, more than the 256 KiB this process may use; scale it down") in line, line
     assert not out.exists()
-    monkeypatch.setattr(writer, "available_memory", lambda: pixels * PREDICT_BYTES_PER_PIXEL)
+    monkeypatch.setattr(machine, "available_memory", lambda: pixels * PREDICT_BYTES_PER_PIXEL)
     assert main(["predict", str(bad / "image.png"), "--out", str(out), "--quiet"]) == 0

@@ -238,8 +238,8 @@ def test_absurd_resolution_and_seed_are_refused(fit_inputs, tmp_path, capsys):
     argv = ["fit", "--masks", *map(str, masks), "--poses", str(root / "labels.json")]
     out = tmp_path / "out"
     _refused(capsys, [*argv, "--resolution", "100000"], out,
-             "resolution: 100000 (100000 x 100000 px, 2 view(s)) needs about", "TB",
-             "more than this machine's")
+             "resolution: 100000 (100000 x 100000 px, 2 view(s)) needs about", "TiB",
+             "this process may use; lower the fit's resolution")
     _refused(capsys, [*argv, "--seed", "-1"], out,
              "--seed: expected a value in [0, 2147483647], got -1")
     _refused(capsys, [*argv, "--seed", str(2**31)], out, "--seed", str(2**31))

@@ -401,7 +401,8 @@ def test_every_size_of_dataset_has_a_validation_split(forty):
     (["render", "--seed", "4294967296"], "--seed"),
     (["render", "--images-per-model", "0"], "--images-per-model"),
     (["render", "--resolution", "7"], "--resolution"),
-    (["render", "--resolution", "60000"], "GiB of memory per rendering process"),
+    (["render", "--resolution", "60000"], "1 rendering process(es), each 768 MiB + 160 bytes a "
+     "pixel) needs about 537 GiB of memory"),
     (["render", "--spp", "0"], "--spp"),
     (["render", "--workers", "0"], "--workers"),
     (["render", "--shard", "2/2"], "--shard: expected I/N with 0 <= I < N"),
@@ -433,7 +434,9 @@ def test_resolution_is_bounded_by_memory():
     need = spe3r_writer.estimate_render_memory(4096, 4096)
     assert 2.5 * 2**30 < need < 3.5 * 2**30  # 0.75 GiB + 160 B x 16.8 Mpx
     spe3r_writer.check_render_resources(options.dataset_camera(), options, memory=need)
-    with pytest.raises(DatasetError, match=r"resolution: 4096 x 4096 px needs about 3\.[23] GiB"):
+    with pytest.raises(DatasetError, match=r"^resolution: 4096 x 4096 px \(1 rendering "
+                                          r"process\(es\), .*\) needs about 3\.25 GiB of memory, "
+                                          r"more than the 3\.25 GiB this process may use"):
         spe3r_writer.check_render_resources(options.dataset_camera(), options,
                                             memory=need - 1)
     assert RenderOptions(seed=2**32 - 1).seed == 2**32 - 1

@@ -138,23 +138,23 @@ def test_resolution_beyond_the_machine_memory_is_refused_with_the_estimate():
     from sq_mitsuba.inference.fit import (
         RENDER_BYTES_PER_PIXEL,
         VIEW_BYTES_PER_PIXEL,
-        _physical_memory,
         check_fit_memory,
         fit_memory_bytes,
     )
+    from sq_mitsuba.machine import available_memory
 
     assert fit_memory_bytes(2, 100, 50) == 100 * 50 * (RENDER_BYTES_PER_PIXEL
                                                        + 2 * VIEW_BYTES_PER_PIXEL)
     camera = Camera.default(48).rescaled(48, 24)  # 2:1: the fit keeps the aspect
     check_fit_memory(3, camera, 512)  # about 50 MB
-    if _physical_memory() is None:
+    if available_memory() is None:
         pytest.skip("the OS does not report its memory")
     need = 100_000 * 50_000 * (80 + 3 * 48)  # bytes, written out independently
     with pytest.raises(ValueError, match=r"^resolution: 100000 \(100000 x 50000 px, 3 view"
-                                         r"\(s\)\) needs about (\d+(\.\d+)?) TB") as error:
+                                         r"\(s\)\) needs about (\d+(\.\d+)?) TiB") as error:
         check_fit_memory(3, camera, 100_000)
-    shown = float(str(error.value).split("about ")[1].split(" TB")[0])
-    assert shown == pytest.approx(need / 1e12, rel=0.01)
+    shown = float(str(error.value).split("about ")[1].split(" TiB")[0])
+    assert shown == pytest.approx(need / 2**40, rel=0.01)
     # fit_assembly refuses before rendering anything.
     masks = torch.ones(3, 24, 48, dtype=torch.bool)
     with pytest.raises(ValueError, match="needs about"):

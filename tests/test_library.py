@@ -21,12 +21,12 @@ from sq_mitsuba.data.library import (
     ImportOptions,
     generate_library,
     import_names,
-    machine_memory_bytes,
 )
 from sq_mitsuba.data.mesh_io import read_obj, read_tagged_obj
 from sq_mitsuba.data.mesh_processing import fusion_memory_bytes, max_fusion_resolution
 from sq_mitsuba.data.spacecraft import catalogue
 from sq_mitsuba.data.spe3r.layout import load_model, read_splits
+from sq_mitsuba.machine import available_memory
 from sq_mitsuba.render.materials import MATERIALS, MTL_COLOUR
 
 SEED = 5
@@ -265,7 +265,7 @@ def test_numeric_options_are_range_checked_before_any_work(tmp_path, capsys, mon
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and f"error: {flag}:" in err, err
     if flag == "--resolution" and argv[2] == "100000":
-        assert "GiB for depth fusion" in err
+        assert "(depth fusion) needs about" in err and "GiB of memory" in err
     assert not out.exists()
 
 
@@ -273,9 +273,10 @@ def test_resolution_bound_is_the_memory_estimate() -> None:
     for memory in (4 * 2**30, 16 * 2**30, 64 * 2**30):
         r = max_fusion_resolution(memory)
         assert fusion_memory_bytes(r) <= memory < fusion_memory_bytes(r + 1)
-    limit = max_fusion_resolution(machine_memory_bytes())
+    limit = max_fusion_resolution(available_memory())
     assert ImportOptions(resolution=min(limit, 128)).resolution == min(limit, 128)
-    with pytest.raises(ValueError, match=rf"resolution: {limit + 1} needs about .* GiB"):
+    with pytest.raises(ValueError,
+                       match=rf"resolution: {limit + 1} \(depth fusion\) needs about .* GiB"):
         ImportOptions(resolution=limit + 1)
 
 

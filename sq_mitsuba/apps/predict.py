@@ -83,6 +83,7 @@ from sq_mitsuba.inference.images import DEFAULT_MIN_TARGET
 from sq_mitsuba.inference.predictor import DEFAULT_MIN_EXISTENCE
 from sq_mitsuba.inference.refine import RefineOptions
 from sq_mitsuba.inference.search import SEARCH_REFINEMENT, SearchOptions
+from sq_mitsuba.machine import too_much_memory
 
 if TYPE_CHECKING:
     from sq_mitsuba.geometry.camera import Camera
@@ -221,7 +222,7 @@ def _check_inputs(paths: list[Path], camera: Any, masks: list[Path] | None,
     shows a target, known after the network's pass), and a warning per image."""
     from sq_mitsuba.data.masks import read_gray_image, read_mask
     from sq_mitsuba.data.segmentation import segment_target
-    from sq_mitsuba.data.spe3r.writer import available_memory
+    from sq_mitsuba.machine import available_memory
 
     memory = available_memory()
     if not paths:
@@ -282,10 +283,9 @@ def check_image_memory(path: Path, camera: Any, memory: int | None) -> None:
     padding = padding_to_aspect(width, height, camera)
     pixels = width * height if padding is None else padding.padded_width * padding.padded_height
     if pixels * PREDICT_BYTES_PER_PIXEL > memory:
-        raise ValueError(f"image {path}: {width} x {height} px needs about "
-                         f"{pixels * PREDICT_BYTES_PER_PIXEL / 2**30:.1f} GiB of memory "
-                         f"({PREDICT_BYTES_PER_PIXEL} bytes a pixel), more than the "
-                         f"{memory / 2**30:.1f} GiB of this machine; scale it down")
+        raise ValueError(too_much_memory(
+            f"image {path}: {width} x {height} px ({PREDICT_BYTES_PER_PIXEL} bytes a pixel)",
+            pixels * PREDICT_BYTES_PER_PIXEL, memory, "scale it down"))
 
 
 @dataclass

@@ -114,7 +114,6 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
         overlay_silhouettes,
     )
     from sq_mitsuba.data.masks import read_gray_image, read_mask
-    from sq_mitsuba.data.spe3r.writer import available_memory
     from sq_mitsuba.geometry.assembly import Assembly
     from sq_mitsuba.inference.loading import with_fast_path
     from sq_mitsuba.io import (
@@ -122,6 +121,7 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
         atomic_write_json,
         check_output_folder,
     )
+    from sq_mitsuba.machine import available_memory
     from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer
 
     paths = [Path(p) for p in images]

@@ -37,7 +37,6 @@ output folder or was given to an earlier file of the same batch; nothing is over
 
 from __future__ import annotations
 
-import os
 import re
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
@@ -70,6 +69,7 @@ from sq_mitsuba.data.spacecraft.generator import (
     catalogue,
 )
 from sq_mitsuba.io import atomic_write_json, check_output_folder, read_json
+from sq_mitsuba.machine import available_memory, too_much_memory
 from sq_mitsuba.outputs import output_lock
 
 SPLITS_FILE = "splits.csv"
@@ -106,32 +106,21 @@ class GenerateOptions:
     files are written by the main process, in catalogue order, as each model is done)."""
 
 
-def machine_memory_bytes() -> int:
-    """Memory this process may use: physical memory, or a lower cgroup (container) limit."""
-    total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-    try:
-        limit = Path("/sys/fs/cgroup/memory.max").read_text().strip()
-    except OSError:
-        return total
-    return min(total, int(limit)) if limit.isdigit() else total
-
-
 def check_fusion_resolution(resolution: int) -> None:
     """``ValueError`` naming ``resolution`` when depth fusion at it would not fit in memory.
 
     The bound is :func:`~sq_mitsuba.data.mesh_processing.fusion_memory_bytes` against
-    :func:`machine_memory_bytes`, so an absurd value fails at once instead of being killed
-    for memory after minutes.
+    :func:`~sq_mitsuba.machine.available_memory`, so an absurd value fails at once instead of
+    being killed for memory after minutes.
     """
     if resolution < MIN_FUSION_RESOLUTION:
         raise ValueError(f"resolution: expected >= {MIN_FUSION_RESOLUTION}, got {resolution}")
-    memory = machine_memory_bytes()
+    memory = available_memory()
     need = fusion_memory_bytes(resolution)
-    if need > memory:
-        raise ValueError(
-            f"resolution: {resolution} needs about {need / 2**30:.3g} GiB for depth fusion, "
-            f"more than this machine's {memory / 2**30:.3g} GiB; expected a value in "
-            f"[{MIN_FUSION_RESOLUTION}, {max_fusion_resolution(memory)}]")
+    if memory is not None and need > memory:
+        raise ValueError(too_much_memory(
+            f"resolution: {resolution} (depth fusion)", need, memory,
+            f"expected a value in [{MIN_FUSION_RESOLUTION}, {max_fusion_resolution(memory)}]"))
 
 
 @dataclass(frozen=True)

@@ -9,7 +9,6 @@ a :class:`FitOptions` (the ``sq-mitsuba fit`` options and their defaults come fr
 from __future__ import annotations
 
 import dataclasses
-import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal
@@ -22,6 +21,7 @@ from sq_mitsuba.checks import check_tensor
 from sq_mitsuba.config import bounds, in_range, positive, validate
 from sq_mitsuba.geometry.assembly import NUM_PARAMS, Assembly
 from sq_mitsuba.geometry.camera import Camera
+from sq_mitsuba.machine import available_memory, too_much_memory
 from sq_mitsuba.model.losses import silhouette_loss
 from sq_mitsuba.render.silhouette.renderer import (
     DEFAULT_SPP,
@@ -72,32 +72,16 @@ def fit_memory_bytes(views: int, width: int, height: int) -> int:
     return width * height * (RENDER_BYTES_PER_PIXEL + views * VIEW_BYTES_PER_PIXEL)
 
 
-def _physical_memory() -> int | None:
-    """Bytes of RAM of this machine, or None where the OS does not say."""
-    try:
-        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-    except (AttributeError, ValueError, OSError):
-        return None
-
-
-def _bytes_text(count: float) -> str:
-    for unit in ("B", "KB", "MB", "GB", "TB"):
-        if count < 1000 or unit == "TB":
-            return f"{count:.3g} {unit}" if unit != "B" else f"{count:.0f} B"
-        count /= 1000
-    raise AssertionError("unreachable")
-
-
 def check_fit_memory(views: int, camera: Camera, resolution: int) -> None:
     """``ValueError`` (with the estimate) when fitting at ``resolution`` needs more memory
     than this machine has (see :func:`fit_memory_bytes`)."""
     height = max(1, round(camera.height * resolution / camera.width))
     need = fit_memory_bytes(views, resolution, height)
-    have = _physical_memory()
-    if have is not None and need > have:
-        raise ValueError(f"resolution: {resolution} ({resolution} x {height} px, {views} "
-                         f"view(s)) needs about {_bytes_text(need)} of memory, more than this "
-                         f"machine's {_bytes_text(have)}")
+    memory = available_memory()
+    if memory is not None and need > memory:
+        raise ValueError(too_much_memory(
+            f"resolution: {resolution} ({resolution} x {height} px, {views} view(s))", need,
+            memory, "lower the fit's resolution"))
 
 
 @dataclass

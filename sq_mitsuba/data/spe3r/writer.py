@@ -74,6 +74,7 @@ from sq_mitsuba.data.spe3r.layout import (
 )
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.io import atomic_path, atomic_write_json, atomic_write_text, read_json
+from sq_mitsuba.machine import available_memory, memory_text, too_much_memory
 from sq_mitsuba.render.scene_config import SceneConfig
 
 SEED_LIMIT = 2**32
@@ -213,35 +214,6 @@ def estimate_render_memory(width: int, height: int, exr: bool = False) -> int:
     return BASE_MEMORY_BYTES + per_pixel * width * height
 
 
-def available_memory() -> int | None:
-    """Bytes of memory this process may use: physical memory, or the cgroup limit (a SLURM
-    job's allocation) where lower; None where unknown."""
-    limits = []
-    try:
-        limits.append(os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
-    except (ValueError, OSError, AttributeError):
-        pass
-    candidates = ["/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory/memory.limit_in_bytes"]
-    try:  # this process's own group (e.g. a SLURM job's): "0::/path" (v2), "N:memory:/path"
-        for line in Path("/proc/self/cgroup").read_text().splitlines():
-            _, controllers, group = line.split(":", 2)
-            group = group.rstrip("/")
-            if controllers == "":
-                candidates.append(f"/sys/fs/cgroup{group}/memory.max")
-            elif "memory" in controllers.split(","):
-                candidates.append(f"/sys/fs/cgroup/memory{group}/memory.limit_in_bytes")
-    except (OSError, ValueError):
-        pass
-    for path in candidates:
-        try:
-            text = Path(path).read_text().strip()
-        except OSError:
-            continue
-        if text.isdigit():
-            limits.append(int(text))
-    return min(limits) if limits else None
-
-
 def check_render_resources(camera: Camera, options: RenderOptions,
                            memory: int | None = None) -> None:
     """Refuse a render this machine cannot do, before any work: more samples per image than
@@ -253,13 +225,11 @@ def check_render_resources(camera: Camera, options: RenderOptions,
     memory = available_memory() if memory is None else memory
     need = estimate_render_memory(width, height, options.exr)
     if memory is not None and need * options.workers > memory:
-        raise DatasetError(
-            f"resolution: {width} x {height} px needs about {need / 2**30:.1f} GiB of memory "
-            f"per rendering process (estimate: {BASE_MEMORY_BYTES / 2**30:.2f} GiB + "
-            f"{BYTES_PER_PIXEL + (EXR_BYTES_PER_PIXEL if options.exr else 0)} bytes per "
-            f"pixel), {need * options.workers / 2**30:.1f} GiB for {options.workers} "
-            f"worker(s), more than the {memory / 2**30:.1f} GiB of this machine; lower "
-            f"--resolution or --workers")
+        raise DatasetError(too_much_memory(
+            f"resolution: {width} x {height} px ({options.workers} rendering process(es), "
+            f"each {memory_text(BASE_MEMORY_BYTES)} + "
+            f"{BYTES_PER_PIXEL + (EXR_BYTES_PER_PIXEL if options.exr else 0)} bytes a pixel)",
+            need * options.workers, memory, "lower --resolution or --workers"))
     mask_spp = mask_samples(options.scene.mask.spp, camera)
     samples = width * height * max(options.spp, mask_spp)
     if samples > MAX_SAMPLES_PER_RENDER:

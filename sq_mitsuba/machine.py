@@ -1,0 +1,83 @@
+"""What this machine lets a process use, for the checks that refuse work it cannot do.
+
+Every command that could ask for more memory than there is (a dataset render at a large
+resolution, depth fusion, a fit, a large image to predict) estimates its need first and
+compares it with :func:`available_memory`, so an absurd size fails at once with one line
+instead of being killed for memory after minutes.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+#: Where Linux says which control groups this process is in, and where their limits are.
+CGROUP_FILE = Path("/proc/self/cgroup")
+CGROUP_ROOT = Path("/sys/fs/cgroup")
+
+
+def _physical_memory() -> int | None:
+    try:
+        return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def _cgroup_limit_files(cgroup_file: Path, root: Path) -> list[Path]:
+    """The memory-limit files that may bound this process: the root group's (a container's)
+    and its own group's (a SLURM job's), for cgroup v2 (``0::/path``) and v1
+    (``N:memory:/path``)."""
+    files = [root / "memory.max", root / "memory" / "memory.limit_in_bytes"]
+    try:
+        lines = cgroup_file.read_text().splitlines()
+    except OSError:
+        return files
+    for line in lines:
+        parts = line.split(":", 2)
+        if len(parts) != 3:
+            continue
+        _, controllers, group = parts
+        group = group.strip().strip("/")
+        if controllers == "":
+            files.append(root / group / "memory.max")
+        elif "memory" in controllers.split(","):
+            files.append(root / "memory" / group / "memory.limit_in_bytes")
+    return files
+
+
+def available_memory(cgroup_file: Path = CGROUP_FILE, root: Path = CGROUP_ROOT) -> int | None:
+    """Bytes of memory this process may use: the machine's physical memory, or a control
+    group's limit (a container's, a SLURM job's) where lower; None where neither is known.
+
+    Args:
+        cgroup_file: the process's list of control groups (``/proc/self/cgroup``).
+        root: where the control groups' files are mounted (``/sys/fs/cgroup``).
+    """
+    limits = [] if (physical := _physical_memory()) is None else [physical]
+    for path in _cgroup_limit_files(cgroup_file, root):
+        try:
+            text = path.read_text().strip()
+        except OSError:
+            continue
+        if text.isdigit():  # "max" (v2) means no limit
+            limits.append(int(text))
+    return min(limits) if limits else None
+
+
+def memory_text(count: float) -> str:
+    """Bytes as people read them, in binary units: ``"512 B"``, ``"1.5 GiB"``, ``"3.2 TiB"``.
+
+    Convention: three significant digits, the largest unit that keeps the number >= 1.
+    """
+    for unit in ("B", "KiB", "MiB", "GiB", "TiB"):
+        if abs(count) < 1024 or unit == "TiB":
+            return f"{count:.0f} B" if unit == "B" else f"{count:.3g} {unit}"
+        count /= 1024
+    raise AssertionError("unreachable")
+
+
+def too_much_memory(what: str, need: int, memory: int, advice: str) -> str:
+    """The one-line refusal every memory check gives: ``"{what} needs about N of memory,
+    more than the M this process may use; {advice}"``."""
+    return (f"{what} needs about {memory_text(need)} of memory, more than the "
+            f"{memory_text(memory)} this process may use; {advice}")

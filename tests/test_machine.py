@@ -1,0 +1,71 @@
+"""The memory a process may use, read from a control-group tree written here (the real
+files' layouts: cgroup v2 ``0::/path`` and v1 ``N:memory:/path``)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from sq_mitsuba.machine import available_memory, memory_text, too_much_memory
+
+GIB = 2**30
+
+
+def _physical() -> int:
+    import os
+
+    return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+
+
+def _tree(tmp_path: Path, groups: str, files: dict[str, str]) -> tuple[Path, Path]:
+    cgroup_file = tmp_path / "cgroup"
+    cgroup_file.write_text(groups)
+    root = tmp_path / "fs"
+    for name, text in files.items():
+        (root / name).parent.mkdir(parents=True, exist_ok=True)
+        (root / name).write_text(text + "\n")
+    return cgroup_file, root
+
+
+def test_no_limit_is_the_physical_memory(tmp_path):
+    cgroup_file, root = _tree(tmp_path, "0::/\n", {"memory.max": "max"})
+    assert available_memory(cgroup_file, root) == _physical()
+    assert available_memory(tmp_path / "absent", tmp_path / "absent") == _physical()
+
+
+@pytest.mark.parametrize("groups, files, limit", [
+    # A container: the root group's limit (cgroup v2).
+    ("0::/\n", {"memory.max": str(GIB)}, GIB),
+    # A SLURM job: its own group lower than the root's; a "max" between them is no limit.
+    ("0::/slurm/uid_0/job_7/\n", {"memory.max": "max", "slurm/uid_0/job_7/memory.max":
+                                  str(3 * GIB)}, 3 * GIB),
+    # cgroup v1: the memory controller's line, other controllers ignored.
+    ("12:cpu,cpuacct:/job\n4:memory:/job\n", {"memory/job/memory.limit_in_bytes":
+                                                str(2 * GIB)}, 2 * GIB),
+    # The lower of two limits wins, whichever level holds it.
+    ("0::/a\n", {"memory.max": str(GIB), "a/memory.max": str(5 * GIB)}, GIB),
+])
+def test_the_lowest_limit_wins(tmp_path, groups, files, limit):
+    cgroup_file, root = _tree(tmp_path, groups, files)
+    assert available_memory(cgroup_file, root) == min(limit, _physical())
+
+
+def test_an_unreadable_or_odd_cgroup_list_is_no_limit(tmp_path):
+    cgroup_file, root = _tree(tmp_path, "garbage without colons\n\n", {"memory.max": "max"})
+    assert available_memory(cgroup_file, root) == _physical()
+
+
+@pytest.mark.parametrize("count, text", [
+    (0, "0 B"), (1023, "1023 B"), (1024, "1 KiB"), (1536, "1.5 KiB"), (256 * 1024, "256 KiB"),
+    (3 * GIB // 2, "1.5 GiB"), (537 * GIB, "537 GiB"), (5 * 2**40, "5 TiB"),
+    (3000 * 2**40, "3e+03 TiB"),
+])
+def test_memory_text(count, text):
+    assert memory_text(count) == text
+
+
+def test_the_refusal_is_one_line_naming_need_memory_and_advice():
+    line = too_much_memory("image a.png: 10 x 10 px", 3 * GIB, GIB, "scale it down")
+    assert line == ("image a.png: 10 x 10 px needs about 3 GiB of memory, more than the 1 GiB "
+                    "this process may use; scale it down")
