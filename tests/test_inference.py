@@ -406,3 +406,12 @@ def test_the_turned_copies_mask_is_their_mean_computed_copy_by_copy():
     probability = back.sigmoid().reshape(copies, batch, height, width).double()
     expected = (mask + (cover * probability).sum(0)) / (1 + cover.sum(0))
     torch.testing.assert_close(turned_back_mask(mask, logits, angles, height, width), expected)
+    for args, name in (((mask[0], logits, angles), "mask"),
+                       ((mask[None], logits, angles), "mask"),
+                       ((mask, logits[1:], angles), "turned_logits"),
+                       ((mask, logits[:, 0], angles), "turned_logits"),
+                       ((mask, logits, angles[None]), "angles")):
+        with pytest.raises(ValueError, match=f"^{name}: expected shape"):
+            turned_back_mask(*args, height, width)
+    with pytest.raises(ValueError, match=r"^mask: expected shape \(\.\.\., \*, 40, 50\)"):
+        turned_back_mask(mask, logits, angles, height, 50)

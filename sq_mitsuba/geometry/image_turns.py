@@ -17,6 +17,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from sq_mitsuba.checks import check_tensor
 from sq_mitsuba.geometry.camera import Camera
 
 __all__ = ["check_rotation_exact", "rotate_batch", "turned_back_mask", "z_rotation"]
@@ -78,8 +79,18 @@ def turned_back_mask(mask: Tensor, turned_logits: Tensor, angles: Tensor, height
 
     The copies are scaled up one at a time: all at once held 2 (T - 1) images' worth of floats
     (2 GB for a 4,000 px image and 8 copies).
+
+    Raises:
+        ValueError: naming the argument whose shape does not match the others'.
     """
+    check_tensor("mask", mask, (None, height, width), min_dims=3)
+    if mask.dim() != 3:
+        raise ValueError(f"mask: expected shape (B, {height}, {width}), got {tuple(mask.shape)}")
+    if check_tensor("angles", angles).dim() != 1:
+        raise ValueError(f"angles: expected shape (T - 1,), got {tuple(angles.shape)}")
     batch = mask.shape[0]
+    check_tensor("turned_logits", turned_logits, (len(angles) * batch, 1, None, None),
+                 min_dims=4, finite=False)
     undo = -angles.to(turned_logits).repeat_interleave(batch).float()
     logits = rotate_batch(turned_logits.float(), undo)
     covered = rotate_batch(torch.ones_like(logits), undo)
