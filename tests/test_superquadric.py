@@ -329,3 +329,38 @@ def test_surface_and_taper_functions_reject_bad_input():
         taper(torch.zeros(1, 4, 3), torch.zeros(1, 3), size)
     with pytest.raises(ValueError, match="taper"):
         untaper(torch.zeros(1, 4, 3), torch.ones(1, 2), size)
+
+
+def test_the_taper_narrows_towards_plus_z_as_the_paper_writes():
+    """Paper Eq. 3 by hand: x' = (1 - k1 z / a3) x, y' = (1 - k2 z / a3) y, so a positive k
+    narrows the primitive towards +z. The round trips above hold for either sign; these pin it,
+    for the functions and for the assembly's fused inside-outside."""
+    from sq_mitsuba.geometry.assembly import Assembly
+
+    points = torch.tensor([[0.5, 0.2, 1.0], [0.5, 0.2, -1.0]], dtype=F64)
+    tapered = taper(points, torch.tensor([0.5, 0.25], dtype=F64), torch.tensor([1.0, 1.0, 2.0],
+                                                                                dtype=F64))
+    # z / a3 = +-0.5: factors 0.75 and 0.875 at +z, 1.25 and 1.125 at -z.
+    expected = torch.tensor([[0.375, 0.175, 1.0], [0.625, 0.225, -1.0]], dtype=F64)
+    torch.testing.assert_close(tapered, expected, rtol=0, atol=1e-12)
+
+    k, a3, z = 0.5, 2.0, 1.0
+    assembly = Assembly.from_values(torch.tensor([[[1.0, 1.0, a3]]], dtype=F64),
+                                    torch.tensor([[[0.4, 0.6]]], dtype=F64),
+                                    taper=torch.tensor([[[k, 0.0]]], dtype=F64))
+
+    def crossing(height: float, axis: int) -> float:
+        """Where the surface crosses the line through (0, 0, height) along ``axis``."""
+        low, high = 0.0, 3.0
+        for _ in range(60):
+            middle = 0.5 * (low + high)
+            point = torch.zeros(1, 1, 3, dtype=F64)
+            point[0, 0, axis], point[0, 0, 2] = middle, height
+            inside = float(assembly.inside_outside(point)[0, 0, 0]) < 1.0
+            low, high = (middle, high) if inside else (low, middle)
+        return low
+
+    # The untapered section is the same at +-z, so the width ratio is the factors' ratio.
+    ratio = crossing(z, 0) / crossing(-z, 0)
+    assert ratio == pytest.approx((1 - k * z / a3) / (1 + k * z / a3), rel=1e-6)
+    assert crossing(z, 1) == pytest.approx(crossing(-z, 1), rel=1e-6)  # k2 = 0: y untouched
