@@ -152,6 +152,13 @@ def test_lr_schedule_is_cosine_per_step():
     assert cosine_lr_factor(5, 11) == pytest.approx(0.5)
     assert cosine_lr_factor(0, 11, warmup_steps=2) == 0.5
     assert cosine_lr_factor(10, 11, min_ratio=0.1) == pytest.approx(0.1)
+    # Off the points a line would share with the cosine: step 2 of 11 is a fifth of the way,
+    # 0.5 (1 + cos(pi / 5)) = (5 + sqrt 5) / 8 by hand; after a 2-step warm-up, step 4 of 11
+    # is a quarter of the way down to 0.1: 0.1 + 0.9 (2 + sqrt 2) / 4.
+    assert cosine_lr_factor(2, 11) == pytest.approx((5 + 5**0.5) / 8, abs=1e-12)
+    assert cosine_lr_factor(4, 11, warmup_steps=2, min_ratio=0.1) == pytest.approx(
+        0.1 + 0.9 * (2 + 2**0.5) / 4, abs=1e-12)
+    assert cosine_lr_factor(1, 11, warmup_steps=4) == 0.5  # the warm-up: (1 + 1) / 4
 
 
 # ------------------------------------------------------------------------ resume
