@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -131,6 +132,18 @@ def test_camera_frame_chamfer_sees_pose_errors_and_is_blind_to_symmetries():
     shifted = camera_frame_chamfer(box, rotation, moved, box, rotation, translation)
     # Every point moves by 0.2 m: occnet Chamfer 0.2 at most, divided by the 2 m distance.
     assert 0.0 < float(shifted) <= 0.1 + 1e-12
+    # Against numpy by brute force: two clouds and two poses, placed and scored by hand.
+    generator = np.random.default_rng(5)
+    pred_points, gt_points = generator.normal(size=(1, 40, 3)), generator.normal(size=(1, 30, 3))
+    poses = random_rotations(2, torch.Generator().manual_seed(4), torch.float64).numpy()
+    t_pred, t_gt = np.array([[0.3, -0.2, 3.1]]), np.array([[0.1, 0.4, 2.7]])
+    placed_pred = pred_points[0] @ poses[0].T + t_pred[0]
+    placed_gt = gt_points[0] @ poses[1].T + t_gt[0]
+    distances = np.linalg.norm(placed_pred[:, None] - placed_gt[None], axis=-1)
+    expected = 0.5 * (distances.min(1).mean() + distances.min(0).mean()) / np.linalg.norm(t_gt)
+    got = camera_frame_chamfer(*map(torch.from_numpy, (pred_points, poses[:1], t_pred,
+                                                        gt_points, poses[1:], t_gt)))
+    assert float(got) == pytest.approx(expected, rel=1e-12)
 
 
 def test_volumetric_iou_and_translation_error_by_hand(device):
