@@ -119,6 +119,17 @@ def test_photometric_kinds_keep_labels_and_act():
     out = augment_batch(images, masks, rotations, translations, blur_only, _rngs(6))[0]
     assert abs(float(out.mean() - images.mean())) < 1e-3  # blur keeps the mean
     assert float(out.std()) < 0.6 * float(images.std())  # and removes pixel noise
+    # On an impulse away from the borders the blur is the 2D Gaussian written out densely,
+    # normalised over its window (radius 3 sigma): both axes, the right width.
+    impulse = torch.zeros(1, 1, SIZE, SIZE, dtype=torch.float64)
+    impulse[0, 0, SIZE // 2, SIZE // 2] = 1.0
+    out = augment_batch(impulse, impulse.clone(), rotations[:1], translations[:1], blur_only,
+                        _rngs(1))[0][0, 0]
+    offsets = torch.arange(-3, 4, dtype=torch.float64)
+    dense = torch.exp(-0.5 * (offsets[:, None] ** 2 + offsets[None] ** 2))  # sigma 1
+    expected = torch.zeros(SIZE, SIZE, dtype=torch.float64)
+    expected[SIZE // 2 - 3:SIZE // 2 + 4, SIZE // 2 - 3:SIZE // 2 + 4] = dense / dense.sum()
+    torch.testing.assert_close(out, expected, rtol=0, atol=1e-6)
 
 
 def test_per_item_determinism_and_probability():
