@@ -26,6 +26,7 @@ from sq_mitsuba.geometry.rotation import (
 from sq_mitsuba.geometry.superquadric import inside_outside_dual
 from sq_mitsuba.model.losses import (
     chamfer_loss,
+    mask_loss,
     occupancy_loss,
     pose_loss,
     reprojection_loss,
@@ -471,6 +472,20 @@ def test_taper_loss_is_the_mean_squared_taper():
     assembly = Assembly.from_values(torch.full((1, 2, 3), 0.2, dtype=torch.float64),
                                     torch.ones(1, 2, 2, dtype=torch.float64), taper=taper)
     assert float(taper_loss(assembly)) == pytest.approx((0.25 + 0.01 + 0 + 0.09) / 4)
+
+
+def test_mask_loss_is_the_cross_entropy_against_the_area_averaged_mask():
+    """By hand: each 2 x 2 block of the full mask averages to one target cell t, and the
+    loss is the mean over cells of -(t log p + (1 - t) log(1 - p)), p = sigmoid(logit)."""
+    mask = torch.tensor([[[[1, 1, 0, 0], [1, 0, 0, 0], [1, 1, 1, 1], [1, 1, 1, 1]]]],
+                        dtype=torch.float64)
+    logits = torch.tensor([[[[2.0, -1.0], [0.5, 3.0]]]], dtype=torch.float64)
+    targets = [0.75, 0.0, 1.0, 1.0]  # the blocks' shares of the mask
+    expected = 0.0
+    for logit, target in zip(logits.flatten().tolist(), targets, strict=True):
+        p = 1 / (1 + math.exp(-logit))
+        expected -= target * math.log(p) + (1 - target) * math.log(1 - p)
+    assert float(mask_loss(logits, mask)) == pytest.approx(expected / 4, rel=1e-12)
 
 
 def test_loss_weights_defaults_and_config():
