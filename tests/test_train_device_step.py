@@ -271,6 +271,39 @@ def test_the_gpu_step_forced_on_the_cpu_equals_the_cpu_step():
         assert torch.equal(p, q)
 
 
+def test_both_step_paths_clip_the_gradient_and_log_its_norm_before():
+    """With ``grad_clip`` the gradient the optimiser applies has that norm, each parameter's
+    the unclipped one scaled alike; the logged norm is the unclipped gradient's."""
+    from sq_mitsuba.bench.train import StepBench
+    from sq_mitsuba.training import step as step_module
+    from sq_mitsuba.training.distributed import World
+
+    config = _config()
+    clip = 1e-3
+
+    def step(path: str, grad_clip: float | None) -> tuple[float, list[torch.Tensor]]:
+        with step_module.mitsuba_for(torch.device("cpu"), True):
+            bench = StepBench(config, batch=4)
+        args = (bench.model, bench.optimizer, bench.data.batch(0), bench.k_matrix,
+                bench.context(0), grad_clip)
+        result = (step_module.training_step(*args) if path == "cpu"
+                  else step_module._device_step(*args, World()))
+        return result.grad_norm, [p.grad.detach().clone() for p in bench.model.parameters()
+                                  if p.grad is not None]
+
+    free_norm, free = step("cpu", None)
+    assert free_norm > 10 * clip  # else this clip would not bite
+    assert free_norm == pytest.approx(float(torch.linalg.vector_norm(
+        torch.stack([g.norm() for g in free]))), rel=1e-5)
+    for path in ("cpu", "device"):
+        norm, clipped = step(path, clip)
+        assert norm == pytest.approx(free_norm, rel=1e-5)  # logged before clipping
+        total = torch.linalg.vector_norm(torch.stack([g.norm() for g in clipped]))
+        assert float(total) == pytest.approx(clip, rel=1e-4)
+        for g, h in zip(clipped, free, strict=True):
+            torch.testing.assert_close(g, h * (clip / free_norm), rtol=1e-4, atol=1e-12)
+
+
 def test_a_non_finite_network_is_refused_by_both_step_paths(monkeypatch):
     """A NaN network: the CPU path stops before the loss terms; the device path runs them
     (with the GPU's dense search, which takes NaN) and refuses the update after."""
