@@ -24,6 +24,7 @@ from sq_mitsuba.evaluation.evaluate import OUTPUT_FILES
 from sq_mitsuba.evaluation.report import PAPER_TABLES
 from sq_mitsuba.evaluation.scoring import METRICS
 from sq_mitsuba.evaluation.tables import COLUMNS
+from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.inference.loading import load_model
 from sq_mitsuba.model import checkpoint as checkpoint_module
 from sq_mitsuba.model.checkpoint import checkpoint_payload, read_checkpoint, write_checkpoint
@@ -94,6 +95,70 @@ def test_per_image_rows_match_the_network_and_the_labels(val_eval, eval_checkpoi
         for metric in ("iou_2d", "iou_3d"):
             assert 0.0 <= float(row[metric]) <= 1.0
         assert float(row["chamfer_l1_paper"]) > float(row["chamfer_l1_occnet"]) > 0
+
+
+def test_network_rows_shape_and_pose_metrics_by_brute_force(val_eval, eval_checkpoint,
+                                                            train_dataset):
+    """The network rows' shape, outline and SPEED columns, each recomputed here from the
+    network's own prediction with numpy: brute-force nearest neighbours over the points that
+    count (the assembly's samples not inside another primitive), the silhouette rendered at
+    the predicted pose against the label's mask, the model's labelled volume points, and the
+    SPEED score from the quaternion angle."""
+    from sq_mitsuba.evaluation.scoring import volume_points
+    from sq_mitsuba.evaluation.split import open_split
+    from sq_mitsuba.model.losses import counted_surface_samples
+    from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer, render_assembly
+
+    rows = read_rows(val_eval / "per_image.csv")
+    network = {(r["model"], int(r["index"])): r for r in rows if r["method"] == "network"}
+    dataset = open_split(train_dataset, "val", 64, 500)  # SMALL's surface_points
+    camera = dataset.camera.rescaled(64, 64)
+    items = [dataset[i] for i in range(len(dataset))]
+    prediction = load_model(eval_checkpoint).predict(
+        torch.stack([item["image"] for item in items]), camera)
+    assembly = Assembly(prediction.assembly.params.detach().double())
+    points, keep = counted_surface_samples(assembly)
+    with torch.no_grad():
+        silhouettes = render_assembly(assembly,
+                                      prediction.rotation.double(),
+                                      prediction.translation.double(),
+                                      SilhouetteRenderer(camera, spp=32), 3).numpy()
+    for k, item in enumerate(items):
+        row = network[(item["model"], item["index"])]
+        body = points[k][keep[k]].numpy()
+        truth = item["surface_points"].double().numpy()
+        rotation, translation = (prediction.rotation[k].double().numpy(),
+                                 prediction.translation[k].double().numpy())
+        true_rotation, true_translation = (item["rotation"].double().numpy(),
+                                           item["translation"].double().numpy())
+
+        def nearest(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            distances = np.linalg.norm(a[:, None] - b[None], axis=-1)
+            return distances.min(1), distances.min(0)
+
+        forward, backward = nearest(body, truth)
+        assert float(row["chamfer_l2"]) == pytest.approx(
+            (forward**2).mean() + (backward**2).mean(), rel=1e-6)
+        forward, backward = nearest(body @ rotation.T + translation,
+                                    truth @ true_rotation.T + true_translation)
+        assert float(row["camera_chamfer"]) == pytest.approx(
+            0.5 * (forward.mean() + backward.mean()) / np.linalg.norm(true_translation),
+            rel=2e-3)
+        relative = np.linalg.norm(translation - true_translation) / np.linalg.norm(
+            true_translation)
+        assert float(row["translation_error_rel"]) == pytest.approx(relative, rel=1e-3)
+        angle = Rotation.from_matrix(rotation.T @ true_rotation).magnitude()  # radians
+        assert float(row["speed_score"]) == pytest.approx(angle + relative, abs=2e-3)
+        mask = item["mask"][0].numpy() > 0.5
+        drawn = silhouettes[k] > 0.5
+        assert float(row["iou_2d"]) == pytest.approx(
+            (drawn & mask).sum() / max((drawn | mask).sum(), 1), abs=0.02)
+        cloud, inside = volume_points(train_dataset / item["model"], 3000)  # SMALL's count
+        with torch.no_grad():
+            held = assembly[k:k + 1].union_occupancy(cloud[None])[0]
+        held, inside = held.numpy() > 0.5, inside.numpy()
+        assert float(row["iou_3d"]) == pytest.approx(
+            (held & inside).sum() / max((held | inside).sum(), 1), abs=0.01)
 
 
 def test_mesh_ranking_ranks_each_network_prediction_among_the_splits_models(val_eval):
