@@ -161,6 +161,70 @@ def test_lr_schedule_is_cosine_per_step():
     assert cosine_lr_factor(1, 11, warmup_steps=4) == 0.5  # the warm-up: (1 + 1) / 4
 
 
+def test_validation_metrics_by_hand(train_dataset, tmp_path):
+    """validate()'s four means recomputed here for a random network with a mask head on the
+    cached val images: the Chamfer in the paper's convention by brute force over the points
+    that count, the silhouette's and the mask head's IoU with numpy, the rotation error from
+    scipy's angle."""
+    from scipy.spatial.transform import Rotation
+
+    from sq_mitsuba.data.spe3r import Spe3rDataset
+    from sq_mitsuba.geometry.assembly import Assembly
+    from sq_mitsuba.model.losses import counted_surface_samples
+    from sq_mitsuba.model.network import SuperquadricNet
+    from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer, render_assembly
+    from sq_mitsuba.training.cache import dataset_fingerprint, open_image_cache, open_point_cache
+    from sq_mitsuba.training.random_streams import seed_of
+    from sq_mitsuba.training.validation import validate
+
+    config = apply_overrides(load_train_config(TINY), ["network.mask_head=true"])
+    size = config.network.image_size
+    fingerprint = dataset_fingerprint(train_dataset)
+    train_set = Spe3rDataset(train_dataset, "train", image_size=size, num_surface=1,
+                             num_occupancy=2)
+    val_set = Spe3rDataset(train_dataset, "val", image_size=size, num_surface=1,
+                           num_occupancy=2)
+    points = open_point_cache(train_set, tmp_path, fingerprint)
+    cache = open_image_cache(val_set, "val", tmp_path, fingerprint)
+    camera = val_set.camera.rescaled(size, size)
+    torch.manual_seed(3)
+    model = SuperquadricNet(config.network).eval()
+    spp, level = config.validation.spp, config.validation.level
+    got = validate(model, cache, points, config, camera, SilhouetteRenderer(camera, spp=spp),
+                   torch.device("cpu"))
+
+    batch = cache.batch(np.arange(len(cache)))
+    with torch.no_grad():
+        output = model(batch["image"], camera.matrix())
+        assembly = Assembly(output.assembly.params.double())
+        surface, keep = counted_surface_samples(assembly, level)
+        silhouettes = render_assembly(assembly, output.rotation.double(),
+                                      output.translation.double(),
+                                      SilhouetteRenderer(camera, spp=spp), level).numpy()
+        heads = torch.nn.functional.interpolate(output.mask_logits, size=(size, size),
+                                                mode="bilinear", align_corners=False)
+    chamfers, outlines, angles, masks = [], [], [], []
+    for row in range(len(cache)):
+        rng = np.random.default_rng(seed_of(config.seed, 7, int(cache.dataset_index[row])))
+        truth = points.sample(int(batch["model_index"][row]), rng, config.data.num_surface,
+                              2)[0].astype(np.float64)
+        cloud = surface[row][keep[row]].numpy()
+        l1 = np.abs(cloud[:, None] - truth[None]).sum(-1)  # the paper's L1 neighbours
+        chamfers.append(l1.min(1).mean() + l1.min(0).mean())
+        mask = batch["mask"][row, 0].numpy() > 0.5
+        for drawn, into in ((silhouettes[row] > 0.5, outlines), (heads[row, 0].numpy() > 0,
+                                                                masks)):
+            into.append((drawn & mask).sum() / max((drawn | mask).sum(), 1))
+        angles.append(np.degrees(Rotation.from_matrix(
+            output.rotation[row].double().numpy().T @ batch["rotation"][row].double().numpy()
+        ).magnitude()))
+    assert got["chamfer_l1"] == pytest.approx(np.mean(chamfers), rel=1e-6)
+    assert got["rotation_error_deg"] == pytest.approx(np.mean(angles), abs=1e-3)
+    assert got["mask_iou"] == pytest.approx(np.mean(masks), abs=1e-6)
+    # The silhouettes' samples differ from validate's (its own seed): a small tolerance.
+    assert got["iou_2d"] == pytest.approx(np.mean(outlines), abs=0.02)
+
+
 # ------------------------------------------------------------------------ resume
 
 
