@@ -1,9 +1,10 @@
 """The folder tree is the architecture: every import points down the layer order.
 
 Order, lowest first: the shared utilities at the top level (``checks``, ``config``, ``inputs``,
-``io``, ``llvm``, ``machine``, ``outputs``, ``version``), then ``geometry``, ``render``, ``data``,
-``model``, then ``training`` and ``inference`` side by side (neither imports the other: a
-trained network needs nothing of the trainer, and the trainer nothing of test time), then
+``io``, ``llvm``, ``machine``, ``outputs``, ``processes``, ``version``), then ``geometry``,
+``render``, ``data``, ``model``, then ``training`` and ``inference`` side by side (neither
+imports the other: a trained network needs nothing of the trainer, and the trainer nothing of
+test time), then
 ``evaluation``, ``apps``, ``bench``, ``cli``. A module may import its own layer and the layers
 below it, never one above or beside. Imports inside functions count too (the project defers
 heavy imports into functions).
@@ -18,7 +19,8 @@ from pathlib import Path
 import sq_mitsuba
 
 PACKAGE = Path(sq_mitsuba.__file__).resolve().parent
-UTILITIES = ("checks", "config", "inputs", "io", "llvm", "machine", "outputs", "version")
+UTILITIES = ("checks", "config", "inputs", "io", "llvm", "machine", "outputs", "processes",
+             "version")
 # One tuple per rank, lowest first; the layers of one rank may not import each other.
 RANKS = (("utilities",), ("geometry",), ("render",), ("data",), ("model",),
          ("training", "inference"), ("evaluation",), ("apps",), ("bench",), ("cli",))

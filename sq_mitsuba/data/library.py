@@ -71,6 +71,7 @@ from sq_mitsuba.data.spacecraft.generator import (
 from sq_mitsuba.io import atomic_write_json, check_output_folder, read_json
 from sq_mitsuba.machine import available_memory, too_much_memory
 from sq_mitsuba.outputs import output_lock
+from sq_mitsuba.processes import worker_pool
 
 SPLITS_FILE = "splits.csv"
 FAILURES_FILE = "failures.json"
@@ -318,12 +319,7 @@ def _generate_outcomes(entries: Sequence[CatalogueEntry], root: Path, points: in
         for entry in entries:
             yield _generate_one(entry, root, points)
         return
-    import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor
-
-    # spawn, not fork: the parent may hold threads (torch, tqdm) that fork would copy mid-state.
-    with ProcessPoolExecutor(min(workers, len(entries)),
-                             mp_context=multiprocessing.get_context("spawn")) as pool:
+    with worker_pool(min(workers, len(entries))) as pool:
         yield from pool.map(_generate_one, entries, [root] * len(entries),
                             [points] * len(entries))
 
@@ -361,18 +357,21 @@ def _generate_locked(root: Path, options: GenerateOptions, progress: bool) -> Li
                          "--out, or remove those folders)")
     summary = LibrarySummary(root)
     outcomes = _generate_outcomes(entries, root, options.points, options.workers)
-    for entry, reason in _progress(zip(entries, outcomes, strict=True), "models", "model", progress,
-                                   total=len(entries)):
-        if reason is not None:
-            if entry.name in splits:
-                reason += " (the earlier model in this folder is kept)"
-            summary.failures[entry.name] = failures[entry.name] = reason
-        else:
-            summary.written.append(entry.name)
-            splits[entry.name] = entry.split
-            failures.pop(entry.name, None)
-            _write_splits(root, splits)
-        _write_failures(root, failures)
+    try:
+        for entry, reason in _progress(zip(entries, outcomes, strict=True), "models", "model",
+                                       progress, total=len(entries)):
+            if reason is not None:
+                if entry.name in splits:
+                    reason += " (the earlier model in this folder is kept)"
+                summary.failures[entry.name] = failures[entry.name] = reason
+            else:
+                summary.written.append(entry.name)
+                splits[entry.name] = entry.split
+                failures.pop(entry.name, None)
+                _write_splits(root, splits)
+            _write_failures(root, failures)
+    finally:  # Ctrl-C here, between two models: the workers end now, not at exit
+        outcomes.close()
     return summary
 
 

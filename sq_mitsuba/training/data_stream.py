@@ -190,11 +190,9 @@ def symmetry_table(root: Path, models: Sequence[str], cache_dir: Path | None = N
         workers = _symmetry_workers(len(models))
     arguments = ([root / model for model in models], [cache_dir] * len(models))
     if workers > 1 and len(models) > 1:
-        import multiprocessing
-        from concurrent.futures import ProcessPoolExecutor
+        from sq_mitsuba.processes import worker_pool
 
-        with ProcessPoolExecutor(workers,
-                                 mp_context=multiprocessing.get_context("spawn")) as pool:
+        with worker_pool(workers) as pool:
             found = list(pool.map(_model_symmetries, *arguments, chunksize=8))
     else:
         found = list(map(_model_symmetries, *arguments))

@@ -802,13 +802,12 @@ def render_dataset(models_dir: str | Path, out_dir: str | Path,
                     outcome = error
                 record(model, outcome)
         else:
-            import multiprocessing
-            from concurrent.futures import ProcessPoolExecutor, as_completed
+            from concurrent.futures import as_completed
+
+            from sq_mitsuba.processes import worker_pool
 
             threads = max(1, (os.cpu_count() or 1) // options.workers)
-            with ProcessPoolExecutor(options.workers,
-                                     mp_context=multiprocessing.get_context("spawn"),
-                                     initializer=_start_worker, initargs=(threads,)) as pool:
+            with worker_pool(options.workers, _start_worker, (threads,)) as pool:
                 jobs = {pool.submit(render_model, models_dir, out_dir, model, camera, options,
                                     indices=indices): model
                         for model, indices in work.items()}
