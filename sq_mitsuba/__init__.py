@@ -2,10 +2,10 @@
 
 Layers, one folder each, lowest first (a module imports only its own layer and those below;
 ``tests/test_layers.py`` enforces it): the shared utilities at the top level (``checks``,
-``config``, ``inputs``, ``io``, ``llvm``, ``machine``, ``outputs``, ``processes``), then
-``geometry``, ``render``, ``data``, ``model`` (the network), ``training`` and ``inference``
-side by side (neither imports the other), ``evaluation`` (the protocol), ``apps`` (predict,
-demo, export, fit), ``bench`` (benchmarks) and ``cli``.
+``config``, ``inputs``, ``io``, ``llvm``, ``machine``, ``outputs``, ``processes``,
+``progress``), then ``geometry``, ``render``, ``data``, ``model`` (the network), ``training``
+and ``inference`` side by side (neither imports the other), ``evaluation`` (the protocol),
+``apps`` (predict, demo, export, fit), ``bench`` (benchmarks) and ``cli``.
 
 Importing this package never imports Mitsuba or Dr.Jit. It only points Dr.Jit at a usable
 libLLVM (if one exists and the user has not chosen one), because Dr.Jit reads

@@ -1,13 +1,12 @@
 """The folder tree is the architecture: every import points down the layer order.
 
 Order, lowest first: the shared utilities at the top level (``checks``, ``config``, ``inputs``,
-``io``, ``llvm``, ``machine``, ``outputs``, ``processes``, ``version``), then ``geometry``,
-``render``, ``data``, ``model``, then ``training`` and ``inference`` side by side (neither
-imports the other: a trained network needs nothing of the trainer, and the trainer nothing of
-test time), then
-``evaluation``, ``apps``, ``bench``, ``cli``. A module may import its own layer and the layers
-below it, never one above or beside. Imports inside functions count too (the project defers
-heavy imports into functions).
+``io``, ``llvm``, ``machine``, ``outputs``, ``processes``, ``progress``, ``version``), then
+``geometry``, ``render``, ``data``, ``model``, then ``training`` and ``inference`` side by side
+(neither imports the other: a trained network needs nothing of the trainer, and the trainer
+nothing of test time), then ``evaluation``, ``apps``, ``bench``, ``cli``. A module may import
+its own layer and the layers below it, never one above or beside. Imports inside functions
+count too (the project defers heavy imports into functions).
 """
 
 from __future__ import annotations
@@ -20,7 +19,7 @@ import sq_mitsuba
 
 PACKAGE = Path(sq_mitsuba.__file__).resolve().parent
 UTILITIES = ("checks", "config", "inputs", "io", "llvm", "machine", "outputs", "processes",
-             "version")
+             "progress", "version")
 # One tuple per rank, lowest first; the layers of one rank may not import each other.
 RANKS = (("utilities",), ("geometry",), ("render",), ("data",), ("model",),
          ("training", "inference"), ("evaluation",), ("apps",), ("bench",), ("cli",))

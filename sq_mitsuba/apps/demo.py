@@ -458,13 +458,12 @@ def _predict_and_score(predictor: Any, data: Path, options: DemoOptions,
             (assembly of batch size 1, rotation (3, 3), translation (3,)), plus the
             refinement's IoUs; rows: the ``per_image.csv`` rows (one per image and method).
     """
-    from tqdm import tqdm
-
     from sq_mitsuba.data.symmetry import model_symmetries
     from sq_mitsuba.evaluation.scoring import score, volume_points
     from sq_mitsuba.evaluation.split import collate, open_split
     from sq_mitsuba.evaluation.tables import label_record
     from sq_mitsuba.inference.search import SEARCH_REFINEMENT
+    from sq_mitsuba.progress import progress_bar
     from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer
 
     dataset = open_split(data, "test", predictor.image_size, options.surface_points)
@@ -480,7 +479,7 @@ def _predict_and_score(predictor: Any, data: Path, options: DemoOptions,
     base_assembly = Assembly.from_raw(baseline[0].double())
     records: list[dict[str, Any]] = []
     rows: list[dict[str, Any]] = []
-    with tqdm(total=len(dataset), unit="img", disable=not progress, dynamic_ncols=True,
+    with progress_bar(total=len(dataset), unit="img", disable=not progress, dynamic_ncols=True,
               desc="predict, refine, score") as bar:
         for start in range(0, len(dataset), options.batch_size):
             chunk = list(range(start, min(start + options.batch_size, len(dataset))))

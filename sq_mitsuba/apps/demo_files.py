@@ -49,14 +49,13 @@ def save_png(path: Path, rgb: np.ndarray) -> None:
 def write_outputs(records: Sequence[dict[str, Any]], data: Path, out: Path,
                    options: Any, progress: bool) -> None:
     """Per image: the pictures (images/) and the assembly and pose files (assemblies/)."""
-    from tqdm import tqdm
-
     from sq_mitsuba.apps.overlay import NETWORK_COLOUR, REFINED_COLOUR, overlay_image
     from sq_mitsuba.data.spe3r import Spe3rDataset
     from sq_mitsuba.data.spe3r.layout import load_model
     from sq_mitsuba.evaluation.figures import assembly_picture, mesh_picture
     from sq_mitsuba.geometry.rotation import matrix_to_quaternion
     from sq_mitsuba.io import atomic_write_json
+    from sq_mitsuba.progress import progress_bar
     from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer, render_assembly
 
     # The pictures are drawn at the rendered resolution, from the stored full-size files.
@@ -66,7 +65,8 @@ def write_outputs(records: Sequence[dict[str, Any]], data: Path, out: Path,
     meshes: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     (out / "images").mkdir(exist_ok=True)
     (out / "assemblies").mkdir(exist_ok=True)
-    for record in tqdm(records, desc="pictures and files", unit="img", disable=not progress):
+    for record in progress_bar(records, desc="pictures and files", unit="img",
+                               disable=not progress):
         stem = stem_of(record)
         image, mask = dataset.read_pair(record["item"])
         picture = image.astype(np.float64) / 255.0

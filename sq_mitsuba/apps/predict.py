@@ -347,10 +347,9 @@ def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
     Returns:
         One :class:`PredictRecord` per image, in order.
     """
-    from tqdm import tqdm
-
     from sq_mitsuba.inference.loading import with_fast_path
     from sq_mitsuba.io import check_output_folder
+    from sq_mitsuba.progress import progress_bar
     from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer
 
     options = options or PredictOptions()
@@ -413,7 +412,7 @@ def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
     # Each image's files, the overlay as PNG bytes: kept until every image is done.
     outputs: list[tuple[PredictRecord, dict[str, Any], Any, bytes | None]] = []
     renderers: dict[Any, Any] = {}
-    for k, path in enumerate(tqdm(paths, desc="predict", unit="img", disable=not progress)):
+    for k, path in enumerate(progress_bar(paths, desc="predict", unit="img", disable=not progress)):
         raw = inputs.raw(k)
         picture = inputs.padded(k, raw)
         image_camera, prediction, record = read(k, picture)

@@ -225,9 +225,9 @@ def _reason(error: Exception) -> str:
 
 
 def _progress(items: Iterable, desc: str, unit: str, show: bool, total: int | None = None):
-    from tqdm import tqdm
+    from sq_mitsuba.progress import progress_bar
 
-    return tqdm(items, desc=desc, unit=unit, disable=not show, total=total)
+    return progress_bar(items, desc=desc, unit=unit, disable=not show, total=total)
 
 
 # --------------------------------------------------------------------------- generate

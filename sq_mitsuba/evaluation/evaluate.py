@@ -232,11 +232,10 @@ def check_outside_data(out_dir: Path, data_root: Path) -> None:
 def _evaluate(predictor: Any, data_root: Path, out_dir: Path, options: EvalOptions,
               progress: bool, label: str | None) -> EvalResult:
     """:func:`evaluate` once the options and the output folder are checked and locked."""
-    from tqdm import tqdm
-
     from sq_mitsuba.data.spe3r import Spe3rDataset
     from sq_mitsuba.geometry.metrics import mask_iou
     from sq_mitsuba.inference.loading import with_fast_path
+    from sq_mitsuba.progress import progress_bar
     from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer
 
     image_size = predictor.image_size
@@ -278,7 +277,7 @@ def _evaluate(predictor: Any, data_root: Path, out_dir: Path, options: EvalOptio
     network_seconds = search_seconds = refine_seconds = warmup_seconds = 0.0
     batches = -(-len(indices) // options.batch_size)
     loop_started = time.perf_counter()
-    with tqdm(total=len(indices), unit="img", disable=not progress, dynamic_ncols=True,
+    with progress_bar(total=len(indices), unit="img", disable=not progress, dynamic_ncols=True,
               desc=f"eval {options.split}") as bar:
         for number, start in enumerate(range(0, len(indices), options.batch_size), start=1):
             chunk = indices[start:start + options.batch_size]

@@ -136,9 +136,8 @@ def write_mesh_ranking(dataset: Any, to_rank: Sequence[tuple[int, int, str, Asse
     Returns:
         :func:`median_rank`'s medians with ``candidates`` and ``images`` (for ``eval.json``).
     """
-    from tqdm import tqdm
-
     from sq_mitsuba.io import atomic_write_text
+    from sq_mitsuba.progress import progress_bar
 
     rng = np.random.default_rng(0)
     clouds = []
@@ -148,7 +147,7 @@ def write_mesh_ranking(dataset: Any, to_rank: Sequence[tuple[int, int, str, Asse
         clouds.append(surface[np.sort(rng.choice(len(surface), count, replace=False))])
     ranking = MeshRanking(clouds)
     ranks, lines = [], []
-    for index, model_index, model, assembly in tqdm(
+    for index, model_index, model, assembly in progress_bar(
             to_rank, unit="img", disable=not progress, dynamic_ncols=True, desc="mesh ranking"):
         rank = ranking.rank(assembly_clouds(assembly, level)[0], model_index)
         ranks.append(rank)

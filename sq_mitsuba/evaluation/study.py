@@ -233,13 +233,12 @@ def illumination_study(checkpoint: str | Path | None, models_dir: str | Path,
         out_dir: output folder (a rerun with the same settings resumes its renders).
         options: :class:`StudyOptions`.
     """
-    from tqdm import tqdm
-
     from sq_mitsuba.data.spe3r import render_dataset
     from sq_mitsuba.evaluation.evaluate import evaluate
     from sq_mitsuba.evaluation.split import check_predictor
     from sq_mitsuba.inference.loading import load_model, with_fast_path
     from sq_mitsuba.io import check_output_folder
+    from sq_mitsuba.progress import progress_bar
 
     options = options or StudyOptions()
     validate(options)
@@ -261,7 +260,8 @@ def illumination_study(checkpoint: str | Path | None, models_dir: str | Path,
     _stage_models(models_dir, names, stage)
     rows: list[dict[str, Any]] = []
     seconds = {"render": 0.0, "evaluate": 0.0}
-    for point in tqdm(points, desc="illumination study", unit="point", disable=not progress):
+    for point in progress_bar(points, desc="illumination study", unit="point",
+                              disable=not progress):
         tick = time.perf_counter()
         summary = render_dataset(stage, out_dir / "renders" / point.name, renders[point.name],
                                  progress=False)

@@ -160,7 +160,7 @@ def fit_assembly(
             ``x_cam = R x_body + t``.
         options: a :class:`FitOptions` (default settings when None).
         init_raw: (1, M, 16) raw start instead of :func:`default_raw`.
-        progress: show a tqdm progress bar.
+        progress: show a progress bar (sq_mitsuba.progress).
         callback: called as ``callback(step, loss, coverage)`` after each step.
         overrides: fields of :class:`FitOptions` replacing those of ``options``
             (``fit_assembly(..., num_primitives=2, steps=50)``).
@@ -221,9 +221,9 @@ def fit_assembly(
     iterator: Sequence[int] | object = range(steps)
     bar = None
     if progress:
-        from tqdm import tqdm
+        from sq_mitsuba.progress import progress_bar
 
-        bar = tqdm(range(steps), desc="fit", unit="step", leave=True)
+        bar = progress_bar(range(steps), desc="fit", unit="step", leave=True)
         iterator = bar
     for step in iterator:  # type: ignore[union-attr]
         optimizer.zero_grad(set_to_none=True)

@@ -272,9 +272,9 @@ def open_image_cache(dataset: Any, split: str, cache_root: str | Path, fingerpri
 
         bar = None
         if progress:
-            from tqdm import tqdm
+            from sq_mitsuba.progress import progress_bar
 
-            bar = tqdm(total=count, unit="img", desc=f"cache {split} {size}px", leave=False)
+            bar = progress_bar(total=count, unit="img", desc=f"cache {split} {size}px", leave=False)
         threads = workers or min(8, os.cpu_count() or 1)
         with ThreadPoolExecutor(max_workers=threads) as pool:
             for position, image, mask, sample in pool.map(work, range(count)):
@@ -408,9 +408,9 @@ def open_point_cache(dataset: Any, cache_root: str | Path, fingerprint: str,
         surface_offsets, point_offsets = [0], [0]
         iterator: Any = range(len(models))
         if progress:
-            from tqdm import tqdm
+            from sq_mitsuba.progress import progress_bar
 
-            iterator = tqdm(iterator, unit="model", desc="cache points", leave=False)
+            iterator = progress_bar(iterator, unit="model", desc="cache points", leave=False)
         with open(tmp / "surface.f32", "wb") as surface_file, \
                 open(tmp / "normals.f32", "wb") as normals_file, \
                 open(tmp / "points.f32", "wb") as points_file, \

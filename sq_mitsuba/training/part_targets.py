@@ -18,12 +18,12 @@ from pathlib import Path
 import numpy as np
 import torch
 from torch import Tensor
-from tqdm import tqdm
 
 from sq_mitsuba.data.spe3r.layout import MODELS, model_points
 from sq_mitsuba.geometry.assembly import NUM_PARAMS
 from sq_mitsuba.io import atomic_write_bytes
 from sq_mitsuba.model.part_targets import fit_to_surface
+from sq_mitsuba.progress import progress_bar
 
 __all__ = ["PART_TARGETS_FILE", "PartTargetError", "fit_part_targets", "load_part_targets",
            "part_targets_path"]
@@ -81,7 +81,7 @@ def fit_part_targets(root: Path, models: Sequence[str], num_primitives: int, ste
             _read(part_targets_path(root, model), num_primitives)
         except PartTargetError:
             todo.append(model)
-    bar = tqdm(total=len(todo), unit="model", desc="part targets", disable=not progress)
+    bar = progress_bar(total=len(todo), unit="model", desc="part targets", disable=not progress)
     for start in range(0, len(todo), batch):
         chunk = todo[start:start + batch]
         clouds = []

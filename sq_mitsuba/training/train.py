@@ -379,9 +379,9 @@ class _Loop:
                                           cfg.data.prefetch_workers)
         bar = None
         if run.progress and world.main:
-            from tqdm import tqdm
+            from sq_mitsuba.progress import progress_bar
 
-            bar = tqdm(total=end_step, initial=start_step, unit="step", desc="train",
+            bar = progress_bar(total=end_step, initial=start_step, unit="step", desc="train",
                        dynamic_ncols=True)
         timed_images, timed_seconds = 0, 0.0
         stop_at = None if run.max_seconds is None else time.perf_counter() + run.max_seconds

@@ -300,8 +300,7 @@ def check_dataset(root: str | Path, options: CheckOptions | None = None, *,
     that is not a folder (bad input, not a dataset with problems). Reads only: the dataset
     is left as it was.
     """
-    from tqdm import tqdm
-
+    from sq_mitsuba.progress import progress_bar
     from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer
 
     if fields.get("per_model", 0) is None:
@@ -351,7 +350,7 @@ def check_dataset(root: str | Path, options: CheckOptions | None = None, *,
             pass
     report.tolerance = edge_tolerance(options.spp, spp_mask)
     renderer = None
-    for model in tqdm(sorted(splits), disable=not progress, desc="check"):
+    for model in progress_bar(sorted(splits), disable=not progress, desc="check"):
         report.models += 1
         try:
             labels = read_labels(root / model / "labels.json")

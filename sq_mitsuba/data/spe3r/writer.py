@@ -768,7 +768,7 @@ def render_dataset(models_dir: str | Path, out_dir: str | Path,
     worker's images are identical to a single-process run: every image has its own seed).
     Bad options and folders are ``ValueError`` s raised before any file is written.
     """
-    from tqdm import tqdm
+    from sq_mitsuba.progress import progress_bar
 
     options = options if options is not None else RenderOptions()
     if workers is not None:
@@ -779,7 +779,7 @@ def render_dataset(models_dir: str | Path, out_dir: str | Path,
     work = _shard_work(sorted(plan), options.images_per_model, options.shard)
     summary = RenderSummary(shard=options.shard)
     total = sum(len(indices) for indices in work.values())
-    with tqdm(total=total, unit="img", disable=not progress, dynamic_ncols=True) as bar:
+    with progress_bar(total=total, unit="img", disable=not progress, dynamic_ncols=True) as bar:
 
         def record(model: str, outcome: tuple[int, int] | BaseException) -> None:
             if isinstance(outcome, BaseException):
