@@ -53,6 +53,14 @@ def test_learning_curves_on_the_tiny_dataset(train_dataset, tmp_path):
     assert len(rows) == sum(len(c.seconds) for c in curves)
 
 
+def test_only_a_recorded_run_draws_the_repository_figure(tmp_path):
+    from sq_mitsuba.bench.train import CURVES_PNG, curves_figure_path
+
+    assert curves_figure_path(tmp_path, write=False) == tmp_path / "learning_curves.png"
+    assert curves_figure_path(tmp_path, write=True) == CURVES_PNG
+    assert CURVES_PNG.parent.name == "figures" and CURVES_PNG.parent.parent.name == "eval"
+
+
 def test_learning_curves_refuse_bad_input(tmp_path):
     from sq_mitsuba.bench.train import learning_curves
 

@@ -690,14 +690,25 @@ def curves_report(curves: Sequence[Curve], minutes: float, data_root: Path,
     return "\n".join(lines) + "\n"
 
 
+def curves_figure_path(out_dir: str | Path, write: bool) -> Path:
+    """Where ``bench curves`` draws its figure: with ``write`` the repository's
+    (:data:`CURVES_PNG`, beside the table it belongs to), else in the runs' ``out_dir``."""
+    return CURVES_PNG if write else Path(out_dir) / CURVES_PNG.name
+
+
 def run_curves(data_root: str | Path, out_dir: str | Path, minutes: float,
                labels: Sequence[str] | None = None, write: bool = False,
-               figure: Path = CURVES_PNG, benchmarks: Path = BENCHMARKS_MD,
+               figure: Path | None = None, benchmarks: Path = BENCHMARKS_MD,
                progress: bool = True) -> str:
     """:func:`learning_curves`, its figure, and its table (recorded in ``benchmarks``
-    between ``<!-- bench:curves:start/end -->`` with ``write``); returns the table."""
+    between ``<!-- bench:curves:start/end -->`` with ``write``); returns the table.
+
+    The figure goes to ``figure`` (default :func:`curves_figure_path`: a trial run leaves the
+    recorded figure alone)."""
     from sq_mitsuba.bench import write_section
 
+    if figure is None:
+        figure = curves_figure_path(out_dir, write)
     curves = learning_curves(data_root, out_dir, minutes, labels, progress=progress)
     plot_learning_curves(curves, figure)
     text = curves_report(curves, minutes, Path(data_root), figure)

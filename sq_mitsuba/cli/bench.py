@@ -20,7 +20,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                       "evaluation)",
         description="Run benchmark suites; --write records them in eval/BENCHMARKS.md. "
                     "'curves' trains configs for equal wall time on --data and plots held-out "
-                    "Chamfer-L1 against time (eval/figures/learning_curves.png).")
+                    "Chamfer-L1 against time (--out's learning_curves.png; with --write "
+                    "eval/figures/learning_curves.png).")
     parser.add_argument("suite", choices=[*suites, "all", "curves"], help="which suite to run")
     add_config_options(parser, bench.BenchOptions, FLAGS)
     parser.add_argument("--write", action="store_true",
