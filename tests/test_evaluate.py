@@ -246,6 +246,38 @@ def test_report_on_the_eval_output_holds_ours_and_the_papers_numbers(
     assert "| tiny_run |" in report  # the run (the checkpoint's folder): its val and test
 
 
+def test_a_rerun_stopped_among_its_writes_leaves_no_finished_evaluation(
+        val_eval, eval_checkpoint, train_dataset, tmp_path, monkeypatch, capsys):
+    """A second evaluation into a finished folder, interrupted after its tables but before its
+    figures: the folder holds no eval.json (the mark of a finished run) that `report` could
+    read the new tables under; interrupted before its first write, the first run is whole."""
+    from sq_mitsuba.evaluation import figures
+    from sq_mitsuba.inference.predictor import Predictor
+
+    out = tmp_path / "val"
+    shutil.copytree(val_eval, out)
+    before = {name: (out / name).read_bytes() for name in OUTPUT_FILES}
+    argv = ["eval", "--checkpoint", str(eval_checkpoint), "--data", str(train_dataset),
+            "--split", "val", "--out", str(out), "--limit", "2", *SMALL]
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    # In the loop (the network's pass): nothing written, the first run whole.
+    with monkeypatch.context() as patch:
+        patch.setattr(Predictor, "predict", interrupted)
+        assert main(argv) == 130
+    assert {name: (out / name).read_bytes() for name in OUTPUT_FILES} == before
+    # Among the writes: the tables are the new run's, and no eval.json says either run's.
+    monkeypatch.setattr(figures, "plot_per_model", interrupted)
+    assert main(argv) == 130
+    assert (out / "summary.csv").read_bytes() != before["summary.csv"]
+    assert not (out / "eval.json").exists()
+    capsys.readouterr()
+    assert main(["report", str(out), "--out", str(tmp_path / "report")]) == 2
+    assert "eval.json: missing" in capsys.readouterr().err
+
+
 # ------------------------------------------------------------------------------ bad input
 
 

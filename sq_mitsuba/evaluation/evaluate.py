@@ -373,6 +373,10 @@ def _evaluate(predictor: Any, data_root: Path, out_dir: Path, options: EvalOptio
             bar.set_postfix_str(f"batch {number}/{batches} done, "
                                 f"{bar.n / (time.perf_counter() - loop_started):.2f} img/s")
     loop_seconds = time.perf_counter() - loop_started - warmup_seconds
+    # eval.json, written last, marks a finished evaluation: an earlier run's goes before this
+    # one's first file, so that a folder left half rewritten (an interrupt among the writes)
+    # is not taken for either run by `report`. An interrupt in the loop above loses nothing.
+    (out_dir / "eval.json").unlink(missing_ok=True)
     summary = write_tables(rows, out_dir)
     files = [out_dir / name for name in OUTPUT_FILES[:5]]
     ranking = None
