@@ -421,8 +421,13 @@ def test_predict_sequence_cli_writes_one_assembly_and_a_pose_per_frame(eval_chec
                  if line.endswith(",test"))
     images = sorted((train_dataset / model / "images").glob("*.png"))[:3]
     out = tmp_path / "pass"
+    capsys.readouterr()
     assert main(["predict", *map(str, images), "--sequence", "--ordered", "--checkpoint",
-                 str(eval_checkpoint), "--out", str(out), "--quiet", "--fit", "steps=5"]) == 0
+                 str(eval_checkpoint), "--out", str(out), "--fit", "steps=5"]) == 0
+    stages = capsys.readouterr().err  # the stage in progress, one line each in a log
+    for stage in ("network", "search and refinement", "one assembly, every pose"):
+        assert f"3 frames: {stage}" in stages, stages
+    assert "\r" not in stages and "3/3" in stages.splitlines()[-1]
     shared = Assembly.load(out / "sequence.assembly.json")
     assert shared.batch_size == 1 and (out / "sequence.glb").stat().st_size > 0
     assert (out / "sequence.png").stat().st_size > 0

@@ -90,12 +90,14 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
                            camera: Any = None, relative_rotations: Any = None,
                            options: Any = None, ordered: bool = False,
                            other_inputs: Sequence[str | Path] = (),
-                           masks: Sequence[str | Path] | None = None) -> SequenceRecord:
+                           masks: Sequence[str | Path] | None = None,
+                           progress: bool = False) -> SequenceRecord:
     """Predict one assembly and every pose from ``images`` (frames of one spacecraft) and write
     the files of the module docstring into ``out_dir``. ``other_inputs``: the run's other
     input files (the checkpoint, a camera or rotations file), refused if an output would
     overwrite one. ``masks``: one mask file per frame, in their order, fitted instead of the
-    network's masks (default: the network's mask head, or the segmentation).
+    network's masks (default: the network's mask head, or the segmentation). ``progress``:
+    show the stage in progress.
 
     Raises:
         ValueError: one line naming the image or argument: fewer than two images, sizes that
@@ -168,7 +170,7 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
         kwargs["mask"] = torch.from_numpy(np.stack(given_masks))
     try:
         result = predictor.predict_sequence(frames, camera, relative_rotations=relative_rotations,
-                                            ordered=ordered, **kwargs)
+                                            ordered=ordered, progress=progress, **kwargs)
     except ValueError as error:  # "images: frame k ..." named by its file
         found = re.match(r"images: frame (\d+) (.*)", str(error), re.S)
         if found is None:

@@ -182,7 +182,7 @@ def _run_sequence(args: argparse.Namespace) -> int:
     record = predict_sequence_files(args.images, args.out, load_model(args.checkpoint),
                                     camera, relative_rotations=relative, options=options,
                                     ordered=args.ordered, other_inputs=inputs,
-                                    masks=args.mask)
+                                    masks=args.mask, progress=not args.quiet)
     print(f"{record.describe()}; wrote {len(record.files)} files to {args.out}")
     return 0
 

@@ -341,7 +341,8 @@ def predict_sequence(predictor: Any, images: Tensor | np.ndarray, camera: Camera
                      *, relative_rotations: Tensor | np.ndarray | None = None,
                      ordered: bool = False, mask: Any = None,
                      options: SequenceOptions | None = None,
-                     search: Any = None, refinement: Any = None) -> SequencePrediction:
+                     search: Any = None, refinement: Any = None,
+                     progress: bool = False) -> SequencePrediction:
     """One assembly and every pose from N images of the same spacecraft (module docstring).
 
     Args:
@@ -360,12 +361,15 @@ def predict_sequence(predictor: Any, images: Tensor | np.ndarray, camera: Camera
         options: the joint fit's :class:`SequenceOptions`.
         search, refinement: the per-frame search's and refinement's settings (default
             :data:`FRAMES_SEARCH` and :data:`FRAMES_REFINEMENT`: the joint fit refines).
+        progress: show the stage in progress (the frames' reading, their search and
+            refinement, the joint fit) on a progress bar.
 
     Raises:
         ValueError: one line naming ``images`` (fewer than two frames, sizes, NaN),
             ``relative_rotations`` or the frame whose mask holds no target.
     """
     from sq_mitsuba.inference.images import prepare_images
+    from sq_mitsuba.progress import progress_bar
 
     started = time.perf_counter()
     options = options or SequenceOptions()
@@ -380,7 +384,24 @@ def predict_sequence(predictor: Any, images: Tensor | np.ndarray, camera: Camera
         raise ValueError(f"ordered: expected True or False, got {ordered!r}")
     # The network's pass first (milliseconds): a frame it sees no target in is refused before
     # the search of every frame (a mask given is fitted whatever the score).
-    network = predictor.predict(checked, camera)
+    with progress_bar(total=3, desc=f"{count} frames: network", unit="stage",
+                      disable=not progress) as bar:
+        network = predictor.predict(checked, camera)
+        bar.update()
+        bar.set_description(f"{count} frames: search and refinement")
+        frames = _frames(predictor, checked, network, camera, mask, search, refinement)
+        bar.update()
+        bar.set_description(f"{count} frames: one assembly, every pose")
+        result = sequence_from_frames(frames, relative, ordered, options, started=started,
+                                      frames_seconds=time.perf_counter() - started)
+        bar.update()
+    return result
+
+
+def _frames(predictor: Any, checked: Tensor, network: Prediction, camera: Camera | None,
+            mask: Any, search: Any, refinement: Any) -> Prediction:
+    """Each frame's own search and refinement, after refusing a frame without a target."""
+    count = checked.shape[0]
     if network.target is not None and (mask is None or isinstance(mask, str)):
         absent = [k for k in range(count) if not bool(network.target[k])]
         if absent:
@@ -395,8 +416,7 @@ def predict_sequence(predictor: Any, images: Tensor | np.ndarray, camera: Camera
         raise ValueError(f"images: frame {empty[0]} has no target in its mask "
                          f"({frames.fit.mask_source}); leave it out of the sequence, or give "
                          "the frames' masks (predict_sequence's mask)")
-    return sequence_from_frames(frames, relative, ordered, options, started=started,
-                                frames_seconds=time.perf_counter() - started)
+    return frames
 
 
 def sequence_from_frames(frames: Prediction, relative: Tensor | None = None,
