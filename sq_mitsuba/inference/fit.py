@@ -23,6 +23,7 @@ from sq_mitsuba.geometry.assembly import NUM_PARAMS, Assembly
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.machine import available_memory, too_much_memory
 from sq_mitsuba.model.losses import silhouette_loss
+from sq_mitsuba.render.backend import one_thread
 from sq_mitsuba.render.silhouette.renderer import (
     DEFAULT_SPP,
     SilhouetteRenderer,
@@ -65,6 +66,10 @@ class FitOptions:
     "Seed of the start spread (M > 1) and of the renderer's samples."
     level: int = in_range(0, 5, default=3)
     "Icosphere level of each primitive's mesh (3: 642 vertices)."
+    deterministic: bool = True
+    """Render on one Dr.Jit thread, so that the same seed gives the same fit to the last bit
+    (several threads sum gradients in the order of their timing: two runs part in the last
+    digits); False: all threads, faster."""
 
 
 def fit_memory_bytes(views: int, width: int, height: int) -> int:
@@ -211,44 +216,46 @@ def fit_assembly(
         check_tensor("init_raw", init_raw, (num_primitives, NUM_PARAMS), min_dims=3)
         raw = init_raw.detach().to(torch.float64).clone()
     raw.requires_grad_(True)
-    renderer = SilhouetteRenderer(fit_camera, spp=options.spp, sppp=options.sppp,
-                                  seed=options.seed)
-    optimizer = torch.optim.Adam([raw], lr=options.lr)
-    result = FitResult(assembly=Assembly.from_raw(raw.detach()), raw=raw.detach(),
-                       targets=targets, options=options)
-    middle = steps // 2
+    with one_thread(options.deterministic):
+        renderer = SilhouetteRenderer(fit_camera, spp=options.spp, sppp=options.sppp,
+                                      seed=options.seed)
+        optimizer = torch.optim.Adam([raw], lr=options.lr)
+        result = FitResult(assembly=Assembly.from_raw(raw.detach()), raw=raw.detach(),
+                           targets=targets, options=options)
+        middle = steps // 2
 
-    iterator: Sequence[int] | object = range(steps)
-    bar = None
-    if progress:
-        from sq_mitsuba.progress import progress_bar
+        iterator: Sequence[int] | object = range(steps)
+        bar = None
+        if progress:
+            from sq_mitsuba.progress import progress_bar
 
-        bar = progress_bar(range(steps), desc="fit", unit="step", leave=True)
-        iterator = bar
-    for step in iterator:  # type: ignore[union-attr]
-        optimizer.zero_grad(set_to_none=True)
-        # One BVH rebuild per view: each view's loss is back-propagated right after its render.
-        total, coverage = render_assembly_loss(
-            Assembly.from_raw(raw), rotations, translations, renderer,
-            lambda view, i: silhouette_loss(view[None], targets[i, None].to(view.dtype), loss),
-            level)
-        total.backward()
-        optimizer.step()
+            bar = progress_bar(range(steps), desc="fit", unit="step", leave=True)
+            iterator = bar
+        for step in iterator:  # type: ignore[union-attr]
+            optimizer.zero_grad(set_to_none=True)
+            # One BVH rebuild per view: each view's loss is back-propagated right after its render.
+            total, coverage = render_assembly_loss(
+                Assembly.from_raw(raw), rotations, translations, renderer,
+                lambda view, i: silhouette_loss(view[None], targets[i, None].to(view.dtype), loss),
+                level)
+            total.backward()
+            optimizer.step()
+            with torch.no_grad():
+                ious = mask_iou(coverage, targets)
+            result.losses.append(float(total.detach()))
+            result.ious.append([float(v) for v in ious])
+            if step in (0, middle):
+                result.snapshots.append((step, coverage.detach().clone()))
+            if bar is not None:
+                bar.set_postfix(loss=f"{float(total.detach()):.4f}",
+                                iou=f"{float(ious.mean()):.3f}")
+            if callback is not None:
+                callback(step, float(total.detach()), coverage.detach())
+
+        final = Assembly.from_raw(raw.detach())
         with torch.no_grad():
-            ious = mask_iou(coverage, targets)
-        result.losses.append(float(total.detach()))
-        result.ious.append([float(v) for v in ious])
-        if step in (0, middle):
-            result.snapshots.append((step, coverage.detach().clone()))
-        if bar is not None:
-            bar.set_postfix(loss=f"{float(total.detach()):.4f}", iou=f"{float(ious.mean()):.3f}")
-        if callback is not None:
-            callback(step, float(total.detach()), coverage.detach())
-
-    final = Assembly.from_raw(raw.detach())
-    with torch.no_grad():
-        coverage = render_assembly(final, rotations, translations, renderer, level)
-    result.snapshots.append((steps, coverage))
-    result.assembly, result.raw = final, raw.detach().clone()
-    result.final_iou = mask_iou(coverage, targets)
-    return result
+            coverage = render_assembly(final, rotations, translations, renderer, level)
+        result.snapshots.append((steps, coverage))
+        result.assembly, result.raw = final, raw.detach().clone()
+        result.final_iou = mask_iou(coverage, targets)
+        return result

@@ -113,6 +113,27 @@ def interrupts_deferred() -> Iterator[None]:
                 signal.raise_signal(signal.SIGINT)
 
 
+@contextlib.contextmanager
+def one_thread(enabled: bool = True) -> Iterator[None]:
+    """Dr.Jit on one thread inside the block (restored after), where ``enabled``.
+
+    Convention: with several threads Dr.Jit sums gradients with atomic float32 additions whose
+    order follows the threads' timing, so two runs with the same seed part in the last bits
+    after the first backward pass and drift from there; on one thread they are bit-identical.
+    """
+    mitsuba()
+    import drjit as dr
+
+    previous = dr.thread_count()
+    if enabled:
+        dr.set_thread_count(1)
+    try:
+        yield
+    finally:
+        if dr.thread_count() != previous:
+            dr.set_thread_count(previous)
+
+
 def mitsuba(variant: str | None = None) -> ModuleType:
     """The ``mitsuba`` module with a working variant set (idempotent).
 

@@ -263,16 +263,8 @@ def reprojection_renderer(config: TrainConfig, dataset_camera: Camera, device: t
 def mitsuba_for(device: torch.device, deterministic: bool) -> Iterator[None]:
     """Mitsuba's variant for ``device``; on the CPU with ``deterministic``, one Dr.Jit thread
     inside the block (restored after), so that gradient sums do not depend on thread timing."""
-    from sq_mitsuba.render.backend import mitsuba
+    from sq_mitsuba.render.backend import mitsuba, one_thread
 
     mitsuba("cuda_ad_mono" if device.type == "cuda" else None)
-    import drjit as dr
-
-    previous = dr.thread_count()
-    if deterministic and device.type == "cpu":
-        dr.set_thread_count(1)
-    try:
+    with one_thread(deterministic and device.type == "cpu"):
         yield
-    finally:
-        if dr.thread_count() != previous:
-            dr.set_thread_count(previous)
