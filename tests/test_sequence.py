@@ -437,6 +437,23 @@ def test_predict_sequence_cli_writes_one_assembly_and_a_pose_per_frame(eval_chec
         assert pose["sequence"]["steps"] == 5  # --fit reached the joint fit
         assert len(pose["q_vbs2tango"]) == 4 and pose["r_Vo2To_vbs"][2] > 0
         assert (out / f"{image.stem}.overlay.png").stat().st_size > 0
+    # Each file holds its own frame's pose: the API's answer for the same frames (up to
+    # Dr.Jit's multithreaded gradient sums), frames whose translations differ by far more.
+    from sq_mitsuba.data.masks import read_gray_image
+    from sq_mitsuba.geometry.rotation import quaternion_to_matrix
+    from sq_mitsuba.inference.loading import with_fast_path
+
+    frames = torch.from_numpy(np.stack([read_gray_image(p) for p in images])).float()
+    direct = with_fast_path(load_model(eval_checkpoint), True).predict_sequence(
+        frames, ordered=True, options=SequenceOptions(steps=5))
+    written = [json.loads((out / f"{image.stem}.pose.json").read_text()) for image in images]
+    spread = float(torch.cdist(direct.translation, direct.translation).max())
+    assert spread > 0.05 * float(direct.translation.norm(dim=-1).min())
+    for k, pose in enumerate(written):
+        np.testing.assert_allclose(pose["r_Vo2To_vbs"], direct.translation[k].numpy(),
+                                   atol=0.01 * spread)
+        rotation = quaternion_to_matrix(torch.tensor(pose["q_vbs2tango"], dtype=torch.float64))
+        assert float(rotation_error_deg(rotation[None], direct.rotation[k:k + 1].double())) < 1
     assert main(["predict", str(images[0]), "--ordered", "--checkpoint", str(eval_checkpoint),
                  "--out", str(tmp_path / "x")]) == 2
     assert main(["predict", str(images[0]), "--sequence", "--checkpoint",
