@@ -155,6 +155,36 @@ def test_alternating_rounds_never_lower_the_iou(scene):
                                SearchOptions(grid=0, keep=1, rounds=2),
                                RefineOptions(steps=2, patience=2))
     assert len(result.rounds) == 2 and result.rounds[1] >= result.rounds[0]
+    # The pose returned is the one its IoU was measured at: rendered again independently.
+    resolution = RefineOptions().resolution
+    small = camera.rescaled(resolution)
+    targets = torch.nn.functional.interpolate(masks[:, None].double(), size=(small.height,
+                                              small.width), mode="area")[:, 0]
+    with torch.no_grad():
+        drawn = render_assembly(result.assembly, result.rotation, result.translation,
+                                SilhouetteRenderer(small, spp=64), level=2)
+    torch.testing.assert_close(mask_iou(drawn, targets).double(), result.iou.double(),
+                               atol=0.03, rtol=0)
+
+
+def test_a_later_round_replaces_only_the_images_it_betters(scene):
+    """Per image, the better of two rounds keeps its assembly, pose and IoU together."""
+    from sq_mitsuba.inference.refine import RefineResult
+    from sq_mitsuba.inference.search import better_of
+
+    truth, rotation, translation, _, _ = scene
+    other = Assembly(truth.params * 1.1)
+    first = RefineResult(truth, rotation, translation, torch.tensor([0.1, 0.2, 0.3]),
+                         torch.tensor([0.5, 0.9, 0.7]), 4)
+    later = RefineResult(other, rotation.transpose(-1, -2), translation + 1,
+                         torch.tensor([0.0, 0.0, 0.0]), torch.tensor([0.6, 0.8, 0.7]), 3)
+    kept = better_of(first, later)
+    assert kept.steps == 7 and torch.equal(kept.iou_before, first.iou_before)
+    assert torch.equal(kept.iou_after, torch.tensor([0.6, 0.9, 0.7]))  # a tie keeps the first
+    for k, source in enumerate((later, first, first)):
+        assert torch.equal(kept.assembly.params[k], source.assembly.params[k].double())
+        assert torch.equal(kept.rotation[k], source.rotation[k])
+        assert torch.equal(kept.translation[k], source.translation[k])
 
 
 def test_bad_input_gives_one_line_errors(scene):

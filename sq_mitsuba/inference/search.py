@@ -423,6 +423,20 @@ def _refine_best_of(assembly: Assembly, rotations: Tensor, translations: Tensor,
                                  camera, refine)
 
 
+def better_of(best: RefineResult, result: RefineResult) -> RefineResult:
+    """Per image, the one of two refinements of B images with the higher ``iou_after``
+    (``best``'s on a tie): its assembly, pose and IoU together; ``iou_before`` stays
+    ``best``'s, the steps add up."""
+    better = result.iou_after > best.iou_after
+    params = torch.where(better[:, None, None], result.assembly.params.double(),
+                         best.assembly.params.double())
+    return RefineResult(Assembly(params),
+                        torch.where(better[:, None, None], result.rotation, best.rotation),
+                        torch.where(better[:, None], result.translation, best.translation),
+                        best.iou_before, torch.maximum(result.iou_after, best.iou_after),
+                        best.steps + result.steps)
+
+
 def search_and_refine(assembly: Assembly, rotation: Tensor, translation: Tensor,
                       masks: Tensor, camera: Camera, hypotheses: Tensor | None = None,
                       search: SearchOptions | None = None,
@@ -469,19 +483,7 @@ def search_and_refine(assembly: Assembly, rotation: Tensor, translation: Tensor,
         rows = torch.arange(shape.batch_size)[:, None]
         result = _refine_best_of(shape, current.candidates[rows, top],
                                  current.translations[rows, top], masks, camera, search, refine)
-        if best is None:
-            best = result
-        else:
-            better = result.iou_after > best.iou_after
-            params = torch.where(better[:, None, None], result.assembly.params.double(),
-                                 best.assembly.params.double())
-            best = RefineResult(Assembly(params),
-                                torch.where(better[:, None, None], result.rotation,
-                                            best.rotation),
-                                torch.where(better[:, None], result.translation,
-                                            best.translation),
-                                best.iou_before, torch.maximum(result.iou_after, best.iou_after),
-                                best.steps + result.steps)
+        best = result if best is None else better_of(best, result)
         rounds.append(float(best.iou_after.mean()))
         if round_index + 1 < search.rounds:
             # Search again with the refined shape: its own rotation (and half turns) joins the
