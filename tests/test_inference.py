@@ -151,6 +151,20 @@ def test_other_camera_moves_the_translation_consistently(predictor):
                                atol=0)
 
 
+def test_the_camera_follows_images_of_another_size_and_the_same_aspect():
+    """A 640 x 480 camera for 320 x 240 images: every intrinsic halved, by hand (the width and
+    the height told apart); another aspect ratio is refused."""
+    from sq_mitsuba.inference.images import camera_for
+
+    camera = Camera(800.0, 780.0, 321.0, 239.0, 640, 480)
+    assert camera_for(camera, 640, 480) is camera
+    half = camera_for(camera, 320, 240)
+    assert (half.fx, half.fy, half.cx, half.cy, half.width, half.height) == (
+        400.0, 390.0, 160.5, 119.5, 320, 240)
+    with pytest.raises(ValueError, match="another aspect ratio"):
+        camera_for(camera, 240, 320)
+
+
 def test_bad_input_is_a_one_line_error_naming_the_argument(predictor):
     x = two_scenes()
     nan = x.clone()
