@@ -274,6 +274,9 @@ def test_padding_gives_the_cameras_aspect_ratio_and_keeps_its_pixels(size):
         full = padded_camera(camera, padding.padded_width, padding.padded_height)
         assert full.fx / full.width == pytest.approx(camera.fx / camera.width, rel=1e-12)
         assert full.fx / full.fy == pytest.approx(camera.fx / camera.fy, rel=1e-12)
+        # The principal point at the same fraction of the picture along both axes.
+        assert full.cx / full.width == pytest.approx(camera.cx / camera.width, rel=1e-12)
+        assert full.cy / full.height == pytest.approx(camera.cy / camera.height, rel=1e-12)
         own = padding.crop_camera(full)
         assert (own.width, own.height) == (width, height)
         assert (own.cx, own.cy) == (full.cx - padding.left, full.cy - padding.top)
