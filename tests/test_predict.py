@@ -84,6 +84,19 @@ def test_predict_writes_the_networks_prediction_for_every_format(eval_checkpoint
     modes = {n: json.loads((out / f"{n}.pose.json").read_text())["image_mode"] for n in names}
     assert modes["grey"] == "L" and modes["rgb"] == "RGB" and modes["alpha"] == "LA"
     assert modes["deep"].startswith("I")
+    # The overlay's red is the network's silhouette at its pose, drawn the right way up: the
+    # assembly rendered here at the image's camera, against the pixels the red tints.
+    from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer, render_assembly
+
+    with torch.no_grad():
+        drawn = render_assembly(Assembly(expected.assembly.params.double()),
+                                expected.rotation.double(), expected.translation.double(),
+                                SilhouetteRenderer(predictor.camera, spp=16), 3)[0] > 0.5
+    drawn = drawn.numpy()
+    overlay = np.asarray(Image.open(out / "grey.overlay.png")).astype(int)
+    red = overlay[..., 0] - overlay[..., 1] > 50  # full coverage: 0.45 x 0.85 x 255 = 98
+    assert drawn.shape == red.shape and drawn.sum() > 20
+    assert (red & drawn).sum() / (red | drawn).sum() > 0.85
 
 
 def test_predict_refines_against_a_given_and_a_segmented_mask(eval_checkpoint, inputs,
@@ -106,8 +119,14 @@ def test_predict_refines_against_a_given_and_a_segmented_mask(eval_checkpoint, i
         assert np.linalg.norm(pose["q_vbs2tango"]) == pytest.approx(1.0)
         overlay = np.asarray(Image.open(folder / f"{stem}.overlay.png"))
         assert_picture(folder / f"{stem}.overlay.png")
-        # The mask outline is drawn in yellow (255, 217, 0).
-        assert ((overlay == (255, 217, 0)).all(-1)).any()
+        # The mask outline is drawn in yellow (255, 217, 0): the file mask's edge pixels.
+        yellow = (overlay == (255, 217, 0)).all(-1)
+        assert yellow.any()
+        if source == "file":
+            from scipy import ndimage
+
+            target = np.asarray(Image.open(inputs / "mask.png")) > 127
+            np.testing.assert_array_equal(yellow, target & ~ndimage.binary_erosion(target))
 
 
 def test_predict_without_checkpoint_uses_the_shipped_model(eval_checkpoint, inputs, tmp_path,
