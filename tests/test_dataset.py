@@ -223,6 +223,14 @@ def test_a_mask_read_at_half_size_is_its_area_share_not_a_corner(dataset):
         decided = np.abs(share - 0.5) > 0.1  # ties at exactly half may round either way
         got = train[item]["mask"][0].numpy() > 0.5
         assert np.array_equal(got[decided], share[decided] >= 0.5), item
+        # The image with it, the same way up: near its own 2 x 2 block means (bilinear
+        # reduction weighs a block's neighbours a little), far from them mirrored.
+        picture = np.asarray(Image.open(dataset / train.models[model] / "images"
+                                        / label["filename"])).astype(np.float64) / 255
+        means = picture.reshape(half, 2, half, 2).mean(axis=(1, 3))
+        image = train[item]["image"][0].numpy()
+        assert np.abs(image - means).mean() < 0.5 * np.abs(image - means[:, ::-1]).mean()
+        assert np.abs(image - means).mean() < 0.5 * np.abs(image - means[::-1]).mean()
 
 
 def test_reader_reads_an_spe3r_shaped_fixture_with_jpg_images(tmp_path):
