@@ -219,3 +219,27 @@ def test_bad_input_gives_one_line_errors(scene):
         assert "\n" not in str(error.value)
     with pytest.raises(ValueError, match="spp: expected a positive integer"):
         PoseSilhouettes(camera, spp=0)
+
+
+def test_recentring_moves_the_translation_by_the_pinhole_shift_on_non_square_pixels():
+    """A silhouette 6 px right of and 4 px above its target, fx != fy: the translation moves
+    by (-6 z / fx, +4 z / fy) (pinhole, by hand); with the depth fitted too, a target of
+    1.25 x the silhouette's size brings the target 1.25 x nearer (area ratio 1 / 1.5625)."""
+    from sq_mitsuba.inference.search import _recentred
+
+    camera = Camera(120.0, 70.0, 31.0, 25.0, 64, 48)
+    centres = camera.pixel_centers(torch.float64)
+
+    def disc(u: float, v: float, radius: float) -> torch.Tensor:
+        return (((centres - centres.new_tensor([u, v])) ** 2).sum(-1) <= radius**2).double()
+
+    translation = torch.tensor([[0.1, -0.05, 2.0]], dtype=torch.float64)
+    u, v = camera.project(translation)[0].tolist()
+    coverage, target = disc(u + 6, v - 4, 6)[None], disc(u, v, 6)[None]
+    moved = _recentred(translation, coverage, target, camera, fit_depth=False)
+    expected = translation + torch.tensor([[-6 * 2.0 / 120.0, 4 * 2.0 / 70.0, 0.0]],
+                                          dtype=torch.float64)
+    torch.testing.assert_close(moved, expected, atol=2e-3, rtol=0)  # discs on a pixel grid
+    nearer = _recentred(translation, disc(u, v, 8)[None], disc(u, v, 10)[None], camera,
+                        fit_depth=True)
+    assert float(nearer[0, 2]) == pytest.approx(2.0 / 1.25, rel=0.03)
