@@ -56,3 +56,21 @@ def test_bad_images_are_refused():
     bad[3, 3] = np.nan
     with pytest.raises(ValueError, match="NaN"):
         segment_target(bad)
+
+
+def test_the_rule_by_hand_threshold_gaps_and_holes():
+    """The documented rule on drawn images: the threshold 0.12 x the 99.5th percentile (above
+    the floor), a one-pixel dark gap between two lit panels closed, a shadowed hole inside
+    the outline filled."""
+    image = np.zeros((40, 40))
+    image[10:30, 8:19] = 0.9  # left panel
+    image[10:30, 20:31] = 0.9  # right panel, a one-pixel dark seam at column 19
+    image[13:27, 10:18] = 0.02  # a shadowed part inside the left panel (a hole)
+    image[10:30, 25] = 0.05  # a dim stripe, below 0.12 x 0.9 but above the floor
+    result = segment_target(image)
+    assert result.threshold == pytest.approx(0.12 * np.percentile(image, 99.5), rel=1e-12)
+    expected = np.zeros((40, 40), dtype=bool)
+    expected[10:30, 8:31] = True  # one piece: the seam, the hole and the stripe inside it
+    np.testing.assert_array_equal(result.mask, expected)
+    # A dim image: the floor (8 / 255) decides.
+    assert segment_target(image * 0.05).threshold == pytest.approx(8 / 255)
