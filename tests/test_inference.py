@@ -165,6 +165,22 @@ def test_the_camera_follows_images_of_another_size_and_the_same_aspect():
         camera_for(camera, 240, 320)
 
 
+def test_upsampling_keeps_pixel_centres_where_they_are():
+    """A ramp whose value is its pixel centre's x, upsampled 16 -> 24 px: each new pixel
+    centre (j + 0.5) * 16 / 24 reads the ramp there (inside the edge half pixels, by hand),
+    and a downsized image is each block's mean."""
+    from sq_mitsuba.inference.images import resize_images
+
+    ramp = (torch.arange(16, dtype=torch.float64) + 0.5).expand(1, 1, 16, 16)
+    grown = resize_images(ramp, 24)[0, 0, 0]
+    centres = (torch.arange(24, dtype=torch.float64) + 0.5) * 16 / 24
+    inside = (centres >= 0.5) & (centres <= 15.5)
+    torch.testing.assert_close(grown[inside], centres[inside], atol=1e-9, rtol=0)
+    shrunk = resize_images(ramp, 8)[0, 0, 0]
+    torch.testing.assert_close(shrunk, ramp[0, 0, 0].reshape(8, 2).mean(-1), atol=1e-9,
+                               rtol=0)
+
+
 def test_bad_input_is_a_one_line_error_naming_the_argument(predictor):
     x = two_scenes()
     nan = x.clone()
