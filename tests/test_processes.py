@@ -16,10 +16,14 @@ from pathlib import Path
 import pytest
 
 SCRIPT = textwrap.dedent("""
-    import os, sys, time
+    import os, signal, sys, time
     from sq_mitsuba.processes import worker_pool
 
     if __name__ == "__main__":
+        # A command started from a terminal has Python's Ctrl-C handler; one started by a
+        # process that ignores SIGINT (a pytest-xdist worker, a shell's background job)
+        # inherits the ignoring, so the script installs the handler a terminal's would get.
+        signal.signal(signal.SIGINT, signal.default_int_handler)
         try:
             with worker_pool(2) as pool:
                 workers = list(pool.map(_pid, range(8)))
