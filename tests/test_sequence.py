@@ -638,3 +638,33 @@ def test_predict_sequence_cli_fits_the_masks_it_is_given(eval_checkpoint, train_
         assert main([*base, "--mask", *map(str, given), "--out", str(tmp_path / "o")]) == 2
         assert expected in error_line(capsys)
     assert not (tmp_path / "o").exists()
+
+
+def test_the_dataset_body_frame_changes_the_frame_not_the_posed_surface(eval_checkpoint,
+                                                                       train_dataset):
+    """``canonical``: the shared assembly re-expressed in the dataset's body frame, every
+    pose carried along, so each frame's posed surface is the one the fit found (two fits on
+    one Dr.Jit thread, bit-identical up to that last step)."""
+    from PIL import Image
+
+    from sq_mitsuba.inference.sequence import sequence_from_frames
+    from sq_mitsuba.render.backend import one_thread
+
+    model = next(line.split(",")[0] for line in
+                 (train_dataset / "splits.csv").read_text().splitlines()
+                 if line.endswith(",test"))
+    paths = sorted((train_dataset / model / "images").glob("*.png"))[:3]
+    images = torch.from_numpy(np.stack([np.asarray(Image.open(p)) for p in paths])).float()
+    predictor = load_model(eval_checkpoint)
+    with one_thread():
+        frames = predictor.predict(images / 255, refine=True)
+        plain, canonical = (sequence_from_frames(frames, options=SequenceOptions(
+            steps=3, canonical=flag)) for flag in (False, True))
+    assert not torch.allclose(plain.assembly.params, canonical.assembly.params)
+
+    def posed(result) -> torch.Tensor:
+        points = result.assembly.surface_points(2).reshape(-1, 3).double()
+        return points @ result.rotation.double().transpose(-1, -2) + \
+            result.translation.double()[:, None]
+
+    torch.testing.assert_close(posed(canonical), posed(plain), atol=1e-6, rtol=0)
