@@ -235,6 +235,9 @@ def test_checkpoint_round_trip(net, predictor, tmp_path):
     payload = checkpoint_payload(net, CAMERA, config={"seed": 3, "network": {}}, step=7)
     assert write_checkpoint(path, payload) == path
     assert [p.name for p in path.parent.iterdir()] == ["model.pt"]  # no temporary left
+    # The same payload is the same bytes, whatever the file's (or its temporary's) name.
+    again = write_checkpoint(tmp_path / "elsewhere" / "other.pt", payload)
+    assert again.read_bytes() == path.read_bytes()
     stored = read_checkpoint(path)
     assert stored["format"] == "sq_mitsuba.checkpoint" and stored["version"] == 1
     assert stored["step"] == 7 and stored["config"]["seed"] == 3

@@ -163,8 +163,10 @@ def write_checkpoint(path: str | os.PathLike[str], payload: dict[str, Any]) -> P
     checkpoint_network_config(payload, "payload")
     _check_loadable({k: v for k, v in payload.items() if k != "model"}, "payload")
     payload["model"] = dict(payload["model"])  # an OrderedDict loads too, but keep it plain
-    with atomic_path(path) as tmp:
-        torch.save(payload, tmp)
+    # Through a file object: torch names the archive's records after a path it is given (the
+    # temporary file's random name), so the same payload would not give the same bytes.
+    with atomic_path(path) as tmp, open(tmp, "wb") as stream:
+        torch.save(payload, stream)
     return path
 
 
