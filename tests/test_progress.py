@@ -59,3 +59,9 @@ def test_a_command_logged_to_a_file_writes_lines(tmp_path, capfd):
     err = capfd.readouterr().err
     assert "\r" not in err
     assert "2/2" in [line for line in err.splitlines() if line.startswith("models:")][-1]
+    # models preview (silent before: a third of a second a model).
+    assert main(["models", "preview", str(tmp_path / "library"), "--size", "32", "--spp",
+                 "4"]) == 0
+    err = capfd.readouterr().err
+    assert "\r" not in err
+    assert "2/2" in [line for line in err.splitlines() if line.startswith("preview:")][-1]

@@ -112,6 +112,7 @@ def _import(args: argparse.Namespace) -> int:
 def _preview(args: argparse.Namespace) -> int:
     from sq_mitsuba.data.contact_sheet import ContactSheetOptions, contact_sheet
 
-    sheet = contact_sheet(args.root, config_from_args(ContactSheetOptions, args))
+    sheet = contact_sheet(args.root, config_from_args(ContactSheetOptions, args),
+                          progress=True)
     print(f"contact sheet of {sheet.models} model(s) written to {sheet.path}")
     return 0

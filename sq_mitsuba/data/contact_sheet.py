@@ -84,7 +84,8 @@ def _check_samples(path: Path) -> None:
         raise ValueError(f"{path}: corrupt or truncated: not a valid .npz file") from None
 
 
-def contact_sheet(root: str | Path, options: ContactSheetOptions | None = None) -> ContactSheet:
+def contact_sheet(root: str | Path, options: ContactSheetOptions | None = None,
+                  progress: bool = False) -> ContactSheet:
     """Render the models of a library into one labelled grid image (written atomically, in
     the format its suffix names: PNG, JPEG, TIFF or BMP).
 
@@ -95,10 +96,12 @@ def contact_sheet(root: str | Path, options: ContactSheetOptions | None = None) 
     Args:
         root: library root holding ``<model>/models/model_normalized.obj``.
         options: tile size, samples per pixel, grid and output path.
+        progress: show a progress bar over the models.
     """
     from PIL import Image, ImageDraw
 
     # Deferred: the renderer pulls in Mitsuba and torch, which option parsing does not need.
+    from sq_mitsuba.progress import progress_bar
     from sq_mitsuba.render.preview import render_model
 
     options = options or ContactSheetOptions()
@@ -121,7 +124,8 @@ def contact_sheet(root: str | Path, options: ContactSheetOptions | None = None) 
         _check_samples(obj.parent / SAMPLES_FILE)
     sheet = Image.new("L", (width, height), color=0)
     draw = ImageDraw.Draw(sheet)
-    for k, obj in enumerate(files):
+    for k, obj in enumerate(progress_bar(files, desc="preview", unit="model",
+                                         disable=not progress)):
         mesh = read_tagged_obj(obj)
         image = render_model(mesh.vertices, mesh.faces, mesh.face_material, tile, options.spp)
         x, y = (k % columns) * tile, (k // columns) * (tile + LABEL_HEIGHT)
