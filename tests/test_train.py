@@ -312,6 +312,55 @@ def test_sigkill_then_resume_repeats_the_uninterrupted_run(train_dataset, cache_
             assert row[key] == expected[key], (row["step"], key, row[key], expected[key])
 
 
+@pytest.mark.slow  # end to end, in a child process: `make test` runs it
+def test_ctrl_c_saves_the_step_it_lands_in_and_resume_repeats_the_run(train_dataset, cache_dir,
+                                                                       tmp_path, capsys):
+    """Ctrl-C mid-run: the step in progress finishes, last.pt is written at it (not at the
+    epoch before), the run exits 130; --resume from there repeats an uninterrupted run bit
+    for bit."""
+    out = tmp_path / "run"
+    sets = ["--set", f"data.cache_dir={cache_dir}", "--set", "optim.epochs=50"]
+    env = {**os.environ, "OMP_NUM_THREADS": str(torch.get_num_threads())}
+    process = subprocess.Popen(
+        [sys.executable, "-m", "sq_mitsuba", "train", "--config", str(TINY), "--data",
+         str(train_dataset), "--out", str(out), "--quiet", *sets], env=env,
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+        # As from a terminal (pytest-xdist's workers ignore SIGINT, and children inherit it).
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    deadline = time.monotonic() + 240
+    try:
+        while time.monotonic() < deadline:
+            log = out / "log.csv"
+            if log.is_file() and len(log.read_text().splitlines()) >= 1 + 5:
+                break
+            assert process.poll() is None, process.stdout.read().decode()[-2000:]
+            time.sleep(0.02)
+        else:
+            pytest.fail("the training run logged no 5 steps in time")
+        process.send_signal(signal.SIGINT)
+        output = process.communicate(timeout=60)[0].decode()
+    finally:
+        if process.poll() is None:
+            process.kill()
+    assert process.returncode == 130, output[-2000:]
+    rows = _rows(out / "log.csv")
+    saved = int(_read_checkpoint(out / "last.pt")["step"])
+    assert saved == len(rows) >= 5  # the step Ctrl-C landed in, not the epoch's end before
+    code, err = _cli(["train", "--config", str(TINY), "--data", str(train_dataset), "--out",
+                      str(out), "--resume", "--quiet", "--max-steps", str(saved + 3), *sets],
+                     capsys)
+    assert code == 0, err
+    config = apply_overrides(load_train_config(TINY), [f"data.cache_dir={cache_dir}",
+                                                       "optim.epochs=50"])
+    train(config, train_dataset, tmp_path / "reference", progress=False, max_steps=saved + 3)
+    reference = _rows(tmp_path / "reference" / "log.csv")
+    resumed = _rows(out / "log.csv")
+    assert [int(r["step"]) for r in resumed] == list(range(1, saved + 4))
+    for row, expected in zip(resumed, reference, strict=True):
+        for key in ("loss", "lr", "grad_norm", *LOSS_TERMS):
+            assert row[key] == expected[key], (row["step"], key, row[key], expected[key])
+
+
 @pytest.mark.parametrize("workers", [0, 2])
 def test_a_prefetched_run_repeats_the_reference(train_dataset, cache_dir, reference_run,
                                                 tmp_path, workers):

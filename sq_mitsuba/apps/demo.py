@@ -480,7 +480,7 @@ def _predict_and_score(predictor: Any, data: Path, options: DemoOptions,
     records: list[dict[str, Any]] = []
     rows: list[dict[str, Any]] = []
     with progress_bar(total=len(dataset), unit="img", disable=not progress, dynamic_ncols=True,
-              desc="predict, refine, score") as bar:
+                      desc="predict, refine, score") as bar:
         for start in range(0, len(dataset), options.batch_size):
             chunk = list(range(start, min(start + options.batch_size, len(dataset))))
             batch = collate([dataset[i] for i in chunk])

@@ -278,7 +278,7 @@ def _evaluate(predictor: Any, data_root: Path, out_dir: Path, options: EvalOptio
     batches = -(-len(indices) // options.batch_size)
     loop_started = time.perf_counter()
     with progress_bar(total=len(indices), unit="img", disable=not progress, dynamic_ncols=True,
-              desc=f"eval {options.split}") as bar:
+                      desc=f"eval {options.split}") as bar:
         for number, start in enumerate(range(0, len(indices), options.batch_size), start=1):
             chunk = indices[start:start + options.batch_size]
 

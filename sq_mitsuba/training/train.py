@@ -71,6 +71,7 @@ from sq_mitsuba.io import atomic_write_json
 from sq_mitsuba.model.checkpoint import load_weights, read_checkpoint
 from sq_mitsuba.model.network import SuperquadricNet
 from sq_mitsuba.outputs import output_lock
+from sq_mitsuba.progress import progress_bar
 from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer
 from sq_mitsuba.training.cache import dataset_fingerprint
 from sq_mitsuba.training.config import TrainConfig
@@ -107,6 +108,7 @@ from sq_mitsuba.training.run.folder import (
     remove_stale_temporaries,
     save_checkpoint,
 )
+from sq_mitsuba.training.run.interrupt import StepInterrupt
 from sq_mitsuba.training.run.log import RunLog, plot_curves
 from sq_mitsuba.training.run.state import TrainError, TrainResult, TrainRun
 from sq_mitsuba.training.schedule import cosine_lr_factor, make_optimizer
@@ -314,8 +316,7 @@ class _Loop:
         if cfg.channels_last:
             to_channels_last(network)
         self.model = wrap_model(network, run.device, world)
-        self.optimizer, self.scheduler = make_optimizer(self.model, cfg.optim,
-                                                        self.total_steps)
+        self.optimizer, self.scheduler = make_optimizer(self.model, cfg.optim, self.total_steps)
         self.best: dict[str, Any] | None = None
         self.history: list[dict[str, float]] = []
         if checkpoint is not None:
@@ -379,15 +380,15 @@ class _Loop:
                                           cfg.data.prefetch_workers)
         bar = None
         if run.progress and world.main:
-            from sq_mitsuba.progress import progress_bar
-
             bar = progress_bar(total=end_step, initial=start_step, unit="step", desc="train",
-                       dynamic_ncols=True)
+                               dynamic_ncols=True)
         timed_images, timed_seconds = 0, 0.0
         stop_at = None if run.max_seconds is None else time.perf_counter() + run.max_seconds
+        interrupt = StepInterrupt(world.size)  # Ctrl-C: the step ends, is saved, then stops
         try:
             for step in range(start_step, end_step):
-                row, seconds = self._step(step)
+                with interrupt.step():
+                    row, seconds = self._step(step)
                 result.train_seconds += seconds
                 if step > start_step:  # the first step compiles kernels and fills caches
                     timed_images += cfg.optim.batch_size
@@ -403,18 +404,21 @@ class _Loop:
                                     img_s=f"{row['images_per_s']:.1f}")
                     bar.update(1)
                 epoch_end = done % self.steps_per_epoch == 0
-                if epoch_end and self._validates(done):
+                if epoch_end and self._validates(done) and not interrupt.pending:
                     self._validate(done, result)
                 # Every process stops at the same step (rank 0's clock decides).
                 out_of_time = stop_at is not None and done < end_step and bool(
                     broadcast_object(time.perf_counter() >= stop_at, world))
-                if done == end_step or out_of_time or (epoch_end and cfg.checkpoint_each_epoch) or (
+                if done == end_step or out_of_time or interrupt.pending or (
+                        epoch_end and cfg.checkpoint_each_epoch) or (
                         cfg.checkpoint_every and done % cfg.checkpoint_every == 0):
                     self.save(LAST, done)
                     result.last_checkpoint = out_dir / LAST
                     barrier(world)
                 if out_of_time:
                     break
+                if interrupt.pending:
+                    raise KeyboardInterrupt
         finally:
             self._close(bar)
         if self.best is None and result.steps > start_step:
