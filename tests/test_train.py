@@ -59,6 +59,18 @@ def cache_dir(tmp_path_factory) -> Path:
     return tmp_path_factory.mktemp("train_cache")
 
 
+def _wait_for_steps(process: subprocess.Popen, out: Path, steps: int) -> None:
+    """Until the training run in ``process`` has logged ``steps`` steps into ``out``."""
+    deadline = time.monotonic() + 240
+    while time.monotonic() < deadline:
+        log = out / "log.csv"
+        if log.is_file() and len(log.read_text().splitlines()) >= 1 + steps:
+            return
+        assert process.poll() is None, process.stdout.read().decode()[-2000:]
+        time.sleep(0.02)
+    pytest.fail(f"the training run logged no {steps} steps in time")
+
+
 def _cli(args: list[str], capsys) -> tuple[int, str]:
     code = main(args)
     return code, capsys.readouterr().err
@@ -272,16 +284,8 @@ def test_sigkill_then_resume_repeats_the_uninterrupted_run(train_dataset, cache_
         [sys.executable, "-m", "sq_mitsuba", "train", "--config", str(TINY), "--data",
          str(train_dataset), "--out", str(out), "--quiet", *sets, "--set",
          "reprojection.workers=2"], env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
-    deadline = time.monotonic() + 240
     try:
-        while time.monotonic() < deadline:
-            log = out / "log.csv"
-            if log.is_file() and len(log.read_text().splitlines()) >= 1 + 3:
-                break
-            assert process.poll() is None, process.stdout.read().decode()[-2000:]
-            time.sleep(0.02)
-        else:
-            pytest.fail("the training run logged no 3 steps in time")
+        _wait_for_steps(process, out, 3)
         workers = _children(process.pid)
         assert len(workers) == 2, workers
         os.kill(process.pid, signal.SIGKILL)
@@ -327,16 +331,8 @@ def test_ctrl_c_saves_the_step_it_lands_in_and_resume_repeats_the_run(train_data
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
         # As from a terminal (pytest-xdist's workers ignore SIGINT, and children inherit it).
         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
-    deadline = time.monotonic() + 240
     try:
-        while time.monotonic() < deadline:
-            log = out / "log.csv"
-            if log.is_file() and len(log.read_text().splitlines()) >= 1 + 5:
-                break
-            assert process.poll() is None, process.stdout.read().decode()[-2000:]
-            time.sleep(0.02)
-        else:
-            pytest.fail("the training run logged no 5 steps in time")
+        _wait_for_steps(process, out, 5)
         process.send_signal(signal.SIGINT)
         output = process.communicate(timeout=60)[0].decode()
     finally:
