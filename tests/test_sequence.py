@@ -668,3 +668,46 @@ def test_the_dataset_body_frame_changes_the_frame_not_the_posed_surface(eval_che
             result.translation.double()[:, None]
 
     torch.testing.assert_close(posed(canonical), posed(plain), atol=1e-6, rtol=0)
+
+
+def test_given_relative_rotations_start_the_pass_at_the_mean_of_the_carried_readings(
+        eval_checkpoint, train_dataset, monkeypatch):
+    """With the rotations between frames given, the pass starts from one rotation: the chordal
+    mean (numpy's SVD here) of every frame's reading carried back to frame 0, not one frame's
+    reading; each frame's start is that rotation carried forward."""
+    import json
+
+    from PIL import Image
+
+    from sq_mitsuba.geometry.rotation import quaternion_to_matrix
+    from sq_mitsuba.inference import sequence
+    from sq_mitsuba.render.backend import one_thread
+
+    model = next(line.split(",")[0] for line in
+                 (train_dataset / "splits.csv").read_text().splitlines()
+                 if line.endswith(",test"))
+    labels = json.loads((train_dataset / model / "labels.json").read_text())[:4]
+    images = torch.from_numpy(np.stack([np.asarray(Image.open(
+        train_dataset / model / "images" / label["filename"])) for label in labels])).float()
+    truth = quaternion_to_matrix(torch.tensor([label["q_vbs2tango_true"] for label in labels],
+                                              dtype=torch.float64))
+    relative = truth @ truth[0].T  # Q_j = R_j R_0^T
+    starts = []
+
+    def spy(assembly, rotation, *args, **kwargs):
+        starts.append(rotation.clone())
+        return fit_sequence(assembly, rotation, *args, **kwargs)
+
+    monkeypatch.setattr(sequence, "fit_sequence", spy)
+    with one_thread():
+        frames = load_model(eval_checkpoint).predict(images / 255, refine=True)
+        result = sequence.sequence_from_frames(frames, relative, options=SequenceOptions(
+            steps=2))
+    carried = (relative.transpose(-1, -2) @ frames.rotation.double() @ result.half_turns
+               ).numpy()
+    u, _, vh = np.linalg.svd(carried.mean(0))
+    mean = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vh)]) @ vh
+    np.testing.assert_allclose(starts[0].numpy(), (relative @ torch.from_numpy(mean)).numpy(),
+                               atol=1e-9)
+    assert rotation_error_deg(torch.from_numpy(mean)[None],
+                              torch.from_numpy(carried[:1])).item() > 0.01  # not frame 0's
