@@ -328,6 +328,39 @@ def test_phase_angle_changes_the_image_and_eclipse_darkens_it(lit_scene):
     assert dark.mean() < 2.0 and lit.mean() > 10 * max(dark.mean(), 0.1)
 
 
+def test_each_part_renders_in_its_own_material(lit_scene):
+    """Two equal plates side by side facing the camera, the sun 40 deg off the line of sight
+    (no specular highlight towards the camera): the white-painted one returns the radiance of
+    a Lambertian reflector of its reflectance, 0.85 E cos(40 deg) / pi (by hand), and many
+    times the solar cell's (rough plastic over a 0.03 diffuse layer); with every part in one
+    material the two would be equal."""
+    import trimesh
+
+    _, frame = lit_scene
+    left, right = (trimesh.creation.box([0.4, 0.4, 0.05]) for _ in range(2))
+    left.apply_translation([-0.25, 0.0, 0.0])
+    right.apply_translation([0.25, 0.0, 0.0])
+    plates = trimesh.util.concatenate([left, right])
+    tags = np.array(["white_paint"] * len(left.faces) + ["solar_cell"] * len(right.faces))
+    camera = Camera.default(RESOLUTION)
+    config = SceneConfig.load()
+    scene = SpaceScene(plates.vertices, plates.faces, tags, camera, config, spp=16)
+    angle = np.radians(40.0)
+    sun = np.array([0.0, np.sin(angle), -np.cos(angle)])  # towards the sun, camera frame
+    head_on = dataclasses.replace(
+        _with_light(frame, sun, np.array([0.0, 0.0, 1.0])),  # the Earth behind the plates
+        quaternion=(1.0, 0.0, 0.0, 0.0), translation=(0.0, 0.0, 2.5), phase_angle_deg=40.0)
+    rendered = scene.render(head_on)
+    inside = rendered.coverage > 0.99
+    half = RESOLUTION // 2
+    white = rendered.radiance[:, :half][inside[:, :half]]
+    solar = rendered.radiance[:, half:][inside[:, half:]]
+    assert len(white) > 50 and len(solar) > 50
+    lambertian = 0.85 * config.sun.irradiance * np.cos(angle) / np.pi
+    assert float(np.median(white)) == pytest.approx(lambertian, rel=0.05)
+    assert white.mean() > 10 * solar.mean() > 0
+
+
 # ------------------------------------------------------------------------ bad input
 
 
