@@ -271,6 +271,11 @@ def _paper_with(tmp_path: Path, text: str) -> Path:
     return path
 
 
+def _paper_edited(tmp_path: Path, old: str, new: str) -> Path:
+    """The shipped paper tables with their first ``old`` replaced by ``new``."""
+    return _paper_with(tmp_path, PAPER_TABLES.read_text().replace(old, new, 1))
+
+
 REPORT_CASES = {
     "paper missing": lambda f, t: (["--paper", t / "nope.toml"], t / "nope.toml", "no such file"),
     "paper empty": lambda f, t: (["--paper", _paper_with(t, "")], t / "paper.toml",
@@ -279,20 +284,16 @@ REPORT_CASES = {
         ["--paper", ROOT / "train" / "configs" / "a.toml"], ROOT / "train" / "configs" / "a.toml",
         "unknown key"),
     "paper has NaN": lambda f, t: (
-        ["--paper", _paper_with(t, PAPER_TABLES.read_text().replace("[0.054, 0.026]",
-                                                                    "[nan, 0.026]", 1))],
+        ["--paper", _paper_edited(t, "[0.054, 0.026]", "[nan, 0.026]")],
         t / "paper.toml", "table1.a.val.chamfer_l1: expected a finite number"),
     "paper has a number as text": lambda f, t: (
-        ["--paper", _paper_with(t, PAPER_TABLES.read_text().replace("[0.054, 0.026]",
-                                                                    '["0.054", 0.026]', 1))],
+        ["--paper", _paper_edited(t, "[0.054, 0.026]", '["0.054", 0.026]')],
         t / "paper.toml", "table1.a.val.chamfer_l1: expected a number, got the text '0.054'"),
     "paper has a negative Chamfer": lambda f, t: (
-        ["--paper", _paper_with(t, PAPER_TABLES.read_text().replace("[0.054, 0.026]",
-                                                                    "[-5, 0.026]", 1))],
+        ["--paper", _paper_edited(t, "[0.054, 0.026]", "[-5, 0.026]")],
         t / "paper.toml", "table1.a.val.chamfer_l1: mean -5 outside [0, inf]"),
     "paper has an IoU above 1": lambda f, t: (
-        ["--paper", _paper_with(t, PAPER_TABLES.read_text().replace("iou_2d = [0.594, 0.183]",
-                                                                    "iou_2d = [59.4, 0.183]", 1))],
+        ["--paper", _paper_edited(t, "iou_2d = [0.594, 0.183]", "iou_2d = [59.4, 0.183]")],
         t / "paper.toml", "table1.a.val.iou_2d: mean 59.4 outside [0, 1]"),
     "paper syntax error": lambda f, t: (["--paper", _paper_with(t, "[table1\nlabel = 1\n")],
                                         t / "paper.toml", "malformed TOML"),

@@ -120,8 +120,10 @@ def one_thread(enabled: bool = True) -> Iterator[None]:
     Convention: with several threads Dr.Jit sums gradients with atomic float32 additions whose
     order follows the threads' timing, so two runs with the same seed part in the last bits
     after the first backward pass and drift from there; on one thread they are bit-identical.
+    The variant is left as it is (only set up, by :func:`mitsuba`, where Dr.Jit is not yet).
     """
-    mitsuba()
+    if "drjit" not in sys.modules:
+        mitsuba()
     import drjit as dr
 
     previous = dr.thread_count()
