@@ -22,7 +22,7 @@ from sq_mitsuba.data.mesh_processing import (
     sample_triangles,
     signed_volume,
 )
-from sq_mitsuba.render.depth import RayCaster
+from sq_mitsuba.render.depth import VOTE_DIRECTIONS, RayCaster
 
 
 def _tagged(mesh: trimesh.Trimesh) -> TaggedMesh:
@@ -274,3 +274,20 @@ def test_a_rewrite_cut_between_its_renames_keeps_the_old_model(tmp_path, monkeyp
     real_replace(folder, folder.parent / ".models.old.99999")
     assert import_model(path, tmp_path / "lib", points=300) == folder
     assert sorted(p.name for p in folder.parent.iterdir()) == ["models"]
+
+
+def test_inside_is_the_majority_of_three_rays() -> None:
+    """A unit box open at +z: from its centre the first vote direction leaves through the
+    opening (no hit) and the other two meet walls from behind, two votes of three: inside.
+    From above the opening only the second direction enters, to meet a wall from behind,
+    one vote of three: outside. A unanimous rule or a single vote would flip one of them."""
+    box = trimesh.creation.box([1.0, 1.0, 1.0])
+    open_top = box.faces[box.face_normals[:, 2] < 0.5]
+    caster = RayCaster(np.asarray(box.vertices), np.asarray(open_top))
+    centre, above = np.zeros(3), np.array([0.2, -0.1, 0.7])
+    # The rays' own story, one direction at a time (distance to the first hit, face).
+    t_centre = [caster.first_hit(centre[None], d)[0][0] for d in VOTE_DIRECTIONS]
+    t_above = [caster.first_hit(above[None], d)[0][0] for d in VOTE_DIRECTIONS]
+    assert np.isinf(t_centre[0]) and np.isfinite(t_centre[1:]).all()
+    assert np.isfinite(t_above[1]) and np.isinf([t_above[0], t_above[2]]).all()
+    assert caster.inside(np.stack([centre, above])).tolist() == [True, False]

@@ -19,6 +19,7 @@ from sq_mitsuba.data.spacecraft import (
     generate_spacecraft,
 )
 from sq_mitsuba.data.spacecraft.generator import MAX_CATALOGUE_COUNT, TEST_STRATA, catalogue_split
+from sq_mitsuba.data.spacecraft.parts import CUBESAT_UNITS, cubesat_bus
 from sq_mitsuba.render.depth import RayCaster
 
 # Distinctness threshold: occnet Chamfer-L1 between two unit-size models at 20,000 surface
@@ -195,3 +196,29 @@ def test_catalogue_seed_and_count_ranges() -> None:
     with pytest.raises(ValueError, match="count"):
         catalogue(MAX_CATALOGUE_COUNT + 1, 0)
     assert len(catalogue(3, 2**32 - 1)) == 3
+
+
+@pytest.mark.parametrize("units", sorted(CUBESAT_UNITS))
+def test_cubesat_rails_at_the_corners_and_proud_of_the_ends(units: int) -> None:
+    """Four 8.5 mm square rails along z at the corners of the U envelope (their outer faces
+    on it), standing 7 mm proud of each end of the body; a 1U is then the CubeSat Design
+    Specification's 100 x 100 x 113.5 mm to 0.5 mm."""
+    parts = cubesat_bus(units, thin=0.002)
+    body = [np.array(p.solid.bounding_box()) for p in parts if p.kind == "cubesat_body"]
+    rails = [np.array(p.solid.bounding_box()) for p in parts if p.kind == "cubesat_rail"]
+    assert len(body) == 1 and len(rails) == 4
+    envelope = np.array(CUBESAT_UNITS[units], float) * 0.1
+    corners = set()
+    for low, high in ((r[:3], r[3:]) for r in rails):
+        np.testing.assert_allclose(high[:2] - low[:2], [0.0085, 0.0085], atol=1e-9)
+        outer = np.where(low[:2] < 0, low[:2], high[:2])
+        np.testing.assert_allclose(np.abs(outer), envelope[:2] / 2, atol=1e-9)
+        corners.add(tuple(np.sign(outer)))
+        np.testing.assert_allclose([body[0][2] - low[2], high[2] - body[0][5]], [0.007, 0.007],
+                                   atol=1e-9)
+    assert len(corners) == 4
+    np.testing.assert_allclose(body[0][5] - body[0][2], envelope[2], atol=1e-9)
+    if units == 1:
+        whole = np.array([min(r[k] for r in rails) for k in range(3)]
+                         + [max(r[k] for r in rails) for k in range(3, 6)])
+        np.testing.assert_allclose(whole[3:] - whole[:3], [0.100, 0.100, 0.1135], atol=5e-4)
