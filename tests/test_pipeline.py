@@ -11,6 +11,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -111,6 +112,32 @@ def test_predict_refine_is_what_eval_refine_scores(eval_checkpoint, train_datase
     assert bool(fitted.fit.fitted.any())
     mean = sum(float(row["rotation_error_deg"]) for row in rows) / len(rows)
     assert mean == pytest.approx(float(errors.mean()), abs=1e-6)
+
+
+def test_the_refined_pose_is_the_same_to_the_last_bit_on_many_threads(eval_checkpoint,
+                                                                     train_dataset):
+    """Several Dr.Jit threads sum the silhouettes' samples and gradients in the order of their
+    timing, and Adam turns a near-zero gradient's sign into a full step: the search and the
+    refinement render on one thread by default (``RefineOptions.deterministic``), so two runs
+    on a machine of four threads agree to the last bit, and its threads are left as they were."""
+    import drjit as dr
+
+    image = torch.from_numpy(np.array(Image.open(_test_image(train_dataset))))[None]
+    predictor = load_model(eval_checkpoint)
+    network = predictor.predict(image)
+    before = dr.thread_count()
+    dr.set_thread_count(4)
+    try:
+        runs = [predictor.refine(image, network, search=SEARCH,
+                                 refinement=replace(REFINEMENT, steps=12, patience=12))
+                for _ in range(3)]
+        assert dr.thread_count() == 4
+    finally:
+        dr.set_thread_count(before)
+    for run in runs[1:]:
+        assert torch.equal(run.rotation, runs[0].rotation)
+        assert torch.equal(run.translation, runs[0].translation)
+        assert torch.equal(run.fit.candidate_scores, runs[0].fit.candidate_scores)
 
 
 def test_the_fit_records_what_was_fitted_and_keeps_the_networks_reading(eval_checkpoint,

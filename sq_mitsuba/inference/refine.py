@@ -42,6 +42,7 @@ from sq_mitsuba.geometry.assembly import FIELDS, Assembly, ParameterRanges
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.rotation import axis_angle_to_matrix, matrix_to_axis_angle
 from sq_mitsuba.model.losses import silhouette_loss
+from sq_mitsuba.render.backend import one_thread
 
 # Keeps squashed values strictly inside their open ranges before the inverse squash.
 _EDGE = 1e-4
@@ -88,6 +89,10 @@ class RefineOptions:
     "Silhouette samples per pixel in the forward pass."
     seed: int = in_range(0, 2**31 - 1, default=0)
     "Seed of the renderer's samples."
+    deterministic: bool = True
+    """Render on one Dr.Jit thread (the search with it, in :func:`search_and_refine`), so that
+    the same image gives the same pose and shape to the last bit: several threads sum the
+    silhouettes' samples and gradients in the order of their timing. False: all threads."""
 
 
 #: The refinement for an outline rather than a shape: every shape parameter follows the mask
@@ -307,38 +312,39 @@ def refine_pose_and_shape(assembly: Assembly, rotation: Tensor, translation: Ten
         best_translation[better] = translation_now[better]
         return bool(better.any())
 
-    for _ in range(options.steps):
-        optimizer.zero_grad(set_to_none=True)
-        rotation_now, translation_now = pose()
-        raw = current_raw()
-        current = Assembly.from_raw(raw)
-        silhouette, coverage = render_assembly_loss(
-            current, rotation_now, translation_now, renderer,
-            lambda view, i: silhouette_loss(view[None], targets[i, None].to(view.dtype),
-                                            options.loss), options.level)
-        prior = options.prior_weight * ((raw - raw0) ** 2).mean(dim=(1, 2)).sum() \
-            + options.rotation_prior * rotation_vector.square().sum()
-        if shared:  # the one shape's prior weighs as much as B items' would
-            prior = prior + (batch - 1) * options.prior_weight * ((raw - raw0) ** 2).mean()
-        (silhouette + prior).backward()
-        losses.append(float(silhouette.detach()))
+    with one_thread(options.deterministic):  # the same start, the same result
+        for _ in range(options.steps):
+            optimizer.zero_grad(set_to_none=True)
+            rotation_now, translation_now = pose()
+            raw = current_raw()
+            current = Assembly.from_raw(raw)
+            silhouette, coverage = render_assembly_loss(
+                current, rotation_now, translation_now, renderer,
+                lambda view, i: silhouette_loss(view[None], targets[i, None].to(view.dtype),
+                                                options.loss), options.level)
+            prior = options.prior_weight * ((raw - raw0) ** 2).mean(dim=(1, 2)).sum() \
+                + options.rotation_prior * rotation_vector.square().sum()
+            if shared:  # the one shape's prior weighs as much as B items' would
+                prior = prior + (batch - 1) * options.prior_weight * ((raw - raw0) ** 2).mean()
+            (silhouette + prior).backward()
+            losses.append(float(silhouette.detach()))
+            with torch.no_grad():
+                ious = mask_iou(coverage, targets)
+                if iou_before is None:
+                    iou_before = ious.clone()
+                improved = remember(ious, raw.detach(), rotation_now.detach(),
+                                    translation_now.detach())
+            optimizer.step()
+            steps += 1
+            stale = 0 if improved else stale + 1
+            if stale >= options.patience:
+                break
         with torch.no_grad():
-            ious = mask_iou(coverage, targets)
-            if iou_before is None:
-                iou_before = ious.clone()
-            improved = remember(ious, raw.detach(), rotation_now.detach(),
-                                translation_now.detach())
-        optimizer.step()
-        steps += 1
-        stale = 0 if improved else stale + 1
-        if stale >= options.patience:
-            break
-    with torch.no_grad():
-        rotation_now, translation_now = pose()
-        raw = current_raw()
-        coverage = render_assembly(Assembly.from_raw(raw), rotation_now, translation_now,
-                                   renderer, options.level)
-        remember(mask_iou(coverage, targets), raw.detach(), rotation_now, translation_now)
+            rotation_now, translation_now = pose()
+            raw = current_raw()
+            coverage = render_assembly(Assembly.from_raw(raw), rotation_now, translation_now,
+                                       renderer, options.level)
+            remember(mask_iou(coverage, targets), raw.detach(), rotation_now, translation_now)
     assert iou_before is not None
     return RefineResult(Assembly.from_raw(best_raw), best_rotation, best_translation,
                         iou_before, best_iou.clone(), steps, losses)
