@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import re
+import shutil
 import struct
 from pathlib import Path
 
@@ -310,3 +311,129 @@ def test_a_model_in_both_splits_is_refused_naming_the_line(tmp_path):
     with pytest.raises(DatasetError, match=rf"^{re.escape(str(path))}:3: 'a' is listed as "
                                            "train above and as test here$"):
         read_splits(path)
+
+
+def _identity(folder: Path) -> int:
+    """The inode of a model's ``models/`` folder: write_model replaces the folder, so a model
+    built again gets a new one."""
+    return (folder / "models").stat().st_ino
+
+
+def test_a_rerun_keeps_complete_models_and_rebuilds_the_rest(tmp_path, capsys) -> None:
+    """Run again into the same --out (after an interrupt), a batch builds only what is not
+    there complete: not a model whose files are all there with the same --points."""
+    names = [e.name for e in catalogue(3, SEED)]
+    out = tmp_path / "lib"
+    generate_library(GenerateOptions(out=out, count=2, seed=SEED, points=200), progress=False)
+    before = {name: _identity(out / name) for name in names[:2]}
+    summary = generate_library(GenerateOptions(out=out, count=3, seed=SEED, points=200),
+                               progress=False)
+    assert summary.ok and summary.written == names
+    assert {name: _identity(out / name) for name in names[:2]} == before  # not built again
+    assert summary.kept == names[:2]
+    assert "3 model(s) written to" in summary.text() and "(2 of them already there" in \
+        summary.text()
+    # A model missing one of its files is built again, as is every model at other --points.
+    (out / names[1] / "models" / "model_normalized.glb").unlink()
+    summary = generate_library(GenerateOptions(out=out, count=3, seed=SEED, points=200),
+                               progress=False)
+    assert summary.kept == [names[0], names[2]]
+    assert (out / names[1] / "models" / "model_normalized.glb").is_file()
+    summary = generate_library(GenerateOptions(out=out, count=3, seed=SEED, points=150),
+                               progress=False)
+    assert summary.ok and summary.kept == []
+    card = json.loads((out / names[0] / "models" / "model_card.json").read_text())
+    assert card["samples"]["surface"] == 150
+    # --rebuild builds every model again; the CLI line says how many were already there.
+    kept = _identity(out / names[0])
+    assert main(["models", "generate", "--count", "3", "--seed", str(SEED), "--out", str(out),
+                 "--points", "150"]) == 0
+    assert "3 model(s) written to" in capsys.readouterr().out
+    assert _identity(out / names[0]) == kept
+    assert main(["models", "generate", "--count", "3", "--seed", str(SEED), "--out", str(out),
+                 "--points", "150", "--rebuild"]) == 0
+    assert "already there" not in capsys.readouterr().out
+    assert _identity(out / names[0]) != kept
+
+
+def _dead_write(folder: Path, name: str, source: Path) -> Path:
+    """What a write killed by SIGKILL leaves: the model's files in a hidden folder."""
+    path = folder / name
+    shutil.copytree(source, path)
+    return path
+
+
+def test_a_killed_runs_temporary_folders_are_ignored_then_removed(tmp_path) -> None:
+    """Leftovers of writes killed outright: readers never list them, and the next generate
+    removes them (an old model with no new one beside it is put back, and kept)."""
+    from sq_mitsuba.data.contact_sheet import library_models
+    from sq_mitsuba.data.spe3r.writer import find_models
+
+    names = [e.name for e in catalogue(3, SEED)]
+    out = tmp_path / "lib"
+    generate_library(GenerateOptions(out=out, count=3, seed=SEED, points=200), progress=False)
+    model = out / names[0] / "models"
+    leftovers = [
+        _dead_write(out / names[0], ".models.k1ll3d_x", model),   # a rewrite, killed
+        _dead_write(out / names[1], ".models.old.4242", model),   # cut after its renames
+        _dead_write(out / "sc099_first", ".models.abcd_123", model),  # a first write, killed
+    ]
+    (out / ".splits.a1b2c3d4.tmp.csv").write_text("half a line")
+    leftovers.append(out / ".splits.a1b2c3d4.tmp.csv")
+    # Cut between its two renames: the model is aside, no models/ in its place.
+    old = out / names[2] / ".models.old.4343"
+    (out / names[2] / "models").rename(old)
+    inode = old.stat().st_ino
+
+    assert find_models(out) == sorted(names)  # the orphan is not a model, nor the hidden ones
+    assert library_models(out) == [out / n / "models" / "model_normalized.obj"
+                                   for n in names[:2]]
+
+    summary = generate_library(GenerateOptions(out=out, count=3, seed=SEED, points=200),
+                               progress=False)
+    assert not any(path.exists() for path in leftovers)
+    assert not (out / "sc099_first").exists() and not old.exists()
+    assert list(out.rglob(".models*")) == []
+    assert sorted(p.name for p in out.iterdir()) == sorted([*names, "splits.csv"])
+    assert summary.ok and summary.kept == names  # the old model came back complete
+    assert (out / names[2] / "models").stat().st_ino == inode
+
+
+def test_leftovers_are_removed_only_under_the_librarys_lock(tmp_path) -> None:
+    from sq_mitsuba.data.library import remove_dead_writes
+    from sq_mitsuba.outputs import output_lock
+
+    leftover = tmp_path / "lib" / "m" / ".models.abcdefgh"
+    leftover.mkdir(parents=True)
+    assert remove_dead_writes(tmp_path / "lib") == []  # no lock held: maybe another run's
+    assert leftover.is_dir()
+    with output_lock(tmp_path / "lib"):
+        assert remove_dead_writes(tmp_path / "lib") == [leftover]
+    assert not (tmp_path / "lib" / "m").exists()
+
+
+def test_import_frees_a_name_a_killed_import_left_taken(tmp_path, capsys) -> None:
+    box = tmp_path / "a.obj"
+    trimesh.creation.box([1.0, 0.5, 0.25]).export(box)
+    out = tmp_path / "lib"
+    (out / "a" / ".models.abcdefgh").mkdir(parents=True)
+    (out / "a" / ".models.abcdefgh" / "model_normalized.obj").write_text("v 0 0 0\n")
+    assert main(["models", "import", str(box), "--out", str(out), "--points", "200"]) == 0
+    assert f"{box} -> a\n" in capsys.readouterr().out
+    assert sorted(p.name for p in (out / "a").iterdir()) == ["models"]
+
+
+def test_a_model_put_back_from_a_killed_rewrite_is_never_replaced(tmp_path) -> None:
+    """A model aside as ``.models.old.<pid>`` (a rewrite killed between its renames) is a
+    model of the library: another spacecraft of its name is refused, as for ``models/``."""
+    name = catalogue(1, SEED)[0].name
+    out = tmp_path / "lib"
+    generate_library(GenerateOptions(out=out, count=1, seed=SEED, points=200), progress=False)
+    card_path = out / name / "models" / "model_card.json"
+    card = json.loads(card_path.read_text())
+    card_path.write_text(json.dumps({**card, "seed": card["seed"] + 1}))  # another spacecraft
+    (out / name / "models").rename(out / name / ".models.old.77")
+    with pytest.raises(ValueError, match="holds another spacecraft of this name"):
+        generate_library(GenerateOptions(out=out, count=1, seed=SEED, points=200),
+                         progress=False)
+    assert json.loads(card_path.read_text())["seed"] == card["seed"] + 1

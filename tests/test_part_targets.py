@@ -15,6 +15,7 @@ import torch
 
 from sq_mitsuba.cli import main
 from sq_mitsuba.config import apply_overrides
+from sq_mitsuba.data.spe3r.layout import read_splits
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.model.losses import surface_chamfer_loss
 from sq_mitsuba.model.network import SuperquadricNet, initial_raw, sphere_directions
@@ -113,8 +114,8 @@ def test_part_target_files_round_trip_and_bad_ones_are_one_line_errors(train_dat
     with pytest.raises(PartTargetError, match=r"missing .*dataset fit-parts") as missing:
         load_part_targets(data, models, 2)
     assert "\n" not in str(missing.value)
-    assert fit_part_targets(data, models[:2], 2, steps=5, progress=False) == 2
-    assert fit_part_targets(data, models[:2], 2, steps=5, progress=False) == 0  # resumes
+    assert fit_part_targets(data, models[:2], 2, steps=5, progress=False).fitted == 2
+    assert fit_part_targets(data, models[:2], 2, steps=5, progress=False).fitted == 0  # resumes
     table = load_part_targets(data, models[:2], 2)
     assert table.shape == (2, 2, 16) and torch.isfinite(table).all()
     with np.load(part_targets_path(data, models[0])) as archive:
@@ -134,7 +135,7 @@ def test_part_target_files_round_trip_and_bad_ones_are_one_line_errors(train_dat
     path.write_bytes(path.read_bytes()[: len(path.read_bytes()) // 2])
     with pytest.raises(PartTargetError, match=f"{re.escape(str(path))}: cannot read"):
         load_part_targets(data, models[:1], 2)
-    assert fit_part_targets(data, models[:1], 2, steps=5, progress=False) == 1
+    assert fit_part_targets(data, models[:1], 2, steps=5, progress=False).fitted == 1
     assert load_part_targets(data, models[:1], 2).shape == (1, 2, 16)
 
 
@@ -156,6 +157,48 @@ def test_the_parts_term_trains_once_the_targets_are_fitted(train_dataset, tmp_pa
     header = rows[0].split(",")
     values = [float(v) for v in rows[-1].split(",")[header.index("parts"):][:1]]
     assert values[0] > 0
+
+
+def test_a_rerun_with_other_settings_fits_again_and_says_so(train_dataset, tmp_path, capsys):
+    """`fit-parts --steps 7` after a 3-step run replaces the 3-step fits (it kept them
+    silently), naming the earlier setting; the same settings again keep every fit."""
+    data = tmp_path / "data"
+    shutil.copytree(train_dataset, data)
+    fit_parts = ["dataset", "fit-parts", str(data), "--primitives", "2", "--quiet"]
+    paths = [part_targets_path(data, model) for model, split
+             in read_splits(data / "splits.csv").items() if split == "train"]
+    assert len(paths) == 2
+    assert main([*fit_parts, "--steps", "3"]) == 0
+    assert "2 fitted, 0 already there" in capsys.readouterr().out
+    assert main([*fit_parts, "--steps", "7"]) == 0
+    out = capsys.readouterr().out
+    assert "2 fitted (2 of them fitted again: made with --steps 3 (2)), 0 already there" in out
+    for path in paths:
+        with np.load(path) as archive:
+            assert (int(archive["steps"]), int(archive["points"])) == (7, 1000)
+    assert main([*fit_parts, "--steps", "7"]) == 0
+    assert "0 fitted, 2 already there" in capsys.readouterr().out
+
+
+def test_a_fit_without_a_record_of_its_settings(train_dataset, tmp_path):
+    """A file from before `points` was recorded counts as made with the 1,000 points every
+    fit drew then (kept); one without `steps` (never written by fit-parts) is fitted again."""
+    data = tmp_path / "data"
+    shutil.copytree(train_dataset, data)
+    models = sorted(p.name for p in data.iterdir() if (p / "labels.json").is_file())[:2]
+    assert fit_part_targets(data, models, 2, steps=3, progress=False).fitted == 2
+    for model, keep in zip(models, (("raw", "chamfer", "steps"), ("raw", "chamfer")),
+                           strict=True):
+        path = part_targets_path(data, model)
+        with np.load(path) as archive:
+            arrays = {k: archive[k] for k in keep}
+        np.savez(path, **arrays)
+    fits = fit_part_targets(data, models, 2, steps=3, progress=False)
+    assert fits.fitted == 1 and fits.refitted == {models[1]: "--steps not recorded"}
+    fits = fit_part_targets(data, models, 2, steps=3, points=500, progress=False)
+    assert fits.refitted == {models[0]: "points 1000", models[1]: "points 1000"}
+    fits = fit_part_targets(data, models, 3, steps=3, points=500, progress=False)
+    assert fits.refitted == {model: "--primitives 2" for model in models}
 
 
 @pytest.mark.parametrize("argv, message", [

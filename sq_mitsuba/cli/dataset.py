@@ -4,6 +4,7 @@ Mitsuba, and the part targets of their training models."""
 from __future__ import annotations
 
 import argparse
+from collections import Counter
 from pathlib import Path
 
 from sq_mitsuba.cli._options import (
@@ -91,8 +92,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "each from the network's initial layout (300 Adam steps on the Chamfer "
                     "term), and write them beside each mesh as models/part_targets.npz: the "
                     "targets of the `parts` loss term (a training config's loss.weights.parts). "
-                    "Models that already have a fit for M are skipped, so an interrupted run "
-                    "resumes. "
+                    "Models that already have a fit made with these settings (M, --steps) are "
+                    "skipped, so an interrupted run resumes; a fit made with other settings "
+                    "is fitted again, and the count of those and their earlier settings are "
+                    "printed. "
                     "Exit code 2 on bad options or a dataset that cannot be read.")
     fit_parts.add_argument("root", type=Path, help="dataset folder")
     fit_parts.add_argument("--primitives", type=int, default=5, metavar="M",
@@ -158,8 +161,16 @@ def _fit_parts(args: argparse.Namespace) -> int:
     models = sorted(m for m, split in read_splits(splits).items() if split == "train")
     if not models:
         raise CLIError(f"{splits}: no train models")
-    fitted = fit_part_targets(args.root, models, args.primitives, steps=args.steps,
-                              progress=not args.quiet)
-    print(f"part targets of {len(models)} train models (M = {args.primitives}): {fitted} "
-          f"fitted, {len(models) - fitted} already there, in {args.root}")
+    fits = fit_part_targets(args.root, models, args.primitives, steps=args.steps,
+                            progress=not args.quiet)
+    refitted = ""
+    if fits.refitted:
+        # Each distinct earlier setting once, with how many fits had it.
+        earlier = Counter(fits.refitted.values())
+        refitted = (f" ({len(fits.refitted)} of them fitted again: made with "
+                    + "; ".join(f"{setting} ({n})" for setting, n in sorted(earlier.items()))
+                    + ")")
+    print(f"part targets of {len(models)} train models (M = {args.primitives}, steps "
+          f"{args.steps}): {fits.fitted} fitted{refitted}, {len(models) - fits.fitted} already "
+          f"there, in {args.root}")
     return 0

@@ -22,6 +22,10 @@ reason in OUT/failures.json (removed again when they succeed) and get no row. A 
 never replaced by another spacecraft of the same name (catalogues of other seeds reuse names
 such as sc000_twin_wing): such a batch is refused before any work, naming the folder. One
 batch at a time per OUT: a second one started while another writes there stops at once.
+A rerun resumes: a model already complete in OUT (every file there, this catalogue's
+spacecraft, the same --points) is kept, not built again, and counted as "already there";
+--rebuild builds every model again. Temporary folders a killed run left in OUT's model
+folders are removed first.
 With --generator composed the models come from the compositional families (Earth observers,
 relays, deep-space and solar-electric probes, observatories, small satellites, stations...),
 named cs<i:05d>_<family>; three families are held out of training for good
@@ -64,7 +68,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                               "out": "--out", "points": "--points",
                                               "generator": "--generator",
                                               "families": "--families",
-                                              "workers": "--workers"},
+                                              "workers": "--workers",
+                                              "rebuild": "--rebuild"},
                        metavars={"out": "DIR"})
     gen.set_defaults(func=_generate)
 

@@ -28,7 +28,21 @@ names are ``sc<index>_<archetype>``, so the catalogues of two seeds share names 
 spacecraft: ``generate`` refuses, before building anything, a batch in which a model of the
 library has the name of an entry but another archetype or model seed (from its
 ``model_card.json``; a model without a readable card, or an imported one, counts as
-another), naming the folder. Generating the same entry again rebuilds the same spacecraft.
+another), naming the folder.
+
+A rerun resumes: a model already complete in the library (its folder holds every file
+:func:`~sq_mitsuba.data.mesh_processing.write_model` writes, and its card is this entry's:
+same archetype, model seed, catalogue seed and split, and the same ``points`` per sample set)
+is kept, not built again, and counted in the summary's ``written`` and ``kept``; any other
+model of the batch is built (``GenerateOptions.rebuild`` builds every one again).
+
+A run killed outright (``kill -9``, a lost machine) can leave what an atomic write had not
+finished: ``<model>/.models.XXXXXXXX/`` folders (a model being written), a
+``<model>/.models.old.<pid>/`` (a model being replaced, cut between its two renames) and
+temporary files of ``splits.csv`` / ``failures.json``. Readers never see them (they read
+``<model>/models/`` only), and the next ``generate`` or ``import`` into the library removes
+them (an old model with no new one beside it is put back) before it does anything else, under
+the library's lock, so no live run's files are among them.
 
 Imported models are named after their file (:func:`model_name_for`). Convention: the name is
 the file's stem, or ``<stem>_2``, ``<stem>_3``, ... when the stem is already an entry of the
@@ -37,7 +51,9 @@ output folder or was given to an earlier file of the same batch; nothing is over
 
 from __future__ import annotations
 
+import os
 import re
+import shutil
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -46,6 +62,7 @@ from typing import Literal
 import numpy as np
 
 from sq_mitsuba.config import bounds, in_range, validate
+from sq_mitsuba.data.mesh_io import SAMPLES_FILE
 from sq_mitsuba.data.mesh_processing import (
     FUSION_RESOLUTION,
     MESH_SUFFIXES,
@@ -70,7 +87,7 @@ from sq_mitsuba.data.spacecraft.generator import (
 )
 from sq_mitsuba.io import atomic_write_json, check_output_folder, read_json
 from sq_mitsuba.machine import available_memory, too_much_memory
-from sq_mitsuba.outputs import output_lock
+from sq_mitsuba.outputs import lock_path, output_lock, remove_stray_temporaries
 from sq_mitsuba.processes import worker_pool
 
 SPLITS_FILE = "splits.csv"
@@ -79,6 +96,15 @@ DEFAULT_POINTS = 100_000
 MAX_POINTS = 2_000_000
 """Most points per sample set: three sets of 2,000,000 points are about 110 MB per model
 (54 bytes per point across the sets, before compression)."""
+MODEL_FOLDER = "models"
+MODEL_FILES = ("model_normalized.obj", "model_normalized.glb", SAMPLES_FILE, "model_card.json")
+"""What :func:`~sq_mitsuba.data.mesh_processing.write_model` writes into ``<model>/models/``."""
+#: The temporary folder of a model being written (``tempfile.mkdtemp(prefix=".models.")`` in
+#: write_model: eight random characters), the old model kept aside while it is replaced, and a
+#: dead write's folder renamed aside to be deleted (:func:`_remove_dead_folder`).
+DEAD_WRITE = re.compile(r"\.models\.[a-z0-9_]{8}")
+OLD_MODEL = re.compile(r"\.models\.old\.\d+")
+BEING_REMOVED = re.compile(r"\.models\.removing\..+")
 
 
 # --------------------------------------------------------------------------------- options
@@ -105,6 +131,9 @@ class GenerateOptions:
     workers: int = in_range(1, 256, default=1)
     """Processes building models in parallel (each model is independent; the library's
     files are written by the main process, in catalogue order, as each model is done)."""
+    rebuild: bool = False
+    """Build every model again; by default a rerun keeps a model already complete in OUT
+    (this catalogue's spacecraft, written with the same --points)."""
 
 
 def check_fusion_resolution(resolution: int) -> None:
@@ -153,7 +182,9 @@ class LibrarySummary:
     out: Path
     """The library root."""
     written: list[str] = field(default_factory=list)
-    """Names of the models written, in batch order."""
+    """Names of the models written, in batch order (those kept included)."""
+    kept: list[str] = field(default_factory=list)
+    """Generate: the models of ``written`` already complete in the library, not built again."""
     failures: dict[str, str] = field(default_factory=dict)
     """``{model: reason}`` of this batch's failed models."""
     names: list[tuple[str, str]] = field(default_factory=list)
@@ -167,7 +198,8 @@ class LibrarySummary:
         """The report: each written import's name, then how many models were written where
         (a failed import is listed by :meth:`failure_text` instead)."""
         lines = [f"{path} -> {name}" for path, name in self.names if name in self.written]
-        lines.append(f"{len(self.written)} model(s) written to {self.out}")
+        kept = f" ({len(self.kept)} of them already there, kept)" if self.kept else ""
+        lines.append(f"{len(self.written)} model(s) written to {self.out}{kept}")
         return "\n".join(lines)
 
     def failure_text(self) -> str:
@@ -218,6 +250,82 @@ def _write_splits(root: Path, splits: dict[str, str]) -> None:
 def _check_root(root: Path) -> None:
     """A folder that is, or can be created as, a writable folder: checked before any work."""
     check_output_folder(root)
+
+
+def _lock_held(root: Path) -> bool:
+    """Whether a process holds the library's lock: called inside :func:`output_lock`, which
+    refuses a library another run holds, True means this run holds it; False when that lock
+    ran unlocked (no lock file could be made: see :mod:`sq_mitsuba.outputs`)."""
+    import fcntl
+
+    try:
+        fd = os.open(lock_path(root), os.O_RDONLY)
+    except OSError:  # no lock file: output_lock ran unlocked
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except OSError:
+        return True  # held (by us: another holder would have stopped output_lock)
+    else:
+        return False  # nobody holds it (closing the descriptor drops this probe's lock)
+    finally:
+        os.close(fd)
+
+
+def _remove_dead_folder(path: Path) -> None:
+    """Delete a dead write's folder: renamed aside first, so that a worker a killed run left
+    behind, still writing into it, fails its own rename instead of publishing a model whose
+    files are half deleted; then deleted."""
+    aside = path if BEING_REMOVED.fullmatch(path.name) else \
+        path.with_name(f".models.removing.{os.getpid()}.{path.name}")
+    try:
+        os.rename(path, aside)
+    except FileNotFoundError:  # gone meanwhile (that worker published or removed it)
+        return
+    shutil.rmtree(aside, ignore_errors=True)
+
+
+def _remove_dead_writes_of(folder: Path) -> list[Path]:
+    """:func:`remove_dead_writes` in one model folder."""
+    found = [p for p in sorted(folder.iterdir()) if p.is_dir() and not p.is_symlink() and (
+        DEAD_WRITE.fullmatch(p.name) or OLD_MODEL.fullmatch(p.name)
+        or BEING_REMOVED.fullmatch(p.name))]
+    final = folder / MODEL_FOLDER
+    for path in found:
+        if OLD_MODEL.fullmatch(path.name) and not final.exists():
+            os.replace(path, final)  # cut between write_model's two renames: it comes back
+        else:
+            _remove_dead_folder(path)
+    if found:
+        try:
+            folder.rmdir()  # a first write of this model, killed: nothing else was there
+        except OSError:  # not empty: a model, or anything else, stays
+            pass
+    return found
+
+
+def remove_dead_writes(root: Path) -> list[Path]:
+    """Remove what killed writes left in the library ``root`` (see the module docstring):
+    ``<model>/.models.XXXXXXXX/`` folders, a ``<model>/.models.old.<pid>/`` beside its model
+    (one with no model beside it is put back as ``models/``), model folders left empty by
+    them, and temporary files of ``splits.csv`` and ``failures.json``. Returns what was
+    removed or put back.
+
+    Only while this run holds the library's lock (:func:`output_lock`): then no live run
+    writes there (nothing is removed when that lock ran unlocked).
+    """
+    if not root.is_dir() or not _lock_held(root):
+        return []
+    done = remove_stray_temporaries(root, of=SPLITS_FILE)
+    done += remove_stray_temporaries(root, of=FAILURES_FILE)
+    for folder in sorted(root.iterdir()):
+        if folder.is_symlink() or not folder.is_dir():
+            continue
+        try:  # best effort: what cannot be cleared here is a rebuilt model's own business
+            done += _remove_dead_writes_of(folder)
+        except OSError:
+            continue
+    return done
 
 
 def _reason(error: Exception) -> str:
@@ -301,6 +409,29 @@ def same_spacecraft_problem(root: Path, entry: CatalogueEntry) -> str | None:
     return None
 
 
+def model_complete(root: Path, entry: CatalogueEntry, points: int) -> bool:
+    """Whether ``root`` holds ``entry``'s model complete, as :func:`generate_model` would write
+    it: every file of :data:`MODEL_FILES`, and a readable card of this entry (procedural, the
+    same archetype, model seed, catalogue seed and split) with ``points`` points in each
+    sample set. Such a model is kept by a rerun (see the module docstring)."""
+    folder = root / entry.name / MODEL_FOLDER
+    if not all((folder / name).is_file() for name in MODEL_FILES):
+        return False
+    try:
+        card = read_json(folder / "model_card.json")
+    except (OSError, ValueError):
+        return False
+    if not isinstance(card, dict) or not isinstance(card.get("samples"), dict):
+        return False
+    ours = (card.get("source"), card.get("archetype"), card.get("seed"),
+            card.get("catalogue_seed"), card.get("split"))
+    # The card records the catalogue seed and split too: a model of the same spacecraft
+    # from another catalogue is built again (cheap, rare) so its card says this one.
+    if ours != ("procedural", entry.archetype, entry.seed, entry.catalogue_seed, entry.split):
+        return False
+    return all(card["samples"].get(k) == points for k in ("surface", "uniform", "near"))
+
+
 def _generate_one(entry: CatalogueEntry, root: Path, points: int) -> str | None:
     """Build one model; the reason it failed, or None (a worker's job: errors come back as
     text, so that one bad model does not stop the batch)."""
@@ -347,6 +478,8 @@ def _generate_locked(root: Path, options: GenerateOptions, progress: bool) -> Li
         entries = graph_catalogue(options.count, options.seed)
     else:
         entries = catalogue(options.count, options.seed)
+    # Before the clash check: an old model put back by it is a model of the library too.
+    remove_dead_writes(root)
     clashes = [problem for entry in entries
                if (problem := same_spacecraft_problem(root, entry)) is not None]
     if clashes:
@@ -355,20 +488,28 @@ def _generate_locked(root: Path, options: GenerateOptions, progress: bool) -> Li
         raise ValueError(f"{clashes[0]}{more}; nothing generated: a model is never replaced "
                          "by another spacecraft of the same name (generate into another "
                          "--out, or remove those folders)")
+    kept = set() if options.rebuild else {
+        entry.name for entry in entries if model_complete(root, entry, options.points)}
+    todo = [entry for entry in entries if entry.name not in kept]
     summary = LibrarySummary(root)
-    outcomes = _generate_outcomes(entries, root, options.points, options.workers)
+    outcomes = _generate_outcomes(todo, root, options.points, options.workers)
     try:
-        for entry, reason in _progress(zip(entries, outcomes, strict=True), "models", "model",
-                                       progress, total=len(entries)):
+        for entry in _progress(entries, "models", "model", progress, total=len(entries)):
+            # Outcomes come in the order of todo, which keeps the catalogue's order.
+            reason = None if entry.name in kept else next(outcomes)
+            if entry.name in kept:
+                summary.kept.append(entry.name)
             if reason is not None:
                 if entry.name in splits:
                     reason += " (the earlier model in this folder is kept)"
                 summary.failures[entry.name] = failures[entry.name] = reason
             else:
                 summary.written.append(entry.name)
-                splits[entry.name] = entry.split
+                # A kept model whose row is there already changes nothing: no rewrite.
+                if entry.name not in kept or splits.get(entry.name) != entry.split:
+                    splits[entry.name] = entry.split
+                    _write_splits(root, splits)
                 failures.pop(entry.name, None)
-                _write_splits(root, splits)
             _write_failures(root, failures)
     finally:  # Ctrl-C here, between two models: the workers end now, not at exit
         outcomes.close()
@@ -453,6 +594,7 @@ def import_models(paths: Sequence[str | Path], options: ImportOptions | None = N
 def _import_locked(paths: Sequence[str | Path], root: Path, options: ImportOptions,
                    progress: bool) -> LibrarySummary:
     """:func:`import_models` under the library's lock."""
+    remove_dead_writes(root)  # first: a folder a killed import left empty frees its name
     names = import_names(paths, root)
     summary = LibrarySummary(root, names=[(str(p), n) for p, n in zip(paths, names, strict=True)])
     for path, name in _progress(list(zip(map(Path, paths), names, strict=True)), "import",
