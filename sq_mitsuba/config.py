@@ -614,6 +614,17 @@ def _to_plain(tp: Any, value: Any) -> Any:
     return value
 
 
+def flatten_dict(data: Any, prefix: str = "") -> dict[str, Any]:
+    """A nested dict (a config's :func:`to_dict`) as one level of dotted keys:
+    ``{"a": {"b": 1}}`` -> ``{"a.b": 1}`` (what differences between two configs name)."""
+    if isinstance(data, dict):
+        out: dict[str, Any] = {}
+        for key, value in data.items():
+            out.update(flatten_dict(value, f"{prefix}{key}."))
+        return out
+    return {prefix[:-1]: data}
+
+
 def to_dict(obj: Any) -> dict[str, Any]:
     """A config as JSON-able data: tuples become lists, paths strings, float fields floats.
 

@@ -41,8 +41,12 @@ fit this version's network, an empty split, a samples.npz that lacks an array or
 images of another size than camera.json says, an unwritable --out or one inside --data (the
 dataset is only read), or an --out another run is writing into, is a one-line error before
 any work (exit code 2). Rerunning into an earlier --out removes the outputs this run does not
-write (e.g. the figures after --no-figures). Other settings: --set key=value on the eval
-options, e.g.
+write (e.g. the figures after --no-figures). Each finished batch is kept in --out/.eval_partial
+until eval.json is written: after an interrupt (Ctrl-C, a killed run), the same command with
+--resume computes only the batches left and writes the same files as an uninterrupted run
+(timings aside); a journal of other settings, another checkpoint or other data is refused in
+one line naming what differs, and a run without --resume starts afresh. Other settings:
+--set key=value on the eval options, e.g.
 --set refinement.steps=20 --set search.grid=576 --set mask=segmentation
 --set refinement.shape=free --set refinement.depth=fixed --set volume_points=20000
 --set mesh_ranking=256. The refinement that fits the outline rather than keeping the shape
@@ -72,6 +76,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                              "checkpoint's folder name)")
     add_config_options(parser, EvalOptions, FLAGS, metavars={"limit": "N"})
     add_set_option(parser, "eval options", "refinement.steps=20")
+    parser.add_argument("--resume", action="store_true",
+                        help="continue the interrupted evaluation in --out: the batches its "
+                             "journal (--out/.eval_partial) holds are not computed again; "
+                             "refused when the settings, checkpoint or data differ")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.set_defaults(func=_run)
 
@@ -86,6 +94,7 @@ def _run(args: argparse.Namespace) -> int:
                        "row of report.md's tables)")
     options = config_from_args(EvalOptions, args)
     result = evaluate_checkpoint(args.checkpoint, args.data, args.out, options,
-                                 progress=not args.quiet, label=args.label)
+                                 progress=not args.quiet, label=args.label,
+                                 resume=args.resume)
     print(result.describe())
     return 0

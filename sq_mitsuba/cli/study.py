@@ -24,7 +24,9 @@ Two ways to see how lighting changes the results:
     sun.phase_deg, earth.probability_in_view, eclipse.probability); evaluate each: the
     network, the pose search and search + refinement against the image's own mask; write
     per_image.csv, illumination.{csv,md,png} (every metric against the phase angle, one line
-    per background, shaded ± std) and study.json. A rerun into the same --out resumes the renders.
+    per background, shaded ± std) and study.json. A rerun into the same --out resumes the renders
+    and skips the sweep points already evaluated with the same settings, checkpoint and data
+    (an interrupted point's evaluation continues from its journal).
 
   study illumination --eval EVAL_DIR [--out DIR] [--step 15]
     Break a regular `sq-mitsuba eval` folder down by the lighting recorded in its

@@ -40,8 +40,19 @@ Files written to the output folder (each atomically):
 - ``mesh_ranking.csv`` (``mesh_ranking`` > 0): for that many network predictions, spread
   evenly, the rank of the image's own model among every model of the split by Chamfer-L1 to
   the prediction (:mod:`sq_mitsuba.evaluation.mesh_ranking`: is the shape read from the image?);
-- ``eval.json``: settings, checkpoint, counts, symmetries per model, images/s, and the mesh
-  ranking's medians.
+- ``eval.json``: settings, checkpoint, counts, symmetries per model, images/s, the mesh
+  ranking's medians, and the run's ``identity`` (the checkpoint's weights hash, the data's
+  fingerprint: :mod:`sq_mitsuba.evaluation.journal`).
+
+While it runs, the hidden folder ``.eval_partial/`` (:mod:`sq_mitsuba.evaluation.journal`)
+holds ``run.json`` (the options, the checkpoint's and the data's identity, the evaluated
+indices) and one ``batch_<number>.pt`` per finished batch (its rows, qualitative examples,
+mesh-ranking entries and seconds), each written atomically; it is removed once ``eval.json``
+is written. ``resume`` (``sq-mitsuba eval --resume``) reads the batches an interrupted run of
+the same settings, checkpoint and data finished instead of computing them again, and ends
+with the same files (timings aside); a journal of another run is refused in one line naming
+what differs, and a run without ``resume`` clears it first. Each batch is scored on its own:
+the scoring renderer restarts its samples from the batch's number.
 
 The folder holds one evaluation: the files of this list that an earlier run into it wrote and
 this one does not (the figures after ``figures = False``, a mesh ranking) are removed once it
@@ -50,7 +61,8 @@ run at a time (:func:`sq_mitsuba.outputs.output_lock`; another run into it is re
 line before any work).
 
 Timing: the network's first call sets up its kernels; it is made once, untimed, on the first
-batch before the timed call, so ``network_ms_per_image`` is the warm figure.
+batch computed (after a resume: the first the journal does not hold) before the timed call,
+so ``network_ms_per_image`` is the warm figure. A resumed run counts the journal's seconds.
 
 Convention: 2D IoU compares the predicted assembly's silhouette at the *predicted* pose with
 the ground-truth mask (for every method, the refined ones included), both at the network's
@@ -66,19 +78,18 @@ most; a sphere twice the model's size would score 0.52 for a true 0.13).
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-from torch import Tensor
-
 from sq_mitsuba.config import in_range, to_dict, validate
+from sq_mitsuba.evaluation.batch import evaluate_batch
+from sq_mitsuba.evaluation.journal import EvalJournal, run_identity
 from sq_mitsuba.evaluation.methods import METHODS
-from sq_mitsuba.evaluation.scoring import ModelData, baseline_prediction, score
-from sq_mitsuba.evaluation.split import check_predictor, collate, evenly, open_split
-from sq_mitsuba.evaluation.tables import EXTRAS, label_record, write_tables
+from sq_mitsuba.evaluation.scoring import ModelData, baseline_prediction
+from sq_mitsuba.evaluation.split import check_predictor, evenly, open_split
+from sq_mitsuba.evaluation.tables import write_tables
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.inference.refine import RefineOptions
 from sq_mitsuba.inference.search import SEARCH_REFINEMENT, SearchOptions
@@ -158,6 +169,7 @@ class EvalResult:
         images: images evaluated; images_per_second: over the whole loop (network, refinement
             and scoring); network_ms_per_image: the network alone.
         out_dir: output folder; files: the files written.
+        resumed: batches read from an interrupted run's journal (``resume``), not computed.
     """
 
     rows: list[dict[str, Any]]
@@ -167,11 +179,14 @@ class EvalResult:
     network_ms_per_image: float
     out_dir: Path
     files: list[Path]
+    resumed: int = 0
 
     def describe(self) -> str:
         """A few lines: throughput and the network's main numbers."""
         lines = [f"evaluated {self.images} images: {self.images_per_second:.2f} images/s "
-                 f"(network alone {self.network_ms_per_image:.1f} ms/image)"]
+                 f"(network alone {self.network_ms_per_image:.1f} ms/image)"
+                 + (f"; {self.resumed} batch(es) resumed from the journal"
+                    if self.resumed else "")]
         for method, stats in self.summary.items():
             parts = [f"{m} {stats[m][0]:.3f}" for m in ("chamfer_l1_paper", "iou_2d",
                                                         "rotation_error_deg")]
@@ -185,7 +200,7 @@ class EvalResult:
 
 def evaluate(predictor: Any, data_root: str | Path, out_dir: str | Path,
              options: EvalOptions | None = None, progress: bool = True,
-             label: str | None = None) -> EvalResult:
+             label: str | None = None, resume: bool = False) -> EvalResult:
     """Evaluate ``predictor`` (a :class:`sq_mitsuba.inference.predictor.Predictor`) on a
     dataset split and write the files listed in the module docstring.
 
@@ -197,6 +212,9 @@ def evaluate(predictor: Any, data_root: str | Path, out_dir: str | Path,
     Args:
         label: the run's name in ``eval.json`` (the report's row label; default: the
             checkpoint's folder name).
+        resume: continue from the journal an interrupted run of the same settings, checkpoint
+            and data left in ``out_dir`` (:mod:`sq_mitsuba.evaluation.journal`; none: start
+            afresh); its batches are not computed again. Without it, a journal is cleared.
     """
     from sq_mitsuba.io import check_output_folder
     from sq_mitsuba.outputs import output_lock
@@ -209,7 +227,7 @@ def evaluate(predictor: Any, data_root: str | Path, out_dir: str | Path,
     check_output_folder(out_dir, (*OUTPUT_FILES, MESH_RANKING_FILE))
     check_outside_data(out_dir, data_root)
     with output_lock(out_dir, command="sq-mitsuba eval"):  # re-entrant: the CLI holds it
-        return _evaluate(predictor, data_root, out_dir, options, progress, label)
+        return _evaluate(predictor, data_root, out_dir, options, progress, label, resume)
 
 
 def _check_data_folder(data_root: Path) -> None:
@@ -230,10 +248,9 @@ def check_outside_data(out_dir: Path, data_root: Path) -> None:
 
 
 def _evaluate(predictor: Any, data_root: Path, out_dir: Path, options: EvalOptions,
-              progress: bool, label: str | None) -> EvalResult:
+              progress: bool, label: str | None, resume: bool) -> EvalResult:
     """:func:`evaluate` once the options and the output folder are checked and locked."""
     from sq_mitsuba.data.spe3r import Spe3rDataset
-    from sq_mitsuba.geometry.metrics import mask_iou
     from sq_mitsuba.inference.loading import with_fast_path
     from sq_mitsuba.progress import progress_bar
     from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer
@@ -252,6 +269,13 @@ def _evaluate(predictor: Any, data_root: Path, out_dir: Path, options: EvalOptio
             stored_baseline = getattr(predictor, "baseline", None)
     camera = dataset.camera.rescaled(image_size, image_size)
     predictor.check_turns(options.turns, camera)
+    indices = evenly(len(dataset), options.limit)
+    chunks = [indices[start:start + options.batch_size]
+              for start in range(0, len(indices), options.batch_size)]
+    # Before any work: a journal of another run is refused (resume) or cleared (a fresh run).
+    identity = run_identity(predictor, data_root, to_dict(options), indices)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    journal = EvalJournal(out_dir, identity, chunks, resume)
     # Every image of a dataset shows its target: the evaluation fits each one, whatever its
     # target-present score (min_target 0), so that the methods are scored on the same images.
     predictor = with_fast_path(predictor, options.fast, min_target=0.0)
@@ -264,118 +288,45 @@ def _evaluate(predictor: Any, data_root: Path, out_dir: Path, options: EvalOptio
         base_raw, base_rotation, base_translation = baseline_prediction(
             predictor, data_root, options.baseline_images, options.batch_size)
         baseline = (Assembly.from_raw(base_raw), base_rotation, base_translation)
-    out_dir.mkdir(parents=True, exist_ok=True)
     renderer = SilhouetteRenderer(camera, spp=options.silhouette_spp)
     models = ModelData(dataset, options.volume_points)
-    indices = evenly(len(dataset), options.limit)
     wanted = {indices[k] for k in evenly(len(indices), options.qualitative)}
     ranked = ({indices[k] for k in evenly(len(indices), options.mesh_ranking)}
               if options.mesh_ranking and len(dataset.models) >= 2 else set())
     to_rank: list[tuple[int, int, str, Assembly]] = []  # item, model index, model, assembly
     rows: list[dict[str, Any]] = []
     examples: list[dict[str, Any]] = []
-    network_seconds = search_seconds = refine_seconds = warmup_seconds = 0.0
-    batches = -(-len(indices) // options.batch_size)
-    loop_started = time.perf_counter()
+    seconds = dict.fromkeys(("network", "search", "refine", "loop"), 0.0)
+    warm = False  # the network's untimed first call is made (with the first batch computed)
     with progress_bar(total=len(indices), unit="img", disable=not progress, dynamic_ncols=True,
                       desc=f"eval {options.split}") as bar:
-        for number, start in enumerate(range(0, len(indices), options.batch_size), start=1):
-            chunk = indices[start:start + options.batch_size]
+        for number, chunk in enumerate(chunks, start=1):
 
             def stage(name: str, number: int = number, size: int = len(chunk)) -> None:
                 # The bar counts images once a batch is scored; between, it names the batch
                 # (images in it) and the stage it is at.
-                bar.set_postfix_str(f"batch {number}/{batches} ({size} img): {name}")
+                bar.set_postfix_str(f"batch {number}/{len(chunks)} ({size} img): {name}")
 
-            stage("reading")
-            batch = collate([dataset[i] for i in chunk])
-            size = len(chunk)
-            stage("network")
-            if number == 1:
-                # One untimed call first: the first run of a network sets up its kernels (over
-                # a second on a CPU), which would otherwise count as network time.
-                tick = time.perf_counter()
-                predictor.predict(batch["image"], camera)
-                warmup_seconds = time.perf_counter() - tick
-            tick = time.perf_counter()
-            # The search starts from the unturned reading and reads its own turned copies;
-            # the network row's copies reuse that reading's pass (read_turns).
-            unturned = predictor.predict(batch["image"], camera)
-            prediction = unturned if options.turns == 1 else predictor.read_turns(
-                batch["image"], unturned, options.turns, camera)
-            network_seconds += time.perf_counter() - tick
-            model_indices = [int(m) for m in batch["model_index"]]
-            symmetries = [models.symmetry(m) for m in model_indices]
-            volumes = [models.volume(m) for m in model_indices]
-            candidates: dict[str, tuple[Assembly, Tensor, Tensor]] = {
-                "network": (prediction.assembly, prediction.rotation, prediction.translation)}
-            extras: dict[str, dict[str, Tensor]] = {}
-            sources: dict[str, str] = {}
-            if options.refine:
-                stage("search and refinement")
-                gt_masks = batch["mask"][:, 0] > 0.5
-                fitted = predictor.refine(batch["image"], unturned, camera, mask=options.mask,
-                                          search=options.search,
-                                          refinement=options.refinement)
-                fit = fitted.fit
-                search_seconds += fit.search_seconds
-                refine_seconds += fit.seconds
-                mask_iou_gt = mask_iou(fit.mask.double(), gt_masks.double())
-                candidates["search"] = (Assembly(fit.start.assembly.params.detach().double()),
-                                        fit.search_rotation, fit.search_translation)
-                candidates["refined"] = (fitted.assembly, fitted.rotation, fitted.translation)
-                for method in ("search", "refined"):
-                    extras[method] = {"search_score": fit.search_score,
-                                      "refine_iou_after": fit.iou,
-                                      "segmentation_iou": mask_iou_gt}
-                    sources[method] = fit.mask_source
-                if options.refine_ground_truth:
-                    upper = predictor.refine(batch["image"], prediction, camera,
-                                             mask=gt_masks, search=options.search,
-                                             refinement=options.refinement, reuse=fit)
-                    candidates["refined_gt"] = (upper.assembly, upper.rotation,
-                                                upper.translation)
-                    extras["refined_gt"] = {"search_score": upper.fit.search_score,
-                                            "refine_iou_after": upper.fit.iou}
-                    sources["refined_gt"] = "ground truth"
-            if baseline is not None:
-                candidates["baseline"] = (Assembly(baseline[0].params.expand(size, -1, -1)),
-                                          baseline[1].expand(size, -1, -1),
-                                          baseline[2].expand(size, -1))
-            stage("scoring")
-            for method, (assembly, rotation, translation) in candidates.items():
-                metrics = score(assembly, rotation, translation, batch, renderer, symmetries,
-                                volumes, options.level)
-                metrics.update(extras.get(method, {}))
-                for k, item in enumerate(chunk):
-                    row = {"model": batch["model"][k], "index": int(batch["index"][k]),
-                           "method": method, "mask_source": sources.get(method, ""),
-                           **label_record(dataset.items[item][2])}
-                    row.update({name: float(value[k]) for name, value in metrics.items()})
-                    for name in EXTRAS:  # NaN: not searched (no target segmented) -> blank
-                        if name in row and not math.isfinite(row[name]):
-                            row[name] = ""
-                    rows.append(row)
-            for k, item in enumerate(chunk):
-                if item in ranked:
-                    to_rank.append((int(batch["index"][k]), model_indices[k], batch["model"][k],
-                                    Assembly(prediction.assembly.params[k:k + 1].detach())))
-                if item in wanted:
-                    example = {"image": batch["image"][k, 0], "mask": batch["mask"][k, 0],
-                               "model": batch["model"][k], "index": int(batch["index"][k]),
-                               "gt_rotation": batch["rotation"][k],
-                               "gt_translation": batch["translation"][k]}
-                    for method, (assembly, rotation, translation) in candidates.items():
-                        example[method] = (assembly[k], rotation[k].detach(),
-                                           translation[k].detach())
-                    examples.append(example)
-            bar.update(size)
-            bar.set_postfix_str(f"batch {number}/{batches} done, "
-                                f"{bar.n / (time.perf_counter() - loop_started):.2f} img/s")
-    loop_seconds = time.perf_counter() - loop_started - warmup_seconds
+            record = journal.get(number)  # a batch an interrupted run finished (resume)
+            if record is None:
+                record = journal.save(number, evaluate_batch(
+                    predictor, dataset, chunk, number, camera, options, renderer, models,
+                    baseline, wanted, ranked, stage, warm))
+                warm = True
+            rows += record.rows
+            examples += record.examples
+            to_rank += record.to_rank
+            for key in seconds:
+                seconds[key] += record.seconds[key]
+            bar.update(len(chunk))
+            bar.set_postfix_str(f"batch {number}/{len(chunks)} done, "
+                                f"{bar.n / max(seconds['loop'], 1e-9):.2f} img/s")
+    loop_seconds, network_seconds, search_seconds, refine_seconds = (
+        seconds[key] for key in ("loop", "network", "search", "refine"))
     # eval.json, written last, marks a finished evaluation: an earlier run's goes before this
     # one's first file, so that a folder left half rewritten (an interrupt among the writes)
-    # is not taken for either run by `report`. An interrupt in the loop above loses nothing.
+    # is not taken for either run by `report`. An interrupt in the loop above loses no batch
+    # the journal holds (--resume).
     (out_dir / "eval.json").unlink(missing_ok=True)
     summary = write_tables(rows, out_dir)
     files = [out_dir / name for name in OUTPUT_FILES[:5]]
@@ -394,6 +345,7 @@ def _evaluate(predictor: Any, data_root: Path, out_dir: Path, options: EvalOptio
         )
 
         figure_camera = dataset.camera.rescaled(options.figure_size, options.figure_size)
+        renderer.reseed(0)  # the figure's silhouettes: whichever batches this run computed
         files.append(plot_per_model(rows, out_dir / "per_model.png"))
         files.append(plot_qualitative(examples, dataset, camera, figure_camera, renderer,
                                       out_dir / "qualitative.png", options.level))
@@ -416,7 +368,9 @@ def _evaluate(predictor: Any, data_root: Path, out_dir: Path, options: EvalOptio
         "checkpoint": str(getattr(predictor, "source", None) or ""),
         "num_primitives": predictor.num_primitives, "image_size": image_size,
         "options": to_dict(options),
-        "symmetries": {dataset.models[m]: len(s) for m, s in sorted(models.symmetries.items())},
+        "identity": {key: identity[key] for key in ("format", "checkpoint", "data")},
+        "symmetries": {dataset.models[m]: len(models.symmetry(m))
+                       for m in sorted({dataset.items[i][0] for i in indices})},
         "images_per_second": round(images_per_second, 4),
         "network_ms_per_image": round(1000 * network_seconds / images, 3),
         "search_ms_per_image": round(1000 * search_seconds / images, 3),
@@ -426,9 +380,11 @@ def _evaluate(predictor: Any, data_root: Path, out_dir: Path, options: EvalOptio
         "wall_seconds": round(time.perf_counter() - started, 3),
     })
     files.append(out_dir / "eval.json")
+    journal.clear()
     remove_stale_outputs(out_dir, files)
     return EvalResult(rows, summary, images, images_per_second,
-                      1000 * network_seconds / images, out_dir, files)
+                      1000 * network_seconds / images, out_dir, files, len(journal.records))
+
 
 
 def remove_stale_outputs(out_dir: Path, written: list[Path]) -> list[Path]:
@@ -460,14 +416,16 @@ def _default_label(predictor: Any) -> str:
 
 def evaluate_checkpoint(checkpoint: str | Path | None, data_root: str | Path,
                         out_dir: str | Path, options: EvalOptions | None = None,
-                        progress: bool = True, label: str | None = None) -> EvalResult:
+                        progress: bool = True, label: str | None = None,
+                        resume: bool = False) -> EvalResult:
     """:func:`evaluate` the model of a checkpoint file (None: the model shipped with the
-    package; a clear error when there is none)."""
+    package; a clear error when there is none); ``resume``: see :func:`evaluate`."""
     from sq_mitsuba.inference.loading import load_model
 
     options = options or EvalOptions()
     validate(options)
     _check_data_folder(Path(data_root))  # before the model loads (seconds)
     predictor = load_model(checkpoint)  # evaluate folds it once the inputs are checked
-    return evaluate(predictor, data_root, out_dir, options, progress=progress, label=label)
+    return evaluate(predictor, data_root, out_dir, options, progress=progress, label=label,
+                    resume=resume)
 

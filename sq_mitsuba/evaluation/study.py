@@ -12,7 +12,11 @@ overrides
 (``sun.phase_deg=[a,a]``, ``earth.probability_in_view=0|1``, ``eclipse.probability=0|1``), so
 the images are exactly what the dataset renderer makes: the same seed and image index draw
 the same pose whatever the lighting (the pose is drawn before the lighting), and a rerun into
-the same folder resumes.
+the same folder resumes: its renders, and its evaluations: a sweep point whose ``eval.json``
+records the same evaluation options, checkpoint weights and data
+(:func:`sq_mitsuba.evaluation.journal.finished_evaluation`) is read back from its
+``per_image.csv``, not evaluated again, and an interrupted one continues from its journal
+(``evaluate(..., resume=True)``; a journal of other settings is cleared instead).
 
 Output folder:
 
@@ -39,6 +43,7 @@ its ``eclipse`` column says so.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import shutil
@@ -235,6 +240,11 @@ def illumination_study(checkpoint: str | Path | None, models_dir: str | Path,
     """
     from sq_mitsuba.data.spe3r import render_dataset
     from sq_mitsuba.evaluation.evaluate import evaluate
+    from sq_mitsuba.evaluation.journal import (
+        finished_evaluation,
+        journal_difference,
+        run_identity,
+    )
     from sq_mitsuba.evaluation.split import check_predictor
     from sq_mitsuba.inference.loading import load_model, with_fast_path
     from sq_mitsuba.io import check_output_folder
@@ -271,10 +281,17 @@ def illumination_study(checkpoint: str | Path | None, models_dir: str | Path,
                              f"({reason})")
         seconds["render"] += time.perf_counter() - tick
         tick = time.perf_counter()
-        result = evaluate(predictor, out_dir / "renders" / point.name,
-                          out_dir / "evals" / point.name, evaluation, progress=False)
+        data, folder = out_dir / "renders" / point.name, out_dir / "evals" / point.name
+        point_rows = None
+        identity = run_identity(predictor, data, to_dict(evaluation))
+        if finished_evaluation(folder, identity):
+            with contextlib.suppress(OSError, ValueError):  # unreadable: evaluated again
+                point_rows = read_per_image(folder / "per_image.csv")
+        if point_rows is None:  # continued from its journal, unless that is another run's
+            point_rows = evaluate(predictor, data, folder, evaluation, progress=False,
+                                  resume=journal_difference(folder, identity) is None).rows
         seconds["evaluate"] += time.perf_counter() - tick
-        for row in result.rows:
+        for row in point_rows:
             phase = point.phase_deg if point.phase_deg is not None else \
                 float(row["phase_angle_deg"])
             rows.append({"point": point.name, "background": point.background,

@@ -18,7 +18,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from sq_mitsuba.config import to_dict
+from sq_mitsuba.config import flatten_dict, to_dict
 from sq_mitsuba.io import atomic_path, check_output_folder
 from sq_mitsuba.model.checkpoint import read_checkpoint, write_checkpoint
 from sq_mitsuba.training.cache import manifest_hash
@@ -125,18 +125,9 @@ def git_commit() -> dict[str, Any]:
     return {"commit": commit, "dirty": bool(status.strip())}
 
 
-def _flatten(data: Any, prefix: str = "") -> dict[str, Any]:
-    if isinstance(data, dict):
-        out: dict[str, Any] = {}
-        for key, value in data.items():
-            out.update(_flatten(value, f"{prefix}{key}."))
-        return out
-    return {prefix[:-1]: data}
-
-
 def config_difference(old: dict[str, Any], new: dict[str, Any]) -> str | None:
     """The first field (dotted) where two ``to_dict`` configs differ, as ``field: a vs b``."""
-    a, b = _flatten(old), _flatten(new)
+    a, b = flatten_dict(old), flatten_dict(new)
     for key in sorted(set(a) | set(b)):
         if key in RESUME_FREE:
             continue
