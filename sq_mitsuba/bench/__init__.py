@@ -134,18 +134,27 @@ class Report:
 
 def time_callable(fn: Callable[[], object], repeats: int, warmup: int,
                   sync: Callable[[], None] | None = None) -> list[float]:
-    """Wall-clock seconds of ``repeats`` calls of ``fn`` after ``warmup`` untimed calls."""
-    for _ in range(warmup):
-        fn()
-    if sync:
-        sync()
-    samples = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
+    """Wall-clock seconds of ``repeats`` calls of ``fn`` after ``warmup`` untimed calls.
+
+    The calls are counted on a transient progress bar (stderr; a line every 30 s into a log):
+    a suite runs for minutes, and its table comes at the end."""
+    from sq_mitsuba.progress import progress_bar
+
+    samples: list[float] = []
+    with progress_bar(total=warmup + repeats, desc=f"bench {_suite_running or ''}".rstrip(),
+                      unit="run", leave=False) as bar:
+        for _ in range(warmup):
+            fn()
+            bar.update()
         if sync:
             sync()
-        samples.append(time.perf_counter() - start)
+        for _ in range(repeats):
+            start = time.perf_counter()
+            fn()
+            if sync:
+                sync()
+            samples.append(time.perf_counter() - start)
+            bar.update()
     return samples
 
 
@@ -209,6 +218,10 @@ def machine_description(options: BenchOptions) -> str:
             f"Python {platform.python_version()}, torch {torch.__version__})")
 
 
+#: The suite :func:`run_suites` is running (named on :func:`time_callable`'s progress bar).
+_suite_running: str | None = None
+
+
 def available_suites() -> list[str]:
     return sorted(m.name for m in pkgutil.iter_modules(__path__) if not m.name.startswith("_"))
 
@@ -235,8 +248,13 @@ def run_suites(names: Sequence[str], options: BenchOptions, write: bool = False,
                              f"{available_suites()}")
     check_device(options.device)
     torch.set_num_threads(options.threads)
+    global _suite_running
     for name in names:
-        report = run_suite(name, options)
+        _suite_running = name
+        try:
+            report = run_suite(name, options)
+        finally:
+            _suite_running = None
         if write:
             write_report(report, path)
         yield report
