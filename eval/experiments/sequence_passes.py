@@ -34,10 +34,10 @@ from sq_mitsuba.data.library import generate_model
 from sq_mitsuba.data.spacecraft import HELD_OUT_FAMILIES, catalogue, composed_catalogue
 from sq_mitsuba.data.spe3r.layout import MODELS, SAMPLES_FILE, load_model
 from sq_mitsuba.data.symmetry import model_symmetries
+from sq_mitsuba.evaluation.passes import relative_rotation_errors
 from sq_mitsuba.evaluation.scoring import score, volume_points
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.camera import Camera
-from sq_mitsuba.geometry.metrics import rotation_error_deg
 from sq_mitsuba.geometry.rotation import matrix_to_quaternion
 from sq_mitsuba.inference.body_frame import reframed
 from sq_mitsuba.inference.prediction import Prediction
@@ -68,17 +68,6 @@ def render_pass(model_dir: Path, camera: Camera, frames: int, seed: int, spp: in
             "mask": torch.from_numpy(np.stack(masks)),
             "rotation": torch.from_numpy(np.stack(rotations)),
             "translation": torch.from_numpy(np.stack(translations))}
-
-
-def relative_errors(rotation: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
-    """Per frame k >= 1: the angle between the estimated and true rotation from frame k - 1 to
-    frame k (NaN for frame 0)."""
-    errors = [float("nan")]
-    for k in range(1, len(rotation)):
-        estimate = rotation[k] @ rotation[k - 1].T
-        true = truth[k] @ truth[k - 1].T
-        errors.append(float(rotation_error_deg(estimate[None], true[None])[0]))
-    return torch.tensor(errors, dtype=torch.float64)
 
 
 def oracle_methods(alone: Prediction, shot: dict, count: int, camera: Camera,
@@ -201,7 +190,8 @@ def main() -> None:
             for method, (assembly, rotation, translation, seconds) in methods.items():
                 metrics = score(assembly, rotation, translation, batch, renderer,
                                 [symmetry] * count, [volume] * count, level=2)
-                metrics["relative_rotation_deg"] = relative_errors(rotation, batch["rotation"])
+                metrics["relative_rotation_deg"] = relative_rotation_errors(
+                    rotation, batch["rotation"])
                 for k in range(count):
                     rows.append({"model": entry.name, "frames": count, "method": method,
                                  "frame": k, "seconds_per_frame": seconds / count,

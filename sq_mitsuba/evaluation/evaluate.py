@@ -223,14 +223,14 @@ def evaluate(predictor: Any, data_root: str | Path, out_dir: str | Path,
     validate(options)
     check_predictor(predictor)
     data_root, out_dir = Path(data_root), Path(out_dir)
-    _check_data_folder(data_root)
+    check_data_folder(data_root)
     check_output_folder(out_dir, (*OUTPUT_FILES, MESH_RANKING_FILE))
     check_outside_data(out_dir, data_root)
     with output_lock(out_dir, command="sq-mitsuba eval"):  # re-entrant: the CLI holds it
         return _evaluate(predictor, data_root, out_dir, options, progress, label, resume)
 
 
-def _check_data_folder(data_root: Path) -> None:
+def check_data_folder(data_root: Path) -> None:
     """A dataset folder that is not there is named as such (not by the first file missing)."""
     if not data_root.is_dir():
         raise ValueError(f"{data_root}: dataset folder not found" if not data_root.exists()
@@ -364,7 +364,7 @@ def _evaluate(predictor: Any, data_root: Path, out_dir: Path, options: EvalOptio
         "data": str(data_root), "split": options.split, "images": images,
         "models": sorted({r["model"] for r in rows}),
         "methods": [m for m in METHODS if any(r["method"] == m for r in rows)],
-        "label": label if label is not None else _default_label(predictor),
+        "label": label if label is not None else default_label(predictor),
         "checkpoint": str(getattr(predictor, "source", None) or ""),
         "num_primitives": predictor.num_primitives, "image_size": image_size,
         "options": to_dict(options),
@@ -401,7 +401,7 @@ def remove_stale_outputs(out_dir: Path, written: list[Path]) -> list[Path]:
     return removed
 
 
-def _default_label(predictor: Any) -> str:
+def default_label(predictor: Any) -> str:
     """The checkpoint's folder name (a training run's output folder), or its file stem."""
     source = getattr(predictor, "source", None)
     if not source:
@@ -424,7 +424,7 @@ def evaluate_checkpoint(checkpoint: str | Path | None, data_root: str | Path,
 
     options = options or EvalOptions()
     validate(options)
-    _check_data_folder(Path(data_root))  # before the model loads (seconds)
+    check_data_folder(Path(data_root))  # before the model loads (seconds)
     predictor = load_model(checkpoint)  # evaluate folds it once the inputs are checked
     return evaluate(predictor, data_root, out_dir, options, progress=progress, label=label,
                     resume=resume)

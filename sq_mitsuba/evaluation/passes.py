@@ -1,0 +1,361 @@
+"""Evaluate passes: one assembly and every pose from N frames, against each frame alone.
+
+:func:`evaluate_passes` reads a dataset of passes (``sq-mitsuba dataset render
+--pass-frames F``: each model's images are passes of F frames in order, their labels holding
+``pass`` and ``frame_in_pass``) and scores, for each N of ``counts``, the first N frames of
+every pass with every metric of ``sq-mitsuba eval`` (:func:`~sq_mitsuba.evaluation.scoring.
+score`), per frame, for three methods:
+
+- ``network``: the network's own reading of each frame (one pass, no turned copies);
+- ``single``: the shipped single-image path, each frame alone
+  (``Predictor.predict(images, refine=True)``: the turned copies, the mask, the pose search,
+  the refinement), run once per pass on its first ``max(counts)`` frames (the frames are
+  independent, so its first N are the N-frame result);
+- ``sequence`` (N >= 2): ``Predictor.predict_sequence`` on the first N frames (one assembly,
+  N poses; ``ordered``, and ``sequence`` its :class:`SequenceOptions`).
+
+Beside the metrics, each row holds ``relative_rotation_deg``: the angle between the
+estimated and the true rotation from the frame before to this one (blank for frame 0), how
+well the frames agree with each other whatever their absolute rotation.
+
+Files written to the output folder (each atomically, ``passes.json`` last: it marks a finished
+evaluation):
+
+- ``per_frame.csv``: one row per pass, N, method and frame;
+- ``summary.csv`` / ``summary.md``: mean, std and median of every metric per N and method, the
+  seconds per frame beside them;
+- ``quality_vs_frames.png``: body-frame Chamfer-L1, camera-frame Chamfer, 2D IoU, folded
+  rotation and relative rotation against N, one line per method;
+- ``passes.json``: settings, checkpoint, the passes scored and the time taken.
+
+Convention: the frames are read and scored at the dataset's own resolution (what ``predict
+--sequence`` is given by a user), not at the network's input size as ``sq-mitsuba eval``
+scores single images; the 2D IoU is that of the assembly's silhouette at each frame's pose
+against the frame's true mask there.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import torch
+from torch import Tensor
+
+from sq_mitsuba.config import in_range, to_dict, validate
+from sq_mitsuba.geometry.assembly import Assembly
+from sq_mitsuba.inference.refine import RefineOptions
+from sq_mitsuba.inference.search import SEARCH_REFINEMENT, SearchOptions
+from sq_mitsuba.inference.sequence import SequenceOptions
+
+__all__ = ["OUTPUT_FILES", "PassOptions", "PassResult", "evaluate_passes", "pass_groups",
+           "relative_rotation_errors"]
+
+OUTPUT_FILES = ("per_frame.csv", "summary.csv", "summary.md", "quality_vs_frames.png",
+                "passes.json")
+"""What :func:`evaluate_passes` writes."""
+METHODS = ("network", "single", "sequence")
+"""The methods scored, in the tables' order (module docstring)."""
+PLOTTED = (("chamfer_l1_paper", "body-frame Chamfer-L1", "mean"),
+           ("camera_chamfer", "camera-frame Chamfer / distance", "mean"),
+           ("iou_2d", "2D IoU", "mean"),
+           ("rotation_error_folded_deg", "folded rotation (deg)", "median"),
+           ("relative_rotation_deg", "relative rotation (deg)", "median"))
+"""The figure's panels: metric, title, statistic (the targets' own: means of the shape and
+outline, medians of the rotations)."""
+
+
+@dataclass(frozen=True)
+class PassOptions:
+    """Settings of ``sq-mitsuba eval --passes``."""
+
+    split: Literal["val", "test"] = "test"
+    "Dataset split whose passes are scored."
+    counts: tuple[int, ...] = in_range(1, 10_000, default=(1, 2, 4, 8))
+    "Frames N taken from the start of each pass (every N at most the passes' length)."
+    passes: int | None = in_range(1, 1_000_000, default=None)
+    "Score at most this many passes, spread evenly over the split (None: all)."
+    ordered: bool = True
+    """The frames are given to ``predict_sequence`` in the order they were taken (a pass: the
+    frames kept on one constant-rate turn); False: as an unordered set."""
+    sequence: SequenceOptions = field(default_factory=SequenceOptions)
+    "The joint fit's settings (``predict_sequence``'s ``options``)."
+    search: SearchOptions = field(default_factory=SearchOptions)
+    "The single-image path's pose search (``predict(refine=True)``'s, the shipped default)."
+    refinement: RefineOptions = field(default_factory=lambda: SEARCH_REFINEMENT)
+    "The single-image path's refinement after the search (the shipped default)."
+    surface_points: int = in_range(1, 1_000_000, default=2500)
+    "Ground-truth surface points per frame for the Chamfer distances."
+    volume_points: int = in_range(1, 1_000_000, default=20_000)
+    "Uniform points per model for the 3D IoU (at most those of samples.npz)."
+    level: int = in_range(0, 5, default=2)
+    "Icosphere level of the primitive meshes for surface points and silhouettes (2: 162)."
+    silhouette_spp: int = in_range(1, 1024, default=16)
+    "Samples per pixel of the silhouettes scored by the 2D IoU."
+    fast: bool = True
+    "Predict with the batch-norm-folded network (same output up to ~1e-5; faster on CPU)."
+
+
+@dataclass
+class PassResult:
+    """What :func:`evaluate_passes` did.
+
+    Attributes:
+        rows: one dict per pass, N, method and frame (the ``per_frame.csv`` rows).
+        summary: {(N, method): {metric: (mean, std, median)}}.
+        passes: the passes scored, as ``model/pass`` names.
+        out_dir: output folder; files: the files written.
+    """
+
+    rows: list[dict[str, Any]]
+    summary: dict[tuple[int, str], dict[str, tuple[float, float, float]]]
+    passes: list[str]
+    out_dir: Path
+    files: list[Path]
+
+    def describe(self) -> str:
+        """A few lines: the main figures per N and method."""
+        lines = [f"scored {len(self.passes)} passes"]
+        for (count, method), stats in sorted(self.summary.items()):
+            lines.append(f"  N={count} {method}: " + ", ".join(
+                f"{name} {stats[name][2 if statistic == 'median' else 0]:.3f}"
+                for name, _, statistic in PLOTTED if name in stats))
+        lines.append(f"wrote {len(self.files)} files to {self.out_dir}")
+        return "\n".join(lines)
+
+
+def relative_rotation_errors(rotation: Tensor, truth: Tensor) -> Tensor:
+    """(N,) per frame k >= 1 the angle (deg) between the estimated and the true rotation from
+    frame k - 1 to frame k; NaN for frame 0.
+
+    Args:
+        rotation, truth: (N, 3, 3) body -> camera rotations of the N frames in order.
+    """
+    from sq_mitsuba.geometry.metrics import rotation_error_deg
+
+    rotation, truth = rotation.double(), truth.double()
+    errors = torch.full((rotation.shape[0],), math.nan, dtype=torch.float64)
+    if rotation.shape[0] > 1:
+        estimate = rotation[1:] @ rotation[:-1].transpose(-1, -2)
+        true = truth[1:] @ truth[:-1].transpose(-1, -2)
+        errors[1:] = rotation_error_deg(estimate, true).double()
+    return errors
+
+
+def pass_groups(dataset: Any) -> dict[tuple[int, int], list[int]]:
+    """The items of a dataset of passes grouped by (model index, pass), each in frame order.
+
+    Raises:
+        ValueError: the dataset's labels are not a pass's (no ``frame_in_pass``), or a pass
+            has frames missing or twice.
+    """
+    groups: dict[tuple[int, int], list[tuple[int, int]]] = {}
+    for item, (model_index, _, label) in enumerate(dataset.items):
+        frame = label.get("frame_in_pass")
+        if frame is None or label.get("pass") is None:
+            raise ValueError(f"{dataset.root}: not a dataset of passes ({label.get('filename')} "
+                             f"of model {dataset.models[model_index]} has no pass and "
+                             "frame_in_pass; render one with dataset render --pass-frames F)")
+        groups.setdefault((model_index, int(label["pass"])), []).append((int(frame), item))
+    ordered = {}
+    for (model_index, number), frames in sorted(groups.items()):
+        frames.sort()
+        if [f for f, _ in frames] != list(range(len(frames))):
+            raise ValueError(f"{dataset.root}: pass {number} of model "
+                             f"{dataset.models[model_index]} has frames "
+                             f"{[f for f, _ in frames]}, not 0 to {len(frames) - 1} once each")
+        ordered[(model_index, number)] = [item for _, item in frames]
+    return ordered
+
+
+def evaluate_passes(predictor: Any, data_root: str | Path, out_dir: str | Path,
+                    options: PassOptions | None = None, progress: bool = True,
+                    label: str | None = None) -> PassResult:
+    """Score ``predictor`` on the passes of a dataset split (module docstring).
+
+    Every input is checked before the work starts: the network's input channels, the dataset
+    and split (not empty, a dataset of passes, each pass at least ``max(counts)`` frames), and
+    the output folder (writable, outside the dataset, not locked by another run).
+
+    Args:
+        label: the run's name in ``passes.json`` (default: the checkpoint's folder name).
+
+    Raises:
+        ValueError: one line naming what and where.
+    """
+    from sq_mitsuba.evaluation.evaluate import check_data_folder, check_outside_data
+    from sq_mitsuba.evaluation.split import check_predictor, evenly, open_split
+    from sq_mitsuba.inference.loading import with_fast_path
+    from sq_mitsuba.io import check_output_folder
+    from sq_mitsuba.outputs import output_lock
+
+    options = options or PassOptions()
+    validate(options)
+    if not options.counts:
+        raise ValueError("counts: expected at least one number of frames")
+    check_predictor(predictor)
+    data_root, out_dir = Path(data_root), Path(out_dir)
+    check_data_folder(data_root)
+    check_output_folder(out_dir, OUTPUT_FILES)
+    check_outside_data(out_dir, data_root)
+    # The dataset's own resolution: opened once at the network's to read camera.json.
+    size = open_split(data_root, options.split, predictor.image_size, 1).camera.width
+    dataset = open_split(data_root, options.split, size, options.surface_points)
+    groups = pass_groups(dataset)
+    longest = max(options.counts)
+    short = [key for key, items in groups.items() if len(items) < longest]
+    if short:
+        model_index, number = short[0]
+        raise ValueError(f"counts: {longest} frames asked, but pass {number} of model "
+                         f"{dataset.models[model_index]} has {len(groups[short[0]])} "
+                         f"({len(short)} pass(es) too short)")
+    keys = sorted(groups)
+    keys = [keys[k] for k in evenly(len(keys), options.passes)]
+    # Every frame of a dataset shows its target: each is fitted whatever its target score.
+    predictor = with_fast_path(predictor, options.fast, min_target=0.0)
+    with output_lock(out_dir, command="sq-mitsuba eval --passes"):
+        return _evaluate_passes(predictor, dataset, {k: groups[k] for k in keys}, out_dir,
+                                options, progress, label)
+
+
+def _evaluate_passes(predictor: Any, dataset: Any, groups: dict[tuple[int, int], list[int]],
+                     out_dir: Path, options: PassOptions, progress: bool,
+                     label: str | None) -> PassResult:
+    """:func:`evaluate_passes` once its inputs are checked and the folder locked."""
+    from sq_mitsuba.evaluation.evaluate import default_label
+    from sq_mitsuba.evaluation.scoring import ModelData, score
+    from sq_mitsuba.evaluation.split import collate
+    from sq_mitsuba.io import atomic_write_json
+    from sq_mitsuba.progress import progress_bar
+    from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer
+
+    started = time.perf_counter()
+    camera = dataset.camera.rescaled(dataset.image_size, dataset.image_size)
+    renderer = SilhouetteRenderer(camera, spp=options.silhouette_spp)
+    models = ModelData(dataset, options.volume_points)
+    counts = sorted(set(options.counts))
+    longest = counts[-1]
+    rows: list[dict[str, Any]] = []
+    names = []
+    (out_dir / "passes.json").unlink(missing_ok=True)  # the finished mark goes first
+    with progress_bar(total=len(groups), unit="pass", disable=not progress,
+                      desc=f"passes {options.split}") as bar:
+        for (model_index, number), items in groups.items():
+            model = dataset.models[model_index]
+            names.append(f"{model}/{number}")
+            shot = collate([dataset[i] for i in items[:longest]])
+            tick = time.perf_counter()
+            alone = predictor.predict(shot["image"], camera, refine=True,
+                                      search=options.search, refinement=options.refinement)
+            alone_seconds = (time.perf_counter() - tick) / longest
+            network = alone.network
+            symmetry, volume = models.symmetry(model_index), models.volume(model_index)
+            for count in counts:
+                batch = {key: value[:count] for key, value in shot.items()
+                         if isinstance(value, Tensor)}
+                methods: dict[str, tuple[Assembly, Tensor, Tensor, float]] = {
+                    "network": (network.assembly[:count], network.rotation[:count],
+                                network.translation[:count], math.nan),
+                    "single": (alone.assembly[:count], alone.rotation[:count],
+                               alone.translation[:count], alone_seconds)}
+                if count >= 2:
+                    bar.set_postfix_str(f"{model}: {count} frames")
+                    tick = time.perf_counter()
+                    sequence = predictor.predict_sequence(
+                        shot["image"][:count], camera, ordered=options.ordered,
+                        options=options.sequence)
+                    methods["sequence"] = (
+                        Assembly(sequence.assembly.params.expand(count, -1, -1)),
+                        sequence.rotation, sequence.translation,
+                        (time.perf_counter() - tick) / count)
+                for method, (assembly, rotation, translation, seconds) in methods.items():
+                    metrics = score(assembly, rotation, translation, batch, renderer,
+                                    [symmetry] * count, [volume] * count, options.level)
+                    metrics["relative_rotation_deg"] = relative_rotation_errors(
+                        rotation.detach(), batch["rotation"])
+                    for k in range(count):
+                        rows.append({"model": model, "pass": number, "frames": count,
+                                     "method": method, "frame": k,
+                                     "seconds_per_frame": seconds,
+                                     **{name: float(value[k]) for name, value in metrics.items()}})
+            bar.update()
+    summary, files = _write_outputs(rows, out_dir, counts, len(groups))
+    atomic_write_json(out_dir / "passes.json", {
+        "data": str(dataset.root), "split": options.split, "passes": names,
+        "counts": counts, "resolution": dataset.image_size,
+        "label": label if label is not None else default_label(predictor),
+        "checkpoint": str(getattr(predictor, "source", None) or ""),
+        "options": to_dict(options), "wall_seconds": round(time.perf_counter() - started, 3)})
+    files.append(out_dir / "passes.json")
+    return PassResult(rows, summary, names, out_dir, files)
+
+
+def _write_outputs(rows: list[dict[str, Any]], out_dir: Path, counts: list[int],
+                   passes: int) -> tuple[dict[tuple[int, str], dict[str, tuple[float, ...]]],
+                                         list[Path]]:
+    """per_frame.csv, summary.csv / .md and the figure; the summary by (N, method)."""
+    from sq_mitsuba.evaluation.scoring import METRICS
+    from sq_mitsuba.evaluation.tables import csv_text, format_stats, markdown_table, summarise
+    from sq_mitsuba.io import atomic_write_text
+
+    metrics = (*METRICS, "relative_rotation_deg", "seconds_per_frame")
+    header = ["model", "pass", "frames", "method", "frame", *metrics]
+    atomic_write_text(out_dir / "per_frame.csv", csv_text(header, [
+        ["" if isinstance(r[c], float) and not math.isfinite(r[c]) else r[c] for c in header]
+        for r in rows]))
+    grouped = summarise(rows, ("frames", "method"), metrics)
+    order = sorted(grouped, key=lambda key: (key[0], METHODS.index(key[1])))
+    summary = {key: grouped[key] for key in order}
+    frames = {key: sum(1 for r in rows if (r["frames"], r["method"]) == key) for key in order}
+    atomic_write_text(out_dir / "summary.csv", csv_text(
+        ["frames", "method", "metric", "mean", "std", "median", "frames_scored"],
+        [[*key, metric, *summary[key][metric], frames[key]] for key in order
+         for metric in metrics]))
+    shown = [name for name, _, _ in PLOTTED] + ["seconds_per_frame"]
+    atomic_write_text(out_dir / "summary.md", (
+        f"Mean ± std (median) per number of frames N and method, over the frames of {passes} "
+        "pass(es); every metric is in summary.csv.\n\n"
+        + markdown_table(["N", "method", "frames", *shown],
+                         [[*key, frames[key], *(format_stats(*summary[key][m]) for m in shown)]
+                          for key in order])
+        + "\nnetwork: the network's reading of each frame; single: each frame alone through "
+        "the search and refinement; sequence: one assembly and N poses "
+        "(predict_sequence). Rotations in degrees; relative rotation: between consecutive "
+        "frames.\n"))
+    figure_path = _plot(summary, counts, out_dir / "quality_vs_frames.png", passes)
+    return summary, [out_dir / name for name in OUTPUT_FILES[:3]] + [figure_path]
+
+
+def _plot(summary: dict[tuple[int, str], dict[str, tuple[float, ...]]], counts: list[int],
+          path: Path, passes: int) -> Path:
+    """Each :data:`PLOTTED` metric against N, one line per method."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from sq_mitsuba.io import save_figure
+
+    colours = {"network": "tab:gray", "single": "tab:red", "sequence": "tab:blue"}
+    figure, axes = plt.subplots(1, len(PLOTTED), figsize=(3.3 * len(PLOTTED), 3.2))
+    for axis, (name, title, statistic) in zip(axes, PLOTTED, strict=True):
+        which = 2 if statistic == "median" else 0
+        for method in METHODS:
+            shown = [c for c in counts if (c, method) in summary
+                     and math.isfinite(summary[(c, method)][name][which])]
+            if shown:
+                axis.plot(shown, [summary[(c, method)][name][which] for c in shown], "o-",
+                          color=colours[method], label=method)
+        axis.set_xscale("log", base=2)
+        axis.set_xticks(counts, [str(c) for c in counts])
+        axis.set_xlabel("frames N")
+        axis.set_title(f"{title}, {statistic}", fontsize=9)
+        axis.grid(alpha=0.3)
+    axes[0].legend(fontsize=8)
+    figure.suptitle(f"One assembly from N frames against each frame alone ({passes} pass(es))",
+                    fontsize=10)
+    figure.tight_layout()
+    return save_figure(figure, path)

@@ -1,0 +1,191 @@
+"""Evaluating passes (``evaluate_passes``, ``sq-mitsuba eval --sequence``): one assembly from
+the first N frames of each pass against each frame alone.
+
+References: the relative rotations against angles set by hand; each method's rows against the
+same method called directly on the same frames (the network's reading, ``predict_sequence``);
+the summary's means against the per-frame table averaged with numpy; bad inputs refused in one
+line before any work."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+from output_checks import one_torch_thread  # noqa: F401 (autouse fixture)
+
+from sq_mitsuba.evaluation.passes import (
+    OUTPUT_FILES,
+    PassOptions,
+    evaluate_passes,
+    pass_groups,
+    relative_rotation_errors,
+)
+from sq_mitsuba.geometry.rotation import axis_angle_to_matrix, quaternion_to_matrix
+from sq_mitsuba.inference.loading import load_model, with_fast_path
+from sq_mitsuba.inference.refine import RefineOptions
+from sq_mitsuba.inference.search import SearchOptions
+from sq_mitsuba.inference.sequence import SequenceOptions
+
+FRAMES = 3
+#: Small settings: a few steps everywhere (these tests check the bookkeeping, not the quality).
+SMALL = PassOptions(counts=(1, FRAMES), sequence=SequenceOptions(steps=3, spp=2),
+                    search=SearchOptions(grid=128, screen_steps=2),
+                    refinement=RefineOptions(steps=2, patience=2, shape="pose", depth="fixed"),
+                    surface_points=300, volume_points=2000, silhouette_spp=4)
+
+
+@pytest.fixture(scope="module")
+def pass_dataset(tmp_path_factory):
+    """Two generated spacecraft, one pass of 3 frames each at 64 px (both test models)."""
+    from sq_mitsuba.data.library import generate_model
+    from sq_mitsuba.data.spacecraft import catalogue
+    from sq_mitsuba.data.spe3r import RenderOptions, render_dataset
+
+    models = tmp_path_factory.mktemp("pass_models")
+    entries = catalogue(2, 5)
+    for entry in entries:
+        generate_model(entry, models, points=3000)
+    (models / "splits.csv").write_text("".join(f"{e.name},test\n" for e in entries))
+    out = tmp_path_factory.mktemp("pass_data") / "data"
+    options = RenderOptions(images_per_model=FRAMES, seed=3, resolution=64, spp=2,
+                            pass_frames=FRAMES)
+    assert not render_dataset(models, out, options, progress=False).failures
+    return out
+
+
+def test_relative_rotation_errors_against_angles_set_by_hand():
+    """Frames turning 10 deg a step about z, read as turning 13 deg a step about z: 3 deg
+    off from frame 1 on, NaN for frame 0; a common misreading of every frame costs nothing."""
+    z = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    truth = axis_angle_to_matrix(torch.stack([z * math.radians(10 * k) for k in range(4)]))
+    read = axis_angle_to_matrix(torch.stack([z * math.radians(13 * k) for k in range(4)]))
+    errors = relative_rotation_errors(read, truth)
+    assert math.isnan(float(errors[0]))
+    np.testing.assert_allclose(errors[1:].numpy(), [3.0, 3.0, 3.0], atol=1e-6)
+    turned = truth @ axis_angle_to_matrix(torch.tensor([[0.3, -1.0, 0.2]], dtype=torch.float64))
+    np.testing.assert_allclose(relative_rotation_errors(turned, truth)[1:].numpy(), 0.0,
+                               atol=1e-5)
+
+
+def _rows(path):
+    with open(path, newline="") as file:
+        return list(csv.DictReader(file))
+
+
+def test_each_method_is_scored_per_frame_as_called_directly(eval_checkpoint, pass_dataset,
+                                                           tmp_path):
+    out = tmp_path / "passes"
+    result = evaluate_passes(load_model(eval_checkpoint), pass_dataset, out, SMALL,
+                             progress=False)
+    assert sorted(p.name for p in result.files) == sorted(OUTPUT_FILES)
+    rows = _rows(out / "per_frame.csv")
+    # Two passes; N = 1: network and single; N = 3: the sequence as well, one row a frame.
+    assert len(rows) == 2 * (2 * 1 + 3 * FRAMES)
+    assert {(r["frames"], r["method"]) for r in rows} == {
+        ("1", "network"), ("1", "single"), ("3", "network"), ("3", "single"),
+        ("3", "sequence")}
+
+    from sq_mitsuba.data.spe3r import Spe3rDataset
+
+    dataset = Spe3rDataset(pass_dataset, "test", image_size=64)
+    groups = pass_groups(dataset)
+    assert len(groups) == 2 and all(len(items) == FRAMES for items in groups.values())
+    (model_index, number), items = next(iter(groups.items()))
+    assert [dataset.items[i][2]["frame_in_pass"] for i in items] == [0, 1, 2]
+    model = dataset.models[model_index]
+    images = torch.stack([dataset[i]["image"] for i in items])
+    truth = torch.stack([quaternion_to_matrix(torch.tensor(
+        dataset.items[i][2]["q_vbs2tango_true"], dtype=torch.float64)) for i in items])
+    predictor = with_fast_path(load_model(eval_checkpoint), True, min_target=0.0)
+
+    def column(method, frames, name):
+        return np.array([float(r[name]) if r[name] else np.nan for r in rows
+                         if (r["model"], r["pass"], r["frames"], r["method"])
+                         == (model, str(number), str(frames), method)])
+
+    # The network row: its own reading's relative rotations; frame 0's shape and rotation the
+    # same for N = 1 and 3 (the first N frames of the pass; the 2D IoU's samples differ).
+    network = predictor.predict(images)
+    np.testing.assert_allclose(column("network", FRAMES, "relative_rotation_deg")[1:],
+                               relative_rotation_errors(network.rotation, truth)[1:].numpy(),
+                               atol=1e-4)
+    for name in ("chamfer_l1_paper", "camera_chamfer", "rotation_error_folded_deg"):
+        assert column("network", 1, name)[0] == pytest.approx(column("network", FRAMES,
+                                                                     name)[0], abs=1e-9)
+    # The single row: each frame alone through the search and refinement.
+    alone = predictor.predict(images, refine=True, search=SMALL.search,
+                              refinement=SMALL.refinement)
+    np.testing.assert_allclose(column("single", FRAMES, "relative_rotation_deg")[1:],
+                               relative_rotation_errors(alone.rotation, truth)[1:].numpy(),
+                               atol=1e-4)
+    # The sequence row: predict_sequence on the same three frames.
+    sequence = predictor.predict_sequence(images, ordered=True, options=SMALL.sequence)
+    np.testing.assert_allclose(column("sequence", FRAMES, "relative_rotation_deg")[1:],
+                               relative_rotation_errors(sequence.rotation, truth)[1:].numpy(),
+                               atol=1e-4)
+    # The summary's means are the per-frame table's.
+    with open(out / "summary.csv", newline="") as file:
+        summary = {(r["frames"], r["method"], r["metric"]): r for r in csv.DictReader(file)}
+    for (frames, method) in (("3", "sequence"), ("1", "single")):
+        values = [float(r["iou_2d"]) for r in rows
+                  if (r["frames"], r["method"]) == (frames, method)]
+        assert float(summary[(frames, method, "iou_2d")]["mean"]) == pytest.approx(
+            np.mean(values), abs=1e-9)
+    recorded = json.loads((out / "passes.json").read_text())
+    assert recorded["counts"] == [1, FRAMES] and len(recorded["passes"]) == 2
+    assert recorded["resolution"] == 64
+
+
+def test_bad_pass_evaluations_are_refused_before_any_work(eval_checkpoint, pass_dataset,
+                                                         train_dataset, tmp_path):
+    predictor = load_model(eval_checkpoint)
+    # More frames than a pass holds.
+    with pytest.raises(ValueError, match=r"^counts: 4 frames asked, but pass 0 of model "
+                                         r"\S+ has 3 \(2 pass\(es\) too short\)"):
+        evaluate_passes(predictor, pass_dataset, tmp_path / "a",
+                        PassOptions(counts=(1, 4)), progress=False)
+    # A dataset of independent images.
+    with pytest.raises(ValueError, match=r"not a dataset of passes .* render one with "
+                                         r"dataset render --pass-frames F"):
+        evaluate_passes(predictor, train_dataset, tmp_path / "b", PassOptions(counts=(1,)),
+                        progress=False)
+    # An output inside the dataset.
+    with pytest.raises(ValueError, match="inside the dataset folder"):
+        evaluate_passes(predictor, pass_dataset, pass_dataset / "evaluation", SMALL,
+                        progress=False)
+    for name in ("a", "b"):
+        assert not (tmp_path / name / "passes.json").exists()
+
+
+def test_study_passes_cli_writes_the_tables_and_refuses_in_one_line(eval_checkpoint,
+                                                                    pass_dataset, tmp_path,
+                                                                    capsys):
+    from sq_mitsuba.cli import main
+
+    small = ["--set", "sequence.steps=2", "--set", "sequence.spp=2", "--set", "search.grid=128",
+             "--set", "search.screen_steps=2", "--set", "refinement.steps=2",
+             "--set", "refinement.patience=2", "--set", "surface_points=200",
+             "--set", "volume_points=1000", "--set", "silhouette_spp=2"]
+    out = tmp_path / "cli"
+    assert main(["study", "passes", "--data", str(pass_dataset), "--checkpoint",
+                 str(eval_checkpoint), "--out", str(out), "--counts", "2", "--passes", "1",
+                 "--quiet", *small]) == 0
+    rows = _rows(out / "per_frame.csv")
+    assert {(r["frames"], r["method"]) for r in rows} == {("2", "network"), ("2", "single"),
+                                                          ("2", "sequence")}
+    assert len(rows) == 3 * 2 and len({r["model"] for r in rows}) == 1
+    recorded = json.loads((out / "passes.json").read_text())
+    assert recorded["options"]["sequence"]["steps"] == 2 and recorded["counts"] == [2]
+    capsys.readouterr()
+    assert main(["study", "passes", "--data", str(pass_dataset), "--checkpoint",
+                 str(eval_checkpoint), "--out", str(tmp_path / "long"), "--counts", "9",
+                 "--quiet"]) == 2
+    error = capsys.readouterr().err.strip()
+    assert len(error.splitlines()) == 1 and "counts: 9 frames asked" in error
+    assert main(["study", "passes", "--data", str(tmp_path / "missing"), "--out",
+                 str(tmp_path / "x"), "--quiet"]) == 2
+    assert "dataset folder not found" in capsys.readouterr().err
