@@ -317,11 +317,12 @@ def test_sigkill_then_resume_repeats_the_uninterrupted_run(train_dataset, cache_
 
 
 @pytest.mark.slow  # end to end, in a child process: `make test` runs it
+@pytest.mark.parametrize("stop", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
 def test_ctrl_c_saves_the_step_it_lands_in_and_resume_repeats_the_run(train_dataset, cache_dir,
-                                                                       tmp_path, capsys):
-    """Ctrl-C mid-run: the step in progress finishes, last.pt is written at it (not at the
-    epoch before), the run exits 130; --resume from there repeats an uninterrupted run bit
-    for bit."""
+                                                                       tmp_path, capsys, stop):
+    """Ctrl-C (or SIGTERM: kill, timeout, a scheduler at the end of a job's time) mid-run:
+    the step in progress finishes, last.pt is written at it (not at the epoch before), the
+    run exits 130; --resume from there repeats an uninterrupted run bit for bit."""
     out = tmp_path / "run"
     sets = ["--set", f"data.cache_dir={cache_dir}", "--set", "optim.epochs=50"]
     env = {**os.environ, "OMP_NUM_THREADS": str(torch.get_num_threads())}
@@ -333,7 +334,7 @@ def test_ctrl_c_saves_the_step_it_lands_in_and_resume_repeats_the_run(train_data
         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         _wait_for_steps(process, out, 5)
-        process.send_signal(signal.SIGINT)
+        process.send_signal(stop)
         output = process.communicate(timeout=60)[0].decode()
     finally:
         if process.poll() is None:
@@ -740,6 +741,39 @@ def test_torchrun_two_processes_match_one(train_dataset, cache_dir, tmp_path):
         for key in ("loss", *LOSS_TERMS):
             if x[key] or y[key]:
                 assert float(x[key]) == pytest.approx(float(y[key]), rel=1e-5), key
+
+
+@pytest.mark.slow
+def test_ctrl_c_stops_every_torchrun_process_at_one_saved_step(train_dataset, cache_dir,
+                                                               tmp_path):
+    """Ctrl-C in the terminal of a 2-process torchrun run (SIGINT to the launcher and both
+    processes; torchrun then sends them SIGTERM): the processes agree on the step, finish it,
+    last.pt is written at it, and every process ends (none left waiting in a collective)."""
+    out = tmp_path / "two"
+    sets = ["--set", f"data.cache_dir={cache_dir}", "--set", "optim.epochs=50"]
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    torchrun = Path(sys.executable).with_name("torchrun")
+    launcher = [str(torchrun)] if torchrun.is_file() else [sys.executable, "-m",
+                                                           "torch.distributed.run"]
+    process = subprocess.Popen(
+        [*launcher, "--standalone", "--nproc_per_node", "2", "-m", "sq_mitsuba", "train",
+         "--config", str(TINY), "--data", str(train_dataset), "--out", str(out), "--quiet",
+         *sets], env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+        start_new_session=True,  # its own process group, as a terminal's job
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    try:
+        _wait_for_steps(process, out, 4)
+        os.killpg(process.pid, signal.SIGINT)
+        output = process.communicate(timeout=90)[0].decode()
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+            process.wait()
+    saved = _read_checkpoint(out / "last.pt")
+    rows = _rows(out / "log.csv")
+    assert int(saved["step"]) == len(rows) >= 4, output[-3000:]
+    assert saved["world_size"] == 2
+    assert not [pid for pid in _children(process.pid) if "Z" not in _state(pid)]
 
 
 # ------------------------------------------------------------------------ learning

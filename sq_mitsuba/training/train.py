@@ -384,7 +384,7 @@ class _Loop:
                                dynamic_ncols=True)
         timed_images, timed_seconds = 0, 0.0
         stop_at = None if run.max_seconds is None else time.perf_counter() + run.max_seconds
-        interrupt = StepInterrupt(world.size)  # Ctrl-C: the step ends, is saved, then stops
+        interrupt = StepInterrupt(world)  # Ctrl-C, SIGTERM held: saved at a step, then stops
         try:
             for step in range(start_step, end_step):
                 with interrupt.step():
@@ -420,7 +420,7 @@ class _Loop:
                 if interrupt.pending:
                     raise KeyboardInterrupt
         finally:
-            self._close(bar)
+            self._close(bar, interrupt)
         if self.best is None and result.steps > start_step:
             # No validation has run (stopped before the first, validation off, or an empty val
             # split): best.pt is the latest state, a copy of the last.pt of the loop's last step.
@@ -484,13 +484,10 @@ class _Loop:
             self.save(BEST, done)
             result.best_checkpoint = run.out_dir / BEST
 
-    def _close(self, bar: Any) -> None:
-        if bar is not None:
-            bar.close()
-        if self.prefetcher is not None:
-            self.prefetcher.close()
-        if self.renderer is not None:
-            self.renderer.close()
+    def _close(self, bar: Any, interrupt: StepInterrupt | None = None) -> None:
+        for part in (interrupt, bar, self.prefetcher, self.renderer):
+            if part is not None:
+                part.close()
         log, out_dir = self.log, self.run_state.out_dir
         if log is not None:
             if log.rows and not (out_dir / CURVES_FILE).is_file():

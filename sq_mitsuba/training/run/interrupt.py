@@ -1,39 +1,75 @@
-"""Ctrl-C during training: held until the step in progress is done, then saved.
+"""Ctrl-C or SIGTERM during training: held until the step in progress is done, then saved.
 
 An interrupt that lands inside a step (between the backward pass and the optimiser's update,
 inside a render) leaves the network half updated: the run could only stop without saving,
 losing every step since the last checkpoint (up to an epoch). Held for the step's few
 seconds, it lets the loop write ``last.pt`` at a step boundary, from which ``--resume``
-repeats the uninterrupted run exactly, and then stop. A distributed run keeps the plain
-behaviour: its processes would have to agree on the step first.
+repeats the uninterrupted run exactly, and then stop.
+
+Held, for the whole loop: SIGINT (Ctrl-C) and SIGTERM (``kill``, ``timeout``, a scheduler
+such as SLURM at the end of a job's time, which waits some seconds before killing; torchrun,
+which passes the signal it gets on to every process and kills them 30 s later). In a
+distributed run every process must stop at the same step, or the others would wait for it in
+the next collective for ever: after each step the processes agree (one all-reduce of a flag)
+that one of them was interrupted, and all of them save that step and stop.
 """
 
 from __future__ import annotations
 
+import signal
+import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
+from typing import Any
 
-__all__ = ["StepInterrupt"]
+__all__ = ["HELD_SIGNALS", "StepInterrupt"]
+
+HELD_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+"""The signals a step holds back."""
 
 
 class StepInterrupt:
-    """Whether Ctrl-C arrived during a step (:meth:`step`); ``pending`` once it has."""
+    """SIGINT and SIGTERM held back from construction to :meth:`close` (the training loop):
+    one that arrives sets :attr:`pending` (the signal's number) instead of acting, and the
+    loop, after the step in progress (:meth:`step`), saves and raises ``KeyboardInterrupt``.
+    Where the handler in place ignores a signal it is left alone; off the main thread (which
+    alone receives signals) nothing is held.
 
-    def __init__(self, processes: int = 1) -> None:
-        self.enabled = processes == 1
-        self.pending = False
+    Between steps too (the log, the bar, a checkpoint, a validation, which then runs to its
+    end): the loop is cut only where its state is whole. Every later signal is held as well,
+    so that torchrun's own closing signal, after the terminal's, does not cut the save.
+
+    Args:
+        world: the run's :class:`~sq_mitsuba.training.distributed.World` (None: one process).
+    """
+
+    def __init__(self, world: Any = None) -> None:
+        self.world = world
+        self.pending: int | None = None
+        self._previous: dict[int, Any] = {}
+        if threading.current_thread() is threading.main_thread():
+            for number in HELD_SIGNALS:
+                previous = signal.getsignal(number)
+                if previous is not signal.SIG_IGN and previous is not None:
+                    self._previous[number] = signal.signal(number, self._hold)
 
     @contextmanager
     def step(self) -> Iterator[None]:
-        """Run a step with Ctrl-C held back; an interrupt sets :attr:`pending` instead of
-        raising (the caller saves, then raises ``KeyboardInterrupt``)."""
-        if not self.enabled:
-            yield
-            return
-        from sq_mitsuba.render.backend import interrupts_deferred
+        """Run a step; in a distributed run, every process then learns whether any of them
+        was interrupted (one all-reduce of a flag), so that all stop at this step."""
+        yield
+        if self.world is not None and self.world.distributed:
+            from sq_mitsuba.training.distributed import any_rank
 
-        try:
-            with interrupts_deferred():
-                yield
-        except KeyboardInterrupt:
-            self.pending = True
+            if any_rank(self.pending is not None, self.world) and self.pending is None:
+                self.pending = int(signal.SIGTERM)
+
+    def close(self) -> None:
+        """Put the handlers back (idempotent)."""
+        for number, previous in self._previous.items():
+            signal.signal(number, previous)
+        self._previous = {}
+
+    def _hold(self, number: int, frame: object) -> None:
+        if self.pending is None:
+            self.pending = number
