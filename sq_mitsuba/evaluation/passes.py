@@ -298,7 +298,7 @@ def _write_outputs(rows: list[dict[str, Any]], out_dir: Path, counts: list[int],
                                          list[Path]]:
     """per_frame.csv, summary.csv / .md and the figure; the summary by (N, method)."""
     from sq_mitsuba.evaluation.scoring import METRICS
-    from sq_mitsuba.evaluation.tables import csv_text, format_stats, markdown_table, summarise
+    from sq_mitsuba.evaluation.tables import csv_text, markdown_table, summarise
     from sq_mitsuba.io import atomic_write_text
 
     metrics = (*METRICS, "relative_rotation_deg", "seconds_per_frame")
@@ -319,7 +319,7 @@ def _write_outputs(rows: list[dict[str, Any]], out_dir: Path, counts: list[int],
         f"Mean ± std (median) per number of frames N and method, over the frames of {passes} "
         "pass(es); every metric is in summary.csv.\n\n"
         + markdown_table(["N", "method", "frames", *shown],
-                         [[*key, frames[key], *(format_stats(*summary[key][m]) for m in shown)]
+                         [[*key, frames[key], *(_stats(summary[key][m]) for m in shown)]
                           for key in order])
         + "\nnetwork: the network's reading of each frame; single: each frame alone through "
         "the search and refinement; sequence: one assembly and N poses "
@@ -327,6 +327,14 @@ def _write_outputs(rows: list[dict[str, Any]], out_dir: Path, counts: list[int],
         "frames.\n"))
     figure_path = _plot(summary, counts, out_dir / "quality_vs_frames.png", passes)
     return summary, [out_dir / name for name in OUTPUT_FILES[:3]] + [figure_path]
+
+
+def _stats(stats: tuple[float, ...]) -> str:
+    """``mean ± std (median)``, or a dash where the method has no value (the network's
+    seconds, frame 0's relative rotation)."""
+    from sq_mitsuba.evaluation.tables import format_stats
+
+    return format_stats(*stats) if math.isfinite(stats[0]) else "–"
 
 
 def _plot(summary: dict[tuple[int, str], dict[str, tuple[float, ...]]], counts: list[int],
