@@ -506,11 +506,27 @@ def test_the_depth_is_camera_frame_z_not_the_distance_along_the_ray():
 
 
 @pytest.mark.slow
-def test_parallel_workers_write_the_same_dataset(dataset, model_library, tmp_path):
+def test_parallel_workers_write_the_same_dataset(dataset, model_library, tmp_path,
+                                                 monkeypatch):
+    """Two workers write the single process's files; the progress bar moves by image as
+    each worker finishes one (it moved by model: minutes apart at a thousand a model)."""
+    import sq_mitsuba.progress
+
+    steps: list[int] = []
+    real_bar = sq_mitsuba.progress.progress_bar
+
+    def recording_bar(*args, **kwargs):
+        bar = real_bar(*args, **{**kwargs, "disable": False})
+        update = bar.update
+        bar.update = lambda n=1: (steps.append(n), update(n))[1]
+        return bar
+
+    monkeypatch.setattr(sq_mitsuba.progress, "progress_bar", recording_bar)
     out = tmp_path / "parallel"
-    summary = render_dataset(model_library, out, RenderOptions(**OPTIONS), progress=False,
+    summary = render_dataset(model_library, out, RenderOptions(**OPTIONS), progress=True,
                              workers=2)
     assert not summary.failures and summary.rendered == 2 * IMAGES
+    assert sum(steps) == 2 * IMAGES and max(steps) == 1, steps
     assert read_bytes_tree(out, OUTPUTS) == read_bytes_tree(dataset, OUTPUTS)
     with pytest.raises(ValueError, match="workers"):
         render_dataset(model_library, out, RenderOptions(**OPTIONS), workers=0)

@@ -35,6 +35,7 @@ settled, failed models are listed with their reason in ``failures.json`` and lef
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import json
 import os
@@ -668,13 +669,66 @@ def _shard_work(models: Sequence[str], count: int, shard: str) -> dict[str, rang
 # ------------------------------------------------------------------------ dataset
 
 
-def _start_worker(threads: int) -> None:
+#: A worker's queue of images done, to its parent (:func:`_render_in_workers`).
+_worker_ticks: Any = None
+
+
+def _start_worker(threads: int, ticks: Any = None) -> None:
     import drjit as dr
 
     from sq_mitsuba.render.backend import mitsuba
 
+    global _worker_ticks
+    _worker_ticks = ticks
     mitsuba()
     dr.set_thread_count(threads)
+
+
+def _tick_parent(model: str, count: int) -> None:
+    """A worker's ``tick``: ``count`` images of ``model`` done, told to the parent."""
+    if _worker_ticks is not None and count:
+        _worker_ticks.put((model, count))
+
+
+def _render_in_workers(models_dir: Path, out_dir: Path, camera: Camera, options: RenderOptions,
+                       work: dict[str, list[int]], bar: Any,
+                       record: Callable[[str, Any], None]) -> None:
+    """Render ``work`` ({model: image indices}) in ``options.workers`` processes, one model a
+    job, the bar moving by image (each worker tells its parent every image it finishes) rather
+    than by model (minutes apart with a thousand images a model)."""
+    import multiprocessing
+    from concurrent.futures import FIRST_COMPLETED, wait
+
+    from sq_mitsuba.processes import worker_pool
+
+    threads = max(1, (os.cpu_count() or 1) // options.workers)
+    ticks = multiprocessing.get_context("spawn").SimpleQueue()
+    shown = dict.fromkeys(work, 0)  # images of each model on the bar
+
+    def drain() -> None:
+        while not ticks.empty():
+            model, count = ticks.get()
+            count = min(count, len(work[model]) - shown[model])  # a late tick: never past
+            shown[model] += count
+            bar.update(count)
+
+    with worker_pool(options.workers, _start_worker, (threads, ticks)) as pool:
+        jobs = {pool.submit(render_model, models_dir, out_dir, model, camera, options,
+                            tick=functools.partial(_tick_parent, model), indices=indices): model
+                for model, indices in work.items()}
+        running = set(jobs)
+        while running:
+            finished, running = wait(running, timeout=0.5, return_when=FIRST_COMPLETED)
+            drain()
+            for job in finished:
+                model = jobs[job]
+                try:
+                    outcome = job.result()
+                except (DatasetError, OSError, ValueError) as error:
+                    outcome = error
+                record(model, outcome)
+                bar.update(len(work[model]) - shown[model])  # a failed model's rest too
+                shown[model] = len(work[model])
 
 
 def _existing_manifest(out_dir: Path, overwrite: bool) -> dict[str, Any] | None:
@@ -802,22 +856,7 @@ def render_dataset(models_dir: str | Path, out_dir: str | Path,
                     outcome = error
                 record(model, outcome)
         else:
-            from concurrent.futures import as_completed
-
-            from sq_mitsuba.processes import worker_pool
-
-            threads = max(1, (os.cpu_count() or 1) // options.workers)
-            with worker_pool(options.workers, _start_worker, (threads,)) as pool:
-                jobs = {pool.submit(render_model, models_dir, out_dir, model, camera, options,
-                                    indices=indices): model
-                        for model, indices in work.items()}
-                for job in as_completed(jobs):
-                    try:
-                        outcome = job.result()
-                    except (DatasetError, OSError, ValueError) as error:
-                        outcome = error
-                    record(jobs[job], outcome)
-                    bar.update(len(work[jobs[job]]))
+            _render_in_workers(models_dir, out_dir, camera, options, work, bar, record)
     summary.models_done.sort()
     summary.complete, failures = finalize_dataset(out_dir, options, camera, plan)
     # Failures of other shards (and of earlier runs not retried here) count too.
