@@ -32,6 +32,25 @@ def test_a_bar_into_a_file_writes_whole_lines_and_its_end():
     assert all(line.startswith("cache:") for line in log.getvalue().splitlines())
 
 
+def test_a_bar_redrawn_at_every_step_still_writes_a_line_per_interval():
+    """A training loop shows its loss at every step (set_postfix, set_description: each
+    forces a redraw): into a log that is still the start and the end, not a line a step; a
+    transient bar (leave=False, as bench's) that ends within the interval writes nothing."""
+    log = io.StringIO()
+    with progress_bar(total=500, desc="train", file=log) as bar:
+        for step in range(500):
+            bar.set_postfix(loss=f"{1 / (step + 1):.4g}")
+            bar.set_description(f"train {step}")
+            bar.update(1)
+    lines = log.getvalue().splitlines()
+    assert 1 <= len(lines) <= 3 and "500/500" in lines[-1], lines[:5]
+    log = io.StringIO()
+    with progress_bar(total=4, desc="bench", file=log, leave=False) as bar:
+        for _ in range(4):
+            bar.update(1)
+    assert log.getvalue().strip() == ""
+
+
 def test_a_bar_on_a_terminal_redraws_in_place():
     leader, follower = pty.openpty()
     with os.fdopen(follower, "w") as terminal:
