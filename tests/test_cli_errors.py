@@ -127,6 +127,18 @@ def test_interrupt_stays_exit_130(monkeypatch, capsys, no_env_traceback):
     assert "Traceback" in err and err.strip().endswith("sq-mitsuba doctor: interrupted")
 
 
+def test_an_interrupted_resumable_command_says_how_to_continue(monkeypatch, capsys,
+                                                               no_env_traceback):
+    """eval and train keep what they did (a journal, last.pt): the line says how to go on."""
+    def interrupted(args):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(importlib.import_module("sq_mitsuba.cli.eval"), "_run", interrupted)
+    assert main(["eval", "--data", "d", "--out", "o"]) == 130
+    assert error_line(capsys) == ("sq-mitsuba eval: interrupted (the same command with "
+                                  "--resume continues from its journal in --out)")
+
+
 def test_a_terminated_run_stops_as_an_interrupted_one(tmp_path):
     """SIGTERM (``kill``, ``timeout``) is handled as Ctrl-C: one line, exit 130, the lock
     released and a folder the run made but wrote nothing into removed (killed outright, it

@@ -32,6 +32,14 @@ EXIT_ERROR = 2
 #: Exit code of an unexpected exception (a bug): reported in one line, with the hint below.
 EXIT_INTERNAL = 1
 EXIT_INTERRUPTED = 130
+#: What to do after an interrupt, for the commands that take up where they stopped.
+RESUME_HINTS = {
+    "train": "the same command with --resume continues from last.pt",
+    "eval": "the same command with --resume continues from its journal in --out",
+    "dataset": "the same command again takes up where it stopped",
+    "models": "the same command again takes up where it stopped",
+    "study": "the same command again takes up where it stopped",
+}
 #: The global flag (before the command) and the environment variable that show tracebacks.
 TRACEBACK_FLAG = "--traceback"
 TRACEBACK_ENV = "SQ_MITSUBA_TRACEBACK"
@@ -173,7 +181,9 @@ def _main(argv: Sequence[str] | None) -> int:
         if interrupted(error):  # Ctrl-C, also when Dr.Jit disguised it: one line, exit 130
             if show_traceback:
                 traceback.print_exc()
-            print(f"sq-mitsuba {args.command}: interrupted", file=sys.stderr)
+            hint = RESUME_HINTS.get(args.command)
+            print(f"sq-mitsuba {args.command}: interrupted" + (f" ({hint})" if hint else ""),
+                  file=sys.stderr)
             return EXIT_INTERRUPTED
         if show_traceback:
             raise

@@ -85,7 +85,7 @@ def _methods_in(rows: Sequence[dict]) -> list[str]:
 
 def plot_per_model(rows: Sequence[dict], path: str | Path,
                    metrics: tuple[str, ...] = ("chamfer_l1_paper", "iou_3d",
-                                               "rotation_error_deg", "iou_2d")) -> Path:
+                                               "rotation_error_folded_deg", "iou_2d")) -> Path:
     """Bar charts of the mean of each metric per model, std error bars, one bar per method
     (as the paper's Fig. 10). ``rows`` as in ``per_image.csv``."""
     from sq_mitsuba.io import save_figure
