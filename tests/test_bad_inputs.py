@@ -773,3 +773,20 @@ def test_an_image_beyond_the_machines_memory_is_refused_before_it_is_read(bad, t
     assert not out.exists()
     monkeypatch.setattr(machine, "available_memory", lambda: pixels * PREDICT_BYTES_PER_PIXEL)
     assert main(["predict", str(bad / "image.png"), "--out", str(out), "--quiet"]) == 0
+
+
+def test_a_model_library_given_for_a_dataset_is_named_as_such(tmp_path):
+    """eval, train and preview read datasets; a model library (the step before) is told apart
+    from a broken dataset, with the command that makes one."""
+    from sq_mitsuba.data.spe3r import Spe3rDataset
+
+    (tmp_path / "sc000_x" / "models").mkdir(parents=True)
+    (tmp_path / "sc000_x" / "models" / "model_card.json").write_text("{}")
+    (tmp_path / "splits.csv").write_text("sc000_x,train\n")
+    with pytest.raises(ValueError, match=r"camera\.json: missing; .* is a model library, not "
+                                         r"a dataset: render one with sq-mitsuba dataset "
+                                         r"render --models"):
+        Spe3rDataset(tmp_path, "train")
+    (tmp_path / "sc000_x" / "models" / "model_card.json").unlink()
+    with pytest.raises(ValueError, match=r"camera\.json: missing$"):
+        Spe3rDataset(tmp_path, "train")

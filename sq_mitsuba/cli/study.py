@@ -16,6 +16,7 @@ from sq_mitsuba.cli._options import (
 HELP = ("studies of a trained model (illumination: phase angle, Earth, eclipse; passes: one "
         "assembly from N frames)")
 DESCRIPTION = """\
+`study passes --help`: one assembly from N frames of a pass against each frame alone.
 Two ways to see how lighting changes the results:
 
   study illumination --models LIB --out DIR [--checkpoint PT] [--poses N] [--step 15]

@@ -198,8 +198,12 @@ class LibrarySummary:
         """The report: each written import's name, then how many models were written where
         (a failed import is listed by :meth:`failure_text` instead)."""
         lines = [f"{path} -> {name}" for path, name in self.names if name in self.written]
-        kept = f" ({len(self.kept)} of them already there, kept)" if self.kept else ""
-        lines.append(f"{len(self.written)} model(s) written to {self.out}{kept}")
+        if self.kept:
+            lines.append(f"{len(self.written)} model(s) in {self.out}: "
+                         f"{len(self.written) - len(self.kept)} built, {len(self.kept)} "
+                         "already there")
+        else:
+            lines.append(f"{len(self.written)} model(s) written to {self.out}")
         return "\n".join(lines)
 
     def failure_text(self) -> str:

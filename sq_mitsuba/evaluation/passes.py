@@ -118,7 +118,7 @@ class PassResult:
 
     def describe(self) -> str:
         """A few lines: the main figures per N and method."""
-        lines = [f"scored {len(self.passes)} passes"]
+        lines = [f"scored {len(self.passes)} pass(es)"]
         for (count, method), stats in sorted(self.summary.items()):
             lines.append(f"  N={count} {method}: " + ", ".join(
                 f"{name} {stats[name][2 if statistic == 'median' else 0]:.3f}"

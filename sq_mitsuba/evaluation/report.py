@@ -199,7 +199,8 @@ def _our_rows(folders: list[dict[str, Any]]) -> list[dict]:
             split = folder["split"]
             if metrics and any(key in row[split] for _, key, _, _ in COLUMNS):
                 raise ValueError(f"{folder['folder']}: a second {split} evaluation of the run "
-                                 f"{folder['label']!r} (give each run's val and test once)")
+                                 f"{folder['label']!r} (give each run's val and test once; "
+                                 "name the runs apart with eval --label)")
             for metric, paper_key, _, _ in COLUMNS:
                 if metric in metrics:
                     row[split][paper_key] = metrics[metric]

@@ -82,7 +82,12 @@ class Spe3rDataset(torch.utils.data.Dataset):
         self.root = Path(root)
         for required in ("camera.json", "splits.csv"):
             if not (self.root / required).is_file():
-                raise DatasetError(f"{self.root / required}: missing")
+                library = required == "camera.json" and any(
+                    self.root.glob("*/models/model_card.json"))
+                raise DatasetError(f"{self.root / required}: missing" + (
+                    f"; {self.root} is a model library, not a dataset: render one with "
+                    f"sq-mitsuba dataset render --models {self.root} --out DATA" if library
+                    else ""))
         try:
             self.camera = Camera.load(self.root / "camera.json")
         except ValueError as error:
