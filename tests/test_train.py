@@ -1050,3 +1050,17 @@ def test_fine_tune_start_is_the_start_training_grew(reference_run, train_dataset
     other = fine_tune_start(start_state, network, payload["config"]["seed"] + 1, "start")
     grown = [key for key in start if not torch.equal(start[key], other[key])]
     assert grown and all(key.startswith("sq_generator.") for key in grown)
+
+
+def test_a_repository_config_named_from_another_folder_says_where_it_is(tmp_path,
+                                                                      monkeypatch):
+    """`--config train/configs/tiny.toml` run from another folder: the file is the
+    repository's, and the error says where it lies (it said 'no such file' alone)."""
+    from sq_mitsuba.config import ConfigError
+
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(ConfigError, match=r"^train/configs/tiny\.toml: no such file here "
+                                          r"\(.*\); the repository's is "):
+        load_train_config("train/configs/tiny.toml")
+    with pytest.raises(ConfigError, match=r"^train/configs/none\.toml: no such file$"):
+        load_train_config("train/configs/none.toml")

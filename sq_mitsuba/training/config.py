@@ -277,6 +277,11 @@ def load_train_config(path: str | Path) -> TrainConfig:
     dotted field, e.g. ``a.toml: optim.lr: expected a value > 0, got -1``.
     """
     path = Path(path)
+    repository = Path(__file__).resolve().parents[2]
+    if not path.exists() and not path.is_absolute() and (repository / path).is_file():
+        # A config named as from the repository's root, run from another folder.
+        raise ConfigError(f"{path}: no such file here ({Path.cwd()}); the repository's is "
+                          f"{repository / path}")
     data = resolve_mapping(path)
     try:
         return from_dict(TrainConfig, data)
