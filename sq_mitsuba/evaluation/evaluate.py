@@ -288,7 +288,8 @@ def _evaluate(predictor: Any, data_root: Path, out_dir: Path, options: EvalOptio
         baseline = (Assembly.from_raw(base_raw), base_rotation, base_translation)
     elif options.baseline:
         base_raw, base_rotation, base_translation = baseline_prediction(
-            predictor, data_root, options.baseline_images, options.batch_size)
+            predictor, data_root, options.baseline_images, options.batch_size,
+            progress=progress)
         baseline = (Assembly.from_raw(base_raw), base_rotation, base_translation)
     renderer = SilhouetteRenderer(camera, spp=options.silhouette_spp)
     models = ModelData(dataset, options.volume_points)

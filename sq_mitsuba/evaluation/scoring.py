@@ -155,12 +155,13 @@ class ModelData:
 
 
 def baseline_prediction(predictor: Any, data_root: Path, count: int,
-                        batch_size: int = 32, split: str = "train"
+                        batch_size: int = 32, split: str = "train", progress: bool = False
                         ) -> tuple[Tensor, Tensor, Tensor]:
     """The trivial baseline: mean raw output (1, M, 16) of the network over up to ``count``
     training images (spread evenly), with the mean rotation (1, 3, 3) and translation (1, 3)
     of their labels. ``split``: the split those images come from (``sq-mitsuba demo`` takes
-    its own test images when the checkpoint stores no baseline).
+    its own test images when the checkpoint stores no baseline). ``progress``: a bar over the
+    images (seconds to tens of seconds before an evaluation's own bar).
 
     Convention: a network with existence probabilities is read with every primitive (one M
     for all images); the baseline keeps those whose mean probability reaches the predictor's
@@ -173,6 +174,7 @@ def baseline_prediction(predictor: Any, data_root: Path, count: int,
     from sq_mitsuba.data.spe3r import Spe3rDataset
     from sq_mitsuba.inference.loading import with_fast_path
     from sq_mitsuba.model.existence import gathered_primitives, kept_primitives
+    from sq_mitsuba.progress import progress_bar
 
     train = Spe3rDataset(data_root, split, image_size=predictor.image_size, num_surface=1,
                          num_occupancy=2)
@@ -184,6 +186,8 @@ def baseline_prediction(predictor: Any, data_root: Path, count: int,
     threshold = predictor.min_existence
     every = with_fast_path(predictor, predictor.fast, min_existence=0.0)
     raws, existences, rotations, translations = [], [], [], []
+    bar = progress_bar(total=len(indices), desc="baseline", unit="img", disable=not progress,
+                       leave=False)
     for start in range(0, len(indices), batch_size):
         batch = collate([train[i] for i in indices[start:start + batch_size]])
         prediction = every.predict(batch["image"], camera)
@@ -192,6 +196,8 @@ def baseline_prediction(predictor: Any, data_root: Path, count: int,
             existences.append(prediction.existence)
         rotations.append(batch["rotation"])
         translations.append(batch["translation"])
+        bar.update(len(batch["rotation"]))
+    bar.close()
     raw = torch.cat(raws).double().mean(0, keepdim=True)
     if existences:
         rows = kept_primitives(torch.cat(existences).double().mean(0, keepdim=True), threshold,
