@@ -349,9 +349,14 @@ def _evaluate(predictor: Any, data_root: Path, out_dir: Path, options: EvalOptio
 
         figure_camera = dataset.camera.rescaled(options.figure_size, options.figure_size)
         renderer.reseed(0)  # the figure's silhouettes: whichever batches this run computed
+        # Seconds each (ray-cast pictures): a bar, not silence after the evaluation's own.
+        drawn = progress_bar(total=3, desc="figures", unit="fig", disable=not progress,
+                             leave=False)
         files.append(plot_per_model(rows, out_dir / "per_model.png"))
+        drawn.update()
         files.append(plot_qualitative(examples, dataset, camera, figure_camera, renderer,
                                       out_dir / "qualitative.png", options.level))
+        drawn.update()
         by_model: dict[int, list[int]] = {}
         for item in indices:
             by_model.setdefault(dataset.items[item][0], []).append(item)
@@ -361,6 +366,7 @@ def _evaluate(predictor: Any, data_root: Path, out_dir: Path, options: EvalOptio
                  for group in shown]
         files.append(plot_consistency(dataset, views, predictor, camera, figure_camera,
                                       out_dir / "consistency.png", options.level))
+        drawn.close()
     images = len(indices)
     images_per_second = images / loop_seconds
     atomic_write_json(out_dir / "eval.json", {
