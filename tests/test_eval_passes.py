@@ -32,7 +32,7 @@ from sq_mitsuba.inference.sequence import SequenceOptions
 
 FRAMES = 3
 #: Small settings: a few steps everywhere (these tests check the bookkeeping, not the quality).
-SMALL = PassOptions(counts=(1, FRAMES), sequence=SequenceOptions(steps=3, spp=2),
+SMALL = PassOptions(counts=(1, 2, FRAMES), sequence=SequenceOptions(steps=3, spp=2),
                     search=SearchOptions(grid=128, screen_steps=2),
                     refinement=RefineOptions(steps=2, patience=2, shape="pose", depth="fixed"),
                     surface_points=300, volume_points=2000, silhouette_spp=4)
@@ -83,11 +83,11 @@ def test_each_method_is_scored_per_frame_as_called_directly(eval_checkpoint, pas
                              progress=False)
     assert sorted(p.name for p in result.files) == sorted(OUTPUT_FILES)
     rows = _rows(out / "per_frame.csv")
-    # Two passes; N = 1: network and single; N = 3: the sequence as well, one row a frame.
-    assert len(rows) == 2 * (2 * 1 + 3 * FRAMES)
+    # Two passes; N = 1: network and single; N = 2, 3: the sequence as well, a row a frame.
+    assert len(rows) == 2 * (2 * 1 + 3 * 2 + 3 * FRAMES)
     assert {(r["frames"], r["method"]) for r in rows} == {
-        ("1", "network"), ("1", "single"), ("3", "network"), ("3", "single"),
-        ("3", "sequence")}
+        ("1", "network"), ("1", "single"), ("2", "network"), ("2", "single"),
+        ("2", "sequence"), ("3", "network"), ("3", "single"), ("3", "sequence")}
 
     from sq_mitsuba.data.spe3r import Spe3rDataset
 
@@ -127,6 +127,11 @@ def test_each_method_is_scored_per_frame_as_called_directly(eval_checkpoint, pas
     np.testing.assert_allclose(column("sequence", FRAMES, "relative_rotation_deg")[1:],
                                relative_rotation_errors(sequence.rotation, truth)[1:].numpy(),
                                atol=1e-4)
+    # N = 2 is predict_sequence on the first two frames alone.
+    pair = predictor.predict_sequence(images[:2], ordered=True, options=SMALL.sequence)
+    np.testing.assert_allclose(column("sequence", 2, "relative_rotation_deg")[1:],
+                               relative_rotation_errors(pair.rotation, truth[:2])[1:].numpy(),
+                               atol=1e-4)
     # The summary's means are the per-frame table's.
     with open(out / "summary.csv", newline="") as file:
         summary = {(r["frames"], r["method"], r["metric"]): r for r in csv.DictReader(file)}
@@ -136,7 +141,7 @@ def test_each_method_is_scored_per_frame_as_called_directly(eval_checkpoint, pas
         assert float(summary[(frames, method, "iou_2d")]["mean"]) == pytest.approx(
             np.mean(values), abs=1e-9)
     recorded = json.loads((out / "passes.json").read_text())
-    assert recorded["counts"] == [1, FRAMES] and len(recorded["passes"]) == 2
+    assert recorded["counts"] == [1, 2, FRAMES] and len(recorded["passes"]) == 2
     assert recorded["resolution"] == 64
 
 
@@ -189,3 +194,23 @@ def test_study_passes_cli_writes_the_tables_and_refuses_in_one_line(eval_checkpo
     assert main(["study", "passes", "--data", str(tmp_path / "missing"), "--out",
                  str(tmp_path / "x"), "--quiet"]) == 2
     assert "dataset folder not found" in capsys.readouterr().err
+
+
+def test_pass_groups_orders_each_pass_and_refuses_a_gap():
+    """Frames listed out of order come back in frame order, per (model, pass); a pass with a
+    frame missing or twice is refused in one line naming it."""
+    from types import SimpleNamespace
+
+    def dataset(frames):
+        return SimpleNamespace(root="data", models=["m0", "m1"], items=[
+            (model, index, {"pass": number, "frame_in_pass": frame, "filename": f"{index}.png"})
+            for index, (model, number, frame) in enumerate(frames)])
+
+    groups = pass_groups(dataset([(1, 0, 2), (0, 0, 1), (1, 0, 0), (0, 0, 0), (1, 0, 1),
+                                  (0, 1, 1), (0, 1, 0)]))
+    assert groups == {(0, 0): [3, 1], (0, 1): [6, 5], (1, 0): [2, 4, 0]}
+    with pytest.raises(ValueError, match=r"^data: pass 0 of model m0 has frames \[0, 2\], not "
+                                         r"0 to 1 once each$"):
+        pass_groups(dataset([(0, 0, 0), (0, 0, 2)]))
+    with pytest.raises(ValueError, match=r"has frames \[0, 0\]"):
+        pass_groups(dataset([(0, 0, 0), (0, 0, 0)]))

@@ -159,6 +159,30 @@ def test_resume_of_other_settings_or_another_checkpoint_is_one_line(
     line = error_line(capsys)
     assert line.startswith(f"sq-mitsuba eval: error: {out / BATCH_1}: unreadable journal batch")
     assert batches.numbers == []
+    # A batch file of the right size holding another batch's images is named, not used.
+    shutil.copy(interrupted / BATCH_1, out / BATCH_1)
+    shutil.copy(interrupted / BATCH_1, out / JOURNAL / "batch_000002.pt")
+    assert main(_argv(eval_checkpoint, train_dataset, out, "--resume")) == 2
+    assert "batch_000002.pt: holds other images than batch 2" in error_line(capsys)
+    assert batches.numbers == []
+
+
+def test_the_identity_names_an_option_only_the_journal_has_and_hashes_the_baseline(
+        eval_checkpoint):
+    """A field the journal's run had and this one lacks differs too; the stored baseline is
+    part of the model (the baseline rows are scored from it)."""
+    from sq_mitsuba.evaluation.journal import checkpoint_identity, identity_difference
+    from sq_mitsuba.inference.loading import load_model
+
+    assert identity_difference({"options": {"a": 1}}, {"options": {}}) == \
+        "option a: 1 there, absent now"
+    assert identity_difference({"options": {"a": 1}}, {"options": {"a": 1}}) is None
+    predictor = load_model(eval_checkpoint)
+    raw = torch.zeros(1, predictor.num_primitives, 16)
+    predictor.baseline = (raw, torch.eye(3)[None], torch.zeros(1, 3))
+    first = checkpoint_identity(predictor)["sha256"]
+    predictor.baseline = (raw + 0.5, torch.eye(3)[None], torch.zeros(1, 3))
+    assert checkpoint_identity(predictor)["sha256"] != first
 
 
 def test_without_resume_a_journal_is_not_used(interrupted, uninterrupted, eval_checkpoint,

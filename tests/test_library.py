@@ -436,3 +436,58 @@ def test_a_model_put_back_from_a_killed_rewrite_is_never_replaced(tmp_path) -> N
         generate_library(GenerateOptions(out=out, count=1, seed=SEED, points=200),
                          progress=False)
     assert json.loads(card_path.read_text())["seed"] == card["seed"] + 1
+
+
+def test_a_model_card_of_another_catalogue_is_built_again(library, tmp_path) -> None:
+    """A complete model whose card names another catalogue seed, or another split, is not
+    kept by a rerun: it is built again and its card says this catalogue's values."""
+    reference = {e.name: e.split for e in catalogue(64, SEED)}
+    names = [e.name for e in catalogue(3, SEED)]
+    out = tmp_path / "lib"
+    shutil.copytree(library, out)
+    cards = {name: out / name / "models" / "model_card.json" for name in names[:2]}
+    card = json.loads(cards[names[0]].read_text())
+    cards[names[0]].write_text(json.dumps({**card, "catalogue_seed": SEED + 1}))
+    card = json.loads(cards[names[1]].read_text())
+    other = {"train": "test", "test": "train"}[reference[names[1]]]
+    cards[names[1]].write_text(json.dumps({**card, "split": other}))
+    summary = generate_library(GenerateOptions(out=out, count=3, seed=SEED, points=300),
+                               progress=False)
+    assert summary.ok and summary.written == names and summary.kept == [names[2]]
+    for name in names[:2]:
+        card = json.loads(cards[name].read_text())
+        assert (card["catalogue_seed"], card["split"]) == (SEED, reference[name]), name
+
+
+def test_a_kept_model_missing_from_splits_gets_its_row_back(library, tmp_path) -> None:
+    """Killed between publishing a model and writing splits.csv: the rerun keeps the model
+    and writes its row."""
+    reference = {e.name: e.split for e in catalogue(64, SEED)}
+    names = [e.name for e in catalogue(3, SEED)]
+    out = tmp_path / "lib"
+    shutil.copytree(library, out)
+    rows = (out / "splits.csv").read_text().splitlines()
+    (out / "splits.csv").write_text("".join(f"{row}\n" for row in rows
+                                            if not row.startswith(f"{names[1]},")))
+    assert set(read_splits(out / "splits.csv")) == {names[0], names[2]}
+    summary = generate_library(GenerateOptions(out=out, count=3, seed=SEED, points=300),
+                               progress=False)
+    assert summary.ok and summary.kept == names
+    assert read_splits(out / "splits.csv") == {name: reference[name] for name in names}
+
+
+def test_a_killed_cleanups_folder_is_removed_by_the_next_generate(library, tmp_path) -> None:
+    """``<model>/.models.removing.<pid>.<x>/``: a dead write's removal, itself killed; the
+    next generate removes it (and a model folder left with nothing else)."""
+    names = [e.name for e in catalogue(3, SEED)]
+    out = tmp_path / "lib"
+    shutil.copytree(library, out)
+    model = out / names[0] / "models"
+    beside = _dead_write(out / names[1], ".models.removing.4242.k1ll3d_x", model)
+    alone = _dead_write(out / "sc099_first", ".models.removing.4343.abcd_123", model)
+    summary = generate_library(GenerateOptions(out=out, count=3, seed=SEED, points=300),
+                               progress=False)
+    assert summary.ok and summary.kept == names
+    assert not beside.exists() and not alone.exists() and not (out / "sc099_first").exists()
+    assert sorted(p.name for p in (out / names[1]).iterdir()) == ["models"]
+    assert sorted(p.name for p in out.iterdir()) == sorted([*names, "splits.csv"])

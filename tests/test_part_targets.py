@@ -223,3 +223,16 @@ def test_fit_to_surface_refuses_wrong_shapes():
         fit_to_surface(torch.zeros(2, 10, 2), 3, steps=1)
     with pytest.raises(ValueError, match="start"):
         fit_to_surface(torch.zeros(2, 10, 3), 3, steps=1, start=initial_raw(4))
+
+
+def test_a_fit_made_with_more_steps_than_asked_is_fitted_again(train_dataset, tmp_path):
+    """Other settings means other, either way: a 7-step fit is not kept by a 3-step run."""
+    data = tmp_path / "data"
+    shutil.copytree(train_dataset, data)
+    models = sorted(p.name for p in data.iterdir() if (p / "labels.json").is_file())[:2]
+    assert fit_part_targets(data, models, 2, steps=7, progress=False).fitted == 2
+    fits = fit_part_targets(data, models, 2, steps=3, progress=False)
+    assert fits.fitted == 2 and fits.refitted == {model: "--steps 7" for model in models}
+    for model in models:
+        with np.load(part_targets_path(data, model)) as archive:
+            assert int(archive["steps"]) == 3

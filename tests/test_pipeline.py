@@ -140,6 +140,31 @@ def test_the_refined_pose_is_the_same_to_the_last_bit_on_many_threads(eval_check
         assert torch.equal(run.fit.candidate_scores, runs[0].fit.candidate_scores)
 
 
+def test_a_pass_is_the_same_to_the_last_bit_on_many_threads(eval_checkpoint, train_dataset):
+    """The pass's joint fit (refine_pose_and_shape, called directly) renders on one thread as
+    well: two passes of the same frames on four threads agree bit for bit."""
+    import drjit as dr
+
+    from sq_mitsuba.inference.loading import with_fast_path
+    from sq_mitsuba.inference.sequence import SequenceOptions
+
+    folder = _test_image(train_dataset).parent
+    frames = torch.stack([torch.from_numpy(np.array(Image.open(folder / f"{k:06d}.png")))
+                          for k in range(3)])
+    predictor = with_fast_path(load_model(eval_checkpoint), False, min_target=0.0)
+    before = dr.thread_count()
+    dr.set_thread_count(4)
+    try:
+        runs = [predictor.predict_sequence(frames, options=SequenceOptions(steps=8, spp=4),
+                                           search=SEARCH, refinement=REFINEMENT)
+                for _ in range(2)]
+    finally:
+        dr.set_thread_count(before)
+    assert torch.equal(runs[0].assembly.params, runs[1].assembly.params)
+    assert torch.equal(runs[0].rotation, runs[1].rotation)
+    assert torch.equal(runs[0].translation, runs[1].translation)
+
+
 def test_the_fit_records_what_was_fitted_and_keeps_the_networks_reading(eval_checkpoint,
                                                                         train_dataset):
     image = torch.from_numpy(np.array(Image.open(_test_image(train_dataset))))[None]
