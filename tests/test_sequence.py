@@ -411,10 +411,14 @@ def test_bad_sequences_are_one_line_errors(eval_checkpoint, train_dataset, case,
 @pytest.mark.slow  # end to end: `make test` runs it, `make test-fast` not
 def test_predict_sequence_cli_writes_one_assembly_and_a_pose_per_frame(eval_checkpoint,
                                                                       train_dataset, tmp_path,
-                                                                      capsys):
+                                                                      capsys, monkeypatch):
     import json
 
+    import sq_mitsuba.progress
     from sq_mitsuba.cli import main
+
+    # Every redraw of the bar a line in the log (it writes one every 30 s by default).
+    monkeypatch.setattr(sq_mitsuba.progress, "LOG_INTERVAL_S", 0.0)
 
     model = next(line.split(",")[0] for line in
                  (train_dataset / "splits.csv").read_text().splitlines()

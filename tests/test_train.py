@@ -317,29 +317,38 @@ def test_sigkill_then_resume_repeats_the_uninterrupted_run(train_dataset, cache_
 
 
 @pytest.mark.slow  # end to end, in a child process: `make test` runs it
-@pytest.mark.parametrize("stop", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
+@pytest.mark.parametrize("stop, group, workers", [
+    (signal.SIGINT, False, 0), (signal.SIGTERM, False, 0), (signal.SIGTERM, True, 2)],
+    ids=["ctrl-c", "sigterm", "sigterm-to-the-group-with-render-workers"])
 def test_ctrl_c_saves_the_step_it_lands_in_and_resume_repeats_the_run(train_dataset, cache_dir,
-                                                                       tmp_path, capsys, stop):
-    """Ctrl-C (or SIGTERM: kill, timeout, a scheduler at the end of a job's time) mid-run:
-    the step in progress finishes, last.pt is written at it (not at the epoch before), the
-    run exits 130; --resume from there repeats an uninterrupted run bit for bit."""
+                                                                       tmp_path, capsys, stop,
+                                                                       group, workers):
+    """Ctrl-C (or SIGTERM: kill, timeout, a scheduler at the end of a job's time, sent to the
+    run or to its whole process group, render workers included) mid-run: the step in
+    progress finishes, last.pt is written at it (not at the epoch before), the run exits 130;
+    --resume from there repeats an uninterrupted run bit for bit."""
     out = tmp_path / "run"
     sets = ["--set", f"data.cache_dir={cache_dir}", "--set", "optim.epochs=50"]
     env = {**os.environ, "OMP_NUM_THREADS": str(torch.get_num_threads())}
     process = subprocess.Popen(
         [sys.executable, "-m", "sq_mitsuba", "train", "--config", str(TINY), "--data",
-         str(train_dataset), "--out", str(out), "--quiet", *sets], env=env,
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+         str(train_dataset), "--out", str(out), "--quiet", *sets, "--set",
+         f"reprojection.workers={workers}"], env=env,
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=group,
         # As from a terminal (pytest-xdist's workers ignore SIGINT, and children inherit it).
         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         _wait_for_steps(process, out, 5)
-        process.send_signal(stop)
+        if group:
+            os.killpg(process.pid, stop)
+        else:
+            process.send_signal(stop)
         output = process.communicate(timeout=60)[0].decode()
     finally:
         if process.poll() is None:
             process.kill()
     assert process.returncode == 130, output[-2000:]
+    assert "the step in progress finishes" in output
     rows = _rows(out / "log.csv")
     saved = int(_read_checkpoint(out / "last.pt")["step"])
     assert saved == len(rows) >= 5  # the step Ctrl-C landed in, not the epoch's end before
@@ -769,6 +778,7 @@ def test_ctrl_c_stops_every_torchrun_process_at_one_saved_step(train_dataset, ca
         if process.poll() is None:
             os.killpg(process.pid, signal.SIGKILL)
             process.wait()
+    assert (out / "last.pt").is_file(), output[-3000:]
     saved = _read_checkpoint(out / "last.pt")
     rows = _rows(out / "log.csv")
     assert int(saved["step"]) == len(rows) >= 4, output[-3000:]

@@ -39,6 +39,16 @@ def prefetch_enabled(setting: bool | None, device: torch.device | str) -> bool:
     return torch.device(device).type == "cuda" if setting is None else bool(setting)
 
 
+
+def _ignore_interrupts(worker: int) -> None:
+    """A loader worker's start: Ctrl-C and SIGTERM sent to the whole process group (a
+    terminal, ``timeout``, torchrun, SLURM) are the parent's to act on (it finishes its step,
+    saves and ends the loader); a worker they stopped would fail the parent's step."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+
 class _Failed:
     """An error a worker met making a batch, handed back as a value: the training process
     raises it as it is (a DataLoader would wrap it in the worker's traceback)."""
@@ -123,7 +133,7 @@ class BatchPrefetcher:
                 _HostBatches(self.stream, self.world), batch_size=None,
                 sampler=range(step, self.end_step), num_workers=self.workers,
                 prefetch_factor=self.depth, pin_memory=self.pin,
-                multiprocessing_context="fork",
+                multiprocessing_context="fork", worker_init_fn=_ignore_interrupts,
                 # Its own generator: the loader's base seed would otherwise be a draw from
                 # the global RNG (the encoder's stochastic depth), which a resume restores
                 # before the loader is made again. The batches are seeded by step anyway.

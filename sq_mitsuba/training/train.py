@@ -404,12 +404,12 @@ class _Loop:
                                     img_s=f"{row['images_per_s']:.1f}")
                     bar.update(1)
                 epoch_end = done % self.steps_per_epoch == 0
-                if epoch_end and self._validates(done) and not interrupt.pending:
+                if epoch_end and self._validates(done) and not interrupt.stop:
                     self._validate(done, result)
                 # Every process stops at the same step (rank 0's clock decides).
                 out_of_time = stop_at is not None and done < end_step and bool(
                     broadcast_object(time.perf_counter() >= stop_at, world))
-                if done == end_step or out_of_time or interrupt.pending or (
+                if done == end_step or out_of_time or interrupt.stop or (
                         epoch_end and cfg.checkpoint_each_epoch) or (
                         cfg.checkpoint_every and done % cfg.checkpoint_every == 0):
                     self.save(LAST, done)
@@ -417,7 +417,7 @@ class _Loop:
                     barrier(world)
                 if out_of_time:
                     break
-                if interrupt.pending:
+                if interrupt.stop:
                     raise KeyboardInterrupt
         finally:
             self._close(bar, interrupt)

@@ -59,7 +59,10 @@ def serve(connection: Connection) -> None:
 
 if __name__ == "__main__":
     # Ctrl-C in a terminal reaches the whole process group: the parent handles it (and closes
-    # the pool); a worker that raised KeyboardInterrupt would print its own traceback.
+    # the pool); a worker that raised KeyboardInterrupt would print its own traceback. SIGTERM
+    # too (`timeout`, torchrun and SLURM signal the group): the parent finishes its step with
+    # the workers' help, then closes them; a worker ends when its parent's socket closes.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     serve(Connection(int(sys.argv[1])))
     os._exit(0)  # skip interpreter teardown of Dr.Jit's thread pool

@@ -17,6 +17,7 @@ that one of them was interrupted, and all of them save that step and stop.
 from __future__ import annotations
 
 import signal
+import sys
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -46,6 +47,7 @@ class StepInterrupt:
     def __init__(self, world: Any = None) -> None:
         self.world = world
         self.pending: int | None = None
+        self._agreed = False
         self._previous: dict[int, Any] = {}
         if threading.current_thread() is threading.main_thread():
             for number in HELD_SIGNALS:
@@ -61,8 +63,17 @@ class StepInterrupt:
         if self.world is not None and self.world.distributed:
             from sq_mitsuba.training.distributed import any_rank
 
-            if any_rank(self.pending is not None, self.world) and self.pending is None:
-                self.pending = int(signal.SIGTERM)
+            self._agreed = any_rank(self.pending is not None, self.world)
+
+    @property
+    def stop(self) -> bool:
+        """Whether the loop stops after this step: an interrupt held, in a distributed run the
+        one every process agreed on after the step (a signal that lands later, during a
+        validation or a save, waits for the next step's agreement: acted on by one process
+        alone, it would leave the others waiting in a collective)."""
+        if self.world is not None and self.world.distributed:
+            return self._agreed
+        return self.pending is not None
 
     def close(self) -> None:
         """Put the handlers back (idempotent)."""
@@ -73,3 +84,7 @@ class StepInterrupt:
     def _hold(self, number: int, frame: object) -> None:
         if self.pending is None:
             self.pending = number
+            if self.world is None or self.world.main:
+                name = "Ctrl-C" if number == signal.SIGINT else signal.Signals(number).name
+                print(f"{name}: the step in progress finishes, last.pt is written at it, then "
+                      "the run stops", file=sys.stderr, flush=True)
