@@ -50,8 +50,8 @@ import sys
 from collections.abc import Iterator
 from pathlib import Path
 
-__all__ = ["LOCK_NAME", "TEMPORARY_NAME", "OutputBusyError", "all_or_nothing", "interrupted",
-           "lock_path", "output_lock", "remove_stray_temporaries"]
+__all__ = ["LOCK_NAME", "TEMPORARY_NAME", "OutputBusyError", "all_or_nothing", "holds_lock",
+           "interrupted", "lock_path", "output_lock", "remove_stray_temporaries"]
 
 #: The lock file of :func:`output_lock` inside an output folder.
 LOCK_NAME = ".sq-mitsuba.lock"
@@ -98,6 +98,12 @@ class OutputBusyError(ValueError):
 
 #: Locks this process holds: lock file -> (open descriptor, depth).
 _HELD: dict[Path, list[int]] = {}
+
+
+def holds_lock(out: str | Path, file: bool = False) -> bool:
+    """Whether this process holds the lock on ``out`` (inside :func:`output_lock`; False where
+    that lock ran unlocked, no lock file being possible there)."""
+    return lock_path(out, file).resolve() in _HELD
 
 
 def lock_path(out: str | Path, file: bool = False) -> Path:

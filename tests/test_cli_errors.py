@@ -137,6 +137,15 @@ def test_an_interrupted_resumable_command_says_how_to_continue(monkeypatch, caps
     assert main(["eval", "--data", "d", "--out", "o"]) == 130
     assert error_line(capsys) == ("sq-mitsuba eval: interrupted (the same command with "
                                   "--resume continues from its journal in --out)")
+    # By action: models generate resumes; models import would import a file twice.
+    models = importlib.import_module("sq_mitsuba.cli.models")
+    monkeypatch.setattr(models, "_generate", interrupted)
+    monkeypatch.setattr(models, "_import", interrupted)
+    assert main(["models", "generate", "--out", "lib"]) == 130
+    assert error_line(capsys).endswith("interrupted (the same command again takes up where it "
+                                       "stopped)")
+    assert main(["models", "import", "a.obj", "--out", "lib"]) == 130
+    assert error_line(capsys) == "sq-mitsuba models: interrupted"
 
 
 def test_a_terminated_run_stops_as_an_interrupted_one(tmp_path):

@@ -32,14 +32,24 @@ EXIT_ERROR = 2
 #: Exit code of an unexpected exception (a bug): reported in one line, with the hint below.
 EXIT_INTERNAL = 1
 EXIT_INTERRUPTED = 130
-#: What to do after an interrupt, for the commands that take up where they stopped.
+#: What to do after an interrupt, for the commands (and actions) that take up where they
+#: stopped; the others start over.
 RESUME_HINTS = {
     "train": "the same command with --resume continues from last.pt",
     "eval": "the same command with --resume continues from its journal in --out",
-    "dataset": "the same command again takes up where it stopped",
-    "models": "the same command again takes up where it stopped",
-    "study": "the same command again takes up where it stopped",
+    "dataset render": "the same command again takes up where it stopped",
+    "dataset fit-parts": "the same command again takes up where it stopped",
+    "models generate": "the same command again takes up where it stopped",
+    "study illumination": "the same command again takes up where it stopped",
 }
+
+
+def _resume_hint(args: argparse.Namespace) -> str | None:
+    """:data:`RESUME_HINTS`' line for the command run, its action included."""
+    action = next((getattr(args, name) for name in ("dataset_command", "models_command",
+                                                    "study") if getattr(args, name, None)),
+                  None)
+    return RESUME_HINTS.get(args.command if action is None else f"{args.command} {action}")
 #: The global flag (before the command) and the environment variable that show tracebacks.
 TRACEBACK_FLAG = "--traceback"
 TRACEBACK_ENV = "SQ_MITSUBA_TRACEBACK"
@@ -181,7 +191,7 @@ def _main(argv: Sequence[str] | None) -> int:
         if interrupted(error):  # Ctrl-C, also when Dr.Jit disguised it: one line, exit 130
             if show_traceback:
                 traceback.print_exc()
-            hint = RESUME_HINTS.get(args.command)
+            hint = _resume_hint(args)
             print(f"sq-mitsuba {args.command}: interrupted" + (f" ({hint})" if hint else ""),
                   file=sys.stderr)
             return EXIT_INTERRUPTED

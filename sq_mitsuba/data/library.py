@@ -87,7 +87,7 @@ from sq_mitsuba.data.spacecraft.generator import (
 )
 from sq_mitsuba.io import atomic_write_json, check_output_folder, read_json
 from sq_mitsuba.machine import available_memory, too_much_memory
-from sq_mitsuba.outputs import lock_path, output_lock, remove_stray_temporaries
+from sq_mitsuba.outputs import holds_lock, output_lock, remove_stray_temporaries
 from sq_mitsuba.processes import worker_pool
 
 SPLITS_FILE = "splits.csv"
@@ -256,26 +256,6 @@ def _check_root(root: Path) -> None:
     check_output_folder(root)
 
 
-def _lock_held(root: Path) -> bool:
-    """Whether a process holds the library's lock: called inside :func:`output_lock`, which
-    refuses a library another run holds, True means this run holds it; False when that lock
-    ran unlocked (no lock file could be made: see :mod:`sq_mitsuba.outputs`)."""
-    import fcntl
-
-    try:
-        fd = os.open(lock_path(root), os.O_RDONLY)
-    except OSError:  # no lock file: output_lock ran unlocked
-        return False
-    try:
-        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
-    except OSError:
-        return True  # held (by us: another holder would have stopped output_lock)
-    else:
-        return False  # nobody holds it (closing the descriptor drops this probe's lock)
-    finally:
-        os.close(fd)
-
-
 def _remove_dead_folder(path: Path) -> None:
     """Delete a dead write's folder: renamed aside first, so that a worker a killed run left
     behind, still writing into it, fails its own rename instead of publishing a model whose
@@ -318,7 +298,7 @@ def remove_dead_writes(root: Path) -> list[Path]:
     Only while this run holds the library's lock (:func:`output_lock`): then no live run
     writes there (nothing is removed when that lock ran unlocked).
     """
-    if not root.is_dir() or not _lock_held(root):
+    if not root.is_dir() or not holds_lock(root):
         return []
     done = remove_stray_temporaries(root, of=SPLITS_FILE)
     done += remove_stray_temporaries(root, of=FAILURES_FILE)

@@ -70,7 +70,7 @@ outline, medians of the rotations)."""
 
 @dataclass(frozen=True)
 class PassOptions:
-    """Settings of ``sq-mitsuba eval --passes``."""
+    """Settings of ``sq-mitsuba study passes``."""
 
     split: Literal["val", "test"] = "test"
     "Dataset split whose passes are scored."
@@ -216,7 +216,7 @@ def evaluate_passes(predictor: Any, data_root: str | Path, out_dir: str | Path,
     keys = [keys[k] for k in evenly(len(keys), options.passes)]
     # Every frame of a dataset shows its target: each is fitted whatever its target score.
     predictor = with_fast_path(predictor, options.fast, min_target=0.0)
-    with output_lock(out_dir, command="sq-mitsuba eval --passes"):
+    with output_lock(out_dir, command="sq-mitsuba study passes"):
         return _evaluate_passes(predictor, dataset, {k: groups[k] for k in keys}, out_dir,
                                 options, progress, label)
 
@@ -247,6 +247,7 @@ def _evaluate_passes(predictor: Any, dataset: Any, groups: dict[tuple[int, int],
             model = dataset.models[model_index]
             names.append(f"{model}/{number}")
             shot = collate([dataset[i] for i in items[:longest]])
+            bar.set_postfix_str(f"{model}: each frame alone")
             tick = time.perf_counter()
             alone = predictor.predict(shot["image"], camera, refine=True,
                                       search=options.search, refinement=options.refinement)

@@ -186,18 +186,17 @@ def baseline_prediction(predictor: Any, data_root: Path, count: int,
     threshold = predictor.min_existence
     every = with_fast_path(predictor, predictor.fast, min_existence=0.0)
     raws, existences, rotations, translations = [], [], [], []
-    bar = progress_bar(total=len(indices), desc="baseline", unit="img", disable=not progress,
-                       leave=False)
-    for start in range(0, len(indices), batch_size):
-        batch = collate([train[i] for i in indices[start:start + batch_size]])
-        prediction = every.predict(batch["image"], camera)
-        raws.append(raw_from_assembly(prediction.assembly))
-        if prediction.existence is not None:
-            existences.append(prediction.existence)
-        rotations.append(batch["rotation"])
-        translations.append(batch["translation"])
-        bar.update(len(batch["rotation"]))
-    bar.close()
+    with progress_bar(total=len(indices), desc="baseline", unit="img", disable=not progress,
+                      leave=False) as bar:
+        for start in range(0, len(indices), batch_size):
+            batch = collate([train[i] for i in indices[start:start + batch_size]])
+            prediction = every.predict(batch["image"], camera)
+            raws.append(raw_from_assembly(prediction.assembly))
+            if prediction.existence is not None:
+                existences.append(prediction.existence)
+            rotations.append(batch["rotation"])
+            translations.append(batch["translation"])
+            bar.update(len(batch["rotation"]))
     raw = torch.cat(raws).double().mean(0, keepdim=True)
     if existences:
         rows = kept_primitives(torch.cat(existences).double().mean(0, keepdim=True), threshold,

@@ -34,6 +34,7 @@ settled, failed models are listed with their reason in ``failures.json`` and lef
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import hashlib
@@ -712,7 +713,8 @@ def _render_in_workers(models_dir: Path, out_dir: Path, camera: Camera, options:
             shown[model] += count
             bar.update(count)
 
-    with worker_pool(options.workers, _start_worker, (threads, ticks)) as pool:
+    with contextlib.closing(ticks), worker_pool(options.workers, _start_worker,
+                                                (threads, ticks)) as pool:
         jobs = {pool.submit(render_model, models_dir, out_dir, model, camera, options,
                             tick=functools.partial(_tick_parent, model), indices=indices): model
                 for model, indices in work.items()}
