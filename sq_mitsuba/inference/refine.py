@@ -90,9 +90,11 @@ class RefineOptions:
     seed: int = in_range(0, 2**31 - 1, default=0)
     "Seed of the renderer's samples."
     deterministic: bool = True
-    """Render on one Dr.Jit thread (the search with it, in :func:`search_and_refine`), so that
-    the same image gives the same pose and shape to the last bit: several threads sum the
-    silhouettes' samples and gradients in the order of their timing. False: all threads."""
+    """Refine on one Dr.Jit thread, so that the same image gives the same pose and shape to
+    the last bit: several threads sum the silhouettes' gradients with atomic additions in the
+    order of their timing. False: all threads. (The search before it renders forward only,
+    its samples summed in a fixed order: bit-identical on any number of threads, so it keeps
+    them all.)"""
 
 
 #: The refinement for an outline rather than a shape: every shape parameter follows the mask

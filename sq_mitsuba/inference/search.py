@@ -59,7 +59,6 @@ from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.so3_grid import so3_grid, with_half_turns
 from sq_mitsuba.inference.refine import RefineOptions, RefineResult, refine_pose_and_shape
-from sq_mitsuba.render.backend import one_thread
 from sq_mitsuba.render.silhouette.batch import PoseSilhouettes
 
 __all__ = [
@@ -468,32 +467,31 @@ def search_and_refine(assembly: Assembly, rotation: Tensor, translation: Tensor,
     refine = refine or SEARCH_REFINEMENT
     validate(search)
     validate(refine)
-    with one_thread(refine.deterministic):
-        candidates = pose_candidates(rotation, hypotheses, search.grid)  # checks the hypotheses
-        if search.candidates == "network" and hypotheses is not None:
-            candidates = candidates[:, :4]  # the network's rotation and its half turns come first
-        translation = translation.detach().double().cpu()
-        masks = masks.detach().cpu()
-        renderers = SearchRenderers(camera, search)
-        first = search_poses(assembly, candidates, translation, masks, camera, search, renderers)
-        search_seconds = time.perf_counter() - started
-        current, rounds = first, []
-        best: RefineResult | None = None
-        shape = Assembly(assembly.params.detach().double().cpu())
-        for round_index in range(search.rounds):
-            top = current.best(search.keep)
-            rows = torch.arange(shape.batch_size)[:, None]
-            result = _refine_best_of(shape, current.candidates[rows, top],
-                                     current.translations[rows, top], masks, camera, search, refine)
-            best = result if best is None else better_of(best, result)
-            rounds.append(float(best.iou_after.mean()))
-            if round_index + 1 < search.rounds:
-                # Search again with the refined shape: its own rotation (and half turns) joins the
-                # candidates, every translation starts from the refined one.
-                shape = Assembly(best.assembly.params.detach().double())
-                again = torch.cat([with_half_turns(best.rotation.double()), candidates], dim=1)
-                current = search_poses(shape, again, best.translation.double(), masks, camera,
-                                       search, renderers)
+    candidates = pose_candidates(rotation, hypotheses, search.grid)  # checks the hypotheses
+    if search.candidates == "network" and hypotheses is not None:
+        candidates = candidates[:, :4]  # the network's rotation and its half turns come first
+    translation = translation.detach().double().cpu()
+    masks = masks.detach().cpu()
+    renderers = SearchRenderers(camera, search)
+    first = search_poses(assembly, candidates, translation, masks, camera, search, renderers)
+    search_seconds = time.perf_counter() - started
+    current, rounds = first, []
+    best: RefineResult | None = None
+    shape = Assembly(assembly.params.detach().double().cpu())
+    for round_index in range(search.rounds):
+        top = current.best(search.keep)
+        rows = torch.arange(shape.batch_size)[:, None]
+        result = _refine_best_of(shape, current.candidates[rows, top],
+                                 current.translations[rows, top], masks, camera, search, refine)
+        best = result if best is None else better_of(best, result)
+        rounds.append(float(best.iou_after.mean()))
+        if round_index + 1 < search.rounds:
+            # Search again with the refined shape: its own rotation (and half turns) joins the
+            # candidates, every translation starts from the refined one.
+            shape = Assembly(best.assembly.params.detach().double())
+            again = torch.cat([with_half_turns(best.rotation.double()), candidates], dim=1)
+            current = search_poses(shape, again, best.translation.double(), masks, camera,
+                                   search, renderers)
     assert best is not None
     return SearchRefineResult(best.assembly, best.rotation, best.translation, best.iou_after,
                               first, first.rotation, first.translation, rounds, search_seconds,
