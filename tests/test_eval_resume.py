@@ -186,7 +186,7 @@ def test_the_identity_names_an_option_only_the_journal_has_and_hashes_the_baseli
 
 
 def test_without_resume_a_journal_is_not_used(interrupted, uninterrupted, eval_checkpoint,
-                                              train_dataset, tmp_path, monkeypatch):
+                                              train_dataset, tmp_path, monkeypatch, capsys):
     # A journal of both batches (a resumed run stopped among its writes), each tampered with.
     tampered = _copy(interrupted, tmp_path)
     with monkeypatch.context() as patch:
@@ -204,11 +204,15 @@ def test_without_resume_a_journal_is_not_used(interrupted, uninterrupted, eval_c
         (uninterrupted / "per_image.csv").read_bytes()
     # Without it, the run starts afresh: the journal is cleared before its first batch, so
     # that after an interrupt there --resume computes both batches, as an uninterrupted run.
+    capsys.readouterr()
     with monkeypatch.context() as patch:
         batches = Batches(patch, lambda numbers: True)
         assert main(_argv(eval_checkpoint, train_dataset, tampered)) == 130
     assert batches.numbers == [1]
     assert sorted(p.name for p in (tampered / JOURNAL).iterdir()) == [RUN_FILE]
+    # Said, not silent: the two finished batches discarded (--resume would have used them).
+    assert "an interrupted evaluation's 2 finished batch(es) discarded" in \
+        capsys.readouterr().err
     with monkeypatch.context() as patch:
         batches = Batches(patch)
         assert main(_argv(eval_checkpoint, train_dataset, tampered, "--resume")) == 0
@@ -216,6 +220,13 @@ def test_without_resume_a_journal_is_not_used(interrupted, uninterrupted, eval_c
     assert (tampered / "per_image.csv").read_bytes() == \
         (uninterrupted / "per_image.csv").read_bytes()
     assert not (tampered / JOURNAL).exists()
+    # --resume on a finished folder (no journal left) says it evaluates from the start.
+    capsys.readouterr()
+    with monkeypatch.context() as patch:
+        batches = Batches(patch)
+        assert main(_argv(eval_checkpoint, train_dataset, tampered, "--resume")) == 0
+    assert batches.numbers == [1, 2]
+    assert "no interrupted evaluation to resume" in capsys.readouterr().err
 
 
 # ------------------------------------------------------------------------------ study
@@ -275,7 +286,8 @@ def test_a_study_rerun_does_not_evaluate_its_finished_points(eval_checkpoint, tr
     with monkeypatch.context() as patch:
         batches = Batches(patch)
         assert main(argv(out)) == 0
-    assert calls == [(name, True) for name in points[1:]]
+    # The interrupted point resumed; the points not begun evaluated afresh (no journal).
+    assert calls == [(points[1], True), *[(name, False) for name in points[2:]]]
     assert batches.numbers == [2, *[1, 2] * (len(points) - 2)]
     assert tables(out) == expected
     # Other evaluation settings: every point again.
@@ -295,6 +307,6 @@ def test_a_study_rerun_does_not_evaluate_its_finished_points(eval_checkpoint, tr
     with monkeypatch.context() as patch:
         batches = Batches(patch)
         assert main(argv(out)) == 0
-    assert calls == [(points[0], True), (points[1], False)]
+    assert calls == [(points[0], False), (points[1], False)]  # neither has a journal to use
     assert batches.numbers == [1, 2, 1, 2]
     assert tables(out) == expected

@@ -30,6 +30,7 @@ from __future__ import annotations
 import hashlib
 import io
 import shutil
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -268,6 +269,15 @@ class EvalJournal:
             remove_stray_temporaries(self.folder)
             self.records = self._read(chunks)
         else:
+            # Said, not silent: hours of --refine batches go, or --resume finds nothing.
+            finished = len(list(self.folder.glob("batch_*.pt"))) if self.folder.is_dir() else 0
+            if finished and not resume:
+                warnings.warn(f"{self.folder}: an interrupted evaluation's {finished} finished "
+                              "batch(es) discarded (--resume would have continued them)",
+                              stacklevel=2)
+            elif resume:
+                warnings.warn(f"{out_dir}: no interrupted evaluation to resume (no "
+                              f"{JOURNAL}/{RUN_FILE}): evaluating from the start", stacklevel=2)
             self.clear()
             atomic_write_json(run_file, identity)
 

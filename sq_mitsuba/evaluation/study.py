@@ -241,6 +241,8 @@ def illumination_study(checkpoint: str | Path | None, models_dir: str | Path,
     from sq_mitsuba.data.spe3r import render_dataset
     from sq_mitsuba.evaluation.evaluate import evaluate
     from sq_mitsuba.evaluation.journal import (
+        JOURNAL,
+        RUN_FILE,
         finished_evaluation,
         journal_difference,
         run_identity,
@@ -289,7 +291,8 @@ def illumination_study(checkpoint: str | Path | None, models_dir: str | Path,
                 point_rows = read_per_image(folder / "per_image.csv")
         if point_rows is None:  # continued from its journal, unless that is another run's
             point_rows = evaluate(predictor, data, folder, evaluation, progress=False,
-                                  resume=journal_difference(folder, identity) is None).rows
+                                  resume=(folder / JOURNAL / RUN_FILE).is_file() and
+                                  journal_difference(folder, identity) is None).rows
         seconds["evaluate"] += time.perf_counter() - tick
         for row in point_rows:
             phase = point.phase_deg if point.phase_deg is not None else \
