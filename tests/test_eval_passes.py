@@ -214,3 +214,56 @@ def test_pass_groups_orders_each_pass_and_refuses_a_gap():
         pass_groups(dataset([(0, 0, 0), (0, 0, 2)]))
     with pytest.raises(ValueError, match=r"has frames \[0, 0\]"):
         pass_groups(dataset([(0, 0, 0), (0, 0, 0)]))
+
+
+def test_an_interrupted_pass_study_takes_up_where_it_stopped(eval_checkpoint, pass_dataset,
+                                                             tmp_path, monkeypatch):
+    """Interrupted in its second pass, a rerun reads the first pass back (it scores only the
+    second) and writes what an uninterrupted run does; other settings start afresh."""
+    from sq_mitsuba.evaluation.passes import PARTIAL
+    from sq_mitsuba.inference.predictor import Predictor
+
+    options = PassOptions(**{**SMALL.__dict__, "counts": (1, 2)})
+    whole = tmp_path / "whole"
+    evaluate_passes(load_model(eval_checkpoint), pass_dataset, whole, options, progress=False)
+    assert not (whole / PARTIAL).exists()
+    sequences: list[int] = []
+    real = Predictor.predict_sequence
+
+    def interrupted(self, images, *args, **kwargs):
+        sequences.append(len(images))
+        if len(sequences) == 2:  # the second pass
+            raise KeyboardInterrupt
+        return real(self, images, *args, **kwargs)
+
+    out = tmp_path / "out"
+    with monkeypatch.context() as patch:
+        patch.setattr(Predictor, "predict_sequence", interrupted)
+        with pytest.raises(KeyboardInterrupt):
+            evaluate_passes(load_model(eval_checkpoint), pass_dataset, out, options,
+                            progress=False)
+    assert len(list((out / PARTIAL).glob("*__*.json"))) == 1
+    sequences.clear()
+    with monkeypatch.context() as patch:
+        patch.setattr(Predictor, "predict_sequence",
+                      lambda self, images, *a, **k: (sequences.append(len(images)),
+                                                     real(self, images, *a, **k))[1])
+        evaluate_passes(load_model(eval_checkpoint), pass_dataset, out, options,
+                        progress=False)
+    assert sequences == [2]  # the second pass alone
+    assert _scores(out) == _scores(whole)
+    assert not (out / PARTIAL).exists()
+    # Other settings: a partial run of the first is discarded, with a warning.
+    (out / PARTIAL).mkdir()
+    (out / PARTIAL / "run.json").write_text('{"options": {"split": "val"}}')
+    (out / PARTIAL / "sc000_x__0.json").write_text("[]")
+    with pytest.warns(UserWarning, match="an interrupted run's passes discarded"):
+        evaluate_passes(load_model(eval_checkpoint), pass_dataset, out, options,
+                        progress=False)
+    assert _scores(out) == _scores(whole)
+
+
+def _scores(folder):
+    """per_frame.csv's rows but for their timings (a run's own clock)."""
+    return [{k: v for k, v in row.items() if k != "seconds_per_frame"}
+            for row in _rows(folder / "per_frame.csv")]

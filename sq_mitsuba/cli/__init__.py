@@ -41,6 +41,7 @@ RESUME_HINTS = {
     "dataset fit-parts": "the same command again takes up where it stopped",
     "models generate": "the same command again takes up where it stopped",
     "study illumination": "the same command again takes up where it stopped",
+    "study passes": "the same command again takes up where it stopped",
 }
 
 

@@ -82,7 +82,9 @@ and scored at the dataset's own resolution.
 
 Outputs in --out: per_frame.csv, summary.{csv,md} (mean ± std and median per N and method,
 seconds per frame), quality_vs_frames.png (body- and camera-frame Chamfer, 2D IoU, folded and
-relative rotation against N) and passes.json. A dataset of independent images, a pass shorter
+relative rotation against N) and passes.json. A rerun into the same --out takes up where an
+interrupted one stopped (the passes scored already, with the same settings, weights and data,
+are read back from --out/.passes_partial). A dataset of independent images, a pass shorter
 than the largest N, an --out inside --data or one another run writes into is a one-line error
 before any work (exit code 2). Settings through --set, e.g. --set sequence.steps=80
 --set sequence.motion=free --set refinement.steps=10."""

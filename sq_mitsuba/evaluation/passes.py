@@ -28,6 +28,12 @@ evaluation):
   rotation and relative rotation against N, one line per method;
 - ``passes.json``: settings, checkpoint, the passes scored and the time taken.
 
+A rerun into the same folder takes up where an interrupted one stopped: each pass's rows are
+kept in ``.passes_partial/`` (with the run's identity: the options, the network's weights and
+the data, as ``eval --resume``'s journal) until ``passes.json`` is written, and the passes
+scored already are read back, not scored again (a pass takes about a minute on 2 cores). A
+partial run of other settings is discarded, with a warning.
+
 Convention: the frames are read and scored at the dataset's own resolution (what ``predict
 --sequence`` is given by a user), not at the network's input size as ``sq-mitsuba eval``
 scores single images; the 2D IoU is that of the assembly's silhouette at each frame's pose
@@ -36,8 +42,11 @@ against the frame's true mask there.
 
 from __future__ import annotations
 
+import json
 import math
+import shutil
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -54,6 +63,8 @@ from sq_mitsuba.inference.sequence import SequenceOptions
 __all__ = ["OUTPUT_FILES", "PassOptions", "PassResult", "evaluate_passes", "pass_groups",
            "relative_rotation_errors"]
 
+PARTIAL = ".passes_partial"
+"""The folder of each finished pass's rows, inside the output folder, until ``passes.json``."""
 OUTPUT_FILES = ("per_frame.csv", "summary.csv", "summary.md", "quality_vs_frames.png",
                 "passes.json")
 """What :func:`evaluate_passes` writes."""
@@ -228,7 +239,7 @@ def _evaluate_passes(predictor: Any, dataset: Any, groups: dict[tuple[int, int],
     from sq_mitsuba.evaluation.evaluate import default_label
     from sq_mitsuba.evaluation.scoring import ModelData, score
     from sq_mitsuba.evaluation.split import collate
-    from sq_mitsuba.io import atomic_write_json
+    from sq_mitsuba.io import atomic_write_json, atomic_write_text
     from sq_mitsuba.progress import progress_bar
     from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer
 
@@ -241,11 +252,20 @@ def _evaluate_passes(predictor: Any, dataset: Any, groups: dict[tuple[int, int],
     rows: list[dict[str, Any]] = []
     names = []
     (out_dir / "passes.json").unlink(missing_ok=True)  # the finished mark goes first
+    done = _partial_passes(out_dir, predictor, dataset.root, options)
     with progress_bar(total=len(groups), unit="pass", disable=not progress,
                       desc=f"passes {options.split}") as bar:
-        for (model_index, number), items in groups.items():
+        for order, ((model_index, number), items) in enumerate(groups.items()):
             model = dataset.models[model_index]
             names.append(f"{model}/{number}")
+            kept = out_dir / PARTIAL / f"{model}__{number}.json"
+            if kept.name in done:  # scored by an interrupted run of the same settings
+                rows += done[kept.name]
+                bar.update()
+                continue
+            first_row = len(rows)
+            # The scoring's samples restart per pass: a pass read back leaves them as they were.
+            renderer.reseed(order)
             shot = collate([dataset[i] for i in items[:longest]])
             bar.set_postfix_str(f"{model}: each frame alone")
             tick = time.perf_counter()
@@ -282,6 +302,7 @@ def _evaluate_passes(predictor: Any, dataset: Any, groups: dict[tuple[int, int],
                                      "method": method, "frame": k,
                                      "seconds_per_frame": seconds,
                                      **{name: float(value[k]) for name, value in metrics.items()}})
+            atomic_write_text(kept, json.dumps(rows[first_row:]))
             bar.update()
     summary, files = _write_outputs(rows, out_dir, counts, len(groups))
     atomic_write_json(out_dir / "passes.json", {
@@ -291,7 +312,39 @@ def _evaluate_passes(predictor: Any, dataset: Any, groups: dict[tuple[int, int],
         "checkpoint": str(getattr(predictor, "source", None) or ""),
         "options": to_dict(options), "wall_seconds": round(time.perf_counter() - started, 3)})
     files.append(out_dir / "passes.json")
+    shutil.rmtree(out_dir / PARTIAL, ignore_errors=True)
     return PassResult(rows, summary, names, out_dir, files)
+
+
+def _partial_passes(out_dir: Path, predictor: Any, data_root: Path,
+                    options: PassOptions) -> dict[str, list[dict[str, Any]]]:
+    """The rows of each pass an interrupted run of the same settings, weights and data kept
+    in ``out_dir / PARTIAL`` ({file name: rows}); any other partial run is discarded (said in
+    a warning) and the folder made ready for this run's passes."""
+    from sq_mitsuba.evaluation.journal import identity_difference, run_identity
+    from sq_mitsuba.io import atomic_write_text
+
+    folder = out_dir / PARTIAL
+    identity = json.loads(json.dumps(run_identity(predictor, data_root, to_dict(options))))
+    run_file = folder / "run.json"
+    done: dict[str, list[dict[str, Any]]] = {}
+    if run_file.is_file():
+        try:
+            recorded = json.loads(run_file.read_text(encoding="utf-8"))
+            difference = identity_difference(recorded, identity)
+            if difference is None:
+                done = {path.name: json.loads(path.read_text(encoding="utf-8"))
+                        for path in sorted(folder.glob("*__*.json"))}
+        except (OSError, ValueError, AttributeError) as error:
+            difference = f"unreadable: {error}"
+        if difference is not None:
+            warnings.warn(f"{folder}: an interrupted run's passes discarded ({difference})",
+                          stacklevel=3)
+    if not done:
+        shutil.rmtree(folder, ignore_errors=True)
+        folder.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(run_file, json.dumps(identity))
+    return done
 
 
 def _write_outputs(rows: list[dict[str, Any]], out_dir: Path, counts: list[int],
