@@ -267,3 +267,16 @@ def _scores(folder):
     """per_frame.csv's rows but for their timings (a run's own clock)."""
     return [{k: v for k, v in row.items() if k != "seconds_per_frame"}
             for row in _rows(folder / "per_frame.csv")]
+
+
+def test_a_pass_dataset_opens_at_its_own_resolution(pass_dataset):
+    """``image_size=None``: the images as rendered (camera.json's width), what the pass study
+    reads whatever the network's input size."""
+    from sq_mitsuba.data.spe3r import Spe3rDataset
+
+    dataset = Spe3rDataset(pass_dataset, "test", image_size=None, num_surface=10,
+                           num_occupancy=2)
+    assert dataset.image_size == dataset.camera.width == 64
+    assert dataset[0]["image"].shape == (1, 64, 64)
+    with pytest.raises(ValueError, match="image_size: expected a positive integer"):
+        Spe3rDataset(pass_dataset, "test", image_size=0)

@@ -212,9 +212,8 @@ def evaluate_passes(predictor: Any, data_root: str | Path, out_dir: str | Path,
     check_data_folder(data_root)
     check_output_folder(out_dir, OUTPUT_FILES)
     check_outside_data(out_dir, data_root)
-    # The dataset's own resolution: opened once at the network's to read camera.json.
-    size = open_split(data_root, options.split, predictor.image_size, 1).camera.width
-    dataset = open_split(data_root, options.split, size, options.surface_points)
+    # At the dataset's own resolution (image_size None: camera.json's width).
+    dataset = open_split(data_root, options.split, None, options.surface_points)
     groups = pass_groups(dataset)
     longest = max(options.counts)
     short = [key for key, items in groups.items() if len(items) < longest]

@@ -40,8 +40,10 @@ def check_predictor(predictor: Any) -> None:
                          "the SPE3R layout are grey (1 channel)")
 
 
-def open_split(data_root: str | Path, split: str, image_size: int, surface_points: int) -> Any:
-    """The :class:`~sq_mitsuba.data.spe3r.Spe3rDataset` of ``split`` at ``image_size``, with
+def open_split(data_root: str | Path, split: str, image_size: int | None,
+               surface_points: int) -> Any:
+    """The :class:`~sq_mitsuba.data.spe3r.Spe3rDataset` of ``split`` at ``image_size`` (None:
+    the dataset's own, ``camera.json``'s width), with
     ``surface_points`` per item; a one-line error when it is missing or empty, or when
     :meth:`~sq_mitsuba.data.spe3r.Spe3rDataset.check` refuses it (images of another size
     than ``camera.json``'s, a ``samples.npz`` missing an array or holding NaN)."""

@@ -66,17 +66,18 @@ class Spe3rDataset(torch.utils.data.Dataset):
         root: dataset folder.
         split: "train", "val" (images [0.4 n, 0.5 n) and [0.9 n, n) of each train model with n
             its image count: SPE3R's 400-499 and 900-999 at n = 1000) or "test".
-        image_size: S, the side images and masks are resized to (default 128).
+        image_size: S, the side images and masks are resized to (default 128; None:
+            ``camera.json``'s width, the images as rendered).
         num_surface, num_occupancy: points per item (2,500 and 10,000 by default).
         seed: makes the point subsets reproducible (item i uses seed + i).
     """
 
-    def __init__(self, root: str | Path, split: str = "train", image_size: int = 128,
+    def __init__(self, root: str | Path, split: str = "train", image_size: int | None = 128,
                  num_surface: int = 2500, num_occupancy: int = 10_000, seed: int = 0):
         if split not in SPLITS:
             raise ValueError(f"split: expected 'train', 'val' or 'test', got {split!r}")
-        for name, value in (("image_size", image_size), ("num_surface", num_surface),
-                            ("num_occupancy", num_occupancy)):
+        for name, value in (("image_size", 1 if image_size is None else image_size),
+                            ("num_surface", num_surface), ("num_occupancy", num_occupancy)):
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"{name}: expected a positive integer, got {value!r}")
         self.root = Path(root)
@@ -94,7 +95,8 @@ class Spe3rDataset(torch.utils.data.Dataset):
             path = self.root / "camera.json"
             raise DatasetError(str(error) if str(path) in str(error) else f"{path}: {error}") \
                 from None
-        self.image_size, self.seed = image_size, seed
+        self.image_size = self.camera.width if image_size is None else image_size
+        self.seed = seed
         self.num_surface, self.num_occupancy = num_surface, num_occupancy
         splits = read_splits(self.root / "splits.csv")
         wanted = "test" if split == "test" else "train"
