@@ -150,11 +150,13 @@ def finished_evaluation(out_dir: str | Path, identity: dict[str, Any]) -> bool:
                                           if k != "images"}) is None
 
 
-def journal_difference(out_dir: str | Path, identity: dict[str, Any]) -> str | None:
+def journal_difference(out_dir: str | Path, identity: dict[str, Any],
+                       journal: str = JOURNAL) -> str | None:
     """How the journal in ``out_dir`` differs from ``identity`` (:func:`run_identity`, its
     indices compared only where given), in words; None where there is no journal or it is of
-    this run (what ``resume`` would continue from)."""
-    run_file = Path(out_dir) / JOURNAL / RUN_FILE
+    this run (what ``resume`` would continue from). ``journal``: its folder's name (another
+    command's partial run, e.g. ``study passes``')."""
+    run_file = Path(out_dir) / journal / RUN_FILE
     if not run_file.is_file():
         return None
     try:

@@ -320,29 +320,27 @@ def _partial_passes(out_dir: Path, predictor: Any, data_root: Path,
     """The rows of each pass an interrupted run of the same settings, weights and data kept
     in ``out_dir / PARTIAL`` ({file name: rows}); any other partial run is discarded (said in
     a warning) and the folder made ready for this run's passes."""
-    from sq_mitsuba.evaluation.journal import identity_difference, run_identity
-    from sq_mitsuba.io import atomic_write_text
+    from sq_mitsuba.evaluation.journal import RUN_FILE, journal_difference, run_identity
+    from sq_mitsuba.io import atomic_write_json
 
     folder = out_dir / PARTIAL
-    identity = json.loads(json.dumps(run_identity(predictor, data_root, to_dict(options))))
-    run_file = folder / "run.json"
+    identity = run_identity(predictor, data_root, to_dict(options))
     done: dict[str, list[dict[str, Any]]] = {}
-    if run_file.is_file():
-        try:
-            recorded = json.loads(run_file.read_text(encoding="utf-8"))
-            difference = identity_difference(recorded, identity)
-            if difference is None:
+    if (folder / RUN_FILE).is_file():
+        difference = journal_difference(out_dir, identity, PARTIAL)
+        if difference is None:
+            try:
                 done = {path.name: json.loads(path.read_text(encoding="utf-8"))
                         for path in sorted(folder.glob("*__*.json"))}
-        except (OSError, ValueError, AttributeError) as error:
-            difference = f"unreadable: {error}"
+            except (OSError, ValueError) as error:
+                difference = f"unreadable: {error}"
         if difference is not None:
             warnings.warn(f"{folder}: an interrupted run's passes discarded ({difference})",
                           stacklevel=3)
     if not done:
         shutil.rmtree(folder, ignore_errors=True)
         folder.mkdir(parents=True, exist_ok=True)
-        atomic_write_text(run_file, json.dumps(identity))
+        atomic_write_json(folder / RUN_FILE, identity)
     return done
 
 
