@@ -62,11 +62,12 @@ from typing import Literal
 import numpy as np
 
 from sq_mitsuba.config import bounds, in_range, validate
-from sq_mitsuba.data.mesh_io import SAMPLES_FILE
 from sq_mitsuba.data.mesh_processing import (
     FUSION_RESOLUTION,
     MESH_SUFFIXES,
     MIN_FUSION_RESOLUTION,
+    MODEL_FILES,
+    MODEL_FOLDER,
     MeshError,
     connected_pieces,
     fusion_memory_bytes,
@@ -74,6 +75,7 @@ from sq_mitsuba.data.mesh_processing import (
     max_fusion_resolution,
     model_card,
     process_mesh,
+    recover_cut_write,
     sample_model,
     write_model,
 )
@@ -96,14 +98,11 @@ DEFAULT_POINTS = 100_000
 MAX_POINTS = 2_000_000
 """Most points per sample set: three sets of 2,000,000 points are about 110 MB per model
 (54 bytes per point across the sets, before compression)."""
-MODEL_FOLDER = "models"
-MODEL_FILES = ("model_normalized.obj", "model_normalized.glb", SAMPLES_FILE, "model_card.json")
-"""What :func:`~sq_mitsuba.data.mesh_processing.write_model` writes into ``<model>/models/``."""
 #: The temporary folder of a model being written (``tempfile.mkdtemp(prefix=".models.")`` in
-#: write_model: eight random characters), the old model kept aside while it is replaced, and a
-#: dead write's folder renamed aside to be deleted (:func:`_remove_dead_folder`).
+#: write_model: eight random characters) and a dead write's folder renamed aside to be
+#: deleted (:func:`_remove_dead_folder`); the old model a write sets aside while it replaces
+#: it is :func:`~sq_mitsuba.data.mesh_processing.recover_cut_write`'s.
 DEAD_WRITE = re.compile(r"\.models\.[a-z0-9_]{8}")
-OLD_MODEL = re.compile(r"\.models\.old\.\d+")
 BEING_REMOVED = re.compile(r"\.models\.removing\..+")
 
 
@@ -271,15 +270,12 @@ def _remove_dead_folder(path: Path) -> None:
 
 def _remove_dead_writes_of(folder: Path) -> list[Path]:
     """:func:`remove_dead_writes` in one model folder."""
-    found = [p for p in sorted(folder.iterdir()) if p.is_dir() and not p.is_symlink() and (
-        DEAD_WRITE.fullmatch(p.name) or OLD_MODEL.fullmatch(p.name)
-        or BEING_REMOVED.fullmatch(p.name))]
-    final = folder / MODEL_FOLDER
-    for path in found:
-        if OLD_MODEL.fullmatch(path.name) and not final.exists():
-            os.replace(path, final)  # cut between write_model's two renames: it comes back
-        else:
-            _remove_dead_folder(path)
+    dead = [p for p in sorted(folder.iterdir()) if p.is_dir() and not p.is_symlink() and (
+        DEAD_WRITE.fullmatch(p.name) or BEING_REMOVED.fullmatch(p.name))]
+    for path in dead:
+        _remove_dead_folder(path)
+    # Cut between write_model's two renames: the old model comes back (or goes, beside one).
+    found = dead + recover_cut_write(folder)
     if found:
         try:
             folder.rmdir()  # a first write of this model, killed: nothing else was there
@@ -395,9 +391,10 @@ def same_spacecraft_problem(root: Path, entry: CatalogueEntry) -> str | None:
 
 def model_complete(root: Path, entry: CatalogueEntry, points: int) -> bool:
     """Whether ``root`` holds ``entry``'s model complete, as :func:`generate_model` would write
-    it: every file of :data:`MODEL_FILES`, and a readable card of this entry (procedural, the
-    same archetype, model seed, catalogue seed and split) with ``points`` points in each
-    sample set. Such a model is kept by a rerun (see the module docstring)."""
+    it: every file of :data:`~sq_mitsuba.data.mesh_processing.MODEL_FILES`, and a readable card
+    of this entry (procedural, the same archetype, model seed, catalogue seed and split) with
+    ``points`` points in each sample set. Such a model is kept by a rerun (see the module
+    docstring)."""
     folder = root / entry.name / MODEL_FOLDER
     if not all((folder / name).is_file() for name in MODEL_FILES):
         return False

@@ -672,6 +672,26 @@ def process_mesh(mesh: TaggedMesh, method: str = "auto", align: str = "axes",
 
 # ------------------------------------------------------------------------------- writing
 
+MODEL_FOLDER = "models"
+"""The folder :func:`write_model` writes inside ``<out_root>/<name>/``."""
+MODEL_FILES = ("model_normalized.obj", "model_normalized.glb", SAMPLES_FILE, "model_card.json")
+"""What :func:`write_model` writes into it."""
+
+
+def recover_cut_write(model_dir: Path) -> list[Path]:
+    """Settle what a :func:`write_model` killed between its two renames left in ``model_dir``:
+    the model it was replacing, set aside as ``.models.old.<pid>/``, comes back as ``models/``
+    where none is there, and is removed beside one. Returns the folders it found."""
+    final = model_dir / MODEL_FOLDER
+    found = sorted(path for path in model_dir.glob(".models.old.*")
+                   if path.is_dir() and not path.is_symlink())
+    for stale in found:
+        if final.exists():
+            shutil.rmtree(stale, ignore_errors=True)
+        else:
+            os.replace(stale, final)
+    return found
+
 def write_model(out_root: str | Path, name: str, model: ProcessedModel,
                 samples: dict[str, np.ndarray], card: dict) -> Path:
     """Write ``<out_root>/<name>/models/`` atomically; return that folder.
@@ -685,20 +705,17 @@ def write_model(out_root: str | Path, name: str, model: ProcessedModel,
     model_dir = Path(out_root) / name
     created = not model_dir.exists()
     model_dir.mkdir(parents=True, exist_ok=True)
-    final = model_dir / "models"
-    for stale in model_dir.glob(".models.old.*"):  # an earlier write cut between its renames
-        if final.exists():
-            shutil.rmtree(stale, ignore_errors=True)
-        else:
-            os.replace(stale, final)
+    final = model_dir / MODEL_FOLDER
+    recover_cut_write(model_dir)  # an earlier write cut between its renames
     tmp = Path(tempfile.mkdtemp(prefix=".models.", dir=model_dir))
     old = None
     try:
-        atomic_write_text(tmp / "model_normalized.obj", obj_text(model.mesh))
-        atomic_write_bytes(tmp / "model_normalized.glb", glb_bytes(model.mesh, name))
-        with atomic_path(tmp / SAMPLES_FILE) as path:
+        obj, glb, samples_file, card_file = MODEL_FILES
+        atomic_write_text(tmp / obj, obj_text(model.mesh))
+        atomic_write_bytes(tmp / glb, glb_bytes(model.mesh, name))
+        with atomic_path(tmp / samples_file) as path:
             np.savez_compressed(path, **samples)
-        atomic_write_json(tmp / "model_card.json", card)
+        atomic_write_json(tmp / card_file, card)
         if final.exists():
             old = model_dir / f".models.old.{os.getpid()}"
             os.replace(final, old)
