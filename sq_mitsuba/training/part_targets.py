@@ -94,19 +94,16 @@ def _other_settings(path: Path, num_primitives: int, steps: int, points: int) ->
     """Why the fit at ``path`` must be made: None when it is a usable fit made with these
     settings, "" when it is missing or unreadable, else its settings that differ, as options
     (``"--primitives 3, --steps 100"``)."""
-    try:
-        raw = _read(path, num_primitives)
-    except PartTargetError:
-        raw = None  # missing, unreadable, or a fit of another M (told apart below)
-    try:
+    try:  # the file read once: its parameters and the settings it records
         with np.load(path) as archive:
-            shape = archive["raw"].shape
+            raw = np.asarray(archive["raw"], dtype=np.float64)
             recorded = {k: int(archive[k]) for k in ("steps", "points") if k in archive.files}
     except (OSError, KeyError, ValueError, TypeError, zipfile.BadZipFile, EOFError):
         return ""
-    if raw is None and not (len(shape) == 2 and shape[1] == NUM_PARAMS
-                            and shape[0] != num_primitives):
-        return ""  # not a fit of any M: fitted as a missing one
+    shape = raw.shape
+    if len(shape) != 2 or shape[1] != NUM_PARAMS or (
+            shape[0] == num_primitives and not np.isfinite(raw).all()):
+        return ""  # not a usable fit of any M: fitted as a missing one
     differs = []
     if shape[0] != num_primitives:
         differs.append(f"--primitives {shape[0]}")
