@@ -253,6 +253,18 @@ def test_an_interrupted_pass_study_takes_up_where_it_stopped(eval_checkpoint, pa
     assert sequences == [2]  # the second pass alone
     assert _scores(out) == _scores(whole)
     assert not (out / PARTIAL).exists()
+    # A pass's kept rows that cannot be read: the partial run is discarded, with a warning.
+    with monkeypatch.context() as patch:
+        patch.setattr(Predictor, "predict_sequence", interrupted)
+        sequences.clear()
+        with pytest.raises(KeyboardInterrupt):
+            evaluate_passes(load_model(eval_checkpoint), pass_dataset, out, options,
+                            progress=False)
+    next((out / PARTIAL).glob("*__*.json")).write_text("[{")
+    with pytest.warns(UserWarning, match=r"passes discarded \(unreadable: "):
+        evaluate_passes(load_model(eval_checkpoint), pass_dataset, out, options,
+                        progress=False)
+    assert _scores(out) == _scores(whole)
     # Other settings: a partial run of the first is discarded, with a warning.
     (out / PARTIAL).mkdir()
     (out / PARTIAL / "run.json").write_text('{"options": {"split": "val"}}')
