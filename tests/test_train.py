@@ -367,6 +367,53 @@ def test_ctrl_c_saves_the_step_it_lands_in_and_resume_repeats_the_run(train_data
             assert row[key] == expected[key], (row["step"], key, row[key], expected[key])
 
 
+def _signal_self(number: int) -> None:
+    """Send ``number`` to this process and let its Python handler run (in the main thread)."""
+    os.kill(os.getpid(), number)
+    time.sleep(0.05)
+
+
+def test_a_second_ctrl_c_stops_a_run_of_one_process_at_once(capsys):
+    """The first Ctrl-C is held (the loop saves at the end of the step); a second one in a run
+    of one process raises KeyboardInterrupt at once and puts the handler back. In a
+    distributed run every later signal stays held: torchrun passes the terminal's Ctrl-C on to
+    its processes a moment after the terminal did."""
+    from sq_mitsuba.training.distributed import World
+    from sq_mitsuba.training.run.interrupt import StepInterrupt
+
+    # As in a terminal (pytest-xdist's workers ignore SIGINT, and StepInterrupt leaves an
+    # ignored signal alone).
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        alone = StepInterrupt(World())
+        _signal_self(signal.SIGINT)
+        assert alone.pending == signal.SIGINT and alone.stop
+        assert "Ctrl-C again: stop at once" in capsys.readouterr().err
+        with pytest.raises(KeyboardInterrupt):
+            _signal_self(signal.SIGINT)
+        assert "stopped at once" in capsys.readouterr().err
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+        for first in (signal.SIGINT, signal.SIGTERM):  # a SIGTERM first: the same
+            alone = StepInterrupt(World())
+            _signal_self(first)
+            _signal_self(signal.SIGTERM)  # a second SIGTERM is held: only Ctrl-C escalates
+            with pytest.raises(KeyboardInterrupt):
+                _signal_self(signal.SIGINT)
+            assert alone.pending == first
+        capsys.readouterr()
+
+        shared = StepInterrupt(World(rank=0, size=2))
+        try:
+            for number in (signal.SIGINT, signal.SIGINT, signal.SIGTERM, signal.SIGINT):
+                _signal_self(number)
+            assert shared.pending == signal.SIGINT
+            assert "again" not in capsys.readouterr().err
+        finally:
+            shared.close()
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 @pytest.mark.parametrize("workers", [0, 2])
 def test_a_prefetched_run_repeats_the_reference(train_dataset, cache_dir, reference_run,
                                                 tmp_path, workers):

@@ -12,6 +12,12 @@ which passes the signal it gets on to every process and kills them 30 s later). 
 distributed run every process must stop at the same step, or the others would wait for it in
 the next collective for ever: after each step the processes agree (one all-reduce of a flag)
 that one of them was interrupted, and all of them save that step and stop.
+
+Convention: in a run of one process a second Ctrl-C stops at once (``KeyboardInterrupt``
+where the loop is, the steps since the last checkpoint lost), for a user who will not wait
+for a long step or a validation. In a distributed run every signal after the first stays
+held: torchrun passes the terminal's Ctrl-C on to its processes a moment after the terminal
+did, and that second SIGINT must not cut their save.
 """
 
 from __future__ import annotations
@@ -37,8 +43,10 @@ class StepInterrupt:
     alone receives signals) nothing is held.
 
     Between steps too (the log, the bar, a checkpoint, a validation, which then runs to its
-    end): the loop is cut only where its state is whole. Every later signal is held as well,
-    so that torchrun's own closing signal, after the terminal's, does not cut the save.
+    end): the loop is cut only where its state is whole. Later signals are held as well (so
+    that torchrun's own closing signal, after the terminal's, does not cut the save), but for
+    a second Ctrl-C in a run of one process, which raises ``KeyboardInterrupt`` at once: files
+    being written are left as they were (every write goes through a temporary file).
 
     Args:
         world: the run's :class:`~sq_mitsuba.training.distributed.World` (None: one process).
@@ -81,10 +89,21 @@ class StepInterrupt:
             signal.signal(number, previous)
         self._previous = {}
 
+    @property
+    def _alone(self) -> bool:
+        return self.world is None or not self.world.distributed
+
     def _hold(self, number: int, frame: object) -> None:
         if self.pending is None:
             self.pending = number
             if self.world is None or self.world.main:
                 name = "Ctrl-C" if number == signal.SIGINT else signal.Signals(number).name
+                now = "Ctrl-C again" if number == signal.SIGINT else "Ctrl-C"
+                again = f" ({now}: stop at once, without saving)" if self._alone else ""
                 print(f"{name}: the step in progress finishes, last.pt is written at it, then "
-                      "the run stops", file=sys.stderr, flush=True)
+                      f"the run stops{again}", file=sys.stderr, flush=True)
+        elif number == signal.SIGINT and self._alone:
+            self.close()
+            print("Ctrl-C again: stopped at once; last.pt holds the last checkpoint written",
+                  file=sys.stderr, flush=True)
+            raise KeyboardInterrupt
