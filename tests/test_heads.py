@@ -129,7 +129,7 @@ def test_a_spatial_network_grows_a_fine_reader_that_starts_as_it() -> None:
 
 
 def test_a_view_frame_network_predicts_its_assembly_in_the_body_frame(tmp_path) -> None:
-    """``shape_frame = "view"``: the predictor (eager and TorchScript fast path, through a
+    """``shape_frame = "view"``: the predictor (eager, folded and traced, through a
     checkpoint) returns the network's view-frame assembly turned by the transpose of the
     rotation it predicts, so the assembly placed at the predicted pose is the view-frame one."""
     from sq_mitsuba.geometry.assembly import Assembly
@@ -146,8 +146,8 @@ def test_a_view_frame_network_predicts_its_assembly_in_the_body_frame(tmp_path) 
         output = net(images[:, None], camera.matrix(torch.float32))
     view = Assembly.from_raw(output.raw).params.double()
     path = write_checkpoint(tmp_path / "view.pt", checkpoint_payload(net, camera))
-    for fast in (False, True):
-        got = sq_mitsuba.load_model(path, fast=fast).predict(images)
+    for fast, traced in ((False, False), (True, False), (True, True)):
+        got = sq_mitsuba.load_model(path, fast=fast, traced=traced).predict(images)
         assembly = Assembly(got.assembly.params.double())
         turned_back = assembly.rotated(got.rotation.double())  # into the camera's axes
         torch.testing.assert_close(turned_back.translation, view[..., 5:8], rtol=1e-4,
@@ -195,8 +195,8 @@ def test_a_checkpoint_of_the_fixed_head_layout_loads_and_predicts_the_same(tmp_p
     path = write_checkpoint(tmp_path / "legacy.pt", payload)
     images = torch.rand(2, 64, 64, generator=torch.Generator().manual_seed(4))
     expected = Predictor(net, camera).predict(images)
-    for fast in (False, True):
-        got = sq_mitsuba.load_model(path, fast=fast).predict(images)
+    for fast, traced in ((False, False), (True, False), (True, True)):
+        got = sq_mitsuba.load_model(path, fast=fast, traced=traced).predict(images)
         torch.testing.assert_close(got.rotation, expected.rotation, rtol=1e-4, atol=1e-4)
         torch.testing.assert_close(got.assembly.params, expected.assembly.params,
                                    rtol=1e-4, atol=1e-4)

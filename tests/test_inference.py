@@ -215,10 +215,16 @@ def test_eval_mode_is_used_and_the_mode_restored(net, predictor):
 
 
 def test_fast_path_matches_eager(net, predictor):
-    """The folded, traced network at every batch size it meets (a trace may fix the batch
-    size, so each shape gets its own, and only a few are kept)."""
+    """The folded network, and the folded network traced at every batch size it meets (a
+    trace may fix the batch size, so each shape gets its own, and only a few are kept)."""
     x = two_scenes()
-    fast = Predictor(net, CAMERA, fast=True)
+    folded = Predictor(net, CAMERA, fast=True)
+    assert folded._traced is None  # tracing is asked for, not the fast path's default
+    for images in (x, scene(2 * SIZE)):
+        assert_same(folded.predict(images), predictor.predict(images), atol=1e-4)
+    with pytest.raises(ValueError, match=r"^traced: traces the folded network of the fast"):
+        Predictor(net, CAMERA, traced=True)
+    fast = Predictor(net, CAMERA, fast=True, traced=True)
     assert_same(fast.predict(x), predictor.predict(x), atol=1e-4)
     assert_same(fast.predict(scene(2 * SIZE)), predictor.predict(scene(2 * SIZE)), atol=1e-4)
     three = torch.cat([x, x[:1].flip(-2)])

@@ -69,7 +69,7 @@ def test_a_regions_network_names_what_it_needs(change: dict, field: str) -> None
 def test_a_slots_network_grows_a_regions_decoder_and_it_predicts(tmp_path) -> None:
     """A trained slots network's weights load (partially) into a regions network: every part
     but the decoder is the file's, every parameter then gets a gradient, and the predictor
-    (eager and TorchScript fast path, through a checkpoint) gives the same assembly."""
+    (eager, folded and traced, through a checkpoint) gives the same assembly."""
     torch.manual_seed(2)
     slots = SuperquadricNet(NetworkConfig(**SMALL, num_primitives=5)).eval()
     regions = SuperquadricNet(NetworkConfig(**SMALL, **REGIONS))
@@ -89,7 +89,8 @@ def test_a_slots_network_grows_a_regions_decoder_and_it_predicts(tmp_path) -> No
     path = write_checkpoint(tmp_path / "regions.pt",
                             checkpoint_payload(regions.eval(), Camera.default(64)))
     eager = sq_mitsuba.load_model(path, fast=False).predict(_images(2, 4)[:, 0])
-    fast = sq_mitsuba.load_model(path, fast=True).predict(_images(2, 4)[:, 0])
-    torch.testing.assert_close(fast.assembly.params, eager.assembly.params, rtol=1e-3,
-                               atol=1e-3)
+    for traced in (False, True):
+        fast = sq_mitsuba.load_model(path, fast=True, traced=traced).predict(_images(2, 4)[:, 0])
+        torch.testing.assert_close(fast.assembly.params, eager.assembly.params, rtol=1e-3,
+                                   atol=1e-3)
     assert eager.assembly.params.shape[-1] == 16

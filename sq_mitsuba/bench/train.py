@@ -30,7 +30,8 @@ weighted loss term of the registry (:data:`~sq_mitsuba.training.loss_terms.LOSS_
 forward + backward to the network outputs), and the update (gradient clipping, AdamW).
 
 Inference (128 px): :class:`~sq_mitsuba.inference.predictor.Predictor` at batch 1 and 32,
-eager (``fast=False``) and the fast path (``fast=True``), on one intra-op thread too, and the
+eager (``fast=False``), the fast path (``fast=True``; on one intra-op thread too) and the fast
+path traced (``traced=True``), and the
 shipped model (its own input size) on the same images.
 
 :func:`learning_curves` (``sq-mitsuba bench curves``) trains several configs for the same
@@ -385,6 +386,7 @@ def _inference_figures(report: Report, options: BenchOptions) -> None:
                 value.uniform_(0.5, 2.0)
     camera = Camera.default(INPUT)
     eager, fast = Predictor(network, camera), Predictor(network, camera, fast=True)
+    traced = Predictor(network, camera, fast=True, traced=True)
     one, many = torch.rand(1, INPUT, INPUT), torch.rand(BATCH, INPUT, INPUT)
     with torch.no_grad():
         deviation = float((fast.predict(one).rotation - eager.predict(one).rotation
@@ -404,14 +406,16 @@ def _inference_figures(report: Report, options: BenchOptions) -> None:
     calls = {
         "eager": lambda: eager.predict(one),
         "fast": lambda: fast.predict(one),
+        "fast, traced": lambda: traced.predict(one),
         "fast, 1 thread": in_threads(1, lambda: fast.predict(one)),
     }
     notes = {
         "eager": "Predictor(fast=False)",
-        "fast": f"Predictor(fast=True): BatchNorm folded, channels_last, TorchScript trace + "
-                f"freeze, inference_mode; largest rotation difference from eager "
-                f"{deviation:.1e}",
-        "fast, 1 thread": "the same with torch.set_num_threads(1)",
+        "fast": f"Predictor(fast=True): BatchNorm folded, channels_last, inference_mode; "
+                f"largest rotation difference from eager {deviation:.1e}",
+        "fast, traced": "Predictor(fast=True, traced=True): the same through a TorchScript "
+                        "trace + freeze (made in the warm-up)",
+        "fast, 1 thread": "the same as fast with torch.set_num_threads(1)",
     }
     from sq_mitsuba.inference.loading import load_model
     from sq_mitsuba.model.checkpoint import SHIPPED_MODEL

@@ -46,7 +46,7 @@ def check_device(device: str | torch.device) -> torch.device:
 
 
 def load_model(path: str | os.PathLike[str] | None = None, *, fast: bool = False,
-               device: str | torch.device = "cpu",
+               traced: bool = False, device: str | torch.device = "cpu",
                min_target: float = DEFAULT_MIN_TARGET,
                min_existence: float = DEFAULT_MIN_EXISTENCE) -> Predictor:
     """A :class:`Predictor` from a checkpoint, with the dataset camera as its default camera.
@@ -55,6 +55,8 @@ def load_model(path: str | os.PathLike[str] | None = None, *, fast: bool = False
         path: checkpoint file; None: the model shipped with the package
             (``sq_mitsuba/model/weights/model.pt``).
         fast: predict with BatchNorm folded into the convolutions (see :class:`Predictor`).
+        traced: with ``fast``, through a TorchScript trace per input shape (pays for a stream
+            of hundreds of single frames; see :class:`Predictor`).
         device: where the network runs.
         min_target: the target-present score from which an image shows a target (see
             :class:`Predictor`).
@@ -70,6 +72,9 @@ def load_model(path: str | os.PathLike[str] | None = None, *, fast: bool = False
     if isinstance(path, str | os.PathLike) and not os.fspath(path):
         raise ValueError("path: empty; give a checkpoint file, or None for the model shipped "
                          "with sq_mitsuba")
+    if traced and not fast:
+        raise ValueError("traced: traces the folded network of the fast path; give fast=True "
+                         "too")
     device = check_device(device)
     min_target = check_min_target(min_target)
     min_existence = check_min_target(min_existence, "min_existence")
@@ -83,8 +88,8 @@ def load_model(path: str | os.PathLike[str] | None = None, *, fast: bool = False
     path = Path(path)
     payload = checkpoint.read_checkpoint(path)
     model, camera = checkpoint.model_from_checkpoint(payload, str(path))
-    predictor = Predictor(model.to(device), camera, fast=fast, min_target=min_target,
-                          min_existence=min_existence)
+    predictor = Predictor(model.to(device), camera, fast=fast, traced=traced,
+                          min_target=min_target, min_existence=min_existence)
     predictor.source = path
     predictor.baseline = checkpoint.checkpoint_baseline(payload, str(path))
     return predictor

@@ -98,10 +98,14 @@ class Predictor:
     Args:
         model: the network; used in eval mode (its own mode is restored after each call).
         camera: intrinsics of the images :meth:`predict` gets by default (the dataset camera).
-        fast: predict with a BatchNorm-folded, channels-last copy of the network, traced and
-            frozen by TorchScript once per input shape (the same output up to ~1e-5 relative;
-            faster on CPU; the first call at a new batch size or device takes about a
-            second). The copy is a snapshot of the weights now.
+        fast: predict with a BatchNorm-folded, channels-last copy of the network (the same
+            output up to ~1e-5 relative; faster on CPU; folding takes about 0.1 s). The copy
+            is a snapshot of the weights now.
+        traced: with ``fast``, run the folded copy through a TorchScript trace, made once per
+            input shape. Convention: off by default. A trace costs 0.7-0.8 s per shape and
+            saves about a quarter of the network's time at batch 1 (13 against 18 ms, 96 px,
+            2 cores) and nothing at batch 7 (the 8-turn reading's turned copies): it pays
+            for a stream of hundreds of single frames, not for a few images or batches.
         hypotheses: K, the rotation hypotheses per image of a distribution head.
         min_target: the target-present score from which an image shows a target
             (``Prediction.target``; see :func:`~sq_mitsuba.inference.images.target_scores`
@@ -112,7 +116,7 @@ class Predictor:
     """
 
     def __init__(self, model: SuperquadricNet, camera: Camera, fast: bool = False,
-                 hypotheses: int = DEFAULT_HYPOTHESES,
+                 traced: bool = False, hypotheses: int = DEFAULT_HYPOTHESES,
                  min_target: float = DEFAULT_MIN_TARGET,
                  min_existence: float = DEFAULT_MIN_EXISTENCE) -> None:
         if not isinstance(model, SuperquadricNet):
@@ -125,11 +129,14 @@ class Predictor:
         self.min_existence = check_min_target(min_existence, "min_existence")
         self.model = model
         self.camera = camera
+        if traced and not fast:
+            raise ValueError("traced: traces the folded network of the fast path; give "
+                             "fast=True too")
         self.fast = bool(fast)
+        self.traced = bool(traced)
         self.hypotheses = hypotheses
-        # The fast path (inference/traced.py says why TorchScript: measured faster at batch 1).
         self._folded = model.folded(channels_last=True) if self.fast else None
-        self._traced = TracedNetwork(self._folded) if self._folded is not None else None
+        self._traced = TracedNetwork(self._folded) if self.traced else None
         # turned_cells of the grid per (turns, device), for predict(turns=T).
         self._turned_cells: dict[tuple, Tensor] = {}
         #: The checkpoint the model came from (set by ``load_model``), for records.
@@ -390,6 +397,9 @@ class Predictor:
         if self._traced is not None:
             with torch.inference_mode():
                 return self._traced(x, matrix)
+        if self._folded is not None:  # a copy of its own, always in eval mode
+            with torch.inference_mode():
+                return self._folded(x, matrix)
         was_training = network.training
         if was_training:
             network.eval()
