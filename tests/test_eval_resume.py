@@ -149,6 +149,21 @@ def test_resume_of_other_settings_or_another_checkpoint_is_one_line(
     assert main(_argv(other, train_dataset, out, "--resume")) == 2
     line = error_line(capsys)
     assert "checkpoint: weights of" in line and str(other) in line
+    # Batches rendered by another Mitsuba variant (the GPU's), or an identity that cannot be
+    # read, are refused too.
+    run_file = out / JOURNAL / RUN_FILE
+    recorded = json.loads(run_file.read_text())
+    here = recorded["renderer"]
+    assert here.startswith("llvm_ad")
+    run_file.write_text(json.dumps({**recorded, "renderer": "cuda_ad_mono"}))
+    assert main(_argv(eval_checkpoint, train_dataset, out, "--resume")) == 2
+    assert f"renderer: 'cuda_ad_mono' there, '{here}' now" in error_line(capsys)
+    run_file.write_text("{")
+    assert main(_argv(eval_checkpoint, train_dataset, out, "--resume")) == 2
+    line = error_line(capsys)
+    assert line.startswith(f"sq-mitsuba eval: error: {run_file}: the journal is not of this "
+                           "evaluation (unreadable:") and "not valid JSON" in line
+    run_file.write_bytes(journal[RUN_FILE])
     # Refused before any work: nothing computed, the journal as it was, no outputs.
     assert batches.numbers == []
     assert {p.name: p.read_bytes() for p in (out / JOURNAL).iterdir()} == journal

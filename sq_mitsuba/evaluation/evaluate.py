@@ -42,17 +42,18 @@ Files written to the output folder (each atomically):
   the prediction (:mod:`sq_mitsuba.evaluation.mesh_ranking`: is the shape read from the image?);
 - ``eval.json``: settings, checkpoint, counts, symmetries per model, images/s, the mesh
   ranking's medians, and the run's ``identity`` (the checkpoint's weights hash, the data's
-  fingerprint: :mod:`sq_mitsuba.evaluation.journal`).
+  fingerprint, the Mitsuba variant: :mod:`sq_mitsuba.evaluation.journal`).
 
 While it runs, the hidden folder ``.eval_partial/`` (:mod:`sq_mitsuba.evaluation.journal`)
-holds ``run.json`` (the options, the checkpoint's and the data's identity, the evaluated
-indices) and one ``batch_<number>.pt`` per finished batch (its rows, qualitative examples,
-mesh-ranking entries and seconds), each written atomically; it is removed once ``eval.json``
-is written. ``resume`` (``sq-mitsuba eval --resume``) reads the batches an interrupted run of
-the same settings, checkpoint and data finished instead of computing them again, and ends
-with the same files (timings aside); a journal of another run is refused in one line naming
-what differs, and a run without ``resume`` clears it first. Each batch is scored on its own:
-the scoring renderer restarts its samples from the batch's number.
+holds ``run.json`` (the options, the checkpoint's and the data's identity, the Mitsuba
+variant, the evaluated indices) and one ``batch_<number>.pt`` per finished batch (its rows,
+qualitative examples, mesh-ranking entries and seconds), each written atomically; it is
+removed once ``eval.json`` is written. ``resume`` (``sq-mitsuba eval --resume``) reads the
+batches an interrupted run of the same settings, checkpoint, data and variant finished
+instead of computing them again, and ends with the same files (timings aside); a journal of
+another run is refused in one line naming what differs, and a run without ``resume`` clears
+it first. Each batch is scored on its own: the scoring renderer restarts its samples from
+the batch's number.
 
 The folder holds one evaluation: the files of this list that an earlier run into it wrote and
 this one does not (the figures after ``figures = False``, a mesh ranking) are removed once it
@@ -377,7 +378,9 @@ def _evaluate(predictor: Any, data_root: Path, out_dir: Path, options: EvalOptio
         "checkpoint": str(getattr(predictor, "source", None) or ""),
         "num_primitives": predictor.num_primitives, "image_size": image_size,
         "options": to_dict(options),
-        "identity": {key: identity[key] for key in ("format", "checkpoint", "data")},
+        # The identity but for what eval.json holds already or by number (options, images).
+        "identity": {key: value for key, value in identity.items()
+                     if key not in ("options", "images")},
         "symmetries": {dataset.models[m]: len(models.symmetry(m))
                        for m in sorted({dataset.items[i][0] for i in indices})},
         "images_per_second": round(images_per_second, 4),

@@ -8,7 +8,7 @@ folder :data:`JOURNAL` (``.eval_partial/``):
   network's weights and stored baseline, with the predictor's ``hypotheses``,
   ``min_existence`` and device), the data (its resolved root and
   :func:`sq_mitsuba.training.cache.dataset_fingerprint`: manifest, camera, splits and labels),
-  and the evaluated indices of the split;
+  the Mitsuba variant, and the evaluated indices of the split;
 - ``batch_<number>.pt``, one per finished batch (``torch.save``, loadable with
   ``weights_only=True``): its dataset items, its ``per_image.csv`` rows, its qualitative
   examples and mesh-ranking entries (assemblies as their ``params`` tensors), and its seconds
@@ -93,9 +93,15 @@ def data_identity(data_root: str | Path) -> dict[str, str]:
 def run_identity(predictor: Any, data_root: str | Path, options: dict[str, Any],
                  indices: Sequence[int] | None = None) -> dict[str, Any]:
     """The identity of an evaluation: ``options`` (``to_dict`` of its EvalOptions), the
-    checkpoint's and the data's (above), and, where given, the split's evaluated ``indices``."""
+    checkpoint's and the data's (above), the Mitsuba variant that renders its silhouettes
+    (``renderer``: the CPU's and the GPU's differ in the last digits, so batches of the two
+    would not make the uninterrupted run's figures) and, where given, the split's evaluated
+    ``indices``."""
+    from sq_mitsuba.render.backend import mitsuba
+
     identity = {"format": FORMAT, "options": options,
-                "checkpoint": checkpoint_identity(predictor), "data": data_identity(data_root)}
+                "checkpoint": checkpoint_identity(predictor), "data": data_identity(data_root),
+                "renderer": mitsuba().variant()}
     if indices is not None:
         identity["images"] = [int(i) for i in indices]
     return identity
@@ -161,10 +167,10 @@ def journal_difference(out_dir: str | Path, identity: dict[str, Any],
         return None
     try:
         recorded = read_json(run_file)
-    except (OSError, ValueError) as error:
-        return str(error)
+    except (OSError, ValueError) as error:  # "<run.json>: not valid JSON (...)"
+        return f"unreadable: {' '.join(str(error).split())}"
     if not isinstance(recorded, dict):
-        return f"{run_file}: not a journal"
+        return "not a journal's identity"
     if "images" not in identity:
         recorded = {k: v for k, v in recorded.items() if k != "images"}
     return identity_difference(recorded, identity)
@@ -259,14 +265,9 @@ class EvalJournal:
                              "there; move it or write elsewhere (--out)")
         run_file = self.folder / RUN_FILE
         if resume and run_file.is_file():
-            try:
-                recorded = read_json(run_file)
-            except ValueError as error:  # "<run.json>: not valid JSON (...)"
-                raise ValueError(f"{error}; rerun without --resume to start afresh") from None
-            difference = identity_difference(recorded if isinstance(recorded, dict) else {},
-                                             identity)
+            difference = journal_difference(out_dir, identity)
             if difference is not None:
-                raise ValueError(f"{run_file}: the journal is of another evaluation "
+                raise ValueError(f"{run_file}: the journal is not of this evaluation "
                                  f"({difference}); rerun without --resume to start afresh")
             remove_stray_temporaries(self.folder)
             self.records = self._read(chunks)
