@@ -161,8 +161,8 @@ def test_resume_of_other_settings_or_another_checkpoint_is_one_line(
     run_file.write_text("{")
     assert main(_argv(eval_checkpoint, train_dataset, out, "--resume")) == 2
     line = error_line(capsys)
-    assert line.startswith(f"sq-mitsuba eval: error: {run_file}: the journal is not of this "
-                           "evaluation (unreadable:") and "not valid JSON" in line
+    assert line.startswith(f"sq-mitsuba eval: error: {run_file}: not this evaluation's "
+                           "journal (its run.json unreadable: not valid JSON")
     run_file.write_bytes(journal[RUN_FILE])
     # Refused before any work: nothing computed, the journal as it was, no outputs.
     assert batches.numbers == []

@@ -373,11 +373,13 @@ def _signal_self(number: int) -> None:
     time.sleep(0.05)
 
 
-def test_a_second_ctrl_c_stops_a_run_of_one_process_at_once(capsys):
+def test_a_second_ctrl_c_stops_a_run_of_one_process_at_once(capsys, tmp_path):
     """The first Ctrl-C is held (the loop saves at the end of the step); a second one in a run
-    of one process raises KeyboardInterrupt at once and puts the handler back. In a
-    distributed run every later signal stays held: torchrun passes the terminal's Ctrl-C on to
-    its processes a moment after the terminal did."""
+    of one process raises KeyboardInterrupt at once, puts the handler back and says whether
+    there is a last.pt to resume from, also when both land inside one Mitsuba call (which
+    holds Ctrl-C back until it returns). In a distributed run every later signal stays held:
+    the processes must stop at one step."""
+    from sq_mitsuba.render.backend import interrupts_deferred
     from sq_mitsuba.training.distributed import World
     from sq_mitsuba.training.run.interrupt import StepInterrupt
 
@@ -400,7 +402,18 @@ def test_a_second_ctrl_c_stops_a_run_of_one_process_at_once(capsys):
             with pytest.raises(KeyboardInterrupt):
                 _signal_self(signal.SIGINT)
             assert alone.pending == first
-        capsys.readouterr()
+        last = tmp_path / "last.pt"
+        for written in (False, True):
+            if written:
+                last.write_bytes(b"")
+            StepInterrupt(World(), last)
+            with pytest.raises(KeyboardInterrupt), interrupts_deferred():
+                _signal_self(signal.SIGINT)
+                _signal_self(signal.SIGINT)  # both held by the block, then passed on
+            said = capsys.readouterr().err.splitlines()[-1]
+            assert said == ("Ctrl-C again: stopped at once; " + (
+                f"{last} holds the last checkpoint written" if written
+                else "no last.pt was written yet: nothing to resume"))
 
         shared = StepInterrupt(World(rank=0, size=2))
         try:
@@ -562,6 +575,14 @@ def test_a_run_stopped_before_its_first_checkpoint_starts_over(train_dataset, ca
     assert [row["step"] for row in _rows(out / "log.csv")] == ["1"]
     code, err = _cli([*common, "--max-steps", "1"], capsys)
     assert code == 2 and "already holds a training run" in err
+    # A run stopped at once (a second Ctrl-C) after a validation's best.pt, before its first
+    # last.pt: nothing to resume, and its best.pt is not overwritten by a new run.
+    (out / "last.pt").unlink()
+    assert (out / "best.pt").is_file()
+    code, err = _cli([*common, "--max-steps", "1"], capsys)
+    assert code == 2 and "holds a run's best.pt but no last.pt to resume from" in err
+    code, err = _cli([*common, "--resume"], capsys)
+    assert code == 2 and "nothing to resume" in err
 
 
 def test_resume_does_not_need_the_start_it_was_initialised_from(train_dataset, cache_dir,

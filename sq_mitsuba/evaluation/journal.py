@@ -143,8 +143,9 @@ def identity_difference(old: dict[str, Any], new: dict[str, Any]) -> str | None:
 
 def finished_evaluation(out_dir: str | Path, identity: dict[str, Any]) -> bool:
     """Whether ``out_dir`` holds a finished evaluation (its ``eval.json``) of ``identity``
-    (:func:`run_identity` without indices): the same options, checkpoint weights and data. An
-    ``eval.json`` that cannot be read, or of a version without an identity, is not one."""
+    (:func:`run_identity` without indices): the same options, checkpoint weights, data and
+    Mitsuba variant. An ``eval.json`` that cannot be read, or of a version without an identity
+    (or without the variant: before 2026-11-30), is not one."""
     try:
         info = read_json(Path(out_dir) / "eval.json")
     except (OSError, ValueError):
@@ -168,7 +169,8 @@ def journal_difference(out_dir: str | Path, identity: dict[str, Any],
     try:
         recorded = read_json(run_file)
     except (OSError, ValueError) as error:  # "<run.json>: not valid JSON (...)"
-        return f"unreadable: {' '.join(str(error).split())}"
+        reason = " ".join(str(error).split()).removeprefix(f"{run_file}: ")
+        return f"its {RUN_FILE} unreadable: {reason}"
     if not isinstance(recorded, dict):
         return "not a journal's identity"
     if "images" not in identity:
@@ -267,8 +269,8 @@ class EvalJournal:
         if resume and run_file.is_file():
             difference = journal_difference(out_dir, identity)
             if difference is not None:
-                raise ValueError(f"{run_file}: the journal is not of this evaluation "
-                                 f"({difference}); rerun without --resume to start afresh")
+                raise ValueError(f"{run_file}: not this evaluation's journal ({difference}); "
+                                 "rerun without --resume to start afresh")
             remove_stray_temporaries(self.folder)
             self.records = self._read(chunks)
         else:

@@ -29,10 +29,10 @@ evaluation):
 - ``passes.json``: settings, checkpoint, the passes scored and the time taken.
 
 A rerun into the same folder takes up where an interrupted one stopped: each pass's rows are
-kept in ``.passes_partial/`` (with the run's identity: the options, the network's weights and
-the data, as ``eval --resume``'s journal) until ``passes.json`` is written, and the passes
-scored already are read back, not scored again (a pass takes about a minute on 2 cores). A
-partial run of other settings is discarded, with a warning.
+kept in ``.passes_partial/`` (with the run's identity: the options, the network's weights,
+the data and the Mitsuba variant, as ``eval --resume``'s journal) until ``passes.json`` is
+written, and the passes scored already are read back, not scored again (a pass takes about a
+minute on 2 cores). A partial run of other settings is discarded, with a warning.
 
 Convention: the frames are read and scored at the dataset's own resolution (what ``predict
 --sequence`` is given by a user), not at the network's input size as ``sq-mitsuba eval``

@@ -11,9 +11,10 @@ generator + pose head (+ mask head). Each exchangeable part is chosen by a name 
 
 Adding a head is one module (a class with that constructor and ``forward``) and one
 :func:`register_pose_head` / :func:`register_latent_head` call; training, export, the
-predictor and its TorchScript fast path take it without edits, since they only read
-:class:`PoseHeadOutput`'s fields. Pose heads that predict a distribution over rotations live
-in their own modules (:mod:`sq_mitsuba.model.rotation_grid`) and register themselves.
+predictor and its fast paths (folded, traced by TorchScript) take it without edits, since
+they only read :class:`PoseHeadOutput`'s fields. Pose heads that predict a distribution over
+rotations live in their own modules (:mod:`sq_mitsuba.model.rotation_grid`) and register
+themselves.
 
 Convention:
     - Feature maps come from :meth:`~sq_mitsuba.model.encoder.EfficientNet.forward_pyramid`:

@@ -108,7 +108,10 @@ def interrupts_deferred() -> Iterator[None]:
         signal.signal(signal.SIGINT, previous)
         if received:
             if callable(previous):
-                previous(signal.SIGINT, None)  # Python's own raises KeyboardInterrupt
+                # Each one (a handler may count them: training's stops at once on the second);
+                # Python's own raises KeyboardInterrupt at the first.
+                for signum in received:
+                    previous(signum, None)
             else:  # SIG_DFL: end as the signal would have
                 signal.raise_signal(signal.SIGINT)
 

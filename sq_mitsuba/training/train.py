@@ -384,7 +384,7 @@ class _Loop:
                                dynamic_ncols=True)
         timed_images, timed_seconds = 0, 0.0
         stop_at = None if run.max_seconds is None else time.perf_counter() + run.max_seconds
-        interrupt = StepInterrupt(world)  # Ctrl-C, SIGTERM held: saved at a step, then stops
+        interrupt = StepInterrupt(world, out_dir / LAST)  # Ctrl-C, SIGTERM: saved at a step
         try:
             for step in range(start_step, end_step):
                 with interrupt.step():

@@ -72,9 +72,13 @@ def check_out_dir(out_dir: Path, resume: bool) -> None:
                          f"{existing})")
     if resume and not (out_dir / LAST).is_file():
         raise TrainError(f"{out_dir}: nothing to resume (no {LAST})")
-    if not resume and any((out_dir / name).exists() for name in (LAST, BEST)):
+    if not resume and (out_dir / LAST).exists():
         raise TrainError(f"{out_dir}: already holds a training run; resume it (--resume) or "
                          "choose another output folder")
+    if not resume and (out_dir / BEST).exists():  # stopped at once before its first last.pt
+        raise TrainError(f"{out_dir}: holds a run's {BEST} but no {LAST} to resume from (the "
+                         f"run stopped before its first checkpoint); move {BEST} away to start "
+                         "over there, or choose another output folder")
 
 
 def check_cache_dir(cache_dir: Path | None) -> None:

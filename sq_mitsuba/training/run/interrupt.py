@@ -16,8 +16,9 @@ that one of them was interrupted, and all of them save that step and stop.
 Convention: in a run of one process a second Ctrl-C stops at once (``KeyboardInterrupt``
 where the loop is, the steps since the last checkpoint lost), for a user who will not wait
 for a long step or a validation. In a distributed run every signal after the first stays
-held: torchrun passes the terminal's Ctrl-C on to its processes a moment after the terminal
-did, and that second SIGINT must not cut their save.
+held: the processes must stop at one step, and one acting alone on a second signal would
+leave the others waiting in a collective (torchrun starts them in their own session and
+passes its own signals on; it kills them 30 s after the first).
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ import sys
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
+from pathlib import Path
 from typing import Any
 
 __all__ = ["HELD_SIGNALS", "StepInterrupt"]
@@ -43,17 +45,18 @@ class StepInterrupt:
     alone receives signals) nothing is held.
 
     Between steps too (the log, the bar, a checkpoint, a validation, which then runs to its
-    end): the loop is cut only where its state is whole. Later signals are held as well (so
-    that torchrun's own closing signal, after the terminal's, does not cut the save), but for
-    a second Ctrl-C in a run of one process, which raises ``KeyboardInterrupt`` at once: files
-    being written are left as they were (every write goes through a temporary file).
+    end): the loop is cut only where its state is whole. Later signals are held as well, but
+    for a second Ctrl-C in a run of one process, which raises ``KeyboardInterrupt`` at once:
+    files being written are left as they were (every write goes through a temporary file).
 
     Args:
         world: the run's :class:`~sq_mitsuba.training.distributed.World` (None: one process).
+        last: the run's ``last.pt``, named by the second Ctrl-C's message (None: not named).
     """
 
-    def __init__(self, world: Any = None) -> None:
+    def __init__(self, world: Any = None, last: Path | None = None) -> None:
         self.world = world
+        self.last = last
         self.pending: int | None = None
         self._agreed = False
         self._previous: dict[int, Any] = {}
@@ -104,6 +107,11 @@ class StepInterrupt:
                       f"the run stops{again}", file=sys.stderr, flush=True)
         elif number == signal.SIGINT and self._alone:
             self.close()
-            print("Ctrl-C again: stopped at once; last.pt holds the last checkpoint written",
-                  file=sys.stderr, flush=True)
+            if self.last is None:
+                kept = "the last checkpoint written is kept"
+            elif self.last.is_file():
+                kept = f"{self.last} holds the last checkpoint written"
+            else:
+                kept = f"no {self.last.name} was written yet: nothing to resume"
+            print(f"Ctrl-C again: stopped at once; {kept}", file=sys.stderr, flush=True)
             raise KeyboardInterrupt
