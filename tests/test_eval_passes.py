@@ -11,6 +11,9 @@ from __future__ import annotations
 import csv
 import json
 import math
+import re
+import shutil
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -164,6 +167,53 @@ def test_bad_pass_evaluations_are_refused_before_any_work(eval_checkpoint, pass_
                         progress=False)
     for name in ("a", "b"):
         assert not (tmp_path / name / "passes.json").exists()
+
+
+def test_a_bad_frame_of_the_last_pass_is_refused_before_the_first_is_scored(
+        eval_checkpoint, pass_dataset, tmp_path, monkeypatch):
+    """A frame that cannot be read, of another size, or in which the network finds no target
+    to fit, in the last pass scored: one line naming its file, before any pass is searched."""
+    from PIL import Image
+
+    from sq_mitsuba.data.spe3r.layout import read_splits
+    from sq_mitsuba.inference.predictor import Predictor
+
+    predictor = load_model(eval_checkpoint)
+    searched = []
+    monkeypatch.setattr(Predictor, "refine", lambda *a, **k: searched.append(1))
+    data = tmp_path / "data"
+    shutil.copytree(pass_dataset, data)
+    model = sorted(read_splits(data / "splits.csv"))[-1]
+    frame = sorted((data / model / "images").iterdir())[-1]
+    good = frame.read_bytes()
+    mask = frame.parent.parent / "masks" / frame.name
+    cases = [(good[: len(good) // 2], frame, "cannot read image"),
+             (None, mask, r"mask is 64 x 64 px, its image 000002.png is 32 x 32 px"),
+             (np.zeros((64, 64), np.uint8), frame,
+              r"frame 2 of pass 0 of \S+ holds no target to fit")]
+    for k, (content, named, message) in enumerate(cases):
+        if isinstance(content, bytes):
+            frame.write_bytes(content)
+        else:
+            Image.fromarray(np.zeros((32, 32), np.uint8) if content is None else content
+                            ).save(frame)
+        with pytest.raises(ValueError, match=rf"^{re.escape(str(named))}: .*{message}"):
+            evaluate_passes(predictor, data, tmp_path / f"out{k}", SMALL, progress=False)
+        assert searched == [] and not (tmp_path / f"out{k}").exists()
+    frame.write_bytes(good)
+    good_mask = mask.read_bytes()
+    for path in (frame, mask):  # both of another size than camera.json's
+        Image.fromarray(np.zeros((32, 32), np.uint8)).save(path)
+    with pytest.raises(ValueError, match=rf"^{re.escape(str(frame))}: 32 x 32 px, but "
+                                         "camera.json describes 64 x 64 px images$"):
+        evaluate_passes(predictor, data, tmp_path / "small", SMALL, progress=False)
+    assert searched == []
+    mask.write_bytes(good_mask)
+    # Without a pass to fit (N = 1 alone) the network is not asked about the frames.
+    Image.fromarray(np.zeros((64, 64), np.uint8)).save(frame)
+    monkeypatch.undo()
+    evaluate_passes(predictor, data, tmp_path / "single", replace(SMALL, counts=(1,)),
+                    progress=False)
 
 
 def test_study_passes_cli_writes_the_tables_and_refuses_in_one_line(eval_checkpoint,

@@ -311,6 +311,11 @@ def test_a_model_in_both_splits_is_refused_naming_the_line(tmp_path):
     with pytest.raises(DatasetError, match=rf"^{re.escape(str(path))}:3: 'a' is listed as "
                                            "train above and as test here$"):
         read_splits(path)
+    # Bytes that are not text name the file (they came out as a bare UnicodeDecodeError).
+    path.write_bytes(b"a,train\nb\xff,test\n")
+    with pytest.raises(DatasetError, match=rf"^{re.escape(str(path))}: not UTF-8 text "
+                                           r"\(invalid start byte at byte 9\)$"):
+        read_splits(path)
 
 
 def _identity(folder: Path) -> int:

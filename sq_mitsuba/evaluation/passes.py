@@ -51,6 +51,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -188,8 +189,10 @@ def evaluate_passes(predictor: Any, data_root: str | Path, out_dir: str | Path,
     """Score ``predictor`` on the passes of a dataset split (module docstring).
 
     Every input is checked before the work starts: the network's input channels, the dataset
-    and split (not empty, a dataset of passes, each pass at least ``max(counts)`` frames), and
-    the output folder (writable, outside the dataset, not locked by another run).
+    and split (not empty, a dataset of passes, each pass at least ``max(counts)`` frames,
+    every frame scored readable, of ``camera.json``'s size and, where passes are fitted, with
+    a target in the mask the fit takes), and the output folder (writable, outside the dataset,
+    not locked by another run).
 
     Args:
         label: the run's name in ``passes.json`` (default: the checkpoint's folder name).
@@ -226,9 +229,51 @@ def evaluate_passes(predictor: Any, data_root: str | Path, out_dir: str | Path,
     keys = [keys[k] for k in evenly(len(keys), options.passes)]
     # Every frame of a dataset shows its target: each is fitted whatever its target score.
     predictor = with_fast_path(predictor, options.fast, min_target=0.0)
+    _check_frames(predictor, dataset, {k: groups[k][:longest] for k in keys},
+                  sequences=longest >= 2, progress=progress)
     with output_lock(out_dir, command="sq-mitsuba study passes"):
         return _evaluate_passes(predictor, dataset, {k: groups[k] for k in keys}, out_dir,
                                 options, progress, label)
+
+
+def _check_frames(predictor: Any, dataset: Any, groups: dict[tuple[int, int], list[int]],
+                  sequences: bool, progress: bool) -> None:
+    """Refuse, before any pass is scored, a frame that would stop the study part-way: one that
+    cannot be read whole (image or mask), one of another size than ``camera.json``'s and,
+    where passes are fitted (``sequences``), one whose mask to fit holds no target (the
+    network's reading from turned copies, as ``predict_sequence`` takes it: milliseconds a
+    frame). One line naming the file."""
+    from sq_mitsuba.inference.images import prepare_images
+    from sq_mitsuba.inference.pipeline import masks_to_fit
+    from sq_mitsuba.inference.sequence import FRAMES_SEARCH
+    from sq_mitsuba.progress import progress_bar
+
+    camera = dataset.camera.rescaled(dataset.image_size, dataset.image_size)  # as scored
+    for (model_index, number), items in progress_bar(
+            groups.items(), desc="checking frames", unit="pass", disable=not progress,
+            leave=False):
+        images = []
+        for item in items:
+            image, _ = dataset.read_pair(item)  # decoded whole, the mask's size checked
+            if image.shape != (camera.height, camera.width):
+                raise ValueError(f"{dataset.image_file(item)}: {image.shape[1]} x "
+                                 f"{image.shape[0]} px, but camera.json describes "
+                                 f"{camera.width} x {camera.height} px images")
+            images.append(image)
+        if not sequences:
+            continue
+        frames = torch.from_numpy(np.stack(images))
+        turns = FRAMES_SEARCH.turns if predictor.can_turn(camera) else 1
+        start = predictor.predict(frames, camera, turns=turns)
+        usable = masks_to_fit(start, prepare_images(frames, predictor.model.config.in_channels),
+                              None)[1]
+        if not bool(usable.all()):
+            frame = int((~usable).nonzero()[0])
+            raise ValueError(
+                f"{dataset.image_file(items[frame])}: frame {frame} of pass {number} of "
+                f"{dataset.models[model_index]} holds no target to fit (the network's mask of "
+                "it is empty: in eclipse, or too small?); no pass through it can be fitted: "
+                "score fewer frames (--counts), or leave the model out of the split")
 
 
 def _evaluate_passes(predictor: Any, dataset: Any, groups: dict[tuple[int, int], list[int]],

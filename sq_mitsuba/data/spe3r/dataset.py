@@ -177,6 +177,11 @@ class Spe3rDataset(torch.utils.data.Dataset):
             self._points[model_index] = model_points(self.root / self.models[model_index])
         return self._points[model_index]
 
+    def image_file(self, item: int) -> Path:
+        """The file of ``item``'s image (``images/<filename>``, whatever its extension)."""
+        model_index, _, label = self.items[item]
+        return self._image_path(self.models[model_index], IMAGES, label["filename"])
+
     def read_pair(self, item: int) -> tuple[np.ndarray, np.ndarray]:
         """Image and mask (H, W) uint8 of ``item`` at their stored size, decoded completely;
         a mask of another size than its image is a DatasetError naming the mask."""

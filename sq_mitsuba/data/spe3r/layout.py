@@ -84,18 +84,22 @@ def read_splits(path: Path) -> dict[str, str]:
     """``splits.csv`` as {model: "train" | "test"}; a model listed in both splits is a
     one-line ``DatasetError`` naming the line (the later row would silently win)."""
     splits: dict[str, str] = {}
-    with open(path, newline="", encoding="utf-8") as handle:
-        for line_number, row in enumerate(csv.reader(handle), start=1):
-            if not row:
-                continue
-            if len(row) != 2 or row[1].strip() not in ("train", "test"):
-                raise DatasetError(f"{path}:{line_number}: expected 'model,train|test', "
-                                   f"got {','.join(row)!r}")
-            model, split = row[0].strip(), row[1].strip()
-            if splits.get(model, split) != split:
-                raise DatasetError(f"{path}:{line_number}: {model!r} is listed as "
-                                   f"{splits[model]} above and as {split} here")
-            splits[model] = split
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as error:
+        raise DatasetError(f"{path}: not UTF-8 text ({error.reason} at byte {error.start})") \
+            from None
+    for line_number, row in enumerate(csv.reader(text.splitlines()), start=1):
+        if not row:
+            continue
+        if len(row) != 2 or row[1].strip() not in ("train", "test"):
+            raise DatasetError(f"{path}:{line_number}: expected 'model,train|test', "
+                               f"got {','.join(row)!r}")
+        model, split = row[0].strip(), row[1].strip()
+        if splits.get(model, split) != split:
+            raise DatasetError(f"{path}:{line_number}: {model!r} is listed as "
+                               f"{splits[model]} above and as {split} here")
+        splits[model] = split
     return splits
 
 
