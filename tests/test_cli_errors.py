@@ -34,6 +34,30 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys, no_env_traceback):
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize("argv, command, message", [
+    ([], "sq-mitsuba", "the following arguments are required: COMMAND"),
+    (["bogus"], "sq-mitsuba", "argument COMMAND: invalid choice: 'bogus'"),
+    (["predict", "x.png", "--out", ""], "sq-mitsuba predict",
+     "argument --out: an empty path"),
+    (["dataset", "render", "--models", "m", "--out", "o", "--spp", "many"],
+     "sq-mitsuba dataset render", "argument --spp: invalid int value: 'many'"),
+    (["eval", "--data", "d", "--out", "o", "--no-such-option"], "sq-mitsuba",
+     "unrecognized arguments: --no-such-option"),
+], ids=["no-command", "unknown-command", "bad-value", "bad-type-of-an-action", "unknown-option"])
+def test_a_usage_error_is_one_line_and_exit_2(argv, command, message, capsys):
+    """argparse's own errors too: one line naming the command and where to read more, not the
+    usage block before it."""
+    with pytest.raises(SystemExit) as stop:
+        main(argv)
+    assert stop.value.code == EXIT_ERROR
+    captured = capsys.readouterr()
+    assert captured.out == ""
+    lines = captured.err.splitlines()
+    assert len(lines) == 1, captured.err
+    assert lines[0].startswith(f"{command}: error: {message}")
+    assert lines[0].endswith(f"(see {command} --help)")
+
+
 def test_traceback_flag_raises_the_bad_input_error(tmp_path, capsys, no_env_traceback):
     with pytest.raises(FileNotFoundError, match="not_an_eval"):
         main(_report(tmp_path, "--traceback"))

@@ -23,6 +23,7 @@ import threading
 import traceback
 import warnings
 from collections.abc import Iterator, Sequence
+from typing import NoReturn
 
 from sq_mitsuba.outputs import interrupted
 from sq_mitsuba.render.backend import BackendError, check_variant_environment
@@ -71,6 +72,16 @@ def command_names() -> list[str]:
     return sorted(m.name for m in pkgutil.iter_modules(__path__) if not m.name.startswith("_"))
 
 
+class OneLineErrors(argparse.ArgumentParser):
+    """An argument parser whose usage errors are one line, as every other error of the tool
+    (argparse prints the whole usage block first): ``sq-mitsuba COMMAND: error: ... (see
+    sq-mitsuba COMMAND --help)``, exit code :data:`EXIT_ERROR`. Subcommands' parsers are of
+    the same class (argparse makes them of their parent's)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(EXIT_ERROR, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser(command: str | None = None, listing: bool = False) -> argparse.ArgumentParser:
     """The ``sq-mitsuba`` parser with every subcommand registered in full.
 
@@ -80,7 +91,7 @@ def build_parser(command: str | None = None, listing: bool = False) -> argparse.
         listing: list the subcommands whose module has ``HELP`` by name and help only (enough
             for ``sq-mitsuba --help``); the others are registered in full.
     """
-    parser = argparse.ArgumentParser(
+    parser = OneLineErrors(
         prog="sq-mitsuba",
         description="Superquadric abstraction of spacecraft from single images, with Mitsuba 3.",
         epilog=(f"Errors are one line: bad input exits with code {EXIT_ERROR}, an internal "
