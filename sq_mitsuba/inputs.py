@@ -34,7 +34,8 @@ import csv
 import math
 import os
 import warnings
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -47,6 +48,7 @@ __all__ = [
     "check_image_size",
     "check_quaternions",
     "finite_number",
+    "image_header",
     "load_torch_file",
     "open_image",
     "read_csv_table",
@@ -85,6 +87,19 @@ def check_image_size(width: int, height: int, where: str) -> None:
     if width * height > MAX_IMAGE_PIXELS:
         raise ValueError(f"{where}: {width} x {height} px is above the largest image size, "
                          f"{MAX_IMAGE_PIXELS:,} pixels")
+
+
+@contextmanager
+def image_header(path: str | os.PathLike[str]) -> Iterator[Any]:
+    """The PIL image at ``path`` opened lazily, for its header (size, mode, frames), without
+    PIL's decompression-bomb warning: the size bound of :func:`check_image_size` says it in
+    one line where the image is read. PIL's own errors pass through."""
+    from PIL import Image
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+        with Image.open(path) as image:
+            yield image
 
 
 def open_image(path: str | os.PathLike[str], what: str = "image", verify: bool = False) -> Any:

@@ -180,6 +180,24 @@ def test_large_images_read_without_pils_warning_up_to_the_stated_bound(tmp_path,
         inputs.open_image(path)
 
 
+def test_predict_refuses_a_too_large_image_in_one_line_without_pils_warning(
+        tmp_path, monkeypatch, capsys):
+    """Every reading of an image's header (its mode, its memory, its frames) holds PIL's
+    decompression-bomb warning back: the size bound says it, once."""
+    from PIL import Image as PILImage
+
+    from sq_mitsuba import inputs
+
+    path = tmp_path / "image.png"
+    PILImage.fromarray(np.full((64, 64), 200, np.uint8)).save(path)
+    monkeypatch.setattr(PILImage, "MAX_IMAGE_PIXELS", 3000)  # 4096 px: PIL warns
+    monkeypatch.setattr(inputs, "MAX_IMAGE_PIXELS", 4095)
+    assert main(["predict", str(path), "--out", str(tmp_path / "out"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1, err
+    assert "64 x 64 px is above the largest image size, 4,095" in err
+
+
 # ----------------------------------------------------------------------------- cameras
 
 

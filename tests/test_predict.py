@@ -202,12 +202,13 @@ def test_an_input_an_output_would_overwrite_is_refused(eval_checkpoint, inputs, 
         assert expected in error_line(capsys)
         assert sorted(p.name for p in folder.iterdir()) == before
         assert all((folder / n).read_bytes() == grey for n in names)
-    with pytest.raises(SystemExit) as exited:  # argparse: usage, then the error line
+    with pytest.raises(SystemExit) as exited:  # argparse's error, as one line
         main(["predict", str(folder / "q.png"), "--checkpoint", str(eval_checkpoint), "--out",
               "", "--quiet"])
     assert exited.value.code == 2
-    assert capsys.readouterr().err.strip().splitlines()[-1].endswith(
-        "argument --out: an empty path; give the output's path")
+    assert capsys.readouterr().err.strip() == (
+        "sq-mitsuba predict: error: argument --out: an empty path; give the output's path "
+        "(see sq-mitsuba predict --help)")
 
 
 def test_other_size_same_aspect_ratio_is_rescaled(eval_checkpoint, inputs, tmp_path):

@@ -188,9 +188,9 @@ class PredictRecord:
 
 
 def _image_mode(path: Path) -> str:
-    from PIL import Image
+    from sq_mitsuba.inputs import image_header
 
-    with Image.open(path) as image:
+    with image_header(path) as image:
         return image.mode
 
 
@@ -271,12 +271,12 @@ def check_image_memory(path: Path, camera: Any, memory: int | None) -> None:
     """One line when the image at ``path``, padded as it would be, needs more memory than
     ``memory`` bytes (:data:`PREDICT_BYTES_PER_PIXEL`); nothing where its header cannot be
     read (decoding it says why) or the memory is unknown."""
-    from PIL import Image
+    from sq_mitsuba.inputs import image_header
 
     if memory is None:
         return
     try:
-        with Image.open(path) as header:
+        with image_header(path) as header:
             width, height = header.size
     except Exception:  # not an image, a folder, ...: read_gray_image's one line says what
         return

@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from sq_mitsuba.inputs import open_image
+from sq_mitsuba.inputs import image_header, open_image
 from sq_mitsuba.io import read_json
 
 QUATERNION_KEY = "q_vbs2tango_true"
@@ -81,12 +81,10 @@ def read_gray_image(path: str | Path, what: str = "image") -> np.ndarray:
             :func:`sq_mitsuba.inputs.open_image` (at least 8 x 8 px); one line naming
             ``what`` and ``path``.
     """
-    from PIL import Image
-
     path = Path(path)
     check_not_folder(path, what)
     image = open_image(path, what)
-    with Image.open(path) as opened:
+    with image_header(path) as opened:
         frames = getattr(opened, "n_frames", 1)
     if frames > 1:
         raise ValueError(f"{what} {path}: holds {frames} frames (an animation or a multi-page "

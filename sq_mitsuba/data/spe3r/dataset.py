@@ -26,6 +26,7 @@ from sq_mitsuba.data.spe3r.layout import (
 )
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.rotation import quaternion_to_matrix
+from sq_mitsuba.inputs import image_header
 
 SPLITS = ("train", "val", "test")
 
@@ -152,10 +153,8 @@ class Spe3rDataset(torch.utils.data.Dataset):
             model = self.models[model_index]
             path = self._image_path(model, IMAGES, label["filename"])
             try:
-                with warnings.catch_warnings():
-                    warnings.simplefilter("ignore", Image.DecompressionBombWarning)
-                    with Image.open(path) as image:
-                        width, height = image.size
+                with image_header(path) as image:
+                    width, height = image.size
             except (OSError, SyntaxError, ValueError) as error:  # PIL's kinds of bad file
                 raise DatasetError(f"{path}: cannot read image ({error})") from None
             if (width, height) != (self.camera.width, self.camera.height):
