@@ -180,6 +180,27 @@ def test_large_images_read_without_pils_warning_up_to_the_stated_bound(tmp_path,
         inputs.open_image(path)
 
 
+def test_every_reading_of_an_image_header_holds_pils_warning_back(tmp_path, monkeypatch,
+                                                                  train_dataset):
+    """Between PIL's warning size and the tool's bound an image reads silently everywhere its
+    header is read: the mask and image reader, predict's image mode, the dataset's check."""
+    from PIL import Image as PILImage
+
+    from sq_mitsuba.apps.predict import _image_mode
+    from sq_mitsuba.data.masks import read_gray_image
+    from sq_mitsuba.data.spe3r import Spe3rDataset
+
+    path = tmp_path / "image.png"
+    PILImage.fromarray(np.full((64, 64), 200, np.uint8)).save(path)
+    dataset = Spe3rDataset(train_dataset, "train", image_size=64)
+    monkeypatch.setattr(PILImage, "MAX_IMAGE_PIXELS", 3000)  # 4096 px: PIL warns
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", PILImage.DecompressionBombWarning)
+        assert read_gray_image(path, "image").shape == (64, 64)
+        assert _image_mode(path) == "L"
+        dataset.check(points=False)
+
+
 def test_predict_refuses_a_too_large_image_in_one_line_without_pils_warning(
         tmp_path, monkeypatch, capsys):
     """Every reading of an image's header (its mode, its memory, its frames) holds PIL's

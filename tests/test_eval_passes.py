@@ -187,20 +187,29 @@ def test_a_bad_frame_of_the_last_pass_is_refused_before_the_first_is_scored(
     frame = sorted((data / model / "images").iterdir())[-1]
     good = frame.read_bytes()
     mask = frame.parent.parent / "masks" / frame.name
-    cases = [(good[: len(good) // 2], frame, "cannot read image"),
-             (None, mask, r"mask is 64 x 64 px, its image 000002.png is 32 x 32 px"),
-             (np.zeros((64, 64), np.uint8), frame,
-              r"frame 2 of pass 0 of \S+ holds no target to fit")]
+    cases = [(good[: len(good) // 2], mask.parent.parent / "images" / mask.name,
+              "cannot read image"),
+             (None, mask, r"mask is 64 x 64 px, its image 000002.png is 32 x 32 px")]
     for k, (content, named, message) in enumerate(cases):
         if isinstance(content, bytes):
             frame.write_bytes(content)
         else:
-            Image.fromarray(np.zeros((32, 32), np.uint8) if content is None else content
-                            ).save(frame)
+            Image.fromarray(np.zeros((32, 32), np.uint8)).save(frame)
         with pytest.raises(ValueError, match=rf"^{re.escape(str(named))}: .*{message}"):
             evaluate_passes(predictor, data, tmp_path / f"out{k}", SMALL, progress=False)
         assert searched == [] and not (tmp_path / f"out{k}").exists()
     frame.write_bytes(good)
+    # A black middle frame: named (frame 1), also when passes of two frames are all fitted.
+    middle = sorted((data / model / "images").iterdir())[1]
+    kept = middle.read_bytes()
+    Image.fromarray(np.zeros((64, 64), np.uint8)).save(middle)
+    for counts in ((1, 2, FRAMES), (1, 2)):
+        with pytest.raises(ValueError, match=rf"^{re.escape(str(middle))}: frame 1 of pass 0 "
+                                             r"of \S+ holds no target to fit"):
+            evaluate_passes(predictor, data, tmp_path / "black", replace(SMALL, counts=counts),
+                            progress=False)
+        assert searched == [] and not (tmp_path / "black").exists()
+    middle.write_bytes(kept)
     good_mask = mask.read_bytes()
     for path in (frame, mask):  # both of another size than camera.json's
         Image.fromarray(np.zeros((32, 32), np.uint8)).save(path)
@@ -342,3 +351,47 @@ def test_a_pass_dataset_opens_at_its_own_resolution(pass_dataset):
     assert dataset[0]["image"].shape == (1, 64, 64)
     with pytest.raises(ValueError, match="image_size: expected a positive integer"):
         Spe3rDataset(pass_dataset, "test", image_size=0)
+
+
+def test_the_frame_check_reads_frames_as_a_pass_fits_them(pass_dataset, tmp_path, monkeypatch):
+    """The check before the study reads each pass through the network from as many turned
+    copies as ``predict_sequence``'s own frames do (:data:`FRAMES_SEARCH`), so it refuses the
+    frames the fit would; and it names a frame's file whatever its extension."""
+    import contextlib
+
+    from PIL import Image
+
+    from sq_mitsuba.data.spe3r import Spe3rDataset
+    from sq_mitsuba.evaluation import passes
+    from sq_mitsuba.inference.predictor import Predictor
+    from sq_mitsuba.inference.sequence import FRAMES_SEARCH
+    from sq_mitsuba.model.network import NetworkConfig, SuperquadricNet
+
+    data = tmp_path / "data"
+    shutil.copytree(pass_dataset, data)
+    dataset = Spe3rDataset(data, "test", image_size=None, num_surface=10, num_occupancy=2)
+    torch.manual_seed(0)
+    network = SuperquadricNet(NetworkConfig(
+        encoder="efficientnet_lite0", latent="spatial", pose_head="grid", mask_head=True,
+        image_size=64, rotation_cells=72, num_primitives=2, latent_dim=16, hidden_dim=16,
+        spatial_channels=16)).eval()
+    predictor = Predictor(network, dataset.camera)
+    assert predictor.can_turn(dataset.camera) and FRAMES_SEARCH.turns > 1
+    turns = []
+    original = Predictor.predict
+
+    def recording(self, images, camera=None, **kwargs):
+        turns.append(kwargs.get("turns"))
+        return original(self, images, camera, **kwargs)
+
+    monkeypatch.setattr(Predictor, "predict", recording)
+    groups = passes.pass_groups(dataset)
+    with contextlib.suppress(ValueError):  # an untrained mask head may see no target
+        passes._check_frames(predictor, dataset, groups, sequences=True, progress=False)
+    assert turns and set(turns) == {FRAMES_SEARCH.turns}
+    # A frame stored as JPEG where its label says .png: its own file is named.
+    item = next(iter(groups.values()))[1]
+    png = dataset.image_file(item)
+    Image.open(png).convert("L").save(png.with_suffix(".jpg"))
+    png.unlink()
+    assert dataset.image_file(item) == png.with_suffix(".jpg")

@@ -222,6 +222,19 @@ def test_fast_path_matches_eager(net, predictor):
     assert folded._traced is None  # tracing is asked for, not the fast path's default
     for images in (x, scene(2 * SIZE)):
         assert_same(folded.predict(images), predictor.predict(images), atol=1e-4)
+    # It runs its own folded copy, a snapshot: changing the network's weights after does not
+    # reach it (as it reaches the eager predictor).
+    before = folded.predict(x).assembly.params.clone()
+    weight = next(net.sq_generator.parameters())
+    kept = weight.detach().clone()
+    with torch.no_grad():
+        weight.add_(0.5)
+    try:
+        torch.testing.assert_close(folded.predict(x).assembly.params, before, rtol=0, atol=0)
+        assert not torch.allclose(predictor.predict(x).assembly.params, before, atol=1e-3)
+    finally:
+        with torch.no_grad():
+            weight.copy_(kept)
     with pytest.raises(ValueError, match=r"^traced: traces the folded network of the fast"):
         Predictor(net, CAMERA, traced=True)
     fast = Predictor(net, CAMERA, fast=True, traced=True)
@@ -253,6 +266,12 @@ def test_checkpoint_round_trip(net, predictor, tmp_path):
     x = two_scenes()
     assert_same(loaded.predict(x), predictor.predict(x))
     assert_same(load_model(path, fast=True).predict(x), predictor.predict(x), atol=1e-4)
+    traced = load_model(path, fast=True, traced=True)
+    assert traced._traced is not None and load_model(path, fast=True)._traced is None
+    assert_same(traced.predict(x), predictor.predict(x), atol=1e-4)
+    # Refused before the checkpoint is read (a missing file would say so otherwise).
+    with pytest.raises(ValueError, match=r"^traced: traces the folded network"):
+        load_model(tmp_path / "missing.pt", traced=True)
 
 
 def test_checkpoint_as_the_training_writes_it(net, predictor, tmp_path):

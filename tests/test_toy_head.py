@@ -59,6 +59,7 @@ def test_a_rotation_head_added_by_name_trains_exports_and_predicts(toy_head, tra
     exported = export_model(tmp_path / "run" / "last.pt", train_dataset, tmp_path / "model.pt")
     eager = sq_mitsuba.load_model(exported)
     fast = sq_mitsuba.load_model(exported, fast=True, traced=True)  # the stricter path
+    assert fast._traced is not None
     assert isinstance(eager.model.pose_head, FixedPlusResidualHead)
     images = torch.rand(3, 64, 64, generator=torch.Generator().manual_seed(8))
     slow_prediction, fast_prediction = eager.predict(images), fast.predict(images)

@@ -398,6 +398,9 @@ def test_a_second_ctrl_c_stops_a_run_of_one_process_at_once(capsys, tmp_path):
         for first in (signal.SIGINT, signal.SIGTERM):  # a SIGTERM first: the same
             alone = StepInterrupt(World())
             _signal_self(first)
+            hint = "(Ctrl-C again: stop at once" if first == signal.SIGINT else \
+                "(Ctrl-C: stop at once"  # no Ctrl-C came first
+            assert hint in capsys.readouterr().err
             _signal_self(signal.SIGTERM)  # a second SIGTERM is held: only Ctrl-C escalates
             with pytest.raises(KeyboardInterrupt):
                 _signal_self(signal.SIGINT)
@@ -556,6 +559,26 @@ def test_bad_config_is_one_line_naming_the_field(tmp_path, capsys, train_dataset
         for needle in needles:
             assert needle in err, (needle, err)
     assert not out.exists()  # refused before any work
+
+
+def test_the_training_loop_names_its_last_checkpoint_to_the_interrupt(train_dataset, cache_dir,
+                                                                      tmp_path, monkeypatch):
+    """The second Ctrl-C's message says whether there is a last.pt to resume from: the loop
+    must hand the interrupt its run's own."""
+    from sq_mitsuba.training import train as train_module
+    from sq_mitsuba.training.run.interrupt import StepInterrupt
+
+    made = []
+
+    class Recorded(StepInterrupt):
+        def __init__(self, *args, **kwargs) -> None:
+            super().__init__(*args, **kwargs)
+            made.append(self)
+
+    monkeypatch.setattr(train_module, "StepInterrupt", Recorded)
+    config = apply_overrides(load_train_config(TINY), [f"data.cache_dir={cache_dir}"])
+    train(config, train_dataset, tmp_path / "run", progress=False, max_steps=1)
+    assert [interrupt.last for interrupt in made] == [tmp_path / "run" / "last.pt"]
 
 
 def test_a_run_stopped_before_its_first_checkpoint_starts_over(train_dataset, cache_dir,
