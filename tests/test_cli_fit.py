@@ -175,7 +175,7 @@ def test_bad_masks_are_refused_naming_the_file(fit_inputs, tmp_path, capsys):
              str(empty), "empty")
 
     small = work / "img000001.png"
-    Image.fromarray(np.full((40, 48), 255, np.uint8)).save(small)
+    Image.fromarray(np.pad(np.full((32, 40), 255, np.uint8), 4)).save(small)
     _refused(capsys, ["fit", "--masks", str(masks[0]), str(small), *poses], out,
              str(masks[0]), "48 x 48", str(small), "48 x 40")
 

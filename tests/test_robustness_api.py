@@ -416,6 +416,23 @@ def test_float_images_and_masks_with_pixels_not_finite_are_refused(eval_checkpoi
     assert not out.exists()
 
 
+def test_a_mask_all_background_or_all_target_is_refused_in_one_line(tmp_path):
+    """Neither has an outline to fit; an all-white mask is most often one with black and
+    white swapped. One target pixel, or one background pixel, is a mask."""
+    from PIL import Image
+
+    from sq_mitsuba.data.masks import read_mask
+
+    for value, message in ((0, "empty"), (255, "full")):
+        pixels = np.full((16, 16), value, np.uint8)
+        Image.fromarray(pixels).save(tmp_path / f"{message}.png")
+        with pytest.raises(ValueError, match=rf"^mask {tmp_path / message}\.png: {message} "):
+            read_mask(tmp_path / f"{message}.png")
+        pixels[3, 4] = 255 - value
+        Image.fromarray(pixels).save(tmp_path / f"{message}.png")
+        assert int(read_mask(tmp_path / f"{message}.png").sum()) in (1, 255)
+
+
 def test_an_obj_with_a_face_past_its_vertices_or_a_nan_vertex_is_one_line(tmp_path):
     from sq_mitsuba.data.mesh_io import read_obj
 

@@ -633,7 +633,7 @@ def test_predict_sequence_cli_fits_the_masks_it_is_given(eval_checkpoint, train_
     empty = tmp_path / "empty.png"
     Image.fromarray(np.zeros((64, 64), np.uint8)).save(empty)
     small = tmp_path / "small.png"
-    Image.fromarray(np.full((32, 32), 255, np.uint8)).save(small)
+    Image.fromarray(np.pad(np.full((24, 24), 255, np.uint8), 4)).save(small)
     for given, expected in (([masks[0], empty], f"mask {empty}: empty"),
                             ([masks[0]], "mask: 1 masks for 2 images"),
                             ([masks[0], small], f"mask {small}: 32 x 32 px, the frames are "

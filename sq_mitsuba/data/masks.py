@@ -107,12 +107,16 @@ def read_mask(path: str | Path) -> np.ndarray:
 
     Raises:
         FileNotFoundError: ``path`` does not exist.
-        ValueError: not an image, a corrupt or truncated one, or an empty (all background)
-            mask; one line naming ``path``.
+        ValueError: not an image, a corrupt or truncated one, an empty (all background) mask
+            or a full one (no background: an outline cannot be fitted to it, and it is most
+            often a mask with black and white swapped); one line naming ``path``.
     """
     mask = read_gray_image(path, "mask") > 0.5
     if not mask.any():
         raise ValueError(f"mask {path}: empty (no pixel above half range: all background)")
+    if mask.all():
+        raise ValueError(f"mask {path}: full (every pixel above half range: no background to "
+                         "fit an outline against; black and white swapped?)")
     return mask
 
 
