@@ -16,12 +16,23 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import signal
 from collections.abc import Callable, Iterator
 from concurrent.futures import ProcessPoolExecutor
 from contextlib import contextmanager
 from typing import Any
 
-__all__ = ["worker_pool"]
+__all__ = ["ignore_group_signals", "worker_pool"]
+
+
+def ignore_group_signals(*_: object) -> None:
+    """Ignore Ctrl-C and SIGTERM in a helper process whose parent acts on them: a terminal,
+    ``timeout``, torchrun and SLURM signal the whole process group, and the parent finishes its
+    work with the helpers' help, then ends them; a helper the signal stopped would fail that
+    work, or print a traceback of its own. (Any arguments are ignored: it serves as a
+    DataLoader's ``worker_init_fn``.)"""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
 
 
 def _own_group_start(initializer: Callable[..., Any] | None, arguments: tuple[Any, ...]

@@ -25,6 +25,7 @@ from types import TracebackType
 import torch
 from torch.utils.data import DataLoader, Dataset
 
+from sq_mitsuba.processes import ignore_group_signals
 from sq_mitsuba.training.batch import TrainingBatch
 from sq_mitsuba.training.data_stream import HostBatch, TrainingStream
 from sq_mitsuba.training.distributed import World
@@ -38,16 +39,6 @@ def prefetch_enabled(setting: bool | None, device: torch.device | str) -> bool:
     step itself)."""
     return torch.device(device).type == "cuda" if setting is None else bool(setting)
 
-
-
-def _ignore_interrupts(worker: int) -> None:
-    """A loader worker's start: Ctrl-C and SIGTERM sent to the whole process group (a
-    terminal, ``timeout``, torchrun, SLURM) are the parent's to act on (it finishes its step,
-    saves and ends the loader); a worker they stopped would fail the parent's step."""
-    import signal
-
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
 
 class _Failed:
     """An error a worker met making a batch, handed back as a value: the training process
@@ -133,7 +124,9 @@ class BatchPrefetcher:
                 _HostBatches(self.stream, self.world), batch_size=None,
                 sampler=range(step, self.end_step), num_workers=self.workers,
                 prefetch_factor=self.depth, pin_memory=self.pin,
-                multiprocessing_context="fork", worker_init_fn=_ignore_interrupts,
+                # Ctrl-C and SIGTERM to the group are the training's (it finishes its step,
+                # saves and ends the loader).
+                multiprocessing_context="fork", worker_init_fn=ignore_group_signals,
                 # Its own generator: the loader's base seed would otherwise be a draw from
                 # the global RNG (the encoder's stochastic depth), which a resume restores
                 # before the loader is made again. The batches are seeded by step anyway.

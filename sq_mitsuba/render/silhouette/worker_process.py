@@ -6,7 +6,6 @@ requests over the socket ``FD`` until told to stop (see the pool's module for th
 from __future__ import annotations
 
 import os
-import signal
 import sys
 from multiprocessing.connection import Connection
 
@@ -14,6 +13,7 @@ import numpy as np
 import torch
 
 from sq_mitsuba.geometry.camera import Camera
+from sq_mitsuba.processes import ignore_group_signals
 from sq_mitsuba.render.backend import mitsuba
 from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer
 
@@ -58,11 +58,8 @@ def serve(connection: Connection) -> None:
 
 
 if __name__ == "__main__":
-    # Ctrl-C in a terminal reaches the whole process group: the parent handles it (and closes
-    # the pool); a worker that raised KeyboardInterrupt would print its own traceback. SIGTERM
-    # too (`timeout`, torchrun and SLURM signal the group): the parent finishes its step with
-    # the workers' help, then closes them; a worker ends when its parent's socket closes.
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    # Ctrl-C and SIGTERM to the group are the parent's: it finishes its step with the
+    # workers' help, then closes them; a worker ends when its parent's socket closes.
+    ignore_group_signals()
     serve(Connection(int(sys.argv[1])))
     os._exit(0)  # skip interpreter teardown of Dr.Jit's thread pool
