@@ -248,17 +248,18 @@ def _check_frames(predictor: Any, dataset: Any, groups: dict[tuple[int, int], li
     from sq_mitsuba.inference.sequence import FRAMES_SEARCH
     from sq_mitsuba.progress import progress_bar
 
-    camera = dataset.camera.rescaled(dataset.image_size, dataset.image_size)  # as scored
+    described = dataset.camera  # camera.json's
+    camera = described.rescaled(dataset.image_size, dataset.image_size)  # as the study reads
     for (model_index, number), items in progress_bar(
             groups.items(), desc="checking frames", unit="pass", disable=not progress,
             leave=False):
         images = []
         for item in items:
             image, _ = dataset.read_pair(item)  # decoded whole, the mask's size checked
-            if image.shape != (camera.height, camera.width):
+            if image.shape != (described.height, described.width):
                 raise ValueError(f"{dataset.image_file(item)}: {image.shape[1]} x "
                                  f"{image.shape[0]} px, but camera.json describes "
-                                 f"{camera.width} x {camera.height} px images")
+                                 f"{described.width} x {described.height} px images")
             images.append(image)
         if not sequences:
             continue
