@@ -692,6 +692,7 @@ def recover_cut_write(model_dir: Path) -> list[Path]:
             os.replace(stale, final)
     return found
 
+
 def write_model(out_root: str | Path, name: str, model: ProcessedModel,
                 samples: dict[str, np.ndarray], card: dict) -> Path:
     """Write ``<out_root>/<name>/models/`` atomically; return that folder.
