@@ -237,3 +237,26 @@ def test_a_rotated_assembly_is_the_assembly_at_turned_points():
         assembly.rotated(turn[:2])
     with pytest.raises(ValueError, match="rotation"):
         assembly.rotated(turn.float())
+
+
+def test_a_scaled_assembly_is_the_assembly_at_scaled_points():
+    """Scaling an assembly by s about its origin scales its inside-outside field with it (the
+    scaled one at s x equals the original at x: tapers and exponents are relative) and its
+    surface samples; a factor per item; bad factors are named."""
+    assembly = random_assembly(batch=3, count=4, seed=21)
+    points = 0.4 * torch.randn(3, 200, 3, generator=torch.Generator().manual_seed(22),
+                               dtype=F64)
+    factor = torch.tensor([0.5, 2.0, 7.3], dtype=F64)
+    scaled = assembly.scaled(factor)
+    torch.testing.assert_close(scaled.inside_outside(points * factor[:, None, None]),
+                               assembly.inside_outside(points))
+    torch.testing.assert_close(scaled.surface_points(2),
+                               assembly.surface_points(2) * factor[:, None, None, None])
+    torch.testing.assert_close(assembly.scaled(3.0).size, 3.0 * assembly.size)
+    torch.testing.assert_close(scaled.scaled(1.0 / factor).params, assembly.params)
+    for bad in (0.0, -1.0, float("nan"), float("inf"), True, "2"):
+        with pytest.raises(ValueError, match="factor"):
+            assembly.scaled(bad)
+    for bad in (factor[:2], factor.float(), torch.tensor([1.0, 0.0, 1.0], dtype=F64)):
+        with pytest.raises(ValueError, match="factor"):
+            assembly.scaled(bad)

@@ -186,6 +186,21 @@ def test_the_fit_records_what_was_fitted_and_keeps_the_networks_reading(eval_che
                                atol=1e-9, rtol=0)
     torch.testing.assert_close(fitted.depth, fitted.translation[:, 2])
     torch.testing.assert_close(fitted.pixel, fitted.camera.project(fitted.translation))
+    # At a target 4 m long every length scales, the network's and the search's with it; the
+    # pixel is still where the translation projects (the image is the same).
+    metric = fitted.scaled(4.0)
+    for scaled, unit in ((metric, fitted), (metric.network, fitted.network),
+                         (metric.fit.start, fitted.fit.start)):
+        torch.testing.assert_close(scaled.assembly.params, unit.assembly.scaled(4.0).params)
+        torch.testing.assert_close(scaled.translation, 4.0 * unit.translation)
+        torch.testing.assert_close(scaled.depth, 4.0 * unit.depth)
+        assert torch.equal(scaled.rotation, unit.rotation) and torch.equal(scaled.pixel,
+                                                                           unit.pixel)
+    torch.testing.assert_close(metric.fit.search_translation, 4.0 * fit.search_translation)
+    torch.testing.assert_close(metric.pixel, metric.camera.project(metric.translation))
+    assert torch.equal(metric.fit.mask, fit.mask) and torch.equal(metric.fit.iou, fit.iou)
+    with pytest.raises(ValueError, match=r"^factor: "):
+        fitted.scaled(float("nan"))
     # A second fit to another mask reuses the start and returns the other mask's fit.
     other = torch.zeros(1, 64, 64, dtype=torch.bool)
     other[0, 20:44, 16:48] = True

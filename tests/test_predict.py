@@ -129,6 +129,54 @@ def test_predict_refines_against_a_given_and_a_segmented_mask(eval_checkpoint, i
             np.testing.assert_array_equal(yellow, target & ~ndimage.binary_erosion(target))
 
 
+def test_a_target_size_scales_the_files_and_not_the_image(eval_checkpoint, inputs, tmp_path,
+                                                          capsys):
+    """--target-size L: the network reads every target at unit size, so a target L metres
+    long is the scene scaled by L about the camera: the assembly and the translation written
+    are L times the unit-size run's, the rotation and the overlay the same. That the scaled
+    scene shows the same image is checked here on Mitsuba's silhouettes, not assumed."""
+    unit, metric = tmp_path / "unit", tmp_path / "metric"
+    for out, extra in ((unit, []), (metric, ["--target-size", "3.5"])):
+        assert main(["predict", str(inputs / "grey.png"), "--checkpoint", str(eval_checkpoint),
+                     "--out", str(out), "--refine", "--mask", str(inputs / "mask.png"),
+                     *SMALL_REFINE, "--quiet", *extra]) == 0
+    capsys.readouterr()
+    poses = [json.loads((out / "grey.pose.json").read_text()) for out in (unit, metric)]
+    assert poses[0]["target_size"] is None and poses[1]["target_size"] == 3.5
+    assert "target_size" in poses[1]["convention"]
+    assert poses[1]["q_vbs2tango"] == pytest.approx(poses[0]["q_vbs2tango"], abs=1e-9)
+    assert poses[1]["r_Vo2To_vbs"] == pytest.approx(
+        [3.5 * v for v in poses[0]["r_Vo2To_vbs"]], rel=1e-6)
+    small, large = (Assembly.load(out / "grey.assembly.json") for out in (unit, metric))
+    torch.testing.assert_close(large.params, small.scaled(3.5).params)
+    np.testing.assert_array_equal(np.asarray(Image.open(metric / "grey.overlay.png")),
+                                  np.asarray(Image.open(unit / "grey.overlay.png")))
+    from sq_mitsuba.geometry.rotation import quaternion_to_matrix
+    from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer, render_assembly
+
+    rotation = quaternion_to_matrix(torch.tensor([poses[0]["q_vbs2tango"]],
+                                                 dtype=torch.float64))
+    translation = torch.tensor([poses[0]["r_Vo2To_vbs"]], dtype=torch.float64)
+    renderer = SilhouetteRenderer(load_model(eval_checkpoint).camera, spp=16)
+    seen = []
+    with torch.no_grad():
+        for assembly, factor in ((small, 1.0), (large, 3.5)):
+            renderer.reseed(7)  # the same samples for both: the pictures compare pixel by pixel
+            seen.append(render_assembly(Assembly(assembly.params.double()), rotation,
+                                        factor * translation, renderer, 3)[0])
+    assert float(seen[0].sum()) > 20
+    torch.testing.assert_close(seen[1], seen[0], atol=1e-3, rtol=0)
+    for bad in ("0", "-2", "nan", "1e6"):
+        assert main(["predict", str(inputs / "grey.png"), "--checkpoint", str(eval_checkpoint),
+                     "--out", str(tmp_path / "bad"), "--target-size", bad]) == 2
+        assert error_line(capsys).startswith("sq-mitsuba predict: error: --target-size")
+    with pytest.raises(SystemExit) as usage:  # not a number: argparse's usage error
+        main(["predict", str(inputs / "grey.png"), "--out", str(tmp_path / "bad"),
+              "--target-size", "big"])
+    assert usage.value.code == 2 and "--target-size" in error_line(capsys)
+    assert not (tmp_path / "bad").exists()
+
+
 def test_predict_without_checkpoint_uses_the_shipped_model(eval_checkpoint, inputs, tmp_path,
                                                            monkeypatch, capsys):
     monkeypatch.setattr(checkpoint_module, "SHIPPED_MODEL", tmp_path / "absent.pt")

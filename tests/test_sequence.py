@@ -426,8 +426,10 @@ def test_predict_sequence_cli_writes_one_assembly_and_a_pose_per_frame(eval_chec
     images = sorted((train_dataset / model / "images").glob("*.png"))[:3]
     out = tmp_path / "pass"
     capsys.readouterr()
+    # --target-size: the files at a target 2.5 m long, the API's answer at unit size x 2.5.
     assert main(["predict", *map(str, images), "--sequence", "--ordered", "--checkpoint",
-                 str(eval_checkpoint), "--out", str(out), "--fit", "steps=5"]) == 0
+                 str(eval_checkpoint), "--out", str(out), "--fit", "steps=5",
+                 "--target-size", "2.5"]) == 0
     stages = capsys.readouterr().err  # the stage in progress, one line each in a log
     for stage in ("network", "search and refinement", "one assembly, every pose"):
         assert f"3 frames: {stage}" in stages, stages
@@ -454,8 +456,9 @@ def test_predict_sequence_cli_writes_one_assembly_and_a_pose_per_frame(eval_chec
     spread = float(torch.cdist(direct.translation, direct.translation).max())
     assert spread > 0.05 * float(direct.translation.norm(dim=-1).min())
     for k, pose in enumerate(written):
-        np.testing.assert_allclose(pose["r_Vo2To_vbs"], direct.translation[k].numpy(),
-                                   atol=0.01 * spread)
+        assert pose["target_size"] == 2.5
+        np.testing.assert_allclose(pose["r_Vo2To_vbs"], 2.5 * direct.translation[k].numpy(),
+                                   atol=0.025 * spread)
         rotation = quaternion_to_matrix(torch.tensor(pose["q_vbs2tango"], dtype=torch.float64))
         assert float(rotation_error_deg(rotation[None], direct.rotation[k:k + 1].double())) < 1
     assert main(["predict", str(images[0]), "--ordered", "--checkpoint", str(eval_checkpoint),
@@ -467,6 +470,10 @@ def test_predict_sequence_cli_writes_one_assembly_and_a_pose_per_frame(eval_chec
                  str(eval_checkpoint), "--out", str(tmp_path / "z")]) == 2
     assert main(["predict", *map(str, images), "--sequence", "--fit", "stepz=5",
                  "--checkpoint", str(eval_checkpoint), "--out", str(tmp_path / "w")]) == 2
+    capsys.readouterr()
+    assert main(["predict", *map(str, images), "--sequence", "--target-size", "0",
+                 "--checkpoint", str(eval_checkpoint), "--out", str(tmp_path / "q")]) == 2
+    assert error_line(capsys).startswith("sq-mitsuba predict: error: --target-size: expected")
     # The single image's options are refused, not ignored.
     for extra, name in ((["--turns", "8"], "v"), (["--level", "5"], "u"), (["--no-fast"], "t"),
                         (["--refine"], "s")):
@@ -487,7 +494,7 @@ def test_predict_sequence_cli_writes_one_assembly_and_a_pose_per_frame(eval_chec
     assert main(["predict", *map(str, wide), "--sequence", "--checkpoint",
                  str(eval_checkpoint), "--out", str(tmp_path / "r")]) == 2
     assert f"image {wide[0]}: 64 x 48 px, another aspect ratio" in error_line(capsys)
-    assert all(not (tmp_path / name).exists() for name in "xyzwvutsr")
+    assert all(not (tmp_path / name).exists() for name in "xyzwvutsrq")
 
 
 @pytest.mark.slow  # end to end: `make test` runs it, `make test-fast` not

@@ -6,7 +6,8 @@ Per input image ``<stem>`` the output folder receives (each file written atomica
   :meth:`sq_mitsuba.geometry.assembly.Assembly.load`;
 - ``<stem>.obj`` (one merged mesh) and ``<stem>.glb`` (one mesh per primitive), body frame;
 - ``<stem>.pose.json``: quaternion ``q_vbs2tango`` (w, x, y, z) and translation
-  ``r_Vo2To_vbs`` (metres), body to camera in the OpenCV frame (``x_cam = R(q) x_body + r``),
+  ``r_Vo2To_vbs`` (metres for a target of unit size, or of ``target_size`` metres: below),
+  body to camera in the OpenCV frame (``x_cam = R(q) x_body + r``),
   the camera used, the image's size and mode, and the milliseconds taken; for a network with
   a rotation-distribution head also ``rotation_hypotheses``, its distinct candidate rotations
   best first, each ``{"q_vbs2tango": [w, x, y, z], "probability": p}`` (p: of the
@@ -41,6 +42,11 @@ model without one, and 0 for an image of noise; see
 stem left by an earlier run are removed, so the folder does not hold a pose of nothing); the
 printed line says "no target", and the command still succeeds (exit code 0).
 ``--set min_target=0`` takes every image for a target.
+
+Units (``target_size``): the network reads every target at the dataset's unit size (the
+longest side of its aligned box 1); a target L metres long at the same pose is the scene
+scaled by L about the camera, the same image. With ``target_size`` L the assembly's files and
+the translation are scaled by L (the overlay is the same); ``pose.json`` records it (null: 1).
 
 Existence (``min_existence``): a network with existence probabilities keeps, per image, the
 primitives whose probability reaches ``min_existence`` (0.5; its most probable one always),
@@ -98,6 +104,10 @@ OUTPUT_SUFFIXES = (".assembly.json", ".obj", ".glb", ".pose.json", ".overlay.png
 #: are rendered at this size and resized to it. The overlay is a picture: at 16 samples a
 #: pixel, a 4,000 px image's silhouettes took most of `predict`'s time and memory.
 OVERLAY_MAX_SIDE = 1024
+#: pose.json's "convention": the pose's frames and units.
+POSE_CONVENTION = ("x_cam = R(q) x_body + r; OpenCV camera frame (x right, y down, z forward); "
+                   "q = (w, x, y, z); metres for a target whose longest side is target_size "
+                   "metres (null: 1, the unit size the network reads every target at)")
 #: Memory one image takes in `predict`, per pixel of the (padded) image, beyond the model's:
 #: measured 50 bytes (a 4,000 x 4,000 px image peaks 0.8 GB above the loaded model), with a
 #: margin; the image's floats, its turned copies' mask, the overlay.
@@ -137,6 +147,10 @@ class PredictOptions:
     "Samples per pixel of the overlay silhouettes."
     fast: bool = True
     "Predict with the batch-norm-folded network (same output up to ~1e-5; faster on CPU)."
+    target_size: float | None = in_range(0.001, 10_000.0, default=None)
+    ("The target's longest side in metres, when known: the assembly and the translation are "
+     "scaled to it (the network reads every target at unit size, the images cannot tell a "
+     "larger one farther away); default: unit size")
 
 
 @dataclass
@@ -475,11 +489,14 @@ def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
             record.refine_resolution = options.refinement.resolution
             layers.append((overlay_silhouettes(assembly, rotation, translation, renderer,
                                                options.level, picture.shape)[0], REFINED_COLOUR))
+        if options.target_size is not None:  # the scene scaled about the camera: same image
+            assembly = assembly.scaled(options.target_size)
+            translation = translation * options.target_size
         pose.update({
             "q_vbs2tango": [float(v) for v in quaternion[0]],
             "r_Vo2To_vbs": [float(v) for v in translation[0]],
-            "convention": "x_cam = R(q) x_body + r; OpenCV camera frame (x right, y down, "
-                          "z forward); q = (w, x, y, z); metres",
+            "convention": POSE_CONVENTION,
+            "target_size": options.target_size,
             "camera": own_camera.to_speed_dict(pitch),
             "checkpoint": str(getattr(predictor, "source", None) or ""),
             "refined": options.refine, "network_ms": round(record.network_ms, 3),
@@ -510,6 +527,13 @@ def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
     out.mkdir(parents=True, exist_ok=True)
     return [_write_outputs(out / record.image.stem, record, pose, assembly, overlay,
                            options.level) for record, pose, assembly, overlay in outputs]
+
+
+def check_target_size(target_size: float | None) -> None:
+    """A one-line ``ValueError`` naming ``target_size`` unless it is None or a number within
+    ``PredictOptions.target_size``'s bounds (metres)."""
+    if target_size is not None:
+        validate(PredictOptions(target_size=target_size))
 
 
 def overlay_camera(camera: Camera) -> Camera:

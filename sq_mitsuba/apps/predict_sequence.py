@@ -91,13 +91,16 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
                            options: Any = None, ordered: bool = False,
                            other_inputs: Sequence[str | Path] = (),
                            masks: Sequence[str | Path] | None = None,
-                           progress: bool = False) -> SequenceRecord:
+                           progress: bool = False,
+                           target_size: float | None = None) -> SequenceRecord:
     """Predict one assembly and every pose from ``images`` (frames of one spacecraft) and write
     the files of the module docstring into ``out_dir``. ``other_inputs``: the run's other
     input files (the checkpoint, a camera or rotations file), refused if an output would
     overwrite one. ``masks``: one mask file per frame, in their order, fitted instead of the
     network's masks (default: the network's mask head, or the segmentation). ``progress``:
-    show the stage in progress.
+    show the stage in progress. ``target_size``: the target's longest side in metres, when
+    known: the assembly and the translations written are scaled to it (``PredictOptions``'
+    field of that name; default: unit size).
 
     Raises:
         ValueError: one line naming the image or argument: fewer than two images, sizes that
@@ -110,7 +113,9 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
     from sq_mitsuba.apps.overlay import NETWORK_COLOUR, REFINED_COLOUR, overlay_image
     from sq_mitsuba.apps.padding import padding_to_aspect
     from sq_mitsuba.apps.predict import (
+        POSE_CONVENTION,
         check_image_memory,
+        check_target_size,
         check_unique_stems,
         overlay_camera,
         overlay_silhouettes,
@@ -126,6 +131,7 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
     from sq_mitsuba.machine import available_memory
     from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer
 
+    check_target_size(target_size)
     paths = [Path(p) for p in images]
     if len(paths) < 2:
         raise ValueError(f"images: a sequence needs at least 2 images, got {len(paths)}")
@@ -180,8 +186,11 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
     record.iou = [float(v) for v in result.iou]
     record.frame_iou = [float(v) for v in result.frame_iou]
     out.mkdir(parents=True, exist_ok=True)
-    record.files.append(result.assembly.save(out / "sequence.assembly.json"))
-    record.files.append(result.assembly.export(out / "sequence.glb"))
+    # The files at the target's size; the pictures from the result as fitted (the same
+    # images: the scene scaled about the camera).
+    metric = result if target_size is None else result.scaled(target_size)
+    record.files.append(metric.assembly.save(out / "sequence.assembly.json"))
+    record.files.append(metric.assembly.export(out / "sequence.glb"))
     record.files.append(_sides_picture(result.assembly, out / "sequence.png"))
     own = result.frames
     image_camera = own.camera
@@ -196,10 +205,9 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
         pose = {
             "image": str(path), "width": image_camera.width, "height": image_camera.height,
             "q_vbs2tango": [float(v) for v in result.quaternion[k]],
-            "r_Vo2To_vbs": [float(v) for v in result.translation[k]],
-            "convention": "x_cam = R(q) x_body + r; OpenCV camera frame (x right, y down, "
-                          "z forward); q = (w, x, y, z); metres; the body frame of "
-                          "sequence.assembly.json",
+            "r_Vo2To_vbs": [float(v) for v in metric.translation[k]],
+            "convention": f"{POSE_CONVENTION}; the body frame of sequence.assembly.json",
+            "target_size": target_size,
             "camera": image_camera.to_speed_dict(),
             "checkpoint": str(getattr(predictor, "source", None) or ""),
             "sequence": {"frame": k, "frames": count, "reference": result.reference,

@@ -65,9 +65,15 @@ assembly) and <stem>.overlay.png (its own fit in red, the shared assembly in gre
 from the servicer's navigation, for a target that holds its attitude): a JSON list of one
 quaternion [w, x, y, z] per image, in their order, each the target's rotation into that
 frame's camera up to one rotation common to every frame (only the rotations between frames
-are used); they take the place of the pass's own motion."""
+are used); they take the place of the pass's own motion.
 
-FLAGS = {"refine": "--refine", "turns": "--turns", "level": "--level", "fast": "--fast"}
+Units: the network reads every target at the dataset's unit size (its longest side 1), so
+translations are metres for a target 1 m long; one camera cannot tell a larger target farther
+away. --target-size METRES (the target's longest side, when known) scales the assembly and
+every translation written to it (the overlays are the same); pose.json records it."""
+
+FLAGS = {"refine": "--refine", "turns": "--turns", "level": "--level", "fast": "--fast",
+         "target_size": "--target-size"}
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -106,7 +112,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                              "(SequenceOptions: steps=80 for a longer fit, grow=2 to grow "
                              "primitives where the silhouettes miss); repeatable. Fields: "
                              + _sequence_fields())
-    add_config_options(parser, PredictOptions, FLAGS)
+    add_config_options(parser, PredictOptions, FLAGS, metavars={"target_size": "METRES"})
     add_set_option(parser, "predict options", "refinement.steps=20")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.set_defaults(func=_run)
@@ -154,6 +160,7 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def _run_sequence(args: argparse.Namespace) -> int:
+    from sq_mitsuba.apps.predict import check_target_size
     from sq_mitsuba.apps.predict_sequence import predict_sequence_files
     from sq_mitsuba.cli import CLIError
     from sq_mitsuba.config import ConfigError, apply_overrides
@@ -174,6 +181,10 @@ def _run_sequence(args: argparse.Namespace) -> int:
         options = apply_overrides(SequenceOptions(), args.fit_overrides)
     except ConfigError as error:
         raise CLIError(f"--fit {error}") from None
+    try:
+        check_target_size(getattr(args, "target_size", None))
+    except ConfigError as error:
+        raise CLIError(f"--{error}".replace("--target_size", "--target-size", 1)) from None
     camera = Camera.load(args.camera) if args.camera is not None else None
     relative = None
     if args.relative_rotations is not None:
@@ -183,7 +194,8 @@ def _run_sequence(args: argparse.Namespace) -> int:
     record = predict_sequence_files(args.images, args.out, load_model(args.checkpoint),
                                     camera, relative_rotations=relative, options=options,
                                     ordered=args.ordered, other_inputs=inputs,
-                                    masks=args.mask, progress=not args.quiet)
+                                    masks=args.mask, progress=not args.quiet,
+                                    target_size=getattr(args, "target_size", None))
     print(f"{record.describe()}; wrote {len(record.files)} files to {args.out}")
     return 0
 

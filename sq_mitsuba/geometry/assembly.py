@@ -237,6 +237,41 @@ class Assembly:
         return Assembly(torch.cat([params[..., FIELDS["size"]], params[..., FIELDS["shape"]],
                                    translation, frames, params[..., FIELDS["taper"]]], dim=-1))
 
+    def scaled(self, factor: float | Tensor) -> Assembly:
+        """The assembly scaled about its origin: ``x -> factor[b] x`` for item b.
+
+        Sizes and centres scale; shapes, frames and tapers (relative to the size) stay, so the
+        union's inside-outside function at ``factor x`` is the original's at ``x``.
+        Differentiable in the parameters and in a tensor ``factor``.
+
+        Args:
+            factor: a finite number > 0, or (B,) of them in the assembly's dtype.
+
+        Raises:
+            ValueError: one line naming ``factor`` when it is not finite and positive or has
+                another shape.
+        """
+        if isinstance(factor, Tensor):
+            check_tensor("factor", factor, (self.batch_size,))
+            if factor.dim() != 1 or factor.dtype != self.params.dtype:
+                raise ValueError(f"factor: expected ({self.batch_size},) of {self.params.dtype},"
+                                 f" got {tuple(factor.shape)} {factor.dtype}")
+            scale = factor.to(self.params.device)[:, None, None]
+            bad = not bool(torch.isfinite(scale).all() and (scale > 0).all())
+        else:
+            if isinstance(factor, bool) or not isinstance(factor, int | float):
+                raise ValueError(f"factor: expected a number or a (B,) tensor, got "
+                                 f"{type(factor).__name__}")
+            scale, bad = float(factor), not (math.isfinite(factor) and factor > 0)
+        if bad:
+            raise ValueError(f"factor: expected finite numbers > 0, got {factor!r}")
+        params = self.params
+        return Assembly(torch.cat([params[..., FIELDS["size"]] * scale,
+                                   params[..., FIELDS["shape"]],
+                                   params[..., FIELDS["translation"]] * scale,
+                                   params[..., FIELDS["rotation_6d"]],
+                                   params[..., FIELDS["taper"]]], dim=-1))
+
     def _item(self, item: int, name: str = "item") -> int:
         """Batch item ``item`` (negative counts from the end) as an index in [0, B), or a
         one-line ``IndexError`` naming ``name``, the item and the batch size."""

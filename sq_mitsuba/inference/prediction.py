@@ -1,5 +1,6 @@
-"""What the predictor returns: :class:`Prediction` (assemblies and poses of a batch of images)
-and, for a prediction fitted to the images' masks, :class:`Fit` (what was fitted).
+"""What the predictor returns: :class:`Prediction` (assemblies and poses of a batch of images),
+for a prediction fitted to the images' masks :class:`Fit` (what was fitted), and for N frames
+of one spacecraft :class:`SequencePrediction` (one assembly, every pose).
 
 Convention: poses map body to camera in the OpenCV frame (x right, y down, z forward),
 ``x_cam = R x_body + t``; quaternions are scalar-first with w >= 0; pixels are continuous
@@ -8,7 +9,7 @@ Convention: poses map body to camera in the OpenCV frame (x right, y down, z for
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from torch import Tensor
@@ -16,7 +17,7 @@ from torch import Tensor
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.camera import Camera
 
-__all__ = ["MASK_SOURCES", "Fit", "MaskChoice", "Prediction"]
+__all__ = ["MASK_SOURCES", "Fit", "MaskChoice", "Prediction", "SequencePrediction"]
 
 #: Where the mask a prediction was fitted to came from: the network's mask head, the threshold
 #: segmentation of the image (:func:`sq_mitsuba.data.segmentation.segment_target`), or the
@@ -145,6 +146,33 @@ class Prediction:
     existence: Tensor | None = None
     primitive_index: Tensor | None = None
 
+    def scaled(self, factor: float) -> Prediction:
+        """This prediction for a target ``factor`` times the size the network assumes.
+
+        Convention: the network reads every target at the dataset's unit size (the longest
+        side of its aligned box 1), so its translations are metres for a target 1 m long. A
+        target L metres long at the same pose is the whole scene scaled by L about the camera:
+        the assembly and every translation and depth scale, the images stay the same (one
+        camera cannot tell a larger target farther away), so ``scaled(L)`` is the metric
+        reading when L is known. Rotations, pixels, masks and scores stay; so do the
+        network's own reading and the fit's start and search pose (scaled alike). Apply it
+        last: :meth:`~sq_mitsuba.inference.predictor.Predictor.refine` expects the
+        network's scale.
+
+        Args:
+            factor: the target's longest side in metres (a finite number > 0).
+
+        Raises:
+            ValueError: one line naming ``factor`` when it is not finite and positive.
+        """
+        assembly = self.assembly.scaled(factor)  # checks the factor
+        network = None if self.network is None else self.network.scaled(factor)
+        fit = None if self.fit is None else replace(
+            self.fit, start=self.fit.start.scaled(factor),
+            search_translation=self.fit.search_translation * factor)
+        return replace(self, assembly=assembly, translation=self.translation * factor,
+                       depth=self.depth * factor, network=network, fit=fit)
+
     def item_assembly(self, item: int) -> Assembly:
         """Batch item ``item``'s assembly (batch size 1) without stand-ins: its own
         primitives, what its files hold.
@@ -157,3 +185,51 @@ class Prediction:
             return own
         real = self.primitive_index[range(self.assembly.batch_size)[item]] >= 0
         return Assembly(own.params[:, real.to(own.params.device)])
+
+
+@dataclass(frozen=True)
+class SequencePrediction:
+    """One assembly and N poses from N images of one spacecraft.
+
+    Attributes:
+        assembly: the shared assembly (batch size 1), in the body frame.
+        rotation: (N, 3, 3) body -> camera rotation of each frame; translation: (N, 3).
+        quaternion: (N, 4) ``rotation`` as (w, x, y, z), w >= 0.
+        frames: each frame's own prediction (the shipped path, before the joint fit).
+        reference: index of the frame whose body frame is the result's.
+        half_turns: (N, 3, 3) the half turn S_j that carries frame j's reading into the
+            reference body frame (``x_ref = S_j x_j``; ``R_j S_j`` is the frame's rotation
+            there, or the nearest to it where the pass's motion replaced the reading).
+        iou: (N,) IoU of each frame's silhouette against its mask after the joint fit (at the
+            fit's resolution); frame_iou: (N,) the same of each frame's own fit.
+        steps: Adam steps taken; seconds: wall time of the whole sequence (frames included);
+            frames_seconds: of the frames' own path alone (network, search, refinement).
+    """
+
+    assembly: Assembly
+    rotation: Tensor
+    translation: Tensor
+    quaternion: Tensor
+    frames: Prediction
+    reference: int
+    half_turns: Tensor
+    iou: Tensor
+    frame_iou: Tensor
+    steps: int = 0
+    seconds: float = 0.0
+    losses: list[float] = field(default_factory=list)
+    frames_seconds: float = 0.0
+
+    def scaled(self, factor: float) -> SequencePrediction:
+        """This result for a target ``factor`` times the size the network assumes: the shared
+        assembly, every translation and the frames' own predictions scaled
+        (:meth:`Prediction.scaled`: the metric result when the target's longest side in
+        metres is known; the images cannot tell it).
+
+        Raises:
+            ValueError: one line naming ``factor`` when it is not finite and positive.
+        """
+        return replace(self, assembly=self.assembly.scaled(factor),
+                       translation=self.translation * factor,
+                       frames=self.frames.scaled(factor))
+

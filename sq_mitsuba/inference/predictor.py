@@ -59,7 +59,7 @@ from sq_mitsuba.inference.images import (
     resize_images,
     target_scores,
 )
-from sq_mitsuba.inference.prediction import Fit, MaskChoice, Prediction
+from sq_mitsuba.inference.prediction import Fit, MaskChoice, Prediction, SequencePrediction
 from sq_mitsuba.inference.traced import TracedNetwork
 from sq_mitsuba.model.existence import EXISTENCE_THRESHOLD, gathered_primitives, kept_primitives
 from sq_mitsuba.model.network import NetworkOutput, SuperquadricNet
@@ -68,7 +68,6 @@ from sq_mitsuba.model.rotation_grid import RotationGridPoseHead, rotation_hypoth
 if TYPE_CHECKING:  # the search and refinement load Mitsuba's bridge: imported when used
     from sq_mitsuba.inference.refine import RefineOptions
     from sq_mitsuba.inference.search import SearchOptions
-    from sq_mitsuba.inference.sequence import SequencePrediction
 
 __all__ = ["Prediction", "Predictor", "prepare_images"]
 
@@ -259,7 +258,7 @@ class Predictor:
         arguments: ``relative_rotations``, ``mask``, ``options``, ``search``, ``refinement``).
 
         Returns:
-            A :class:`~sq_mitsuba.inference.sequence.SequencePrediction`.
+            A :class:`~sq_mitsuba.inference.prediction.SequencePrediction`.
         """
         from sq_mitsuba.inference.sequence import predict_sequence
 

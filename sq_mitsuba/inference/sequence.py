@@ -51,7 +51,7 @@ stay ambiguous, harmlessly for the shape.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from typing import Any, Literal
 
 import numpy as np
@@ -72,7 +72,7 @@ from sq_mitsuba.inference.body_frame import (
     canonical_frame,
     reframed,
 )
-from sq_mitsuba.inference.prediction import Prediction
+from sq_mitsuba.inference.prediction import Prediction, SequencePrediction
 from sq_mitsuba.inference.refine import RefineOptions, refine_pose_and_shape
 from sq_mitsuba.inference.search import (
     SEARCH_REFINEMENT,
@@ -170,40 +170,6 @@ class SequenceOptions:
         if self.grow and self.shape != "free":
             raise ValueError(f"grow: {self.grow} primitives grown need shape 'free' (a grown "
                              f"primitive changes the shape), got shape {self.shape!r}")
-
-
-@dataclass(frozen=True)
-class SequencePrediction:
-    """One assembly and N poses from N images of one spacecraft.
-
-    Attributes:
-        assembly: the shared assembly (batch size 1), in the body frame.
-        rotation: (N, 3, 3) body -> camera rotation of each frame; translation: (N, 3).
-        quaternion: (N, 4) ``rotation`` as (w, x, y, z), w >= 0.
-        frames: each frame's own prediction (the shipped path, before the joint fit).
-        reference: index of the frame whose body frame is the result's.
-        half_turns: (N, 3, 3) the half turn S_j that carries frame j's reading into the
-            reference body frame (``x_ref = S_j x_j``; ``R_j S_j`` is the frame's rotation
-            there, or the nearest to it where the pass's motion replaced the reading).
-        iou: (N,) IoU of each frame's silhouette against its mask after the joint fit (at the
-            fit's resolution); frame_iou: (N,) the same of each frame's own fit.
-        steps: Adam steps taken; seconds: wall time of the whole sequence (frames included);
-            frames_seconds: of the frames' own path alone (network, search, refinement).
-    """
-
-    assembly: Assembly
-    rotation: Tensor
-    translation: Tensor
-    quaternion: Tensor
-    frames: Prediction
-    reference: int
-    half_turns: Tensor
-    iou: Tensor
-    frame_iou: Tensor
-    steps: int = 0
-    seconds: float = 0.0
-    losses: list[float] = field(default_factory=list)
-    frames_seconds: float = 0.0
 
 
 def stage_refine_options(options: SequenceOptions, steps: int, poses: bool) -> RefineOptions:
