@@ -253,10 +253,21 @@ def test_a_scaled_assembly_is_the_assembly_at_scaled_points():
     torch.testing.assert_close(scaled.surface_points(2),
                                assembly.surface_points(2) * factor[:, None, None, None])
     torch.testing.assert_close(assembly.scaled(3.0).size, 3.0 * assembly.size)
+    for name in ("shape", "rotation_6d", "taper"):  # relative: the same numbers
+        assert torch.equal(getattr(scaled, name), getattr(assembly, name)), name
     torch.testing.assert_close(scaled.scaled(1.0 / factor).params, assembly.params)
+    # Differentiable in the factor: d(sum of sizes)/d(factor_b) = item b's sum of sizes.
+    free = factor.clone().requires_grad_()
+    assembly.scaled(free).size.sum().backward()
+    torch.testing.assert_close(free.grad, assembly.size.sum((1, 2)))
     for bad in (0.0, -1.0, float("nan"), float("inf"), True, "2"):
-        with pytest.raises(ValueError, match="factor"):
+        with pytest.raises(ValueError, match=r"^factor: "):
             assembly.scaled(bad)
-    for bad in (factor[:2], factor.float(), torch.tensor([1.0, 0.0, 1.0], dtype=F64)):
-        with pytest.raises(ValueError, match="factor"):
+    single = Assembly(assembly.params.float())
+    for bad in (1e39, 1e-320):  # past float32's range: an infinite or a zero size
+        with pytest.raises(ValueError, match=r"^factor: .* past torch.float32's range"):
+            single.scaled(bad)
+    for bad in (factor[:2], factor.float(), torch.tensor([1.0, 0.0, 1.0], dtype=F64),
+                torch.tensor(2.0, dtype=F64)):
+        with pytest.raises(ValueError, match=r"^factor: "):
             assembly.scaled(bad)

@@ -199,8 +199,15 @@ def test_the_fit_records_what_was_fitted_and_keeps_the_networks_reading(eval_che
     torch.testing.assert_close(metric.fit.search_translation, 4.0 * fit.search_translation)
     torch.testing.assert_close(metric.pixel, metric.camera.project(metric.translation))
     assert torch.equal(metric.fit.mask, fit.mask) and torch.equal(metric.fit.iou, fit.iou)
-    with pytest.raises(ValueError, match=r"^factor: "):
-        fitted.scaled(float("nan"))
+    assert metric.scale == 4.0 and metric.network.scale == 4.0 and fitted.scale == 1.0
+    for bad in (float("nan"), 0.0, torch.tensor([4.0]), True):  # one factor for the batch
+        with pytest.raises(ValueError, match=r"^factor: "):
+            fitted.scaled(bad)
+    # The fits work at the network's unit size: a scaled reading is refused, not refined.
+    with pytest.raises(ValueError, match=r"^network: scaled to a target of 4 m"):
+        predictor.refine(image, network.scaled(4.0), search=SEARCH, refinement=REFINEMENT)
+    with pytest.raises(ValueError, match=r"^reuse: scaled to a target of 4 m"):
+        predictor.refine(image, network, reuse=metric.fit)
     # A second fit to another mask reuses the start and returns the other mask's fit.
     other = torch.zeros(1, 64, 64, dtype=torch.bool)
     other[0, 20:44, 16:48] = True

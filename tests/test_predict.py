@@ -166,6 +166,18 @@ def test_a_target_size_scales_the_files_and_not_the_image(eval_checkpoint, input
                                         factor * translation, renderer, 3)[0])
     assert float(seen[0].sum()) > 20
     torch.testing.assert_close(seen[1], seen[0], atol=1e-3, rtol=0)
+    # The network's reading alone (no --refine) is scaled alike.
+    for out, extra in ((tmp_path / "unit_network", []),
+                       (tmp_path / "metric_network", ["--target-size", "3.5"])):
+        assert main(["predict", str(inputs / "grey.png"), "--checkpoint", str(eval_checkpoint),
+                     "--out", str(out), "--quiet", *extra]) == 0
+    unit_pose, metric_pose = (json.loads((tmp_path / f"{name}_network" / "grey.pose.json")
+                                         .read_text()) for name in ("unit", "metric"))
+    assert metric_pose["r_Vo2To_vbs"] == pytest.approx(
+        [3.5 * v for v in unit_pose["r_Vo2To_vbs"]], rel=1e-6)
+    torch.testing.assert_close(
+        Assembly.load(tmp_path / "metric_network" / "grey.assembly.json").params,
+        Assembly.load(tmp_path / "unit_network" / "grey.assembly.json").scaled(3.5).params)
     for bad in ("0", "-2", "nan", "1e6"):
         assert main(["predict", str(inputs / "grey.png"), "--checkpoint", str(eval_checkpoint),
                      "--out", str(tmp_path / "bad"), "--target-size", bad]) == 2

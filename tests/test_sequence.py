@@ -377,6 +377,17 @@ def test_predict_sequence_returns_one_assembly_and_every_pose(eval_checkpoint, t
     # The fit keeps the best step, which is no worse than the start (the frames' own fits
     # turned into the reference's body frame, with the reference's shape).
     assert bool(torch.isfinite(result.iou).all()) and result.seconds > 0
+    # At a target 3 m long: every length of the pass and of its frames, nothing else.
+    metric = result.scaled(3.0)
+    torch.testing.assert_close(metric.assembly.params, result.assembly.scaled(3.0).params)
+    torch.testing.assert_close(metric.translation, 3.0 * result.translation)
+    torch.testing.assert_close(metric.frames.translation, 3.0 * result.frames.translation)
+    torch.testing.assert_close(metric.frames.assembly.params,
+                               result.frames.assembly.scaled(3.0).params)
+    assert torch.equal(metric.rotation, result.rotation) and torch.equal(metric.iou, result.iou)
+    assert metric.scale == 3.0 and metric.frames.scale == 3.0 and result.scale == 1.0
+    with pytest.raises(ValueError, match=r"^factor: "):
+        result.scaled(-3.0)
 
 
 @pytest.mark.parametrize("case, message", [
@@ -455,6 +466,8 @@ def test_predict_sequence_cli_writes_one_assembly_and_a_pose_per_frame(eval_chec
     written = [json.loads((out / f"{image.stem}.pose.json").read_text()) for image in images]
     spread = float(torch.cdist(direct.translation, direct.translation).max())
     assert spread > 0.05 * float(direct.translation.norm(dim=-1).min())
+    torch.testing.assert_close(shared.params, direct.assembly.scaled(2.5).params.to(shared.params),
+                               atol=0.05, rtol=0.05)
     for k, pose in enumerate(written):
         assert pose["target_size"] == 2.5
         np.testing.assert_allclose(pose["r_Vo2To_vbs"], 2.5 * direct.translation[k].numpy(),

@@ -148,9 +148,10 @@ class PredictOptions:
     fast: bool = True
     "Predict with the batch-norm-folded network (same output up to ~1e-5; faster on CPU)."
     target_size: float | None = in_range(0.001, 10_000.0, default=None)
-    ("The target's longest side in metres, when known: the assembly and the translation are "
-     "scaled to it (the network reads every target at unit size, the images cannot tell a "
-     "larger one farther away); default: unit size")
+    ("The target's longest side in metres (of its box along the body axes), when known, "
+     "0.001 to 10,000: the assembly and the translation are scaled to it (the network reads "
+     "every target at unit size; the images cannot tell a larger one farther away). None: "
+     "unit size")
 
 
 @dataclass
@@ -440,7 +441,8 @@ def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
             "target_score": record.target_score, "min_target": record.min_target,
         }
         if not record.target:
-            pose.update(camera=own_camera.to_speed_dict(pitch),
+            pose.update(convention=POSE_CONVENTION, target_size=options.target_size,
+                        camera=own_camera.to_speed_dict(pitch),
                         checkpoint=str(getattr(predictor, "source", None) or ""),
                         refined=False, network_ms=round(record.network_ms, 3))
             if padding is not None:

@@ -11,6 +11,9 @@ Files written to the output folder (each atomically; the folder is all or nothin
   (red), the shared assembly's at the frame's pose (green) and the mask's outline (yellow);
 - ``sequence.png``: the shared assembly from six sides (one colour per primitive).
 
+Lengths are for a target of unit size, or of ``target_size`` metres where given (the files'
+assembly and translations scaled; the pictures are the same).
+
 Every image (and mask, where given: one per frame, the frame's size, target bright) is read
 and checked before the work: one size for all, at least two, no name twice.
 """

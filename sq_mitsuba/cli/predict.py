@@ -21,7 +21,8 @@ DESCRIPTION = """\
 Predict, for each image, an assembly of superquadrics and the target's pose, and write into
 --out per image <stem>: <stem>.assembly.json, <stem>.obj (merged mesh), <stem>.glb (one mesh
 per primitive), <stem>.pose.json (quaternion q_vbs2tango = (w, x, y, z) and translation
-r_Vo2To_vbs in metres: x_cam = R(q) x_body + r, OpenCV camera frame) and <stem>.overlay.png
+r_Vo2To_vbs in metres, for a target 1 m long unless --target-size says: x_cam = R(q) x_body
++ r, OpenCV camera frame) and <stem>.overlay.png
 (the network's silhouette in red; with --refine the refined one in green and the outline of
 the mask fitted in yellow). Prints
 the milliseconds per image.

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import json
 import math
+import numbers
 import operator
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -245,30 +246,35 @@ class Assembly:
         Differentiable in the parameters and in a tensor ``factor``.
 
         Args:
-            factor: a finite number > 0, or (B,) of them in the assembly's dtype.
+            factor: a finite real number > 0, or (B,) of them in the assembly's dtype.
 
         Raises:
-            ValueError: one line naming ``factor`` when it is not finite and positive or has
-                another shape.
+            ValueError: one line naming ``factor`` when it is not finite and positive, has
+                another shape or dtype, or scales a length past the dtype's range.
         """
         if isinstance(factor, Tensor):
-            check_tensor("factor", factor, (self.batch_size,))
-            if factor.dim() != 1 or factor.dtype != self.params.dtype:
-                raise ValueError(f"factor: expected ({self.batch_size},) of {self.params.dtype},"
-                                 f" got {tuple(factor.shape)} {factor.dtype}")
+            if tuple(factor.shape) != (self.batch_size,) or factor.dtype != self.params.dtype:
+                raise ValueError(f"factor: expected a ({self.batch_size},) tensor of "
+                                 f"{self.params.dtype} (one per item), got "
+                                 f"{tuple(factor.shape)} {factor.dtype}")
             scale = factor.to(self.params.device)[:, None, None]
             bad = not bool(torch.isfinite(scale).all() and (scale > 0).all())
+        elif isinstance(factor, bool) or not isinstance(factor, numbers.Real):
+            raise ValueError(f"factor: expected a number or a ({self.batch_size},) tensor, got "
+                             f"{type(factor).__name__}")
         else:
-            if isinstance(factor, bool) or not isinstance(factor, int | float):
-                raise ValueError(f"factor: expected a number or a (B,) tensor, got "
-                                 f"{type(factor).__name__}")
             scale, bad = float(factor), not (math.isfinite(factor) and factor > 0)
         if bad:
             raise ValueError(f"factor: expected finite numbers > 0, got {factor!r}")
         params = self.params
-        return Assembly(torch.cat([params[..., FIELDS["size"]] * scale,
-                                   params[..., FIELDS["shape"]],
-                                   params[..., FIELDS["translation"]] * scale,
+        size, translation = params[..., FIELDS["size"]] * scale, \
+            params[..., FIELDS["translation"]] * scale
+        with torch.no_grad():
+            if not bool(torch.isfinite(size).all() and torch.isfinite(translation).all()
+                        and (size > 0).all()):
+                raise ValueError(f"factor: {factor!r} scales a length of the assembly past "
+                                 f"{params.dtype}'s range")
+        return Assembly(torch.cat([size, params[..., FIELDS["shape"]], translation,
                                    params[..., FIELDS["rotation_6d"]],
                                    params[..., FIELDS["taper"]]], dim=-1))
 

@@ -9,6 +9,8 @@ Convention: poses map body to camera in the OpenCV frame (x right, y down, z for
 
 from __future__ import annotations
 
+import math
+import numbers
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -17,7 +19,8 @@ from torch import Tensor
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.camera import Camera
 
-__all__ = ["MASK_SOURCES", "Fit", "MaskChoice", "Prediction", "SequencePrediction"]
+__all__ = ["MASK_SOURCES", "Fit", "MaskChoice", "Prediction", "SequencePrediction",
+           "check_length_factor"]
 
 #: Where the mask a prediction was fitted to came from: the network's mask head, the threshold
 #: segmentation of the image (:func:`sq_mitsuba.data.segmentation.segment_target`), or the
@@ -27,6 +30,15 @@ MASK_SOURCES = ("network", "segmentation", "given")
 #: without one), "segmentation", or the masks themselves, (B, H, W) bool or float in [0, 1]
 #: (above 0.5 is the target), a tensor or numpy array; None: "network".
 MaskChoice = str | Tensor | np.ndarray | None
+
+
+def check_length_factor(factor: object) -> None:
+    """A one-line ``ValueError`` naming ``factor`` unless it is a finite real number > 0 (not
+    a bool, not a tensor: a prediction's lengths scale as one)."""
+    if isinstance(factor, bool) or not isinstance(factor, numbers.Real) \
+            or not (math.isfinite(factor) and factor > 0):
+        raise ValueError(f"factor: expected a finite number > 0 (the target's longest side in "
+                         f"metres), got {factor!r}")
 
 
 @dataclass(frozen=True)
@@ -88,7 +100,8 @@ class Prediction:
             invisible stand-ins (:mod:`sq_mitsuba.model.existence`); :meth:`item_assembly`
             gives one item's own primitives.
         rotation: (B, 3, 3) body -> camera rotation.
-        translation: (B, 3) body origin in the camera frame (metres).
+        translation: (B, 3) body origin in the camera frame (metres, for a target whose
+            longest side is ``scale`` metres).
         quaternion: (B, 4) ``rotation`` as (w, x, y, z), w >= 0.
         pixel: (B, 2) image position (u, v) of the body origin, in pixels of the given images.
         depth: (B,) camera-frame z of the body origin (``translation[:, 2]``).
@@ -125,6 +138,8 @@ class Prediction:
             ``assembly`` (those whose existence reaches the predictor's ``min_existence``,
             and each item's most probable one, in the network's order), -1 for a stand-in;
             None for a network without existence probabilities (every primitive, in order).
+        scale: the target's longest side in metres that the lengths are for: 1, the unit
+            size the network reads every target at, unless :meth:`scaled` set it.
     """
 
     assembly: Assembly
@@ -145,6 +160,7 @@ class Prediction:
     fingerprint: Tensor | None = None
     existence: Tensor | None = None
     primitive_index: Tensor | None = None
+    scale: float = 1.0
 
     def scaled(self, factor: float) -> Prediction:
         """This prediction for a target ``factor`` times the size the network assumes.
@@ -154,24 +170,27 @@ class Prediction:
         target L metres long at the same pose is the whole scene scaled by L about the camera:
         the assembly and every translation and depth scale, the images stay the same (one
         camera cannot tell a larger target farther away), so ``scaled(L)`` is the metric
-        reading when L is known. Rotations, pixels, masks and scores stay; so do the
-        network's own reading and the fit's start and search pose (scaled alike). Apply it
-        last: :meth:`~sq_mitsuba.inference.predictor.Predictor.refine` expects the
-        network's scale.
+        reading when L is known. Rotations, pixels, masks and scores stay; the network's own
+        reading and the fit's start and search pose are scaled alike, and ``scale`` records
+        the factor (times any before). Apply it last: the predictor's ``refine`` and
+        ``read_turns`` refuse a scaled reading (they work at the network's unit size).
 
         Args:
-            factor: the target's longest side in metres (a finite number > 0).
+            factor: the target's longest side in metres (a finite number > 0; one for the
+                whole batch).
 
         Raises:
-            ValueError: one line naming ``factor`` when it is not finite and positive.
+            ValueError: one line naming ``factor`` when it is not a finite number > 0.
         """
-        assembly = self.assembly.scaled(factor)  # checks the factor
+        check_length_factor(factor)
+        assembly = self.assembly.scaled(factor)
         network = None if self.network is None else self.network.scaled(factor)
         fit = None if self.fit is None else replace(
             self.fit, start=self.fit.start.scaled(factor),
             search_translation=self.fit.search_translation * factor)
         return replace(self, assembly=assembly, translation=self.translation * factor,
-                       depth=self.depth * factor, network=network, fit=fit)
+                       depth=self.depth * factor, network=network, fit=fit,
+                       scale=self.scale * float(factor))
 
     def item_assembly(self, item: int) -> Assembly:
         """Batch item ``item``'s assembly (batch size 1) without stand-ins: its own
@@ -204,6 +223,8 @@ class SequencePrediction:
             fit's resolution); frame_iou: (N,) the same of each frame's own fit.
         steps: Adam steps taken; seconds: wall time of the whole sequence (frames included);
             frames_seconds: of the frames' own path alone (network, search, refinement).
+        scale: the target's longest side in metres the lengths are for (1: the network's
+            unit size; :meth:`scaled`).
     """
 
     assembly: Assembly
@@ -219,6 +240,7 @@ class SequencePrediction:
     seconds: float = 0.0
     losses: list[float] = field(default_factory=list)
     frames_seconds: float = 0.0
+    scale: float = 1.0
 
     def scaled(self, factor: float) -> SequencePrediction:
         """This result for a target ``factor`` times the size the network assumes: the shared
@@ -227,9 +249,10 @@ class SequencePrediction:
         metres is known; the images cannot tell it).
 
         Raises:
-            ValueError: one line naming ``factor`` when it is not finite and positive.
+            ValueError: one line naming ``factor`` when it is not a finite number > 0.
         """
+        check_length_factor(factor)
         return replace(self, assembly=self.assembly.scaled(factor),
                        translation=self.translation * factor,
-                       frames=self.frames.scaled(factor))
+                       frames=self.frames.scaled(factor), scale=self.scale * float(factor))
 

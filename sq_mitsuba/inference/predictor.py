@@ -234,6 +234,7 @@ class Predictor:
 
         x, camera = self._prepared(images, camera)
         count = x.images.shape[0]
+        _check_unit_scale(network=network, reuse=getattr(reuse, "start", None))
         if not isinstance(network, Prediction) or network.fit is not None \
                 or network.camera != camera or network.rotation.shape[0] != count:
             raise ValueError(f"network: expected this predictor's own reading of the "
@@ -277,6 +278,7 @@ class Predictor:
         x, camera = self._prepared(images, camera)
         self._check_turns(turns, camera.rescaled(self.image_size, self.image_size))
         count = x.images.shape[0]
+        _check_unit_scale(prediction=prediction)
         log_p = getattr(prediction, "rotation_log_probabilities", None)
         if not isinstance(prediction, Prediction) or log_p is None \
                 or tuple(log_p.shape) != (count, self.model.config.rotation_cells) \
@@ -479,6 +481,14 @@ class Predictor:
         # The best hypothesis is the head's own rotation (its argmax, refined locally).
         rotations[:, 0] = rotation
         return rotations, scores.to(rotation)
+
+
+def _check_unit_scale(**readings: object) -> None:
+    """One-line ``ValueError`` naming a reading ``Prediction.scaled`` made (fits need unit size)."""
+    for name, reading in readings.items():
+        if isinstance(reading, Prediction) and reading.scale != 1.0:
+            raise ValueError(f"{name}: scaled to a target of {reading.scale:g} m "
+                             "(Prediction.scaled); refine the unit-size reading, then scale")
 
 
 def check_min_target(min_target: float, name: str = "min_target") -> float:
