@@ -280,3 +280,73 @@ def test_export_with_a_start_refuses_other_seeds_and_whole_shares(eval_checkpoin
                  str(out)]) == 2
     assert "no_start.pt" in error_line(capsys)
     assert not out.parent.exists()
+
+
+def _with_existence(eval_checkpoint, path):
+    """The tiny network grown to existence logits (as ``init_from`` grows it: every primitive
+    present at 0.9), seed 7 recorded: the start of existence fine-tunes."""
+    import dataclasses
+
+    from sq_mitsuba.model.checkpoint import (
+        checkpoint_network_config,
+        load_weights,
+        write_checkpoint,
+    )
+    from sq_mitsuba.model.network import SuperquadricNet
+
+    payload = read_checkpoint(eval_checkpoint)
+    config = dataclasses.replace(checkpoint_network_config(payload, "tiny"), existence=True,
+                                 pretrained=None)
+    torch.manual_seed(7)
+    model = SuperquadricNet(config)
+    load_weights(model, payload["model"], "tiny", partial=True)
+    payload["model"] = {key: value.detach().clone() for key, value in model.state_dict().items()}
+    payload["config"]["network"] = {**payload["config"]["network"], "existence": True}
+    payload["config"]["seed"] = 7
+    return write_checkpoint(path, payload)
+
+
+def test_export_keeps_the_fine_tunes_existence_logits_when_asked(eval_checkpoint, tmp_path,
+                                                                  capsys):
+    """--keep-existence: the existence column of the generators' last layer is the fine-tunes'
+    average, every other weight the start's share mixed in as before; without it that column
+    is mixed too. Refused without --start and for a network without existence logits."""
+    from sq_mitsuba.geometry.assembly import NUM_PARAMS
+    from sq_mitsuba.model.weight_average import existence_keys
+
+    start = _with_existence(eval_checkpoint, tmp_path / "start.pt")
+    a = _perturbed(start, tmp_path / "a.pt", 6)
+    b = _perturbed(start, tmp_path / "b.pt", 7)
+    s, fa, fb = (read_checkpoint(path)["model"] for path in (start, a, b))
+    keys = existence_keys(s)
+    assert keys == ["sq_generator.layers.2.weight", "sq_generator.layers.2.bias"]
+    outputs = {}
+    for name, extra in (("kept", ["--keep-existence"]), ("mixed", [])):
+        outputs[name] = tmp_path / f"{name}.pt"
+        assert main(["export", "--checkpoint", str(a), str(b), "--start", str(start),
+                     "--start-share", "0.75", "--no-half", "--out", str(outputs[name]),
+                     *extra]) == 0
+    kept, mixed = (read_checkpoint(outputs[name])["model"] for name in ("kept", "mixed"))
+    for key in s:
+        if not s[key].is_floating_point():
+            continue
+        mix = 0.75 * s[key].double() + 0.25 * (fa[key].double() + fb[key].double()) / 2
+        torch.testing.assert_close(mixed[key].double(), mix, atol=1e-6, rtol=0)
+        want = mix.clone()
+        if key in keys:
+            want[..., NUM_PARAMS] = (fa[key].double() + fb[key].double())[..., NUM_PARAMS] / 2
+            assert not torch.allclose(want, mix)  # the column differs from the mix
+        torch.testing.assert_close(kept[key].double(), want, atol=1e-6, rtol=0)
+    assert read_checkpoint(outputs["kept"])["source"]["start"]["existence"] == \
+        "the fine-tunes' average"
+    capsys.readouterr()
+    assert main(["export", "--checkpoint", str(a), "--keep-existence", "--out",
+                 str(tmp_path / "no_start.pt")]) == 2
+    assert "--keep-existence: only with --start" in error_line(capsys)
+    plain_a = _perturbed(eval_checkpoint, tmp_path / "plain_a.pt", 6, _seeded(7))
+    plain_start = _perturbed(eval_checkpoint, tmp_path / "plain_start.pt", 5, _seeded(7))
+    assert main(["export", "--checkpoint", str(plain_a), "--start", str(plain_start),
+                 "--keep-existence", "--out", str(tmp_path / "plain.pt")]) == 2
+    assert "plain_a.pt: keep_existence needs a network whose slots carry existence" in \
+        error_line(capsys)
+    assert not (tmp_path / "no_start.pt").exists() and not (tmp_path / "plain.pt").exists()

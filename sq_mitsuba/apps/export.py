@@ -67,6 +67,10 @@ class ExportOptions:
     start_share: float = in_range(0.0, 0.99, default=0.5)
     """With a ``start`` checkpoint: its share of the exported weights, the fine-tunes' average
     the rest (0: the average alone)."""
+    keep_existence: bool = False
+    """With a ``start`` checkpoint: the primitives' existence logits are the fine-tunes'
+    average alone, not mixed back (a start grown to existence holds every primitive at 0.9, so
+    its share keeps the primitives the fine-tunes switch off)."""
 
 
 def _exported_state(state: dict[str, torch.Tensor], half: bool) -> dict[str, torch.Tensor]:
@@ -170,9 +174,12 @@ def export_model(checkpoint: str | Path | Sequence[str | Path], data_root: str |
         start = Path(start)
         start_payload = read_checkpoint(start)
         payload = average_checkpoints(payloads, [str(path) for path in paths],
-                                      (start_payload, str(start)), options.start_share)
+                                      (start_payload, str(start)), options.start_share,
+                                      keep_existence=options.keep_existence)
         start_record = {"checkpoint": start.name, "share": options.start_share,
                         "sha256": _file_sha256(start)}
+        if options.keep_existence:
+            start_record["existence"] = "the fine-tunes' average"
         recorded = {str(each["config"].get("init_from")) for each in payloads}
         if recorded != {str(start)} and {Path(r).name for r in recorded} != {start.name}:
             notes.append(f"start {start}: the checkpoints record init_from "

@@ -26,10 +26,11 @@ weights: a "model soup", which can read data unlike the training data better tha
 one-line error naming what differs); the baseline is computed over --data. With --start
 (the file they were fine-tuned from, their init_from), the weights go part way back to
 it: --start-share x the start + the rest x the fine-tunes' average, which keeps more of what
-the start read well (WiSE-FT; docs/training.md)."""
+the start read well (WiSE-FT; docs/training.md); --keep-existence leaves the primitives'
+existence logits at the fine-tunes' average, so that the count they learned survives the mix."""
 
 FLAGS = {"half": "--half", "baseline_images": "--baseline-images",
-         "start_share": "--start-share"}
+         "start_share": "--start-share", "keep_existence": "--keep-existence"}
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -51,6 +52,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     add_config_options(parser, ExportOptions, FLAGS, helps={
         "start_share": "With --start: its share of the exported weights, the fine-tunes' "
                        "average the rest",
+        "keep_existence": "With --start, for a network with existence logits: those are the "
+                          "fine-tunes' average alone, not mixed back (the start's grown "
+                          "logits would keep every primitive)",
         "half": "Store floating-point weights in half precision: half the file size; the "
                 "network's outputs change by about 1e-3 relative, below what the metrics "
                 "resolve"})
@@ -63,6 +67,9 @@ def _run(args: argparse.Namespace) -> int:
 
     if hasattr(args, "start_share") and args.start is None:
         raise CLIError("--start-share: only with --start (the share of the start's weights)")
+    if getattr(args, "keep_existence", False) and args.start is None:
+        raise CLIError("--keep-existence: only with --start (without one the existence logits "
+                       "are the average already)")
     notes: list[str] = []
     checkpoint = args.checkpoint[0] if len(args.checkpoint) == 1 else args.checkpoint
     path = export_model(checkpoint, args.data, args.out,

@@ -32,10 +32,11 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from sq_mitsuba.geometry.assembly import NUM_PARAMS
 from sq_mitsuba.model.checkpoint import checkpoint_network_config, load_weights
 from sq_mitsuba.model.network import NetworkConfig, SuperquadricNet
 
-__all__ = ["average_checkpoints", "average_weights", "fine_tune_start"]
+__all__ = ["average_checkpoints", "average_weights", "existence_keys", "fine_tune_start"]
 
 #: Network fields that do not change the network a checkpoint holds: the ImageNet file the
 #: encoder started from (replaced by the checkpoint's own weights when it loads).
@@ -119,9 +120,23 @@ def fine_tune_start(start: Mapping[str, Tensor], network: NetworkConfig, seed: i
     return {key: value.detach().clone() for key, value in model.state_dict().items()}
 
 
+def existence_keys(state: Mapping[str, Tensor]) -> list[str]:
+    """The tensors that hold the existence logits of a network with ``network.existence``:
+    the last layer of the primitives' generators (weight (M, hidden, 17) and bias (M, 17),
+    the logit last of the 17 outputs); [] for a network without them."""
+    layers = sorted({int(key.split(".")[2]) for key in state
+                     if key.startswith("sq_generator.layers.")})
+    if not layers:
+        return []
+    last = [f"sq_generator.layers.{layers[-1]}.{part}" for part in ("weight", "bias")]
+    keys = [key for key in last if key in state]
+    return keys if keys and all(state[key].shape[-1] == NUM_PARAMS + 1 for key in keys) else []
+
+
 def average_checkpoints(payloads: Sequence[Mapping[str, Any]], names: Sequence[str],
                         start: tuple[Mapping[str, Any], str] | None = None,
-                        start_share: float = 0.0) -> dict[str, Any]:
+                        start_share: float = 0.0,
+                        keep_existence: bool = False) -> dict[str, Any]:
     """A checkpoint dictionary whose weights average ``payloads``' (read by
     :func:`~sq_mitsuba.model.checkpoint.read_checkpoint`), with the first one's config and
     camera; no baseline (each payload's describes its own weights) and no training state.
@@ -132,6 +147,10 @@ def average_checkpoints(payloads: Sequence[Mapping[str, Any]], names: Sequence[s
         start_share: with ``start``, the weights are ``start_share`` x the start (grown to
             the payloads' network by :func:`fine_tune_start` with their seed) plus
             ``1 - start_share`` x the payloads' average.
+        keep_existence: with ``start``, the existence logits are the payloads' average alone,
+            not mixed back: a start grown from a network without existence holds every
+            primitive at 0.9 (``INITIAL_EXISTENCE``), so its share would keep every primitive
+            the fine-tunes learned to switch off (eval/MODEL_CARD.md, PARS-E).
 
     Raises:
         ValueError: ``<name>: ...`` for a payload whose network configuration (a field
@@ -140,6 +159,9 @@ def average_checkpoints(payloads: Sequence[Mapping[str, Any]], names: Sequence[s
     """
     if start is not None and not 0.0 <= start_share < 1.0:
         raise ValueError(f"start_share: expected a share in [0, 1), got {start_share}")
+    if keep_existence and start is None:
+        raise ValueError("keep_existence: only with a start (without one the logits are the "
+                         "average already)")
     first = payloads[0]
     # Every field filled: a file written before a field existed holds its default.
     network = dataclasses.asdict(checkpoint_network_config(first, names[0]))
@@ -171,6 +193,17 @@ def average_checkpoints(payloads: Sequence[Mapping[str, Any]], names: Sequence[s
         shares = [(1.0 - start_share) / len(payloads)] * len(payloads) + [start_share]
         weights = average_weights([payload["model"] for payload in payloads] + [begun],
                                   [*names, start[1]], shares)
+        if keep_existence:
+            keys = existence_keys(weights)
+            if not keys:
+                raise ValueError(f"{names[0]}: keep_existence needs a network whose slots "
+                                 "carry existence logits (network.existence, shape_decoder "
+                                 "'slots')")
+            runs = average_weights([{key: payload["model"][key] for key in keys}
+                                    for payload in payloads], names)
+            for key in keys:
+                weights[key] = weights[key].clone()
+                weights[key][..., NUM_PARAMS] = runs[key][..., NUM_PARAMS]
     return {"format": first["format"], "version": first["version"], "config": first["config"],
             "model": weights, "camera": first["camera"]}
 
