@@ -339,6 +339,19 @@ def test_export_keeps_the_fine_tunes_existence_logits_when_asked(eval_checkpoint
         torch.testing.assert_close(kept[key].double(), want, atol=1e-6, rtol=0)
     assert read_checkpoint(outputs["kept"])["source"]["start"]["existence"] == \
         "the fine-tunes' average"
+    # The real case: a start without existence logits, grown by the export as training grew
+    # it (seed 7 draws the same column): the same file.
+    grown = tmp_path / "grown.pt"
+    assert main(["export", "--checkpoint", str(a), str(b), "--start", str(eval_checkpoint),
+                 "--start-share", "0.75", "--no-half", "--keep-existence", "--out",
+                 str(grown)]) == 0
+    for key, value in read_checkpoint(grown)["model"].items():
+        if value.is_floating_point():
+            torch.testing.assert_close(value, kept[key], atol=1e-6, rtol=0)
+    from sq_mitsuba.apps.export import ExportOptions, export_model
+
+    with pytest.raises(ValueError, match=r"^keep_existence: only with a start"):
+        export_model(a, None, tmp_path / "api.pt", ExportOptions(keep_existence=True))
     capsys.readouterr()
     assert main(["export", "--checkpoint", str(a), "--keep-existence", "--out",
                  str(tmp_path / "no_start.pt")]) == 2
@@ -349,4 +362,4 @@ def test_export_keeps_the_fine_tunes_existence_logits_when_asked(eval_checkpoint
                  "--keep-existence", "--out", str(tmp_path / "plain.pt")]) == 2
     assert "plain_a.pt: keep_existence needs a network whose slots carry existence" in \
         error_line(capsys)
-    assert not (tmp_path / "no_start.pt").exists() and not (tmp_path / "plain.pt").exists()
+    assert not any((tmp_path / name).exists() for name in ("no_start.pt", "plain.pt", "api.pt"))

@@ -68,9 +68,10 @@ class ExportOptions:
     """With a ``start`` checkpoint: its share of the exported weights, the fine-tunes' average
     the rest (0: the average alone)."""
     keep_existence: bool = False
-    """With a ``start`` checkpoint: the primitives' existence logits are the fine-tunes'
-    average alone, not mixed back (a start grown to existence holds every primitive at 0.9, so
-    its share keeps the primitives the fine-tunes switch off)."""
+    """With a ``start`` checkpoint: the existence column of the generators' last layer (its
+    weights and bias) is the fine-tunes' average alone, not mixed back (a start grown to
+    existence holds every primitive at probability 0.9, so its share keeps the primitives the
+    fine-tunes switch off)."""
 
 
 def _exported_state(state: dict[str, torch.Tensor], half: bool) -> dict[str, torch.Tensor]:
@@ -156,6 +157,9 @@ def export_model(checkpoint: str | Path | Sequence[str | Path], data_root: str |
     """
     options = options or ExportOptions()
     validate(options)
+    if options.keep_existence and start is None:
+        raise ValueError("keep_existence: only with a start (without one the existence column "
+                         "is the average already)")
     paths = [Path(checkpoint)] if isinstance(checkpoint, (str, os.PathLike)) else \
         [Path(path) for path in checkpoint]
     if not paths:

@@ -26,8 +26,9 @@ weights: a "model soup", which can read data unlike the training data better tha
 one-line error naming what differs); the baseline is computed over --data. With --start
 (the file they were fine-tuned from, their init_from), the weights go part way back to
 it: --start-share x the start + the rest x the fine-tunes' average, which keeps more of what
-the start read well (WiSE-FT; docs/training.md); --keep-existence leaves the primitives'
-existence logits at the fine-tunes' average, so that the count they learned survives the mix."""
+the start read well (WiSE-FT; docs/training.md); --keep-existence leaves the existence column
+of the generators' last layer at the fine-tunes' average, so that the count of primitives they
+learned survives the mix."""
 
 FLAGS = {"half": "--half", "baseline_images": "--baseline-images",
          "start_share": "--start-share", "keep_existence": "--keep-existence"}
@@ -52,9 +53,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     add_config_options(parser, ExportOptions, FLAGS, helps={
         "start_share": "With --start: its share of the exported weights, the fine-tunes' "
                        "average the rest",
-        "keep_existence": "With --start, for a network with existence logits: those are the "
-                          "fine-tunes' average alone, not mixed back (the start's grown "
-                          "logits would keep every primitive)",
+        "keep_existence": "With --start, for a network with existence logits: the existence "
+                          "column of the generators' last layer is the fine-tunes' average "
+                          "alone, not mixed back (the start's grown column would keep every "
+                          "primitive)",
         "half": "Store floating-point weights in half precision: half the file size; the "
                 "network's outputs change by about 1e-3 relative, below what the metrics "
                 "resolve"})

@@ -147,10 +147,11 @@ def average_checkpoints(payloads: Sequence[Mapping[str, Any]], names: Sequence[s
         start_share: with ``start``, the weights are ``start_share`` x the start (grown to
             the payloads' network by :func:`fine_tune_start` with their seed) plus
             ``1 - start_share`` x the payloads' average.
-        keep_existence: with ``start``, the existence logits are the payloads' average alone,
+        keep_existence: with ``start``, the existence column of the generators' last layer
+            (its weights and bias: :func:`existence_keys`) is the payloads' average alone,
             not mixed back: a start grown from a network without existence holds every
-            primitive at 0.9 (``INITIAL_EXISTENCE``), so its share would keep every primitive
-            the fine-tunes learned to switch off (eval/MODEL_CARD.md, PARS-E).
+            primitive at probability 0.9 (``INITIAL_EXISTENCE``), so its share would keep
+            every primitive the fine-tunes learned to switch off (eval/MODEL_CARD.md, PARS-E).
 
     Raises:
         ValueError: ``<name>: ...`` for a payload whose network configuration (a field
@@ -188,21 +189,20 @@ def average_checkpoints(payloads: Sequence[Mapping[str, Any]], names: Sequence[s
             raise ValueError(f"{names[0]}: config.seed is {seeds[0]!r}, expected the run's "
                              "integer seed (it drew the start's new layers)")
         network_config = checkpoint_network_config(first, names[0])
+        if keep_existence and not (network_config.existence
+                                   and network_config.shape_decoder == "slots"):
+            raise ValueError(f"{names[0]}: keep_existence needs a network whose slots carry "
+                             "existence logits (network.existence, shape_decoder 'slots')")
         begun = fine_tune_start(start[0]["model"], network_config, seeds[0], start[1])
         # The start last: the first fine-tune gives the dtypes and the integer counters.
         shares = [(1.0 - start_share) / len(payloads)] * len(payloads) + [start_share]
         weights = average_weights([payload["model"] for payload in payloads] + [begun],
                                   [*names, start[1]], shares)
-        if keep_existence:
+        if keep_existence:  # the existence column of the last layer: the runs' alone
             keys = existence_keys(weights)
-            if not keys:
-                raise ValueError(f"{names[0]}: keep_existence needs a network whose slots "
-                                 "carry existence logits (network.existence, shape_decoder "
-                                 "'slots')")
             runs = average_weights([{key: payload["model"][key] for key in keys}
                                     for payload in payloads], names)
             for key in keys:
-                weights[key] = weights[key].clone()
                 weights[key][..., NUM_PARAMS] = runs[key][..., NUM_PARAMS]
     return {"format": first["format"], "version": first["version"], "config": first["config"],
             "model": weights, "camera": first["camera"]}
