@@ -70,8 +70,8 @@ def _run(args: argparse.Namespace) -> int:
     if hasattr(args, "start_share") and args.start is None:
         raise CLIError("--start-share: only with --start (the share of the start's weights)")
     if getattr(args, "keep_existence", False) and args.start is None:
-        raise CLIError("--keep-existence: only with --start (without one the existence logits "
-                       "are the average already)")
+        raise CLIError("--keep-existence: only with --start (without one the existence column "
+                       "is the average already)")
     notes: list[str] = []
     checkpoint = args.checkpoint[0] if len(args.checkpoint) == 1 else args.checkpoint
     path = export_model(checkpoint, args.data, args.out,

@@ -161,7 +161,7 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def _run_sequence(args: argparse.Namespace) -> int:
-    from sq_mitsuba.apps.predict import check_target_size
+    from sq_mitsuba.apps.predict import PredictOptions
     from sq_mitsuba.apps.predict_sequence import predict_sequence_files
     from sq_mitsuba.cli import CLIError
     from sq_mitsuba.config import ConfigError, apply_overrides
@@ -182,10 +182,8 @@ def _run_sequence(args: argparse.Namespace) -> int:
         options = apply_overrides(SequenceOptions(), args.fit_overrides)
     except ConfigError as error:
         raise CLIError(f"--fit {error}") from None
-    try:
-        check_target_size(getattr(args, "target_size", None))
-    except ConfigError as error:
-        raise CLIError(f"--{error}".replace("--target_size", "--target-size", 1)) from None
+    # The single image's options other than --target-size were refused above.
+    target_size = config_from_args(PredictOptions, args).target_size
     camera = Camera.load(args.camera) if args.camera is not None else None
     relative = None
     if args.relative_rotations is not None:
@@ -196,7 +194,7 @@ def _run_sequence(args: argparse.Namespace) -> int:
                                     camera, relative_rotations=relative, options=options,
                                     ordered=args.ordered, other_inputs=inputs,
                                     masks=args.mask, progress=not args.quiet,
-                                    target_size=getattr(args, "target_size", None))
+                                    target_size=target_size)
     print(f"{record.describe()}; wrote {len(record.files)} files to {args.out}")
     return 0
 

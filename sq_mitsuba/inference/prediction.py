@@ -9,8 +9,6 @@ Convention: poses map body to camera in the OpenCV frame (x right, y down, z for
 
 from __future__ import annotations
 
-import math
-import numbers
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -19,8 +17,7 @@ from torch import Tensor
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.camera import Camera
 
-__all__ = ["MASK_SOURCES", "Fit", "MaskChoice", "Prediction", "SequencePrediction",
-           "check_length_factor"]
+__all__ = ["MASK_SOURCES", "Fit", "MaskChoice", "Prediction", "SequencePrediction"]
 
 #: Where the mask a prediction was fitted to came from: the network's mask head, the threshold
 #: segmentation of the image (:func:`sq_mitsuba.data.segmentation.segment_target`), or the
@@ -32,13 +29,12 @@ MASK_SOURCES = ("network", "segmentation", "given")
 MaskChoice = str | Tensor | np.ndarray | None
 
 
-def check_length_factor(factor: object) -> None:
-    """A one-line ``ValueError`` naming ``factor`` unless it is a finite real number > 0 (not
-    a bool, not a tensor: a prediction's lengths scale as one)."""
-    if isinstance(factor, bool) or not isinstance(factor, numbers.Real) \
-            or not (math.isfinite(factor) and factor > 0):
-        raise ValueError(f"factor: expected a finite number > 0 (the target's longest side in "
-                         f"metres), got {factor!r}")
+def _one_factor(factor: object) -> None:
+    """Refuse a tensor ``factor`` in one line: a prediction's lengths scale as one (the
+    number itself is checked by :meth:`~sq_mitsuba.geometry.assembly.Assembly.scaled`)."""
+    if isinstance(factor, Tensor):
+        raise ValueError(f"factor: expected one number for the whole batch (the target's "
+                         f"longest side in metres), got a tensor of shape {tuple(factor.shape)}")
 
 
 @dataclass(frozen=True)
@@ -182,8 +178,8 @@ class Prediction:
         Raises:
             ValueError: one line naming ``factor`` when it is not a finite number > 0.
         """
-        check_length_factor(factor)
-        assembly = self.assembly.scaled(factor)
+        _one_factor(factor)
+        assembly = self.assembly.scaled(factor)  # checks the number before any other work
         network = None if self.network is None else self.network.scaled(factor)
         fit = None if self.fit is None else replace(
             self.fit, start=self.fit.start.scaled(factor),
@@ -251,7 +247,7 @@ class SequencePrediction:
         Raises:
             ValueError: one line naming ``factor`` when it is not a finite number > 0.
         """
-        check_length_factor(factor)
+        _one_factor(factor)
         return replace(self, assembly=self.assembly.scaled(factor),
                        translation=self.translation * factor,
                        frames=self.frames.scaled(factor), scale=self.scale * float(factor))
