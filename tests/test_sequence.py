@@ -497,8 +497,29 @@ def test_predict_sequence_cli_writes_one_assembly_and_a_pose_per_frame(eval_chec
         flag = extra[0].replace("--no-", "--")
         assert line.startswith(f"sq-mitsuba predict: error: {flag}"), line
         assert "not used with --sequence" in line
-    # Frames of another aspect ratio than the camera: one line naming the first frame.
+    # --set takes the target-present threshold only, and the threshold reaches the predictor:
+    # a black frame is refused as showing no target by default, and at min_target=0 it passes
+    # that check to be refused for its empty mask instead (nothing written either way).
     from PIL import Image
+    black = tmp_path / "black.png"
+    Image.new("L", Image.open(images[0]).size).save(black)
+    frames = [str(images[0]), str(black), str(images[2])]
+    capsys.readouterr()
+    assert main(["predict", *map(str, images), "--sequence", "--set", "search.turns=2",
+                 "--checkpoint", str(eval_checkpoint), "--out", str(tmp_path / "p")]) == 2
+    assert error_line(capsys).startswith(
+        "sq-mitsuba predict: error: --set search.turns=2: not used with --sequence")
+    assert main(["predict", *map(str, images), "--sequence", "--set", "min_target=1.5",
+                 "--checkpoint", str(eval_checkpoint), "--out", str(tmp_path / "o")]) == 2
+    assert "min_target" in error_line(capsys)
+    assert main(["predict", *frames, "--sequence", "--checkpoint", str(eval_checkpoint),
+                 "--out", str(tmp_path / "n"), "--quiet"]) == 2
+    assert "black.png: shows no target" in error_line(capsys)
+    assert main(["predict", *frames, "--sequence", "--set", "min_target=0", "--checkpoint",
+                 str(eval_checkpoint), "--out", str(tmp_path / "m"), "--quiet"]) == 2
+    line = error_line(capsys)
+    assert "black.png" in line and "no target in its mask" in line, line
+    # Frames of another aspect ratio than the camera: one line naming the first frame.
     wide = []
     for k, image in enumerate(images[:2]):
         wide.append(tmp_path / f"wide{k}.png")
@@ -507,7 +528,7 @@ def test_predict_sequence_cli_writes_one_assembly_and_a_pose_per_frame(eval_chec
     assert main(["predict", *map(str, wide), "--sequence", "--checkpoint",
                  str(eval_checkpoint), "--out", str(tmp_path / "r")]) == 2
     assert f"image {wide[0]}: 64 x 48 px, another aspect ratio" in error_line(capsys)
-    assert all(not (tmp_path / name).exists() for name in "xyzwvutsrq")
+    assert all(not (tmp_path / name).exists() for name in "xyzwvutsrqponm")
 
 
 @pytest.mark.slow  # end to end: `make test` runs it, `make test-fast` not

@@ -61,7 +61,9 @@ by the --refine path, the half turns resolved across frames, then one shape and 
 fitted to every frame's mask at once). Writes sequence.assembly.json, sequence.glb,
 sequence.png (the assembly from six sides) and per frame <stem>.pose.json (its pose of that
 assembly) and <stem>.overlay.png (its own fit in red, the shared assembly in green).
---mask gives each frame's mask (one per image, in their order) in place of the network's.
+--mask gives each frame's mask (one per image, in their order) in place of the network's;
+a frame the network sees no target in (its score below --set min_target, the one --set a
+pass takes) is refused unless masks are given.
 --relative-rotations FILE gives the rotations between the frames when they are known (e.g.
 from the servicer's navigation, for a target that holds its attitude): a JSON list of one
 quaternion [w, x, y, z] per image, in their order, each the target's rotation into that
@@ -170,31 +172,34 @@ def _run_sequence(args: argparse.Namespace) -> int:
     from sq_mitsuba.inference.sequence import SequenceOptions
 
     # A pass refines every frame, on the fast path, and draws its own overlays: the single
-    # image's options would be silently ignored.
+    # image's options would be silently ignored. Two apply: --target-size and the threshold
+    # on the target-present score (--set min_target), below which a frame is refused.
+    overrides = [override for override in getattr(args, "overrides", None) or []
+                 if override.split("=", 1)[0].strip() != "min_target"]
     unused = [flag for flag, given in (("--refine", hasattr(
         args, "refine")), ("--turns", hasattr(args, "turns")), ("--level", hasattr(args, "level")),
-        ("--fast / --no-fast", hasattr(args, "fast")), ("--set", getattr(args, "overrides", None)))
-        if given]
+        ("--fast / --no-fast", hasattr(args, "fast")),
+        (f"--set {overrides[0] if overrides else ''}", overrides)) if given]
     if unused:
         raise CLIError(f"{unused[0]}: not used with --sequence (every frame is refined, on the "
-                       "fast path; --fit sets the joint fit)")
+                       "fast path; --fit sets the joint fit; --set takes min_target only)")
     try:
         options = apply_overrides(SequenceOptions(), args.fit_overrides)
     except ConfigError as error:
         raise CLIError(f"--fit {error}") from None
-    # The single image's options other than --target-size were refused above.
-    target_size = config_from_args(PredictOptions, args).target_size
+    single = config_from_args(PredictOptions, args)
     camera = Camera.load(args.camera) if args.camera is not None else None
     relative = None
     if args.relative_rotations is not None:
         relative = _relative_rotations(args.relative_rotations, len(args.images))
     inputs = [path for path in (args.checkpoint, args.camera, args.relative_rotations)
               if path is not None]
-    record = predict_sequence_files(args.images, args.out, load_model(args.checkpoint),
-                                    camera, relative_rotations=relative, options=options,
+    predictor = load_model(args.checkpoint, min_target=single.min_target)
+    record = predict_sequence_files(args.images, args.out, predictor, camera,
+                                    relative_rotations=relative, options=options,
                                     ordered=args.ordered, other_inputs=inputs,
                                     masks=args.mask, progress=not args.quiet,
-                                    target_size=target_size)
+                                    target_size=single.target_size)
     print(f"{record.describe()}; wrote {len(record.files)} files to {args.out}")
     return 0
 
