@@ -292,16 +292,20 @@ def test_the_shipped_model_is_the_broad_recipes_network_of_eight_primitives():
     """The shipped model was grown from five primitives into eight by the broad recipe
     (train/shipped_model.sh step 4; the growth itself: test_init_from_grows_...): its
     network is that recipe's, and the file says so."""
-    config = load_train_config("train/configs/broad_chamfer100.toml")
+    config = load_train_config("train/configs/broad_parsimony.toml")
     assert (config.network.num_primitives, config.network.existence) == (8, True)
-    assert config.loss.weights["parsimony"] > 0
+    assert config.loss.weights["parsimony"] == 0.02
     payload = read_checkpoint(SHIPPED_MODEL)
     shipped, _ = model_from_checkpoint(payload)
     assert shipped.config == dataclasses.replace(config.network, pretrained=None)
-    # As train/shipped_model.sh exports it: two fine-tunes, a quarter of the way from the start.
+    # Trained with that price (the runs' config travels with the averaged file).
+    assert payload["config"]["loss"]["weights"]["parsimony"] == 0.02
+    # As train/shipped_model.sh exports it: two fine-tunes, a quarter of the way from the
+    # start, the existence column from the fine-tunes alone (--keep-existence).
     assert len(payload["source"]["averaged"]) == 2
     assert payload["source"]["start"]["share"] == 0.75
     assert payload["source"]["start"]["checkpoint"] == "model_archetypes.pt"
+    assert payload["source"]["start"]["existence"] == "the fine-tunes' average"
 
 
 def _check_grown(source: SuperquadricNet, grown: SuperquadricNet, camera: Camera) -> None:

@@ -11,15 +11,17 @@
 # alone), then train/configs/shipped_finetune.toml (every weight again, gently): the archetype
 # model, $WORK/model_archetypes.pt. Then two broad fine-tunes of it, each on its own library of
 # 200 compositional spacecraft of the training families (catalogue seeds 1 and 2, 8 views at
-# 96 px; train/configs/broad_chamfer100.toml, 14 epochs), exported part way back to the
+# 96 px; train/configs/broad_parsimony.toml, 14 epochs), exported part way back to the
 # archetype model (a quarter the fine-tunes' average, three quarters the start: `export
-# --start`), then evaluation on val and test. Measured on 2 CPU cores: models 2 min, rendering
+# --start`; the primitives' existence from the fine-tunes alone: `--keep-existence`), then
+# evaluation on val and test. Measured on 2 CPU cores: models 2 min, rendering
 # about 12 min, training about 125 min for the archetype model and about 35 min for the broad
 # fine-tunes with their libraries (eval/MODEL_CARD.md). DEVICE=cuda trains on a GPU.
 # ARCHETYPE_MODEL=PT skips the archetype model's training and starts the broad fine-tunes
 # from that file (the archetype model was the shipped model until 2026-11-27:
 # `git show 1f9efc1:sq_mitsuba/model/weights/model.pt > PT`). The broad runs resume from
-# their last.pt: after changing the archetype model, remove $WORK/broad_*/run first.
+# their last.pt: after changing the archetype model or the broad config, remove
+# $WORK/broad_*/run first.
 set -euo pipefail
 WORK=${1:-data/shipped}
 SQ=${SQ:-sq-mitsuba}
@@ -82,7 +84,7 @@ for SEED in 1 2; do
     --resolution 96 --spp 16 --set mask.spp=16 --seed 0 --workers 2 --quiet
   RESUME=""
   [ -f "$BROAD/run/last.pt" ] && RESUME="--resume"
-  $SQ train --config train/configs/broad_chamfer100.toml --data "$BROAD/data" \
+  $SQ train --config train/configs/broad_parsimony.toml --data "$BROAD/data" \
     --out "$BROAD/run" --set device="$DEVICE" --set optim.epochs=14 \
     --set init_from="\"$WORK/model_archetypes.pt\"" $RESUME
 done
@@ -90,10 +92,12 @@ done
 MODEL=sq_mitsuba/model/weights/model.pt
 # 4b. The inference checkpoint the package ships: a quarter of the way from the archetype model
 #     to the fine-tunes' average (eval/experiments/README.md, "Averaged weights and the share
-#     of the start"), half precision,
-#     with the trivial baseline over the archetype library.
+#     of the start"), half precision, with the trivial baseline over the archetype library.
+#     Every weight is mixed so but the existence column of the generators' last layer, which
+#     is the fine-tunes' average alone: mixed back, the start's existence (0.9 for every
+#     primitive) would keep all eight on every image (eval/MODEL_CARD.md, PARS-E).
 $SQ export --checkpoint "$WORK/broad_1/run/last.pt" "$WORK/broad_2/run/last.pt" \
-  --start "$WORK/model_archetypes.pt" --start-share 0.75 --data "$WORK/data" \
+  --start "$WORK/model_archetypes.pt" --start-share 0.75 --keep-existence --data "$WORK/data" \
   --out "$MODEL"
 
 # 5. Evaluation of the shipped file (eval/MODEL_CARD.md): val and test, the network alone,
