@@ -391,8 +391,18 @@ def test_reading_from_turned_copies_turns_with_the_image(train_dataset):
     torch.testing.assert_close(read.rotation_hypotheses[:, 0], read.rotation)
     # The rest is the mean over the copies, each mapped back: the rolled image's four copies
     # are the image's four, so its reading is the image's, rolled (the shape not at all).
-    torch.testing.assert_close(read_rolled.assembly.params, read.assembly.params, atol=1e-4,
-                               rtol=1e-4)
+    # Convention: the turned copies keep the unturned pass's primitives, and the rolled
+    # image's unturned pass is another copy: with a network whose existence falls near the
+    # threshold the two may keep different primitives, and then only there may they differ.
+    same = torch.ones(len(images), dtype=torch.bool)
+    if read.primitive_index is not None:
+        same = (read.primitive_index == read_rolled.primitive_index).all(dim=1)
+        kept = read.existence >= shipped.min_existence
+        kept_rolled = read_rolled.existence >= shipped.min_existence
+        assert torch.equal(same, (kept == kept_rolled).all(dim=1))
+    assert int(same.sum()) >= len(images) // 2
+    torch.testing.assert_close(read_rolled.assembly.params[same], read.assembly.params[same],
+                               atol=1e-4, rtol=1e-4)
     torch.testing.assert_close(read_rolled.depth, read.depth, atol=1e-4, rtol=1e-4)
     centre = torch.tensor([images.shape[-1] / 2, images.shape[-2] / 2])  # of the given images
     rolled_pixel = (roll[:, :2, :2].float() @ (read.pixel - centre)[..., None])[..., 0] + centre
