@@ -308,6 +308,23 @@ def test_the_shipped_model_is_the_broad_recipes_network_of_eight_primitives():
     assert payload["source"]["start"]["existence"] == "the fine-tunes' average"
 
 
+def test_the_shipped_model_keeps_the_primitives_each_image_needs(train_dataset):
+    """The shipped model's count follows the spacecraft (train/configs/broad_parsimony.toml,
+    `export --keep-existence`): on the fixture's images (unseen spacecraft of the archetype
+    catalogue) each reading keeps the primitives whose existence reaches the predictor's
+    threshold, some fewer than all eight, where a model mixed back whole kept every one."""
+    from sq_mitsuba.data.spe3r import Spe3rDataset
+
+    predictor = load_model()
+    dataset = Spe3rDataset(train_dataset, "test", num_surface=10, num_occupancy=2)
+    images = torch.stack([dataset[i]["image"] for i in range(len(dataset))]).float()
+    reading = predictor.predict(images, dataset.camera)
+    kept = (reading.primitive_index >= 0).sum(dim=1)
+    assert torch.equal(kept, (reading.existence >= predictor.min_existence).sum(dim=1).clamp(min=1))
+    assert int(kept.min()) >= 1 and int(kept.max()) <= predictor.num_primitives
+    assert int(kept.min()) < predictor.num_primitives, kept
+
+
 def _check_grown(source: SuperquadricNet, grown: SuperquadricNet, camera: Camera) -> None:
     """The grown network reads an image as its source, its extra primitives copies of the
     source's moved by GROWN_OFFSET in raw translation, every primitive present at p ~ 0.9."""
