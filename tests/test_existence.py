@@ -22,6 +22,7 @@ from sq_mitsuba.cli import main
 from sq_mitsuba.config import to_dict
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.camera import Camera
+from sq_mitsuba.geometry.image_turns import rotate_batch
 from sq_mitsuba.inference.loading import load_model
 from sq_mitsuba.inference.predictor import Predictor
 from sq_mitsuba.model.checkpoint import (
@@ -458,12 +459,21 @@ def test_predictions_drop_the_primitives_that_do_not_exist():
             renderer.reseed(5)
             alone = render_assembly(pruned.item_assembly(k), *pose, renderer, 2)
             assert torch.equal(padded, alone) and float(alone.sum()) > 0
-    # The turned copies keep the unturned pass's primitives: their mean, pruned.
+    # A reading from turned copies keeps the primitives of the copies' mean existence: the
+    # mean of every primitive over the copies, pruned by it.
     turned = predictor.predict(images, turns=4)
-    assert torch.equal(turned.primitive_index, pruned.primitive_index)
     every_turned = Predictor(net, CAMERA, min_existence=0.0).predict(images, turns=4)
+    torch.testing.assert_close(turned.existence, every_turned.existence)
+    assert torch.equal(turned.primitive_index,
+                       kept_primitives(every_turned.existence.double(), threshold))
     torch.testing.assert_close(turned.assembly.params, gathered_primitives(
-        every_turned.assembly.params, pruned.primitive_index))
+        every_turned.assembly.params, turned.primitive_index))
+    torch.testing.assert_close(turned.primitives, every_turned.assembly.params)
+    copies = [predictor.predict(rotate_batch(images[:, None], torch.full((4,), k * math.pi / 2)
+                                             )[:, 0]).existence for k in range(4)]
+    assert float((copies[1] - copies[0]).abs().max()) > 0.05  # the copies read differently
+    torch.testing.assert_close(turned.existence, torch.stack(copies).mean(0),
+                               atol=1e-3, rtol=0)  # the network's batches of 4 and 12
     assert Predictor(net, CAMERA).predict(images).assembly.params.shape[1] == \
         int((probabilities >= 0.5).sum(1).max())  # the default threshold: 0.5
     with pytest.raises(ValueError, match=r"^min_existence: expected a number in \[0, 1\]"):
@@ -482,10 +492,12 @@ def test_refinement_fits_the_kept_primitives():
     fitted = predictor.refine(images, network, mask=masks,
                               search=SearchOptions(grid=128, screen_steps=2, resolution=32),
                               refinement=RefineOptions(steps=3, patience=3, resolution=32))
-    assert fitted.assembly.params.shape == network.assembly.params.shape
-    assert torch.equal(fitted.primitive_index, network.primitive_index)
+    start = fitted.fit.start  # the reading from turned copies: their primitives are fitted
+    assert fitted.assembly.params.shape == start.assembly.params.shape
+    assert torch.equal(fitted.primitive_index, start.primitive_index)
+    assert fitted.primitives is None and start.primitives is not None
     for k in range(2):
-        assert fitted.item_assembly(k).num_primitives == network.item_assembly(k).num_primitives
+        assert fitted.item_assembly(k).num_primitives == start.item_assembly(k).num_primitives
 
 
 @pytest.mark.parametrize("start", ["reference", "best"])

@@ -19,8 +19,8 @@ from torch import Tensor
 
 from sq_mitsuba.geometry.camera import Camera
 
-__all__ = ["DEFAULT_MIN_TARGET", "camera_for", "neighbour_correlation", "prepare_images",
-           "resize_images", "target_scores"]
+__all__ = ["DEFAULT_MIN_TARGET", "camera_for", "check_min_target", "neighbour_correlation",
+           "prepare_images", "resize_images", "target_scores"]
 
 # Relative aspect-ratio difference below which a camera of another size is rescaled.
 _ASPECT_TOLERANCE = 1e-3
@@ -227,3 +227,12 @@ def target_scores(network_input: Tensor, mask_logits: Tensor | None,
             evidence[k] = min(float(_ramp(torch.tensor(bright), *_BRIGHT_RAMP)),
                               float(_ramp(torch.tensor(border), *_BORDER_RAMP)))
     return torch.minimum(evidence, picture)
+
+
+def check_min_target(min_target: float, name: str = "min_target") -> float:
+    """``min_target`` (or another threshold, ``name``) as a float, or a one-line
+    ``ValueError`` naming it unless in [0, 1]."""
+    if isinstance(min_target, bool) or not isinstance(min_target, int | float) \
+            or not 0.0 <= min_target <= 1.0:
+        raise ValueError(f"{name}: expected a number in [0, 1], got {min_target!r}")
+    return float(min_target)

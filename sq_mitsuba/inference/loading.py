@@ -8,8 +8,8 @@ from pathlib import Path
 
 import torch
 
-from sq_mitsuba.inference.images import DEFAULT_MIN_TARGET
-from sq_mitsuba.inference.predictor import DEFAULT_MIN_EXISTENCE, Predictor, check_min_target
+from sq_mitsuba.inference.images import DEFAULT_MIN_TARGET, check_min_target
+from sq_mitsuba.inference.predictor import DEFAULT_MIN_EXISTENCE, Predictor
 from sq_mitsuba.model import checkpoint
 
 __all__ = ["check_device", "load_model", "with_fast_path"]

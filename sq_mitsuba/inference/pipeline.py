@@ -207,4 +207,4 @@ def fit_prediction(predictor: Any, images: Tensor, network: Prediction, *,
                    translation=fitted_translation,
                    quaternion=matrix_to_quaternion(fitted_rotation),
                    pixel=camera.project(fitted_translation), depth=fitted_translation[:, 2],
-                   network=network, fit=fit)
+                   network=network, fit=fit, primitives=None)

@@ -128,12 +128,18 @@ class Prediction:
         fingerprint: (B, C, 8, 8) the network's input averaged over 8 x 8 blocks, with which
             ``read_turns`` and ``refine`` check that they are given the images this reading
             was made from.
-        existence: (B, M) the network's probability that each of its M primitives exists,
-            or None for a network without existence probabilities.
+        existence: (B, M) the network's probability that each of its M primitives exists
+            (the copies' mean where the reading is from turned copies), or None for a network
+            without existence probabilities.
         primitive_index: (B, W) int64, the network's primitive behind each row of
             ``assembly`` (those whose existence reaches the predictor's ``min_existence``,
             and each item's most probable one, in the network's order), -1 for a stand-in;
             None for a network without existence probabilities (every primitive, in order).
+        primitives: (B, M, 16) all M of the network's primitives, kept or not, that
+            ``primitive_index`` picks from (the copies' means where the reading is from turned
+            copies, which decide anew which to keep); None for a network without existence
+            probabilities (``assembly`` holds them all) and for a fitted prediction (its
+            ``network`` and ``fit.start`` hold theirs).
         scale: the target's longest side in metres that the lengths are for: 1, the unit
             size the network reads every target at, unless :meth:`scaled` set it.
     """
@@ -156,6 +162,7 @@ class Prediction:
     fingerprint: Tensor | None = None
     existence: Tensor | None = None
     primitive_index: Tensor | None = None
+    primitives: Tensor | None = None
     scale: float = 1.0
 
     def scaled(self, factor: float) -> Prediction:
@@ -180,12 +187,14 @@ class Prediction:
         """
         _one_factor(factor)
         assembly = self.assembly.scaled(factor)  # checks the number before any other work
+        primitives = None if self.primitives is None else \
+            Assembly(self.primitives).scaled(factor).params
         network = None if self.network is None else self.network.scaled(factor)
         fit = None if self.fit is None else replace(
             self.fit, start=self.fit.start.scaled(factor),
             search_translation=self.fit.search_translation * factor)
         return replace(self, assembly=assembly, translation=self.translation * factor,
-                       depth=self.depth * factor, network=network, fit=fit,
+                       depth=self.depth * factor, network=network, fit=fit, primitives=primitives,
                        scale=self.scale * float(factor))
 
     def item_assembly(self, item: int) -> Assembly:

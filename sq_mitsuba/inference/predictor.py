@@ -33,8 +33,8 @@ Convention:
       and pose mean nothing, and ``refine`` does not fit it.
     - A network with existence probabilities: a prediction drops the primitives whose
       probability is below the predictor's ``min_existence`` (each item keeps its most
-      probable one), before the turned copies, the search, the refinement or any file see
-      it; the turned copies keep the unturned pass's primitives.
+      probable one) before the search, the refinement or any file see it; a reading from
+      turned copies, by their mean probability (an image rolled by one of the turns alike).
 """
 
 from __future__ import annotations
@@ -55,6 +55,7 @@ from sq_mitsuba.geometry.rotation import matrix_to_quaternion
 from sq_mitsuba.inference.images import (
     DEFAULT_MIN_TARGET,
     camera_for,
+    check_min_target,
     prepare_images,
     resize_images,
     target_scores,
@@ -282,10 +283,10 @@ class Predictor:
         log_p = getattr(prediction, "rotation_log_probabilities", None)
         if not isinstance(prediction, Prediction) or log_p is None \
                 or tuple(log_p.shape) != (count, self.model.config.rotation_cells) \
-                or prediction.camera != camera:
-            raise ValueError(f"prediction: expected this predictor's Prediction of the {count} "
-                             f"images ({camera.width} x {camera.height} px, this camera), with "
-                             "rotation_log_probabilities")
+                or prediction.camera != camera or prediction.fit is not None \
+                or (prediction.existence is None) != (prediction.primitives is None):
+            raise ValueError(f"prediction: expected this predictor's (unfitted) reading of the "
+                             f"{count} images ({camera.width} x {camera.height} px, this camera)")
         if not self._same_images(prediction, x):
             raise ValueError(f"prediction: a reading of other images than these {count} (its "
                              "fingerprint differs); read these with predict(images)")
@@ -337,8 +338,9 @@ class Predictor:
         scale = rotation.new_tensor([x.width / size, x.height / size])
         score = target_scores(x.images, output.mask_logits, x.checked).to(rotation)
         params = output.assembly.params.clone()
-        existence, rows = output.existence, None
+        existence, rows, primitives = output.existence, None, None
         if existence is not None:
+            existence, primitives = existence.clone(), params
             rows = kept_primitives(existence, self.min_existence)
             params = gathered_primitives(params, rows)
         return Prediction(
@@ -358,6 +360,7 @@ class Predictor:
             fingerprint=self._fingerprint(x),
             existence=existence,
             primitive_index=rows,
+            primitives=primitives,
         )
 
     def can_turn(self, camera: Camera | None = None) -> bool:
@@ -414,7 +417,8 @@ class Predictor:
     def _with_turns(self, x: _Prepared, prediction: Prediction, turns: int) -> Prediction:
         """``prediction`` (the unturned pass on ``x``) read again from ``turns`` in-plane turns
         of the prepared images ``x``: the rotation from the product of the copies'
-        distributions, the rest as means over the copies, each mapped back to the image."""
+        distributions, the rest (existence included) as means over the copies, each mapped
+        back to the image."""
         from sq_mitsuba.geometry.image_turns import rotate_batch, turned_back_mask, z_rotation
         from sq_mitsuba.model.rotation_grid import turned_cells, turned_log_probabilities
 
@@ -448,11 +452,15 @@ class Predictor:
         # Rz(angle) q in a copy turned by angle (rotate_batch), so q = Rz^T p maps it back.
         # The assembly is in the body frame and the depth along the optical axis: neither turns.
         dtype = prediction.rotation.dtype
-        copies = output.assembly.params
-        if prediction.primitive_index is not None:  # the unturned pass's primitives
-            copies = gathered_primitives(copies, prediction.primitive_index.repeat(turns - 1, 1))
-        params = torch.cat([prediction.assembly.params[None].to(dtype),
-                            per_copy(copies).to(dtype)])
+        unturned, existence, rows = prediction.assembly.params, None, None
+        if prediction.existence is not None:  # every primitive's mean; the copies then decide
+            unturned = prediction.primitives
+            existence = torch.cat([prediction.existence[None],
+                                   per_copy(output.existence).to(prediction.existence)]).mean(0)
+            rows = kept_primitives(existence, self.min_existence)
+        params = torch.cat([unturned[None].to(dtype),
+                            per_copy(output.assembly.params).to(dtype)]).mean(dim=0)
+        kept = params if rows is None else gathered_primitives(params, rows)
         scale = prediction.pixel.new_tensor([x.width / size, x.height / size])
         back = z_rotation(angles[1:]).to(dtype)[:, None, :2, :2]  # (T - 1, 1, 2, 2)
         offsets = per_copy(output.pixel).to(dtype) - 0.5 * size
@@ -463,11 +471,12 @@ class Predictor:
         mask = prediction.mask
         if mask is not None and output.mask_logits is not None:
             mask = turned_back_mask(mask, output.mask_logits, angles[1:], x.height, x.width)
-        return replace(prediction, assembly=Assembly(params.mean(dim=0)), rotation=rotation,
+        return replace(prediction, assembly=Assembly(kept), rotation=rotation,
                        quaternion=matrix_to_quaternion(rotation), pixel=pixel * scale,
                        depth=depth, translation=network_camera.unproject(pixel, depth),
                        mask=mask, rotation_hypotheses=hypotheses, rotation_scores=scores,
-                       rotation_log_probabilities=combined.to(rotation))
+                       rotation_log_probabilities=combined.to(rotation), existence=existence,
+                       primitive_index=rows, primitives=None if rows is None else params)
 
     def _hypotheses(self, logits: Tensor | None, rotation: Tensor) -> tuple[Tensor, Tensor]:
         """(B, K, 3, 3) rotation hypotheses and (B, K) scores from a distribution head's (B, G)
@@ -489,12 +498,3 @@ def _check_unit_scale(**readings: object) -> None:
         if isinstance(reading, Prediction) and reading.scale != 1.0:
             raise ValueError(f"{name}: scaled to a target of {reading.scale:g} m "
                              "(Prediction.scaled); refine the unit-size reading, then scale")
-
-
-def check_min_target(min_target: float, name: str = "min_target") -> float:
-    """``min_target`` (or another threshold, ``name``) as a float, or a one-line
-    ``ValueError`` naming it unless in [0, 1]."""
-    if isinstance(min_target, bool) or not isinstance(min_target, int | float) \
-            or not 0.0 <= min_target <= 1.0:
-        raise ValueError(f"{name}: expected a number in [0, 1], got {min_target!r}")
-    return float(min_target)
