@@ -496,6 +496,10 @@ def test_refinement_fits_the_kept_primitives():
     assert fitted.assembly.params.shape == start.assembly.params.shape
     assert torch.equal(fitted.primitive_index, start.primitive_index)
     assert fitted.primitives is None and start.primitives is not None
+    torch.testing.assert_close(start.scaled(2.0).primitives[..., :3],
+                               2.0 * start.primitives[..., :3])  # sizes scale with the target
+    with pytest.raises(ValueError, match=r"^prediction: expected this predictor's \(unfitted\)"):
+        predictor.read_turns(images, fitted, 4)  # the turned copies read the network's own
     for k in range(2):
         assert fitted.item_assembly(k).num_primitives == start.item_assembly(k).num_primitives
 

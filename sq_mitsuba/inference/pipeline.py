@@ -6,7 +6,8 @@ holds the network's reading) runs, for a batch of B images:
 1. the network's reading of each image (one pass);
 2. the same read again from ``turns`` in-plane turns of the image
    (:meth:`~sq_mitsuba.inference.predictor.Predictor.read_turns`: the rotation and its
-   hypotheses from the copies' product, the assembly, position and mask as their means), when
+   hypotheses from the copies' product, the assembly, position and mask as their means, the
+   primitives kept by their mean existence), when
    the network has a rotation-distribution head and the camera's roll is an image rotation;
 3. the mask to fit: the mask head's (the turned copies' mean, above 0.5), or the threshold
    segmentation of the image (:func:`~sq_mitsuba.data.segmentation.segment_target`), or one
