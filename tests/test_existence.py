@@ -462,6 +462,9 @@ def test_predictions_drop_the_primitives_that_do_not_exist():
     # A reading from turned copies keeps the primitives of the copies' mean existence: the
     # mean of every primitive over the copies, pruned by it.
     turned = predictor.predict(images, turns=4)
+    assert (pruned.turns, turned.turns) == (1, 4)
+    with pytest.raises(ValueError, match=r"^prediction: expected this predictor.s one-pass"):
+        predictor.read_turns(images, turned, 4)  # a reading is not turned twice
     every_turned = Predictor(net, CAMERA, min_existence=0.0).predict(images, turns=4)
     torch.testing.assert_close(turned.existence, every_turned.existence)
     assert torch.equal(turned.primitive_index,
@@ -498,7 +501,7 @@ def test_refinement_fits_the_kept_primitives():
     assert fitted.primitives is None and start.primitives is not None
     torch.testing.assert_close(start.scaled(2.0).primitives[..., :3],
                                2.0 * start.primitives[..., :3])  # sizes scale with the target
-    with pytest.raises(ValueError, match=r"^prediction: expected this predictor's \(unfitted\)"):
+    with pytest.raises(ValueError, match=r"^prediction: expected this predictor.s one-pass"):
         predictor.read_turns(images, fitted, 4)  # the turned copies read the network's own
     for k in range(2):
         assert fitted.item_assembly(k).num_primitives == start.item_assembly(k).num_primitives

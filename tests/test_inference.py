@@ -424,7 +424,7 @@ def test_reading_from_turned_copies_turns_with_the_image(train_dataset):
     torch.testing.assert_close(reused.assembly.params, read.assembly.params)
     assert torch.allclose(plain.rotation_log_probabilities.logsumexp(-1), torch.zeros(1),
                           atol=1e-4)
-    with pytest.raises(ValueError, match=r"^prediction: expected this predictor.s \(unfitted\)"):
+    with pytest.raises(ValueError, match=r"^prediction: expected this predictor.s one-pass"):
         shipped.read_turns(images[:1], plain, 4, camera)  # another batch's prediction
     longer_lens = Camera(camera.fx * 1.5, camera.fy * 1.5, camera.cx, camera.cy, camera.width,
                          camera.height)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import io
 import os
 import pty
+import select
 
 from sq_mitsuba.progress import LOG_INTERVAL_S, progress_bar
 
@@ -57,7 +58,12 @@ def test_a_bar_on_a_terminal_redraws_in_place():
         for _ in progress_bar(range(3), desc="work", file=terminal, mininterval=0):
             pass
         terminal.flush()
-        shown = os.read(leader, 4096).decode()
+        # The pty hands the bar's writes over in pieces: read until nothing more comes (one
+        # read could return the first redraw alone).
+        chunks = []
+        while select.select([leader], [], [], 0.5)[0]:
+            chunks.append(os.read(leader, 4096))
+        shown = b"".join(chunks).decode()
     os.close(leader)
     assert "\r" in shown and "3/3" in shown
 

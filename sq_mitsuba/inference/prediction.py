@@ -140,6 +140,8 @@ class Prediction:
             copies, which decide anew which to keep); None for a network without existence
             probabilities (``assembly`` holds them all) and for a fitted prediction (its
             ``network`` and ``fit.start`` hold theirs).
+        turns: the in-plane turned copies of each image the reading is from (1: one pass;
+            a fitted prediction keeps its start's).
         scale: the target's longest side in metres that the lengths are for: 1, the unit
             size the network reads every target at, unless :meth:`scaled` set it.
     """
@@ -163,6 +165,7 @@ class Prediction:
     existence: Tensor | None = None
     primitive_index: Tensor | None = None
     primitives: Tensor | None = None
+    turns: int = 1
     scale: float = 1.0
 
     def scaled(self, factor: float) -> Prediction:

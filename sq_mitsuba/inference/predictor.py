@@ -281,11 +281,11 @@ class Predictor:
         count = x.images.shape[0]
         _check_unit_scale(prediction=prediction)
         log_p = getattr(prediction, "rotation_log_probabilities", None)
-        if not isinstance(prediction, Prediction) or log_p is None \
+        if not isinstance(prediction, Prediction) or log_p is None or prediction.turns != 1 \
                 or tuple(log_p.shape) != (count, self.model.config.rotation_cells) \
                 or prediction.camera != camera or prediction.fit is not None \
                 or (prediction.existence is None) != (prediction.primitives is None):
-            raise ValueError(f"prediction: expected this predictor's (unfitted) reading of the "
+            raise ValueError(f"prediction: expected this predictor's one-pass reading of the "
                              f"{count} images ({camera.width} x {camera.height} px, this camera)")
         if not self._same_images(prediction, x):
             raise ValueError(f"prediction: a reading of other images than these {count} (its "
@@ -415,10 +415,9 @@ class Predictor:
                 network.train()
 
     def _with_turns(self, x: _Prepared, prediction: Prediction, turns: int) -> Prediction:
-        """``prediction`` (the unturned pass on ``x``) read again from ``turns`` in-plane turns
-        of the prepared images ``x``: the rotation from the product of the copies'
-        distributions, the rest (existence included) as means over the copies, each mapped
-        back to the image."""
+        """``prediction`` (the unturned pass on ``x``) read again from ``turns`` in-plane turns of
+        ``x``: the rotation from the product of the copies' distributions, the rest (existence
+        included) as means over the copies, each mapped back to the image."""
         from sq_mitsuba.geometry.image_turns import rotate_batch, turned_back_mask, z_rotation
         from sq_mitsuba.model.rotation_grid import turned_cells, turned_log_probabilities
 
@@ -460,7 +459,8 @@ class Predictor:
             rows = kept_primitives(existence, self.min_existence)
         params = torch.cat([unturned[None].to(dtype),
                             per_copy(output.assembly.params).to(dtype)]).mean(dim=0)
-        kept = params if rows is None else gathered_primitives(params, rows)
+        kept, every = (params, None) if rows is None else (gathered_primitives(params, rows),
+                                                           params)
         scale = prediction.pixel.new_tensor([x.width / size, x.height / size])
         back = z_rotation(angles[1:]).to(dtype)[:, None, :2, :2]  # (T - 1, 1, 2, 2)
         offsets = per_copy(output.pixel).to(dtype) - 0.5 * size
@@ -476,7 +476,7 @@ class Predictor:
                        depth=depth, translation=network_camera.unproject(pixel, depth),
                        mask=mask, rotation_hypotheses=hypotheses, rotation_scores=scores,
                        rotation_log_probabilities=combined.to(rotation), existence=existence,
-                       primitive_index=rows, primitives=None if rows is None else params)
+                       primitive_index=rows, primitives=every, turns=turns)
 
     def _hypotheses(self, logits: Tensor | None, rotation: Tensor) -> tuple[Tensor, Tensor]:
         """(B, K, 3, 3) rotation hypotheses and (B, K) scores from a distribution head's (B, G)
