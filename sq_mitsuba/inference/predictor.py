@@ -34,13 +34,12 @@ Convention:
     - A network with existence probabilities: a prediction drops the primitives whose
       probability is below the predictor's ``min_existence`` (each item keeps its most
       probable one) before the search, the refinement or any file see it; a reading from
-      turned copies, by their mean probability (an image rolled by one of the turns alike).
+      turned copies, by their mean probability (an image rolled by one of the turns alike;
+      the copies are combined in :mod:`~sq_mitsuba.inference.turned_copies`).
 """
 
 from __future__ import annotations
 
-import math
-from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, NamedTuple
 
@@ -62,9 +61,15 @@ from sq_mitsuba.inference.images import (
 )
 from sq_mitsuba.inference.prediction import Fit, MaskChoice, Prediction, SequencePrediction
 from sq_mitsuba.inference.traced import TracedNetwork
+from sq_mitsuba.inference.turned_copies import (
+    hypotheses_from_logits,
+    reading_from_turns,
+    turn_angles,
+    turned_images,
+)
 from sq_mitsuba.model.existence import EXISTENCE_THRESHOLD, gathered_primitives, kept_primitives
 from sq_mitsuba.model.network import NetworkOutput, SuperquadricNet
-from sq_mitsuba.model.rotation_grid import RotationGridPoseHead, rotation_hypotheses
+from sq_mitsuba.model.rotation_grid import RotationGridPoseHead
 
 if TYPE_CHECKING:  # the search and refinement load Mitsuba's bridge: imported when used
     from sq_mitsuba.inference.refine import RefineOptions
@@ -327,7 +332,8 @@ class Predictor:
         # Clones made outside inference mode are ordinary tensors, so callers (test-time
         # refinement) can start autograd from them.
         rotation = output.rotation.clone()
-        hypotheses, scores = self._hypotheses(output.rotation_logits, rotation)
+        hypotheses, scores = hypotheses_from_logits(self.model.pose_head, output.rotation_logits,
+                                                    rotation, self.hypotheses)
         mask = None
         if output.mask_logits is not None:
             mask = F.interpolate(output.mask_logits.clone(), size=(x.height, x.width),
@@ -415,81 +421,21 @@ class Predictor:
                 network.train()
 
     def _with_turns(self, x: _Prepared, prediction: Prediction, turns: int) -> Prediction:
-        """``prediction`` (the unturned pass on ``x``) read again from ``turns`` in-plane turns of
-        ``x``: the rotation from the product of the copies' distributions, the rest (existence
-        included) as means over the copies, each mapped back to the image."""
-        from sq_mitsuba.geometry.image_turns import rotate_batch, turned_back_mask, z_rotation
-        from sq_mitsuba.model.rotation_grid import turned_cells, turned_log_probabilities
+        """``prediction`` (the unturned pass on ``x``) read again from ``turns`` in-plane
+        turns of ``x`` (:mod:`~sq_mitsuba.inference.turned_copies`)."""
+        from sq_mitsuba.geometry.image_turns import z_rotation
+        from sq_mitsuba.model.rotation_grid import turned_cells
 
-        head = self.model.pose_head
-        images, size = x.images, self.image_size
-        angles = torch.arange(turns, dtype=torch.float64) * (2.0 * math.pi / turns)
-        key = (turns, images.device)
+        head, side = self.model.pose_head, self.image_size
+        angles = turn_angles(turns)
+        key = (turns, x.images.device)
         if key not in self._turned_cells:
             self._turned_cells[key] = turned_cells(head.grid_rotations(), z_rotation(angles))
-        # Every turned copy of every image in one batch: (T - 1) B images, copy-major.
-        batch = images.shape[0]
-        copies = angles[1:].to(images).repeat_interleave(batch)
-        turned = rotate_batch(images.repeat(turns - 1, 1, 1, 1), copies)
-        network_camera = prediction.camera.rescaled(size, size)
-        matrix = network_camera.matrix(images.dtype, images.device)
-        output = self._run(turned, matrix)
-
-        def per_copy(value: Tensor) -> Tensor:  # (T - 1) B x ... -> (T - 1, B, ...)
-            return value.clone().reshape(turns - 1, batch, *value.shape[1:])
-
-        log_p = prediction.rotation_log_probabilities
-        logits = torch.cat([log_p.to(output.rotation_logits)[None],
-                            per_copy(output.rotation_logits)])
-        combined = turned_log_probabilities(logits, self._turned_cells[key]).clone()
-        with torch.inference_mode():
-            rotation = head.rotation_from_logits(combined.to(output.rotation_logits))
-        rotation = rotation.clone().to(prediction.rotation)
-        hypotheses, scores = self._hypotheses(combined, rotation)
-
-        # Convention: a point at offset q from the image centre (S / 2, S / 2) lies at
-        # Rz(angle) q in a copy turned by angle (rotate_batch), so q = Rz^T p maps it back.
-        # The assembly is in the body frame and the depth along the optical axis: neither turns.
-        dtype = prediction.rotation.dtype
-        unturned, existence, rows = prediction.assembly.params, None, None
-        if prediction.existence is not None:  # every primitive's mean; the copies then decide
-            unturned = prediction.primitives
-            existence = torch.cat([prediction.existence[None],
-                                   per_copy(output.existence).to(prediction.existence)]).mean(0)
-            rows = kept_primitives(existence, self.min_existence)
-        params = torch.cat([unturned[None].to(dtype),
-                            per_copy(output.assembly.params).to(dtype)]).mean(dim=0)
-        kept, every = (params, None) if rows is None else (gathered_primitives(params, rows),
-                                                           params)
-        scale = prediction.pixel.new_tensor([x.width / size, x.height / size])
-        back = z_rotation(angles[1:]).to(dtype)[:, None, :2, :2]  # (T - 1, 1, 2, 2)
-        offsets = per_copy(output.pixel).to(dtype) - 0.5 * size
-        pixels = torch.cat([prediction.pixel[None] / scale,
-                            (back.transpose(-1, -2) @ offsets[..., None])[..., 0] + 0.5 * size])
-        pixel = pixels.mean(dim=0)
-        depth = torch.cat([prediction.depth[None], per_copy(output.depth).to(dtype)]).mean(0)
-        mask = prediction.mask
-        if mask is not None and output.mask_logits is not None:
-            mask = turned_back_mask(mask, output.mask_logits, angles[1:], x.height, x.width)
-        return replace(prediction, assembly=Assembly(kept), rotation=rotation,
-                       quaternion=matrix_to_quaternion(rotation), pixel=pixel * scale,
-                       depth=depth, translation=network_camera.unproject(pixel, depth),
-                       mask=mask, rotation_hypotheses=hypotheses, rotation_scores=scores,
-                       rotation_log_probabilities=combined.to(rotation), existence=existence,
-                       primitive_index=rows, primitives=every, turns=turns)
-
-    def _hypotheses(self, logits: Tensor | None, rotation: Tensor) -> tuple[Tensor, Tensor]:
-        """(B, K, 3, 3) rotation hypotheses and (B, K) scores from a distribution head's (B, G)
-        scores over its grid (``rotation`` alone for a regressing head: ``logits`` None)."""
-        head = self.model.pose_head
-        if logits is None or not isinstance(head, RotationGridPoseHead):
-            return rotation[:, None], rotation.new_ones(rotation.shape[0], 1)
-        grid = head.grid_rotations().to(rotation)
-        rotations, scores = rotation_hypotheses(logits.clone(), grid,
-                                                self.hypotheses)
-        # The best hypothesis is the head's own rotation (its argmax, refined locally).
-        rotations[:, 0] = rotation
-        return rotations, scores.to(rotation)
+        matrix = prediction.camera.rescaled(side, side).matrix(x.images.dtype, x.images.device)
+        output = self._run(turned_images(x.images, angles), matrix)
+        return reading_from_turns(prediction, output, angles, self._turned_cells[key], head,
+                                  side=side, width=x.width, height=x.height,
+                                  min_existence=self.min_existence, hypotheses=self.hypotheses)
 
 
 def _check_unit_scale(**readings: object) -> None:
