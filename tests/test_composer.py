@@ -125,6 +125,32 @@ def test_fill_cavities_drops_enclosed_voids_only() -> None:
     assert fill_cavities(single) is single
 
 
+def test_fill_cavities_drops_slivers_of_no_volume_but_keeps_small_parts() -> None:
+    body = trimesh.creation.box((2, 2, 2))
+    small = trimesh.creation.box((0.02, 0.02, 0.02))  # 1e-6 of the body: a part
+    small.apply_translation((3, 0, 0))
+    # A closed tetrahedron 1e-9 high (2e-11 of the body): the flat shell a union can leave.
+    sliver = trimesh.Trimesh([[4, 0, 0], [5, 0, 0], [4, 1, 0], [4.2, 0.2, 1e-9]],
+                             [[0, 2, 1], [0, 1, 3], [1, 2, 3], [2, 0, 3]], process=False)
+    assert sliver.volume > 0
+    meshes = [body, small, sliver]
+    offsets = np.cumsum([0] + [len(m.vertices) for m in meshes])[:-1]
+    vertices = np.concatenate([m.vertices for m in meshes])
+    faces = np.concatenate([m.faces + o for m, o in zip(meshes, offsets, strict=True)])
+    material = np.repeat(np.arange(3, dtype=np.int16), [len(m.faces) for m in meshes])
+    filled = fill_cavities(TaggedMesh(vertices, faces, material))
+    assert sorted(set(filled.face_material.tolist())) == [0, 1]
+    assert len(filled.faces) == len(body.faces) + len(small.faces)
+
+
+def test_a_station_whose_union_left_a_sliver_is_one_piece() -> None:
+    # Catalogue seed 77's eighth model: its exact union holds a flat shell of 4 triangles
+    # (1.6e-10 of the volume) beside the station, which made it "2 disconnected pieces".
+    entry = composed_catalogue(8, 77)[7]
+    assert entry.name == "cs00007_station_truss"
+    assert _pieces(generate_spacecraft(entry.seed, entry.archetype).union()) == 1
+
+
 # ---------------------------------------------------------------------------- the variety
 
 def _over_seeds(family: str, measure) -> list:
