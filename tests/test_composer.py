@@ -106,6 +106,15 @@ def test_family_is_one_piece_across_many_seeds(family: str) -> None:
     assert bad == [], (family, bad)
 
 
+def _tagged(meshes: list[trimesh.Trimesh]) -> TaggedMesh:
+    """The meshes as one TaggedMesh, mesh k's faces of material k."""
+    offsets = np.cumsum([0] + [len(m.vertices) for m in meshes])[:-1]
+    vertices = np.concatenate([m.vertices for m in meshes])
+    faces = np.concatenate([m.faces + o for m, o in zip(meshes, offsets, strict=True)])
+    material = np.repeat(np.arange(len(meshes), dtype=np.int16), [len(m.faces) for m in meshes])
+    return TaggedMesh(vertices, faces, material)
+
+
 def test_fill_cavities_drops_enclosed_voids_only() -> None:
     outer = trimesh.creation.box((2, 2, 2))
     inner = trimesh.creation.box((0.5, 0.5, 0.5))
@@ -113,11 +122,7 @@ def test_fill_cavities_drops_enclosed_voids_only() -> None:
     far = trimesh.creation.box((1, 1, 1))
     far.apply_translation((5, 0, 0))  # a second solid: a real, separate piece
     meshes = [outer, inner, far]
-    offsets = np.cumsum([0] + [len(m.vertices) for m in meshes])[:-1]
-    vertices = np.concatenate([m.vertices for m in meshes])
-    faces = np.concatenate([m.faces + o for m, o in zip(meshes, offsets, strict=True)])
-    material = np.repeat(np.arange(3, dtype=np.int16), [len(m.faces) for m in meshes])
-    filled = fill_cavities(TaggedMesh(vertices, faces, material))
+    filled = fill_cavities(_tagged(meshes))
     assert len(filled.faces) == len(outer.faces) + len(far.faces)
     assert sorted(set(filled.face_material.tolist())) == [0, 2]
     assert len(filled.vertices) == len(outer.vertices) + len(far.vertices)
@@ -134,11 +139,7 @@ def test_fill_cavities_drops_slivers_of_no_volume_but_keeps_small_parts() -> Non
                              [[0, 2, 1], [0, 1, 3], [1, 2, 3], [2, 0, 3]], process=False)
     assert sliver.volume > 0
     meshes = [body, small, sliver]
-    offsets = np.cumsum([0] + [len(m.vertices) for m in meshes])[:-1]
-    vertices = np.concatenate([m.vertices for m in meshes])
-    faces = np.concatenate([m.faces + o for m, o in zip(meshes, offsets, strict=True)])
-    material = np.repeat(np.arange(3, dtype=np.int16), [len(m.faces) for m in meshes])
-    filled = fill_cavities(TaggedMesh(vertices, faces, material))
+    filled = fill_cavities(_tagged(meshes))
     assert sorted(set(filled.face_material.tolist())) == [0, 1]
     assert len(filled.faces) == len(body.faces) + len(small.faces)
 
