@@ -185,6 +185,43 @@ def test_fixed_depth_keeps_t_z_where_free_depth_turns_size_errors_into_depth(per
     assert bool(((depths["free"] - 1) * farther > 0.02).all()), depths["free"]
 
 
+def test_a_depth_prior_holds_the_depth_a_wrong_size_would_move(perturbed):
+    # As above, the sizes off by +-20 % move a free depth; a strong depth prior keeps each
+    # item's depth within a fifth of that change.
+    _, rotation, translation, masks, camera, start, *_ = perturbed
+    moved = {}
+    for weight in (0.0, 100.0):
+        result = refine_pose_and_shape(start, rotation, translation, masks, camera,
+                                       RefineOptions(steps=20, shape="pose", depth_prior=weight))
+        moved[weight] = (result.translation[:, 2] / translation[:, 2] - 1).abs()
+    assert bool((moved[0.0] > 0.02).all()), moved
+    assert bool((moved[100.0] < 0.2 * moved[0.0]).all()), moved
+
+
+def test_a_depth_prior_keeps_a_shared_views_depth_where_its_mask_is_too_small(perturbed):
+    # Four views of one body from the perturbed starts; view 0's mask is the body seen from
+    # 1.5 x as far (a mask missing parts of the target looks alike). Without a prior the joint
+    # fit sends view 0 away to shrink its silhouette; with one it stays nearer the others.
+    truth, rotation, translation, masks, camera, _, rotation_start, translation_start = \
+        perturbed
+    far = translation.clone()
+    far[0] = far[0] * 1.5
+    with torch.no_grad():
+        small = render_assembly(truth, rotation, far, SilhouetteRenderer(camera, spp=16)) > 0.5
+    targets = masks.clone()
+    targets[0] = small[0]
+    ratio = {}
+    for weight in (0.0, 10.0):
+        result = refine_pose_and_shape(Assembly(truth.params[:1]), rotation_start,
+                                       translation_start, targets, camera,
+                                       RefineOptions(steps=40, shape="pose", depth_prior=weight),
+                                       shared=True)
+        depth = result.translation[:, 2] / translation_start[:, 2]
+        ratio[weight] = float(depth[0] / depth[1:].prod() ** (1 / 3))  # view 0 against the rest
+    assert ratio[0.0] > 1.1, ratio
+    assert ratio[10.0] < 1.0 + 0.5 * (ratio[0.0] - 1.0), ratio
+
+
 def test_outline_preset_fits_a_mis_sized_shape_where_the_default_keeps_it(perturbed):
     # At the true pose with every size off by 20 %, the default (pose only) can only move the
     # pose; the outline preset moves the shape too, so its silhouette comes nearer the mask.

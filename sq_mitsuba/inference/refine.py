@@ -81,6 +81,10 @@ class RefineOptions:
     extent along the line of sight, so that one stays the network's."""
     depth: Literal["free", "fixed"] = "free"
     "The translation's depth t_z: 'free', or 'fixed' at the start's (only t_x, t_y move)."
+    depth_prior: float = non_negative(0.0)
+    """Weight of the squared relative change of each item's depth (of its log depth about the
+    views' mean with ``shared``): 1 makes a 10 % change cost what 0.01 of IoU gains (keeps a
+    view whose mask misses much of the target from running off to shrink the silhouette)."""
     loss: Literal["iou", "mse"] = "iou"
     "Per-item silhouette loss: 'iou' (1 - soft IoU, steady gradients far from the target) or 'mse'."
     patience: int = in_range(1, 10_000, default=15)
@@ -326,6 +330,10 @@ def refine_pose_and_shape(assembly: Assembly, rotation: Tensor, translation: Ten
                                                 options.loss), options.level)
             prior = options.prior_weight * ((raw - raw0) ** 2).mean(dim=(1, 2)).sum() \
                 + options.rotation_prior * rotation_vector.square().sum()
+            if options.depth_prior:  # the change of depth that pose() applies, squared
+                depth = shift[:, 2] * shift_axes[2]
+                prior = prior + options.depth_prior * (
+                    depth - depth.mean() if shared else depth).square().sum()
             if shared:  # the one shape's prior weighs as much as B items' would
                 prior = prior + (batch - 1) * options.prior_weight * ((raw - raw0) ** 2).mean()
             (silhouette + prior).backward()

@@ -127,6 +127,17 @@ class SequenceOptions:
     "What of the shared shape moves: every parameter, the sizes only, or nothing."
     prior_weight: float = non_negative(0.01)
     "Weight of the squared change of the raw shape parameters (keeps the network's reading)."
+    depth_prior: float = non_negative(1.0)
+    """Weight of the squared change of each frame's log depth about the frames' mean
+    (:class:`~sq_mitsuba.inference.refine.RefineOptions`'s ``depth_prior``; 1: a frame moved
+    10 % costs what 0.01 of IoU gains): holds each frame's depth near its reading relative to
+    the others'. Without it a frame whose mask misses much of the target (dark arrays, a
+    boom the mask head lost) ran off to shrink its silhouette, up to twice its distance.
+    Chosen on passes of 8 frames of 11 spacecraft of the training families never trained on
+    (0 / 1 / 10: camera-frame Chamfer 1.55 / 1.02 / 0.99 x the network's reading, 2D IoU
+    0.625 / 0.633 / 0.634, body frame 1.21 / 1.21 / 1.24 x); on the 12 held-out passes 2D
+    IoU 0.727 -> 0.735, the Chamfer distances unchanged (eval/experiments/README.md,
+    "Passes")."""
     patience: int = in_range(1, 10_000, default=12)
     "Stop after this many steps without a better mean IoU."
     seed: int = in_range(0, 2**31 - 1, default=0)
@@ -179,7 +190,8 @@ def stage_refine_options(options: SequenceOptions, steps: int, poses: bool) -> R
                          level=options.level, prior_weight=options.prior_weight,
                          shape=options.shape, loss="iou",
                          rotation="free" if poses else "fixed",
-                         depth="free" if poses else "fixed", patience=options.patience,
+                         depth="free" if poses else "fixed",
+                         depth_prior=options.depth_prior, patience=options.patience,
                          spp=options.spp, seed=options.seed)
 
 
