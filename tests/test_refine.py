@@ -198,6 +198,7 @@ def test_a_depth_prior_holds_the_depth_a_wrong_size_would_move(perturbed):
     assert bool((moved[100.0] < 0.2 * moved[0.0]).all()), moved
 
 
+@pytest.mark.slow
 def test_a_depth_prior_keeps_a_shared_views_depth_where_its_mask_is_too_small(perturbed):
     # Four views of one body from the perturbed starts; view 0's mask is the body seen from
     # 1.5 x as far (a mask missing parts of the target looks alike). Without a prior the joint

@@ -34,8 +34,7 @@ eager (``fast=False``), the fast path (``fast=True``; on one intra-op thread too
 path traced (``traced=True``), and the
 shipped model (its own input size) on the same images.
 
-:func:`learning_curves` (``sq-mitsuba bench curves``) trains several configs for the same
-wall-clock budget each on a real dataset and plots held-out Chamfer-L1 against training time.
+The learning curves (``sq-mitsuba bench curves``) are in :mod:`sq_mitsuba.bench.curves`.
 """
 
 from __future__ import annotations
@@ -51,7 +50,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from sq_mitsuba.bench import BENCHMARKS_MD, BenchOptions, Report, Timing, load_average
+from sq_mitsuba.bench import BenchOptions, Report, Timing, load_average
 from sq_mitsuba.training.batch import TrainingBatch
 
 BATCH = 32
@@ -549,173 +548,3 @@ def run(options: BenchOptions) -> Report:
         "analytic surface/occupancy samples, see the module docstring): no image decoding, "
         "which the training cache makes a memory copy; the network is randomly initialised")
     return report
-
-
-# ------------------------------------------------------------------------------ learning curves
-
-
-#: Configs of :func:`learning_curves`: label -> (config file stem, ``--set`` overrides).
-CURVE_CONFIGS: dict[str, tuple[str, tuple[str, ...]]] = {
-    "a": ("a", ()),
-    "cpu": ("cpu", ()),
-    "cpu, no augmentation": ("cpu", ("augment.probability=0",)),
-}
-CURVES_PNG = BENCHMARKS_MD.parent / "figures" / "learning_curves.png"
-
-
-@dataclasses.dataclass
-class Curve:
-    """Held-out Chamfer-L1 of one config against its training time."""
-
-    label: str
-    seconds: list[float] = dataclasses.field(default_factory=list)
-    "Training wall time (s, steps only) at each validation."
-    steps: list[int] = dataclasses.field(default_factory=list)
-    chamfer_l1: list[float] = dataclasses.field(default_factory=list)
-    "Mean Chamfer-L1 (paper convention) over the validation images."
-    images_per_second: float = float("nan")
-
-
-def learning_curves(data_root: str | Path, out_dir: str | Path, minutes: float,
-                    labels: Sequence[str] | None = None, points: int = 4,
-                    val_images: int = 64, progress: bool = True,
-                    configs: dict[str, Any] | None = None) -> list[Curve]:
-    """Train each config for ``minutes`` of wall time, one after the other, validating
-    held-out Chamfer-L1 ``points`` times (after each of ``points`` equal time slices).
-
-    Each config trains in ``out_dir/<label>/`` with :func:`~sq_mitsuba.training.train.train`
-    (``max_seconds`` per slice, resumed between slices, so one uninterrupted schedule); after
-    each slice its ``last.pt`` is scored by :func:`~sq_mitsuba.evaluation.evaluate.evaluate`
-    on ``val_images`` images of the val split (no refinement, baseline or figures). The
-    validations are not counted in the training time.
-
-    Args:
-        data_root: SPE3R-layout dataset (train and val splits).
-        out_dir: created; one run folder per config.
-        minutes: training budget of each config.
-        labels: keys of :data:`CURVE_CONFIGS` (default: all three).
-        configs: label -> TrainConfig, instead of :data:`CURVE_CONFIGS` (tests).
-
-    Returns:
-        One :class:`Curve` per config, in order.
-    """
-    from sq_mitsuba.config import apply_overrides
-    from sq_mitsuba.evaluation.evaluate import EvalOptions, evaluate_checkpoint
-    from sq_mitsuba.training.train import train
-
-    if not minutes > 0:
-        raise ValueError(f"minutes: expected > 0, got {minutes}")
-    if points < 1:
-        raise ValueError(f"points: expected >= 1, got {points}")
-    if configs is None:
-        labels = list(CURVE_CONFIGS) if labels is None else list(labels)
-        for label in labels:
-            if label not in CURVE_CONFIGS:
-                raise ValueError(f"configs: unknown {label!r}; choose from {list(CURVE_CONFIGS)}")
-        configs = {}
-        for label in labels:
-            stem, overrides = CURVE_CONFIGS[label]
-            configs[label] = apply_overrides(load_config(stem), list(overrides))
-    data_root, out_dir = Path(data_root), Path(out_dir)
-    if not data_root.is_dir():
-        raise ValueError(f"{data_root}: dataset folder not found")
-    out_dir.mkdir(parents=True, exist_ok=True)
-    curves = []
-    for label, config in configs.items():
-        run_dir = out_dir / label.replace(",", "").replace(" ", "_")
-        curve = Curve(label)
-        trained, images, timed = 0.0, 0, 0.0
-        for index in range(points):
-            result = train(config, data_root, run_dir, resume=index > 0, progress=progress,
-                           max_seconds=60.0 * minutes / points)
-            trained += result.train_seconds
-            if result.images_per_second == result.images_per_second:
-                done = len(result.losses) - 1
-                images += done * config.optim.batch_size
-                timed += done * config.optim.batch_size / result.images_per_second
-            scored = evaluate_checkpoint(
-                run_dir / "last.pt", data_root, run_dir / f"val_{index}",
-                EvalOptions(split="val", limit=val_images, baseline=False, figures=False),
-                progress=False)
-            method = next(iter(scored.summary))
-            curve.seconds.append(trained)
-            curve.steps.append(result.steps)
-            curve.chamfer_l1.append(scored.summary[method]["chamfer_l1_paper"][0])
-            if result.steps >= result.total_steps:
-                break
-        curve.images_per_second = images / timed if timed > 0 else float("nan")
-        curves.append(curve)
-    return curves
-
-
-def plot_learning_curves(curves: Sequence[Curve], path: Path = CURVES_PNG) -> Path:
-    """Held-out Chamfer-L1 against training minutes, one line per config, as a PNG."""
-    from matplotlib.figure import Figure
-
-    from sq_mitsuba.io import atomic_path
-
-    figure = Figure(figsize=(6, 4))
-    axis = figure.subplots()
-    for curve in curves:
-        axis.plot([s / 60 for s in curve.seconds], curve.chamfer_l1, marker="o",
-                  label=f"{curve.label} ({curve.images_per_second:.1f} images/s)")
-    axis.set_xlabel("training wall time (min)")
-    axis.set_ylabel("val Chamfer-L1 (paper convention)")
-    axis.set_title("held-out Chamfer-L1 at equal training time")
-    axis.legend(fontsize=8)
-    figure.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(path) as tmp:
-        figure.savefig(tmp, dpi=100, format="png")
-    return path
-
-
-def curves_report(curves: Sequence[Curve], minutes: float, data_root: Path,
-                  figure: Path | None = None) -> str:
-    """The ``curves`` section of BENCHMARKS.md: a table of every validation."""
-    import datetime as _dt
-    import platform
-
-    lines = ["### `sq-mitsuba bench curves`", "",
-             f"Measured {_dt.date.today().isoformat()} on {platform.node() or 'host'} "
-             f"({os.cpu_count()} cores, torch {torch.__version__}): {minutes:g} min of training "
-             f"per config on {data_root}; 1-minute load average at the end "
-             f"{load_average():.2f}.", "",
-             "| config | images/s | training min | steps | val Chamfer-L1 |",
-             "|---|---:|---:|---:|---:|"]
-    for curve in curves:
-        for seconds, steps, value in zip(curve.seconds, curve.steps, curve.chamfer_l1,
-                                         strict=True):
-            lines.append(f"| {curve.label} | {curve.images_per_second:.1f} | "
-                         f"{seconds / 60:.2f} | {steps} | {value:.4f} |")
-    if figure is not None:
-        lines += ["", f"Figure: `{figure.relative_to(BENCHMARKS_MD.parent)}`"
-                  if figure.is_relative_to(BENCHMARKS_MD.parent) else f"Figure: `{figure}`"]
-    return "\n".join(lines) + "\n"
-
-
-def curves_figure_path(out_dir: str | Path, write: bool) -> Path:
-    """Where ``bench curves`` draws its figure: with ``write`` the repository's
-    (:data:`CURVES_PNG`, beside the table it belongs to), else in the runs' ``out_dir``."""
-    return CURVES_PNG if write else Path(out_dir) / CURVES_PNG.name
-
-
-def run_curves(data_root: str | Path, out_dir: str | Path, minutes: float,
-               labels: Sequence[str] | None = None, write: bool = False,
-               figure: Path | None = None, benchmarks: Path = BENCHMARKS_MD,
-               progress: bool = True) -> str:
-    """:func:`learning_curves`, its figure, and its table (recorded in ``benchmarks``
-    between ``<!-- bench:curves:start/end -->`` with ``write``); returns the table.
-
-    The figure goes to ``figure`` (default :func:`curves_figure_path`: a trial run leaves the
-    recorded figure alone)."""
-    from sq_mitsuba.bench import write_section
-
-    if figure is None:
-        figure = curves_figure_path(out_dir, write)
-    curves = learning_curves(data_root, out_dir, minutes, labels, progress=progress)
-    plot_learning_curves(curves, figure)
-    text = curves_report(curves, minutes, Path(data_root), figure)
-    if write:
-        write_section("curves", text, benchmarks)
-    return text

@@ -65,7 +65,7 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def _curves(args: argparse.Namespace) -> int:
-    from sq_mitsuba.bench.train import run_curves
+    from sq_mitsuba.bench.curves import run_curves
 
     for flag, value in (("--data", args.data), ("--minutes", args.minutes),
                         ("--out", args.out)):

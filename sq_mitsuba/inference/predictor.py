@@ -50,6 +50,7 @@ from torch import Tensor
 
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.camera import Camera
+from sq_mitsuba.geometry.image_turns import check_rotation_exact, z_rotation
 from sq_mitsuba.geometry.rotation import matrix_to_quaternion
 from sq_mitsuba.inference.images import (
     DEFAULT_MIN_TARGET,
@@ -69,7 +70,7 @@ from sq_mitsuba.inference.turned_copies import (
 )
 from sq_mitsuba.model.existence import EXISTENCE_THRESHOLD, gathered_primitives, kept_primitives
 from sq_mitsuba.model.network import NetworkOutput, SuperquadricNet
-from sq_mitsuba.model.rotation_grid import RotationGridPoseHead
+from sq_mitsuba.model.rotation_grid import RotationGridPoseHead, turned_cells
 
 if TYPE_CHECKING:  # the search and refinement load Mitsuba's bridge: imported when used
     from sq_mitsuba.inference.refine import RefineOptions
@@ -389,8 +390,6 @@ class Predictor:
 
     def _check_turns(self, turns: int, camera: Camera) -> None:
         """One-line ``ValueError`` naming ``turns`` unless ``predict(turns=T)`` can run."""
-        from sq_mitsuba.geometry.image_turns import check_rotation_exact
-
         if isinstance(turns, bool) or not isinstance(turns, int) or not 1 <= turns <= 360:
             raise ValueError(f"turns: expected an int in [1, 360], got {turns!r}")
         if not isinstance(self.model.pose_head, RotationGridPoseHead):
@@ -423,9 +422,6 @@ class Predictor:
     def _with_turns(self, x: _Prepared, prediction: Prediction, turns: int) -> Prediction:
         """``prediction`` (the unturned pass on ``x``) read again from ``turns`` in-plane
         turns of ``x`` (:mod:`~sq_mitsuba.inference.turned_copies`)."""
-        from sq_mitsuba.geometry.image_turns import z_rotation
-        from sq_mitsuba.model.rotation_grid import turned_cells
-
         head, side = self.model.pose_head, self.image_size
         angles = turn_angles(turns)
         key = (turns, x.images.device)

@@ -82,9 +82,11 @@ class RefineOptions:
     depth: Literal["free", "fixed"] = "free"
     "The translation's depth t_z: 'free', or 'fixed' at the start's (only t_x, t_y move)."
     depth_prior: float = non_negative(0.0)
-    """Weight of the squared relative change of each item's depth (of its log depth about the
-    views' mean with ``shared``): 1 makes a 10 % change cost what 0.01 of IoU gains (keeps a
-    view whose mask misses much of the target from running off to shrink the silhouette)."""
+    """Weight of the squared change of each item's depth: of ``t_z`` in units of the start's
+    distance ``|t0|``, or with ``shared`` of each view's log depth (the views' mean change,
+    which the scale keeps at 0, is not penalised). With the "iou" loss, 1 makes a 10 % move
+    cost what 0.01 of that item's soft IoU gains. Keeps a view whose mask misses much of the
+    target from running off to shrink its silhouette."""
     loss: Literal["iou", "mse"] = "iou"
     "Per-item silhouette loss: 'iou' (1 - soft IoU, steady gradients far from the target) or 'mse'."
     patience: int = in_range(1, 10_000, default=15)

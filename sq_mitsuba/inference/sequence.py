@@ -132,7 +132,7 @@ class SequenceOptions:
     (:class:`~sq_mitsuba.inference.refine.RefineOptions`'s ``depth_prior``; 1: a frame moved
     10 % costs what 0.01 of IoU gains): holds each frame's depth near its reading relative to
     the others'. Without it a frame whose mask misses much of the target (dark arrays, a
-    boom the mask head lost) ran off to shrink its silhouette, up to twice its distance.
+    boom the mask head lost) ran off to shrink its silhouette, by up to 112 % of its distance.
     Chosen on passes of 8 frames of 11 spacecraft of the training families never trained on
     (0 / 1 / 10: camera-frame Chamfer 1.55 / 1.02 / 0.99 x the network's reading, 2D IoU
     0.625 / 0.633 / 0.634, body frame 1.21 / 1.21 / 1.24 x); on the 12 held-out passes 2D

@@ -16,8 +16,8 @@ image and combines them with the unturned reading into one :class:`Prediction`:
 
 Convention: a point at offset q from the image centre (S / 2, S / 2) lies at ``Rz(a) q`` in
 the copy turned by ``a`` (``geometry.image_turns.rotate_batch``), so ``q = Rz(a)^T p`` maps a
-copy's point ``p`` back. Copies are batched copy-major: (T - 1) B images, copy k of image b at
-``k B + b``.
+copy's point ``p`` back. Copies are batched copy-major: (T - 1) B images, copy k of image b
+(turned by ``angles[k + 1]``) at ``k B + b``.
 """
 
 from __future__ import annotations
@@ -56,7 +56,7 @@ def turned_images(images: Tensor, angles: Tensor) -> Tensor:
     return rotate_batch(images.repeat(len(angles) - 1, 1, 1, 1), copies)
 
 
-def hypotheses_from_logits(head: object, logits: Tensor | None, rotation: Tensor,
+def hypotheses_from_logits(head: torch.nn.Module, logits: Tensor | None, rotation: Tensor,
                            count: int) -> tuple[Tensor, Tensor]:
     """(B, K, 3, 3) rotation hypotheses, best first, and their (B, K) scores from a
     distribution head's (B, G) scores over its grid; for a regressing head (or ``logits``
