@@ -21,7 +21,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Run benchmark suites; --write records them in eval/BENCHMARKS.md. "
                     "'curves' trains configs for equal wall time on --data and plots held-out "
                     "Chamfer-L1 against time (--out's learning_curves.png; with --write "
-                    "eval/figures/learning_curves.png).")
+                    "eval/figures/learning_curves.png); a rerun into the same --out keeps the "
+                    "points measured and continues each curve from its last point.")
     parser.add_argument("suite", choices=[*suites, "all", "curves"], help="which suite to run")
     add_config_options(parser, bench.BenchOptions, FLAGS)
     parser.add_argument("--write", action="store_true",
