@@ -18,6 +18,7 @@ any training, naming it.
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 import shutil
 from collections.abc import Sequence
@@ -123,6 +124,7 @@ def learning_curves(data_root: str | Path, out_dir: str | Path, minutes: float,
     settings = {label: {"label": label, "minutes": minutes, "points": points,
                         "val_images": val_images, "data": str(data_root.resolve()),
                         "config": to_dict(config)} for label, config in configs.items()}
+    settings = json.loads(json.dumps(settings))  # as curve.json will hold them (tuples: lists)
     recorded = {label: _recorded(run_folder(out_dir, label), settings[label])
                 for label in configs}
     out_dir.mkdir(parents=True, exist_ok=True)
