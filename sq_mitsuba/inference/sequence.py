@@ -45,7 +45,9 @@ CPU.
 
 Limits: a pass whose frames all show the same outline (a target seen from one side only)
 constrains the depth of the shape no better than one image; a symmetric target's half turns
-stay ambiguous, harmlessly for the shape.
+stay ambiguous, harmlessly for the shape but not for the relative poses of frames given
+unordered, which may then differ by a half turn (frames in order, or the rotations between
+them, resolve it).
 """
 
 from __future__ import annotations
