@@ -756,3 +756,31 @@ def test_given_relative_rotations_start_the_pass_at_the_mean_of_the_carried_read
                                atol=1e-9)
     assert rotation_error_deg(torch.from_numpy(mean)[None],
                               torch.from_numpy(carried[:1])).item() > 0.01  # not frame 0's
+
+
+def test_a_frame_the_joint_fit_lost_is_placed_again(known_pass):
+    """A frame left outside its mask (moved 0.4 m sideways: IoU 0 where its own fit reached
+    0.9) is refitted alone with the shared shape from its start pose; the frames the fit kept
+    are not touched, and with none lost the poses come back as they are."""
+    from sq_mitsuba.inference.lost_frames import lost_frames, place_lost_frames
+    from sq_mitsuba.inference.sequence import SequenceOptions, stage_refine_options
+
+    body, rotations, translations, masks = known_pass
+    fitted = translations.clone()
+    fitted[0, 0] += 0.4
+    iou = torch.tensor([0.0, 0.9, 0.9, 0.9, 0.9, 0.9], dtype=torch.float64)
+    own = torch.full((6,), 0.9, dtype=torch.float64)
+    assert lost_frames(iou, own).tolist() == [True] + [False] * 5
+    start_rotation = _perturbed(rotations, 5.0, seed=11)
+    options = stage_refine_options(SequenceOptions(), 30, poses=True)
+    rotation, translation, placed_iou = place_lost_frames(
+        body, rotations, fitted, iou, own, start_rotation, translations, masks, CAMERA,
+        options)
+    assert float(placed_iou[0]) > 0.8
+    assert float((translation[0] - translations[0]).norm()) < 0.1  # 5 % of its distance
+    assert float(rotation_error_deg(rotation[:1], rotations[:1])[0]) < 10.0  # started 5 off
+    assert torch.equal(rotation[1:], rotations[1:]) and torch.equal(translation[1:], fitted[1:])
+    assert torch.equal(placed_iou[1:], iou[1:])
+    kept = place_lost_frames(body, rotations, translations, own, own, start_rotation,
+                             translations, masks, CAMERA, options)
+    assert kept[0] is rotations and kept[1] is translations and kept[2] is own

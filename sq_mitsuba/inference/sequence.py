@@ -32,7 +32,9 @@ its body frame and the pose of every image:
    match every frame's mask (in order, ``motion="fitted"``: ``R_0`` and the rate of turn
    move, not N rotations; ``"held"``: ``R_0`` alone);
    the best step by the mean IoU over the frames is kept. The scale stays the network's
-   (the frames' depths keep their geometric mean).
+   (the frames' depths keep their geometric mean). Where the frames move alone (no motion,
+   no given rotations), a frame the fit left below half its own fit's IoU is refitted alone
+   with the shared shape (:func:`~sq_mitsuba.inference.lost_frames.place_lost_frames`).
 4. **The dataset's body frame** (``options.canonical``, off by default): the result expressed
    in the convention of the processed models (:func:`canonical_frame`: the fitted assembly's
    oriented box's axes ordered by extent, its centre of mass at the origin) instead of the
@@ -74,6 +76,7 @@ from sq_mitsuba.inference.body_frame import (
     canonical_frame,
     reframed,
 )
+from sq_mitsuba.inference.lost_frames import place_lost_frames
 from sq_mitsuba.inference.prediction import Prediction, SequencePrediction
 from sq_mitsuba.inference.refine import RefineOptions, refine_pose_and_shape
 from sq_mitsuba.inference.search import (
@@ -462,8 +465,13 @@ def sequence_from_frames(frames: Prediction, relative: Tensor | None = None,
         start, chosen = Assembly(params[reference:reference + 1]), reference
     if rows is not None:  # the shared shape holds the chosen reading's own primitives
         start = Assembly(start.params[:, rows[chosen].to(start.params.device) >= 0])
+    started_at = rotation, translation
     assembly, rotation, translation, ious, steps, losses = fit_sequence(
         start, rotation, translation, fit.mask, frames.camera, options, relative, times)
+    if relative is None:  # frames that move alone: one the fit lost is placed again
+        rotation, translation, ious = place_lost_frames(
+            assembly, rotation, translation, ious, fit.iou.to(ious), *started_at, fit.mask,
+            frames.camera, stage_refine_options(options, options.steps, poses=True))
     if options.canonical:
         # x_cam = R x + t = R P^T x' + (t + R c): the poses follow the body frame.
         frame, centre = canonical_frame(assembly)
