@@ -5,14 +5,14 @@ one after the other, validating after each of ``points`` equal slices of it, and
 :func:`run_curves` plots the curves and writes their table (into eval/BENCHMARKS.md with
 ``--write``).
 
-Resumable: after each point a config's run folder ``OUT/<label>/`` holds ``curve.json`` (the
-points so far and the settings they were measured with) and ``point.pt`` (the checkpoint at
-that point). A rerun into the same ``OUT`` with the same settings keeps the points recorded,
-skips a finished config, and continues an unfinished one from its last point: the checkpoint
-of that point comes back as ``last.pt``, so training cut between two points is trained again
-and every point's time counts the training before it exactly once. A run folder that holds
-something else (a run of other settings, or one cut before its first point) is refused, before
-any training, naming it.
+Resumable: a config's run folder ``OUT/<label>/`` holds ``curve.json`` (the settings, and the
+points so far) from its start, and after each point ``point_<k>.pt`` (the checkpoint at the
+last point, k). A rerun into the same ``OUT`` with the same settings keeps the points
+recorded, skips a finished config, and continues an unfinished one from its last point: the
+checkpoint of that point comes back as ``last.pt``, so training cut between two points is
+trained again and every point's time counts the training before it exactly once; a config cut
+before its first point starts over. A run folder that holds something else (no
+``curve.json``, or one of other settings) is refused, before any training, naming it.
 """
 
 from __future__ import annotations
@@ -48,8 +48,9 @@ CURVE_CONFIGS: dict[str, tuple[str, tuple[str, ...]]] = {
     "cpu, no augmentation": ("cpu", ("augment.probability=0",)),
 }
 CURVES_PNG = BENCHMARKS_MD.parent / "figures" / "learning_curves.png"
-#: What a config's run folder keeps between points (module docstring).
-CURVE_FILE, POINT_CHECKPOINT = "curve.json", "point.pt"
+#: What a config's run folder keeps between points (module docstring): the record, and the
+#: checkpoint of its last point k.
+CURVE_FILE, POINT_CHECKPOINT = "curve.json", "point_{point}.pt"
 
 
 @dataclasses.dataclass
@@ -124,7 +125,7 @@ def learning_curves(data_root: str | Path, out_dir: str | Path, minutes: float,
     settings = {label: {"label": label, "minutes": minutes, "points": points,
                         "val_images": val_images, "data": str(data_root.resolve()),
                         "config": to_dict(config)} for label, config in configs.items()}
-    settings = json.loads(json.dumps(settings))  # as curve.json will hold them (tuples: lists)
+    settings = json.loads(json.dumps(settings))  # compared as curve.json holds them
     recorded = {label: _recorded(run_folder(out_dir, label), settings[label])
                 for label in configs}
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -135,7 +136,8 @@ def learning_curves(data_root: str | Path, out_dir: str | Path, minutes: float,
 
 
 def _recorded(run_dir: Path, settings: dict[str, Any]) -> Curve:
-    """The points recorded in ``run_dir`` with ``settings`` (none for a folder not there)."""
+    """The points recorded in ``run_dir`` with ``settings``: none for a folder not there or
+    one cut before its first point, which :func:`_measure` then starts over."""
     from sq_mitsuba.io import read_json
 
     label = settings["label"]
@@ -143,28 +145,54 @@ def _recorded(run_dir: Path, settings: dict[str, Any]) -> Curve:
         return Curve(label)
     record = run_dir / CURVE_FILE
     stored = read_json(record) if record.is_file() else None
-    if not isinstance(stored, dict) or stored.get("settings") != settings or \
-            not (run_dir / POINT_CHECKPOINT).is_file():
-        raise ValueError(f"{run_dir}: holds a run that is not this curve's (other settings, or "
-                         "cut before its first point); remove it or choose another --out")
-    return Curve(label, [float(v) for v in stored["seconds"]],
-                 [int(v) for v in stored["steps"]], [float(v) for v in stored["chamfer_l1"]],
-                 float(stored["images_per_second"]), bool(stored["finished"]),
-                 int(stored["images"]), float(stored["timed"]))
+    if not isinstance(stored, dict) or stored.get("settings") != settings:
+        raise ValueError(f"{run_dir}: holds a run that is not this curve's (no {CURVE_FILE}, "
+                         f"or one of other settings); remove it or choose another --out")
+    curve = Curve(label, [float(v) for v in stored["seconds"]],
+                  [int(v) for v in stored["steps"]], [float(v) for v in stored["chamfer_l1"]],
+                  float(stored["images_per_second"]), bool(stored["finished"]),
+                  int(stored["images"]), float(stored["timed"]))
+    if curve.seconds and not (run_dir / _point_checkpoint(len(curve.seconds))).is_file():
+        raise ValueError(f"{run_dir}: the checkpoint of its point {len(curve.seconds)} "
+                         f"({_point_checkpoint(len(curve.seconds))}) is missing; remove the "
+                         "folder or choose another --out")
+    return curve
+
+
+def _point_checkpoint(point: int) -> str:
+    """The file name of the checkpoint at ``point`` (1-based)."""
+    return POINT_CHECKPOINT.format(point=point)
+
+
+def _write_record(run_dir: Path, settings: dict[str, Any], curve: Curve) -> None:
+    from sq_mitsuba.io import atomic_write_json
+
+    atomic_write_json(run_dir / CURVE_FILE, {
+        "settings": settings, "seconds": curve.seconds, "steps": curve.steps,
+        "chamfer_l1": curve.chamfer_l1, "images_per_second": curve.images_per_second,
+        "finished": curve.finished, "images": curve.images, "timed": curve.timed})
 
 
 def _measure(config: Any, curve: Curve, settings: dict[str, Any], data_root: Path,
              run_dir: Path, progress: bool) -> Curve:
-    """``curve`` continued to ``settings["points"]`` points in ``run_dir``."""
+    """``curve`` continued to ``settings["points"]`` points in ``run_dir``.
+
+    Order of writes: point k's checkpoint (a file of its own), then ``curve.json`` naming k
+    points, then point k - 1's checkpoint removed; a run cut anywhere leaves ``curve.json``
+    and the checkpoint of its last point in step."""
     from sq_mitsuba.evaluation.evaluate import EvalOptions, evaluate_checkpoint
-    from sq_mitsuba.io import atomic_path, atomic_write_json
+    from sq_mitsuba.io import atomic_path
     from sq_mitsuba.training.train import train
 
     points, minutes = settings["points"], settings["minutes"]
     trained = curve.seconds[-1] if curve.seconds else 0.0
     if curve.seconds:  # the state at the last point; training after it is done again
         with atomic_path(run_dir / "last.pt") as tmp:
-            shutil.copyfile(run_dir / POINT_CHECKPOINT, tmp)
+            shutil.copyfile(run_dir / _point_checkpoint(len(curve.seconds)), tmp)
+    else:  # a new curve, or one cut before its first point (its folder ours: start over)
+        shutil.rmtree(run_dir, ignore_errors=True)
+        run_dir.mkdir(parents=True)
+        _write_record(run_dir, settings, curve)
     for index in range(len(curve.seconds), points):
         result = train(config, data_root, run_dir, resume=index > 0, progress=progress,
                        max_seconds=60.0 * minutes / points)
@@ -185,12 +213,10 @@ def _measure(config: Any, curve: Curve, settings: dict[str, Any], data_root: Pat
         curve.images_per_second = curve.images / curve.timed if curve.timed > 0 \
             else float("nan")
         curve.finished = index + 1 == points or result.steps >= result.total_steps
-        with atomic_path(run_dir / POINT_CHECKPOINT) as tmp:
+        with atomic_path(run_dir / _point_checkpoint(index + 1)) as tmp:
             shutil.copyfile(run_dir / "last.pt", tmp)
-        atomic_write_json(run_dir / CURVE_FILE, {
-            "settings": settings, "seconds": curve.seconds, "steps": curve.steps,
-            "chamfer_l1": curve.chamfer_l1, "images_per_second": curve.images_per_second,
-            "finished": curve.finished, "images": curve.images, "timed": curve.timed})
+        _write_record(run_dir, settings, curve)
+        (run_dir / _point_checkpoint(index)).unlink(missing_ok=True)
         if curve.finished:
             break
     return curve

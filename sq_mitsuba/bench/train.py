@@ -1,4 +1,4 @@
-"""``sq-mitsuba bench train``: training throughput and inference latency; learning curves.
+"""``sq-mitsuba bench train``: training throughput and inference latency.
 
 The headline (first rows; on any ``--device``, at batch 32 and ``--batch``): the shipped
 recipe's (``train/configs/shipped.toml``) network alone (forward, backward, AdamW on one fixed

@@ -24,7 +24,8 @@ from sq_mitsuba.inference.refine import RefineOptions, refine_pose_and_shape
 __all__ = ["LOST_FRACTION", "lost_frames", "place_lost_frames"]
 
 #: A frame is lost when the joint fit leaves it below this fraction of the IoU its own fit
-#: reached against the same mask.
+#: reached against the same mask (its own reading's shape, at its refinement's resolution:
+#: the joint fit's, 64 px, unless a caller gives ``predict_sequence`` another refinement).
 LOST_FRACTION = 0.5
 
 

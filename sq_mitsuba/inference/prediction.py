@@ -228,7 +228,9 @@ class SequencePrediction:
             reference body frame (``x_ref = S_j x_j``; ``R_j S_j`` is the frame's rotation
             there, or the nearest to it where the pass's motion replaced the reading).
         iou: (N,) IoU of each frame's silhouette against its mask after the joint fit (at the
-            fit's resolution); frame_iou: (N,) the same of each frame's own fit.
+            fit's resolution; a frame the fit lost and that was placed again, its refit's:
+            :mod:`~sq_mitsuba.inference.lost_frames`); frame_iou: (N,) the same of each
+            frame's own fit (at its refinement's resolution).
         steps: Adam steps taken; seconds: wall time of the whole sequence (frames included);
             frames_seconds: of the frames' own path alone (network, search, refinement).
         scale: the target's longest side in metres the lengths are for (1: the network's

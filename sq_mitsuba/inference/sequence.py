@@ -32,9 +32,10 @@ its body frame and the pose of every image:
    match every frame's mask (in order, ``motion="fitted"``: ``R_0`` and the rate of turn
    move, not N rotations; ``"held"``: ``R_0`` alone);
    the best step by the mean IoU over the frames is kept. The scale stays the network's
-   (the frames' depths keep their geometric mean). Where the frames move alone (no motion,
-   no given rotations), a frame the fit left below half its own fit's IoU is refitted alone
-   with the shared shape (:func:`~sq_mitsuba.inference.lost_frames.place_lost_frames`).
+   (the frames' depths keep their geometric mean). Where the frames move alone (unordered,
+   ``motion="free"`` or no motion found, and no given rotations), a frame the fit left below
+   half its own fit's IoU is refitted alone, pose only, with the shared shape
+   (:func:`~sq_mitsuba.inference.lost_frames.place_lost_frames`; its depth then moves alone).
 4. **The dataset's body frame** (``options.canonical``, off by default): the result expressed
    in the convention of the processed models (:func:`canonical_frame`: the fitted assembly's
    oriented box's axes ordered by extent, its centre of mass at the origin) instead of the
