@@ -61,6 +61,12 @@ def test_learning_curves_refuse_bad_input(tmp_path):
         learning_curves(tmp_path, tmp_path / "out", minutes=0)
     with pytest.raises(ValueError, match="unknown 'b'"):
         learning_curves(tmp_path, tmp_path / "out", minutes=1, labels=["b"])
+    tiny = load_train_config(TINY)
+    with pytest.raises(ValueError, match="configs: 'a b' and another label share the run "
+                                         "folder 'a_b'"):
+        learning_curves(tmp_path, tmp_path / "out", minutes=1, configs={"a b": tiny,
+                                                                        "a, b": tiny})
+    assert not (tmp_path / "out").exists()
     with pytest.raises(ValueError, match="dataset folder not found"):
         learning_curves(tmp_path / "none", tmp_path / "out", minutes=1)
 

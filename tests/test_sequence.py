@@ -784,3 +784,9 @@ def test_a_frame_the_joint_fit_lost_is_placed_again(known_pass):
     kept = place_lost_frames(body, rotations, translations, own, own, start_rotation,
                              translations, masks, CAMERA, options)
     assert kept[0] is rotations and kept[1] is translations and kept[2] is own
+    # Lost by the ratio, but the refit does not beat the IoU it has (0.999): the pose stays.
+    high = torch.tensor([0.999] * 6, dtype=torch.float64)
+    stays = place_lost_frames(body, rotations, fitted, high, 2 * high, start_rotation,
+                              translations, masks, CAMERA, options)
+    assert torch.equal(stays[0], rotations) and torch.equal(stays[1], fitted)
+    assert torch.equal(stays[2], high)

@@ -122,6 +122,11 @@ def learning_curves(data_root: str | Path, out_dir: str | Path, minutes: float,
     data_root, out_dir = Path(data_root), Path(out_dir)
     if not data_root.is_dir():
         raise ValueError(f"{data_root}: dataset folder not found")
+    folders = [run_folder(out_dir, label).name for label in configs]
+    for label, folder in zip(configs, folders, strict=True):
+        if folders.count(folder) > 1:
+            raise ValueError(f"configs: {label!r} and another label share the run folder "
+                             f"{folder!r}; name them apart")
     settings = {label: {"label": label, "minutes": minutes, "points": points,
                         "val_images": val_images, "data": str(data_root.resolve()),
                         "config": to_dict(config)} for label, config in configs.items()}
