@@ -122,7 +122,8 @@ def learning_curves(data_root: str | Path, out_dir: str | Path, minutes: float,
     data_root, out_dir = Path(data_root), Path(out_dir)
     if not data_root.is_dir():
         raise ValueError(f"{data_root}: dataset folder not found")
-    folders = [run_folder(out_dir, label).name for label in configs]
+    runs = {label: run_folder(out_dir, label) for label in configs}
+    folders = [run.name for run in runs.values()]
     for label, folder in zip(configs, folders, strict=True):
         if folders.count(folder) > 1:
             raise ValueError(f"configs: {label!r} and another label share the run folder "
@@ -131,12 +132,10 @@ def learning_curves(data_root: str | Path, out_dir: str | Path, minutes: float,
                         "val_images": val_images, "data": str(data_root.resolve()),
                         "config": to_dict(config)} for label, config in configs.items()}
     settings = json.loads(json.dumps(settings))  # compared as curve.json holds them
-    recorded = {label: _recorded(run_folder(out_dir, label), settings[label])
-                for label in configs}
+    recorded = {label: _recorded(runs[label], settings[label]) for label in configs}
     out_dir.mkdir(parents=True, exist_ok=True)
     return [recorded[label] if recorded[label].finished else
-            _measure(config, recorded[label], settings[label], data_root,
-                     run_folder(out_dir, label), progress)
+            _measure(config, recorded[label], settings[label], data_root, runs[label], progress)
             for label, config in configs.items()]
 
 
