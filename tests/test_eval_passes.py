@@ -275,6 +275,44 @@ def test_pass_groups_orders_each_pass_and_refuses_a_gap():
         pass_groups(dataset([(0, 0, 0), (0, 0, 0)]))
 
 
+def test_pass_groups_read_independent_images_as_one_set_of_views_per_model():
+    """Unordered (``views``), a dataset without pass labels is one set per model, its images in
+    image order whatever the listing's order; a dataset of passes stays passes; a dataset
+    that labels some images as passes and not others is refused."""
+    from types import SimpleNamespace
+
+    def dataset(items):
+        return SimpleNamespace(root="data", models=["m0", "m1"], items=items)
+
+    independent = dataset([(1, 1, {}), (0, 2, {}), (0, 0, {}), (1, 0, {}), (0, 1, {})])
+    assert pass_groups(independent, views=True) == {(0, 0): [2, 4, 1], (1, 0): [3, 0]}
+    with pytest.raises(ValueError, match=r"not a dataset of passes .* with --no-ordered\)$"):
+        pass_groups(independent)
+    passes = dataset([(0, 0, {"pass": 0, "frame_in_pass": 1}),
+                      (0, 1, {"pass": 0, "frame_in_pass": 0})])
+    assert pass_groups(passes, views=True) == pass_groups(passes) == {(0, 0): [1, 0]}
+    with pytest.raises(ValueError, match="not a dataset of passes"):
+        pass_groups(dataset([(0, 0, {"pass": 0, "frame_in_pass": 0}), (0, 1, {})]), views=True)
+
+
+def test_independent_views_are_scored_unordered(eval_checkpoint, train_dataset, tmp_path):
+    """``ordered=False`` on a dataset of independent images: the test model's first N images
+    are one set, scored per frame like a pass's, its rows ordered by image."""
+    predictor = load_model(eval_checkpoint)
+    out = tmp_path / "views"
+    evaluate_passes(predictor, train_dataset, out, replace(SMALL, counts=(1, FRAMES),
+                                                           ordered=False), progress=False)
+    with open(out / "per_frame.csv", newline="") as file:
+        rows = list(csv.DictReader(file))
+    test_model = (train_dataset / "splits.csv").read_text().splitlines()[-1].split(",")[0]
+    assert {r["model"] for r in rows} == {test_model} and {r["pass"] for r in rows} == {"0"}
+    sequence = [r for r in rows if r["method"] == "sequence"]
+    assert [r["frame"] for r in sequence] == [str(k) for k in range(FRAMES)]
+    assert sequence[0]["relative_rotation_deg"] == ""
+    assert all(0 <= float(r["relative_rotation_deg"]) <= 180 for r in sequence[1:])
+    assert json.loads((out / "passes.json").read_text())["options"]["ordered"] is False
+
+
 def test_an_interrupted_pass_study_takes_up_where_it_stopped(eval_checkpoint, pass_dataset,
                                                              tmp_path, monkeypatch):
     """Interrupted in its second pass, a rerun reads the first pass back (it scores only the

@@ -63,8 +63,7 @@ def test_half_turns_in_order_follow_the_motion_where_the_shape_cannot_tell():
     rotations of a slow tumble, read with random half turns, are smoothest when undone."""
     from sq_mitsuba.inference.body_frame import align_half_turns_in_order
 
-    box = Assembly.from_values(size=torch.tensor([[[0.3, 0.2, 0.1]]], dtype=torch.float64),
-                               shape=torch.tensor([[[0.1, 0.1]]], dtype=torch.float64))
+    box = _box_symmetric_under_every_half_turn()
     turns = half_turns()
     start = random_rotations(1, torch.Generator().manual_seed(5), torch.float64)[0]
     step = _perturbed(torch.eye(3, dtype=torch.float64)[None], 9.0, seed=4)[0]
@@ -74,6 +73,69 @@ def test_half_turns_in_order_follow_the_motion_where_the_shape_cannot_tell():
     found = align_half_turns_in_order(readings, truth @ turns[chosen], reference=2)
     for j, k in enumerate(chosen):
         torch.testing.assert_close(found[j], turns[chosen[2]] @ turns[k])
+
+
+def _box_symmetric_under_every_half_turn() -> Assembly:
+    return Assembly.from_values(size=torch.tensor([[[0.3, 0.2, 0.1]]], dtype=torch.float64),
+                                shape=torch.tensor([[[0.1, 0.1]]], dtype=torch.float64))
+
+
+def _tumble(count: int, step_deg: float, seed: int) -> torch.Tensor:
+    """(count, 3, 3) rotations of a slow tumble, ``step_deg`` a frame about one random axis."""
+    start = random_rotations(1, torch.Generator().manual_seed(seed), torch.float64)[0]
+    step = _perturbed(torch.eye(3, dtype=torch.float64)[None], step_deg, seed=seed + 1)[0]
+    return torch.stack([torch.linalg.matrix_power(step, k) @ start for k in range(count)])
+
+
+def test_half_turns_by_views_link_nearby_frames_the_shape_cannot_tell():
+    """A pass given in a shuffled order, of a box its shape cannot orient: each reading with a
+    random half turn and a few degrees of error. Nearby views link every frame, so the half
+    turns come out consistent (``S_j = S_ref T_j`` for reading ``R_j = truth_j T_j``) whatever
+    the order, where the shape alone leaves them to chance."""
+    from sq_mitsuba.inference.body_frame import align_half_turns_by_views
+
+    turns = half_turns()
+    truth = _tumble(8, 12.0, seed=5)
+    chosen = torch.tensor([1, 3, 0, 2, 2, 1, 0, 3])
+    read = _perturbed(truth, 5.0, seed=9) @ turns[chosen]
+    readings = Assembly(_box_symmetric_under_every_half_turn().params.expand(8, -1, -1))
+    for order in (torch.arange(8), torch.tensor([5, 2, 7, 0, 3, 6, 1, 4])):
+        reference = int(order[3])
+        found = align_half_turns_by_views(readings, read[order], 3)
+        torch.testing.assert_close(found, turns[chosen[reference]] @ turns[chosen[order]])
+    # The error it removes: unlinked, the symmetric shape cannot choose the half turns.
+    shape_only = align_half_turns_by_views(readings, read, 3, near_deg=0.0)
+    assert not torch.allclose(shape_only, turns[chosen[3]] @ turns[chosen])
+
+
+def test_half_turns_by_views_leave_unrelated_views_to_their_shapes():
+    """Readings of an asymmetric body from unrelated poses: no two lie within ``near_deg``, so
+    each half turn is its shape's, as :func:`align_half_turns` chooses; two clusters of nearby
+    views, one without the reference, are each turned as one by their shapes' summed cost."""
+    from sq_mitsuba.inference.body_frame import align_half_turns_by_views
+
+    turns = half_turns()
+    body = _asymmetric_assembly()
+    chosen = [2, 0, 3, 1, 2, 1]
+    readings = Assembly(torch.cat([_turned(body, turns[k]).params for k in chosen]))
+    # x_cam = truth x_true and x_true = T_k x_read: the reading's rotation is truth T_k.
+    truth = random_rotations(6, torch.Generator().manual_seed(14), torch.float64)
+    read = truth @ turns[chosen]
+    between = (read.transpose(-1, -2)[:, None] @ read[None]).diagonal(dim1=-2, dim2=-1)
+    nearest = ((between @ torch.diagonal(turns, dim1=-2, dim2=-1).T - 1) / 2).clamp(-1, 1)
+    nearest = nearest.arccos().amin(-1) + torch.eye(6, dtype=torch.float64) * 10
+    assert float(nearest.min()) > math.radians(45)  # the premise: no pair is linked
+    torch.testing.assert_close(align_half_turns_by_views(readings, read, 1),
+                               align_half_turns(readings, 1))
+    # Two clusters: frames 0-2 near one pose, 3-5 near another 80-105 deg from it; the
+    # reference (1) in the first. Frame 4's reading is a box its shape cannot orient: its
+    # cluster's other shapes decide for it.
+    clusters = torch.cat([_tumble(3, 8.0, seed=11), _tumble(3, 8.0, seed=12)])
+    params = readings.params.clone()
+    params[4] = _box_symmetric_under_every_half_turn().params[0].expand(3, -1)
+    found = align_half_turns_by_views(Assembly(params), clusters @ turns[chosen], 1)
+    for j, k in enumerate(chosen):
+        torch.testing.assert_close(found[j], turns[chosen[1]] @ turns[k])
 
 
 def test_the_reference_keeps_its_frame_when_its_own_rotation_is_misread():

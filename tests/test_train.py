@@ -839,8 +839,9 @@ def test_torchrun_two_processes_match_one(train_dataset, cache_dir, tmp_path):
     for x, y in zip(_rows(tmp_path / "one" / "log.csv"), _rows(tmp_path / "two" / "log.csv"),
                     strict=True):
         for key in ("loss", *LOSS_TERMS):
-            if x[key] or y[key]:
-                assert float(x[key]) == pytest.approx(float(y[key]), rel=1e-5), key
+            if x[key] or y[key]:  # abs: a term near 1e-7 (the taper prior) keeps more
+                # of the reduction orders' float32 noise in its relative digits (4e-5 on AMD)
+                assert float(x[key]) == pytest.approx(float(y[key]), rel=1e-5, abs=1e-9), key
 
 
 @pytest.mark.slow

@@ -84,9 +84,11 @@ Outputs in --out: per_frame.csv, summary.{csv,md} (mean ± std and median per N 
 seconds per frame), quality_vs_frames.png (body- and camera-frame Chamfer, 2D IoU, folded and
 relative rotation against N) and passes.json. A rerun into the same --out takes up where an
 interrupted one stopped (the passes scored already, with the same settings, weights and data,
-are read back from --out/.passes_partial). A dataset of independent images, a pass shorter
-than the largest N, an --out inside --data or one another run writes into is a one-line error
-before any work (exit code 2). Settings through --set, e.g. --set sequence.steps=80
+are read back from --out/.passes_partial). With --no-ordered a dataset of independent images
+(`dataset render` without --pass-frames) is scored too, each model's images as one unordered
+set of views in their order. A dataset of independent images without --no-ordered, a pass
+shorter than the largest N, an --out inside --data or one another run writes into is a
+one-line error before any work (exit code 2). Settings through --set, e.g. --set sequence.steps=80
 --set sequence.motion=free --set refinement.steps=10."""
 
 #: PassOptions fields exposed as options; the rest are reachable through --set.
@@ -102,7 +104,8 @@ def _register_passes(studies: argparse._SubParsersAction) -> None:
                        "grows", description=PASSES_DESCRIPTION,
         formatter_class=argparse.RawDescriptionHelpFormatter)
     passes.add_argument("--data", type=Path, required=True, metavar="DIR",
-                        help="dataset of passes (dataset render --pass-frames F)")
+                        help="dataset of passes (dataset render --pass-frames F), or "
+                             "with --no-ordered of independent images")
     passes.add_argument("--checkpoint", type=Path, default=None, metavar="PT",
                         help="checkpoint file (default: the model shipped with the package)")
     passes.add_argument("--out", type=output_path, required=True, metavar="DIR",

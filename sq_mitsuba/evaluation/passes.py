@@ -2,9 +2,10 @@
 
 :func:`evaluate_passes` reads a dataset of passes (``sq-mitsuba dataset render
 --pass-frames F``: each model's images are passes of F frames in order, their labels holding
-``pass`` and ``frame_in_pass``) and scores, for each N of ``counts``, the first N frames of
-every pass with every metric of ``sq-mitsuba eval`` (:func:`~sq_mitsuba.evaluation.scoring.
-score`), per frame, for three methods:
+``pass`` and ``frame_in_pass``; with ``ordered=False`` also a dataset of independent images,
+each model's images one unordered set of views) and scores, for each N of ``counts``, the
+first N frames of every pass with every metric of ``sq-mitsuba eval``
+(:func:`~sq_mitsuba.evaluation.scoring.score`), per frame, for three methods:
 
 - ``network``: the network's own reading of each frame (one pass, no turned copies);
 - ``single``: the shipped single-image path, each frame alone
@@ -92,7 +93,9 @@ class PassOptions:
     "Score at most this many passes, spread evenly over the split (None: all)."
     ordered: bool = True
     """The frames are given to ``predict_sequence`` in the order they were taken (a pass: the
-    frames kept on one constant-rate turn); False: as an unordered set."""
+    frames kept on one constant-rate turn); False: as an unordered set, and a dataset of
+    independent images is scored too, each model's images as one set of views
+    (:func:`pass_groups`)."""
     sequence: SequenceOptions = field(default_factory=SequenceOptions)
     "The joint fit's settings (``predict_sequence``'s ``options``)."
     search: SearchOptions = field(default_factory=SearchOptions)
@@ -157,20 +160,35 @@ def relative_rotation_errors(rotation: Tensor, truth: Tensor) -> Tensor:
     return errors
 
 
-def pass_groups(dataset: Any) -> dict[tuple[int, int], list[int]]:
+def pass_groups(dataset: Any, views: bool = False) -> dict[tuple[int, int], list[int]]:
     """The items of a dataset of passes grouped by (model index, pass), each in frame order.
 
+    Args:
+        views: a dataset of independent images (no ``pass`` labels) is read as one set of
+            views per model, ``(model index, 0)``, its images in their order (an unordered
+            set: ``study passes --no-ordered``); a dataset of passes is read as passes.
+
     Raises:
-        ValueError: the dataset's labels are not a pass's (no ``frame_in_pass``), or a pass
-            has frames missing or twice.
+        ValueError: the dataset's labels are not a pass's (no ``frame_in_pass``) and not
+            ``views``, or a pass has frames missing or twice.
     """
+    labelled = [label.get("frame_in_pass") is not None and label.get("pass") is not None
+                for _, _, label in dataset.items]
+    if views and not any(labelled):
+        sets: dict[tuple[int, int], list[int]] = {}
+        for item, (model_index, _, _) in sorted(enumerate(dataset.items),
+                                                key=lambda entry: entry[1][:2]):
+            sets.setdefault((model_index, 0), []).append(item)
+        return dict(sorted(sets.items()))
     groups: dict[tuple[int, int], list[tuple[int, int]]] = {}
     for item, (model_index, _, label) in enumerate(dataset.items):
         frame = label.get("frame_in_pass")
         if frame is None or label.get("pass") is None:
             raise ValueError(f"{dataset.root}: not a dataset of passes ({label.get('filename')} "
                              f"of model {dataset.models[model_index]} has no pass and "
-                             "frame_in_pass; render one with dataset render --pass-frames F)")
+                             "frame_in_pass; render one with dataset render --pass-frames F, "
+                             "or score each model's images as an unordered set with "
+                             "--no-ordered)")
         groups.setdefault((model_index, int(label["pass"])), []).append((int(frame), item))
     ordered = {}
     for (model_index, number), frames in sorted(groups.items()):
@@ -217,7 +235,7 @@ def evaluate_passes(predictor: Any, data_root: str | Path, out_dir: str | Path,
     check_outside_data(out_dir, data_root)
     # At the dataset's own resolution (image_size None: camera.json's width).
     dataset = open_split(data_root, options.split, None, options.surface_points)
-    groups = pass_groups(dataset)
+    groups = pass_groups(dataset, views=not options.ordered)
     longest = max(options.counts)
     short = [key for key, items in groups.items() if len(items) < longest]
     if short:
