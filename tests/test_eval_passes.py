@@ -291,7 +291,8 @@ def test_pass_groups_read_independent_images_as_one_set_of_views_per_model():
     passes = dataset([(0, 0, {"pass": 0, "frame_in_pass": 1}),
                       (0, 1, {"pass": 0, "frame_in_pass": 0})])
     assert pass_groups(passes, views=True) == pass_groups(passes) == {(0, 0): [1, 0]}
-    with pytest.raises(ValueError, match="not a dataset of passes"):
+    with pytest.raises(ValueError, match=r"not a dataset of passes .* other images are "
+                                         r"labelled as passes: render the dataset again\)$"):
         pass_groups(dataset([(0, 0, {"pass": 0, "frame_in_pass": 0}), (0, 1, {})]), views=True)
 
 

@@ -184,11 +184,12 @@ def pass_groups(dataset: Any, views: bool = False) -> dict[tuple[int, int], list
     for item, (model_index, _, label) in enumerate(dataset.items):
         frame = label.get("frame_in_pass")
         if frame is None or label.get("pass") is None:
+            fix = ("other images are labelled as passes: render the dataset again" if views
+                   else "render one with dataset render --pass-frames F, or score each "
+                   "model's images as an unordered set with --no-ordered")
             raise ValueError(f"{dataset.root}: not a dataset of passes ({label.get('filename')} "
                              f"of model {dataset.models[model_index]} has no pass and "
-                             "frame_in_pass; render one with dataset render --pass-frames F, "
-                             "or score each model's images as an unordered set with "
-                             "--no-ordered)")
+                             f"frame_in_pass; {fix})")
         groups.setdefault((model_index, int(label["pass"])), []).append((int(frame), item))
     ordered = {}
     for (model_index, number), frames in sorted(groups.items()):
