@@ -16,8 +16,8 @@ from output_checks import error_line, one_torch_thread  # noqa: F401 (autouse fi
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.metrics import mask_iou, rotation_error_deg
-from sq_mitsuba.geometry.rotation import matrix_to_rotation_6d, random_rotations
-from sq_mitsuba.geometry.so3_grid import half_turns
+from sq_mitsuba.geometry.rotation import matrix_to_rotation_6d, random_rotations, rotation_angle
+from sq_mitsuba.geometry.so3_grid import half_turns, with_half_turns
 from sq_mitsuba.inference.body_frame import align_half_turns
 from sq_mitsuba.inference.loading import load_model
 from sq_mitsuba.inference.sequence import SequenceOptions, fit_sequence
@@ -121,9 +121,8 @@ def test_half_turns_by_views_leave_unrelated_views_to_their_shapes():
     # x_cam = truth x_true and x_true = T_k x_read: the reading's rotation is truth T_k.
     truth = random_rotations(6, torch.Generator().manual_seed(14), torch.float64)
     read = truth @ turns[chosen]
-    between = (read.transpose(-1, -2)[:, None] @ read[None]).diagonal(dim1=-2, dim2=-1)
-    nearest = ((between @ torch.diagonal(turns, dim1=-2, dim2=-1).T - 1) / 2).clamp(-1, 1)
-    nearest = nearest.arccos().amin(-1) + torch.eye(6, dtype=torch.float64) * 10
+    nearest = rotation_angle(read[:, None, None], with_half_turns(read)[None]).amin(-1)
+    nearest = nearest + torch.eye(6, dtype=torch.float64) * 10  # a frame and itself
     assert float(nearest.min()) > math.radians(45)  # the premise: no pair is linked
     torch.testing.assert_close(align_half_turns_by_views(readings, read, 1),
                                align_half_turns(readings, 1))

@@ -172,9 +172,8 @@ def pass_groups(dataset: Any, views: bool = False) -> dict[tuple[int, int], list
         ValueError: the dataset's labels are not a pass's (no ``frame_in_pass``) and not
             ``views``, or a pass has frames missing or twice.
     """
-    labelled = [label.get("frame_in_pass") is not None and label.get("pass") is not None
-                for _, _, label in dataset.items]
-    if views and not any(labelled):
+    if views and not any(label.get("frame_in_pass") is not None and label.get("pass") is not None
+                         for _, _, label in dataset.items):
         sets: dict[tuple[int, int], list[int]] = {}
         for item, (model_index, _, _) in sorted(enumerate(dataset.items),
                                                 key=lambda entry: entry[1][:2]):

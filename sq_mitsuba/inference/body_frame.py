@@ -22,7 +22,8 @@ from torch import Tensor
 
 from sq_mitsuba.geometry.assembly import FIELDS, Assembly
 from sq_mitsuba.geometry.pass_motion import constant_rate_motion
-from sq_mitsuba.geometry.so3_grid import half_turns
+from sq_mitsuba.geometry.rotation import rotation_angle
+from sq_mitsuba.geometry.so3_grid import half_turns, with_half_turns
 
 __all__ = ["align_half_turns", "align_half_turns_by_views", "align_half_turns_in_order",
            "along_motion", "canonical_frame", "reframed"]
@@ -45,14 +46,14 @@ def _chamfer(a: Tensor, b: Tensor) -> Tensor:
     return 0.5 * (distances.amin(dim=-1).mean(dim=-1) + distances.amin(dim=-2).mean(dim=-1))
 
 
-def _shape_costs(assembly: Assembly, reference: int, level: int) -> Tensor:
-    """(N, 4): the Chamfer distance of each reading turned by each half turn (the order of
-    :func:`~sq_mitsuba.geometry.so3_grid.half_turns`) to the reading ``reference``."""
-    turns = half_turns()
-    clouds = _surface(assembly, level)  # (N, P, 3)
+def _shape_costs(clouds: Tensor, reference: int) -> Tensor:
+    """(N, 4): the Chamfer distance of each reading's surface samples ``clouds`` (N, P, 3)
+    turned by each half turn (the order of :func:`~sq_mitsuba.geometry.so3_grid.half_turns`)
+    to the reading ``reference``'s."""
     target = clouds[reference]
     # (N, 4, P, 3): every reading turned by every half turn (a diagonal matrix: x -> S x).
-    turned = clouds[:, None] * torch.diagonal(turns, dim1=-2, dim2=-1)[None, :, None, :]
+    signs = torch.diagonal(half_turns(), dim1=-2, dim2=-1)
+    turned = clouds[:, None] * signs[None, :, None, :]
     costs = _chamfer(turned.flatten(0, 1), target[None].expand(turned.shape[0] * 4, -1, -1))
     return costs.reshape(len(clouds), 4)
 
@@ -67,7 +68,7 @@ def align_half_turns(assembly: Assembly, reference: int, level: int = 2) -> Tens
         reference: index of the reading whose body frame is kept.
         level: icosphere level of the surface samples.
     """
-    best = _shape_costs(assembly, reference, level).argmin(dim=1)
+    best = _shape_costs(_surface(assembly, level), reference).argmin(dim=1)
     best[reference] = 0  # the identity comes first in half_turns()
     return half_turns()[best]
 
@@ -100,14 +101,11 @@ def align_half_turns_by_views(assembly: Assembly, rotation: Tensor, reference: i
     Returns:
         (N, 3, 3) float64 half turns S_j, ``x_ref = S_j x_j``.
     """
-    costs = _shape_costs(assembly, reference, level)  # (N, 4)
+    costs = _shape_costs(_surface(assembly, level), reference)  # (N, 4)
     count = len(costs)
     rotation = rotation.double()
-    signs = torch.diagonal(half_turns(), dim1=-2, dim2=-1)  # (4, 3)
-    # angle(R_i^T R_j T_d) from its trace: diag(R_i^T R_j) . signs_d; (N, N, 4) radians.
-    between = torch.diagonal(rotation.transpose(-1, -2)[:, None] @ rotation[None], dim1=-2,
-                             dim2=-1)
-    angles = torch.arccos(((between @ signs.T - 1) / 2).clamp(-1, 1))
+    # (N, N, 4): the angle between R_i and R_j T_d, radians.
+    angles = rotation_angle(rotation[:, None, None], with_half_turns(rotation)[None])
     nearest, turn = angles.min(dim=-1)
     # Half turns as indices into half_turns(): their products are the indices' XOR.
     parent, offset = list(range(count)), [0] * count  # offset: turn into the parent's frame
@@ -160,10 +158,8 @@ def align_half_turns_in_order(assembly: Assembly, rotation: Tensor, reference: i
     count = len(rotation)
     clouds = _surface(assembly, level)
     target = clouds[reference]
-    turned = clouds[:, None] * torch.diagonal(turns, dim1=-2, dim2=-1)[None, :, None, :]
     extent = float((target.amax(0) - target.amin(0)).norm()) or 1.0
-    unary = shape_weight * _chamfer(turned.flatten(0, 1), target[None].expand(
-        count * 4, -1, -1)).reshape(count, 4) / extent  # (N, 4)
+    unary = shape_weight * _shape_costs(clouds, reference) / extent  # (N, 4)
     # The reference keeps its frame (S_ref = I): the readings' shapes are compared with its
     # own. Left free, a reference turned by G would have every other reading compared with
     # G x_ref, and its one shape cost could outweigh the other frames' together.
