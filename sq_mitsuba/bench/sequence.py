@@ -9,7 +9,9 @@ are absent, whose readings mean nothing but cost the same), with the default
 turned copies, the mask, the pose search) and the joint fit of one shape and every pose.
 Reported per frame: the whole call, and its two parts (the frames' path and the rest).
 
-Everything runs on the CPU (Mitsuba's LLVM variant); ``--device`` is not used.
+The network runs on the CPU (``--threads``); Mitsuba on the variant the backend chooses
+(``cuda_ad_mono`` where Dr.Jit's CUDA backend works, else ``llvm_ad_mono``;
+``SQ_MITSUBA_VARIANT`` overrides it), named in the report; ``--device`` is not used.
 """
 
 from __future__ import annotations
@@ -46,6 +48,7 @@ def run(options: BenchOptions) -> Report:
     from sq_mitsuba.inference.predictor import Predictor
     from sq_mitsuba.model.checkpoint import SHIPPED_MODEL
     from sq_mitsuba.model.network import NetworkConfig, SuperquadricNet
+    from sq_mitsuba.render.backend import active_variant
 
     torch.set_num_threads(options.threads)
     torch.manual_seed(0)
@@ -80,6 +83,7 @@ def run(options: BenchOptions) -> Report:
             "  half turns + joint fit, per frame", [p[1] / FRAMES for p in parts],
             note=f"Adam steps taken {sorted({p[2] for p in parts})}; mean IoU at the fit's "
                  f"resolution {sum(p[3] for p in parts) / len(parts):.3f}"))
+    report.notes.append(f"Mitsuba variant {active_variant()}")
     report.notes.append(f"one pass of {FRAMES} frames of one spacecraft of catalogue seed "
                         f"4242, {RESOLUTION} px, 16 spp")
     report.notes.append(f"1-minute load average at the end: {load_average():.2f} on "
