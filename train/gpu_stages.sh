@@ -1,12 +1,13 @@
 # Sourced by the GPU scripts that work to a deadline (train/gpu_step_check.sh,
 # train/gpu_recipe.sh, train/gpu_sequence_check.sh) as
-# `source train/gpu_stages.sh NAME [OUT_DIR]`, after setting $repo. It sets what they start with: `absolute PATH`; $out (OUT_DIR, default /tmp/NAME) with an
-# empty $summary (OUT_DIR/summary.txt) in it; $device (DEVICE, default cuda; cpu dry-runs the
-# script); $py (PYTHON, default python3); $work (WORK, default a temporary folder removed at
-# the end); $deadline, TOTAL_SECONDS (default 540) from now, in bash's SECONDS. Then `note`
-# prints a line and keeps it in $summary, and `stage NAME LIMIT_S COMMAND...` runs COMMAND
-# under `timeout`, within LIMIT_S and the deadline, skips it when under 10 s are left, and
-# notes its exit status and seconds.
+# `source train/gpu_stages.sh NAME [OUT_DIR]`, after setting $repo. It sets what they start
+# with: `absolute PATH`; $out (OUT_DIR, default /tmp/NAME) with an empty $summary
+# (OUT_DIR/summary.txt) in it; $device (DEVICE, default cuda; cpu dry-runs the script); $py
+# (PYTHON, default python3); $work (WORK, default a temporary folder removed at the end);
+# $deadline, TOTAL_SECONDS (default 540) from now, in bash's SECONDS. Then `note` prints a
+# line and keeps it in $summary, and `stage NAME LIMIT_S COMMAND...` runs COMMAND under
+# `timeout`, within LIMIT_S and the deadline, skips it when under 10 s are left, and notes its
+# exit status and seconds.
 absolute() { case $1 in /*) echo "$1" ;; *) echo "$PWD/$1" ;; esac; }
 out=$(absolute "${2:-/tmp/$1}")
 device=${DEVICE:-cuda}
