@@ -166,13 +166,12 @@ def align_half_turns_in_order(assembly: Assembly, rotation: Tensor, reference: i
     unary[reference, 1:] = torch.inf
     poses = rotation.double()[:, None] @ turns  # (N, 4, 3, 3)
 
-    def angle(a: Tensor, b: Tensor) -> Tensor:  # (4, 3, 3) x (4, 3, 3) -> (4, 4) radians
-        cosine = ((torch.einsum("aij,bij->ab", a, b) - 1) / 2).clamp(-1, 1)
-        return torch.arccos(cosine)
-
+    # (N - 1, 4, 4): the angle between frame k - 1 under each half turn (rows) and frame k
+    # under each (columns).
+    steps = rotation_angle(poses[:-1, :, None], poses[1:, None])
     cost, back = unary[0].clone(), []
     for k in range(1, count):
-        total = cost[:, None] + angle(poses[k - 1], poses[k])  # previous x current
+        total = cost[:, None] + steps[k - 1]  # previous x current
         best, arg = total.min(dim=0)
         cost = best + unary[k]
         back.append(arg)
