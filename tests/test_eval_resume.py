@@ -21,6 +21,7 @@ from output_checks import error_line, one_torch_thread, read_rows  # noqa: F401 
 from sq_mitsuba.cli import main
 from sq_mitsuba.evaluation import batch as batch_module
 from sq_mitsuba.evaluation import evaluate as evaluate_module
+from sq_mitsuba.evaluation import figures as figures_module
 from sq_mitsuba.evaluation.evaluate import MESH_RANKING_FILE, OUTPUT_FILES
 from sq_mitsuba.evaluation.journal import JOURNAL, RUN_FILE
 from sq_mitsuba.model.checkpoint import read_checkpoint, write_checkpoint
@@ -100,6 +101,17 @@ def _second_batch(numbers: list[int]) -> bool:
 
 def _copy(folder: Path, tmp_path: Path) -> Path:
     return Path(shutil.copytree(folder, tmp_path / folder.name))
+
+
+def _no_figure(*args, **kwargs) -> Path:
+    """An empty file where a figure function would draw its PNG (the first ``.png`` path it
+    is given), for tests of bookkeeping that do not look at the figures: drawing them is
+    seconds a run. The figures themselves are compared in
+    test_resume_after_an_interrupt_writes_what_an_uninterrupted_run_does (and drawn and
+    checked in tests/test_evaluate.py and tests/test_study.py)."""
+    path = next(Path(a) for a in args if isinstance(a, Path) and a.suffix == ".png")
+    path.write_bytes(b"")
+    return path
 
 
 def _tamper(path: Path) -> None:
@@ -202,6 +214,9 @@ def test_the_identity_names_an_option_only_the_journal_has_and_hashes_the_baseli
 
 def test_without_resume_a_journal_is_not_used(interrupted, uninterrupted, eval_checkpoint,
                                               train_dataset, tmp_path, monkeypatch, capsys):
+    # The tables are this test's; three of its evaluations would draw the figures.
+    for name in ("plot_per_model", "plot_qualitative", "plot_consistency"):
+        monkeypatch.setattr(figures_module, name, _no_figure)
     # A journal of both batches (a resumed run stopped among its writes), each tampered with.
     tampered = _copy(interrupted, tmp_path)
     with monkeypatch.context() as patch:
@@ -275,6 +290,9 @@ def test_a_study_rerun_does_not_evaluate_its_finished_points(eval_checkpoint, tr
         return evaluate(predictor, data_root, out_dir, *args, **kwargs)
 
     monkeypatch.setattr(evaluate_module, "evaluate", counted)
+    # The study's figure (thirteen panels, ~5 s a drawing) is not what this test is about:
+    # five of its runs would draw it.
+    monkeypatch.setattr(figures_module, "plot_illumination", _no_figure)
     points = [p.name for p in sweep_points(180)]  # 0 and 180 deg, space and earth; eclipse
     whole = tmp_path / "whole"
     assert main(argv(whole)) == 0

@@ -22,8 +22,8 @@ EXPERIMENTS = Path(__file__).resolve().parents[1] / "eval" / "experiments"
 def _run_script(command: list[str]) -> subprocess.CompletedProcess:
     """``command`` (``[sys.executable, SCRIPT, *args]``) run in this process with runpy: the
     script's exit code, stdout and stderr, without a second interpreter importing torch and
-    Mitsuba again. Only for scripts that change no global state (rotation_views.py sets
-    torch's thread count: it runs in a subprocess)."""
+    Mitsuba again. Only for scripts that change no global state but torch's thread count,
+    which is put back (rotation_views.py sets it)."""
     import contextlib
     import io
     import runpy
@@ -34,6 +34,7 @@ def _run_script(command: list[str]) -> subprocess.CompletedProcess:
     sys.argv = [str(part) for part in command[1:]]
     sys.path.insert(0, str(EXPERIMENTS))  # as python puts a script's folder first
     code = 0
+    threads = torch.get_num_threads()
     try:
         with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
             try:
@@ -46,6 +47,7 @@ def _run_script(command: list[str]) -> subprocess.CompletedProcess:
                     code = 1
     finally:
         sys.argv, sys.path[:] = saved_argv, saved_path
+        torch.set_num_threads(threads)
     return subprocess.CompletedProcess(command, code, out.getvalue(), err.getvalue())
 
 
@@ -55,7 +57,7 @@ def test_rotation_views_trains_and_scores_both_view_sets(train_dataset, tmp_path
     shutil.copytree(train_dataset, data)
     command = [sys.executable, str(EXPERIMENTS / "rotation_views.py"), str(data), "--steps", "2",
                "--views", "12", "--threads", "1"]
-    result = subprocess.run(command, capture_output=True, text=True, timeout=300)
+    result = _run_script(command)
     assert result.returncode == 0, result.stderr
     assert "12 training views" in result.stdout
     match = re.search(r"step 2: loss ([\d.]+), median E_R training views ([\d.]+) deg, "
