@@ -58,6 +58,14 @@ def test_half_turns_are_resolved_across_readings():
         torch.testing.assert_close(found[j], turns[chosen[1]] @ turns[k])
 
 
+def _tumble(count: int, step_deg: float, start_seed: int, step_seed: int) -> torch.Tensor:
+    """(count, 3, 3) rotations of a slow tumble, ``step_deg`` a frame about one random axis
+    (drawn with ``step_seed``) from a random start (``start_seed``)."""
+    start = random_rotations(1, torch.Generator().manual_seed(start_seed), torch.float64)[0]
+    step = _perturbed(torch.eye(3, dtype=torch.float64)[None], step_deg, seed=step_seed)[0]
+    return torch.stack([torch.linalg.matrix_power(step, k) @ start for k in range(count)])
+
+
 def test_half_turns_in_order_follow_the_motion_where_the_shape_cannot_tell():
     """A box symmetric under every half turn: its readings look alike whatever S_j, but the
     rotations of a slow tumble, read with random half turns, are smoothest when undone."""
@@ -65,9 +73,7 @@ def test_half_turns_in_order_follow_the_motion_where_the_shape_cannot_tell():
 
     box = _box_symmetric_under_every_half_turn()
     turns = half_turns()
-    start = random_rotations(1, torch.Generator().manual_seed(5), torch.float64)[0]
-    step = _perturbed(torch.eye(3, dtype=torch.float64)[None], 9.0, seed=4)[0]
-    truth = torch.stack([torch.linalg.matrix_power(step, k) @ start for k in range(6)])
+    truth = _tumble(6, 9.0, start_seed=5, step_seed=4)
     chosen = [1, 3, 0, 2, 2, 1]
     readings = Assembly(box.params.expand(6, -1, -1))
     found = align_half_turns_in_order(readings, truth @ turns[chosen], reference=2)
@@ -80,13 +86,6 @@ def _box_symmetric_under_every_half_turn() -> Assembly:
                                 shape=torch.tensor([[[0.1, 0.1]]], dtype=torch.float64))
 
 
-def _tumble(count: int, step_deg: float, seed: int) -> torch.Tensor:
-    """(count, 3, 3) rotations of a slow tumble, ``step_deg`` a frame about one random axis."""
-    start = random_rotations(1, torch.Generator().manual_seed(seed), torch.float64)[0]
-    step = _perturbed(torch.eye(3, dtype=torch.float64)[None], step_deg, seed=seed + 1)[0]
-    return torch.stack([torch.linalg.matrix_power(step, k) @ start for k in range(count)])
-
-
 def test_half_turns_by_views_link_nearby_frames_the_shape_cannot_tell():
     """A pass given in a shuffled order, of a box its shape cannot orient: each reading with a
     random half turn and a few degrees of error. Nearby views link every frame, so the half
@@ -95,7 +94,7 @@ def test_half_turns_by_views_link_nearby_frames_the_shape_cannot_tell():
     from sq_mitsuba.inference.body_frame import align_half_turns_by_views
 
     turns = half_turns()
-    truth = _tumble(8, 12.0, seed=5)
+    truth = _tumble(8, 12.0, start_seed=5, step_seed=6)
     chosen = torch.tensor([1, 3, 0, 2, 2, 1, 0, 3])
     read = _perturbed(truth, 5.0, seed=9) @ turns[chosen]
     readings = Assembly(_box_symmetric_under_every_half_turn().params.expand(8, -1, -1))
@@ -129,7 +128,8 @@ def test_half_turns_by_views_leave_unrelated_views_to_their_shapes():
     # Two clusters: frames 0-2 near one pose, 3-5 near another 80-105 deg from it; the
     # reference (1) in the first. Frame 4's reading is a box its shape cannot orient: its
     # cluster's other shapes decide for it.
-    clusters = torch.cat([_tumble(3, 8.0, seed=11), _tumble(3, 8.0, seed=12)])
+    clusters = torch.cat([_tumble(3, 8.0, start_seed=11, step_seed=12),
+                          _tumble(3, 8.0, start_seed=12, step_seed=13)])
     params = readings.params.clone()
     params[4] = _box_symmetric_under_every_half_turn().params[0].expand(3, -1)
     found = align_half_turns_by_views(Assembly(params), clusters @ turns[chosen], 1)
