@@ -59,6 +59,11 @@ class RefineOptions:
     "Adam steps at most (fewer when no item improves for `patience` steps)."
     lr: float = positive(0.03)
     "Adam learning rate on the raw parameters and the pose correction."
+    warmup: int = in_range(0, 10_000, default=0)
+    """Steps over which the learning rate rises linearly to ``lr`` (0: from the first step).
+    Adam's first step moves every parameter by about ``lr`` whatever its gradient's size, so
+    a start that already fits can be thrown off its fit; ``patience`` counts from the end of
+    the warm-up."""
     resolution: int = in_range(8, 1024, default=64)
     "Width in pixels of the silhouettes compared (the mask is averaged down to it)."
     level: int = in_range(0, 5, default=2)
@@ -276,6 +281,9 @@ def refine_pose_and_shape(assembly: Assembly, rotation: Tensor, translation: Ten
         pose_parameters.append(rate)
     optimizer = torch.optim.Adam([change, *pose_parameters] if moving else pose_parameters,
                                  lr=options.lr)
+    warm = options.warmup  # step k of the warm-up at (k + 1) / (warmup + 1) of the rate
+    warming = torch.optim.lr_scheduler.LinearLR(optimizer, 1.0 / (warm + 1), 1.0, warm) \
+        if warm else None
 
     def current_raw() -> Tensor:
         return raw0 + change * free_fields
@@ -321,7 +329,7 @@ def refine_pose_and_shape(assembly: Assembly, rotation: Tensor, translation: Ten
         return bool(better.any())
 
     with one_thread(options.deterministic):  # the same start, the same result
-        for _ in range(options.steps):
+        for step in range(options.steps):
             optimizer.zero_grad(set_to_none=True)
             rotation_now, translation_now = pose()
             raw = current_raw()
@@ -347,8 +355,10 @@ def refine_pose_and_shape(assembly: Assembly, rotation: Tensor, translation: Ten
                 improved = remember(ious, raw.detach(), rotation_now.detach(),
                                     translation_now.detach())
             optimizer.step()
+            if warming is not None:
+                warming.step()
             steps += 1
-            stale = 0 if improved else stale + 1
+            stale = 0 if improved or step < warm else stale + 1
             if stale >= options.patience:
                 break
         with torch.no_grad():

@@ -70,10 +70,7 @@ from torch import Tensor
 from sq_mitsuba.config import in_range, non_negative, positive, validate
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.camera import Camera
-from sq_mitsuba.geometry.rotation import (
-    matrix_to_quaternion,
-    mean_rotation,
-)
+from sq_mitsuba.geometry.rotation import matrix_to_quaternion, mean_rotation
 from sq_mitsuba.inference.body_frame import (
     align_half_turns,
     align_half_turns_by_views,
@@ -94,10 +91,9 @@ from sq_mitsuba.inference.search import (
 )
 
 #: The frames' own path in a sequence: the pose search's best candidate (``keep=1``: no
-#: screening) and one refinement step, since the joint fit refines every pose after it.
-#: Measured on passes of 8 frames of 4 unseen spacecraft (eval/experiments/README.md,
-#: "Passes"): against the shipped refinement (``SEARCH_REFINEMENT``) per frame, the joint fit's
-#: mean 2D IoU 0.762 -> 0.779, in a quarter of the frames' time.
+#: screening) and one refinement step, since the joint fit refines every pose after it. On
+#: passes of 8 frames of 4 unseen spacecraft, against the shipped refinement per frame, the
+#: joint fit's mean 2D IoU 0.762 -> 0.779 in a quarter of the frames' time (notebook, "Passes").
 FRAMES_SEARCH = SearchOptions(keep=1)
 FRAMES_REFINEMENT = replace(SEARCH_REFINEMENT, steps=1, patience=1)
 
@@ -125,6 +121,11 @@ class SequenceOptions:
     same passes camera-frame Chamfer 0.083 -> 0.079, mean 2D IoU 0.779 -> 0.762)."""
     lr: float = positive(0.03)
     "Adam's learning rate (raw shape parameters, rotation vectors, relative shifts)."
+    warmup: int = in_range(0, 10_000, default=10)
+    """Steps over which the learning rate rises to ``lr`` (``RefineOptions.warmup``; 0: none).
+    Adam's first full step threw 2 of 12 passes of the training families off for good; 0 / 5 /
+    10 / 20 there: 2D IoU 0.623 / 0.632 / 0.633 / 0.633, body Chamfer-L1 0.153 / 0.149 / 0.149
+    / 0.146 (held out 0 / 10: 0.732 / 0.733, 0.187 / 0.183; eval/experiments/README.md)."""
     resolution: int = in_range(8, 1024, default=64)
     "Width in pixels at which the silhouettes are fitted."
     level: int = in_range(0, 5, default=1)
@@ -203,9 +204,9 @@ class SequenceOptions:
 def stage_refine_options(options: SequenceOptions, steps: int, poses: bool) -> RefineOptions:
     """The :class:`RefineOptions` of one stage of the joint fit: ``poses`` False holds the
     rotations and depths (a shape-only stage; the frames' image-plane shifts still move)."""
-    return RefineOptions(steps=steps, lr=options.lr, resolution=options.resolution,
-                         level=options.level, prior_weight=options.prior_weight,
-                         shape=options.shape, loss="iou",
+    return RefineOptions(steps=steps, lr=options.lr, warmup=options.warmup,
+                         resolution=options.resolution, level=options.level,
+                         prior_weight=options.prior_weight, shape=options.shape, loss="iou",
                          rotation="free" if poses else "fixed",
                          depth="free" if poses else "fixed",
                          depth_prior=options.depth_prior, patience=options.patience,
@@ -224,9 +225,8 @@ def fit_sequence(assembly: Assembly, rotation: Tensor, translation: Tensor, mask
     Args:
         assembly: the start, batch size 1, in the body frame.
         rotation: (N, 3, 3) body -> camera rotations to start from; translation: (N, 3).
-        masks: (N, H, W) target masks at ``camera``'s resolution (bool or float in [0, 1]).
-        camera: intrinsics of the masks.
-        options: :class:`SequenceOptions`.
+        masks: (N, H, W) target masks at ``camera``'s resolution (bool or float in [0, 1]);
+            camera: their intrinsics; options: :class:`SequenceOptions`.
         relative_rotations: (N, 3, 3) ``Q_j`` with ``R_j = Q_j R_0``, or None. Given, the
             frames share one rotation ``R_0 = Q_0^T rotation[0]`` that moves, not N.
         relative_times: (N,) the frames' times when ``relative_rotations`` is a constant-rate
