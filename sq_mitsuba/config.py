@@ -408,8 +408,10 @@ def _convert(tp: Any, value: Any, where: str, meta: Mapping[str, Any], coerce: b
                 return option
         raise _type_error(where, tp, value)
     if origin is tuple or tp is tuple:
-        if not isinstance(value, tuple | list) or (not coerce and isinstance(value, list)):
+        if not isinstance(value, tuple | list):
             raise _type_error(where, tp, value)
+        if not coerce and isinstance(value, list):  # a config built in code, not parsed
+            raise _type_error(where, tp, value, f" (a tuple in code: {tuple(value)!r})")
         if len(args) == 2 and args[1] is Ellipsis:
             element_types = [args[0]] * len(value)
         elif not args:

@@ -281,7 +281,7 @@ def test_validate_configs_built_in_code():
     bad = RunConfig(scene=SceneConfig(sun=SunConfig(irradiance=math.nan)))
     assert error(validate, bad) == "scene.sun.irradiance: expected a finite number, got nan"
     assert error(validate, RunConfig(seeds=[1, 2])) == (  # type: ignore[arg-type]
-        "seeds: expected a list of integers, got [1, 2]"
+        "seeds: expected a list of integers, got [1, 2] (a tuple in code: (1, 2))"
     )
     validate(RunConfig(lr=1))  # an int for a float is fine in code too
 
