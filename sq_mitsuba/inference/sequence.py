@@ -122,10 +122,9 @@ class SequenceOptions:
     lr: float = positive(0.03)
     "Adam's learning rate (raw shape parameters, rotation vectors, relative shifts)."
     warmup: int = in_range(0, 10_000, default=10)
-    """Steps over which the learning rate rises to ``lr`` (``RefineOptions.warmup``; 0: none).
-    Adam's first full step threw 2 of 12 passes of the training families off for good; 0 / 5 /
-    10 / 20 there: 2D IoU 0.623 / 0.632 / 0.633 / 0.633, body Chamfer-L1 0.153 / 0.149 / 0.149
-    / 0.146 (held out 0 / 10: 0.732 / 0.733, 0.187 / 0.183; eval/experiments/README.md)."""
+    """Steps over which the learning rate rises to ``lr`` (``RefineOptions.warmup``; 0: none):
+    on 12 passes of the training families 0 / 10 gave 2D IoU 0.623 / 0.633 (Adam's first step
+    threw two off for good), held out 0.732 / 0.733 (eval/experiments/README.md, "Passes")."""
     resolution: int = in_range(8, 1024, default=64)
     "Width in pixels at which the silhouettes are fitted."
     level: int = in_range(0, 5, default=1)
@@ -225,8 +224,8 @@ def fit_sequence(assembly: Assembly, rotation: Tensor, translation: Tensor, mask
     Args:
         assembly: the start, batch size 1, in the body frame.
         rotation: (N, 3, 3) body -> camera rotations to start from; translation: (N, 3).
-        masks: (N, H, W) target masks at ``camera``'s resolution (bool or float in [0, 1]);
-            camera: their intrinsics; options: :class:`SequenceOptions`.
+        masks: (N, H, W) target masks at ``camera``'s resolution (bool or float in [0, 1]).
+        camera: intrinsics of the masks; options: :class:`SequenceOptions`.
         relative_rotations: (N, 3, 3) ``Q_j`` with ``R_j = Q_j R_0``, or None. Given, the
             frames share one rotation ``R_0 = Q_0^T rotation[0]`` that moves, not N.
         relative_times: (N,) the frames' times when ``relative_rotations`` is a constant-rate
