@@ -48,7 +48,7 @@ lint: setup
 bench: setup
 	$(VENV)/bin/sq-mitsuba bench all
 
-# Unseen spacecraft in, assemblies and poses out: demo_output/index.html (about a minute).
+# Unseen spacecraft in, assemblies and poses out: demo_output/index.html (a minute and a half).
 demo: setup
 	$(VENV)/bin/sq-mitsuba demo
 

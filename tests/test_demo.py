@@ -123,16 +123,18 @@ def test_demo_writes_every_output_well_formed(demo, demo_checkpoint):
     page = page_links(out / "index.html")
     count = TINY.models * TINY.images
     primitives = load_model(demo_checkpoint).num_primitives
-    # Per image: input, two silhouettes, the assembly and the true mesh.
-    assert len(page.images) == 5 * count
+    # Per image: input, two silhouettes, the assembly and the true mesh; then the pass: the
+    # shared assembly from six sides and one overlay per frame.
+    assert len(page.images) == 5 * count + 1 + TINY.pass_frames
     for src in page.images:
         assert not src.startswith(("data:", "/", "http")), src
         assert src.endswith(".png")
         assert_picture(out / src)
     for href in page.links:
         assert (out / href).is_file(), href
-    glbs = [h for h in page.links if h.endswith(".glb")]
-    jsons = [h for h in page.links if h.endswith(".assembly.json")]
+    glbs = [h for h in page.links if h.endswith(".glb") and not h.startswith("pass/")]
+    jsons = [h for h in page.links
+             if h.endswith(".assembly.json") and not h.startswith("pass/")]
     assert len(glbs) == len(jsons) == 2 * count
     for path in jsons:
         # The primitives the image keeps (a network with existence drops some), and its GLB
@@ -225,6 +227,65 @@ def test_demo_shows_the_networks_own_prediction_of_unseen_models(demo, demo_chec
             pose["refined"] != pose["network"]
         row = next(r for r in rows if r["model"] == model and r["method"] == "refined")
         assert moved or not row["search_score"]  # searched: the pose moved
+
+
+@pytest.mark.slow
+def test_the_demos_pass_is_scored_from_the_files_it_shows(demo):
+    """The pass section's numbers are what its files hold: the shared assembly of
+    sequence.assembly.json drawn again here at each frame's pose.json gives per_frame.csv's
+    2D IoU against the rendered mask (a plain pixel count), and the poses' quaternions its
+    frame-to-frame rotation errors against the labels'."""
+    from sq_mitsuba.apps.demo import DemoOptions
+    from sq_mitsuba.geometry.camera import Camera
+    from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer, render_assembly
+
+    out, printed = demo
+    root = out / "pass"
+    frames = TINY.pass_frames
+    record = json.loads((out / MANIFEST).read_text())["pass"]
+    models = sorted(json.loads((out / MANIFEST).read_text())["models"])
+    assert record["model"] == models[0] and record["frames"] == frames
+    assert f"a pass of {frames} frames of {models[0]}" in printed
+    labels = json.loads((root / "data" / models[0] / "labels.json").read_text())
+    assert [label["frame_in_pass"] for label in labels] == list(range(frames))
+    assert {label["pass"] for label in labels} == {0}
+
+    rows = _rows(root / "per_frame.csv")
+    assert [(r["method"], int(r["frame"])) for r in rows] == [
+        (method, k) for method in ("network", "frames", "sequence") for k in range(frames)]
+    sequence = [r for r in rows if r["method"] == "sequence"]
+    # The page and the manifest show the rows' means.
+    html_text = (out / "index.html").read_text()
+    assert f"A pass of {frames} images" in html_text
+    for method in ("network", "frames", "sequence"):
+        mean = np.mean([float(r["iou_2d"]) for r in rows if r["method"] == method])
+        assert record["summary"][method]["iou_2d"] == pytest.approx(mean, abs=1e-6)
+        assert f"<td>{mean:.3f}</td>" in html_text
+
+    camera = Camera.load(root / "data" / "camera.json")
+    assembly = Assembly.load(root / "sequence" / "sequence.assembly.json")
+    poses = [json.loads((root / "sequence" / f"{Path(label['filename']).stem}.pose.json")
+                        .read_text()) for label in labels]
+    rotation = quaternion_to_matrix(torch.tensor([p["q_vbs2tango"] for p in poses],
+                                                 dtype=torch.float64))
+    translation = torch.tensor([p["r_Vo2To_vbs"] for p in poses], dtype=torch.float64)
+    renderer = SilhouetteRenderer(camera, spp=DemoOptions().silhouette_spp)
+    drawn = render_assembly(Assembly(assembly.params.double().expand(frames, -1, -1)), rotation,
+                            translation, renderer, DemoOptions().level).numpy() > 0.5
+    for k, label in enumerate(labels):
+        mask = np.asarray(Image.open(root / "data" / models[0] / "masks" / label["filename"])
+                          .convert("L")) > 127
+        iou = (drawn[k] & mask).sum() / max((drawn[k] | mask).sum(), 1)
+        assert float(sequence[k]["iou_2d"]) == pytest.approx(iou, abs=0.03), k
+    truth = quaternion_to_matrix(torch.tensor([label["q_vbs2tango_true"] for label in labels],
+                                              dtype=torch.float64))
+    for k in range(1, frames):
+        step = rotation[k] @ rotation[k - 1].T
+        true_step = truth[k] @ truth[k - 1].T
+        cosine = ((step.T @ true_step).trace() - 1) / 2
+        error = math.degrees(math.acos(max(-1.0, min(1.0, float(cosine)))))
+        assert float(sequence[k]["relative_rotation_deg"]) == pytest.approx(error, abs=0.1)
+    assert sequence[0]["relative_rotation_deg"] == ""
 
 
 # ------------------------------------------------------------------------------ browser

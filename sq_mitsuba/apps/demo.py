@@ -14,7 +14,10 @@ model never saw, as a web page.
    rows name it), and score the network, the searched and refined prediction and the trivial
    baseline with the evaluation's own
    :func:`~sq_mitsuba.evaluation.scoring.score` (every metric of ``sq-mitsuba eval``);
-4. write a page, ``index.html`` and its Markdown twin ``index.md``
+4. render a pass of a few frames of the first spacecraft and predict one assembly and every
+   pose from them (``predict --sequence``), scored per frame beside each frame alone
+   (:mod:`sq_mitsuba.apps.demo_pass`);
+5. write a page, ``index.html`` and its Markdown twin ``index.md``
    (:mod:`sq_mitsuba.apps.demo_page`), with the pictures, metrics and the files of each
    predicted assembly (assembly JSON, GLB, pose JSON, as ``sq-mitsuba predict`` writes them).
 
@@ -31,6 +34,7 @@ Output folder (``out``)::
     assemblies/<stem>.{network,refined}.{assembly.json,glb}, <stem>.pose.json
     models/                       the generated spacecraft (model library)
     data/                         the rendered dataset (SPE3R layout: images, masks, labels)
+    pass/                         the pass: its data, ``predict --sequence``'s files, per_frame.csv
     train/                        with ``train``: its library, dataset and run folder
 
 Convention: the folder is replaced as a whole. Everything is written into a temporary folder
@@ -86,12 +90,17 @@ class DemoSize:
     "Path-tracing samples per pixel of the images."
     refine_steps: int = in_range(1, 1000, default=50)
     "Test-time refinement steps at most (about 40 ms per image and step on 2 cores)."
+    pass_frames: int = in_range(0, 64, default=8)
+    """Frames of the pass of the first spacecraft (one assembly and every pose from them;
+    :mod:`sq_mitsuba.apps.demo_pass`); fewer than 2: no pass."""
 
 
 #: The sizes of ``--size``: tiny for CI (seconds), small, default (minutes on 2 cores).
 SIZES: dict[str, DemoSize] = {
-    "tiny": DemoSize(models=2, images=1, resolution=128, spp=16, refine_steps=8),
-    "small": DemoSize(models=3, images=2, resolution=256, spp=32, refine_steps=30),
+    "tiny": DemoSize(models=2, images=1, resolution=128, spp=16, refine_steps=8,
+                     pass_frames=3),
+    "small": DemoSize(models=3, images=2, resolution=256, spp=32, refine_steps=30,
+                      pass_frames=4),
     "default": DemoSize(),
 }
 
@@ -123,8 +132,9 @@ class DemoOptions:
     """Settings of ``sq-mitsuba demo``."""
 
     size: Literal["tiny", "small", "default"] = "default"
-    """Preset: tiny (2 spacecraft x 1 image at 128 px, 8 refinement steps; for CI), small
-    (3 x 2 at 256 px) or default (5 x 3 at 256 px, 50 steps)."""
+    """Preset: tiny (2 spacecraft x 1 image at 128 px, 8 refinement steps, a pass of 3
+    frames; for CI), small (3 x 2 at 256 px, a pass of 4) or default (5 x 3 at 256 px, 50
+    steps, a pass of 8)."""
     seed: int = in_range(0, 2**32 - 1, default=DEMO_CATALOGUE_SEED)
     """Catalogue seed of the demo's spacecraft (and seed of their images); the shipped model
     trained on catalogue seed 0, so these are spacecraft it never saw."""
@@ -164,6 +174,8 @@ class DemoResult:
         summary: {method: {metric: (mean, std, median)}} over the images.
         checkpoint: the model demonstrated; baseline: where the baseline came from.
         wall_seconds: the whole run, checks to the last rename.
+        passed: the pass of the first spacecraft (:class:`~sq_mitsuba.apps.demo_pass.
+        PassRecord`), None without one.
     """
 
     out_dir: Path
@@ -176,6 +188,7 @@ class DemoResult:
     baseline: str
     wall_seconds: float
     stages: dict[str, float] = field(default_factory=dict)
+    passed: Any = None
 
     def describe(self) -> str:
         """A few lines: the main numbers, then where to look and the wall time."""
@@ -186,6 +199,8 @@ class DemoResult:
                 lines.append(f"  {label}: " + ", ".join(
                     f"{PAGE_METRICS[m]} {stats[m][0]:.3f}" for m in
                     ("chamfer_l1_paper", "iou_2d", "rotation_error_folded_deg")))
+        if self.passed is not None:
+            lines.append(self.passed.describe())
         lines.append(f"demo of {self.images} image(s) of {self.models} unseen spacecraft done "
                      f"in {self.wall_seconds:.0f} s (wall); open {self.page}")
         return "\n".join(lines)
@@ -396,6 +411,17 @@ def _build(options: DemoOptions, out: Path, predictor: Any, training_config: Any
     stages["pictures and files"] = time.perf_counter() - tick
     if curves is not None:
         shutil.copyfile(curves, out / "images" / "training_curves.png")
+    passed = None
+    if preset.pass_frames >= 2:
+        from sq_mitsuba.apps.demo_pass import render_pass, run_pass
+
+        tick = time.perf_counter()
+        first = sorted(summary.written)[0]
+        pass_data = render_pass(library, first, out / "pass", preset.pass_frames,
+                                preset.resolution, preset.spp, options.seed, progress)
+        passed = run_pass(fast, pass_data, out / "pass", options.surface_points, options.points,
+                          options.level, options.silhouette_spp, progress)
+        stages["pass"] = time.perf_counter() - tick
     checkpoint = str(getattr(predictor, "source", None) or "")
     if training_config is not None:
         checkpoint = str(Path("train") / "run" / Path(checkpoint).name)
@@ -405,14 +431,17 @@ def _build(options: DemoOptions, out: Path, predictor: Any, training_config: Any
         "network": {"image_size": predictor.image_size,
                     "num_primitives": predictor.num_primitives},
         "images": len(records), "models": sorted({r["model"] for r in records}),
+        "pass": None if passed is None else {
+            "model": passed.model, "frames": passed.frames,
+            "seconds": round(passed.seconds, 2), "summary": passed.summary},
         "stage_seconds": {k: round(v, 2) for k, v in stages.items()},
         "wall_seconds_before_page": round(wall, 2),
     }
     atomic_write_json(out / MANIFEST, record)
     page, markdown = write_demo_page(out, options, records, table, checkpoint, baseline_source,
-                                 curves is not None, stages, wall)
+                                     curves is not None, stages, wall, passed)
     return DemoResult(out, page, markdown, len(records), len(record["models"]), table,
-                      checkpoint, baseline_source, wall, stages)
+                      checkpoint, baseline_source, wall, stages, passed)
 
 
 def _train(training: DemoTraining, config: Any, root: Path, points: int,
@@ -533,4 +562,5 @@ def _predict_and_score(predictor: Any, data: Path, options: DemoOptions,
 def describe_sizes() -> str:
     """One line per preset, for the command's help."""
     return "\n".join(f"  {name}: {s.models} spacecraft x {s.images} image(s) at {s.resolution} "
-                     f"px, {s.refine_steps} refinement steps" for name, s in SIZES.items())
+                     f"px, {s.refine_steps} refinement steps, a pass of {s.pass_frames} frames"
+                     for name, s in SIZES.items())

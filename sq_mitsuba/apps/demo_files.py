@@ -120,8 +120,11 @@ def shown_model(checkpoint: str) -> str:
 def write_demo_page(out: Path, options: Any, records: Sequence[dict[str, Any]],
                 table: dict[str, dict[str, tuple[float, float, float]]], checkpoint: str,
                 baseline_source: str, curves: bool, stages: dict[str, float],
-                wall: float) -> tuple[Path, Path]:
+                wall: float, passed: Any = None) -> tuple[Path, Path]:
+    """The page (index.html, index.md) of the demo's images and, where one was run, its pass
+    (:class:`~sq_mitsuba.apps.demo_pass.PassRecord`)."""
     from sq_mitsuba.apps.demo_page import DemoPage, PageImage, write_page
+    from sq_mitsuba.apps.demo_pass import pass_section
     from sq_mitsuba.evaluation.tables import as_number
     from sq_mitsuba.inference.search import SearchOptions
 
@@ -189,6 +192,7 @@ def write_demo_page(out: Path, options: Any, records: Sequence[dict[str, Any]],
         title="sq-mitsuba demo: spacecraft as superquadric assemblies from one image",
         intro=intro, metric_labels=dict(PAGE_METRICS), summary=summary, figures=figures,
         images=images,
+        sections=[] if passed is None else [pass_section(passed)],
         files=[("every metric, per image (CSV)", "per_image.csv"),
                ("summary: mean, std, median (CSV)", "summary.csv"),
                ("per model (Markdown)", "per_model.md"),

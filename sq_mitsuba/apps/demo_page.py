@@ -59,6 +59,26 @@ class PageImage:
 
 
 @dataclass
+class PageSection:
+    """A section of its own after the images (the pass of several images of one spacecraft).
+
+    Attributes:
+        title: heading; text: paragraphs of plain text; metric_labels: {metric key: column
+        heading}; rows: (method label, {metric key: value}); figures: (relative path,
+        caption) shown wide; pictures: (relative path, caption) in display order; links:
+        (label, relative path).
+    """
+
+    title: str
+    text: list[str]
+    metric_labels: dict[str, str]
+    rows: list[tuple[str, dict[str, float]]]
+    figures: list[tuple[str, str]] = field(default_factory=list)
+    pictures: list[tuple[str, str]] = field(default_factory=list)
+    links: list[tuple[str, str]] = field(default_factory=list)
+
+
+@dataclass
 class DemoPage:
     """Everything the page shows.
 
@@ -67,7 +87,8 @@ class DemoPage:
         metric_labels: {metric key: column heading}, in column order.
         summary: (method label, {metric key: mean over the images}) rows.
         figures: extra (relative path, caption) pictures shown wide (training curves).
-        images: one :class:`PageImage` per image; files: (label, relative path) links.
+        images: one :class:`PageImage` per image; sections: :class:`PageSection` s shown
+        after the images; files: (label, relative path) links.
     """
 
     title: str
@@ -76,6 +97,7 @@ class DemoPage:
     summary: list[tuple[str, dict[str, float]]]
     figures: list[tuple[str, str]] = field(default_factory=list)
     images: list[PageImage] = field(default_factory=list)
+    sections: list[PageSection] = field(default_factory=list)
     files: list[tuple[str, str]] = field(default_factory=list)
 
 
@@ -132,6 +154,13 @@ def page_html(page: DemoPage) -> str:
         parts.append(_html_table(page.metric_labels, image.metrics))
         parts.append(_links_html(image.links))
         parts.append("</section>")
+    for section in page.sections:
+        parts.append(f"<h2>{html.escape(section.title)}</h2>")
+        parts += [f"<p>{html.escape(text)}</p>" for text in section.text]
+        parts.append(_html_table(section.metric_labels, section.rows))
+        parts += [_figure(path, caption, wide=True) for path, caption in section.figures]
+        parts.append("<div>" + "".join(_figure(p, c) for p, c in section.pictures) + "</div>")
+        parts.append(_links_html(section.links))
     if page.files:
         parts.append("<h2>Files</h2>")
         parts.append(_links_html(page.files))
@@ -161,6 +190,19 @@ def page_markdown(page: DemoPage) -> str:
                   + ".", ""]
         lines += [_markdown_table(page.metric_labels, image.metrics), ""]
         lines += [f"- [{_escape_md(label)}]({path})" for label, path in image.links]
+        lines.append("")
+    for section in page.sections:
+        lines += [f"## {section.title}", ""]
+        for text in section.text:
+            lines += [text, ""]
+        lines += [_markdown_table(section.metric_labels, section.rows), ""]
+        for path, caption in section.figures:
+            lines += [f"![{_escape_md(caption)}]({path})", "", f"*{caption}*", ""]
+        if section.pictures:
+            lines.append(" ".join(f"![{_escape_md(c)}]({p})" for p, c in section.pictures))
+            lines += ["", "Pictures, left to right: "
+                      + "; ".join(c for _, c in section.pictures) + ".", ""]
+        lines += [f"- [{_escape_md(label)}]({path})" for label, path in section.links]
         lines.append("")
     if page.files:
         lines += ["## Files", ""]

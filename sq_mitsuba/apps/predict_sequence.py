@@ -41,12 +41,15 @@ _SIDES = (("+x", (0.0, 90.0)), ("-x", (0.0, -90.0)), ("+y", (-90.0, 0.0)), ("-y"
 
 @dataclass
 class SequenceRecord:
-    """What :func:`predict_sequence_files` did: the files, the frames' IoUs and the time."""
+    """What :func:`predict_sequence_files` did: the files, the frames' IoUs, the time and the
+    prediction itself (``result``: the :class:`~sq_mitsuba.inference.prediction.
+    SequencePrediction` as fitted, at the network's unit size)."""
 
     files: list[Path] = field(default_factory=list)
     iou: list[float] = field(default_factory=list)
     frame_iou: list[float] = field(default_factory=list)
     seconds: float = 0.0
+    result: Any = None
 
     def describe(self) -> str:
         count = len(self.iou)
@@ -186,6 +189,7 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
             raise
         raise ValueError(f"image {paths[int(found[1])]}: {found[2]}") from None
     record.seconds = time.perf_counter() - started
+    record.result = result
     record.iou = [float(v) for v in result.iou]
     record.frame_iou = [float(v) for v in result.frame_iou]
     out.mkdir(parents=True, exist_ok=True)

@@ -25,20 +25,25 @@ and refines it at test time through Mitsuba silhouettes against the mask read fr
 names it), and scores the network, the searched and refined prediction and the trivial
 baseline (the mean training assembly at the mean training pose, as stored with the
 checkpoint; without one, computed over the demo's own images) with the metrics of
-`sq-mitsuba eval`.
+`sq-mitsuba eval`. Then it renders a pass of a few frames of the first spacecraft (the target
+tumbling while the camera approaches) and predicts one assembly and every frame's pose from
+them at once (`predict --sequence`), scored per frame beside each frame alone.
 
 Writes --out (default demo_output): index.html and its Markdown twin index.md (input, the
 silhouettes before and after refinement, the predicted assembly with one colour per primitive
 beside the true mesh, metrics per image, a summary table against the baseline, links to each
-assembly's JSON and GLB), per_image.csv and summary.csv, the generated models (models/) and
-the rendered dataset (data/). The folder is replaced as a whole, only once the new demo is
+assembly's JSON and GLB, and the pass: its shared assembly from six sides, an overlay per
+frame, its metrics), per_image.csv and summary.csv, the generated models (models/), the
+rendered dataset (data/) and the pass (pass/: its frames, the files of predict --sequence,
+per_frame.csv). The folder is replaced as a whole, only once the new demo is
 complete; it must be absent, empty or an earlier demo.
 
 Sizes (--size):
 {sizes}
-The default size takes about a minute on 2 CPU cores with the shipped model (measured: 35 s
-wall, of which 24 s predicting, refining and scoring 15 images; 55 s on a slower AVX2-only
-CPU), a few minutes with a network that takes 128 px or more.
+The default size takes about a minute and a half on 2 CPU cores with the shipped model
+(measured: 85 s wall on an AVX2-only Intel VM, of which 34 s predicting, refining and scoring
+15 images and 19 s the pass of 8 frames), a few minutes with a network that takes 128 px or
+more.
 
 --train first trains a small model from scratch (a small library of the training catalogue,
 a small dataset, train/configs/tiny.toml with the overrides of --set training.overrides;
