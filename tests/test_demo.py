@@ -254,6 +254,10 @@ def test_the_demos_pass_is_scored_from_the_files_it_shows(demo):
     assert [(r["method"], int(r["frame"])) for r in rows] == [
         (method, k) for method in ("network", "frames", "sequence") for k in range(frames)]
     sequence = [r for r in rows if r["method"] == "sequence"]
+    # Three readings, not one scored thrice: each frame's own two differ from each other.
+    by_method = {m: [r["chamfer_l1_paper"] for r in rows if r["method"] == m]
+                 for m in ("network", "frames", "sequence")}
+    assert by_method["network"] != by_method["frames"] != by_method["sequence"]
     # The page and the manifest show the rows' means.
     html_text = (out / "index.html").read_text()
     assert f"A pass of {frames} images" in html_text
@@ -263,6 +267,7 @@ def test_the_demos_pass_is_scored_from_the_files_it_shows(demo):
         assert f"<td>{mean:.3f}</td>" in html_text
 
     camera = Camera.load(root / "data" / "camera.json")
+    assert record["resolution"] == camera.width  # scored as rendered, not at the network's size
     assembly = Assembly.load(root / "sequence" / "sequence.assembly.json")
     poses = [json.loads((root / "sequence" / f"{Path(label['filename']).stem}.pose.json")
                         .read_text()) for label in labels]
@@ -276,7 +281,8 @@ def test_the_demos_pass_is_scored_from_the_files_it_shows(demo):
         mask = np.asarray(Image.open(root / "data" / models[0] / "masks" / label["filename"])
                           .convert("L")) > 127
         iou = (drawn[k] & mask).sum() / max((drawn[k] | mask).sum(), 1)
-        assert float(sequence[k]["iou_2d"]) == pytest.approx(iou, abs=0.03), k
+        # Measured within 0.002 of the soft silhouette's IoU the scoring takes.
+        assert float(sequence[k]["iou_2d"]) == pytest.approx(iou, abs=0.01), k
     truth = quaternion_to_matrix(torch.tensor([label["q_vbs2tango_true"] for label in labels],
                                               dtype=torch.float64))
     for k in range(1, frames):

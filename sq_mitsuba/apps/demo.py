@@ -51,10 +51,12 @@ drawn at the rendered resolution.
 
 from __future__ import annotations
 
+import math
 import os
 import shutil
 import tempfile
 import time
+import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
@@ -92,7 +94,7 @@ class DemoSize:
     "Test-time refinement steps at most (about 40 ms per image and step on 2 cores)."
     pass_frames: int = in_range(0, 64, default=8)
     """Frames of the pass of the first spacecraft (one assembly and every pose from them;
-    :mod:`sq_mitsuba.apps.demo_pass`); fewer than 2: no pass."""
+    :mod:`sq_mitsuba.apps.demo_pass`); 0 or 1: no pass."""
 
 
 #: The sizes of ``--size``: tiny for CI (seconds), small, default (minutes on 2 cores).
@@ -411,7 +413,7 @@ def _build(options: DemoOptions, out: Path, predictor: Any, training_config: Any
     stages["pictures and files"] = time.perf_counter() - tick
     if curves is not None:
         shutil.copyfile(curves, out / "images" / "training_curves.png")
-    passed = None
+    passed, pass_skipped = None, None
     if preset.pass_frames >= 2:
         from sq_mitsuba.apps.demo_pass import render_pass, run_pass
 
@@ -419,8 +421,12 @@ def _build(options: DemoOptions, out: Path, predictor: Any, training_config: Any
         first = sorted(summary.written)[0]
         pass_data = render_pass(library, first, out / "pass", preset.pass_frames,
                                 preset.resolution, preset.spp, options.seed, progress)
-        passed = run_pass(fast, pass_data, out / "pass", options.surface_points, options.points,
-                          options.level, options.silhouette_spp, progress)
+        try:
+            passed = run_pass(fast, pass_data, out / "pass", options.surface_points,
+                              options.points, options.level, options.silhouette_spp, progress)
+        except ValueError as error:  # a frame without a target to fit: the images stand
+            pass_skipped = f"the pass of {first} could not be fitted: {error}"
+            warnings.warn(pass_skipped, stacklevel=2)
         stages["pass"] = time.perf_counter() - tick
     checkpoint = str(getattr(predictor, "source", None) or "")
     if training_config is not None:
@@ -431,15 +437,18 @@ def _build(options: DemoOptions, out: Path, predictor: Any, training_config: Any
         "network": {"image_size": predictor.image_size,
                     "num_primitives": predictor.num_primitives},
         "images": len(records), "models": sorted({r["model"] for r in records}),
-        "pass": None if passed is None else {
-            "model": passed.model, "frames": passed.frames,
-            "seconds": round(passed.seconds, 2), "summary": passed.summary},
+        "pass": (pass_skipped and {"skipped": pass_skipped}) if passed is None else {
+            "model": passed.model, "frames": passed.frames, "resolution": passed.resolution,
+            "seconds": round(passed.seconds, 2),
+            "summary": {method: {name: value if math.isfinite(value) else None
+                                 for name, value in means.items()}
+                        for method, means in passed.summary.items()}},
         "stage_seconds": {k: round(v, 2) for k, v in stages.items()},
         "wall_seconds_before_page": round(wall, 2),
     }
     atomic_write_json(out / MANIFEST, record)
     page, markdown = write_demo_page(out, options, records, table, checkpoint, baseline_source,
-                                     curves is not None, stages, wall, passed)
+                                     curves is not None, stages, wall, passed, pass_skipped)
     return DemoResult(out, page, markdown, len(records), len(record["models"]), table,
                       checkpoint, baseline_source, wall, stages, passed)
 
@@ -562,5 +571,6 @@ def _predict_and_score(predictor: Any, data: Path, options: DemoOptions,
 def describe_sizes() -> str:
     """One line per preset, for the command's help."""
     return "\n".join(f"  {name}: {s.models} spacecraft x {s.images} image(s) at {s.resolution} "
-                     f"px, {s.refine_steps} refinement steps, a pass of {s.pass_frames} frames"
+                     f"px, {s.refine_steps} refinement steps, "
+                     + (f"a pass of {s.pass_frames} frames" if s.pass_frames >= 2 else "no pass")
                      for name, s in SIZES.items())

@@ -120,9 +120,11 @@ def shown_model(checkpoint: str) -> str:
 def write_demo_page(out: Path, options: Any, records: Sequence[dict[str, Any]],
                 table: dict[str, dict[str, tuple[float, float, float]]], checkpoint: str,
                 baseline_source: str, curves: bool, stages: dict[str, float],
-                wall: float, passed: Any = None) -> tuple[Path, Path]:
+                wall: float, passed: Any = None,
+                pass_skipped: str | None = None) -> tuple[Path, Path]:
     """The page (index.html, index.md) of the demo's images and, where one was run, its pass
-    (:class:`~sq_mitsuba.apps.demo_pass.PassRecord`)."""
+    (:class:`~sq_mitsuba.apps.demo_pass.PassRecord`; ``pass_skipped``: why a pass that was
+    rendered could not be fitted, said on the page)."""
     from sq_mitsuba.apps.demo_page import DemoPage, PageImage, write_page
     from sq_mitsuba.apps.demo_pass import pass_section
     from sq_mitsuba.evaluation.tables import as_number
@@ -156,6 +158,7 @@ def write_demo_page(out: Path, options: Any, records: Sequence[dict[str, Any]],
         "distance. Rotation error up to half turns: the least over the four half turns of the "
         "body frame (which end of an axis is '+' cannot be seen on an unknown model; chance "
         "79 deg median).",
+        *([pass_skipped[0].upper() + pass_skipped[1:]] if pass_skipped else []),
         "Times: " + ", ".join(f"{k} {v:.0f} s" for k, v in stages.items())
         + f"; {wall:.0f} s in all before this page.",
     ]

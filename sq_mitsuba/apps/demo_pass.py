@@ -9,8 +9,10 @@ three readings of every frame against its truth with the evaluation's own
 :func:`~sq_mitsuba.evaluation.scoring.score`:
 
 - ``network``: the network's own reading of the frame;
-- ``frames``: the frame alone, as the pass starts from it (the network's turned copies, the
-  pose search and one refinement step: the red silhouettes of the overlays);
+- ``frames``: the frame alone as the pass starts from it (the network's turned copies, the
+  pose search and one refinement step: the red silhouettes of the overlays), lighter than
+  the single images' ``refined`` path above it on the page (50 refinement steps) and than
+  ``study passes``' ``single``;
 - ``sequence``: the shared assembly at the frame's pose after the joint fit (green).
 
 Beside every metric of ``sq-mitsuba eval``, ``relative_rotation_deg``: how far the rotation
@@ -25,7 +27,10 @@ Files, under the demo's ``pass/``::
     per_frame.csv                  every metric per frame and method
 
 Convention: as ``sq-mitsuba study passes``, the frames are read and scored at the rendered
-resolution (what a user hands ``predict --sequence``), not at the network's input size.
+resolution (what a user hands ``predict --sequence``), not at the network's input size as
+the demo's single images are; the primitive meshes and the 2D IoU's samples are the demo's
+(``DemoOptions.level``, ``silhouette_spp``). Every frame is fitted whatever the network's
+target score (``min_target`` 0, as the study does): the demo renders the target in each.
 """
 
 from __future__ import annotations
@@ -36,15 +41,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-import torch
-
 __all__ = ["PASS_METHODS", "PASS_METRICS", "PassRecord", "pass_section", "render_pass",
            "run_pass"]
 
 #: Methods scored per frame, in the page's order, with their labels (module docstring).
 PASS_METHODS = {"network": "network, each frame alone",
-                "frames": "each frame searched (red)",
+                "frames": "each frame searched, one refinement step (red)",
                 "sequence": "one assembly, every pose (green)"}
 #: Metrics of the pass on the page (every metric is in per_frame.csv).
 PASS_METRICS = {"chamfer_l1_paper": "body-frame Chamfer-L1",
@@ -61,7 +63,8 @@ class PassRecord:
     Attributes:
         model: the spacecraft; frames: its frames; resolution: their side in pixels.
         rows: one dict per frame and method (the ``per_frame.csv`` rows).
-        summary: {method: {metric: mean over the frames}} (NaN where a metric has none).
+        summary: {method: {metric: mean over the frames' finite values}} (NaN where none
+            is finite).
         stems: the frames' file stems, in order (``sequence/<stem>.overlay.png``).
         seconds: wall time of ``predict --sequence`` (the frames' path included).
     """
@@ -123,14 +126,16 @@ def run_pass(predictor: Any, data: Path, root: Path, surface_points: int, volume
     from sq_mitsuba.evaluation.passes import pass_groups, relative_rotation_errors
     from sq_mitsuba.evaluation.scoring import METRICS, ModelData, score
     from sq_mitsuba.evaluation.split import collate, open_split
-    from sq_mitsuba.evaluation.tables import csv_text
+    from sq_mitsuba.evaluation.tables import csv_text, summarise
     from sq_mitsuba.geometry.assembly import Assembly
+    from sq_mitsuba.inference.loading import with_fast_path
     from sq_mitsuba.io import atomic_write_text
     from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer
 
     dataset = open_split(data, "test", None, surface_points)  # at the rendered resolution
     (model_index, _), items = next(iter(pass_groups(dataset).items()))
     paths = [dataset.image_file(item) for item in items]
+    predictor = with_fast_path(predictor, True, min_target=0.0)  # every frame shows the target
     written = predict_sequence_files(paths, root / "sequence", predictor, camera=dataset.camera,
                                      ordered=True, progress=progress)
     result = written.result
@@ -157,10 +162,10 @@ def run_pass(predictor: Any, data: Path, root: Path, surface_points: int, volume
         for k in range(count):
             record.rows.append({"frame": k, "method": method,
                                 **{name: float(value[k]) for name, value in metrics.items()}})
-        record.summary[method] = {
-            name: float(np.nanmean(values.numpy())) if bool(torch.isfinite(values).any())
-            else math.nan for name, values in metrics.items()}
     header = ["model", "frame", "method", *METRICS, "relative_rotation_deg"]
+    means = summarise(record.rows, ("method",), header[3:])
+    record.summary = {method: {name: stats[0] for name, stats in means[(method,)].items()}
+                      for method in readings}
     atomic_write_text(root / "per_frame.csv", csv_text(header, [
         [record.model, row["frame"], row["method"],
          *("" if not math.isfinite(row.get(m, math.nan)) else f"{row[m]:.6g}"
@@ -181,13 +186,14 @@ def pass_section(record: PassRecord, prefix: str = "pass") -> Any:
     text = [
         f"{record.frames} frames of {record.model} in their order, path-traced at "
         f"{record.resolution} x {record.resolution} px while the target tumbles about a "
-        "random axis and the camera approaches. `sq-mitsuba predict FRAMES... --sequence` "
+        "random axis and the camera approaches. 'sq-mitsuba predict FRAMES... --sequence' "
         "reads every frame (the network's turned copies, the pose search and one refinement "
         "step), brings the readings into one body frame with the pass kept on one "
         "constant-rate turn, and fits one shared assembly and every frame's pose to all the "
         f"frames' masks at once through Mitsuba's silhouettes ({record.seconds:.1f} s, "
         f"{record.seconds / max(record.frames, 1):.2f} s a frame).",
-        "Mean over the frames, scored at the rendered resolution; 'frame to frame': the "
+        "Mean over the frames, scored at the rendered resolution (the single images above "
+        "at the network's input size); 'frame to frame': the "
         "error of the rotation from the frame before to this one, which several views pin "
         "even where the absolute rotation (which axis is which) stays wrong. Overlays: red, "
         "each frame searched alone; green, the shared assembly at the frame's pose; yellow, "
