@@ -516,6 +516,16 @@ def test_predict_sequence_cli_writes_one_assembly_and_a_pose_per_frame(eval_chec
         assert pose["sequence"]["steps"] == 5  # --fit reached the joint fit
         assert len(pose["q_vbs2tango"]) == 4 and pose["r_Vo2To_vbs"][2] > 0
         assert (out / f"{image.stem}.overlay.png").stat().st_size > 0
+    # The COLMAP model holds the same poses (at the target's size) and the frames' camera.
+    from sq_mitsuba.apps.colmap_model import read_colmap_model
+
+    colmap_camera, colmap_images = read_colmap_model(out / "colmap")
+    assert [name for name, _, _ in colmap_images] == [image.name for image in images]
+    for image, (_, q, t) in zip(images, colmap_images, strict=True):
+        pose = json.loads((out / f"{image.stem}.pose.json").read_text())
+        assert colmap_camera == Camera.from_speed_dict(pose["camera"])
+        np.testing.assert_allclose(q, pose["q_vbs2tango"], atol=1e-6)
+        np.testing.assert_allclose(t, pose["r_Vo2To_vbs"], atol=1e-6)
     # Each file holds its own frame's pose: the API's answer for the same frames (up to
     # Dr.Jit's multithreaded gradient sums), frames whose translations differ by far more.
     from sq_mitsuba.data.masks import read_gray_image
@@ -852,3 +862,26 @@ def test_a_frame_the_joint_fit_lost_is_placed_again(known_pass):
                               translations, masks, CAMERA, options)
     assert torch.equal(stays[0], rotations) and torch.equal(stays[1], fitted)
     assert torch.equal(stays[2], high)
+
+
+def test_frames_named_with_spaces_get_every_file_but_the_colmap_model(eval_checkpoint,
+                                                                       train_dataset, tmp_path):
+    """A COLMAP text model cannot hold a name with white space: said before the work, and
+    the pass's other files are written."""
+    import shutil
+
+    from sq_mitsuba.apps.predict_sequence import predict_sequence_files
+
+    model = next(line.split(",")[0] for line in
+                 (train_dataset / "splits.csv").read_text().splitlines()
+                 if line.endswith(",test"))
+    images = []
+    for k, image in enumerate(sorted((train_dataset / model / "images").glob("*.png"))[:2]):
+        images.append(tmp_path / f"frame {k}.png")
+        shutil.copyfile(image, images[-1])
+    with pytest.warns(UserWarning, match="a name with white space.*colmap/ is not written"):
+        record = predict_sequence_files(images, tmp_path / "out", load_model(eval_checkpoint),
+                                        options=SequenceOptions(steps=1))
+    assert not (tmp_path / "out" / "colmap").exists()
+    assert (tmp_path / "out" / "frame 0.pose.json").is_file()
+    assert all(path.is_file() for path in record.files)

@@ -209,5 +209,7 @@ def pass_section(record: PassRecord, prefix: str = "pass") -> Any:
         links=[("shared assembly (JSON)", f"{prefix}/sequence/sequence.assembly.json"),
                ("shared assembly (GLB)", f"{prefix}/sequence/sequence.glb"),
                ("first frame's pose (JSON)", f"{prefix}/sequence/{record.stems[0]}.pose.json"),
+               ("every pose as a COLMAP model (images.txt)",
+                f"{prefix}/sequence/colmap/images.txt"),
                ("every metric, per frame (CSV)", f"{prefix}/per_frame.csv"),
                ("the rendered pass (SPE3R layout)", f"{prefix}/data/dataset.json")])

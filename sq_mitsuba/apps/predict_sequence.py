@@ -9,7 +9,10 @@ Files written to the output folder (each atomically; the folder is all or nothin
   the frame's IoU after the joint fit and the half turn that carried its own reading;
 - ``<image stem>.overlay.png`` per frame: the image with the frame's own searched silhouette
   (red), the shared assembly's at the frame's pose (green) and the mask's outline (yellow);
-- ``sequence.png``: the shared assembly from six sides (one colour per primitive).
+- ``sequence.png``: the shared assembly from six sides (one colour per primitive);
+- ``colmap/``: every frame's pose as a COLMAP sparse model (``cameras.txt``, ``images.txt``,
+  ``points3D.txt``), to start structure from motion at them
+  (:mod:`sq_mitsuba.apps.colmap_model`).
 
 Lengths are for a target of unit size, or of ``target_size`` metres where given (the files'
 assembly and translations scaled; the pictures are the same).
@@ -23,6 +26,7 @@ from __future__ import annotations
 import math
 import re
 import time
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -169,7 +173,18 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
         raise ValueError(f"image {paths[0]}: {width} x {height} px, another aspect ratio than "
                          f"{where} ({given.width} x {given.height}); a pass is not padded to "
                          "it: give the frames' own camera (--camera)")
+    from sq_mitsuba.apps.colmap_model import COLMAP_FILES, write_colmap_model
+
+    # COLMAP's text lines are split at white space: such names get no model (said now).
+    spaced = [path.name for path in paths if any(c.isspace() for c in path.name)]
+    if spaced:
+        warnings.warn(f"image {spaced[0]}: a name with white space, which a COLMAP text model "
+                      "cannot hold; colmap/ is not written", stacklevel=2)
+    if (Path(out_dir) / "colmap").exists() and not (Path(out_dir) / "colmap").is_dir():
+        raise ValueError(f"out {out_dir}: colmap is a file; this run writes the folder "
+                         "colmap/ there")
     out = check_output_folder(out_dir, ["sequence.assembly.json", "sequence.glb", "sequence.png"]
+                              + ([] if spaced else [f"colmap/{name}" for name in COLMAP_FILES])
                               + [f"{path.stem}{suffix}" for path in paths
                                  for suffix in (".pose.json", ".overlay.png")],
                               keep=[*paths, *(mask_paths or []), *other_inputs])
@@ -230,4 +245,8 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
         with atomic_path(out / f"{path.stem}.overlay.png") as tmp:
             Image.fromarray(overlay, "RGB").save(tmp, format="PNG")
         record.files.append(out / f"{path.stem}.overlay.png")
+    if not spaced:
+        record.files += write_colmap_model(out / "colmap", image_camera,
+                                           [p.name for p in paths], result.quaternion.double(),
+                                           metric.translation.double())
     return record

@@ -60,7 +60,9 @@ order they were taken): one assembly and every pose (Predictor.predict_sequence:
 by the --refine path, the half turns resolved across frames, then one shape and N poses
 fitted to every frame's mask at once). Writes sequence.assembly.json, sequence.glb,
 sequence.png (the assembly from six sides) and per frame <stem>.pose.json (its pose of that
-assembly) and <stem>.overlay.png (its own fit in red, the shared assembly in green).
+assembly) and <stem>.overlay.png (its own fit in red, the shared assembly in green), and
+colmap/ (every pose as a COLMAP sparse model, text format: the start of structure from
+motion, e.g. colmap point_triangulator --input_path DIR/colmap).
 --mask gives each frame's mask (one per image, in their order) in place of the network's;
 a frame the network sees no target in (its score below --set min_target, the one --set a
 pass takes) is refused unless masks are given.
