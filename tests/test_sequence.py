@@ -372,10 +372,28 @@ def test_along_motion_replaces_a_misread_frame_and_keeps_the_reference_frame():
     # Held: the same rotations (exact readings lie on the motion).
     held, _, _, _ = along_motion(reading, shape_turns, iou, 25.0, held=True)
     assert float(rotation_error_deg(held, expected).max()) < 1e-6
-    # Too few frames agreeing on one turn: no motion, the frames keep their readings.
+    # Too few frames agreeing on one turn: no motion, the frames keep their readings (half of
+    # them asked: 3 of 8 random readings may lie on some turn, the default quarter's 3).
     scattered = random_rotations(8, torch.Generator().manual_seed(1), torch.float64)
     assert along_motion(scattered, half_turns()[torch.zeros(8, dtype=torch.long)],
-                        torch.rand(8, dtype=torch.float64), 25.0) is None
+                        torch.rand(8, dtype=torch.float64), 25.0, min_share=0.5) is None
+
+
+def test_the_share_of_frames_on_the_motion_decides_whether_it_is_used():
+    """A pass of 10 frames, the first 4 read on one turn and the rest misread far from it:
+    4 of 10 is under half (no motion) and over a quarter, the default (the motion, and the
+    misread frames put back on it)."""
+    from sq_mitsuba.inference.body_frame import along_motion
+
+    truth = _constant_rate_pass(10, rate_deg=8.0, seed=5)
+    reading = truth.clone()
+    reading[4:] = _perturbed(truth[4:], 80.0, seed=6)
+    turns = half_turns()[torch.zeros(10, dtype=torch.long)]
+    iou = torch.linspace(0.9, 0.5, 10, dtype=torch.float64)
+    assert along_motion(reading, turns, iou, 25.0, min_share=0.5) is None  # 5 needed
+    rotation, _, reference, _ = along_motion(reading, turns, iou, 25.0, held=True)
+    assert reference == 0
+    assert float(rotation_error_deg(rotation, truth).max()) < 1e-6
 
 
 def test_a_fitted_rate_survives_a_pass_that_turns_past_half_a_turn(known_pass):

@@ -16,6 +16,8 @@ side (``R S``); tensors are float64 on the CPU.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import torch
 from torch import Tensor
@@ -218,11 +220,11 @@ def reframed(assembly: Assembly, rotation: Tensor, centre: Tensor) -> Assembly:
 
 
 def along_motion(reading: Tensor, shape_turns: Tensor, iou: Tensor, threshold_deg: float,
-                 held: bool = False, max_rate_deg: float = 45.0
+                 held: bool = False, max_rate_deg: float = 45.0, min_share: float = 0.25
                  ) -> tuple[Tensor, Tensor, int, Tensor] | None:
     """The frames' rotations from the pass's constant-rate motion (``SequenceOptions.motion``),
-    or None where too few frames agree on one (for N >= 3: fewer than 3, or than half of them):
-    the frames then keep their own readings.
+    or None where too few frames agree on one (for N >= 3: fewer than 3, or than ``min_share``
+    of them): the frames then keep their own readings.
 
     Args:
         reading: (N, 3, 3) each frame's own rotation reading (body frame: its reading's),
@@ -248,7 +250,7 @@ def along_motion(reading: Tensor, shape_turns: Tensor, iou: Tensor, threshold_de
     reading = reading.double()
     motion = constant_rate_motion(reading, threshold_deg, max_rate_deg=max_rate_deg)
     agree = motion.inliers
-    if count >= 3 and int(agree.sum()) < max(3, (count + 1) // 2):
+    if count >= 3 and int(agree.sum()) < max(3, math.ceil(min_share * count - 1e-9)):
         return None
     turns = half_turns()
     keep = torch.zeros_like(agree) if held else agree

@@ -26,8 +26,9 @@ its body frame and the pose of every image:
    best-fitting frame that agrees, and with ``options.motion = "fitted"`` (the default)
    every frame starts on the turn and the joint fit keeps the frames on one constant-rate
    turn, its rate fitted with the rest, so a frame misread alone no longer pulls the shared
-   shape its own way. Where no turn has half the frames' agreement, the frames keep their
-   readings; given relative rotations take precedence over the pass's own turn.
+   shape its own way. Where no turn has the agreement of a quarter of the frames
+   (``options.motion_min_share``), they keep their readings; given relative rotations take
+   precedence over the pass's own turn.
 3. **One shape, N poses, fitted at once** (:func:`fit_sequence`, the refinement's shared
    mode): the shared assembly (from the reference's reading, or with ``start="best"`` the
    reading that fits all frames best, :func:`choose_start`; every shape parameter free, held
@@ -50,11 +51,10 @@ frame is the reference frame's reading, turned by no half turn; relative rotatio
 as ``Q_j = R_j R_0^T`` (frame 0 first, ``Q_0 = I``). Tensors of the result are float64 on the
 CPU.
 
-Limits: a pass whose frames all show the same outline (a target seen from one side only)
-constrains the depth of the shape no better than one image; a symmetric target's half turns
-stay ambiguous, harmlessly for the shape but not for the relative poses of frames given
-unordered from unrelated views (no view near another), which may then differ by a half turn
-(frames in order, nearby views, or the rotations between them resolve it).
+Limits: frames that all show one outline constrain the shape's depth no better than one
+image; a symmetric target's half turns stay ambiguous, harmlessly for the shape but not for
+the relative poses of unordered frames from unrelated views (frames in order, nearby views,
+or the rotations between them resolve it).
 """
 
 from __future__ import annotations
@@ -113,8 +113,7 @@ class SequenceOptions:
     0.740 in 0.9 x the time of 40 steps at level 2; 80 steps 0.746 at 1.3 x
     (eval/experiments/README.md, "Passes")."""
     shape_steps: int = in_range(0, 10_000, default=0)
-    """Adam steps of the shape alone first, the poses held (0: none; 20 lowered the mean 2D
-    IoU on the passes of eval/experiments/README.md, 0.779 -> 0.752)."""
+    "Adam steps of the shape alone first, the poses held (0: none; 20: 2D IoU 0.779 -> 0.752)."
     start: Literal["reference", "best"] = "reference"
     """The shared shape's start: the best-fitting frame's reading, or the reading (or the
     readings' mean) that fits every frame's mask best at the frames' poses ("best": on the
@@ -124,7 +123,7 @@ class SequenceOptions:
     warmup: int = in_range(0, 10_000, default=10)
     """Steps over which the learning rate rises to ``lr`` (``RefineOptions.warmup``; 0: none):
     on 12 passes of the training families 0 / 10 gave 2D IoU 0.623 / 0.633 (Adam's first step
-    threw two off for good), held out 0.732 / 0.733 (eval/experiments/README.md, "Passes")."""
+    threw two off for good), held out 0.732 / 0.733."""
     resolution: int = in_range(8, 1024, default=64)
     "Width in pixels at which the silhouettes are fitted."
     level: int = in_range(0, 5, default=1)
@@ -142,35 +141,37 @@ class SequenceOptions:
     """Weight of the squared change of each frame's log depth about the frames' mean
     (:class:`~sq_mitsuba.inference.refine.RefineOptions`'s ``depth_prior``; 1: a frame moved
     10 % costs what 0.01 of IoU gains): holds each frame's depth near its reading relative to
-    the others'. Without it a frame whose mask misses much of the target (dark arrays, a
-    boom the mask head lost) ran off to shrink its silhouette, by up to 112 % of its distance.
-    Chosen on passes of 8 frames of 11 spacecraft of the training families never trained on
-    (0 / 1 / 10: camera-frame Chamfer 1.55 / 1.02 / 0.99 x the network's reading, 2D IoU
-    0.625 / 0.633 / 0.634, body frame 1.21 / 1.21 / 1.24 x); on the 12 held-out passes 2D
-    IoU 0.727 -> 0.735, the Chamfer distances unchanged (eval/experiments/README.md,
-    "Passes")."""
+    the others' (without it a frame whose mask lost dark arrays or a boom ran off, up to 112 %
+    of its distance, to shrink its silhouette). On 8-frame passes of 11 training-family
+    spacecraft never trained on (0 / 1 / 10): camera-frame Chamfer 1.55 / 1.02 / 0.99 x the
+    reading's, 2D IoU 0.625 / 0.633 / 0.634; held out 2D IoU 0.727 -> 0.735."""
     patience: int = in_range(1, 10_000, default=12)
     "Stop after this many steps without a better mean IoU."
     seed: int = in_range(0, 2**31 - 1, default=0)
     "Seed of the silhouettes' sampling."
     motion: Literal["fitted", "held", "start", "free"] = "fitted"
-    """For frames in order (``ordered=True``), what the pass's constant-rate turn does (the one
-    most frames' rotation readings agree with,
-    :func:`~sq_mitsuba.geometry.pass_motion.constant_rate_motion`). "fitted": every frame
+    """For frames in order (``ordered=True``), what the pass's constant-rate turn (the one most
+    frames' readings agree with, :func:`~sq_mitsuba.geometry.pass_motion.
+    constant_rate_motion`) does. "fitted": every frame
     starts on it and stays on one constant-rate turn through the joint fit, whose start
     rotation and rate move with the shape; "held": the same with the rate held; "start": a
     frame that disagrees starts from the motion instead of its reading, then every frame moves
     alone; "free": every frame starts from its own reading. Measured on passes of 8 frames
     (eval/MODEL_CARD.md, "A pass of images"; held-out families / archetypes): "fitted" 2D IoU
     0.702 / 0.780 and relative rotations 9.2 / 2.4 deg median, "free" 0.655 / 0.773 and
-    11.9 / 6.4 deg (with 40 steps at level 2: 0.686 / 0.794 against 0.653 / 0.768). A
-    frame's time is its index; unordered frames and given relative rotations (which take
-    precedence) are not affected."""
+    11.9 / 6.4 deg. A frame's time is its index; unordered frames and given relative
+    rotations (which take precedence) are not affected."""
     motion_threshold_deg: float = in_range(1.0, 179.0, default=25.0)
     "A frame within this angle of the pass's motion agrees with it (``motion``)."
     motion_max_rate_deg: float = positive(45.0)
-    """The fastest turn of the target the pass's motion may have, degrees per frame (readings
-    that alternate between half turns would otherwise read as a turn near 180 deg a frame)."""
+    "The fastest turn of the pass's motion, degrees per frame (half-turn flips are not turns)."
+    motion_min_share: float = in_range(0.0, 1.0, default=0.25)
+    """The share of the frames (and at least 3) that must agree with the pass's motion for it
+    to be used, else every frame keeps its reading. Longer passes show more aspects, and
+    fewer frames are read on one turn: on 12 tuning passes of 16 frames (0.5 / 0.34 / 0.25)
+    relative rotations 17.1 / 14.8 / 6.5 deg mean, 2D IoU 0.645 / 0.645 / 0.650, body-frame
+    Chamfer-L1 0.146 / 0.142 / 0.156; of 8 frames (0.5 / 0.25) 13.5 / 10.3 deg, 0.633 / 0.637,
+    0.149 / 0.154 (eval/experiments/README.md, "Passes")."""
     near_views_deg: float = in_range(0.0, 90.0, default=45.0)
     """Unordered frames (``ordered=False``) whose readings lie within this angle under one half
     turn are nearby views, given consistent half turns (:func:`align_half_turns_by_views`); 0:
@@ -451,7 +452,7 @@ def sequence_from_frames(frames: Prediction, relative: Tensor | None = None,
     elif ordered and options.motion != "free":
         on_motion = along_motion(frames.rotation, turns, fit.iou, options.motion_threshold_deg,
                                  options.motion in ("held", "fitted"),
-                                 options.motion_max_rate_deg)
+                                 options.motion_max_rate_deg, options.motion_min_share)
         if on_motion is not None:
             rotation, turns, reference, motion_relative = on_motion
             if options.motion in ("held", "fitted"):
