@@ -41,7 +41,7 @@ complete; it must be absent, empty or an earlier demo.
 Sizes (--size):
 {sizes}
 The default size takes about a minute and a half on 2 CPU cores with the shipped model
-(measured: 85 s wall on an AVX2-only Intel VM, of which 34 s predicting, refining and scoring
+(measured: 85-93 s wall on an AVX2-only Intel VM, of which 34 s predicting, refining and scoring
 15 images and 19 s the pass of 8 frames), a few minutes with a network that takes 128 px or
 more.
 
