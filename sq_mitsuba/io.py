@@ -109,8 +109,8 @@ def check_output_folder(out: str | Path, files: Sequence[str | Path] = (),
     Args:
         out: the output folder.
         files: the files the run will write there (names, or paths, relative to ``out``):
-            one that exists as a folder (or another non-file) is refused now, not after the
-            work.
+            one that exists as a folder (or another non-file), or whose folder inside ``out``
+            exists as a file, is refused now, not after the work.
         keep: the run's input files: one that ``files`` would overwrite is refused
             (:func:`check_inputs_kept`).
 
@@ -142,6 +142,12 @@ def check_output_folder(out: str | Path, files: Sequence[str | Path] = (),
         if path.exists() and not path.is_file():
             raise ValueError(f"{path}: an output of this run, but a folder (or another "
                              "non-file) is there; move it or write elsewhere (--out)")
+        for folder in path.parents:  # a sub-folder of the run's (colmap/, say) taken by a file
+            if folder == out or out not in folder.parents:
+                break
+            if folder.exists() and not folder.is_dir():
+                raise ValueError(f"{folder}: the run writes {path.name} into this folder, but "
+                                 "a file is there; move it or write elsewhere (--out)")
     return out
 
 

@@ -492,6 +492,17 @@ def test_a_folder_in_an_outputs_place_is_refused_before_the_work(bad, tmp_path, 
         assert line.endswith(f"{out / name}: an output of this run, but a folder (or another "
                              "non-file) is there; move it or write elsewhere (--out)"), line
         assert _entries(out) == [name]
+    # A file where a run writes a folder of its files (predict --sequence's colmap/).
+    from sq_mitsuba.io import check_output_folder
+
+    out = tmp_path / "out_sequence"
+    out.mkdir()
+    (out / "colmap").write_text("not a folder")
+    with pytest.raises(ValueError) as error:
+        check_output_folder(out, ["sequence.glb", "colmap/cameras.txt"])
+    assert str(error.value) == (f"{out / 'colmap'}: the run writes cameras.txt into this "
+                                "folder, but a file is there; move it or write elsewhere (--out)")
+    check_output_folder(out, ["sequence.glb", "colmap.txt"])  # beside it: nothing refused
 
 
 def test_export_to_a_folder_is_refused_before_the_work(eval_checkpoint, tmp_path, capsys):

@@ -120,6 +120,7 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
     """
     from PIL import Image
 
+    from sq_mitsuba.apps.colmap_model import COLMAP_FILES, write_colmap_model
     from sq_mitsuba.apps.overlay import NETWORK_COLOUR, REFINED_COLOUR, overlay_image
     from sq_mitsuba.apps.padding import padding_to_aspect
     from sq_mitsuba.apps.predict import (
@@ -173,16 +174,11 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
         raise ValueError(f"image {paths[0]}: {width} x {height} px, another aspect ratio than "
                          f"{where} ({given.width} x {given.height}); a pass is not padded to "
                          "it: give the frames' own camera (--camera)")
-    from sq_mitsuba.apps.colmap_model import COLMAP_FILES, write_colmap_model
-
     # COLMAP's text lines are split at white space: such names get no model (said now).
     spaced = [path.name for path in paths if any(c.isspace() for c in path.name)]
     if spaced:
         warnings.warn(f"image {spaced[0]}: a name with white space, which a COLMAP text model "
                       "cannot hold; colmap/ is not written", stacklevel=2)
-    if (Path(out_dir) / "colmap").exists() and not (Path(out_dir) / "colmap").is_dir():
-        raise ValueError(f"out {out_dir}: colmap is a file; this run writes the folder "
-                         "colmap/ there")
     out = check_output_folder(out_dir, ["sequence.assembly.json", "sequence.glb", "sequence.png"]
                               + ([] if spaced else [f"colmap/{name}" for name in COLMAP_FILES])
                               + [f"{path.stem}{suffix}" for path in paths
