@@ -123,8 +123,8 @@ def run_pass(predictor: Any, data: Path, root: Path, surface_points: int, volume
         silhouettes.
     """
     from sq_mitsuba.apps.predict_sequence import predict_sequence_files
-    from sq_mitsuba.evaluation.passes import pass_groups, relative_rotation_errors
-    from sq_mitsuba.evaluation.scoring import METRICS, ModelData, score
+    from sq_mitsuba.evaluation.passes import pass_groups, score_frames
+    from sq_mitsuba.evaluation.scoring import METRICS, ModelData
     from sq_mitsuba.evaluation.split import collate, open_split
     from sq_mitsuba.evaluation.tables import csv_text, summarise
     from sq_mitsuba.geometry.assembly import Assembly
@@ -156,9 +156,8 @@ def run_pass(predictor: Any, data: Path, root: Path, surface_points: int, volume
     for method, (assembly, rotation, translation) in readings.items():
         assembly = Assembly(assembly.params.detach().double())
         rotation, translation = rotation.detach().double(), translation.detach().double()
-        metrics = score(assembly, rotation, translation, batch, renderer, [symmetry] * count,
-                        [volume] * count, level)
-        metrics["relative_rotation_deg"] = relative_rotation_errors(rotation, batch["rotation"])
+        metrics = score_frames(assembly, rotation, translation, batch, renderer, symmetry,
+                               volume, level)
         for k in range(count):
             record.rows.append({"frame": k, "method": method,
                                 **{name: float(value[k]) for name, value in metrics.items()}})

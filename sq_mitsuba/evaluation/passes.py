@@ -63,7 +63,7 @@ from sq_mitsuba.inference.search import SEARCH_REFINEMENT, SearchOptions
 from sq_mitsuba.inference.sequence import SequenceOptions
 
 __all__ = ["OUTPUT_FILES", "PassOptions", "PassResult", "evaluate_passes", "pass_groups",
-           "relative_rotation_errors"]
+           "relative_rotation_errors", "score_frames"]
 
 PARTIAL = ".passes_partial"
 """The folder of each finished pass's rows, inside the output folder, until ``passes.json``."""
@@ -158,6 +158,22 @@ def relative_rotation_errors(rotation: Tensor, truth: Tensor) -> Tensor:
         true = truth[1:] @ truth[:-1].transpose(-1, -2)
         errors[1:] = rotation_error_deg(estimate, true).double()
     return errors
+
+
+def score_frames(assembly: Assembly, rotation: Tensor, translation: Tensor,
+                 batch: dict[str, Any], renderer: Any, symmetry: Tensor,
+                 volume: tuple[Tensor, Tensor], level: int) -> dict[str, Tensor]:
+    """Every metric (N,) of the N frames of one pass in order: ``sq-mitsuba eval``'s
+    (:func:`~sq_mitsuba.evaluation.scoring.score`, the model's ``symmetry`` and ``volume``
+    for every frame) and ``relative_rotation_deg`` (:func:`relative_rotation_errors`)."""
+    from sq_mitsuba.evaluation.scoring import score
+
+    count = rotation.shape[0]
+    metrics = score(assembly, rotation, translation, batch, renderer, [symmetry] * count,
+                    [volume] * count, level)
+    metrics["relative_rotation_deg"] = relative_rotation_errors(rotation.detach(),
+                                                                batch["rotation"])
+    return metrics
 
 
 def pass_groups(dataset: Any, views: bool = False) -> dict[tuple[int, int], list[int]]:
@@ -300,7 +316,7 @@ def _evaluate_passes(predictor: Any, dataset: Any, groups: dict[tuple[int, int],
                      label: str | None) -> PassResult:
     """:func:`evaluate_passes` once its inputs are checked and the folder locked."""
     from sq_mitsuba.evaluation.evaluate import default_label
-    from sq_mitsuba.evaluation.scoring import ModelData, score
+    from sq_mitsuba.evaluation.scoring import ModelData
     from sq_mitsuba.evaluation.split import collate
     from sq_mitsuba.io import atomic_write_json, atomic_write_text
     from sq_mitsuba.progress import progress_bar
@@ -356,10 +372,8 @@ def _evaluate_passes(predictor: Any, dataset: Any, groups: dict[tuple[int, int],
                         sequence.rotation, sequence.translation,
                         (time.perf_counter() - tick) / count)
                 for method, (assembly, rotation, translation, seconds) in methods.items():
-                    metrics = score(assembly, rotation, translation, batch, renderer,
-                                    [symmetry] * count, [volume] * count, options.level)
-                    metrics["relative_rotation_deg"] = relative_rotation_errors(
-                        rotation.detach(), batch["rotation"])
+                    metrics = score_frames(assembly, rotation, translation, batch, renderer,
+                                           symmetry, volume, options.level)
                     for k in range(count):
                         rows.append({"model": model, "pass": number, "frames": count,
                                      "method": method, "frame": k,
