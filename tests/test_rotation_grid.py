@@ -140,7 +140,7 @@ def test_turned_cells_are_the_nearest_cells_of_the_rolled_grid() -> None:
 
     grid = so3_grid(576)
     angles = torch.tensor([0.0, 0.7, math.pi], dtype=torch.float64)
-    cells = turned_cells(grid, z_rotation(angles), chunk=100)
+    cells = turned_cells(grid, z_rotation(angles))
     assert torch.equal(cells[0], torch.arange(576))
     for k, angle in enumerate(angles):
         moved = z_rotation(angle[None])[0] @ grid

@@ -153,6 +153,13 @@ def run(options: BenchOptions) -> Report:
                                   options.repeats, options.warmup),
                     note=f"batch of 1, {RESOLUTION} px image, the {shipped.image_size} px "
                          "network, fast path"))
+            report.timings.append(Timing(
+                "predict: shipped model, loaded, then its first reading from turned copies",
+                time_callable(lambda: load_model(fast=True).predict(image, camera),
+                              max(1, min(options.repeats, 5)), warmup=1),
+                note="what a new `predict` process pays once: the checkpoint read, the "
+                     "network folded, the table of where each rotation cell goes under the "
+                     f"{search.turns} turns, one reading"))
 
             def shipped_turned_search_refine() -> None:
                 shipped.predict(image, camera, refine=True)

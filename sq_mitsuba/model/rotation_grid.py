@@ -33,7 +33,6 @@ from torch import Tensor, nn
 from sq_mitsuba.geometry.rotation import matrix_to_quaternion, quaternion_to_matrix
 from sq_mitsuba.geometry.so3_grid import (
     covering_angle_deg,
-    nearest_grid_index,
     super_fibonacci_quaternions,
 )
 from sq_mitsuba.model.heads import POSITION_OUTPUTS, PoseHeadOutput, register_pose_head
@@ -213,23 +212,34 @@ def rotation_hypotheses(logits: Tensor, grid: Tensor, count: int,
 
 
 @torch.no_grad()
-def turned_cells(grid: Tensor, turns: Tensor, chunk: int = 1024) -> Tensor:
+def turned_cells(grid: Tensor, turns: Tensor) -> Tensor:
     """Where each cell goes when the camera rolls: (G, 3, 3) grid, (T, 3, 3) rotations about
     the optical axis -> (T, G) long, the cell nearest ``turns[k] @ grid[g]``.
 
     An image turned in its plane about the principal point shows the pose ``Rz R`` when the
     original shows ``R`` (:func:`~sq_mitsuba.geometry.image_turns.z_rotation`), so the score of
     cell g for the original image is the turned image's score of cell ``[k, g]``.
+
+    The nearest cell by a k-d tree over the grid's quaternions and their negatives: for unit
+    quaternions ``|p - q|^2 = 2 - 2 p.q`` and the angle between two rotations falls as ``|p.q|``
+    grows, so the nearest point is the cell at the smallest angle (what
+    :func:`~sq_mitsuba.geometry.so3_grid.nearest_grid_index` finds by brute force, T G x G
+    traces: 1.3 s at 8 turns of 4,608 cells on one core, against a few tens of ms).
     """
     if turns.dim() != 3 or turns.shape[1:] != (3, 3) or grid.dim() != 3 or \
             grid.shape[1:] != (3, 3):
         raise ValueError(f"expected rotations grid (G, 3, 3) and turns (T, 3, 3), got "
                          f"{tuple(grid.shape)} and {tuple(turns.shape)}")
-    grid = grid.double()
-    moved = (turns.double().to(grid.device)[:, None] @ grid[None]).reshape(-1, 3, 3)
-    # In chunks: the full (T G, G) table of traces would take gigabytes at 4,608 cells.
-    nearest = torch.cat([nearest_grid_index(part, grid) for part in moved.split(chunk)])
-    return nearest.reshape(turns.shape[0], grid.shape[0])
+    from scipy.spatial import cKDTree
+
+    cells = grid.shape[0]
+    grid64 = grid.detach().double().cpu()
+    moved = turns.detach().double().cpu()[:, None] @ grid64[None]  # (T, G, 3, 3)
+    points = matrix_to_quaternion(grid64)
+    tree = cKDTree(torch.cat([points, -points]).numpy())
+    _, index = tree.query(matrix_to_quaternion(moved.reshape(-1, 3, 3)).numpy())
+    nearest = torch.from_numpy(index).long() % cells
+    return nearest.reshape(turns.shape[0], cells).to(grid.device)
 
 
 def turned_log_probabilities(logits: Tensor, cells: Tensor) -> Tensor:
