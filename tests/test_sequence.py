@@ -299,6 +299,28 @@ def test_a_known_assembly_is_recovered_from_its_masks(known_pass):
     assert float(after) < 0.7 * float(before)
 
 
+def test_the_fits_edge_samples_reach_the_renderer(known_pass):
+    """``sppp``: the silhouette-edge samples of the joint fit's gradient. Fewer samples are
+    another draw of the gradient (the fits part), and both fits climb from the same start;
+    a count below 1 is refused naming the field."""
+    from sq_mitsuba.config import ConfigError, from_dict
+
+    body, rotations, translations, masks = known_pass
+    start_rotations = _perturbed(rotations, 8.0, seed=1)
+    fits = [fit_sequence(body, start_rotations, translations, masks, CAMERA,
+                         SequenceOptions(steps=6, patience=6, shape="pose", spp=8, sppp=sppp))
+            for sppp in (1, 4)]
+    before = float(mask_iou(_masks(body, start_rotations, translations).double(),
+                            masks.double()).mean())
+    assert all(float(fit[3].mean()) > before for fit in fits), before
+    assert not torch.equal(fits[0][1], fits[1][1])
+    with pytest.raises(ConfigError, match="sppp"):
+        from_dict(SequenceOptions, {"sppp": 0})
+    with pytest.raises(ConfigError, match="sppp"):
+        fit_sequence(body, start_rotations, translations, masks, CAMERA,
+                     SequenceOptions(steps=1, sppp=0))
+
+
 def test_relative_rotations_tie_every_frame_to_one_rotation(known_pass):
     body, rotations, translations, masks = known_pass
     relative = rotations @ rotations[0].T  # Q_j = R_j R_0^T

@@ -37,7 +37,7 @@ import torch
 from torch import Tensor
 
 from sq_mitsuba.checks import check_tensor
-from sq_mitsuba.config import in_range, non_negative, positive, validate
+from sq_mitsuba.config import bounds, in_range, non_negative, positive, validate
 from sq_mitsuba.geometry.assembly import FIELDS, Assembly, ParameterRanges
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.rotation import axis_angle_to_matrix, matrix_to_axis_angle
@@ -98,6 +98,9 @@ class RefineOptions:
     "Stop when no item's IoU improved for this many steps."
     spp: int = in_range(1, 1024, default=16)
     "Silhouette samples per pixel in the forward pass."
+    sppp: int | None = field(default=None, metadata=bounds(1, 4096))
+    """Silhouette-edge samples per pixel of the backward pass (None: the renderer's budget of
+    16,384 a view, 4 at 64 px): fewer make each step cheaper and its gradient noisier."""
     seed: int = in_range(0, 2**31 - 1, default=0)
     "Seed of the renderer's samples."
     deterministic: bool = True
@@ -243,7 +246,8 @@ def refine_pose_and_shape(assembly: Assembly, rotation: Tensor, translation: Ten
 
     fit_camera = camera.rescaled(options.resolution)
     targets = resize_masks(masks.float(), fit_camera.height, fit_camera.width)
-    renderer = SilhouetteRenderer(fit_camera, spp=options.spp, seed=options.seed)
+    renderer = SilhouetteRenderer(fit_camera, spp=options.spp, sppp=options.sppp,
+                                  seed=options.seed)
     dtype = torch.float64
     rotation0 = rotation.detach().to(dtype)
     translation0 = translation.detach().to(dtype)

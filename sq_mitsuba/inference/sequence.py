@@ -11,22 +11,20 @@ its body frame and the pose of every image:
 2. **One body frame**: each frame's reading is in a body frame fixed only up to the four half
    turns (the principal axes' signs cannot be seen). The frame whose fit matches its mask best
    is the reference; every other frame's half turn is chosen so that its assembly, turned, lies
-   nearest the reference's (Chamfer distance of the two surface clouds): the half turns are
-   resolved across frames, not per frame. Frames whose readings lie within
-   ``options.near_views_deg`` of each other under one half turn are taken to be nearby views
-   and that half turn relates them (:func:`align_half_turns_by_views`): a pass given
-   unordered keeps its frames' half turns consistent where a near-symmetric shape cannot
-   tell them. With the frames' relative rotations given (a
-   servicer's navigation: ``R_j = Q_j R_0``), one rotation ``R_0`` is kept instead, the
+   nearest the reference's (Chamfer distance of the surface clouds): resolved across frames.
+   Frames whose readings lie within ``options.near_views_deg`` of each other under one half turn
+   are taken to be nearby views and that half turn relates them
+   (:func:`align_half_turns_by_views`): a pass given unordered keeps its frames' half turns
+   consistent where a near-symmetric shape cannot tell them. With the frames' relative rotations
+   given (a servicer's navigation: ``R_j = Q_j R_0``), one rotation ``R_0`` is kept instead, the
    chordal mean of the frames' readings carried back by their ``Q_j``. **Frames in order**
    (``ordered=True``, a pass, one unit of time apart) turn steadily: the half turns by shape
-   also make the motion smoothest, and the one constant-rate turn that most frames' readings
-   agree with is found by consensus
-   (:func:`~sq_mitsuba.inference.body_frame.along_motion`); the reference is then the
-   best-fitting frame that agrees, and with ``options.motion = "fitted"`` (the default)
-   every frame starts on the turn and the joint fit keeps the frames on one constant-rate
-   turn, its rate fitted with the rest, so a frame misread alone no longer pulls the shared
-   shape its own way. Where no turn has the agreement of a quarter of the frames
+   also make the motion smoothest, and the constant-rate turn most frames' readings agree with
+   is found by consensus (:func:`~sq_mitsuba.inference.body_frame.along_motion`); the reference
+   is then the best-fitting frame that agrees, and with ``options.motion = "fitted"`` (the
+   default) every frame starts on the turn and the joint fit keeps the frames on one
+   constant-rate turn, its rate fitted with the rest, so a frame misread alone no longer pulls
+   the shared shape its own way. Where no turn has the agreement of a quarter of the frames
    (``options.motion_min_share``), they keep their readings; given relative rotations take
    precedence over the pass's own turn.
 3. **One shape, N poses, fitted at once** (:func:`fit_sequence`, the refinement's shared
@@ -35,12 +33,12 @@ its body frame and the pose of every image:
    near the start by a weak prior) and each frame's rotation and translation (or, with
    relative rotations, the one ``R_0``) move together by Adam so that the Mitsuba silhouettes
    match every frame's mask (in order, ``motion="fitted"``: ``R_0`` and the rate of turn
-   move, not N rotations; ``"held"``: ``R_0`` alone);
-   the best step by the mean IoU over the frames is kept. The scale stays the network's
-   (the frames' depths keep their geometric mean). Where the frames move alone (unordered,
-   ``motion="free"`` or no motion found, and no given rotations), a frame the fit left below
-   half its own fit's IoU is refitted alone, pose only, with the shared shape
-   (:func:`~sq_mitsuba.inference.lost_frames.place_lost_frames`; its depth then moves alone).
+   move, not N rotations; ``"held"``: ``R_0`` alone); the best step by the mean IoU is kept.
+   The scale stays the network's (the frames' depths keep their geometric mean). Where the
+   frames move alone (unordered, ``motion="free"`` or no motion found, and no given
+   rotations), a frame the fit left below half its own fit's IoU is refitted alone, pose
+   only, with the shared shape (:func:`~sq_mitsuba.inference.lost_frames.place_lost_frames`;
+   its depth then moves alone).
 4. **The dataset's body frame** (``options.canonical``, off by default): the result expressed
    in the convention of the processed models (:func:`canonical_frame`: the fitted assembly's
    oriented box's axes ordered by extent, its centre of mass at the origin) instead of the
@@ -52,22 +50,21 @@ as ``Q_j = R_j R_0^T`` (frame 0 first, ``Q_0 = I``). Tensors of the result are f
 CPU.
 
 Limits: frames that all show one outline constrain the shape's depth no better than one
-image; a symmetric target's half turns stay ambiguous, harmlessly for the shape but not for
-the relative poses of unordered frames from unrelated views (frames in order, nearby views,
-or the rotations between them resolve it).
+image; a symmetric target's half turns stay ambiguous, harmlessly for the shape, not for the
+relative poses of unordered unrelated views (order, nearby views or given rotations resolve it).
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from sq_mitsuba.config import in_range, non_negative, positive, validate
+from sq_mitsuba.config import bounds, in_range, non_negative, positive, validate
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.rotation import matrix_to_quaternion, mean_rotation
@@ -133,6 +130,9 @@ class SequenceOptions:
     step's cost is mostly the silhouettes' scene update, which grows with the faces."""
     spp: int = in_range(1, 1024, default=4)
     "Samples per pixel of the fitted silhouettes."
+    sppp: int | None = field(default=1, metadata=bounds(1, 4096))
+    """Silhouette-edge samples per pixel of the gradient (``RefineOptions.sppp``; None: 4 at
+    64 px). 1: the fit at 0.66 x the time, within noise (12 tuning passes of 8 frames)."""
     shape: Literal["free", "size", "pose"] = "free"
     "What of the shared shape moves: every parameter, the sizes only, or nothing."
     prior_weight: float = non_negative(0.01)
@@ -210,7 +210,7 @@ def stage_refine_options(options: SequenceOptions, steps: int, poses: bool) -> R
                          rotation="free" if poses else "fixed",
                          depth="free" if poses else "fixed",
                          depth_prior=options.depth_prior, patience=options.patience,
-                         spp=options.spp, seed=options.seed)
+                         spp=options.spp, sppp=options.sppp, seed=options.seed)
 
 
 def fit_sequence(assembly: Assembly, rotation: Tensor, translation: Tensor, masks: Tensor,
