@@ -155,7 +155,8 @@ def run(options: BenchOptions) -> Report:
                          "network, fast path"))
             report.timings.append(Timing(
                 "predict: shipped model, loaded, then its first reading from turned copies",
-                time_callable(lambda: load_model(fast=True).predict(image, camera),
+                time_callable(lambda: load_model(fast=True).predict(
+                    image, camera, turns=search.turns),
                               max(1, min(options.repeats, 5)), warmup=1),
                 note="what a new `predict` process pays once: the checkpoint read, the "
                      "network folded, the table of where each rotation cell goes under the "

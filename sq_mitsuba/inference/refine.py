@@ -100,7 +100,8 @@ class RefineOptions:
     "Silhouette samples per pixel in the forward pass."
     sppp: int | None = field(default=None, metadata=bounds(1, 4096))
     """Silhouette-edge samples per pixel of the backward pass (None: the renderer's budget of
-    16,384 a view, 4 at 64 px): fewer make each step cheaper and its gradient noisier."""
+    16,384 a view, whatever the resolution: 4 a pixel at 64 px). Fewer make each step cheaper
+    and its gradient noisier; a count per pixel grows with the resolution."""
     seed: int = in_range(0, 2**31 - 1, default=0)
     "Seed of the renderer's samples."
     deterministic: bool = True

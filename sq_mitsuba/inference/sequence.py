@@ -131,8 +131,8 @@ class SequenceOptions:
     spp: int = in_range(1, 1024, default=4)
     "Samples per pixel of the fitted silhouettes."
     sppp: int | None = field(default=1, metadata=bounds(1, 4096))
-    """Silhouette-edge samples per pixel of the gradient (``RefineOptions.sppp``; None: 4 at
-    64 px). 1: the fit at 0.66 x the time, within noise (12 tuning passes of 8 frames)."""
+    """Silhouette-edge samples per pixel of the gradient, every stage and lost frames' refit
+    (``RefineOptions.sppp``; None: 4 at 64 px). 1: passes in 2/3 of the time, within noise."""
     shape: Literal["free", "size", "pose"] = "free"
     "What of the shared shape moves: every parameter, the sizes only, or nothing."
     prior_weight: float = non_negative(0.01)
