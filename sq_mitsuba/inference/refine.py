@@ -37,7 +37,7 @@ import torch
 from torch import Tensor
 
 from sq_mitsuba.checks import check_tensor
-from sq_mitsuba.config import bounds, in_range, non_negative, positive, validate
+from sq_mitsuba.config import in_range, non_negative, positive, validate
 from sq_mitsuba.geometry.assembly import FIELDS, Assembly, ParameterRanges
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.rotation import axis_angle_to_matrix, matrix_to_axis_angle
@@ -98,7 +98,7 @@ class RefineOptions:
     "Stop when no item's IoU improved for this many steps."
     spp: int = in_range(1, 1024, default=16)
     "Silhouette samples per pixel in the forward pass."
-    sppp: int | None = field(default=None, metadata=bounds(1, 4096))
+    sppp: int | None = in_range(1, 4096, default=None)
     """Silhouette-edge samples per pixel of the backward pass (None: the renderer's budget of
     16,384 a view, whatever the resolution: 4 a pixel at 64 px). Fewer make each step cheaper
     and its gradient noisier; a count per pixel grows with the resolution."""

@@ -57,14 +57,14 @@ relative poses of unordered unrelated views (order, nearby views or given rotati
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from typing import Any, Literal
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from sq_mitsuba.config import bounds, in_range, non_negative, positive, validate
+from sq_mitsuba.config import in_range, non_negative, positive, validate
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.rotation import matrix_to_quaternion, mean_rotation
@@ -130,7 +130,7 @@ class SequenceOptions:
     step's cost is mostly the silhouettes' scene update, which grows with the faces."""
     spp: int = in_range(1, 1024, default=4)
     "Samples per pixel of the fitted silhouettes."
-    sppp: int | None = field(default=1, metadata=bounds(1, 4096))
+    sppp: int | None = in_range(1, 4096, default=1)
     """Silhouette-edge samples per pixel of the gradient, every stage and lost frames' refit
     (``RefineOptions.sppp``; None: 4 at 64 px). 1: passes in 2/3 of the time, within noise."""
     shape: Literal["free", "size", "pose"] = "free"
