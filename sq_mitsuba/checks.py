@@ -136,3 +136,22 @@ def check_same_dtype(**tensors: torch.Tensor) -> torch.dtype:
         listing = ", ".join(f"{k}={v.dtype}" for k, v in tensors.items())
         raise ValueError(f"mixed dtypes: {listing}")
     return dtypes.pop()
+
+
+ORTHONORMAL_TOLERANCE = 1e-3
+"""Largest ``|R^T R - I|`` entry accepted of a rotation matrix (float32 rotations pass easily)."""
+
+
+def check_rotations(name: str, rotations: torch.Tensor) -> None:
+    """``ValueError`` naming ``name`` unless ``rotations`` (..., 3, 3) are finite rotation
+    matrices (orthonormal within :data:`ORTHONORMAL_TOLERANCE`, determinant +1)."""
+    check_tensor(name, rotations, (3, 3), min_dims=3)
+    if not bool(torch.isfinite(rotations).all()):
+        raise ValueError(f"{name}: contains NaN or infinite values")
+    matrices = rotations.detach().double()
+    gram = matrices.transpose(-1, -2) @ matrices
+    error = float((gram - torch.eye(3, dtype=torch.float64, device=gram.device)).abs().amax()) \
+        if gram.numel() else 0.0
+    if error > ORTHONORMAL_TOLERANCE or bool((torch.linalg.det(matrices) <= 0).any()):
+        raise ValueError(f"{name}: not rotation matrices (|R^T R - I| up to {error:.2g}, or "
+                         "a reflection)")

@@ -124,6 +124,17 @@ def test_uint8_float_numpy_and_channel_dim_agree(predictor):
     assert_same(predictor.predict(x8.numpy()), reference)
 
 
+def test_flipped_and_strided_numpy_images_are_copied(predictor):
+    """A mirrored view (negative strides), a Fortran-ordered and a big-endian array are valid
+    images: read as their C-ordered native copies."""
+    x = two_scenes().numpy()
+    reference = predictor.predict(np.ascontiguousarray(x[:, :, ::-1]))
+    assert_same(predictor.predict(x[:, :, ::-1]), reference)
+    assert_same(predictor.predict(x[:, ::-1, ::-1][:, ::-1]), reference)
+    assert_same(predictor.predict(np.asfortranarray(x)), predictor.predict(x))
+    assert_same(predictor.predict(x[:, :, ::-1].astype(">f4")), reference)
+
+
 def test_larger_image_of_the_same_scene_gives_a_close_pose(predictor):
     small = predictor.predict(scene(SIZE))
     large = predictor.predict(scene(2 * SIZE))  # the camera is rescaled to 128 px
@@ -445,7 +456,9 @@ def test_reading_from_turned_copies_turns_with_the_image(train_dataset):
     off_centre = Camera(camera.fx, camera.fy, camera.cx + 5.0, camera.cy, camera.width,
                         camera.height)
     assert not shipped.can_turn(off_centre)
-    with pytest.raises(ValueError, match=r"^turns: augment\.rotation: needs the principal point"):
+    with pytest.raises(ValueError, match=r"^turns: the images' camera \(128 x 128 px, .*principal "
+                                         r"point \(74, 64\)\) stretched .*principal point "
+                                         r"\(55.5, 48\); turned copies need"):
         shipped.predict(image, off_centre, turns=4)
 
 
@@ -480,3 +493,60 @@ def test_the_turned_copies_mask_is_their_mean_computed_copy_by_copy():
             turned_back_mask(*args, height, width)
     with pytest.raises(ValueError, match=r"^mask: expected shape \(\.\.\., \*, 40, 50\)"):
         turned_back_mask(mask, logits, angles, height, 50)
+
+
+def test_a_camera_that_cannot_turn_is_named_with_its_own_and_its_stretched_numbers():
+    """Square pixels on a 128 x 64 image become fx 60, fy 120 on the network's 96 x 96
+    input: the message gives both cameras, not the training option that shares the check."""
+    shipped = sq_mitsuba.load_model()
+    wide = Camera(80.0, 80.0, 64.0, 32.0, 128, 64)
+    assert not shipped.can_turn(wide)
+    with pytest.raises(ValueError, match=r"^turns: the images' camera \(128 x 64 px, fx 80, fy "
+                                         r"80, principal point \(64, 32\)\) stretched to the "
+                                         r"network's 96 x 96 input has fx 60, fy 120, ") as info:
+        shipped.predict(torch.zeros(1, 64, 128), wide, turns=4)
+    assert "augment" not in str(info.value) and "\n" not in str(info.value)
+    assert shipped.can_turn(Camera(80.0, 40.0, 64.0, 32.0, 128, 64))  # fx / W = fy / H
+
+
+def test_read_turns_of_one_is_predict_of_one_for_any_network_and_camera(predictor):
+    """``read_turns(images, reading, 1)`` is ``predict(images, turns=1)``: the reading itself,
+    for a regressing head and for a camera that cannot turn alike."""
+    x = two_scenes()
+    reading = predictor.predict(x, turns=1)
+    assert predictor.read_turns(x, reading, 1) is reading
+    shipped = sq_mitsuba.load_model()
+    off_centre = Camera(150.0, 150.0, 53.0, 48.0, 96, 96)
+    image = scene(96)
+    plain = shipped.predict(image, off_centre, turns=1)
+    assert shipped.read_turns(image, plain, 1, off_centre) is plain
+    for bad in (0, True):
+        with pytest.raises(ValueError, match=r"^turns: expected an int in \[1, 360\]"):
+            shipped.read_turns(image, plain, bad, off_centre)
+    turned = shipped.predict(image, turns=4)
+    with pytest.raises(ValueError, match=r"^prediction: expected this predictor.s one-pass"):
+        shipped.read_turns(image, turned, 1)
+
+
+def test_refine_checks_turns_and_takes_the_one_pass_reading_only(predictor):
+    """``refine`` refuses what ``predict`` refuses for ``turns``, and a reading from turned
+    copies as ``network`` (the fit reads its own copies from the one pass), before any work;
+    an empty mask keeps the search from running where a check would be missing."""
+    x = two_scenes()
+    empty = torch.zeros(2, SIZE, SIZE, dtype=torch.bool)
+    network = predictor.predict(x)
+    for bad in (0, -5, True, 2.5):
+        with pytest.raises(ValueError, match=r"^turns: expected an int in \[1, 360\]"):
+            predictor.predict(x, turns=bad, refine=True, mask=empty)
+        with pytest.raises(ValueError, match=r"^turns: expected an int in \[1, 360\]"):
+            predictor.refine(x, network, turns=bad, mask=empty)
+    with pytest.raises(ValueError, match=r"^turns: .* needs a rotation-distribution head"):
+        predictor.refine(x, network, turns=4, mask=empty)
+    assert predictor.refine(x, network, turns=1, mask=empty).fit.turns == 1
+    shipped = sq_mitsuba.load_model()
+    image = scene(96)
+    turned = shipped.predict(image, turns=4)
+    for turns in (None, 1, 4):
+        with pytest.raises(ValueError, match=r"^network: read from 4 turned copies") as info:
+            shipped.refine(image, turned, turns=turns, mask=torch.zeros(1, 96, 96))
+        assert "\n" not in str(info.value)

@@ -83,6 +83,30 @@ def test_bad_input_names_the_argument(call, name):
         call()
 
 
+@pytest.mark.parametrize("matrices", [torch.zeros(4, 3, 3), -torch.eye(3).expand(4, 3, 3),
+                                      3 * torch.eye(3).expand(4, 3, 3)])
+def test_matrices_that_are_not_rotations_are_refused(matrices):
+    """Zeros, reflections and scaled rotations are not readings: a reflection would otherwise
+    be "fitted" exactly."""
+    with pytest.raises(ValueError, match=r"^rotation: not rotation matrices"):
+        constant_rate_motion(matrices.double())
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_the_motion_does_not_depend_on_where_time_starts(seed):
+    """The same readings at times shifted by a timestamp's size: the same motion at every
+    frame, and the start still the motion's rotation at time 0."""
+    _, readings = _pass(8, rate_deg=12.0, seed=seed)
+    plain = constant_rate_motion(readings)
+    times = torch.arange(8, dtype=torch.float64) + 1.7e9
+    shifted = constant_rate_motion(readings, times=times)
+    assert shifted.inliers.tolist() == plain.inliers.tolist()
+    assert float(torch.rad2deg(rotation_angle(shifted.predicted, plain.predicted)).max()) < 1e-5
+    torch.testing.assert_close(shifted.rate, plain.rate, atol=1e-9, rtol=0)
+    at_zero = axis_angle_to_matrix(torch.arange(8, dtype=torch.float64)[:, None] * plain.rate)
+    torch.testing.assert_close(at_zero @ plain.start, plain.predicted, atol=1e-9, rtol=0)
+
+
 def test_a_flip_every_other_frame_is_not_read_as_a_fast_turn():
     """A target spinning slowly about the line of sight, every other reading turned half a
     turn about it (a flat target's outline looks the same): a turn of 180 + 8 deg a frame

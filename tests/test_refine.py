@@ -299,3 +299,21 @@ def test_bad_input_is_refused(perturbed):
         from_dict(RefineOptions, {"loss": "l1"})
     with pytest.raises(ConfigError, match="shape"):
         from_dict(RefineOptions, {"shape": "sizes"})
+
+
+def test_a_shared_shape_names_seen_sizes_and_the_rotation_is_checked_first(perturbed):
+    """``seen_sizes`` with a shared shape names the option (the batch size is fine); a bad
+    ``rotation`` is named as such, not measured against ``relative_times``."""
+    _, rotation, translation, masks, camera, start, *_ = perturbed
+    one = Assembly(start.params[:1])
+    with pytest.raises(ValueError, match=r"^options\.seen_sizes: not with a shared shape"):
+        refine_pose_and_shape(one, rotation, translation, masks, camera,
+                              RefineOptions(seen_sizes=True), shared=True)
+    with pytest.raises(ValueError, match=r"^assembly: a shared shape has batch size 1, got 4$"):
+        refine_pose_and_shape(start, rotation, translation, masks, camera, shared=True)
+    times = torch.arange(4, dtype=torch.float64)
+    for bad, match in ((rotation[0], r"rotation: expected shape \(\.\.\., 3, 3\), got \(3, 3\)"),
+                       (rotation.tolist(), "rotation: expected a torch.Tensor")):
+        with pytest.raises(ValueError, match=f"^{match}"):
+            refine_pose_and_shape(one, bad, translation, masks, camera, shared=True,
+                                  relative_rotations=rotation, relative_times=times)

@@ -322,6 +322,76 @@ def test_read_only_arrays_and_grad_tensors_predict_without_warnings(eval_checkpo
                                [None, None])
 
 
+def _bright_square() -> torch.Tensor:
+    """(1, 96, 96) a lit square on black, at the shipped model's input size."""
+    image = torch.zeros(1, 96, 96)
+    image[0, 30:60, 25:70] = 0.8
+    return image
+
+
+def test_masks_of_another_byte_order_are_read_and_floats_outside_0_1_refused(shipped):
+    """A big-endian or strided numpy mask is the same mask as its native copy (the fitted
+    mask bit for bit: ``> 0.5`` of floats, ``!= 0`` of integers); a float mask outside
+    [0, 1], NaN, or an array of another kind is one line naming ``mask``."""
+    from sq_mitsuba.inference.pipeline import masks_to_fit
+
+    image = _bright_square()
+    reading, checked = shipped.predict(image), prepare_images(image)
+    mask = np.zeros((1, 96, 96), np.float32)
+    mask[0, 28:62, 22:72] = 0.8
+    mask[0, 40:50, 30:40] = 0.3
+    masks, usable, source = masks_to_fit(reading, checked, mask)
+    assert torch.equal(masks, torch.from_numpy(mask) > 0.5) and source == "given"
+    assert usable.tolist() == [True]
+    for variant in (mask.astype(">f4"), mask.astype(">f8"), mask[:, ::-1].copy()[:, ::-1],
+                    np.asfortranarray(mask), (mask > 0.5).astype(">i4")):
+        again = masks_to_fit(reading, checked, variant)
+        assert torch.equal(again[0], masks) and torch.equal(again[1], usable), variant.dtype
+    for bad, message in ((np.full((1, 96, 96), -3.0, ">f4"),
+                          r"mask: float values must lie in \[0, 1\], got \[-3, -3\]$"),
+                         (torch.from_numpy(mask * 2), r"mask: float values must lie in \[0, 1\], "
+                                                      r"got \[0, 1.6\]$"),
+                         (np.full((1, 96, 96), np.nan, ">f4"), "mask: contains NaN"),
+                         (np.full((1, 96, 96), "a"), "mask: expected a bool or float array, "
+                                                     "got dtype <U1$")):
+        with pytest.raises(ValueError, match=f"^{message}") as info:
+            masks_to_fit(reading, checked, bad)
+        assert "\n" not in str(info.value)
+    with pytest.raises(ValueError, match=r"^mask: float values must lie in \[0, 1\]"):
+        shipped.predict(image, refine=True, mask=np.full((1, 96, 96), -3.0, ">f4"))
+
+
+def test_search_and_refinement_options_are_checked_before_any_work(shipped):
+    """Wrong types and out-of-bounds fields of ``search`` and ``refinement`` are one line
+    naming the field (``search.turns`` against its own bound), before the turned copies run
+    and whether or not any item is fitted (an empty mask: none is)."""
+    from sq_mitsuba.inference.predictor import Predictor
+
+    image, empty = _bright_square(), torch.zeros(1, 96, 96, dtype=torch.bool)
+    predictor = Predictor(shipped.model, shipped.camera)
+    passes = []
+    run = predictor._run  # counts the images each network pass reads
+    predictor._run = lambda x, matrix: passes.append(len(x)) or run(x, matrix)
+    network = predictor.predict(image)
+    turns = r"search\.turns: expected a value in \[1, 64\], got "
+    for options, message in (
+            (dict(search=SearchOptions(turns=100)), turns + "100$"),
+            (dict(search=SearchOptions(turns=500)), turns + "500$"),
+            (dict(search=SearchOptions(resolution=1)), r"search\.resolution: expected a value"),
+            (dict(refinement=RefineOptions(steps=0, lr=-1.0)), r"refinement\.steps: expected"),
+            (dict(search={"grid": 8}), "search: expected a SearchOptions, got dict$"),
+            (dict(refinement=SEARCH), "refinement: expected a RefineOptions, got SearchOptions$")):
+        passes.clear()
+        with pytest.raises(ValueError, match=f"^{message}") as info:
+            predictor.refine(image, network, mask=empty, **options)
+        assert "\n" not in str(info.value) and passes == [], (message, passes)
+        with pytest.raises(ValueError, match=f"^{message}"):
+            predictor.predict(image, refine=True, turns=1, mask=empty, **options)
+        assert passes == [], (message, passes)  # not even the one pass
+    fitted = predictor.refine(image, network, mask=empty, search=SEARCH, refinement=REFINEMENT)
+    assert fitted.fit.fitted.tolist() == [False] and passes == [7]  # the 8 turns' 7 copies
+
+
 def test_load_model_names_an_empty_path_and_an_unusable_device(eval_checkpoint):
     with pytest.raises(ValueError, match=r"^path: empty; give a checkpoint file, or None"):
         load_model("")

@@ -221,6 +221,22 @@ def test_bad_input_gives_one_line_errors(scene):
         PoseSilhouettes(camera, spp=0)
 
 
+def test_search_and_refine_checks_its_inputs_before_touching_them(scene):
+    """numpy masks, a list translation or no camera: a ValueError naming the argument, not
+    an AttributeError from the first use."""
+    truth, rotation, translation, masks, camera = scene
+    arguments = dict(assembly=truth, rotation=rotation, translation=translation, masks=masks,
+                     camera=camera)
+    for name, bad, match in (("masks", masks.numpy(), "masks: expected a torch.Tensor"),
+                             ("translation", translation.tolist(),
+                              "translation: expected a torch.Tensor"),
+                             ("camera", None, "camera: expected a Camera, got NoneType"),
+                             ("assembly", truth.params, "assembly: expected an Assembly")):
+        with pytest.raises(ValueError, match=f"^{match}") as error:
+            search_and_refine(**{**arguments, name: bad})
+        assert "\n" not in str(error.value)
+
+
 def test_recentring_moves_the_translation_by_the_pinhole_shift_on_non_square_pixels():
     """A silhouette 6 px right of and 4 px above its target, fx != fy: the translation moves
     by (-6 z / fx, +4 z / fy) (pinhole, by hand); with the depth fitted too, a target of

@@ -365,6 +365,32 @@ def _constant_rate_pass(count: int, rate_deg: float, seed: int,
     return axis_angle_to_matrix(torch.arange(count, dtype=torch.float64)[:, None] * rate) @ start
 
 
+@pytest.mark.parametrize("split", [[], [3], [2, 3], [0, 1, 4]])
+def test_given_relative_rotations_choose_every_frames_half_turn(split):
+    """Readings 5 deg from the truth, each in a random half turn, the rotations between the
+    frames given: the half turns bring every carried reading to one R_0 (the reference's body
+    frame), however the frames split between half turns (two halves by shape had no mean
+    rotation: 94 deg off)."""
+    from sq_mitsuba.geometry.rotation import mean_rotation
+    from sq_mitsuba.inference.body_frame import align_half_turns_by_relative
+
+    truth = _constant_rate_pass(6, rate_deg=15.0, seed=5)
+    relative = truth @ truth[0].T
+    turns = half_turns()
+    own = torch.tensor([1, 0, 3, 2, 2, 1])
+    own[split] = (own[split] + 1) % 4  # these frames read under another half turn again
+    reading = _perturbed(truth, 5.0, seed=4) @ turns[own]
+    reference = 2
+    found = align_half_turns_by_relative(reading, relative, reference)
+    torch.testing.assert_close(found[reference], torch.eye(3, dtype=torch.float64))
+    # x_ref = S_j x_j: each reading in the reference's body frame is the truth turned by the
+    # reference's half turn, within its noise.
+    expected = truth @ turns[own[reference]]
+    assert float(rotation_error_deg(reading @ found, expected).max()) < 12.0
+    carried = relative.transpose(-1, -2) @ reading @ found
+    assert float(rotation_error_deg(relative @ mean_rotation(carried), expected).max()) < 6.0
+
+
 def test_along_motion_replaces_a_misread_frame_and_keeps_the_reference_frame():
     """Readings of a constant-rate pass, each in its own half turn, frame 3 misread: the
     agreeing frames keep their readings (in the reference's body frame), frame 3 takes the

@@ -395,7 +395,7 @@ def _build(options: DemoOptions, out: Path, predictor: Any, training_config: Any
         raise ValueError(f"images of {name} could not be rendered: {reason}")
     stages["render"] = time.perf_counter() - tick
 
-    # BatchNorm folded once (about a second): the same predictions up to ~1e-5, faster.
+    # BatchNorm folded once (about 0.1 s): the same predictions up to ~1e-5, faster.
     fast = with_fast_path(predictor, True)
     if baseline is None:
         baseline = baseline_prediction(fast, data, options.baseline_images,

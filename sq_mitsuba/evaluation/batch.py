@@ -100,7 +100,8 @@ def evaluate_batch(predictor: Any, dataset: Any, chunk: Sequence[int], number: i
                               "segmentation_iou": mask_iou_gt}
             sources[method] = fit.mask_source
         if options.refine_ground_truth:
-            upper = predictor.refine(batch["image"], prediction, camera,
+            # The one-pass reading, as refine takes (the turned start is reused from fit).
+            upper = predictor.refine(batch["image"], unturned, camera,
                                      mask=gt_masks, search=options.search,
                                      refinement=options.refinement, reuse=fit)
             candidates["refined_gt"] = (upper.assembly, upper.rotation,

@@ -168,6 +168,9 @@ def score_frames(assembly: Assembly, rotation: Tensor, translation: Tensor,
     for every frame) and ``relative_rotation_deg`` (:func:`relative_rotation_errors`)."""
     from sq_mitsuba.evaluation.scoring import score
 
+    # The network's own reading stays on the model's device; the truth is on the CPU.
+    assembly = Assembly(assembly.params.detach().cpu())
+    rotation, translation = rotation.detach().cpu(), translation.detach().cpu()
     count = rotation.shape[0]
     metrics = score(assembly, rotation, translation, batch, renderer, [symmetry] * count,
                     [volume] * count, level)

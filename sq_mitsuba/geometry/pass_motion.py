@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from sq_mitsuba.checks import check_tensor
+from sq_mitsuba.checks import check_rotations
 from sq_mitsuba.geometry.rotation import (
     axis_angle_to_matrix,
     matrix_to_axis_angle,
@@ -127,7 +127,7 @@ def constant_rate_motion(rotation: Tensor, threshold_deg: float = 25.0,
     frame b's with each of its four half turns, proposes the motion through both; each frame
     agrees with a motion by its nearest half turn. The motion of least truncated squared angle
     (MSAC: each frame costs ``min(angle, threshold)^2``) wins; its rate and start are then
-    fitted to the agreeing frames' readings (least squares, chordal), kept only if that lowers
+    fitted to the agreeing frames' readings (least squares of the angles), kept only if that lowers
     the cost within the rate bound, and the agreement measured again.
 
     Args:
@@ -148,7 +148,7 @@ def constant_rate_motion(rotation: Tensor, threshold_deg: float = 25.0,
         ValueError: one line naming ``rotation``, ``times``, ``threshold_deg`` or
             ``max_rate_deg``.
     """
-    check_tensor("rotation", rotation, (3, 3))
+    check_rotations("rotation", rotation)
     if rotation.dim() != 3 or len(rotation) < 2:
         raise ValueError(f"rotation: expected (N, 3, 3) with N >= 2, got {tuple(rotation.shape)}")
     if not 0.0 < threshold_deg < 180.0:
@@ -166,6 +166,10 @@ def constant_rate_motion(rotation: Tensor, threshold_deg: float = 25.0,
     gap = times[second] - times[first]
     if bool((gap == 0).any()):
         raise ValueError("times: two frames share a time")
+    # Fitted about the frames' mean time: the refit's Jacobian grows with |t|, and timestamps
+    # far from 0 left it ill-conditioned (the result moved with the origin of time).
+    origin = times.mean()
+    times = times - origin
     near = gap.abs() * max_rate_deg < 180.0  # the pair's turn read without wrapping
     if bool(near.any()):
         first, second, gap = first[near], second[near], gap[near]
@@ -192,6 +196,7 @@ def constant_rate_motion(rotation: Tensor, threshold_deg: float = 25.0,
         rate, start = fitted_rate, fitted_start
     predicted = _predicted(rate[None], start[None], times)
     angles, turn = _agreement(readings, predicted)
-    return PassMotion(rate=rate, start=start, predicted=predicted[0], turn=turn[0],
+    return PassMotion(rate=rate, start=axis_angle_to_matrix(-origin * rate) @ start,
+                      predicted=predicted[0], turn=turn[0],
                       error_deg=torch.rad2deg(angles[0]),
                       inliers=angles[0] <= threshold)

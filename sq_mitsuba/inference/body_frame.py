@@ -5,7 +5,7 @@ Each frame's reading lies in a body frame fixed only up to the four half turns (
 axes' signs cannot be seen): :func:`align_half_turns` chooses them by shape,
 :func:`align_half_turns_by_views` by shape and by the frames whose views lie near each other
 (frames in no known order), :func:`align_half_turns_in_order` by shape and smooth motion for
-frames in order, and
+frames in order, :func:`align_half_turns_by_relative` by given rotations between the frames, and
 :func:`along_motion` puts frames in order on the one constant-rate turn most of them agree
 with. :func:`canonical_frame` and :func:`reframed` express an assembly in the processed
 models' convention.
@@ -27,8 +27,8 @@ from sq_mitsuba.geometry.pass_motion import constant_rate_motion
 from sq_mitsuba.geometry.rotation import rotation_angle
 from sq_mitsuba.geometry.so3_grid import half_turns, with_half_turns
 
-__all__ = ["align_half_turns", "align_half_turns_by_views", "align_half_turns_in_order",
-           "along_motion", "canonical_frame", "reframed"]
+__all__ = ["align_half_turns", "align_half_turns_by_relative", "align_half_turns_by_views",
+           "align_half_turns_in_order", "along_motion", "canonical_frame", "reframed"]
 
 
 def _surface(assembly: Assembly, level: int) -> Tensor:
@@ -140,6 +140,33 @@ def align_half_turns_by_views(assembly: Assembly, rotation: Tensor, reference: i
         for k, turned in group:
             found[k] = shared ^ turned
     return half_turns()[found]
+
+
+def align_half_turns_by_relative(rotation: Tensor, relative: Tensor, reference: int) -> Tensor:
+    """The half turns S_j (N, 3, 3) that make N readings agree on one ``R_0`` under given
+    relative rotations ``Q_j = R_j R_0^T`` (e.g. a servicer's navigation): each reading carried
+    back, ``Q_j^T R_j S_j``, is an estimate of ``R_0``, and the frames' half turns are the
+    ones that bring those estimates together, whatever the shapes (a near-symmetric shape
+    cannot choose them, and frames split between two half turns have no mean rotation).
+
+    Every frame in turn is the anchor: each other frame takes the half turn whose estimate lies
+    nearest the anchor's, and the anchor whose choices lie nearest in all (sum of angles) wins,
+    so one misread frame cannot decide for the others. ``S_ref = I``: the result is in the
+    reference reading's body frame.
+
+    Args:
+        rotation: (N, 3, 3) the frames' body -> camera rotation readings, each in its own
+            reading of the body frame.
+        relative: (N, 3, 3) the given ``Q_j``.
+        reference: index of the reading whose body frame is kept.
+    """
+    carried = relative.double().transpose(-1, -2)[:, None] @ with_half_turns(rotation.double())
+    # (anchor, frame, half turn): the angle of each frame's turned estimate from the anchor's.
+    angles = rotation_angle(carried[:, None, :], carried[None, :, 0:1])
+    nearest, choice = angles.min(dim=2)
+    best = choice[int(nearest.sum(dim=1).argmin())]
+    # The half turns are diagonal and their own inverses: S_j S_ref gives S_ref = I.
+    return half_turns()[best] @ half_turns()[best[reference]]
 
 
 def align_half_turns_in_order(assembly: Assembly, rotation: Tensor, reference: int,

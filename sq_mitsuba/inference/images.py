@@ -43,10 +43,11 @@ def prepare_images(images: Tensor | np.ndarray, channels: int = 1) -> Tensor:
     Args:
         images: (B, H, W) (when ``channels`` is 1) or (B, C, H, W); uint8 (0..255) or floating
             point in [0, 1]; a torch tensor or a numpy array (read-only arrays, such as
-            ``np.asarray(PIL.Image.open(path))``, are copied; a tensor's autograd history is
-            not followed). Each image between :data:`~sq_mitsuba.inputs.MIN_IMAGE_SIDE` px a
-            side and :data:`~sq_mitsuba.inputs.MAX_IMAGE_PIXELS` pixels, the bounds of an
-            image file (``sq-mitsuba predict``).
+            ``np.asarray(PIL.Image.open(path))``, other byte orders and strided views such as
+            ``images[..., ::-1]`` are copied; a tensor's autograd history is not followed).
+            Each image between :data:`~sq_mitsuba.inputs.MIN_IMAGE_SIDE` px a side and
+            :data:`~sq_mitsuba.inputs.MAX_IMAGE_PIXELS` pixels, the bounds of an image file
+            (``sq-mitsuba predict``).
         channels: the C the network expects.
 
     Raises:
@@ -58,9 +59,11 @@ def prepare_images(images: Tensor | np.ndarray, channels: int = 1) -> Tensor:
     if isinstance(images, np.ndarray):
         if images.dtype != np.uint8 and images.dtype.kind != "f":
             raise ValueError(f"images: expected uint8 or floating point, got {images.dtype}")
-        if not images.dtype.isnative or not images.flags.writeable:
-            # torch reads neither another byte order nor (without a warning) read-only memory.
-            images = images.astype(images.dtype.newbyteorder("="), copy=True)
+        if not images.dtype.isnative or not images.flags.writeable \
+                or not images.flags.c_contiguous:
+            # torch reads neither another byte order, negative strides (a flipped view) nor
+            # (without a warning) read-only memory: a native, C-ordered copy.
+            images = np.array(images, dtype=images.dtype.newbyteorder("="), order="C")
         images = torch.from_numpy(images)
     if not isinstance(images, Tensor):
         raise ValueError(f"images: expected a torch.Tensor or numpy array, "

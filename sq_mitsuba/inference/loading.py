@@ -98,7 +98,7 @@ def load_model(path: str | os.PathLike[str] | None = None, *, fast: bool = False
 def with_fast_path(predictor: Predictor, fast: bool, *, min_target: float | None = None,
                    min_existence: float | None = None) -> Predictor:
     """``predictor``, or a copy: predicting with the BatchNorm-folded network when ``fast``
-    and it has none (folding takes about a second: done once the inputs are checked), with
+    and it has none (folding takes about 0.1 s: done once the inputs are checked), with
     the thresholds ``min_target`` and ``min_existence`` when given and other than its own."""
     min_target = predictor.min_target if min_target is None else check_min_target(min_target)
     min_existence = predictor.min_existence if min_existence is None else \

@@ -34,6 +34,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from sq_mitsuba.config import validate
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.rotation import matrix_to_quaternion
@@ -41,7 +42,26 @@ from sq_mitsuba.inference.prediction import Fit, MaskChoice, Prediction
 from sq_mitsuba.inference.refine import RefineOptions
 from sq_mitsuba.inference.search import SEARCH_REFINEMENT, SearchOptions, search_and_refine
 
-__all__ = ["fit_prediction", "masks_to_fit", "search_start", "segmented"]
+__all__ = ["fit_options", "fit_prediction", "masks_to_fit", "search_start", "segmented"]
+
+
+def fit_options(search: SearchOptions | None, refinement: RefineOptions | None
+                ) -> tuple[SearchOptions, RefineOptions]:
+    """The search's and the refinement's settings (None: the defaults), checked.
+
+    Raises:
+        ValueError: naming ``search`` or ``refinement`` (a wrong type), or
+            :class:`~sq_mitsuba.config.ConfigError` naming the field
+            (``search.turns: expected a value in [1, 64], got 500``).
+    """
+    search = SearchOptions() if search is None else search
+    refinement = SEARCH_REFINEMENT if refinement is None else refinement
+    for name, value, kind in (("search", search, SearchOptions),
+                              ("refinement", refinement, RefineOptions)):
+        if not isinstance(value, kind):
+            raise ValueError(f"{name}: expected a {kind.__name__}, got {type(value).__name__}")
+        validate(value, name)
+    return search, refinement
 
 
 def search_start(predictor: Any, images: Tensor, network: Prediction, camera: Camera,
@@ -77,7 +97,8 @@ def masks_to_fit(start: Prediction, images: Tensor, mask: MaskChoice
         mask: see :data:`MaskChoice`.
 
     Raises:
-        ValueError: naming ``mask``: an unknown choice, a wrong shape or NaN.
+        ValueError: naming ``mask``: an unknown choice, a wrong type, dtype or shape, NaN or
+            float values outside [0, 1].
     """
     count, height, width = images.shape[0], images.shape[-2], images.shape[-1]
     if mask is None or isinstance(mask, str):
@@ -90,11 +111,12 @@ def masks_to_fit(start: Prediction, images: Tensor, mask: MaskChoice
         masks, usable = segmented(images)
         return masks, usable, "segmentation"
     if isinstance(mask, np.ndarray):
-        if mask.dtype == object:
-            raise ValueError("mask: expected a bool or float array, got dtype object")
-        # A copy where needed: torch reads neither strided nor (without a warning) read-only.
-        mask = torch.from_numpy(np.array(mask, order="C", copy=True if not mask.flags.writeable
-                                         else None))
+        if mask.dtype.kind not in "biuf":
+            raise ValueError(f"mask: expected a bool or float array, got dtype {mask.dtype}")
+        # A copy where needed: torch reads neither strided, another byte order nor (without
+        # a warning) read-only memory.
+        mask = torch.from_numpy(np.array(mask, dtype=mask.dtype.newbyteorder("="), order="C",
+                                         copy=True if not mask.flags.writeable else None))
     if not isinstance(mask, Tensor):
         raise ValueError(f"mask: expected 'network', 'segmentation', a tensor or an array, got "
                          f"{type(mask).__name__}")
@@ -105,6 +127,10 @@ def masks_to_fit(start: Prediction, images: Tensor, mask: MaskChoice
     if mask.is_floating_point():
         if not bool(torch.isfinite(mask).all()):
             raise ValueError("mask: contains NaN or infinite values")
+        low, high = (float(mask.amin()), float(mask.amax())) if mask.numel() else (0.0, 0.0)
+        if low < 0.0 or high > 1.0:
+            raise ValueError(f"mask: float values must lie in [0, 1], got [{low:.4g}, "
+                             f"{high:.4g}]")
         mask = mask > 0.5
     elif mask.dtype != torch.bool:
         mask = mask != 0
@@ -151,9 +177,13 @@ def fit_prediction(predictor: Any, images: Tensor, network: Prediction, *,
     Returns:
         The fitted :class:`Prediction`: its assembly and pose the refined ones, its ``network``
         the reading passed in, its ``fit`` what was fitted.
+
+    Raises:
+        ValueError: naming ``search`` or ``refinement`` (:func:`fit_options`, before any
+            work), ``turns`` or ``mask``.
     """
-    search = search or SearchOptions()
-    refinement = refinement or SEARCH_REFINEMENT
+    # Checked before the turned copies run, and whether or not any item is fitted.
+    search, refinement = fit_options(search, refinement)
     camera = network.camera
     started = time.perf_counter()
     if reuse is None:

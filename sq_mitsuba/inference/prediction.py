@@ -223,10 +223,12 @@ class SequencePrediction:
         rotation: (N, 3, 3) body -> camera rotation of each frame; translation: (N, 3).
         quaternion: (N, 4) ``rotation`` as (w, x, y, z), w >= 0.
         frames: each frame's own prediction (the shipped path, before the joint fit).
-        reference: index of the frame whose body frame is the result's.
+        reference: index of the frame whose body frame is the result's (before
+            ``SequenceOptions.canonical``'s change of frame, which these two do not follow).
         half_turns: (N, 3, 3) the half turn S_j that carries frame j's reading into the
-            reference body frame (``x_ref = S_j x_j``; ``R_j S_j`` is the frame's rotation
-            there, or the nearest to it where the pass's motion replaced the reading).
+            reference body frame (``x_ref = S_j x_j``): for a frame that agrees with the
+            pass's motion or given rotations, ``R_j S_j`` is its rotation there or the
+            nearest to it; for a frame the motion replaced, its shape's half turn.
         iou: (N,) IoU of each frame's silhouette against its mask after the joint fit (at the
             fit's resolution; a frame the fit lost and that was placed again, its refit's:
             :mod:`~sq_mitsuba.inference.lost_frames`); frame_iou: (N,) the same of each

@@ -179,9 +179,11 @@ class Predictor:
                 (:func:`~sq_mitsuba.model.rotation_grid.turned_log_probabilities`): T times
                 the network's cost. The assembly, the image position, the depth and the mask
                 are the means over the T copies, each mapped back to the image (test-time
-                augmentation). Needs a camera whose roll is an image rotation (square pixels,
-                the principal point at the centre). None: 1, or with ``refine`` the search's
-                ``turns`` (8 by default) where this network and camera can turn, else 1.
+                augmentation). Needs a camera whose roll is a rotation of the network's
+                S x S input: the principal point at the image centre and fx / W = fy / H
+                (fx = fy once stretched to S x S; so a non-square image with square pixels
+                cannot turn). None: 1, or with ``refine`` the search's ``turns`` (8 by
+                default) where this network and camera can turn, else 1.
             refine: fit the pose to each image's mask: the turned copies' reading, the global
                 pose search by render and compare and the refinement through Mitsuba
                 silhouettes (:mod:`~sq_mitsuba.inference.pipeline`; about half a second per
@@ -199,7 +201,8 @@ class Predictor:
             on the CPU).
 
         Raises:
-            ValueError: naming ``images``, ``camera``, ``turns``, ``refine`` or ``mask``.
+            ValueError: naming ``images``, ``camera``, ``turns``, ``refine``, ``mask``, or
+                ``search`` / ``refinement`` (or their field: ``search.turns``).
         """
         if not isinstance(refine, bool):
             raise ValueError(f"refine: expected True or False, got {refine!r}")
@@ -208,6 +211,10 @@ class Predictor:
                                                ("refinement", refinement)) if value is not None]
             if unused:
                 raise ValueError(f"{unused[0]}: only used with refine=True")
+        else:  # the fit's settings, checked before the network runs
+            from sq_mitsuba.inference.pipeline import fit_options
+
+            search, refinement = fit_options(search, refinement)
         x, camera = self._prepared(images, camera)
         if turns is not None:
             self.check_turns(turns, camera)
@@ -235,7 +242,8 @@ class Predictor:
             The others: see :meth:`predict`.
 
         Raises:
-            ValueError: naming ``images``, ``camera``, ``turns``, ``mask``, ``network``, ``reuse``.
+            ValueError: naming ``images``, ``camera``, ``turns``, ``mask``, ``network``,
+                ``reuse``, or ``search`` / ``refinement`` (or their field).
         """
         from sq_mitsuba.inference.pipeline import fit_prediction
 
@@ -247,6 +255,9 @@ class Predictor:
             raise ValueError(f"network: expected this predictor's own reading of the "
                              f"{count} images ({camera.width} x {camera.height} px, "
                              "this camera)")
+        if network.turns != 1:  # the fit reads the turned copies itself, from the one pass
+            raise ValueError(f"network: read from {network.turns} turned copies; pass the "
+                             "one-pass reading (predict(images) without turns), and turns here")
         if not self._same_images(network, x):
             raise ValueError(f"network: a reading of other images than these {count} (its "
                              "fingerprint differs); read these with predict(images)")
@@ -254,6 +265,8 @@ class Predictor:
                                       and self._same_images(reuse.start, x)):
             raise ValueError(f"reuse: expected the fit of these {count} images, from as many "
                              "turned copies as turns asks (its start's fingerprint differs)")
+        if turns is not None:  # as predict checks it
+            self.check_turns(turns, camera)
         return fit_prediction(self, x.checked, network, turns=turns, mask=mask, search=search,
                               refinement=refinement, reuse=reuse)
 
@@ -283,12 +296,16 @@ class Predictor:
             ValueError: naming ``images``, ``camera``, ``turns`` or ``prediction``.
         """
         x, camera = self._prepared(images, camera)
-        self._check_turns(turns, camera.rescaled(self.image_size, self.image_size))
+        self.check_turns(turns, camera)  # 1 runs for every network and camera, as in predict
         count = x.images.shape[0]
         _check_unit_scale(prediction=prediction)
         log_p = getattr(prediction, "rotation_log_probabilities", None)
-        if not isinstance(prediction, Prediction) or log_p is None or prediction.turns != 1 \
-                or tuple(log_p.shape) != (count, self.model.config.rotation_cells) \
+        # This predictor's reading has log-probabilities over its grid exactly when its head
+        # is a distribution head (a regressing head's, read with turns=1, has none).
+        cells = (count, self.model.config.rotation_cells) \
+            if isinstance(self.model.pose_head, RotationGridPoseHead) else None
+        if not isinstance(prediction, Prediction) or prediction.turns != 1 \
+                or (None if log_p is None else tuple(log_p.shape)) != cells \
                 or prediction.camera != camera or prediction.fit is not None \
                 or (prediction.existence is None) != (prediction.primitives is None):
             raise ValueError(f"prediction: expected this predictor's one-pass reading of the "
@@ -385,20 +402,29 @@ class Predictor:
         any work; 1 (one reading) runs for every network and camera."""
         if type(turns) is int and turns == 1:  # True == 1, but is no count
             return
-        camera = self.camera if camera is None else camera
-        self._check_turns(turns, camera.rescaled(self.image_size, self.image_size))
+        self._check_turns(turns, self.camera if camera is None else camera)
 
     def _check_turns(self, turns: int, camera: Camera) -> None:
-        """One-line ``ValueError`` naming ``turns`` unless ``predict(turns=T)`` can run."""
+        """One-line ``ValueError`` naming ``turns`` unless ``predict(turns=T)`` can run for
+        images of ``camera`` (at their own size)."""
         if isinstance(turns, bool) or not isinstance(turns, int) or not 1 <= turns <= 360:
             raise ValueError(f"turns: expected an int in [1, 360], got {turns!r}")
         if not isinstance(self.model.pose_head, RotationGridPoseHead):
             raise ValueError("turns: reading the rotation from turned copies needs a "
                              "rotation-distribution head (network.pose_head = 'grid')")
+        side = self.image_size
+        stretched = camera.rescaled(side, side)  # the camera of the network's input
         try:
-            check_rotation_exact(camera)
-        except ValueError as error:
-            raise ValueError(f"turns: {error}") from None
+            check_rotation_exact(stretched)
+        except ValueError:
+            # The copies turn the S x S input: the stretched camera is the one that must roll.
+            raise ValueError(
+                f"turns: the images' camera ({camera.width} x {camera.height} px, fx "
+                f"{camera.fx:g}, fy {camera.fy:g}, principal point ({camera.cx:g}, "
+                f"{camera.cy:g})) stretched to the network's {side} x {side} input has fx "
+                f"{stretched.fx:g}, fy {stretched.fy:g}, principal point ({stretched.cx:g}, "
+                f"{stretched.cy:g}); turned copies need fx = fy and the principal point at "
+                f"({side / 2:g}, {side / 2:g}) there: use turns=1") from None
 
     def _run(self, x: Tensor, matrix: Tensor) -> NetworkOutput:
         """The network (eager, or the traced fast path) on prepared images, in eval mode."""

@@ -216,9 +216,12 @@ def refine_pose_and_shape(assembly: Assembly, rotation: Tensor, translation: Ten
 
     options = options or RefineOptions()
     validate(options)
-    if shared and (assembly.batch_size != 1 or options.seen_sizes):
-        raise ValueError("assembly: a shared shape has batch size 1 (and no seen_sizes), got "
-                         f"{assembly.batch_size}")
+    if shared and options.seen_sizes:  # seen_sizes scales per view, a shared shape has one
+        raise ValueError("options.seen_sizes: not with a shared shape (shared=True)")
+    if shared and assembly.batch_size != 1:
+        raise ValueError(f"assembly: a shared shape has batch size 1, got {assembly.batch_size}")
+    # rotation first: relative_times and the batch size are checked against its length.
+    check_tensor("rotation", rotation, (3, 3), min_dims=3)
     if relative_rotations is not None and not shared:
         raise ValueError("relative_rotations: only with a shared shape (shared=True)")
     if relative_times is not None:
@@ -230,7 +233,6 @@ def refine_pose_and_shape(assembly: Assembly, rotation: Tensor, translation: Ten
             raise ValueError(f"relative_times: expected {rotation.shape[0]} distinct times, "
                              f"got shape {tuple(relative_times.shape)}")
     batch = rotation.shape[0] if shared else assembly.batch_size
-    check_tensor("rotation", rotation, (3, 3), min_dims=3)
     check_tensor("translation", translation, (3,), min_dims=2)
     check_tensor("masks", masks, (None, None), min_dims=3, floating=False)
     if rotation.shape != (batch, 3, 3) or translation.shape != (batch, 3) or \

@@ -53,7 +53,7 @@ from typing import Literal
 import torch
 from torch import Tensor
 
-from sq_mitsuba.checks import check_tensor
+from sq_mitsuba.checks import check_rotations, check_tensor
 from sq_mitsuba.config import in_range, validate
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.camera import Camera
@@ -86,8 +86,6 @@ SEARCH_REFINEMENT = RefineOptions(steps=25, patience=10, shape="pose", depth="fi
 
 # Depth changes of the recentring step are clamped to this factor either way.
 _DEPTH_CLAMP = 2.0
-# Largest |R^T R - I| entry accepted for a hypothesis (float32 rotations pass easily).
-_ORTHONORMAL_TOLERANCE = 1e-3
 
 
 @dataclass(frozen=True)
@@ -182,19 +180,6 @@ class SearchRefineResult:
 
 
 # ------------------------------------------------------------------------------- checks
-
-
-def check_rotations(name: str, rotations: Tensor) -> None:
-    """``ValueError`` naming ``name`` unless ``rotations`` (..., 3, 3) are finite rotations."""
-    check_tensor(name, rotations, (3, 3), min_dims=3)
-    if not bool(torch.isfinite(rotations).all()):
-        raise ValueError(f"{name}: contains NaN or infinite values")
-    matrices = rotations.detach().double()
-    gram = matrices.transpose(-1, -2) @ matrices
-    error = float((gram - torch.eye(3, dtype=torch.float64)).abs().amax()) if gram.numel() else 0
-    if error > _ORTHONORMAL_TOLERANCE or bool((torch.linalg.det(matrices) <= 0).any()):
-        raise ValueError(f"{name}: not rotation matrices (|R^T R - I| up to {error:.2g}, or "
-                         "a reflection)")
 
 
 def check_search_inputs(assembly: Assembly, candidates: Tensor, translation: Tensor,
@@ -470,6 +455,7 @@ def search_and_refine(assembly: Assembly, rotation: Tensor, translation: Tensor,
     candidates = pose_candidates(rotation, hypotheses, search.grid)  # checks the hypotheses
     if search.candidates == "network" and hypotheses is not None:
         candidates = candidates[:, :4]  # the network's rotation and its half turns come first
+    check_search_inputs(assembly, candidates, translation, masks, camera)  # before any use
     translation = translation.detach().double().cpu()
     masks = masks.detach().cpu()
     renderers = SearchRenderers(camera, search)

@@ -17,7 +17,8 @@ its body frame and the pose of every image:
    (:func:`align_half_turns_by_views`): a pass given unordered keeps its frames' half turns
    consistent where a near-symmetric shape cannot tell them. With the frames' relative rotations
    given (a servicer's navigation: ``R_j = Q_j R_0``), one rotation ``R_0`` is kept instead, the
-   chordal mean of the frames' readings carried back by their ``Q_j``. **Frames in order**
+   chordal mean of the frames' readings carried back by their ``Q_j``, each under the half turn
+   that brings it nearest the others' (:func:`align_half_turns_by_relative`). **Frames in order**
    (``ordered=True``, a pass, one unit of time apart) turn steadily: the half turns by shape
    also make the motion smoothest, and the constant-rate turn most frames' readings agree with
    is found by consensus (:func:`~sq_mitsuba.inference.body_frame.along_motion`); the reference
@@ -35,8 +36,8 @@ its body frame and the pose of every image:
    match every frame's mask (in order, ``motion="fitted"``: ``R_0`` and the rate of turn
    move, not N rotations; ``"held"``: ``R_0`` alone); the best step by the mean IoU is kept.
    The scale stays the network's (the frames' depths keep their geometric mean). Where the
-   frames move alone (unordered, ``motion="free"`` or no motion found, and no given
-   rotations), a frame the fit left below half its own fit's IoU is refitted alone, pose
+   frames move alone (unordered, ``motion="free"`` or ``"start"``, or no motion found, and no
+   given rotations), a frame the fit left below half its own fit's IoU is refitted alone, pose
    only, with the shared shape (:func:`~sq_mitsuba.inference.lost_frames.place_lost_frames`;
    its depth then moves alone).
 4. **The dataset's body frame** (``options.canonical``, off by default): the result expressed
@@ -64,12 +65,14 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from sq_mitsuba.checks import check_rotations
 from sq_mitsuba.config import in_range, non_negative, positive, validate
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.rotation import matrix_to_quaternion, mean_rotation
 from sq_mitsuba.inference.body_frame import (
     align_half_turns,
+    align_half_turns_by_relative,
     align_half_turns_by_views,
     align_half_turns_in_order,
     along_motion,
@@ -83,7 +86,6 @@ from sq_mitsuba.inference.search import (
     SEARCH_REFINEMENT,
     SearchOptions,
     _recentred,
-    check_rotations,
     soft_iou,
 )
 
@@ -105,10 +107,9 @@ class SequenceOptions:
     """Settings of the joint fit of one shape and N poses to N masks."""
 
     steps: int = in_range(1, 10_000, default=60)
-    """Adam steps of the joint fit (shape and poses together). 60 rather than 40 at ``level``
-    1: on passes of 8 frames of 12 spacecraft of the held-out families mean 2D IoU 0.718 ->
-    0.740 in 0.9 x the time of 40 steps at level 2; 80 steps 0.746 at 1.3 x
-    (eval/experiments/README.md, "Passes")."""
+    """Adam steps of the joint fit (shape and poses together): on 8-frame passes of 12 held-out
+    spacecraft 60 at level 1 gave 2D IoU 0.740 in 0.9 x the time of 40 at level 2 (0.718), 80
+    0.746 at 1.3 x (eval/experiments/README.md, "Passes")."""
     shape_steps: int = in_range(0, 10_000, default=0)
     "Adam steps of the shape alone first, the poses held (0: none; 20: 2D IoU 0.779 -> 0.752)."
     start: Literal["reference", "best"] = "reference"
@@ -124,10 +125,9 @@ class SequenceOptions:
     resolution: int = in_range(8, 1024, default=64)
     "Width in pixels at which the silhouettes are fitted."
     level: int = in_range(0, 5, default=1)
-    """Icosphere level of the primitives' meshes (1: 42 vertices; 2: 162). At the fit's 64 px
-    level 1 fits as well as 2 (passes of 8 frames of 12 held-out spacecraft, 40 steps: mean
-    2D IoU 0.712 against 0.718; in family 0.809 against 0.821) in two thirds of the time: each
-    step's cost is mostly the silhouettes' scene update, which grows with the faces."""
+    """Icosphere level of the primitives' meshes (1: 42 vertices; 2: 162). At 64 px level 1
+    fits as well as 2 (40 steps, the passes above: 2D IoU 0.712 against 0.718; in family
+    0.809 against 0.821) in 2/3 of the time (a step is mostly the scenes' update)."""
     spp: int = in_range(1, 1024, default=4)
     "Samples per pixel of the fitted silhouettes."
     sppp: int | None = in_range(1, 4096, default=1)
@@ -139,12 +139,11 @@ class SequenceOptions:
     "Weight of the squared change of the raw shape parameters (keeps the network's reading)."
     depth_prior: float = non_negative(1.0)
     """Weight of the squared change of each frame's log depth about the frames' mean
-    (:class:`~sq_mitsuba.inference.refine.RefineOptions`'s ``depth_prior``; 1: a frame moved
-    10 % costs what 0.01 of IoU gains): holds each frame's depth near its reading relative to
-    the others' (without it a frame whose mask lost dark arrays or a boom ran off, up to 112 %
-    of its distance, to shrink its silhouette). On 8-frame passes of 11 training-family
-    spacecraft never trained on (0 / 1 / 10): camera-frame Chamfer 1.55 / 1.02 / 0.99 x the
-    reading's, 2D IoU 0.625 / 0.633 / 0.634; held out 2D IoU 0.727 -> 0.735."""
+    (``RefineOptions.depth_prior``; 1: a frame moved 10 % costs what 0.01 of IoU gains): a
+    frame whose mask lost dark arrays or a boom ran off without it (up to 112 % of its
+    distance) to shrink its silhouette. On 8-frame passes of 11 unseen training-family
+    spacecraft (0 / 1 / 10): camera-frame Chamfer 1.55 / 1.02 / 0.99 x the reading's, 2D IoU
+    0.625 / 0.633 / 0.634; held out 2D IoU 0.727 -> 0.735."""
     patience: int = in_range(1, 10_000, default=12)
     "Stop after this many steps without a better mean IoU."
     seed: int = in_range(0, 2**31 - 1, default=0)
@@ -163,11 +162,12 @@ class SequenceOptions:
     rotations (which take precedence) are not affected."""
     motion_threshold_deg: float = in_range(1.0, 179.0, default=25.0)
     "A frame within this angle of the pass's motion agrees with it (``motion``)."
-    motion_max_rate_deg: float = positive(45.0)
+    motion_max_rate_deg: float = in_range(1e-3, 179.0, default=45.0)
     "The fastest turn of the pass's motion, degrees per frame (half-turn flips are not turns)."
     motion_min_share: float = in_range(0.0, 1.0, default=0.25)
-    """The share of the frames (and at least 3) that must agree with the pass's motion for it
-    to be used, else every frame keeps its reading. Longer passes show more aspects, and
+    """The share of the frames (and at least 3; two frames always take the motion through
+    both) that must agree with the pass's motion, else every frame keeps its reading. Longer
+    passes show more aspects, and
     fewer frames are read on one turn: on 12 tuning passes of 16 frames (0.5 / 0.34 / 0.25)
     relative rotations 17.1 / 14.8 / 6.5 deg mean, 2D IoU 0.645 / 0.645 / 0.650, body-frame
     Chamfer-L1 0.146 / 0.142 / 0.156; of 8 frames (0.5 / 0.25) 13.5 / 10.3 deg, 0.633 / 0.637,
@@ -191,9 +191,9 @@ class SequenceOptions:
     canonical: bool = False
     """Express the result in the dataset's body frame convention: the fitted assembly's
     oriented box's axes by extent, its centre of mass at the origin (else the reference
-    reading's body frame). Off by default: on passes of 8 frames of 4 unseen spacecraft it
-    moved the folded rotation error from 44-88 to 40-96 deg median per model, better on one,
-    worse on two (the fitted shape's box is not yet the true one's)."""
+    reading's; the result's ``half_turns`` and ``reference`` keep referring to that). Off:
+    on 8-frame passes of 4 unseen spacecraft the folded rotation went from 44-88 to 40-96 deg
+    median per model (the fitted shape's box is not yet the true one's)."""
 
     def __post_init__(self) -> None:
         if self.grow and self.shape != "free":
@@ -202,13 +202,11 @@ class SequenceOptions:
 
 
 def stage_refine_options(options: SequenceOptions, steps: int, poses: bool) -> RefineOptions:
-    """The :class:`RefineOptions` of one stage of the joint fit: ``poses`` False holds the
-    rotations and depths (a shape-only stage; the frames' image-plane shifts still move)."""
+    """One stage's :class:`RefineOptions`: ``poses`` False holds the rotations and depths."""
     return RefineOptions(steps=steps, lr=options.lr, warmup=options.warmup,
                          resolution=options.resolution, level=options.level,
                          prior_weight=options.prior_weight, shape=options.shape, loss="iou",
-                         rotation="free" if poses else "fixed",
-                         depth="free" if poses else "fixed",
+                         rotation="free" if poses else "fixed", depth="free" if poses else "fixed",
                          depth_prior=options.depth_prior, patience=options.patience,
                          spp=options.spp, sppp=options.sppp, seed=options.seed)
 
@@ -360,7 +358,7 @@ def predict_sequence(predictor: Any, images: Tensor | np.ndarray, camera: Camera
             refinement, the joint fit) on a progress bar.
 
     Raises:
-        ValueError: one line naming ``images`` (fewer than two frames, sizes, NaN),
+        ValueError: one line naming ``images`` (fewer than two frames, sizes, NaN), ``ordered``,
             ``relative_rotations`` or the frame whose mask holds no target.
     """
     from sq_mitsuba.inference.images import prepare_images
@@ -438,7 +436,9 @@ def sequence_from_frames(frames: Prediction, relative: Tensor | None = None,
     if fit is None:
         raise ValueError("frames: expected a fitted prediction (predict(refine=True))")
     reference = int(torch.argmax(fit.iou))
-    if ordered:
+    if relative is not None:  # the given rotations settle the half turns, shapes or not
+        turns = align_half_turns_by_relative(frames.rotation, relative, reference)
+    elif ordered:
         turns = align_half_turns_in_order(frames.assembly, frames.rotation, reference,
                                           options.level)
     else:

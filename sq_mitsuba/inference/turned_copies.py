@@ -63,7 +63,8 @@ def hypotheses_from_logits(head: torch.nn.Module, logits: Tensor | None, rotatio
     None) ``rotation`` (B, 3, 3) alone, scored 1. The best hypothesis is ``rotation``, the
     head's own (its argmax refined locally)."""
     if logits is None or not isinstance(head, RotationGridPoseHead):
-        return rotation[:, None], rotation.new_ones(rotation.shape[0], 1)
+        # A copy: the hypotheses must not share storage with the rotation they start from.
+        return rotation[:, None].clone(), rotation.new_ones(rotation.shape[0], 1)
     grid = head.grid_rotations().to(rotation)
     rotations, scores = rotation_hypotheses(logits.clone(), grid, count)
     rotations[:, 0] = rotation
