@@ -894,6 +894,13 @@ def test_given_relative_rotations_start_the_pass_at_the_mean_of_the_carried_read
                                atol=1e-9)
     assert rotation_error_deg(torch.from_numpy(mean)[None],
                               torch.from_numpy(carried[:1])).item() > 0.01  # not frame 0's
+    # The half turns are the given rotations' choice, not the shapes'.
+    from sq_mitsuba.inference.body_frame import align_half_turns_by_relative
+
+    torch.testing.assert_close(result.half_turns, align_half_turns_by_relative(
+        frames.rotation, relative, result.reference))
+    with pytest.raises(ValueError, match=r"^relative_rotations: expected \(4, 3, 3\)"):
+        sequence.sequence_from_frames(frames, relative[:2])
 
 
 def test_a_frame_the_joint_fit_lost_is_placed_again(known_pass):

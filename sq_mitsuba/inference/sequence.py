@@ -71,7 +71,6 @@ from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.rotation import matrix_to_quaternion, mean_rotation
 from sq_mitsuba.inference.body_frame import (
-    align_half_turns,
     align_half_turns_by_relative,
     align_half_turns_by_views,
     align_half_turns_in_order,
@@ -97,9 +96,9 @@ FRAMES_SEARCH = SearchOptions(keep=1)
 FRAMES_REFINEMENT = replace(SEARCH_REFINEMENT, steps=1, patience=1)
 
 __all__ = ["FRAMES_REFINEMENT", "FRAMES_SEARCH", "SequenceOptions", "SequencePrediction",
-           "align_half_turns", "align_half_turns_by_views", "align_half_turns_in_order",
-           "along_motion", "canonical_frame", "choose_start", "fit_sequence", "predict_sequence",
-           "reframed", "sequence_from_frames", "stage_refine_options"]
+           "align_half_turns_by_views", "align_half_turns_in_order", "along_motion",
+           "canonical_frame", "choose_start", "fit_sequence", "predict_sequence", "reframed",
+           "sequence_from_frames", "stage_refine_options"]
 
 
 @dataclass(frozen=True)
@@ -120,8 +119,7 @@ class SequenceOptions:
     "Adam's learning rate (raw shape parameters, rotation vectors, relative shifts)."
     warmup: int = in_range(0, 10_000, default=10)
     """Steps over which the learning rate rises to ``lr`` (``RefineOptions.warmup``; 0: none):
-    on 12 passes of the training families 0 / 10 gave 2D IoU 0.623 / 0.633 (Adam's first step
-    threw two off for good), held out 0.732 / 0.733."""
+    0 / 10 gave 2D IoU 0.623 / 0.633 on 12 training-family passes, 0.732 / 0.733 held out."""
     resolution: int = in_range(8, 1024, default=64)
     "Width in pixels at which the silhouettes are fitted."
     level: int = in_range(0, 5, default=1)
@@ -179,13 +177,11 @@ class SequenceOptions:
     relative rotations 143 / 10.9 / 10.1 / 10.6 deg median, 2D IoU 0.620 / 0.639 / 0.640 /
     0.639; independent views unchanged (eval/experiments/README.md, "Passes")."""
     grow: int = in_range(0, 16, default=0)
-    """Primitives the joint fit may add, one at a time, where the frames' silhouettes miss
-    their masks (:func:`~sq_mitsuba.inference.grow.grow_primitive`: a long array or boom the
-    reading left out), each followed by ``grow_steps`` more steps; 0: none. Off by default:
-    on passes of 8 frames of 12 held-out spacecraft, 3 grown with 10 steps each raised the
-    mean 2D IoU 0.740 -> 0.747 (in family 0.821 -> 0.831) but the body-frame Chamfer-L1 0.187
-    -> 0.202: a part placed from the outlines lands where the pass's misread body frame puts
-    it."""
+    """Primitives the joint fit may add, one at a time, where the silhouettes miss the masks
+    (:func:`~sq_mitsuba.inference.grow.grow_primitive`: an array or boom the reading left out),
+    each followed by ``grow_steps`` steps; 0: none. Off: on 8-frame passes of 12 held-out
+    spacecraft 3 grown raised the 2D IoU 0.740 -> 0.747 (in family 0.821 -> 0.831) and the
+    body-frame Chamfer-L1 0.187 -> 0.202 (placed where the misread body frame puts them)."""
     grow_steps: int = in_range(1, 10_000, default=20)
     "Adam steps of the joint fit after each grown primitive."
     canonical: bool = False
@@ -421,10 +417,13 @@ def sequence_from_frames(frames: Prediction, relative: Tensor | None = None,
     Args:
         frames: ``Predictor.predict(images, refine=True)`` of N >= 2 frames, every frame
             fitted (``frames.fit.fitted``).
-        relative: (N, 3, 3) checked relative rotations ``Q_j``, or None.
+        relative: (N, 3, 3) relative rotations ``Q_j``, or None.
         ordered, options: see :func:`predict_sequence`.
         started, frames_seconds: the clock at the start of the whole sequence and the time
             the frames took (for :attr:`SequencePrediction.seconds`).
+
+    Raises:
+        ValueError: naming ``frames`` (unfitted, or fewer than two) or ``relative_rotations``.
     """
     from sq_mitsuba.inference.fit import resize_masks
     from sq_mitsuba.render.silhouette.batch import PoseSilhouettes
@@ -433,8 +432,9 @@ def sequence_from_frames(frames: Prediction, relative: Tensor | None = None,
     options = options or SequenceOptions()
     validate(options)
     fit = frames.fit
-    if fit is None:
-        raise ValueError("frames: expected a fitted prediction (predict(refine=True))")
+    if fit is None or len(fit.iou) < 2:
+        raise ValueError("frames: expected N >= 2 frames fitted (predict(images, refine=True))")
+    relative = _check_relative(relative, len(fit.iou))
     reference = int(torch.argmax(fit.iou))
     if relative is not None:  # the given rotations settle the half turns, shapes or not
         turns = align_half_turns_by_relative(frames.rotation, relative, reference)
