@@ -144,8 +144,11 @@ ORTHONORMAL_TOLERANCE = 1e-3
 
 def check_rotations(name: str, rotations: torch.Tensor) -> None:
     """``ValueError`` naming ``name`` unless ``rotations`` (..., 3, 3) are finite rotation
-    matrices (orthonormal within :data:`ORTHONORMAL_TOLERANCE`, determinant +1)."""
+    matrices (orthonormal within :data:`ORTHONORMAL_TOLERANCE`, determinant +1). The values
+    are a value check (:func:`value_checks_enabled`); the shape is always checked."""
     check_tensor(name, rotations, (3, 3), min_dims=3)
+    if not value_checks_enabled():
+        return
     if not bool(torch.isfinite(rotations).all()):
         raise ValueError(f"{name}: contains NaN or infinite values")
     matrices = rotations.detach().double()

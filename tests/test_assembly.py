@@ -237,6 +237,14 @@ def test_a_rotated_assembly_is_the_assembly_at_turned_points():
         assembly.rotated(turn[:2])
     with pytest.raises(ValueError, match="rotation"):
         assembly.rotated(turn.float())
+    # A reflection or a scaled matrix is no turn: the frames would be rebuilt as rotations
+    # while the centres moved by the matrix as given.
+    for matrix in (turn @ torch.diag(torch.tensor([1.0, 1.0, -1.0], dtype=F64)), 2 * turn):
+        with pytest.raises(ValueError, match=r"^rotation: not rotation matrices"):
+            assembly.rotated(matrix)
+        with pytest.raises(ValueError, match=r"^rotation: not rotation matrices"):
+            Assembly.from_values(size=assembly.size[:1], shape=assembly.shape[:1],
+                                 rotation=matrix[:1, None].expand(1, 4, 3, 3))
 
 
 def test_a_scaled_assembly_is_the_assembly_at_scaled_points():

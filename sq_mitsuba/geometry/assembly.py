@@ -35,7 +35,7 @@ import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
-from sq_mitsuba.checks import check_tensor
+from sq_mitsuba.checks import check_rotations, check_tensor
 from sq_mitsuba.geometry.icosphere import icosphere_angles, icosphere_faces
 from sq_mitsuba.geometry.rotation import matrix_to_rotation_6d, rotation_6d_to_matrix
 from sq_mitsuba.geometry.superquadric import (
@@ -149,6 +149,7 @@ class Assembly:
             rotation = torch.eye(3, dtype=size.dtype, device=size.device).expand(*batch, 3, 3)
         check_tensor("rotation", rotation, (None,), min_dims=3)
         if rotation.shape[-2:] == (3, 3):
+            check_rotations("rotation", rotation)  # a reflection would come back as another
             rotation = matrix_to_rotation_6d(rotation)
         fields = {"size": size, "shape": shape, "translation": translation,
                   "rotation": rotation, "taper": taper}
@@ -232,6 +233,7 @@ class Assembly:
         if rotation.dim() != 3 or rotation.dtype != self.params.dtype:
             raise ValueError(f"rotation: expected ({self.batch_size}, 3, 3) of "
                              f"{self.params.dtype}, got {tuple(rotation.shape)} {rotation.dtype}")
+        check_rotations("rotation", rotation)  # frames are rebuilt as rotations, t is not
         params = self.params
         translation = (rotation[:, None] @ self.translation[..., None])[..., 0]
         frames = matrix_to_rotation_6d(rotation[:, None] @ self.rotation)

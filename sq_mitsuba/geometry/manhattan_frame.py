@@ -21,7 +21,17 @@ from torch import Tensor
 
 from sq_mitsuba.checks import check_tensor
 
-__all__ = ["frame_by_extent", "manhattan_frame"]
+__all__ = ["best_rotation", "frame_by_extent", "manhattan_frame"]
+
+
+def best_rotation(matrix: Tensor) -> Tensor:
+    """The rotation F (3, 3) maximising trace(F^T M) for M (3, 3) (orthogonal Procrustes,
+    Kabsch): U diag(1, 1, det(U V^T)) V^T from M's SVD. Where U V^T is a reflection the best
+    rotation flips the weakest singular direction; flipping an axis of U V^T is proper too,
+    but scores lower."""
+    u, _, vt = torch.linalg.svd(matrix)
+    sign = torch.sign(torch.linalg.det(u @ vt))
+    return u @ torch.diag(torch.stack([sign.new_ones(()), sign.new_ones(()), sign])) @ vt
 
 
 def _proper(frame: Tensor) -> Tensor:
@@ -78,8 +88,7 @@ def manhattan_frame(normals: Tensor, weights: Tensor | None = None, *, tries: in
         target = torch.zeros_like(n)
         target[torch.arange(len(n)), axis] = torch.sign(projection[torch.arange(len(n)), axis])
         # Procrustes: the rotation F maximising sum w_i n_i . F e_i.
-        u, _, vt = torch.linalg.svd((n * (w * near)[:, None]).T @ target)
-        frame = _proper(u @ vt)
+        frame = best_rotation((n * (w * near)[:, None]).T @ target)
     share = float((w * ((n @ frame).abs().amax(1) > cos_in)).sum() / w.sum())
     return frame, share
 

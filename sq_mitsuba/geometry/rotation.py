@@ -179,13 +179,20 @@ def rotation_angle(rotation_a: Tensor, rotation_b: Tensor) -> Tensor:
 
 
 def quaternion_angle(quaternion_a: Tensor, quaternion_b: Tensor) -> Tensor:
-    """SPEED rotation error 2 arccos(min(1, |<q_a, q_b>|)) in radians, (..., 4) -> (...)."""
+    """SPEED rotation error 2 arccos(min(1, |<q_a, q_b>|)) in radians, (..., 4) -> (...).
+
+    Computed as 2 atan2(|q_a^* q_b| vector part, |scalar part|), the same angle, whose gradient
+    stays finite where the two rotations are equal (arccos' is infinite at 1)."""
     check_tensor("quaternion_a", quaternion_a, (4,))
     check_tensor("quaternion_b", quaternion_b, (4,))
     check_nonzero("quaternion_a", quaternion_a)
     check_nonzero("quaternion_b", quaternion_b)
-    dot = (F.normalize(quaternion_a, dim=-1) * F.normalize(quaternion_b, dim=-1)).sum(-1)
-    return 2.0 * torch.arccos(dot.abs().clamp_max(1.0))
+    a, b = F.normalize(quaternion_a, dim=-1), F.normalize(quaternion_b, dim=-1)
+    a, b = torch.broadcast_tensors(a, b)
+    (wa, va), (wb, vb) = (a[..., 0], a[..., 1:]), (b[..., 0], b[..., 1:])
+    scalar = wa * wb + (va * vb).sum(-1)  # the scalar part of conj(a) b: <a, b>
+    vector = wa[..., None] * vb - wb[..., None] * va - torch.linalg.cross(va, vb)
+    return 2.0 * torch.atan2(torch.linalg.vector_norm(vector, dim=-1), scalar.abs())
 
 
 def mean_rotation(rotations: Tensor) -> Tensor:
