@@ -235,9 +235,13 @@ class SilhouetteRenderer:
         self._integrator: Any = None
         self._topology: _Topology | None = None
         self._scenes_built = 0
-        self._loaded: tuple[int, int] | None = None  # (call, item) whose vertices the scene holds
+        # (render, call, item) whose vertices the scene holds; ``_renders`` counts every render
+        # and, unlike the call number that seeds the samples, survives reseed(): a backward
+        # pass reuses the loaded vertices only if they are its own forward pass's.
+        self._loaded: tuple[int, int, int] | None = None
         self._loaded_vertices: Any = None
         self._calls = 0
+        self._renders = 0
         self.workers = workers
         self._pool: Any = None
         # Convention: Mitsuba renders with fx on both axes; y is stretched to give fy.
@@ -370,10 +374,14 @@ class SilhouetteRenderer:
 
     def _next_call(self) -> int:
         self._calls += 1
+        self._renders += 1
         return self._calls
 
-    def _seed(self, call: int, item: int, backward: bool) -> int:
-        return (self.seed + _SEED_STRIDE * (2 * call + int(backward)) + 7919 * item) & 0xFFFFFFFF
+    def _seed(self, call: int, item: int, backward: bool, seed: int | None = None) -> int:
+        """The samples' seed of one item of a call (``seed``: the base seed, default the
+        renderer's; a backward pass passes its forward pass's, which reseed() may have left)."""
+        base = self.seed if seed is None else seed
+        return (base + _SEED_STRIDE * (2 * call + int(backward)) + 7919 * item) & 0xFFFFFFFF
 
     def _load(self, vertices: Tensor, token: tuple[int, int], requires_grad: bool) -> Any:
         """Put one item's vertices (V, 3) into the scene (rebuilds the BVH)."""
@@ -389,7 +397,7 @@ class SilhouetteRenderer:
                 dr.enable_grad(values)
             self._params[VERTEX_KEY] = values
             self._params.update()
-        self._loaded, self._loaded_vertices = token, values
+        self._loaded, self._loaded_vertices = (self._renders, *token), values
         return values
 
     # ------------------------------------------------------------------ passes
@@ -401,7 +409,10 @@ class SilhouetteRenderer:
             images.append(self._render_item(call, item))
         return torch.stack(images).to(dtype=vertices.dtype, device=vertices.device)
 
-    def _backward(self, vertices: Tensor, grad_coverage: Tensor, call: int) -> Tensor:
+    def _backward(self, vertices: Tensor, grad_coverage: Tensor, call: int,
+                  render: int | None = None, seed: int | None = None) -> Tensor:
+        """Vertex gradients of call ``call`` (``render``: its render count, ``seed``: the base
+        seed at its forward pass; default the renderer's now)."""
         import drjit as dr
 
         grad_vertices = torch.zeros(vertices.shape, dtype=torch.float32)
@@ -410,14 +421,17 @@ class SilhouetteRenderer:
         for item in reversed(range(vertices.shape[0])):
             if not bool(grad_images[item].any()):
                 continue
-            if self._loaded == (call, item) and dr.grad_enabled(self._loaded_vertices):
+            own = (self._renders if render is None else render, call, item)
+            if self._loaded == own and dr.grad_enabled(self._loaded_vertices):
                 values = self._loaded_vertices
             else:
                 values = self._load(vertices[item], (call, item), requires_grad=True)
-            grad_vertices[item] = self._vertex_gradient(values, grad_images[item], call, item)
+            grad_vertices[item] = self._vertex_gradient(values, grad_images[item], call, item,
+                                                        seed)
         return grad_vertices.to(dtype=vertices.dtype, device=vertices.device)
 
-    def _vertex_gradient(self, values: Any, grad_image: Tensor, call: int, item: int) -> Tensor:
+    def _vertex_gradient(self, values: Any, grad_image: Tensor, call: int, item: int,
+                         seed: int | None = None) -> Tensor:
         """d(loss)/d(vertices) (V, 3) of the loaded item, given d(loss)/d(image) (H, W)."""
         mi = self._mi
         import drjit as dr
@@ -425,7 +439,7 @@ class SilhouetteRenderer:
         with interrupts_deferred():
             grad_in = mi.TensorXf(np.ascontiguousarray(grad_image.numpy()[..., None]))
             self._integrator.render_backward(self._scene, self._params, grad_in, sensor=0,
-                                             seed=self._seed(call, item, True), spp=0)
+                                             seed=self._seed(call, item, True, seed), spp=0)
             grad = np.array(dr.grad(values), dtype=np.float32).reshape(-1, 3)
             dr.clear_grad(values)
         # A rare silhouette sample with a degenerate Jacobian can give NaN; it carries no
@@ -644,6 +658,7 @@ class _RenderSilhouettes(torch.autograd.Function):
                 faces: np.ndarray) -> Tensor:
         call = renderer._next_call()
         ctx.renderer, ctx.faces, ctx.call = renderer, faces, call
+        ctx.render, ctx.seed = renderer._renders, renderer.seed
         ctx.topology = renderer._topology.ident
         ctx.save_for_backward(vertices)
         return renderer._forward(vertices.detach(), call, requires_grad=True)
@@ -653,7 +668,8 @@ class _RenderSilhouettes(torch.autograd.Function):
         (vertices,) = ctx.saved_tensors
         renderer: SilhouetteRenderer = ctx.renderer
         renderer._restore_topology(ctx.topology, vertices.shape[1], ctx.faces)
-        return renderer._backward(vertices.detach(), grad_coverage, ctx.call), None, None
+        return renderer._backward(vertices.detach(), grad_coverage, ctx.call, ctx.render,
+                                  ctx.seed), None, None
 
 
 class _RenderedLoss(torch.autograd.Function):
