@@ -194,11 +194,20 @@ def test_resume_of_other_settings_or_another_checkpoint_is_one_line(
     assert batches.numbers == []
 
 
-def test_the_identity_names_an_option_only_the_journal_has_and_hashes_the_baseline(
-        eval_checkpoint):
+def test_the_identity_names_an_option_only_the_journal_has_and_hashes_what_decides_scores(
+        eval_checkpoint, train_dataset, tmp_path, monkeypatch):
     """A field the journal's run had and this one lacks differs too; the stored baseline is
-    part of the model (the baseline rows are scored from it)."""
-    from sq_mitsuba.evaluation.journal import checkpoint_identity, identity_difference
+    part of the model (the baseline rows are scored from it); so are the model files the
+    scoring reads (samples.npz: Chamfer and 3D IoU points; symmetries.json) and the package
+    version."""
+    import numpy as np
+
+    import sq_mitsuba
+    from sq_mitsuba.evaluation.journal import (
+        checkpoint_identity,
+        identity_difference,
+        run_identity,
+    )
     from sq_mitsuba.inference.loading import load_model
 
     assert identity_difference({"options": {"a": 1}}, {"options": {}}) == \
@@ -210,6 +219,22 @@ def test_the_identity_names_an_option_only_the_journal_has_and_hashes_the_baseli
     first = checkpoint_identity(predictor)["sha256"]
     predictor.baseline = (raw + 0.5, torch.eye(3)[None], torch.zeros(1, 3))
     assert checkpoint_identity(predictor)["sha256"] != first
+    data = Path(shutil.copytree(train_dataset, tmp_path / "data"))
+    before = run_identity(predictor, data, {})
+    assert identity_difference(before, run_identity(predictor, data, {})) is None
+    model = (data / "splits.csv").read_text().splitlines()[-1].split(",")[0]
+    samples = data / model / "models" / "samples.npz"
+    with np.load(samples) as archive:
+        arrays = dict(archive)
+    arrays["surface_points"] = arrays["surface_points"][::2]
+    np.savez(samples, **arrays)
+    assert "samples.npz" in identity_difference(before, run_identity(predictor, data, {}))
+    before = run_identity(predictor, data, {})
+    (data / model / "models" / "symmetries.json").write_text("{}")
+    assert "symmetries.json" in identity_difference(before, run_identity(predictor, data, {}))
+    before = run_identity(predictor, data, {})
+    monkeypatch.setattr(sq_mitsuba, "__version__", "0.0.0")
+    assert "version: " in identity_difference(before, run_identity(predictor, data, {}))
 
 
 def test_without_resume_a_journal_is_not_used(interrupted, uninterrupted, eval_checkpoint,

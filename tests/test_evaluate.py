@@ -331,6 +331,28 @@ def test_missing_split_and_missing_data_are_one_line(eval_checkpoint, train_data
                  "--split", "test", "--out", str(tmp_path / "out_base"), "--quiet"]) == 2
     assert "--no-baseline" in error_line(capsys)
     assert not (tmp_path / "out_base").exists()
+    # Refused before any work: the journal an interrupted run left there is not touched.
+    journal = tmp_path / "out_journal" / ".eval_partial"
+    journal.mkdir(parents=True)
+    (journal / "run.json").write_text("{}")
+    (journal / "batch_000001.pt").write_bytes(b"an interrupted run's batch")
+    assert main(["eval", "--checkpoint", str(eval_checkpoint), "--data", str(only_test),
+                 "--split", "test", "--out", str(journal.parent), "--quiet"]) == 2
+    assert "--no-baseline" in error_line(capsys)
+    assert {p.name: p.read_bytes() for p in journal.iterdir()} == {
+        "run.json": b"{}", "batch_000001.pt": b"an interrupted run's batch"}
+    # A mesh ranking needs two models to rank among: the test split has one. Refused up
+    # front, an earlier run's ranking kept.
+    ranked = tmp_path / "out_ranking"
+    ranked.mkdir()
+    (ranked / "mesh_ranking.csv").write_text("an earlier run's ranking\n")
+    assert main(["eval", "--checkpoint", str(eval_checkpoint), "--data", str(train_dataset),
+                 "--split", "test", "--out", str(ranked), "--limit", "1", "--no-baseline",
+                 "--no-figures", *SMALL, "--set", "mesh_ranking=4"]) == 2
+    line = error_line(capsys)
+    assert "mesh_ranking" in line and "'test' split" in line
+    assert (ranked / "mesh_ranking.csv").read_text() == "an earlier run's ranking\n"
+    assert sorted(p.name for p in ranked.iterdir()) == ["mesh_ranking.csv"]
     with pytest.raises(SystemExit) as stop:  # argparse: not a choice
         main(["eval", "--checkpoint", str(eval_checkpoint), "--data", str(train_dataset),
               "--split", "train", "--out", str(tmp_path / "x")])

@@ -68,7 +68,9 @@ def test_report_holds_ours_and_the_papers_numbers_with_the_best_in_bold(tmp_path
     assert "**bold**: the best of our rows" in report
     assert "Not directly comparable" in report
     text = (tmp_path / "report" / "report.csv").read_text()
-    assert "*" not in text and f'"{good[0]:.3f} ± {good[1]:.3f}"' in text
+    assert "*" not in text
+    rows = list(csv.reader(text.splitlines()))
+    assert any(f"{good[0]:.3f} ± {good[1]:.3f}" in row for row in rows[1:])
 
 
 def _mean(cell: str) -> float:
@@ -111,8 +113,17 @@ def test_report_bolds_among_our_rows_even_where_the_paper_is_better(tmp_path):
 
 def test_report_labels_a_run_as_its_eval_json_records(tmp_path):
     _eval_folder(tmp_path / "folder_name" / "val", "val", "config (a), 16 epochs", 0.0)
-    report = write_report([tmp_path / "folder_name" / "val"], tmp_path / "report").read_text()
+    # A label with quotes and a comma stays one cell of report.csv (written by the csv module).
+    quoted = 'run "A", v2'
+    _eval_folder(tmp_path / "quoted" / "val", "val", quoted, 1.0)
+    report = write_report([tmp_path / "folder_name" / "val", tmp_path / "quoted" / "val"],
+                          tmp_path / "report").read_text()
     assert "| config (a), 16 epochs |" in report and "folder_name" not in report
+    with open(tmp_path / "report" / "report.csv", newline="") as handle:
+        header, *rows = list(csv.reader(handle))
+    assert all(len(row) == len(header) for row in rows)
+    assert {row[1] for row in rows if row[0].startswith("Table 1")} >= \
+        {"config (a), 16 epochs", quoted}
     # An eval.json without a label: the checkpoint's run folder, as `sq-mitsuba eval` names it.
     folder = tmp_path / "other" / "test"
     _eval_folder(folder, "test", "x", 0.0)

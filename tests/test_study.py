@@ -66,6 +66,10 @@ def test_illumination_study_end_to_end(eval_checkpoint, train_dataset, tmp_path,
         assert {r["phase_angle_deg"] for r in mine} == \
             {str(round(lb["phase_angle_deg"], 6)) for lb in labels}
     assert len(poses) == 1  # the same poses under every lighting
+    # Each model's symmetries detected once, in the study's copy, and rendered along with it.
+    model = next(p.parent.parent.name for p in (out / "models").glob("*/models/*.obj"))
+    for folder in (out / "models", *(out / "renders" / p.name for p in points)):
+        assert (folder / model / "models" / "symmetries.json").is_file(), folder
     table = read_rows(out / "illumination.csv")
     groups = {(r["background"], r["method"]) for r in table}
     assert ("eclipse", "network") in groups and ("earth", "refined") in groups
@@ -106,6 +110,13 @@ def test_breakdown_of_an_evaluation_by_recorded_lighting(eval_checkpoint, train_
         assert int(got[key]["images"]) == len(values)
         assert float(got[key]["mean"]) == pytest.approx(np.mean(values))
     assert {r["metric"] for r in table} == set(METRICS)
+    # Another evaluation into the folder: its per_image.csv is new, so the breakdown of the
+    # earlier one goes (study illumination --eval makes this one's).
+    evaluate(load_model(eval_checkpoint), train_dataset, folder,
+             EvalOptions(split="test", limit=1, baseline=False, figures=False,
+                         surface_points=300, volume_points=1000), progress=False)
+    assert len(read_rows(folder / "per_image.csv")) == 1
+    assert not [p.name for p in folder.iterdir() if p.name.startswith("lighting.")]
 
 
 def test_bad_study_input_is_one_line(eval_checkpoint, train_dataset, tmp_path, capsys):
@@ -130,4 +141,11 @@ def test_bad_study_input_is_one_line(eval_checkpoint, train_dataset, tmp_path, c
                  str(eval_checkpoint), "--out", str(tmp_path / "o"),
                  "--set", "render.scene.sun.irradiance=-1"]) == 2
     assert "irradiance" in error_line(capsys)
+    # A mesh ranking among the study's one model: refused before the first render.
+    assert main(["study", "illumination", "--models", str(train_dataset), "--checkpoint",
+                 str(eval_checkpoint), "--out", str(tmp_path / "o"), "--poses", "1",
+                 "--step", "180", "--set", "render.resolution=64", "--set", "render.spp=4",
+                 "--set", "evaluation.refine=false", "--set", "evaluation.mesh_ranking=4",
+                 "--quiet"]) == 2
+    assert "evaluation.mesh_ranking 4" in error_line(capsys)
     assert not (tmp_path / "o").exists()

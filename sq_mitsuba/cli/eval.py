@@ -33,19 +33,23 @@ view, eclipse, visibility), per_model.{csv,md}, summary.{csv,md} (mean ± std an
 per_model.png (bars per model, as the paper's Fig. 10), qualitative.png (Fig. 12),
 consistency.png (Fig. 11) and eval.json (settings, images/s); with --set mesh_ranking=256,
 mesh_ranking.csv: for 256 network predictions (spread evenly), the rank of the image's own
-model among every model of the split by Chamfer-L1 (is the shape read from the image?).
+model among every model of the split by Chamfer-L1 (is the shape read from the image?; a
+split of one model is refused).
 `sq-mitsuba report` collates eval folders into the paper's tables.
 
 Without --checkpoint the model shipped with the package is used. A checkpoint that does not
 fit this version's network, an empty split, a samples.npz that lacks an array or holds NaN,
 images of another size than camera.json says, an unwritable --out or one inside --data (the
 dataset is only read), or an --out another run is writing into, is a one-line error before
-any work (exit code 2). Rerunning into an earlier --out removes the outputs this run does not
-write (e.g. the figures after --no-figures). Each finished batch is kept in --out/.eval_partial
-until eval.json is written: after an interrupt (Ctrl-C, a killed run), the same command with
---resume computes only the batches left and writes the same files as an uninterrupted run
-(timings aside); a journal of other settings, another checkpoint or other data is refused in
-one line naming what differs, and a run without --resume starts afresh. Other settings:
+any work (exit code 2); so is the baseline on a dataset without a train split whose checkpoint
+stores none. Rerunning into an earlier --out removes the outputs this run does not write (e.g.
+the figures after --no-figures) and a lighting breakdown of the earlier per_image.csv
+(lighting.*, `sq-mitsuba study illumination --eval`). Each finished batch is kept in
+--out/.eval_partial until eval.json is written: after an interrupt (Ctrl-C, a killed run),
+the same command with --resume computes only the batches left and writes the same files as
+an uninterrupted run (timings aside); a journal of other settings, another checkpoint,
+other data (labels, model files) or another sq-mitsuba version is refused in one line naming
+what differs, and a run without --resume starts afresh. Other settings:
 --set key=value on the eval options, e.g.
 --set refinement.steps=20 --set search.grid=576 --set mask=segmentation
 --set refinement.shape=free --set refinement.depth=fixed --set volume_points=20000

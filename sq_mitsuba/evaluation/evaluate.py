@@ -8,8 +8,10 @@ up to four methods:
 - ``search``: the global pose search (:func:`sq_mitsuba.inference.search.search_poses`: the
   network's rotation (with ``search.candidates = "hypotheses"`` its top-K hypotheses too), or a
   uniform grid for a network without them, each times the four half turns, scored by Mitsuba
-  silhouettes) against the mask read from the image, with the
-  network's assembly (``refine``);
+  silhouettes) against the mask read from the image, with the assembly of the search's start
+  (the network's reading from the search's turned copies, ``search.turns``, 8 by default for
+  a rotation-distribution head: not the ``network`` row's reading, so its shape metrics can
+  differ from that row's) (``refine``);
 - ``refined``: that search followed by refinement of its best few against the same mask,
   the shipped path whole (``Predictor.refine``, :mod:`sq_mitsuba.inference.pipeline`, as
   ``Predictor.predict(images, refine=True)`` runs it); the mask is
@@ -42,14 +44,16 @@ Files written to the output folder (each atomically):
   the prediction (:mod:`sq_mitsuba.evaluation.mesh_ranking`: is the shape read from the image?);
 - ``eval.json``: settings, checkpoint, counts, symmetries per model, images/s, the mesh
   ranking's medians, and the run's ``identity`` (the checkpoint's weights hash, the data's
-  fingerprint, the Mitsuba variant: :mod:`sq_mitsuba.evaluation.journal`).
+  fingerprint and its model files' hash, the Mitsuba variant, the package version:
+  :mod:`sq_mitsuba.evaluation.journal`).
 
 While it runs, the hidden folder ``.eval_partial/`` (:mod:`sq_mitsuba.evaluation.journal`)
 holds ``run.json`` (the options, the checkpoint's and the data's identity, the Mitsuba
-variant, the evaluated indices) and one ``batch_<number>.pt`` per finished batch (its rows,
-qualitative examples, mesh-ranking entries and seconds), each written atomically; it is
-removed once ``eval.json`` is written. ``resume`` (``sq-mitsuba eval --resume``) reads the
-batches an interrupted run of the same settings, checkpoint, data and variant finished
+variant, the package version, the evaluated indices) and one ``batch_<number>.pt`` per
+finished batch (its rows, qualitative examples, mesh-ranking entries and seconds), each
+written atomically; it is removed once ``eval.json`` is written. ``resume`` (``sq-mitsuba
+eval --resume``) reads the batches an interrupted run of the same settings, checkpoint, data,
+variant and version finished
 instead of computing them again, and ends with the same files (timings aside); a journal of
 another run is refused in one line naming what differs, and a run without ``resume`` clears
 it first. Each batch is scored on its own: the scoring renderer restarts its samples from
@@ -57,7 +61,9 @@ the batch's number.
 
 The folder holds one evaluation: the files of this list that an earlier run into it wrote and
 this one does not (the figures after ``figures = False``, a mesh ranking) are removed once it
-has written its own. It lies outside the dataset, which evaluation only reads, and takes one
+has written its own, and a lighting breakdown of the earlier ``per_image.csv``
+(``lighting.*``, :func:`sq_mitsuba.evaluation.study.lighting_breakdown`) before its first
+table. It lies outside the dataset, which evaluation only reads, and takes one
 run at a time (:func:`sq_mitsuba.outputs.output_lock`; another run into it is refused in one
 line before any work).
 
@@ -101,6 +107,9 @@ MESH_RANKING_FILE = "mesh_ranking.csv"
 OUTPUT_FILES = ("per_image.csv", "per_model.csv", "per_model.md", "summary.csv", "summary.md",
                 "per_model.png", "qualitative.png", "consistency.png", "eval.json")
 """What :func:`evaluate` writes (the PNGs unless ``figures`` is off)."""
+LIGHTING_FILES = ("lighting.csv", "lighting.md", "lighting.png")
+"""What :func:`sq_mitsuba.evaluation.study.lighting_breakdown` writes into an evaluation folder
+from its ``per_image.csv`` (removed when an evaluation rewrites that file)."""
 
 
 @dataclass(frozen=True)
@@ -149,7 +158,8 @@ class EvalOptions:
     figures: bool = True
     "Draw per_model.png, qualitative.png and consistency.png."
     mesh_ranking: int = in_range(0, 10_000_000, default=0)
-    "Network predictions ranked by Chamfer-L1 against every model of the split (0: off)."
+    """Network predictions ranked by Chamfer-L1 against every model of the split (0: off; a
+    split of one model is refused)."""
     qualitative: int = in_range(1, 64, default=6)
     "Rows (images, spread over the split) of the qualitative grid."
     consistency_models: int = in_range(1, 16, default=3)
@@ -207,10 +217,11 @@ def evaluate(predictor: Any, data_root: str | Path, out_dir: str | Path,
     """Evaluate ``predictor`` (a :class:`sq_mitsuba.inference.predictor.Predictor`) on a
     dataset split and write the files listed in the module docstring.
 
-    Every input is checked before the work starts: the network's input channels, the dataset
-    and split (not empty, images of ``camera.json``'s size, readable finite points), the train
-    split when the baseline is on, and the output folder (writable, outside the dataset, not
-    locked by another run).
+    Every input is checked before the work starts (and before a journal is touched): the
+    network's input channels, the dataset and split (not empty, images of ``camera.json``'s
+    size, readable finite points, two models or more for ``mesh_ranking``), the train split,
+    or else a baseline the checkpoint stores, when the baseline is on, and the output folder
+    (writable, outside the dataset, not locked by another run).
 
     Args:
         label: the run's name in ``eval.json`` (the report's row label; default: the
@@ -240,6 +251,17 @@ def check_data_folder(data_root: Path) -> None:
                          else f"{data_root}: not a folder (a dataset is a folder)")
 
 
+def check_mesh_ranking(options: EvalOptions, dataset: Any, data_root: Path) -> None:
+    """Refuse ``mesh_ranking`` > 0 on a split of fewer than two models (nothing to rank an
+    image's own model against), rather than skip it unsaid."""
+    if options.mesh_ranking and len(dataset.models) < 2:
+        held = ", ".join(dataset.models)
+        raise ValueError(f"mesh_ranking {options.mesh_ranking}: ranks each prediction among "
+                         f"the split's models, but the {options.split!r} split of {data_root} "
+                         f"has {len(dataset.models)} ({held}); set mesh_ranking=0 or "
+                         "evaluate a split of two models or more")
+
+
 def check_outside_data(out_dir: Path, data_root: Path) -> None:
     """Refuse an output folder that is the dataset folder or lies inside it (an evaluation
     only reads its dataset)."""
@@ -260,6 +282,7 @@ def _evaluate(predictor: Any, data_root: Path, out_dir: Path, options: EvalOptio
 
     image_size = predictor.image_size
     dataset = open_split(data_root, options.split, image_size, options.surface_points)
+    check_mesh_ranking(options, dataset, data_root)
     stored_baseline = None
     if options.baseline:  # its images are read too: refused now, not after the split's work
         train_split = Spe3rDataset(data_root, "train", image_size=image_size, num_surface=1,
@@ -270,6 +293,10 @@ def _evaluate(predictor: Any, data_root: Path, out_dir: Path, options: EvalOptio
             # A dataset of test models only (held-out families, real spacecraft): the baseline
             # is the one the checkpoint stores, the mean over the model's own training images.
             stored_baseline = getattr(predictor, "baseline", None)
+            if stored_baseline is None:  # now: the journal below is not yet touched
+                raise ValueError(f"{data_root}: no images for the baseline (the 'train' split "
+                                 "is empty and the checkpoint stores none); evaluate without "
+                                 "it (--no-baseline)")
     camera = dataset.camera.rescaled(image_size, image_size)
     predictor.check_turns(options.turns, camera)
     indices = evenly(len(dataset), options.limit)
@@ -295,8 +322,8 @@ def _evaluate(predictor: Any, data_root: Path, out_dir: Path, options: EvalOptio
     renderer = SilhouetteRenderer(camera, spp=options.silhouette_spp)
     models = ModelData(dataset, options.volume_points)
     wanted = {indices[k] for k in evenly(len(indices), options.qualitative)}
-    ranked = ({indices[k] for k in evenly(len(indices), options.mesh_ranking)}
-              if options.mesh_ranking and len(dataset.models) >= 2 else set())
+    ranked = {indices[k] for k in evenly(len(indices), options.mesh_ranking)} \
+        if options.mesh_ranking else set()
     to_rank: list[tuple[int, int, str, Assembly]] = []  # item, model index, model, assembly
     rows: list[dict[str, Any]] = []
     examples: list[dict[str, Any]] = []
@@ -329,9 +356,12 @@ def _evaluate(predictor: Any, data_root: Path, out_dir: Path, options: EvalOptio
         seconds[key] for key in ("loop", "network", "search", "refine"))
     # eval.json, written last, marks a finished evaluation: an earlier run's goes before this
     # one's first file, so that a folder left half rewritten (an interrupt among the writes)
-    # is not taken for either run by `report`. An interrupt in the loop above loses no batch
-    # the journal holds (--resume).
-    (out_dir / "eval.json").unlink(missing_ok=True)
+    # is not taken for either run by `report`. So does a lighting breakdown of the earlier
+    # per_image.csv: it would not match this one's. An interrupt in the loop above loses no
+    # batch the journal holds (--resume).
+    for name in ("eval.json", *LIGHTING_FILES):
+        if (out_dir / name).is_file():
+            (out_dir / name).unlink()
     summary = write_tables(rows, out_dir)
     files = [out_dir / name for name in OUTPUT_FILES[:5]]
     ranking = None

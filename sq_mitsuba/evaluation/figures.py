@@ -161,12 +161,13 @@ def _bare(axis) -> None:
 def plot_qualitative(examples: Sequence[dict], dataset, camera, figure_camera, renderer,
                      path: str | Path, level: int = 3) -> Path:
     """One row per example (as the paper's Fig. 12): the input image; the network's
-    silhouette at its predicted pose over the mask (red prediction, green mask, yellow both);
-    where refined, the same after refinement against the ground-truth mask; where scored,
-    the trivial baseline's (the mean training assembly at the mean training pose); the predicted
-    assembly at the predicted pose, one colour per primitive (Mitsuba ray casting); its
-    surface points without those inside another primitive (body frame); the ground-truth mesh
-    at the true pose.
+    silhouette at its predicted pose over the ground-truth mask (red prediction, green mask,
+    yellow both; its 2D IoU below); where refined, the same for the search and refinement
+    fitted to the mask read from the image ("search + refined") and for those fitted to the
+    ground-truth mask ("refined (GT mask)"); where scored, the same for the trivial baseline
+    (the mean training assembly at the mean training pose); then the network's assembly at its
+    predicted pose, one colour per primitive (Mitsuba ray casting); its surface points without
+    those inside another primitive (body frame); the ground-truth mesh at the true pose.
 
     Args:
         examples: dicts with ``image``, ``mask`` (S, S), ``model``, ``index``,
@@ -300,7 +301,8 @@ def plot_illumination(table: Sequence[dict], path: str | Path,
     shaded band of ± one std, and separate markers (with std bars) for eclipse groups.
 
     Args:
-        table: rows with ``method``, ``background`` (e.g. "no Earth", "Earth", "eclipse"),
+        table: rows with ``method``, ``background`` ("space", "earth", "eclipse"; another
+            name is drawn after those),
             ``phase_deg`` (x), and per metric ``<metric>_mean`` and ``<metric>_std``.
         metrics: the metrics to plot, one panel each.
     """

@@ -6,9 +6,10 @@ folder :data:`JOURNAL` (``.eval_partial/``):
 - ``run.json``, written before the first batch: the run's identity (:func:`run_identity`):
   the options (``to_dict``), the checkpoint (its path, for the messages, and a sha256 of the
   network's weights and stored baseline, with the predictor's ``hypotheses``,
-  ``min_existence`` and device), the data (its resolved root and
-  :func:`sq_mitsuba.training.cache.dataset_fingerprint`: manifest, camera, splits and labels),
-  the Mitsuba variant, and the evaluated indices of the split;
+  ``min_existence`` and device), the data (its resolved root,
+  :func:`sq_mitsuba.training.cache.dataset_fingerprint`: manifest, camera, splits and labels,
+  and a sha256 of the model files the scoring reads: :func:`models_sha256`), the Mitsuba
+  variant, the package version, and the evaluated indices of the split;
 - ``batch_<number>.pt``, one per finished batch (``torch.save``, loadable with
   ``weights_only=True``): its dataset items, its ``per_image.csv`` rows, its qualitative
   examples and mesh-ranking entries (assemblies as their ``params`` tensors), and its seconds
@@ -22,7 +23,10 @@ and computes only the others; a journal of another run is refused in one line na
 field that differs (:func:`identity_difference`), before any work. A run without ``resume``
 clears the journal first. A batch file that cannot be read, or does not hold the batch it is
 named for, is refused in one line naming it (delete it to recompute that batch); it is never
-silently recomputed, so a resumed evaluation is either exact or refused.
+silently recomputed, so a resumed evaluation is either exact or refused as far as the identity
+reaches. It does not reach the images and masks (the baseline's training images included),
+which are not hashed (too slow; a re-rendered dataset comes with new labels, which are), nor
+the versions of torch and Mitsuba (only the variant).
 """
 
 from __future__ import annotations
@@ -45,7 +49,7 @@ from sq_mitsuba.io import atomic_write_bytes, atomic_write_json, read_json
 
 __all__ = ["JOURNAL", "RUN_FILE", "BatchRecord", "EvalJournal", "checkpoint_identity",
            "data_identity", "finished_evaluation", "identity_difference", "journal_difference",
-           "run_identity"]
+           "models_sha256", "run_identity"]
 
 #: The journal's folder inside the output folder.
 JOURNAL = ".eval_partial"
@@ -82,12 +86,42 @@ def checkpoint_identity(predictor: Any) -> dict[str, Any]:
             "device": str(parameter.device) if parameter is not None else "cpu"}
 
 
-def data_identity(data_root: str | Path) -> dict[str, str]:
-    """The dataset's resolved ``root`` and its ``fingerprint`` (manifest, camera, splits and
-    every model's labels; not the images)."""
+def data_identity(data_root: str | Path, split: str | None = None) -> dict[str, str]:
+    """The dataset's resolved ``root``, its ``fingerprint`` (manifest, camera, splits and
+    every model's labels; not the images) and ``models_sha256`` (:func:`models_sha256`, of the
+    evaluated ``split``'s models, or of every model)."""
     from sq_mitsuba.training.cache import dataset_fingerprint
 
-    return {"root": str(Path(data_root).resolve()), "fingerprint": dataset_fingerprint(data_root)}
+    return {"root": str(Path(data_root).resolve()), "fingerprint": dataset_fingerprint(data_root),
+            "models_sha256": models_sha256(data_root, split)}
+
+
+def models_sha256(data_root: str | Path, split: str | None = None) -> str:
+    """sha256 of the files of ``<model>/models/`` that scoring reads: ``samples.npz`` (the
+    Chamfer and 3D IoU points, symmetry detection), ``symmetries.json`` and the mesh (points
+    where there are no samples; the figures), each named, an absent one as absent. Of the models
+    an evaluation of ``split`` scores ("val": the training models' held-out images, "test": the
+    test models; None: every model in ``splits.csv``): a large library's other models are never
+    read, and hashing them would cost seconds at every start. A few MB a model."""
+    from sq_mitsuba.data.spe3r.layout import MESH_FILE, MODELS, SAMPLES_FILE, read_splits
+    from sq_mitsuba.data.symmetry import SYMMETRIES_FILE
+
+    root = Path(data_root)
+    digest = hashlib.sha256()
+    splits = read_splits(root / "splits.csv")
+    scored = {"val": "train"}.get(split or "", split)  # val images are of training models
+    for model in sorted(m for m in splits if split is None or splits[m] == scored):
+        for name in (SAMPLES_FILE, SYMMETRIES_FILE, MESH_FILE):
+            path = root / model / MODELS / name
+            if not path.is_file():
+                digest.update(f"{model}/{name}|absent|".encode())
+                continue
+            digest.update(f"{model}/{name}|{path.stat().st_size}|".encode())
+            with open(path, "rb") as handle:
+                for block in iter(lambda: handle.read(1 << 20), b""):
+                    digest.update(block)
+            digest.update(b"|")
+    return digest.hexdigest()
 
 
 def run_identity(predictor: Any, data_root: str | Path, options: dict[str, Any],
@@ -95,13 +129,15 @@ def run_identity(predictor: Any, data_root: str | Path, options: dict[str, Any],
     """The identity of an evaluation: ``options`` (``to_dict`` of its EvalOptions), the
     checkpoint's and the data's (above), the Mitsuba variant that renders its silhouettes
     (``renderer``: the CPU's and the GPU's differ in the last digits, so batches of the two
-    would not make the uninterrupted run's figures) and, where given, the split's evaluated
-    ``indices``."""
+    would not make the uninterrupted run's figures), the package ``version`` (the scoring
+    code) and, where given, the split's evaluated ``indices``."""
+    import sq_mitsuba
     from sq_mitsuba.render.backend import mitsuba
 
     identity = {"format": FORMAT, "options": options,
-                "checkpoint": checkpoint_identity(predictor), "data": data_identity(data_root),
-                "renderer": mitsuba().variant()}
+                "checkpoint": checkpoint_identity(predictor),
+                "data": data_identity(data_root, options.get("split")),
+                "renderer": mitsuba().variant(), "version": sq_mitsuba.__version__}
     if indices is not None:
         identity["images"] = [int(i) for i in indices]
     return identity
@@ -137,15 +173,21 @@ def identity_difference(old: dict[str, Any], new: dict[str, Any]) -> str | None:
         if key == "data.fingerprint":
             return f"data {b.get('data.root')}: labels or manifest changed ({there} there, " \
                 f"{now} now)"
+        if key == "data.models_sha256":
+            return f"data {b.get('data.root')}: a model's samples.npz, symmetries.json or " \
+                f"mesh changed ({there} there, {now} now)"
+        if key == "version":
+            return f"sq_mitsuba version: {there} there, {now} now"
         return f"{key.replace('.', ' ')}: {there} there, {now} now"
     return None
 
 
 def finished_evaluation(out_dir: str | Path, identity: dict[str, Any]) -> bool:
     """Whether ``out_dir`` holds a finished evaluation (its ``eval.json``) of ``identity``
-    (:func:`run_identity` without indices): the same options, checkpoint weights, data and
-    Mitsuba variant. An ``eval.json`` that cannot be read, or of a version without an identity
-    (or without the variant: before 2026-11-30), is not one."""
+    (:func:`run_identity` without indices): the same options, checkpoint weights, data (model
+    files included), Mitsuba variant and package version. An ``eval.json`` that cannot be
+    read, or of a version without an identity (or without one of those fields, which older
+    versions did not record), is not one."""
     try:
         info = read_json(Path(out_dir) / "eval.json")
     except (OSError, ValueError):

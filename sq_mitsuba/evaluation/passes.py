@@ -169,9 +169,8 @@ def score_frames(assembly: Assembly, rotation: Tensor, translation: Tensor,
     from sq_mitsuba.evaluation.scoring import score
 
     # The network's own reading stays on the model's device; the truth is on the CPU.
-    assembly = Assembly(assembly.params.detach().cpu())
-    rotation, translation = rotation.detach().cpu(), translation.detach().cpu()
-    count = rotation.shape[0]
+    assembly, rotation = Assembly(assembly.params.detach().cpu()), rotation.detach().cpu()
+    translation, count = translation.detach().cpu(), rotation.shape[0]
     metrics = score(assembly, rotation, translation, batch, renderer, [symmetry] * count,
                     [volume] * count, level)
     metrics["relative_rotation_deg"] = relative_rotation_errors(rotation.detach(),

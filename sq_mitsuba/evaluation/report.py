@@ -288,8 +288,11 @@ def write_report(folders: list[str | Path], out_dir: str | Path,
     lines += [BEST_NOTE, "", NOT_COMPARABLE, ""]
     markdown = out_dir / "report.md"
     atomic_write_text(markdown, "\n".join(lines))
-    header = ["table", *_table([], True)[0]]
-    text = ",".join(header) + "\n" + "".join(
-        ",".join(f'"{c}"' for c in row) + "\n" for row in csv_rows)
-    atomic_write_text(out_dir / "report.csv", text)
+    # The csv module quotes and escapes: a label may hold commas and quotes (cli/eval.py
+    # refuses only '|' and line breaks). Imported here: tables imports torch, which the CLI's
+    # parser, importing this module, does without.
+    from sq_mitsuba.evaluation.tables import csv_text
+
+    atomic_write_text(out_dir / "report.csv",
+                      csv_text(["table", *_table([], True)[0]], csv_rows))
     return markdown

@@ -212,15 +212,19 @@ def _choose_models(models_dir: Path, options: StudyOptions) -> list[str]:
 
 def _stage_models(models_dir: Path, names: Sequence[str], stage: Path) -> None:
     """Copy the models into ``stage`` with a splits.csv marking them all ``test``, and detect
-    each one's symmetries once there (the renders copy ``symmetries.json`` along)."""
+    each one's symmetries once there, written as its ``symmetries.json`` (the renders copy it
+    along, so no sweep point's evaluation detects them again)."""
     from sq_mitsuba.data.spe3r.layout import MODELS
-    from sq_mitsuba.data.symmetry import model_symmetries
+    from sq_mitsuba.data.symmetry import SYMMETRIES_FILE, model_symmetries
 
     stage.mkdir(parents=True, exist_ok=True)
     for name in names:
         shutil.copytree(models_dir / name / MODELS, stage / name / MODELS, dirs_exist_ok=True)
+        if not (models_dir / name / MODELS / SYMMETRIES_FILE).is_file():
+            # An earlier run's detection may be of a model since edited: detected afresh.
+            (stage / name / MODELS / SYMMETRIES_FILE).unlink(missing_ok=True)
         try:
-            model_symmetries(stage / name)
+            model_symmetries(stage / name, write=True)  # the study owns its models/
         except (OSError, ValueError) as error:  # the copy is the library's file: name that
             raise ValueError(str(error).replace(str(stage / name), str(models_dir / name))) \
                 from None
@@ -266,6 +270,11 @@ def illumination_study(checkpoint: str | Path | None, models_dir: str | Path,
         scene=apply_overrides(options.render.scene, point.overrides)) for point in points}
     evaluation = dataclasses.replace(options.evaluation, split="test", baseline=False)
     validate(evaluation)
+    if evaluation.mesh_ranking and len(names) < 2:  # each point's evaluation would refuse it
+        raise ValueError(f"evaluation.mesh_ranking {evaluation.mesh_ranking}: ranks each "
+                         f"prediction among the study's models, but {models_dir} gives "
+                         f"{len(names)} ({', '.join(names)}); set evaluation.mesh_ranking=0 "
+                         "or study two models or more")
     predictor = with_fast_path(predictor, evaluation.fast)  # once, not per sweep point
     started = time.perf_counter()
     stage = out_dir / "models"
