@@ -15,7 +15,7 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -575,6 +575,9 @@ def test_bad_config_is_one_line_naming_the_field(tmp_path, capsys, train_dataset
          ["gamma_range"]),
         (["--config", str(tmp_path / "missing.toml")], ["no such file"]),
         (["--config", str(TINY), "--set", f"seed={2**64}"], ["--set seed", "[0, "]),
+        # The caches and the stream serve grey images only: refused before any file is made.
+        (["--config", str(TINY), "--set", "network.in_channels=3"],
+         ["network.in_channels: 3", "expected 1"]),
     ]
     for extra, needles in cases:
         code, err = _cli(["train", *extra, *common], capsys)
@@ -603,6 +606,56 @@ def test_the_training_loop_names_its_last_checkpoint_to_the_interrupt(train_data
     config = apply_overrides(load_train_config(TINY), [f"data.cache_dir={cache_dir}"])
     train(config, train_dataset, tmp_path / "run", progress=False, max_steps=1)
     assert [interrupt.last for interrupt in made] == [tmp_path / "run" / "last.pt"]
+
+
+def test_an_interrupt_in_an_epochs_last_step_leaves_its_validation_to_resume(
+        train_dataset, cache_dir, reference_run, tmp_path, monkeypatch):
+    """Ctrl-C landing in step 4, the last of tiny.toml's first epoch: last.pt is written at
+    step 4 without the validation (the run stops promptly) and best.pt is its copy; --resume
+    runs that validation first, so val.csv, best.pt and the log are the uninterrupted run's."""
+    from contextlib import contextmanager
+
+    from sq_mitsuba.training import train as train_module
+    from sq_mitsuba.training.run.interrupt import StepInterrupt
+
+    class LandsInStepFour(StepInterrupt):
+        steps = 0
+
+        @contextmanager
+        def step(self) -> Iterator[None]:
+            with super().step():
+                yield
+                LandsInStepFour.steps += 1
+                if LandsInStepFour.steps == 4:
+                    self._hold(signal.SIGINT, None)  # what the signal handler does
+
+    monkeypatch.setattr(train_module, "StepInterrupt", LandsInStepFour)
+    out = tmp_path / "run"
+    config = apply_overrides(load_train_config(TINY), [f"data.cache_dir={cache_dir}"])
+    with pytest.raises(KeyboardInterrupt):
+        train(config, train_dataset, out, progress=False)
+    monkeypatch.setattr(train_module, "StepInterrupt", StepInterrupt)
+    last = _read_checkpoint(out / "last.pt")
+    assert last["step"] == 4 and last["validation"] == [] and _rows(out / "val.csv") == []
+    assert (out / "best.pt").read_bytes() == (out / "last.pt").read_bytes()
+    reference_val = [r for r in _rows(reference_run / "val.csv") if int(r["step"]) <= 5]
+    assert [r["step"] for r in reference_val] == ["4"]
+    # As a resume killed after that validation's row would leave it: written again, once.
+    with open(out / "val.csv", "a", newline="") as handle:
+        csv.DictWriter(handle, list(reference_val[0])).writerow(
+            {**reference_val[0], "chamfer_l1": "9.5"})
+    result = train(None, train_dataset, out, progress=False, resume=True, max_steps=5)
+    assert result.steps == 5
+    assert _rows(out / "val.csv") == reference_val
+    assert [e["step"] for e in result.validation] == [4]
+    assert [e["step"] for e in _read_checkpoint(out / "last.pt")["validation"]] == [4]
+    best = _read_checkpoint(out / "best.pt")
+    assert best["step"] == 4 and best["best"] == {
+        "metric": "chamfer_l1", "value": float(reference_val[0]["chamfer_l1"]), "step": 4}
+    reference = _rows(reference_run / "log.csv")[:5]
+    for row, expected in zip(_rows(out / "log.csv"), reference, strict=True):
+        for key in ("step", "loss", "lr", "grad_norm", *LOSS_TERMS):
+            assert row[key] == expected[key], (row["step"], key, row[key], expected[key])
 
 
 def test_a_run_stopped_before_its_first_checkpoint_starts_over(train_dataset, cache_dir,
@@ -729,6 +782,12 @@ def test_last_checkpoint_written_by_epoch_and_by_step(train_dataset, cache_dir, 
     assert "best.pt" not in {name for name, _ in written}
     run = tmp_path / "run"
     assert (run / "best.pt").read_bytes() == (run / "last.pt").read_bytes()
+    if each_epoch:  # a best.pt lost (killed before the copy) is made by a resume, steps or not
+        (run / "best.pt").unlink()
+        result = train(None, train_dataset, run, progress=False, resume=True, max_steps=8)
+        assert result.steps == 8 and result.best_checkpoint == run / "best.pt"
+        assert (run / "best.pt").read_bytes() == (run / "last.pt").read_bytes()
+        assert [step for name, step in written if name == "last.pt"] == expected  # no save
 
 
 @pytest.mark.slow

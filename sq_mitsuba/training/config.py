@@ -121,7 +121,11 @@ class OptimConfig:
     batch_size: int = in_range(1, 4096, default=32)
     "Images per step over all processes (each of N processes takes batch_size / N)."
     epochs: int = in_range(1, 100_000, default=50)
-    "Passes over the training images; an epoch is ceil(images / batch_size) steps."
+    """Epochs of the schedule, an epoch being ceil(images / batch_size) steps of the data
+    stream (:mod:`~sq_mitsuba.training.data_stream`): one pass over the training images when
+    batch_size divides their number. Otherwise the stream runs on across epochs (an epoch's
+    last batch is filled from the next permutation, nothing dropped or padded), so an epoch
+    sees some images twice and, later, may miss some."""
     trainable: tuple[str, ...] = ()
     """Train only the parameters whose names start with one of these (e.g. ["mask_head."]
     with init_from: a new head on a trained network); the rest stay as they are, in eval

@@ -118,9 +118,9 @@ class LossConfig:
                                       metadata=bounds(0, None))
     """Weight of each term by name (the names of ``sq_mitsuba.training.loss_terms``: chamfer,
     occupancy, reprojection, rotation, rotation_6d, rotation_grid, translation, overlap, taper,
-    mask, parsimony, parts). A table in a file lists every term that trains (parsimony, the price of
-    a primitive of a network with network.existence, is off unless weighed); --set
-    loss.weights.taper=0 changes one."""
+    mask, parsimony, parts, surface_depth, surface_normal). A table in a file lists every term
+    that trains (parsimony, the price of a primitive of a network with network.existence, is
+    off unless weighed); --set loss.weights.taper=0 changes one."""
     sharpness: float = positive(10.0)
     "Sharpness s of the occupancy sigmoid g = sigmoid(s (1 - f)) (paper Eq. 14)."
     beta: float = positive(1.25)

@@ -79,7 +79,8 @@ class StepResult:
     loss: Tensor
     "The weighted total, a detached scalar."
     terms: dict[str, Tensor]
-    "Each weighted term, detached scalars, in registry order."
+    """Each term the loss weighs, unweighted (the value before its weight, as ``log.csv``
+    holds it), detached scalars, in registry order."""
     grad_norm: float
     "The gradient's global L2 norm before clipping."
     values: dict[str, float] = dataclasses.field(default_factory=dict)
@@ -115,8 +116,9 @@ def forward_loss(model: nn.Module, batch: TrainingBatch, k_matrix: Tensor,
             (:func:`loss_context`).
 
     Returns:
-        (terms, loss): each weighted term and their weighted sum, scalars; ({}, None) when
-        the network's outputs are not finite.
+        (terms, loss): each term the loss weighs, unweighted, and their weighted sum
+        (:func:`~sq_mitsuba.training.loss_terms.total_loss`), scalars; ({}, None) when the
+        network's outputs are not finite.
     """
     output = model(batch.image, k_matrix)
     if not outputs_finite(output):

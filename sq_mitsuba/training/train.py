@@ -12,9 +12,9 @@ dataset and writes into a run folder:
   error in degrees, over a fixed subset (:mod:`sq_mitsuba.training.validation`);
 - ``curves.png``: loss terms and validation metrics, refreshed at each validation;
 - ``last.pt`` (the latest state) and ``best.pt`` (best validation ``validation.metric``;
-  the last state, said in :attr:`TrainResult.notes`, when the call ends before any
-  validation has run, so ``RUN/best.pt`` always exists), written atomically
-  (:mod:`sq_mitsuba.training.run.folder`);
+  while no validation has run, a copy of ``last.pt``, said in :attr:`TrainResult.notes`, so
+  ``RUN/best.pt`` exists whenever ``last.pt`` does, an interrupted run's too), written
+  atomically (:mod:`sq_mitsuba.training.run.folder`);
 - TensorBoard events in ``tensorboard/`` when the ``tensorboard`` package is importable;
 - ``cache/``: the decoded training data (:mod:`sq_mitsuba.training.cache`), unless
   ``data.cache_dir`` points elsewhere.
@@ -31,7 +31,9 @@ the schedule (:mod:`~sq_mitsuba.training.schedule`), random streams
 ``resume=True`` continues from ``last.pt`` exactly: the data order and every per-item random
 draw are pure functions of (seed, step, position in the batch), and the renderer's sample
 sequence restarts from a seed of the step, so the steps after a resume repeat an uninterrupted
-run's (on the CPU bit for bit, tested; see :mod:`~sq_mitsuba.training.step`).
+run's (on the CPU bit for bit, tested; see :mod:`~sq_mitsuba.training.step`). Ctrl-C or
+SIGTERM saves ``last.pt`` at the step it lands in and stops without validating (promptly), and
+``resume`` first runs a validation that step was due: ``val.csv`` is an uninterrupted run's.
 
 One run at a time per run folder: rank 0 holds :func:`sq_mitsuba.outputs.output_lock` on it
 for the whole call, so a second run started into the same folder stops at once with one line
@@ -45,7 +47,8 @@ unwritable run folder or a run folder that already holds a run (without ``resume
 another run is writing into; a dataset that does not open, whose images are not of
 ``camera.json``'s size, or whose ``samples.npz`` lacks an array or holds NaN (naming the file,
 :meth:`Spe3rDataset.check <sq_mitsuba.data.spe3r.Spe3rDataset.check>`); a network that cannot
-be built (``network.pretrained`` unreadable) or cannot feed a weighted loss term; a corrupt
+be built (``network.pretrained`` unreadable), is not of one input channel (the training data
+are grey) or cannot feed a weighted loss term; a corrupt
 image while the cache is built (naming the file; the new run folder and cache are removed); a
 checkpoint of another config or dataset on resume (naming the first difference); a loss or
 gradient that is not finite (the step is not applied and the last checkpoint stays as it was).
@@ -68,7 +71,6 @@ from sq_mitsuba.config import from_dict, to_dict
 from sq_mitsuba.config import validate as validate_config
 from sq_mitsuba.data.spe3r import DatasetError
 from sq_mitsuba.io import atomic_write_json
-from sq_mitsuba.model.checkpoint import load_weights, read_checkpoint
 from sq_mitsuba.model.network import SuperquadricNet
 from sq_mitsuba.outputs import output_lock
 from sq_mitsuba.progress import progress_bar
@@ -100,9 +102,10 @@ from sq_mitsuba.training.run.folder import (
     LAST,
     check_cache_dir,
     check_out_dir,
-    config_difference,
+    check_resumable,
     copy_checkpoint,
     git_commit,
+    load_initial_weights,
     not_finite_error,
     read_resumed,
     remove_stale_temporaries,
@@ -188,6 +191,9 @@ def _train(config: TrainConfig | None, data_root: Path, out_dir: Path, resume: b
         config = TrainConfig() if checkpoint is None else from_dict(TrainConfig,
                                                                     checkpoint["config"])
     validate_config(config)
+    if config.network.in_channels != 1:  # the caches decode and the stream serves grey images
+        raise TrainError(f"network.in_channels: {config.network.in_channels}: training feeds "
+                         "one-channel (grey) images only; expected 1")
     check_cache_dir(config.data.cache_dir)
     # The fingerprint first: a point cache already built for it spares reading every model's
     # points again (open_datasets). A dataset it cannot be taken of gets open_datasets' error.
@@ -199,7 +205,7 @@ def _train(config: TrainConfig | None, data_root: Path, out_dir: Path, resume: b
     if fingerprint is None:
         fingerprint = dataset_fingerprint(data_root)
     if checkpoint is not None:
-        _check_resumable(checkpoint, config, fingerprint, out_dir, data_root)
+        check_resumable(checkpoint, config, fingerprint, out_dir, data_root)
     model = _build_network(config, sources, resuming=checkpoint is not None)
     device = _device_of(config)
     world = start_distributed(device)
@@ -222,23 +228,6 @@ def _train(config: TrainConfig | None, data_root: Path, out_dir: Path, resume: b
             dist.destroy_process_group()
 
 
-def _check_resumable(checkpoint: dict[str, Any], config: TrainConfig, fingerprint: str,
-                     out_dir: Path, data_root: Path) -> None:
-    recorded_config = checkpoint["config"]
-    # A field added since the checkpoint was written counts at its default (older runs
-    # resume); a config that no longer reads is compared as it was written.
-    with contextlib.suppress(ValueError, TypeError):
-        recorded_config = to_dict(from_dict(TrainConfig, recorded_config))
-    difference = config_difference(recorded_config, to_dict(config))
-    if difference is not None:
-        raise TrainError(f"{out_dir / LAST}: the checkpoint is of another config: {difference}")
-    recorded = checkpoint.get("dataset", {}).get("fingerprint")
-    if recorded != fingerprint:
-        raise TrainError(f"{out_dir / LAST}: the checkpoint was trained on another dataset "
-                         f"({checkpoint.get('dataset', {}).get('root')}, fingerprint "
-                         f"{str(recorded)[:12]}), {data_root} has {fingerprint[:12]}")
-
-
 def _build_network(config: TrainConfig, sources: DataSources, resuming: bool) -> nn.Module:
     """The network from the seed (every process alike) and ``init_from`` (not when resuming),
     after checking that it builds (``network.pretrained`` loads) and feeds every loss term."""
@@ -253,7 +242,7 @@ def _build_network(config: TrainConfig, sources: DataSources, resuming: bool) ->
     if config.validation.metric == "mask_iou" and model.mask_head is None:
         raise TrainError("validation.metric: 'mask_iou' needs a mask head (network.mask_head)")
     if config.init_from is not None and not resuming:  # the start may be gone by now
-        _load_initial_weights(model, config.init_from)
+        load_initial_weights(model, config.init_from)
     try:
         model.freeze_except(config.optim.trainable)
     except ValueError as error:
@@ -268,18 +257,6 @@ def _build_network(config: TrainConfig, sources: DataSources, resuming: bool) ->
     except LossTermError as error:
         raise TrainError(str(error)) from None
     return model.train()
-
-
-def _load_initial_weights(model: SuperquadricNet, path: Path) -> None:
-    """``init_from``: the file's weights into ``model``; layers the file lacks stay as built."""
-    try:
-        state = read_checkpoint(path)["model"]
-    except (OSError, ValueError, RuntimeError, KeyError) as error:
-        raise TrainError(f"init_from: {path}: cannot read weights ({error})") from None
-    try:
-        load_weights(model, state, f"init_from: {path}", partial=True)
-    except ValueError as error:
-        raise TrainError(str(error)) from None
 
 
 def _open_data(run: TrainRun, sources: DataSources, created: bool) -> TrainingData:
@@ -329,6 +306,7 @@ class _Loop:
             set_rng_state(ranks[world.rank] if ranks and len(ranks) == world.size else rng)
         else:
             torch.manual_seed(seed_of(cfg.seed, STREAMS["torch"], world.rank))
+        self.validation_due = checkpoint is not None and self._validation_skipped(run.start_step)
         self.renderer = reprojection_renderer(cfg, data.dataset_camera, run.device, world.size)
         self.val_renderer = (SilhouetteRenderer(data.camera, spp=cfg.validation.spp)
                              if data.val_images is not None and world.main else None)
@@ -336,7 +314,9 @@ class _Loop:
         if world.main:
             if checkpoint is None:
                 atomic_write_json(run.out_dir / CONFIG_FILE, to_dict(cfg))
-            self.log = RunLog(run.out_dir, run.start_step if checkpoint is not None else None)
+            # A val.csv row of a due validation is one a killed resume wrote: it runs again.
+            self.log = RunLog(run.out_dir, run.start_step if checkpoint is not None else None,
+                              val_upto=run.start_step - 1 if self.validation_due else None)
         self.git = git_commit()
         self.k_matrix = data.camera.matrix(device=run.device)
         self.prefetcher: BatchPrefetcher | None = None
@@ -386,6 +366,12 @@ class _Loop:
         stop_at = None if run.max_seconds is None else time.perf_counter() + run.max_seconds
         interrupt = StepInterrupt(world, out_dir / LAST)  # Ctrl-C, SIGTERM: saved at a step
         try:
+            if self.validation_due:
+                self._validate(start_step, result)
+                self.save(LAST, start_step)  # which now records that validation
+                barrier(world)
+                if interrupt.stop:  # held during the validation: stop before the next step
+                    raise KeyboardInterrupt
             for step in range(start_step, end_step):
                 with interrupt.step():
                     row, seconds = self._step(step)
@@ -418,15 +404,15 @@ class _Loop:
                 if out_of_time:
                     break
                 if interrupt.stop:
+                    if self.best is None:
+                        self._best_is_last(result)
                     raise KeyboardInterrupt
         finally:
             self._close(bar, interrupt)
-        if self.best is None and result.steps > start_step:
-            # No validation has run (stopped before the first, validation off, or an empty val
-            # split): best.pt is the latest state, a copy of the last.pt of the loop's last step.
-            if world.main:
-                copy_checkpoint(out_dir / LAST, out_dir / BEST)
-            result.best_checkpoint = out_dir / BEST
+        # A best.pt missing beside last.pt (a run killed before copying it) is made here too.
+        if self.best is None and result.last_checkpoint is not None and (
+                result.steps > start_step or not (out_dir / BEST).is_file()):
+            self._best_is_last(result)
             result.notes.append(f"no validation has run yet: {BEST} holds the last state "
                                 f"(step {result.steps})")
         result.validation = self.history
@@ -458,6 +444,20 @@ class _Loop:
                "images_per_s": cfg.optim.batch_size / seconds}
         row.update({name: float(values[i + 1]) for i, name in enumerate(names)})
         return row, seconds
+
+    def _best_is_last(self, result: TrainResult) -> None:
+        """best.pt := last.pt (just written) while no validation has run (stopped before the
+        first, validation off, an empty val split): the latest state, copied, not re-saved."""
+        out_dir = self.run_state.out_dir
+        if self.run_state.world.main:
+            copy_checkpoint(out_dir / LAST, out_dir / BEST)
+        result.best_checkpoint = out_dir / BEST
+
+    def _validation_skipped(self, done: int) -> bool:
+        """Whether the checkpoint after ``done`` steps lacks the validation due there: an
+        interrupt saves the epoch's last step without it; nothing else does."""
+        return (done > 0 and done % self.steps_per_epoch == 0 and self._validates(done)
+                and all(int(entry["step"]) != done for entry in self.history))
 
     def _validates(self, done: int) -> bool:
         cfg = self.run_state.config.validation

@@ -1,4 +1,5 @@
-"""The run folder: its files, the checks before a run starts, and the checkpoints it writes.
+"""The run folder: its files, the checks before a run starts, the checkpoints it writes, and
+those it reads (``last.pt`` to resume, checked against the run; ``init_from``'s weights).
 
 A run folder holds ``config.json``, ``log.csv``, ``val.csv``, ``curves.png``, ``last.pt`` and
 ``best.pt`` (see :mod:`sq_mitsuba.training.train`). Checkpoints (written atomically by
@@ -9,21 +10,26 @@ distributed run), the data-order state, the dataset fingerprint and the git comm
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
 import subprocess
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 from torch import Tensor, nn
 
-from sq_mitsuba.config import flatten_dict, to_dict
+from sq_mitsuba.config import flatten_dict, from_dict, to_dict
 from sq_mitsuba.io import atomic_path, check_output_folder
-from sq_mitsuba.model.checkpoint import read_checkpoint, write_checkpoint
+from sq_mitsuba.model.checkpoint import load_weights, read_checkpoint, write_checkpoint
 from sq_mitsuba.training.cache import manifest_hash
+from sq_mitsuba.training.config import TrainConfig
 from sq_mitsuba.training.distributed import unwrap
 from sq_mitsuba.training.run.state import TrainError, TrainRun
+
+if TYPE_CHECKING:
+    from sq_mitsuba.model.network import SuperquadricNet
 
 __all__ = [
     "BEST",
@@ -35,8 +41,10 @@ __all__ = [
     "VAL_FILE",
     "check_cache_dir",
     "check_out_dir",
+    "check_resumable",
     "config_difference",
     "git_commit",
+    "load_initial_weights",
     "not_finite_error",
     "read_resumed",
     "remove_stale_temporaries",
@@ -139,6 +147,37 @@ def config_difference(old: dict[str, Any], new: dict[str, Any]) -> str | None:
             return (f"{key} = {a.get(key, '<absent>')!r} in the checkpoint, "
                     f"{b.get(key, '<absent>')!r} in this run")
     return None
+
+
+def check_resumable(checkpoint: dict[str, Any], config: TrainConfig, fingerprint: str,
+                    out_dir: Path, data_root: Path) -> None:
+    """Refuse (one line) to resume ``checkpoint`` (``out_dir``'s last.pt) with another config
+    (naming the first differing field) or on another dataset than it was trained on."""
+    recorded_config = checkpoint["config"]
+    # A field added since the checkpoint was written counts at its default (older runs
+    # resume); a config that no longer reads is compared as it was written.
+    with contextlib.suppress(ValueError, TypeError):
+        recorded_config = to_dict(from_dict(TrainConfig, recorded_config))
+    difference = config_difference(recorded_config, to_dict(config))
+    if difference is not None:
+        raise TrainError(f"{out_dir / LAST}: the checkpoint is of another config: {difference}")
+    recorded = checkpoint.get("dataset", {}).get("fingerprint")
+    if recorded != fingerprint:
+        raise TrainError(f"{out_dir / LAST}: the checkpoint was trained on another dataset "
+                         f"({checkpoint.get('dataset', {}).get('root')}, fingerprint "
+                         f"{str(recorded)[:12]}), {data_root} has {fingerprint[:12]}")
+
+
+def load_initial_weights(model: SuperquadricNet, path: Path) -> None:
+    """``init_from``: the file's weights into ``model``; layers the file lacks stay as built."""
+    try:
+        state = read_checkpoint(path)["model"]
+    except (OSError, ValueError, RuntimeError, KeyError) as error:
+        raise TrainError(f"init_from: {path}: cannot read weights ({error})") from None
+    try:
+        load_weights(model, state, f"init_from: {path}", partial=True)
+    except ValueError as error:
+        raise TrainError(str(error)) from None
 
 
 def copy_checkpoint(source: Path, target: Path) -> None:

@@ -4,7 +4,8 @@ An interrupt that lands inside a step (between the backward pass and the optimis
 inside a render) leaves the network half updated: the run could only stop without saving,
 losing every step since the last checkpoint (up to an epoch). Held for the step's few
 seconds, it lets the loop write ``last.pt`` at a step boundary, from which ``--resume``
-repeats the uninterrupted run exactly, and then stop.
+repeats the uninterrupted run exactly, and then stop (a validation that step was due is left
+to ``--resume``, which runs it first).
 
 Held, for the whole loop: SIGINT (Ctrl-C) and SIGTERM (``kill``, ``timeout``, a scheduler
 such as SLURM at the end of a job's time, which waits some seconds before killing; torchrun,

@@ -33,11 +33,13 @@ class RunLog:
         out_dir: the run folder.
         resume_step: the step a resumed run continues from (later rows are dropped); None for
             a new run.
+        val_upto: keep val.csv's rows up to this step instead (None: ``resume_step``); a
+            resumed run that first runs the validation of ``resume_step`` drops its row.
         terms: the loss-term columns (default: every registered term, in registry order).
     """
 
     def __init__(self, out_dir: Path, resume_step: int | None, tensorboard: bool = True,
-                 terms: Sequence[str] | None = None) -> None:
+                 terms: Sequence[str] | None = None, val_upto: int | None = None) -> None:
         self.terms = tuple(LOSS_TERMS) if terms is None else tuple(terms)
         self.out_dir = out_dir
         self.log_path, self.val_path = out_dir / LOG_FILE, out_dir / VAL_FILE
@@ -48,7 +50,8 @@ class RunLog:
         self.val_rows: list[dict[str, float]] = []
         if resume_step is not None:
             self.rows = self._read(self.log_path, resume_step)
-            self.val_rows = self._read(self.val_path, resume_step)
+            self.val_rows = self._read(self.val_path,
+                                       resume_step if val_upto is None else val_upto)
         self._rewrite(self.log_path, self.log_fields, self.rows)
         self._rewrite(self.val_path, self.val_fields, self.val_rows)
         self._log = open(self.log_path, "a", newline="", encoding="utf-8")
