@@ -45,6 +45,15 @@ def _umask() -> int:
     return current
 
 
+def staging_folder(prefix: str, dir: str | Path) -> Path:
+    """``tempfile.mkdtemp(prefix=prefix, dir=dir)`` with the permissions ``mkdir`` gives
+    (0o777, umask applied): mkdtemp makes 0700 folders, and one renamed into place as a
+    run's output would shut out other users (a web server showing a demo page)."""
+    path = Path(tempfile.mkdtemp(prefix=prefix, dir=dir))
+    os.chmod(path, 0o777 & ~_umask())
+    return path
+
+
 def atomic_write_bytes(path: str | Path, data: bytes) -> None:
     """Write ``data`` to ``path`` atomically (fsynced before the rename)."""
     with atomic_path(path) as tmp:

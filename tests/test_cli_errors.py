@@ -231,3 +231,30 @@ def test_a_process_prints_pythons_traceback_with_the_flag(tmp_path):
     assert loud.returncode == 1
     assert loud.stderr.startswith("Traceback (most recent call last):")
     assert loud.stderr.strip().splitlines()[-1].startswith("FileNotFoundError: ")
+
+
+@pytest.mark.parametrize("buffering", [1, -1])  # line-buffered (as PYTHONUNBUFFERED), blocks
+def test_a_closed_stdout_keeps_a_finished_runs_output(buffering, tmp_path, monkeypatch,
+                                                      no_env_traceback):
+    """``sq-mitsuba ... | true``: the summary cannot be shown, but the run is done; its files
+    stay and it exits 0 (a BrokenPipeError used to count as a failure and delete them)."""
+    def finished(args):
+        args.out.mkdir(parents=True, exist_ok=True)
+        print("a line while working")
+        (args.out / "report.md").write_text("done")
+        print("wrote 1 file")
+        return 0
+
+    read, write = os.pipe()
+    os.close(read)  # the reader has gone
+    stdout = open(write, "w", buffering=buffering)
+    monkeypatch.setattr(sys, "stdout", stdout)
+    monkeypatch.setattr(importlib.import_module("sq_mitsuba.cli.report"), "_run", finished)
+    try:
+        assert main(["report", str(tmp_path), "--out", str(tmp_path / "out")]) == 0
+        print("after the run")  # silenced for good: no error at exit either
+        stdout.flush()
+    finally:
+        monkeypatch.undo()
+        stdout.close()
+    assert (tmp_path / "out" / "report.md").read_text() == "done"

@@ -179,6 +179,12 @@ def test_bad_masks_are_refused_naming_the_file(fit_inputs, tmp_path, capsys):
     _refused(capsys, ["fit", "--masks", str(masks[0]), str(small), *poses], out,
              str(masks[0]), "48 x 48", str(small), "48 x 40")
 
+    # Two masks of one stem would be fitted at one label's pose.
+    twin = work / "img000000.png"
+    twin.write_bytes(masks[1].read_bytes())
+    _refused(capsys, ["fit", "--masks", str(masks[0]), str(twin), *poses], out,
+             f"masks {masks[0]} and {twin}: one file stem 'img000000'")
+
     corrupt = work / "img000000.png"
     corrupt.write_bytes(masks[0].read_bytes()[:-40])  # cut inside the image data
     err = _refused(capsys, ["fit", "--masks", str(corrupt), *poses], out, str(corrupt),

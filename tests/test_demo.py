@@ -447,3 +447,19 @@ def test_a_running_demos_temporary_folder_is_left_alone(tmp_path):
         path.mkdir()
     assert remove_stale_staging(out) == [stale]
     assert not stale.exists() and live.is_dir() and other.is_dir()
+
+
+def test_folders_built_aside_and_renamed_get_the_usual_permissions(demo, tmp_path):
+    """demo_output and a generated model's models/ are built in a mkdtemp folder (0700) and
+    renamed into place: they get mkdir's permissions, so other users can read them."""
+    from sq_mitsuba.data.library import GenerateOptions, generate_library
+
+    umask = os.umask(0)
+    os.umask(umask)
+    usual = 0o777 & ~umask
+    out, _ = demo
+    assert out.stat().st_mode & 0o777 == usual
+    library = tmp_path / "lib"
+    generate_library(GenerateOptions(out=library, count=1, seed=7, points=200), progress=False)
+    (models,) = library.glob("*/models")
+    assert models.stat().st_mode & 0o777 == usual

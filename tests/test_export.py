@@ -87,6 +87,11 @@ def test_export_refuses_bad_input_before_writing(eval_checkpoint, tmp_path, caps
     assert error_line(capsys).endswith("--start-share: only with --start (the share of the "
                                        "start's weights)")
     assert not out.exists()
+    assert main(["export", "--checkpoint", str(eval_checkpoint), "--baseline-images", "3",
+                 "--out", str(out)]) == 2  # no --data: there is no baseline to size
+    assert error_line(capsys).endswith("--baseline-images: only with --data (the baseline's "
+                                       "training images)")
+    assert not out.exists()
 
 
 @pytest.mark.skipif(not SHIPPED_MODEL.is_file(), reason="no shipped model in this checkout")

@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -514,3 +516,49 @@ def test_the_overlay_blends_as_the_formula_says():
     got = overlay_image(image, layers, outline)
     assert got.dtype == np.uint8 and got.shape == (20, 30, 3)
     assert np.abs(got.astype(int) - expected).max() <= 1
+
+
+def test_a_second_pass_into_one_folder_leaves_nothing_of_the_first(eval_checkpoint, inputs,
+                                                                   tmp_path):
+    """Frames of an earlier pass that this one lacks, and a single image's assembly of one of
+    its stems, are of another assembly than sequence.assembly.json: removed. Files of single
+    images of other stems stay."""
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for name in ("a", "b", "c"):
+        shutil.copy(inputs / "grey.png", frames / f"{name}.png")
+    out = tmp_path / "out"
+
+    def sequence(*names: str) -> None:
+        assert main(["predict", *(str(frames / f"{n}.png") for n in names), "--sequence",
+                     "--fit", "steps=2", "--checkpoint", str(eval_checkpoint), "--out",
+                     str(out), "--quiet"]) == 0
+
+    sequence("a", "b", "c")
+    assert (out / "c.pose.json").is_file() and (out / "c.overlay.png").is_file()
+    (out / "a.glb").write_text("a single image's assembly")
+    (out / "z.pose.json").write_text(json.dumps({"image": "z.png"}))  # a single image's
+    (out / "z.glb").write_text("z's assembly")
+    sequence("a", "b")
+    names = {p.name for p in out.iterdir() if not p.name.startswith(".")}
+    assert names == {"sequence.assembly.json", "sequence.glb", "sequence.png", "colmap",
+                     "a.pose.json", "a.overlay.png", "b.pose.json", "b.overlay.png",
+                     "z.pose.json", "z.glb"}, names
+    assert json.loads((out / "a.pose.json").read_text())["sequence"]["frames"] == 2
+
+
+def test_the_summary_averages_refine_times_over_the_refined_images(monkeypatch, tmp_path,
+                                                                    capsys):
+    """An image without a target is not refined: its zero times are not averaged in."""
+    from sq_mitsuba.apps import predict as predict_app
+    from sq_mitsuba.apps.predict import PredictRecord
+
+    records = [PredictRecord(Path("a.png"), [], 2.0, refine_ms=3000.0, search_ms=1000.0,
+                             mask_source="file", iou_before=0.5, iou_after=0.6),
+               PredictRecord(Path("b.png"), [], 2.0, target=False, target_score=0.1)]
+    monkeypatch.setattr(predict_app, "predict_images", lambda *args, **kwargs: records)
+    assert main(["predict", "a.png", "b.png", "--refine", "--out", str(tmp_path / "o"),
+                 "--quiet"]) == 0
+    summary = capsys.readouterr().out.splitlines()[-1]
+    assert ("search 1000 ms, search + refinement 3000 ms per refined image; 1 without a "
+            "target") in summary, summary

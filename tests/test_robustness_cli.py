@@ -308,3 +308,20 @@ def test_models_preview_refuses_a_suffix_it_cannot_write(name, one_model_library
     line = error_line(capsys)
     assert line.startswith(f"sq-mitsuba models: error: --out: '{out}' has "), line
     assert ".png, .jpg" in line and not out.exists()
+
+
+@pytest.mark.parametrize("extra", [["--repeats", "3"], ["--warmup", "1"], ["--threads", "2"],
+                                   ["--device", "cpu"], ["--batch", "4"], ["--step-only"]])
+def test_bench_curves_refuses_the_options_it_does_not_use(extra, capsys, monkeypatch):
+    """run_curves takes none of the timing suites' options: refused, as the other suites
+    refuse the curves' options, before any training."""
+    import sq_mitsuba.bench.curves as curves
+
+    def started(*args, **kwargs):
+        raise AssertionError("the curves started")
+
+    monkeypatch.setattr(curves, "run_curves", started)
+    assert main(["bench", "curves", *extra, "--data", "d", "--minutes", "1",
+                 "--out", "o"]) == EXIT_ERROR
+    assert error_line(capsys) == (f"sq-mitsuba bench: error: {extra[0]}: not used by the "
+                                  "curves suite")

@@ -54,7 +54,6 @@ from __future__ import annotations
 import math
 import os
 import shutil
-import tempfile
 import time
 import warnings
 from dataclasses import dataclass, field, replace
@@ -265,6 +264,7 @@ def run_demo(options: DemoOptions | None = None, out_dir: str | Path = "demo_out
     """
     from sq_mitsuba.evaluation.split import check_predictor
     from sq_mitsuba.inference.loading import load_model
+    from sq_mitsuba.io import staging_folder
 
     started = time.perf_counter()
     options = options or DemoOptions()
@@ -281,8 +281,8 @@ def run_demo(options: DemoOptions | None = None, out_dir: str | Path = "demo_out
         check_predictor(predictor)
     out_dir.absolute().parent.mkdir(parents=True, exist_ok=True)
     remove_stale_staging(out_dir)
-    staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.new.{os.getpid()}.",
-                                    dir=out_dir.absolute().parent))
+    staging = staging_folder(f".{out_dir.name}.new.{os.getpid()}.",
+                             out_dir.absolute().parent)
     try:
         result = _build(options, staging, predictor, training_config, progress, started)
         _swap(staging, out_dir)

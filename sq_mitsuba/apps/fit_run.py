@@ -123,6 +123,14 @@ def run_fit(masks: Sequence[str | Path], poses: str | Path, out: str | Path,
         check_not_folder(path, "mask")
         if not path.is_file():
             raise FileNotFoundError(f"mask {path}: no such file")
+    # Poses are matched to masks by stem: two masks of one stem would get one pose.
+    first: dict[str, Path] = {}
+    for path in mask_paths:
+        if path.stem in first:
+            raise ValueError(f"masks {first[path.stem]} and {path}: one file stem "
+                             f"{path.stem!r}, and poses are matched by stem; give each mask "
+                             "its own name")
+        first[path.stem] = path
     quaternions, translations = read_label_poses(poses, mask_paths)
     images = read_masks(mask_paths)
     height, width = images.shape[1:]

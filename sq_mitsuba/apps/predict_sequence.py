@@ -19,6 +19,13 @@ assembly and translations scaled; the pictures are the same).
 
 Every image (and mask, where given: one per frame, the frame's size, target bright) is read
 and checked before the work: one size for all, at least two, no name twice.
+
+A folder holds one pass: once this pass's files are written, an earlier pass's frames there
+(a ``pose.json`` with a ``"sequence"`` entry and its overlay), a single image's files of a
+frame's stem (``.assembly.json``, ``.obj``, ``.glb``) and, when this pass writes no
+``colmap/``, the earlier one's are removed (:func:`_remove_earlier_pass`): their poses are of
+an assembly ``sequence.assembly.json`` no longer holds. Single images' files of other stems
+stay, as ``sq-mitsuba predict`` leaves them.
 """
 
 from __future__ import annotations
@@ -36,6 +43,38 @@ import numpy as np
 import torch
 
 __all__ = ["SequenceRecord", "predict_sequence_files"]
+
+
+def _remove_earlier_pass(out: Path, stems: set[str], colmap_written: bool) -> None:
+    """Delete what an earlier run left in ``out`` that contradicts this pass (see the module
+    docstring); files it cannot read as an earlier pass's are left alone."""
+    import json
+
+    from sq_mitsuba.apps.colmap_model import COLMAP_FILES
+    from sq_mitsuba.apps.predict import OUTPUT_SUFFIXES
+
+    for pose in out.glob("*.pose.json"):
+        stem = pose.name.removesuffix(".pose.json")
+        if stem in stems or not pose.is_file():
+            continue
+        try:
+            earlier = json.loads(pose.read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            continue
+        if isinstance(earlier, dict) and "sequence" in earlier:
+            pose.unlink(missing_ok=True)
+            (out / f"{stem}.overlay.png").unlink(missing_ok=True)
+    for stem in stems:  # a single image's assembly beside this pass's pose of that stem
+        for suffix in OUTPUT_SUFFIXES:
+            if suffix not in (".pose.json", ".overlay.png"):
+                (out / f"{stem}{suffix}").unlink(missing_ok=True)
+    if not colmap_written and (out / "colmap").is_dir():
+        for name in COLMAP_FILES:
+            (out / "colmap" / name).unlink(missing_ok=True)
+        try:
+            (out / "colmap").rmdir()
+        except OSError:  # holds the user's own files: they stay
+            pass
 
 #: The views of ``sequence.png``: (label, (pitch, yaw) in degrees of the body -> camera
 #: rotation), the assembly at the centre; "seen from +x" puts the camera on the body's +x axis.
@@ -245,4 +284,5 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
         record.files += write_colmap_model(out / "colmap", image_camera,
                                            [p.name for p in paths], result.quaternion.double(),
                                            metric.translation.double())
+    _remove_earlier_pass(out, {path.stem for path in paths}, colmap_written=not spaced)
     return record

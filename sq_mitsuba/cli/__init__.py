@@ -8,6 +8,10 @@ come from a library config class import that class's module (often torch) when t
 built, so :func:`main` builds only the parser of the command it runs; for the command list of
 ``sq-mitsuba --help`` a module may define ``HELP`` (its one-line help) and import its config
 classes inside ``register``, and is then listed without being registered.
+
+A closed stdout (``sq-mitsuba predict ... | head -1``) is not a failed run: what the command
+prints after the reader has gone is dropped, the run finishes and keeps its files, and the exit
+code is that of the run (0 on success), not an error (see :func:`_closed_stdout_is_quiet`).
 """
 
 from __future__ import annotations
@@ -15,6 +19,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import importlib
+import io
 import os
 import pkgutil
 import signal
@@ -23,7 +28,7 @@ import threading
 import traceback
 import warnings
 from collections.abc import Iterator, Sequence
-from typing import NoReturn
+from typing import Any, NoReturn
 
 from sq_mitsuba.outputs import interrupted
 from sq_mitsuba.render.backend import BackendError, check_variant_environment
@@ -97,7 +102,9 @@ def build_parser(command: str | None = None, listing: bool = False) -> argparse.
         epilog=(f"Errors are one line: bad input exits with code {EXIT_ERROR}, an internal "
                 f"error (a bug) with code {EXIT_INTERNAL}. To see the full traceback instead, "
                 f"give {TRACEBACK_FLAG} before the command (sq-mitsuba {TRACEBACK_FLAG} fit "
-                f"...) or set the environment variable {TRACEBACK_ENV}=1."),
+                f"...) or set the environment variable {TRACEBACK_ENV}=1. A closed standard "
+                "output (a pipe whose reader has gone) is not an error: the run finishes, "
+                "keeps its files and exits as it would have."),
     )
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}",
                         help="print the package version and exit")
@@ -174,9 +181,62 @@ def _terminate_as_interrupt() -> Iterator[None]:
         signal.signal(signal.SIGTERM, previous)
 
 
+class _QuietWhenClosed:
+    """A stdout whose reader may go away: a ``BrokenPipeError`` on writing or flushing points
+    the file descriptor at ``/dev/null`` (so nothing, not even Python's flush at exit, raises
+    again) and the text is dropped. Everything else is the wrapped stream's."""
+
+    def __init__(self, stream: Any) -> None:
+        self._stream = stream
+
+    def _silence(self) -> None:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        try:
+            os.dup2(devnull, self._stream.fileno())
+        finally:
+            os.close(devnull)
+
+    def write(self, text: str) -> int:
+        try:
+            return self._stream.write(text)
+        except BrokenPipeError:
+            self._silence()
+            return len(text)
+
+    def flush(self) -> None:
+        try:
+            self._stream.flush()
+        except BrokenPipeError:
+            self._silence()
+            with contextlib.suppress(OSError):  # what was buffered now goes to /dev/null
+                self._stream.flush()
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._stream, name)
+
+
+@contextlib.contextmanager
+def _closed_stdout_is_quiet() -> Iterator[None]:
+    """Run the block with a closed stdout dropping what is printed instead of raising: the
+    error used to end a finished run inside :func:`~sq_mitsuba.outputs.all_or_nothing`,
+    which then deleted its files; a block-buffered stdout failed at exit instead (code 120).
+    The block's prints are flushed before it ends, so a failure to show them surfaces here."""
+    stream = sys.stdout
+    if isinstance(stream, _QuietWhenClosed) or not isinstance(stream, io.TextIOBase):
+        yield  # wrapped already (main within main), no stdout, or an unusual one: as it is
+        return
+    sys.stdout = _QuietWhenClosed(stream)
+    try:
+        yield
+    finally:
+        with contextlib.suppress(OSError, ValueError):  # ValueError: closed by the command
+            sys.stdout.flush()
+        sys.stdout = stream
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run ``sq-mitsuba argv``; returns the exit code (see the module docstring for errors)."""
-    with _terminate_as_interrupt():
+    with _terminate_as_interrupt(), _closed_stdout_is_quiet():
         return _main(argv)
 
 

@@ -68,6 +68,9 @@ def _run(args: argparse.Namespace) -> int:
 def _curves(args: argparse.Namespace) -> int:
     from sq_mitsuba.bench.curves import run_curves
 
+    for name, flag in FLAGS.items():  # run_curves takes none of them: refused, not ignored
+        if hasattr(args, name):  # the options are absent from args unless given
+            raise CLIError(f"{flag}: not used by the curves suite")
     for flag, value in (("--data", args.data), ("--minutes", args.minutes),
                         ("--out", args.out)):
         if value is None:

@@ -69,6 +69,8 @@ def _run(args: argparse.Namespace) -> int:
 
     if hasattr(args, "start_share") and args.start is None:
         raise CLIError("--start-share: only with --start (the share of the start's weights)")
+    if hasattr(args, "baseline_images") and args.data is None:  # it would be ignored
+        raise CLIError("--baseline-images: only with --data (the baseline's training images)")
     if getattr(args, "keep_existence", False) and args.start is None:
         raise CLIError("--keep-existence: only with --start (without one the existence column "
                        "is the average already)")

@@ -154,9 +154,11 @@ def _run(args: argparse.Namespace) -> int:
         print(record.describe())
     network = sum(r.network_ms for r in records) / len(records)
     line = f"{len(records)} image(s): network {network:.1f} ms per image"
-    if options.refine:
-        line += (f", search {sum(r.search_ms for r in records) / len(records):.0f} ms, search + "
-                 f"refinement {sum(r.refine_ms for r in records) / len(records):.0f} ms")
+    refined = [r for r in records if r.iou_before is not None]  # not the no-target images
+    if options.refine and refined:
+        line += (f", search {sum(r.search_ms for r in refined) / len(refined):.0f} ms, search + "
+                 f"refinement {sum(r.refine_ms for r in refined) / len(refined):.0f} ms per "
+                 f"refined image")
     absent = sum(not r.target for r in records)
     if absent:
         line += f"; {absent} without a target"

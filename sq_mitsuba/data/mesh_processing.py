@@ -28,7 +28,6 @@ from __future__ import annotations
 import contextlib
 import os
 import shutil
-import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -708,7 +707,8 @@ def write_model(out_root: str | Path, name: str, model: ProcessedModel,
     model_dir.mkdir(parents=True, exist_ok=True)
     final = model_dir / MODEL_FOLDER
     recover_cut_write(model_dir)  # an earlier write cut between its renames
-    tmp = Path(tempfile.mkdtemp(prefix=".models.", dir=model_dir))
+    from sq_mitsuba.io import staging_folder  # mkdtemp with mkdir's permissions
+    tmp = staging_folder(".models.", model_dir)
     old = None
     try:
         obj, glb, samples_file, card_file = MODEL_FILES
