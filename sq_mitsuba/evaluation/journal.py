@@ -46,6 +46,7 @@ from torch import Tensor
 from sq_mitsuba.config import flatten_dict
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.io import atomic_write_bytes, atomic_write_json, read_json
+from sq_mitsuba.version import __version__
 
 __all__ = ["JOURNAL", "RUN_FILE", "BatchRecord", "EvalJournal", "checkpoint_identity",
            "data_identity", "finished_evaluation", "identity_difference", "journal_difference",
@@ -131,13 +132,12 @@ def run_identity(predictor: Any, data_root: str | Path, options: dict[str, Any],
     (``renderer``: the CPU's and the GPU's differ in the last digits, so batches of the two
     would not make the uninterrupted run's figures), the package ``version`` (the scoring
     code) and, where given, the split's evaluated ``indices``."""
-    import sq_mitsuba
     from sq_mitsuba.render.backend import mitsuba
 
     identity = {"format": FORMAT, "options": options,
                 "checkpoint": checkpoint_identity(predictor),
                 "data": data_identity(data_root, options.get("split")),
-                "renderer": mitsuba().variant(), "version": sq_mitsuba.__version__}
+                "renderer": mitsuba().variant(), "version": __version__}
     if indices is not None:
         identity["images"] = [int(i) for i in indices]
     return identity
