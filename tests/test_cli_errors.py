@@ -258,3 +258,30 @@ def test_a_closed_stdout_keeps_a_finished_runs_output(buffering, tmp_path, monke
         monkeypatch.undo()
         stdout.close()
     assert (tmp_path / "out" / "report.md").read_text() == "done"
+
+
+def test_a_stdout_that_cannot_be_written_for_another_reason_is_an_error(tmp_path, monkeypatch,
+                                                                         capsys,
+                                                                         no_env_traceback):
+    """Only a closed pipe is silenced: a stdout whose last flush fails otherwise (a full disk
+    behind ``> out.txt``) ends in one line and exit code 2, not in a silent success."""
+    import errno
+    import io
+
+    class FullDisk(io.StringIO):
+        def flush(self) -> None:
+            if self.getvalue():
+                raise OSError(errno.ENOSPC, "No space left on device")
+
+    def finished(args):
+        args.out.mkdir(parents=True, exist_ok=True)
+        print("wrote 1 file")
+        return 0
+
+    monkeypatch.setattr(importlib.import_module("sq_mitsuba.cli.report"), "_run", finished)
+    monkeypatch.setattr(sys, "stdout", FullDisk())
+    with pytest.raises(SystemExit) as stopped:
+        main(["report", str(tmp_path), "--out", str(tmp_path / "out")])
+    monkeypatch.undo()
+    assert stopped.value.code == 2
+    assert capsys.readouterr().err.strip().endswith("No space left on device")

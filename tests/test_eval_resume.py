@@ -222,13 +222,21 @@ def test_the_identity_names_an_option_only_the_journal_has_and_hashes_what_decid
     data = Path(shutil.copytree(train_dataset, tmp_path / "data"))
     before = run_identity(predictor, data, {})
     assert identity_difference(before, run_identity(predictor, data, {})) is None
-    model = (data / "splits.csv").read_text().splitlines()[-1].split(",")[0]
+    model, split = (data / "splits.csv").read_text().splitlines()[-1].split(",")
     samples = data / model / "models" / "samples.npz"
+    other = {"train": "test", "test": "val"}[split]  # an evaluation that never reads it
+    scored = {name: run_identity(predictor, data, {"split": name}) for name in ("val", other)}
     with np.load(samples) as archive:
         arrays = dict(archive)
     arrays["surface_points"] = arrays["surface_points"][::2]
     np.savez(samples, **arrays)
     assert "samples.npz" in identity_difference(before, run_identity(predictor, data, {}))
+    # Only the evaluations that score this model see it ("val": the training models' images).
+    assert identity_difference(scored[other], run_identity(predictor, data,
+                                                           {"split": other})) is None
+    if split == "train":
+        assert "samples.npz" in identity_difference(
+            scored["val"], run_identity(predictor, data, {"split": "val"}))
     before = run_identity(predictor, data, {})
     (data / model / "models" / "symmetries.json").write_text("{}")
     assert "symmetries.json" in identity_difference(before, run_identity(predictor, data, {}))

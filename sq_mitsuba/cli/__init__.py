@@ -229,8 +229,15 @@ def _closed_stdout_is_quiet() -> Iterator[None]:
     try:
         yield
     finally:
-        with contextlib.suppress(OSError, ValueError):  # ValueError: closed by the command
-            sys.stdout.flush()
+        try:
+            sys.stdout.flush()  # a closed pipe is silenced by the wrapper itself
+        except ValueError:  # closed by the command
+            pass
+        except OSError as error:  # another failure to write (a full disk): not to be lost
+            sys.stdout = stream
+            print(f"sq-mitsuba: error: the standard output could not be written: {error}",
+                  file=sys.stderr)
+            raise SystemExit(EXIT_ERROR) from None
         sys.stdout = stream
 
 

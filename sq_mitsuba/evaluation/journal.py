@@ -57,7 +57,7 @@ JOURNAL = ".eval_partial"
 #: The run's identity inside :data:`JOURNAL`.
 RUN_FILE = "run.json"
 #: Version of the journal's files: a journal of another version is refused as another run's.
-FORMAT = 1
+FORMAT = 2  # 2: the scored models' files and the package version joined the identity
 
 
 # ------------------------------------------------------------------------------- identity
