@@ -19,8 +19,8 @@ from torch import Tensor
 
 from sq_mitsuba.geometry.camera import Camera
 
-__all__ = ["DEFAULT_MIN_TARGET", "camera_for", "check_min_target", "neighbour_correlation",
-           "prepare_images", "resize_images", "target_scores"]
+__all__ = ["DEFAULT_MIN_TARGET", "array_to_tensor", "camera_for", "check_min_target",
+           "neighbour_correlation", "prepare_images", "resize_images", "target_scores"]
 
 # Relative aspect-ratio difference below which a camera of another size is rescaled.
 _ASPECT_TOLERANCE = 1e-3
@@ -35,6 +35,15 @@ _BRIGHT_RAMP = (0.05, 0.15)  # 99.5th percentile of the grey image
 _BORDER_RAMP = (0.05, 0.01)  # share of the image border the segmented mask covers
 # Largest side at which neighbour_correlation measures an image (larger: block means).
 _CORRELATION_SIDE = 512
+
+
+def array_to_tensor(array: np.ndarray) -> Tensor:
+    """``torch.from_numpy`` of a user's array, through a native, C-ordered copy only where
+    torch cannot read it as it is: another byte order, a strided or flipped view
+    (``images[..., ::-1]``), or (without a warning) read-only memory."""
+    if not array.dtype.isnative or not array.flags.writeable or not array.flags.c_contiguous:
+        array = np.array(array, dtype=array.dtype.newbyteorder("="), order="C")
+    return torch.from_numpy(array)
 
 
 def prepare_images(images: Tensor | np.ndarray, channels: int = 1) -> Tensor:
@@ -59,12 +68,7 @@ def prepare_images(images: Tensor | np.ndarray, channels: int = 1) -> Tensor:
     if isinstance(images, np.ndarray):
         if images.dtype != np.uint8 and images.dtype.kind != "f":
             raise ValueError(f"images: expected uint8 or floating point, got {images.dtype}")
-        if not images.dtype.isnative or not images.flags.writeable \
-                or not images.flags.c_contiguous:
-            # torch reads neither another byte order, negative strides (a flipped view) nor
-            # (without a warning) read-only memory: a native, C-ordered copy.
-            images = np.array(images, dtype=images.dtype.newbyteorder("="), order="C")
-        images = torch.from_numpy(images)
+        images = array_to_tensor(images)
     if not isinstance(images, Tensor):
         raise ValueError(f"images: expected a torch.Tensor or numpy array, "
                          f"got {type(images).__name__}")

@@ -38,6 +38,7 @@ from sq_mitsuba.config import validate
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.rotation import matrix_to_quaternion
+from sq_mitsuba.inference.images import array_to_tensor
 from sq_mitsuba.inference.prediction import Fit, MaskChoice, Prediction
 from sq_mitsuba.inference.refine import RefineOptions
 from sq_mitsuba.inference.search import SEARCH_REFINEMENT, SearchOptions, search_and_refine
@@ -113,10 +114,7 @@ def masks_to_fit(start: Prediction, images: Tensor, mask: MaskChoice
     if isinstance(mask, np.ndarray):
         if mask.dtype.kind not in "biuf":
             raise ValueError(f"mask: expected a bool or float array, got dtype {mask.dtype}")
-        # A copy where needed: torch reads neither strided, another byte order nor (without
-        # a warning) read-only memory.
-        mask = torch.from_numpy(np.array(mask, dtype=mask.dtype.newbyteorder("="), order="C",
-                                         copy=True if not mask.flags.writeable else None))
+        mask = array_to_tensor(mask)
     if not isinstance(mask, Tensor):
         raise ValueError(f"mask: expected 'network', 'segmentation', a tensor or an array, got "
                          f"{type(mask).__name__}")

@@ -78,6 +78,7 @@ from sq_mitsuba.inference.body_frame import (
     canonical_frame,
     reframed,
 )
+from sq_mitsuba.inference.images import array_to_tensor, prepare_images
 from sq_mitsuba.inference.lost_frames import place_lost_frames
 from sq_mitsuba.inference.prediction import Prediction, SequencePrediction
 from sq_mitsuba.inference.refine import RefineOptions, refine_pose_and_shape
@@ -315,9 +316,8 @@ def _check_relative(relative_rotations: Any, count: int) -> Tensor | None:
     if relative_rotations is None:
         return None
     if isinstance(relative_rotations, np.ndarray):
-        relative_rotations = torch.from_numpy(np.ascontiguousarray(relative_rotations))
-    if not isinstance(relative_rotations, Tensor) or tuple(relative_rotations.shape) != (
-            count, 3, 3):
+        relative_rotations = array_to_tensor(relative_rotations)
+    if not isinstance(relative_rotations, Tensor) or relative_rotations.shape != (count, 3, 3):
         shape = tuple(getattr(relative_rotations, "shape", ()))
         raise ValueError(f"relative_rotations: expected ({count}, 3, 3) (one per frame), got "
                          f"{shape or type(relative_rotations).__name__}")
@@ -357,7 +357,6 @@ def predict_sequence(predictor: Any, images: Tensor | np.ndarray, camera: Camera
         ValueError: one line naming ``images`` (fewer than two frames, sizes, NaN), ``ordered``,
             ``relative_rotations`` or the frame whose mask holds no target.
     """
-    from sq_mitsuba.inference.images import prepare_images
     from sq_mitsuba.progress import progress_bar
 
     started = time.perf_counter()
