@@ -111,3 +111,12 @@ def test_best_rotation_beats_every_other_rotation_reflections_included() -> None
         score = float(torch.trace(best.T @ matrix))
         assert score >= float(torch.einsum("kij,ij->k", sample, matrix).max()) - 1e-9
     assert reflected >= 5  # both kinds of matrix were tried
+
+
+@pytest.mark.parametrize("matrix", [torch.zeros(2, 3, 3), torch.zeros(3, 2),
+                                    torch.full((3, 3), float("nan"))])
+def test_best_rotation_names_a_bad_matrix(matrix) -> None:
+    from sq_mitsuba.geometry.manhattan_frame import best_rotation
+
+    with pytest.raises(ValueError, match=r"^matrix"):
+        best_rotation(matrix)

@@ -391,6 +391,18 @@ def test_given_relative_rotations_choose_every_frames_half_turn(split):
     assert float(rotation_error_deg(relative @ mean_rotation(carried), expected).max()) < 6.0
 
 
+def test_half_turns_by_given_rotations_name_bad_input():
+    from sq_mitsuba.inference.body_frame import align_half_turns_by_relative
+
+    rotations = random_rotations(4, torch.Generator().manual_seed(2), torch.float64)
+    for args, name in (((rotations, rotations[:3], 0), "relative"),
+                       ((rotations, 2 * rotations, 0), "relative"),
+                       ((-rotations, rotations, 0), "rotation"),
+                       ((rotations, rotations, 4), "reference")):
+        with pytest.raises(ValueError, match=f"^{name}"):
+            align_half_turns_by_relative(*args)
+
+
 def test_along_motion_replaces_a_misread_frame_and_keeps_the_reference_frame():
     """Readings of a constant-rate pass, each in its own half turn, frame 3 misread: the
     agreeing frames keep their readings (in the reference's body frame), frame 3 takes the

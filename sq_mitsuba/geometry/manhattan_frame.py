@@ -29,6 +29,9 @@ def best_rotation(matrix: Tensor) -> Tensor:
     Kabsch): U diag(1, 1, det(U V^T)) V^T from M's SVD. Where U V^T is a reflection the best
     rotation flips the weakest singular direction; flipping an axis of U V^T is proper too,
     but scores lower."""
+    check_tensor("matrix", matrix, (3, 3))
+    if matrix.dim() != 2:
+        raise ValueError(f"matrix: expected (3, 3), got {tuple(matrix.shape)}")
     u, _, vt = torch.linalg.svd(matrix)
     sign = torch.sign(torch.linalg.det(u @ vt))
     return u @ torch.diag(torch.stack([sign.new_ones(()), sign.new_ones(()), sign])) @ vt

@@ -22,6 +22,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from sq_mitsuba.checks import check_rotations
 from sq_mitsuba.geometry.assembly import FIELDS, Assembly
 from sq_mitsuba.geometry.pass_motion import constant_rate_motion
 from sq_mitsuba.geometry.rotation import rotation_angle
@@ -159,7 +160,17 @@ def align_half_turns_by_relative(rotation: Tensor, relative: Tensor, reference: 
             reading of the body frame.
         relative: (N, 3, 3) the given ``Q_j``.
         reference: index of the reading whose body frame is kept.
+
+    Raises:
+        ValueError: naming ``rotation``, ``relative`` or ``reference``.
     """
+    check_rotations("rotation", rotation)
+    check_rotations("relative", relative)
+    if rotation.dim() != 3 or relative.shape != rotation.shape:
+        raise ValueError(f"relative: expected {tuple(rotation.shape)} (one per reading, "
+                         f"(N, 3, 3)), got {tuple(relative.shape)}")
+    if not 0 <= reference < len(rotation):
+        raise ValueError(f"reference: expected an index below {len(rotation)}, got {reference}")
     carried = relative.double().transpose(-1, -2)[:, None] @ with_half_turns(rotation.double())
     # (anchor, frame, half turn): the angle of each frame's turned estimate from the anchor's.
     angles = rotation_angle(carried[:, None, :], carried[None, :, 0:1])
