@@ -26,7 +26,8 @@ import trimesh
 from output_checks import assert_picture, error_line, one_torch_thread  # noqa: F401 (autouse fixture)
 from PIL import Image
 
-from sq_mitsuba.apps.demo import DEMO_CATALOGUE_SEED, MANIFEST, SIZES, DemoSize
+from sq_mitsuba.apps.demo_files import MANIFEST
+from sq_mitsuba.apps.demo_options import DEMO_CATALOGUE_SEED, SIZES, DemoSize
 from sq_mitsuba.cli import main
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.rotation import quaternion_to_matrix
@@ -235,7 +236,7 @@ def test_the_demos_pass_is_scored_from_the_files_it_shows(demo):
     sequence.assembly.json drawn again here at each frame's pose.json gives per_frame.csv's
     2D IoU against the rendered mask (a plain pixel count), and the poses' quaternions its
     frame-to-frame rotation errors against the labels'."""
-    from sq_mitsuba.apps.demo import DemoOptions
+    from sq_mitsuba.apps.demo_options import DemoOptions
     from sq_mitsuba.geometry.camera import Camera
     from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer, render_assembly
 
@@ -388,6 +389,21 @@ def test_bad_input_is_one_line_and_writes_nothing(case, eval_checkpoint, tmp_pat
                  *arguments, "--quiet"]) == 2
     assert expected in error_line(capsys)
     assert _listing(tmp_path) == before
+
+
+@pytest.mark.parametrize("arguments, expected", [
+    # The preset by --set alone is taken (the run then stops at the foreign folder).
+    (["--set", "size=tiny"], "not a demo's output"),
+    (["--set", "size=huge"], "--set size: expected one of"),
+    (["--size", "tiny", "--set", "size=small"], "size is also given by --size; give it once"),
+])
+def test_the_size_by_set_counts_as_given_once(arguments, expected, tmp_path, capsys):
+    foreign = tmp_path / "foreign"
+    foreign.mkdir()
+    (foreign / "keep.txt").write_text("mine")
+    assert main(["demo", "--out", str(foreign), *arguments, "--quiet"]) == 2
+    assert expected in error_line(capsys)
+    assert _listing(tmp_path) == ["foreign", "foreign/keep.txt"]
 
 
 def test_without_a_shipped_model_the_demo_says_so_before_any_work(tmp_path, monkeypatch,

@@ -24,7 +24,7 @@ from sq_mitsuba.data.library import (
     import_names,
 )
 from sq_mitsuba.data.mesh_io import read_obj, read_tagged_obj
-from sq_mitsuba.data.mesh_processing import fusion_memory_bytes, max_fusion_resolution
+from sq_mitsuba.data.solids import fusion_memory_bytes, max_fusion_resolution
 from sq_mitsuba.data.spacecraft import catalogue
 from sq_mitsuba.data.spe3r.layout import load_model, read_splits
 from sq_mitsuba.machine import available_memory

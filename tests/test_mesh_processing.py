@@ -12,13 +12,15 @@ from sq_mitsuba.data.library import import_model
 from sq_mitsuba.data.mesh_io import TaggedMesh, read_obj
 from sq_mitsuba.data.mesh_processing import (
     MeshError,
-    center_of_mass,
-    connected_pieces,
-    edge_manifold,
     invariant_checks,
     load_mesh,
     process_mesh,
     sample_model,
+)
+from sq_mitsuba.data.solids import (
+    center_of_mass,
+    connected_pieces,
+    edge_manifold,
     sample_triangles,
     signed_volume,
 )

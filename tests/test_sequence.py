@@ -592,6 +592,9 @@ def test_predict_sequence_cli_writes_one_assembly_and_a_pose_per_frame(eval_chec
         pose = json.loads((out / f"{image.stem}.pose.json").read_text())
         assert pose["sequence"]["frame"] == k and pose["sequence"]["frames"] == 3
         assert pose["sequence"]["steps"] == 5  # --fit reached the joint fit
+        # The single image's target fields: the network's score, above the threshold.
+        assert pose["target"] is True and pose["min_target"] == pytest.approx(0.92)
+        assert pose["min_target"] <= pose["target_score"] <= 1.0
         assert len(pose["q_vbs2tango"]) == 4 and pose["r_Vo2To_vbs"][2] > 0
         assert (out / f"{image.stem}.overlay.png").stat().st_size > 0
     # The COLMAP model holds the same poses (at the target's size) and the frames' camera.

@@ -9,7 +9,8 @@ import pytest
 import trimesh
 from scipy.spatial import cKDTree
 
-from sq_mitsuba.data.mesh_processing import normalise, process_mesh, sample_triangles
+from sq_mitsuba.data.mesh_processing import normalise, process_mesh
+from sq_mitsuba.data.solids import sample_triangles
 from sq_mitsuba.data.spacecraft import (
     ARCHETYPES,
     DEFAULT_CATALOGUE_COUNT,

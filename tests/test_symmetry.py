@@ -11,7 +11,8 @@ import torch
 import trimesh
 
 from sq_mitsuba.data.mesh_io import TaggedMesh, obj_text
-from sq_mitsuba.data.mesh_processing import process_mesh, sample_triangles
+from sq_mitsuba.data.mesh_processing import process_mesh
+from sq_mitsuba.data.solids import sample_triangles
 from sq_mitsuba.data.spacecraft import generate_spacecraft
 from sq_mitsuba.data.symmetry import (
     DEFAULT_THRESHOLD,

@@ -1253,3 +1253,46 @@ def test_a_repository_config_named_from_another_folder_says_where_it_is(tmp_path
         load_train_config("train/configs/tiny.toml")
     with pytest.raises(ConfigError, match=r"^train/configs/none\.toml: no such file$"):
         load_train_config("train/configs/none.toml")
+
+
+@pytest.mark.parametrize("rerun_validation", [False, True])
+def test_a_resumed_log_keeps_every_step_once_in_the_csv_and_tensorboard(rerun_validation,
+                                                                       tmp_path):
+    """A run logged to step 6, resumed from its checkpoint of step 4: log.csv and val.csv keep
+    steps up to 4 and take 5 and 6 again; TensorBoard (where installed) shows the same steps,
+    each once. Where the validation of step 4 runs again, its new value replaces the old."""
+    import csv
+
+    from sq_mitsuba.training.run.log import RunLog
+
+    def train_row(step: int, loss: float) -> dict[str, float]:
+        return {"step": step, "epoch": 0, "lr": 0.1, "loss": loss}
+
+    log = RunLog(tmp_path, None, terms=())
+    for step in range(1, 7):
+        log.step(train_row(step, float(step)))
+        if step in (2, 4):
+            log.validation({"step": step, "epoch": 0, "chamfer_l1": step / 10})
+    log.close()
+    log = RunLog(tmp_path, 4, terms=(), val_upto=2 if rerun_validation else None)
+    if rerun_validation:
+        log.validation({"step": 4, "epoch": 0, "chamfer_l1": 0.41})
+    for step in (5, 6):
+        log.step(train_row(step, step + 0.5))
+    log.close()
+    expected_train = [(1, 1.0), (2, 2.0), (3, 3.0), (4, 4.0), (5, 5.5), (6, 6.5)]
+    expected_val = [(2, 0.2), (4, 0.41 if rerun_validation else 0.4)]
+    with open(tmp_path / "log.csv", newline="") as handle:
+        assert [(int(r["step"]), float(r["loss"])) for r in csv.DictReader(handle)] == \
+            expected_train
+    with open(tmp_path / "val.csv", newline="") as handle:
+        assert [(int(r["step"]), float(r["chamfer_l1"])) for r in csv.DictReader(handle)] == \
+            expected_val
+    pytest.importorskip("tensorboard")  # not a dependency: the CSV part runs everywhere
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    events = EventAccumulator(str(tmp_path / "tensorboard"))
+    events.Reload()
+    assert [(e.step, e.value) for e in events.Scalars("train/loss")] == expected_train
+    assert [(e.step, pytest.approx(e.value)) for e in events.Scalars("val/chamfer_l1")] == \
+        expected_val

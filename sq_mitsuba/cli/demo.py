@@ -60,14 +60,15 @@ FLAGS = {"seed": "--seed", "train": "--train"}
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     # Imported here: it imports torch, which `sq-mitsuba --help` does without (see HELP).
-    from sq_mitsuba.apps.demo import SIZES, DemoOptions, describe_sizes
+    from sq_mitsuba.apps.demo_options import SIZES, DemoOptions, describe_sizes
     from sq_mitsuba.config import field_docs
 
     parser = subparsers.add_parser(
         "demo", help=HELP, description=DESCRIPTION.format(sizes=describe_sizes()),
         formatter_class=argparse.RawDescriptionHelpFormatter)
     # A plain string, checked in _run: argparse's own choices error takes two lines.
-    parser.add_argument("--size", default=DemoOptions().size, metavar="{" + ",".join(SIZES) + "}",
+    # Default None: only a --size typed counts as given (--set size=... is then the one).
+    parser.add_argument("--size", default=None, metavar="{" + ",".join(SIZES) + "}",
                         help=" ".join(field_docs(DemoOptions)["size"].split()).rstrip(".")
                         + f" (default: {DemoOptions().size})")
     parser.add_argument("--out", type=output_path, default=Path("demo_output"), metavar="DIR",
@@ -81,11 +82,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from sq_mitsuba.apps.demo import SIZES, DemoOptions, run_demo
+    from sq_mitsuba.apps.demo import run_demo
+    from sq_mitsuba.apps.demo_options import SIZES, DemoOptions
 
-    if args.size not in SIZES:
+    if args.size is not None and args.size not in SIZES:
         raise CLIError(f"--size: expected one of {', '.join(SIZES)}, got {args.size!r}")
-    options = config_from_args(DemoOptions, args, size=args.size)
+    extra = {} if args.size is None else {"size": args.size}
+    options = config_from_args(DemoOptions, args, **extra)
     result = run_demo(options, args.out, args.checkpoint, progress=not args.quiet)
     print(result.describe())
     return 0

@@ -63,21 +63,23 @@ import numpy as np
 
 from sq_mitsuba.config import bounds, in_range, validate
 from sq_mitsuba.data.mesh_processing import (
-    FUSION_RESOLUTION,
     MESH_SUFFIXES,
-    MIN_FUSION_RESOLUTION,
     MODEL_FILES,
     MODEL_FOLDER,
-    MeshError,
-    connected_pieces,
-    fusion_memory_bytes,
     load_mesh,
-    max_fusion_resolution,
     model_card,
     process_mesh,
     recover_cut_write,
     sample_model,
     write_model,
+)
+from sq_mitsuba.data.solids import (
+    FUSION_RESOLUTION,
+    MIN_FUSION_RESOLUTION,
+    MeshError,
+    connected_pieces,
+    fusion_memory_bytes,
+    max_fusion_resolution,
 )
 from sq_mitsuba.data.spacecraft import THIN_FRACTION, CatalogueEntry, generate_spacecraft
 from sq_mitsuba.data.spacecraft.generator import (
@@ -138,7 +140,7 @@ class GenerateOptions:
 def check_fusion_resolution(resolution: int) -> None:
     """``ValueError`` naming ``resolution`` when depth fusion at it would not fit in memory.
 
-    The bound is :func:`~sq_mitsuba.data.mesh_processing.fusion_memory_bytes` against
+    The bound is :func:`~sq_mitsuba.data.solids.fusion_memory_bytes` against
     :func:`~sq_mitsuba.machine.available_memory`, so an absurd value fails at once instead of
     being killed for memory after minutes.
     """

@@ -174,7 +174,7 @@ def _source_of(model_dir: Path) -> Path:
 
 def _surface_points_of(model_dir: Path) -> np.ndarray:
     """The model's surface points: samples.npz, or 100,000 samples of its mesh."""
-    from sq_mitsuba.data.mesh_processing import sample_triangles
+    from sq_mitsuba.data.solids import sample_triangles
     from sq_mitsuba.data.spe3r.layout import MODELS, SAMPLES_FILE, load_model, read_samples
 
     samples_path = model_dir / MODELS / SAMPLES_FILE

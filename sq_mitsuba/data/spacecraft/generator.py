@@ -21,7 +21,7 @@ import manifold3d
 import numpy as np
 
 from sq_mitsuba.data.mesh_io import TaggedMesh
-from sq_mitsuba.data.mesh_processing import union_solids
+from sq_mitsuba.data.solids import union_solids
 from sq_mitsuba.data.spacecraft.archetypes import ARCHETYPES, Recipe
 from sq_mitsuba.data.spacecraft.families import FAMILIES, HELD_OUT_FAMILIES
 from sq_mitsuba.data.spacecraft.part_graph import PART_GRAPH, part_graph

@@ -178,9 +178,11 @@ class SilhouetteRenderer:
         camera: intrinsics and resolution of the images.
         spp: samples per pixel of the forward (primal) image; coverage is exact up to Monte
             Carlo noise of about ``sqrt(c (1 - c) / spp)`` in pixels on an edge.
-        sppp: silhouette samples per pixel of the backward pass (gradient noise about 19 / 9 /
-            4.5 % at 64 x 64 for 1 / 4 / 16); default :func:`default_sppp` (4 at 64 x 64,
-            1 at 128 x 128: a fixed budget of silhouette samples per image).
+        sppp: silhouette samples per pixel of the backward pass (gradient noise against a
+            sppp-256 reference, ``bench render``'s measure: about 26 / 17 / 13 % at 64 x 64
+            for 1 / 4 / 16, 14 / 10 / 8 % at 128 x 128; the forward's spp sets the floor);
+            default :func:`default_sppp` (4 at 64 x 64, 1 at 128 x 128: a fixed budget of
+            silhouette samples per image).
         seed: base seed; every call draws fresh samples, reproducibly from this seed.
         workers: processes that :meth:`render_target_loss` spreads its items over (see
             :mod:`sq_mitsuba.render.silhouette.workers`); 0 renders in this process. Started

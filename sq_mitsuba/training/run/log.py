@@ -61,8 +61,18 @@ class RunLog:
             with contextlib.suppress(ImportError):
                 from torch.utils.tensorboard import SummaryWriter
 
-                self.tensorboard = SummaryWriter(str(out_dir / "tensorboard"),
-                                                 purge_step=resume_step)
+                # TensorBoard hides the events from purge_step on. The steps kept above are
+                # the CSV's (up to resume_step), so it purges from the first step that runs
+                # again; where the validation of resume_step runs again too, from
+                # resume_step, and that step's training row is written again.
+                rerun_validation = (resume_step is not None and val_upto is not None
+                                    and val_upto < resume_step)
+                purge = None if resume_step is None else resume_step + 1 - rerun_validation
+                self.tensorboard = SummaryWriter(str(out_dir / "tensorboard"), purge_step=purge)
+                if rerun_validation:
+                    for row in self.rows:
+                        if int(row["step"]) == resume_step:
+                            self._train_scalars(row)
 
     @staticmethod
     def _read(path: Path, upto: int) -> list[dict[str, float]]:
@@ -97,10 +107,13 @@ class RunLog:
         self._writer.writerow({k: format_number(row.get(k)) for k in self.log_fields})
         self._log.flush()
         if self.tensorboard is not None:
-            step = int(row["step"])
-            for key in ("loss", "lr", "images_per_s", *self.terms):
-                if row.get(key) is not None:
-                    self.tensorboard.add_scalar(f"train/{key}", row[key], step)
+            self._train_scalars(row)
+
+    def _train_scalars(self, row: dict[str, float]) -> None:
+        step = int(row["step"])
+        for key in ("loss", "lr", "images_per_s", *self.terms):
+            if row.get(key) is not None:
+                self.tensorboard.add_scalar(f"train/{key}", row[key], step)
 
     def validation(self, row: dict[str, float]) -> None:
         self.val_rows.append(row)
