@@ -46,6 +46,19 @@ def no_suite_runs(monkeypatch):
 SUITES = [*bench.available_suites(), "all", "curves"]
 
 
+def test_every_suite_of_bench_all_has_a_run_and_is_named_once():
+    """`bench all` runs every suite `available_suites` lists: each must be a module with a
+    `run(options)` (curves, a training run, is not one and is left out); `bench --help`
+    lists each name once."""
+    import importlib
+
+    for name in bench.available_suites():
+        assert callable(getattr(importlib.import_module(f"sq_mitsuba.bench.{name}"), "run",
+                                None)), name
+    assert "curves" not in bench.available_suites()
+    assert len(SUITES) == len(set(SUITES))
+
+
 @pytest.mark.parametrize("suite", SUITES)
 def test_bench_refuses_a_device_that_is_not_one(suite, capsys, no_suite_runs):
     assert main(["bench", suite, "--device", "tpu"]) == EXIT_ERROR

@@ -222,8 +222,16 @@ def machine_description(options: BenchOptions) -> str:
 _suite_running: str | None = None
 
 
+#: Modules of this package that are not timing suites: ``curves`` trains configs for equal
+#: wall time (``sq-mitsuba bench curves``, :func:`sq_mitsuba.bench.curves.run_curves`), so
+#: ``bench all`` leaves it out.
+NOT_TIMING_SUITES = frozenset({"curves"})
+
+
 def available_suites() -> list[str]:
-    return sorted(m.name for m in pkgutil.iter_modules(__path__) if not m.name.startswith("_"))
+    """The timing suites, each a module of this package with a ``run(options)``."""
+    return sorted(m.name for m in pkgutil.iter_modules(__path__)
+                  if not m.name.startswith("_") and m.name not in NOT_TIMING_SUITES)
 
 
 def run_suite(name: str, options: BenchOptions) -> Report:

@@ -41,8 +41,8 @@ complete; it must be absent, empty or an earlier demo.
 Sizes (--size):
 {sizes}
 The default size takes about a minute and a half on 2 CPU cores with the shipped model
-(measured: 61-93 s wall on AVX2-only VMs; on the slower runs 34-39 s predicting, refining
-and scoring 15 images and 16-19 s the pass of 8 frames), a few minutes with a network that
+(measured: 61-93 s wall on AVX2-only VMs, of which 5-19 s the pass of 8 frames; on the
+slower runs 34-39 s predicting, refining and scoring 15 images), a few minutes with a network that
 takes 128 px or more.
 
 --train first trains a small model from scratch (a small library of the training catalogue,

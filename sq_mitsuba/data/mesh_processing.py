@@ -1,6 +1,6 @@
 """The paper's model processing (Section V.A): watertight, unit size, centred, aligned.
 
-Pipeline: :func:`load_mesh` (OBJ, PLY, STL, GLB/GLTF, scenes flattened) ->
+Pipeline: :func:`load_mesh` (OBJ, PLY, STL, GLB/GLTF, OFF; scenes flattened) ->
 :func:`sq_mitsuba.data.solids.make_solid` (a closed, outward-oriented surface without internal
 structures, by an exact boolean union or by depth fusion) -> :func:`normalise` (unit size,
 centre of mass at the origin, extents sorted) -> :func:`sample_model` (surface points with

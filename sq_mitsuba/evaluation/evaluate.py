@@ -127,7 +127,7 @@ class EvalOptions:
     augmentation, no rendering: the rotation from the copies' distributions multiplied, the
     shape, image position and depth their means; a rotation-distribution head only). The
     shipped model on the held-out families with 8: body-frame Chamfer-L1 0.140 -> 0.137,
-    folded rotation 52.6 -> 45.6 deg median, 2D IoU 0.465 -> 0.466, for 8 x the network's
+    folded rotation 52.4 -> 45.9 deg median, 2D IoU 0.464 -> 0.467, for 8 x the network's
     time (eval/MODEL_CARD.md)."""
     refine: bool = False
     "Also search the pose and refine it at test time (rows search, refined, refined_gt)."

@@ -186,9 +186,9 @@ class Predictor:
                 default) where this network and camera can turn, else 1.
             refine: fit the pose to each image's mask: the turned copies' reading, the global
                 pose search by render and compare and the refinement through Mitsuba
-                silhouettes (:mod:`~sq_mitsuba.inference.pipeline`; about half a second per
-                image on 2 CPU cores). The result's ``network`` is the network's own reading,
-                its ``fit`` what was fitted.
+                silhouettes (:mod:`~sq_mitsuba.inference.pipeline`; about 0.7 s an image
+                on 2 CPU cores, ``bench eval``). The result's ``network`` is the network's own
+                reading, its ``fit`` what was fitted.
             mask: with ``refine``, the mask to fit: "network" (default: the mask head, or the
                 segmentation for a network without one), "segmentation" (the threshold
                 segmentation of the image), or masks (B, H, W) bool or float in [0, 1].

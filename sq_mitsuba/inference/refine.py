@@ -115,9 +115,10 @@ class RefineOptions:
 #: The refinement for an outline rather than a shape: every shape parameter follows the mask
 #: too, for up to 100 steps (the rest as the search's default,
 #: :data:`~sq_mitsuba.inference.search.SEARCH_REFINEMENT`). On the model card's
-#: held-out families (the shipped model, 120 images) the 2D IoU after the search and this
-#: refinement is 0.728 where the default's is 0.580 (0.736 on all 400), and the body-frame
-#: Chamfer-L1 0.172 where the default's is 0.141 (the constant baseline's 0.152): an outline
+#: held-out families (all 400 images) the 2D IoU after the search and this refinement is
+#: 0.737 with the shipped model where the default's is 0.594, and the body-frame Chamfer-L1
+#: 0.164 (the constant baseline's 0.151; W-25-S2, shipped before it, on 120 of the images:
+#: 0.172 where the default's is 0.141): an outline
 #: seen under a rotation tens of degrees off is carried into the shape. For overlays and
 #: tracking, not for the 3D shape.
 OUTLINE_REFINEMENT = RefineOptions(steps=100, patience=30, shape="free", depth="fixed",

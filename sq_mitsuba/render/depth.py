@@ -7,7 +7,7 @@ Two uses:
   generic directions vote, so a ray grazing an edge cannot flip a label on its own.
 * :func:`orthographic_depth_maps` renders first-hit depth maps along many view directions,
   the input of the depth-map fusion that makes imported meshes watertight
-  (:mod:`sq_mitsuba.data.mesh_processing`).
+  (:mod:`sq_mitsuba.data.solids`).
 
 Convention: ``numpy`` arrays in, ``numpy`` arrays out, float32 on the Mitsuba side.
 """
