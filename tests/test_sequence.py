@@ -803,8 +803,9 @@ def test_each_side_of_the_picture_is_seen_from_the_axis_it_names():
 
 def test_predict_sequence_cli_fits_the_masks_it_is_given(eval_checkpoint, train_dataset,
                                                          tmp_path, capsys):
-    """--mask with --sequence: one mask per frame, fitted in place of the network's; an empty
-    one, a wrong count or size is one line before any work."""
+    """--mask with --sequence: one mask per frame, fitted in place of the network's, also for
+    a frame the network sees no target in (its pose.json then says target false, as predict's
+    would); an empty one, a wrong count or size is one line before any work."""
     import json
 
     import numpy as np
@@ -817,13 +818,19 @@ def test_predict_sequence_cli_fits_the_masks_it_is_given(eval_checkpoint, train_
                  if line.endswith(",test"))
     images = sorted((train_dataset / model / "images").glob("*.png"))[:2]
     masks = [train_dataset / model / "masks" / image.name for image in images]
-    base = ["predict", *map(str, images), "--sequence", "--checkpoint", str(eval_checkpoint),
-            "--quiet", "--fit", "steps=2"]
+    black = tmp_path / "black.png"
+    Image.new("L", Image.open(images[1]).size).save(black)
     out = tmp_path / "pass"
-    assert main([*base, "--mask", *map(str, masks), "--out", str(out)]) == 0
-    for image in images:
+    assert main(["predict", str(images[0]), str(black), "--sequence", "--checkpoint",
+                 str(eval_checkpoint), "--quiet", "--fit", "steps=2", "--mask",
+                 *map(str, masks), "--out", str(out)]) == 0
+    for image, seen in ((images[0], True), (black, False)):
         pose = json.loads((out / f"{image.stem}.pose.json").read_text())
         assert pose["sequence"]["mask_source"] == "file"
+        assert pose["target"] is seen and pose["min_target"] == pytest.approx(0.92)
+        assert (pose["target_score"] >= pose["min_target"]) is seen
+    base = ["predict", *map(str, images), "--sequence", "--checkpoint", str(eval_checkpoint),
+            "--quiet", "--fit", "steps=2"]
     empty = tmp_path / "empty.png"
     Image.fromarray(np.zeros((64, 64), np.uint8)).save(empty)
     small = tmp_path / "small.png"

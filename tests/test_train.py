@@ -1255,12 +1255,12 @@ def test_a_repository_config_named_from_another_folder_says_where_it_is(tmp_path
         load_train_config("train/configs/none.toml")
 
 
-@pytest.mark.parametrize("rerun_validation", [False, True])
-def test_a_resumed_log_keeps_every_step_once_in_the_csv_and_tensorboard(rerun_validation,
-                                                                       tmp_path):
-    """A run logged to step 6, resumed from its checkpoint of step 4: log.csv and val.csv keep
-    steps up to 4 and take 5 and 6 again; TensorBoard (where installed) shows the same steps,
-    each once. Where the validation of step 4 runs again, its new value replaces the old."""
+@pytest.mark.parametrize("val_upto", [None, 3, 2])
+def test_a_resumed_log_keeps_every_step_once_in_the_csv_and_tensorboard(val_upto, tmp_path):
+    """A run logged to step 6 (validations at 2, 3 and 4), resumed from its checkpoint of step
+    4: log.csv keeps steps up to 4 and takes 5 and 6 again, val.csv keeps validations up to
+    ``val_upto`` (None: 4) and takes the one of step 4 again; TensorBoard (where installed)
+    shows the same steps, each once, the new value where a validation ran again."""
     import csv
 
     from sq_mitsuba.training.run.log import RunLog
@@ -1271,17 +1271,18 @@ def test_a_resumed_log_keeps_every_step_once_in_the_csv_and_tensorboard(rerun_va
     log = RunLog(tmp_path, None, terms=())
     for step in range(1, 7):
         log.step(train_row(step, float(step)))
-        if step in (2, 4):
+        if step in (2, 3, 4):
             log.validation({"step": step, "epoch": 0, "chamfer_l1": step / 10})
     log.close()
-    log = RunLog(tmp_path, 4, terms=(), val_upto=2 if rerun_validation else None)
-    if rerun_validation:
+    log = RunLog(tmp_path, 4, terms=(), val_upto=val_upto)
+    if val_upto is not None:
         log.validation({"step": 4, "epoch": 0, "chamfer_l1": 0.41})
     for step in (5, 6):
         log.step(train_row(step, step + 0.5))
     log.close()
     expected_train = [(1, 1.0), (2, 2.0), (3, 3.0), (4, 4.0), (5, 5.5), (6, 6.5)]
-    expected_val = [(2, 0.2), (4, 0.41 if rerun_validation else 0.4)]
+    expected_val = [(2, 0.2), (3, 0.3), (4, 0.4)] if val_upto is None else \
+        [(s, s / 10) for s in (2, 3) if s <= val_upto] + [(4, 0.41)]
     with open(tmp_path / "log.csv", newline="") as handle:
         assert [(int(r["step"]), float(r["loss"])) for r in csv.DictReader(handle)] == \
             expected_train

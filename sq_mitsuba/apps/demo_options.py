@@ -107,7 +107,7 @@ class DemoOptions:
 
 @dataclass
 class DemoResult:
-    """What :func:`run_demo` did.
+    """What :func:`~sq_mitsuba.apps.demo.run_demo` did.
 
     Attributes:
         out_dir: the output folder; page: its index.html; markdown: index.md.

@@ -6,8 +6,9 @@ Files written to the output folder (each atomically; the folder is all or nothin
 - ``sequence.assembly.json`` and ``sequence.glb``: the shared assembly in its body frame;
 - ``<image stem>.pose.json`` per frame: the frame's pose of that assembly, in the layout
   ``sq-mitsuba predict`` writes (``q_vbs2tango``, ``r_Vo2To_vbs``, convention, camera,
-  ``target`` (true: every frame is fitted), ``target_score``, ``min_target``), with the
-  frame's IoU after the joint fit and the half turn that carried its own reading;
+  ``target``, ``target_score``, ``min_target``: the network's call, as ``predict`` records
+  it; every frame is fitted all the same, one it sees no target in only with its mask given),
+  with the frame's IoU after the joint fit and the half turn that carried its own reading;
 - ``<image stem>.overlay.png`` per frame: the image with the frame's own searched silhouette
   (red), the shared assembly's at the frame's pose (green) and the mask's outline (yellow);
 - ``sequence.png``: the shared assembly from six sides (one colour per primitive);
@@ -259,14 +260,15 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
                                  result.rotation, result.translation, renderer, 3, shape)
     alone = overlay_silhouettes(Assembly(own.assembly.params.double()), own.rotation.double(),
                                 own.translation.double(), renderer, 3, shape)
-    scores = own.target_score
+    scores, threshold = own.target_score, float(predictor.min_target)
     for k, (path, picture) in enumerate(zip(paths, pictures, strict=True)):
-        # Every frame was fitted (a frame without a target is refused, or given its mask):
-        # "target" true, with the network's score as `predict` records it for one image.
+        # The target fields as `predict` records them (the network's call); every frame is
+        # fitted all the same: one it sees no target in is refused unless its mask is given.
         pose = {
             "image": str(path), "width": image_camera.width, "height": image_camera.height,
-            "target": True, "target_score": None if scores is None else float(scores[k]),
-            "min_target": float(predictor.min_target),
+            "target": True if scores is None else bool(float(scores[k]) >= threshold),
+            "target_score": None if scores is None else float(scores[k]),
+            "min_target": threshold,
             "q_vbs2tango": [float(v) for v in result.quaternion[k]],
             "r_Vo2To_vbs": [float(v) for v in metric.translation[k]],
             "convention": f"{POSE_CONVENTION}; the body frame of sequence.assembly.json",

@@ -61,18 +61,18 @@ class RunLog:
             with contextlib.suppress(ImportError):
                 from torch.utils.tensorboard import SummaryWriter
 
-                # TensorBoard hides the events from purge_step on. The steps kept above are
-                # the CSV's (up to resume_step), so it purges from the first step that runs
-                # again; where the validation of resume_step runs again too, from
-                # resume_step, and that step's training row is written again.
-                rerun_validation = (resume_step is not None and val_upto is not None
-                                    and val_upto < resume_step)
-                purge = None if resume_step is None else resume_step + 1 - rerun_validation
+                # TensorBoard hides every tag's events from purge_step on, so it purges from
+                # the first step either CSV drops (the training rows after resume_step, the
+                # validations after val_upto) and the training rows kept from there on are
+                # written again: it then shows what the CSVs hold.
+                purge = None
+                if resume_step is not None:
+                    purge = 1 + (resume_step if val_upto is None
+                                 else min(resume_step, val_upto))
                 self.tensorboard = SummaryWriter(str(out_dir / "tensorboard"), purge_step=purge)
-                if rerun_validation:
-                    for row in self.rows:
-                        if int(row["step"]) == resume_step:
-                            self._train_scalars(row)
+                for row in self.rows if purge is not None else ():
+                    if int(row["step"]) >= purge:
+                        self._train_scalars(row)
 
     @staticmethod
     def _read(path: Path, upto: int) -> list[dict[str, float]]:
