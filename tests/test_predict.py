@@ -467,7 +467,7 @@ def test_a_large_images_overlay_silhouette_is_rendered_smaller_and_lands_in_plac
     """An image wider than OVERLAY_MAX_SIDE has its overlay's silhouettes rendered at that
     size and resized back: where the full-size render puts them (the pixel-centre convention
     kept through Camera.rescaled and the resize), to within the edges' pixels."""
-    from sq_mitsuba.apps.predict import OVERLAY_MAX_SIDE, overlay_camera, resized_coverage
+    from sq_mitsuba.apps.overlay import OVERLAY_MAX_SIDE, overlay_camera, resized_coverage
     from sq_mitsuba.geometry.camera import Camera
     from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer, render_assembly
 

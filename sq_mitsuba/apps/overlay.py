@@ -1,11 +1,17 @@
 """The overlay ``predict`` and the demo draw: the image dimmed, each silhouette blended in its
-colour, the outline of the fitted mask on top."""
+colour, the outline of the fitted mask on top; the silhouettes rendered for it
+(:func:`overlay_silhouettes`, at most :data:`OVERLAY_MAX_SIDE` pixels a side)."""
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
-__all__ = ["MASK_COLOUR", "NETWORK_COLOUR", "REFINED_COLOUR", "overlay_image"]
+from sq_mitsuba.geometry.camera import Camera
+
+__all__ = ["MASK_COLOUR", "NETWORK_COLOUR", "OVERLAY_MAX_SIDE", "REFINED_COLOUR",
+           "overlay_camera", "overlay_image", "overlay_silhouettes", "resized_coverage"]
 
 #: Colours (RGB in [0, 1]) of the overlay: network silhouette, refined silhouette, mask edge.
 NETWORK_COLOUR = (1.0, 0.15, 0.1)
@@ -34,3 +40,44 @@ def overlay_image(image: np.ndarray, silhouettes: list[tuple[np.ndarray, tuple[f
     rgb *= 255
     rgb += 0.5
     return rgb.astype(np.uint8)
+
+
+#: Longest side (pixels) at which the overlay's silhouettes are rendered; a larger image's
+#: are rendered at this size and resized to it. The overlay is a picture: at 16 samples a
+#: pixel, a 4,000 px image's silhouettes took most of `predict`'s time and memory.
+OVERLAY_MAX_SIDE = 1024
+
+
+def overlay_camera(camera: Camera) -> Camera:
+    """The camera the overlay's silhouettes are rendered with: ``camera``, or for an image
+    whose longer side exceeds :data:`OVERLAY_MAX_SIDE` the same camera on that many pixels."""
+    side = max(camera.width, camera.height)
+    if side <= OVERLAY_MAX_SIDE:
+        return camera
+    scale = OVERLAY_MAX_SIDE / side
+    return camera.rescaled(max(1, round(camera.width * scale)),
+                           max(1, round(camera.height * scale)))
+
+
+def overlay_silhouettes(assembly: Any, rotation: Any, translation: Any, renderer: Any,
+                        level: int, shape: tuple[int, ...]) -> list[np.ndarray]:
+    """The coverages (H, W) = ``shape[:2]`` of B assemblies at their poses (rotation (B, 3, 3),
+    translation (B, 3)), rendered in one launch by ``renderer`` (its camera from
+    :func:`overlay_camera`) and each resized to the picture."""
+    import torch
+
+    from sq_mitsuba.render.silhouette.renderer import render_assembly
+
+    with torch.no_grad():
+        coverage = render_assembly(assembly, rotation, translation, renderer, level).numpy()
+    return [resized_coverage(item, shape[1], shape[0]) for item in coverage]
+
+
+def resized_coverage(coverage: np.ndarray, width: int, height: int) -> np.ndarray:
+    """A coverage (h, w) in [0, 1] resized bilinearly to (height, width), float32."""
+    from PIL import Image
+
+    if coverage.shape == (height, width):
+        return coverage.astype(np.float32, copy=False)
+    picture = Image.fromarray(np.ascontiguousarray(coverage, dtype=np.float32), "F")
+    return np.asarray(picture.resize((width, height), Image.BILINEAR))

@@ -82,7 +82,13 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 import torch
 
-from sq_mitsuba.apps.overlay import NETWORK_COLOUR, REFINED_COLOUR, overlay_image
+from sq_mitsuba.apps.overlay import (
+    NETWORK_COLOUR,
+    REFINED_COLOUR,
+    overlay_camera,
+    overlay_image,
+    overlay_silhouettes,
+)
 from sq_mitsuba.apps.padding import MAX_PADDING_GROWTH, Padding, padded_camera, padding_to_aspect
 from sq_mitsuba.config import in_range, validate
 from sq_mitsuba.inference.images import DEFAULT_MIN_TARGET
@@ -100,10 +106,6 @@ DEFAULT_TURNS = SearchOptions().turns
 
 #: Suffixes of the files written per image, in order.
 OUTPUT_SUFFIXES = (".assembly.json", ".obj", ".glb", ".pose.json", ".overlay.png")
-#: Longest side (pixels) at which the overlay's silhouettes are rendered; a larger image's
-#: are rendered at this size and resized to it. The overlay is a picture: at 16 samples a
-#: pixel, a 4,000 px image's silhouettes took most of `predict`'s time and memory.
-OVERLAY_MAX_SIDE = 1024
 #: pose.json's "convention": the pose's frames and units.
 POSE_CONVENTION = ("x_cam = R(q) x_body + r; OpenCV camera frame (x right, y down, z forward); "
                    "q = (w, x, y, z); metres for a target whose longest side is target_size "
@@ -536,39 +538,6 @@ def check_target_size(target_size: float | None) -> None:
     ``PredictOptions.target_size``'s bounds (metres)."""
     if target_size is not None:
         validate(PredictOptions(target_size=target_size))
-
-
-def overlay_camera(camera: Camera) -> Camera:
-    """The camera the overlay's silhouettes are rendered with: ``camera``, or for an image
-    whose longer side exceeds :data:`OVERLAY_MAX_SIDE` the same camera on that many pixels."""
-    side = max(camera.width, camera.height)
-    if side <= OVERLAY_MAX_SIDE:
-        return camera
-    scale = OVERLAY_MAX_SIDE / side
-    return camera.rescaled(max(1, round(camera.width * scale)),
-                           max(1, round(camera.height * scale)))
-
-
-def overlay_silhouettes(assembly: Any, rotation: Any, translation: Any, renderer: Any,
-                        level: int, shape: tuple[int, ...]) -> list[np.ndarray]:
-    """The coverages (H, W) = ``shape[:2]`` of B assemblies at their poses (rotation (B, 3, 3),
-    translation (B, 3)), rendered in one launch by ``renderer`` (its camera from
-    :func:`overlay_camera`) and each resized to the picture."""
-    from sq_mitsuba.render.silhouette.renderer import render_assembly
-
-    with torch.no_grad():
-        coverage = render_assembly(assembly, rotation, translation, renderer, level).numpy()
-    return [resized_coverage(item, shape[1], shape[0]) for item in coverage]
-
-
-def resized_coverage(coverage: np.ndarray, width: int, height: int) -> np.ndarray:
-    """A coverage (h, w) in [0, 1] resized bilinearly to (height, width), float32."""
-    from PIL import Image
-
-    if coverage.shape == (height, width):
-        return coverage.astype(np.float32, copy=False)
-    picture = Image.fromarray(np.ascontiguousarray(coverage, dtype=np.float32), "F")
-    return np.asarray(picture.resize((width, height), Image.BILINEAR))
 
 
 def _rotation_hypotheses(reading: Any) -> list[dict[str, Any]] | None:

@@ -162,15 +162,19 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
     from PIL import Image
 
     from sq_mitsuba.apps.colmap_model import COLMAP_FILES, write_colmap_model
-    from sq_mitsuba.apps.overlay import NETWORK_COLOUR, REFINED_COLOUR, overlay_image
+    from sq_mitsuba.apps.overlay import (
+        NETWORK_COLOUR,
+        REFINED_COLOUR,
+        overlay_camera,
+        overlay_image,
+        overlay_silhouettes,
+    )
     from sq_mitsuba.apps.padding import padding_to_aspect
     from sq_mitsuba.apps.predict import (
         POSE_CONVENTION,
         check_image_memory,
         check_target_size,
         check_unique_stems,
-        overlay_camera,
-        overlay_silhouettes,
     )
     from sq_mitsuba.data.masks import read_gray_image, read_mask
     from sq_mitsuba.geometry.assembly import Assembly
