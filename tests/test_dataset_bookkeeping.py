@@ -32,6 +32,7 @@ from sq_mitsuba.data.spe3r import (
     check_dataset,
     is_validation,
     render_dataset,
+    render_options,
 )
 from sq_mitsuba.data.spe3r import writer as spe3r_writer
 from sq_mitsuba.geometry.camera import Camera
@@ -431,14 +432,14 @@ def test_numeric_options_are_checked_before_any_work(reference, library, tmp_pat
 
 def test_resolution_is_bounded_by_memory():
     options = RenderOptions(resolution=4096)
-    need = spe3r_writer.estimate_render_memory(4096, 4096)
+    need = render_options.estimate_render_memory(4096, 4096)
     assert 2.5 * 2**30 < need < 3.5 * 2**30  # 0.75 GiB + 160 B x 16.8 Mpx
-    spe3r_writer.check_render_resources(options.dataset_camera(), options, memory=need)
+    render_options.check_render_resources(options.dataset_camera(), options, memory=need)
     with pytest.raises(DatasetError, match=r"^resolution: 4096 x 4096 px \(1 rendering "
                                           r"process\(es\), .*\) needs about 3\.25 GiB of memory, "
                                           r"more than the 3\.25 GiB this process may use"):
-        spe3r_writer.check_render_resources(options.dataset_camera(), options,
-                                            memory=need - 1)
+        render_options.check_render_resources(options.dataset_camera(), options,
+                                              memory=need - 1)
     assert RenderOptions(seed=2**32 - 1).seed == 2**32 - 1
 
 

@@ -42,7 +42,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     # Imported here: these import torch, which `sq-mitsuba --help` does without.
     from sq_mitsuba.data.spe3r.check import CheckOptions
     from sq_mitsuba.data.spe3r.preview import PreviewOptions
-    from sq_mitsuba.data.spe3r.writer import RenderOptions
+    from sq_mitsuba.data.spe3r.render_options import RenderOptions
     from sq_mitsuba.render.scene_config import SceneConfig
 
     parser = subparsers.add_parser(
@@ -107,7 +107,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _render(args: argparse.Namespace) -> int:
-    from sq_mitsuba.data.spe3r.writer import RenderOptions, render_dataset
+    from sq_mitsuba.data.spe3r.render_options import RenderOptions
+    from sq_mitsuba.data.spe3r.writer import render_dataset
     from sq_mitsuba.render.scene_config import SceneConfig
 
     # --scene, then --set: the scene configuration (the --set keys are the scene's fields);

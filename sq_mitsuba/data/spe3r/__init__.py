@@ -1,6 +1,7 @@
 """Datasets in the SPE3R layout, one module per role.
 
 - :mod:`.layout`: paths, splits, labels, manifest and model files (what every role shares);
+- :mod:`.render_options`: the render's settings, its summary, the checks before any work;
 - :mod:`.writer`: render a dataset with Mitsuba's path tracer (manifest, resume, grow, shards);
 - :mod:`.dataset`: :class:`Spe3rDataset`, a torch Dataset over ours or the SPE3R release;
 - :mod:`.check`: bookkeeping, every file, and masks re-rendered at label poses;
@@ -31,14 +32,12 @@ from sq_mitsuba.data.spe3r.layout import (
     validation_indices,
 )
 from sq_mitsuba.data.spe3r.preview import PreviewOptions, preview_dataset
-from sq_mitsuba.data.spe3r.writer import (
+from sq_mitsuba.data.spe3r.render_options import (
     RenderOptions,
     RenderSummary,
     estimate_render_memory,
-    render_dataset,
-    render_image,
-    render_model,
 )
+from sq_mitsuba.data.spe3r.writer import render_dataset, render_image, render_model
 
 __all__ = [
     "FAILURES", "IMAGES", "MANIFEST", "MASKS", "MESH_FILE", "MODELS", "SAMPLES_FILE",
