@@ -2,6 +2,7 @@
 
 - :mod:`.layout`: paths, splits, labels, manifest and model files (what every role shares);
 - :mod:`.render_options`: the render's settings, its summary, the checks before any work;
+- :mod:`.manifest`: ``dataset.json``: what it records, how a run's settings compare;
 - :mod:`.writer`: render a dataset with Mitsuba's path tracer (manifest, resume, grow, shards);
 - :mod:`.dataset`: :class:`Spe3rDataset`, a torch Dataset over ours or the SPE3R release;
 - :mod:`.check`: bookkeeping, every file, and masks re-rendered at label poses;

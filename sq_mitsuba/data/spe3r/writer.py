@@ -48,15 +48,14 @@ from typing import Any
 
 import numpy as np
 
-from sq_mitsuba.config import config_hash, to_dict, validate
-from sq_mitsuba.data.frames import PASS_FRAMING, sample_frame, sample_pass_frame
+from sq_mitsuba.config import validate
+from sq_mitsuba.data.frames import sample_frame, sample_pass_frame
 from sq_mitsuba.data.spe3r.layout import (
     EXR,
     FAILURE_MARKS,
     FAILURES,
     IMAGES,
     MANIFEST,
-    MANIFEST_FORMAT,
     MASKS,
     MESH_FILE,
     MODELS,
@@ -72,6 +71,12 @@ from sq_mitsuba.data.spe3r.layout import (
     write_png,
     write_splits,
 )
+from sq_mitsuba.data.spe3r.manifest import (
+    dataset_settings,
+    manifest_plan,
+    manifest_record,
+    settings_differences,
+)
 from sq_mitsuba.data.spe3r.render_options import (
     RenderOptions,
     RenderSummary,
@@ -80,7 +85,6 @@ from sq_mitsuba.data.spe3r.render_options import (
 )
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.io import atomic_path, atomic_write_json, atomic_write_text, read_json
-from sq_mitsuba.render.scene_config import SceneConfig
 
 #: What ``overwrite`` deletes from the output folder before rendering (nothing else there is
 #: touched): these files, the ``.failures`` folder, temporary files of atomic writes at the top
@@ -88,12 +92,6 @@ from sq_mitsuba.render.scene_config import SceneConfig
 #: ``masks/``, ``exr/`` or ``.progress/``, or named in the old manifest).
 OVERWRITE_DELETES = (MANIFEST, "camera.json", "splits.csv", FAILURES, "preview.png")
 _MODEL_FOLDER_SIGNS = ("labels.json", IMAGES, MASKS, EXR, PROGRESS)
-#: Settings compared between a run and the manifest of its output folder, in message order.
-IDENTITY = ("seed", "resolution", "spp", "exr", "camera", "scene_hash", "pass_frames",
-            "pass_framing")
-# What a manifest written before a setting existed meant by it (a dataset of independent
-# images records no pass framing at all).
-_IDENTITY_BEFORE = {"pass_frames": 1, "pass_framing": None}
 
 # ------------------------------------------------------------------------ writer
 
@@ -342,102 +340,6 @@ def recorded_failures(out_dir: Path) -> dict[str, str]:
     return failures
 
 
-# ------------------------------------------------------------------------ manifest
-
-
-def _tool_version() -> str:
-    from importlib import metadata
-
-    try:
-        return metadata.version("sq_mitsuba")
-    except metadata.PackageNotFoundError:
-        return "unknown"
-
-
-def dataset_settings(options: RenderOptions, camera: Camera) -> dict[str, Any]:
-    """The settings that decide a dataset's pixels, as the manifest records them."""
-    settings = {"seed": options.seed, "resolution": options.resolution, "spp": options.spp,
-                "exr": options.exr, "camera": camera.to_speed_dict(),
-                "scene_hash": config_hash(options.scene), "pass_frames": options.pass_frames}
-    if options.pass_frames > 1:
-        settings["pass_framing"] = PASS_FRAMING
-    return json.loads(json.dumps(settings))  # as read back from the file
-
-
-def _manifest(options: RenderOptions, camera: Camera, plan: dict[str, str],
-              counts: dict[str, int], state: str,
-              hashes: dict[str, str] | None = None) -> dict[str, Any]:
-    models = {}
-    for model in sorted(plan):
-        entry: dict[str, Any] = {"split": plan[model], "images": counts.get(model, 0)}
-        if hashes and model in hashes:
-            entry["labels_sha256"] = hashes[model]
-        models[model] = entry
-    return {
-        "format": MANIFEST_FORMAT,
-        "tool": {"name": "sq-mitsuba", "version": _tool_version()},
-        "settings": dataset_settings(options, camera),
-        "images_per_model": options.images_per_model,
-        "state": state,
-        "models": models,
-        "scene": to_dict(options.scene),
-    }
-
-
-def _plan_of(manifest: dict[str, Any]) -> tuple[Any, ...]:
-    """What a manifest promises (not its progress): settings, image count, models, splits."""
-    return (manifest["settings"], manifest["images_per_model"],
-            {m: e.get("split") for m, e in manifest["models"].items()})
-
-
-def _describe_camera(camera: Any) -> str:
-    try:
-        matrix = camera["cameraMatrix"]
-        return (f"{camera['Nu']} x {camera['Nv']} px, fx {matrix[0][0]:.6g}, "
-                f"cx {matrix[0][2]:.6g}, cy {matrix[1][2]:.6g}")
-    except (KeyError, IndexError, TypeError):
-        return "unreadable"
-
-
-def _first_difference(old: Any, new: Any, where: str = "") -> str | None:
-    """Dotted path and values of the first difference of two JSON-like trees."""
-    if isinstance(old, dict) and isinstance(new, dict):
-        for key in sorted(set(old) | set(new)):
-            found = _first_difference(old.get(key), new.get(key), f"{where}.{key}".lstrip("."))
-            if found:
-                return found
-        return None
-    return None if old == new else f"{where} {json.dumps(old)}, now {json.dumps(new)}"
-
-
-def _settings_differences(manifest: dict[str, Any], settings: dict[str, Any],
-                          scene: SceneConfig) -> list[str]:
-    stored = manifest["settings"]
-    differences = []
-    for key in IDENTITY:
-        if stored.get(key, _IDENTITY_BEFORE.get(key)) == settings.get(key,
-                                                                     _IDENTITY_BEFORE.get(key)):
-            continue
-        if key == "pass_framing":  # only news where the pass length is the same
-            if stored.get("pass_frames", 1) == settings["pass_frames"]:
-                differences.append(f"passes placed by an earlier framing ("
-                                   f"{json.dumps(stored.get(key, 1))}; this run: "
-                                   f"{json.dumps(settings[key])}, every frame holding the "
-                                   "whole target)")
-            continue
-        if key == "camera":
-            differences.append(f"camera {_describe_camera(stored.get(key))} (this run: "
-                               f"{_describe_camera(settings[key])})")
-        elif key == "scene_hash":
-            detail = _first_difference(manifest.get("scene"), to_dict(scene))
-            differences.append(f"scene config {stored.get(key)} (this run: {settings[key]}"
-                               + (f"; {detail}" if detail else "") + ")")
-        else:
-            differences.append(f"{key} {json.dumps(stored.get(key))} (this run: "
-                               f"{json.dumps(settings[key])})")
-    return differences
-
-
 def _model_folders(out_dir: Path, named: Sequence[str] = ()) -> list[Path]:
     """Sub-folders of ``out_dir`` that are model folders of a dataset."""
     if not out_dir.is_dir():
@@ -508,7 +410,7 @@ def finalize_dataset(out_dir: Path, options: RenderOptions, camera: Camera,
     else:
         (out_dir / FAILURES).unlink(missing_ok=True)
     _write_json_if_changed(out_dir / MANIFEST,
-                           _manifest(options, camera, plan, counts, "complete", hashes))
+                           manifest_record(options, camera, plan, counts, "complete", hashes))
     return True, failures
 
 
@@ -637,7 +539,7 @@ def prepare_dataset(models_dir: Path, out_dir: Path, options: RenderOptions
                                f"over, or another --out")
     settings = dataset_settings(options, camera)
     if manifest is not None and not options.overwrite:
-        differences = _settings_differences(manifest, settings, options.scene)
+        differences = settings_differences(manifest, settings, options.scene)
         if differences:
             raise DatasetError(f"{out_dir / MANIFEST}: this dataset was rendered with other "
                                f"settings: {'; '.join(differences)}; nothing was changed "
@@ -657,8 +559,8 @@ def prepare_dataset(models_dir: Path, out_dir: Path, options: RenderOptions
         old_split = manifest["models"][model].get("split") if manifest is not None and \
             model in manifest["models"] else None
         plan[model] = library_splits.get(model) or old_split or "train"
-    fresh = _manifest(options, camera, plan, {}, "rendering")
-    if manifest is None or _plan_of(manifest) != _plan_of(fresh):
+    fresh = manifest_record(options, camera, plan, {}, "rendering")
+    if manifest is None or manifest_plan(manifest) != manifest_plan(fresh):
         counts = {}
         for model in plan:
             try:
@@ -666,7 +568,7 @@ def prepare_dataset(models_dir: Path, out_dir: Path, options: RenderOptions
             except DatasetError:
                 counts[model] = 0
         atomic_write_json(out_dir / MANIFEST,
-                          _manifest(options, camera, plan, counts, "rendering"))
+                          manifest_record(options, camera, plan, counts, "rendering"))
     _write_json_if_changed(out_dir / "camera.json", camera.to_speed_dict())
     return camera, plan
 
