@@ -47,6 +47,7 @@ __all__ = [
     "check_finite_tensors",
     "check_image_size",
     "check_quaternions",
+    "check_unique_stems",
     "finite_number",
     "image_header",
     "load_torch_file",
@@ -327,3 +328,15 @@ def check_quaternions(data: Any, count: int, what: str, where: str) -> list[list
             raise ValueError(f"{named}: expected unit length, got {length:.6g}")
         quaternions.append([v / length for v in numbers])
     return quaternions
+
+
+def check_unique_stems(paths: Sequence[Path], what: str, consequence: str) -> None:
+    """One-line ``ValueError`` when two of ``paths`` share a file stem (the name without its
+    suffix: ``a.png`` and ``a.jpg``), naming ``what`` and both files, then ``consequence``
+    (what the stem decides: the outputs' names, the pose a mask takes)."""
+    first: dict[str, Path] = {}
+    for path in paths:
+        if path.stem in first:
+            raise ValueError(f"{what} {first[path.stem]} and {path}: one file stem "
+                             f"{path.stem!r}, {consequence}")
+        first[path.stem] = path

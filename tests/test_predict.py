@@ -220,7 +220,7 @@ def test_bad_inputs_are_one_line_naming_the_file(eval_checkpoint, inputs, tmp_pa
          ["--refine", "--mask", str(inputs / "mask.png")], "1 given for 2 images"),
         ([str(inputs / "grey.png")], ["--refine", "--mask", str(inputs / "cropped.png")],
          f"mask {inputs / 'cropped.png'}: 64 x 48 px"),
-        ([str(inputs / "grey.png"), str(inputs / "grey.png")], [], "'grey'"),
+        ([str(inputs / "grey.png"), str(inputs / "grey.png")], [], "one file stem 'grey'"),
         ([str(inputs / "grey.png")], ["--camera", str(tmp_path / "nocam.json")],
          f"camera {tmp_path / 'nocam.json'}: no such file"),
     ]

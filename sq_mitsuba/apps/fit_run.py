@@ -26,6 +26,7 @@ from sq_mitsuba.evaluation.figures import plot_fit
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.rotation import quaternion_to_matrix
 from sq_mitsuba.inference.fit import FitOptions, FitResult, fit_assembly
+from sq_mitsuba.inputs import check_unique_stems
 from sq_mitsuba.io import atomic_write_json, check_output_folder
 
 OUTPUT_FILES = ("assembly.json", "assembly.glb", "fit.png", "fit_log.json")
@@ -124,13 +125,8 @@ def run_fit(masks: Sequence[str | Path], poses: str | Path, out: str | Path,
         if not path.is_file():
             raise FileNotFoundError(f"mask {path}: no such file")
     # Poses are matched to masks by stem: two masks of one stem would get one pose.
-    first: dict[str, Path] = {}
-    for path in mask_paths:
-        if path.stem in first:
-            raise ValueError(f"masks {first[path.stem]} and {path}: one file stem "
-                             f"{path.stem!r}, and poses are matched by stem; give each mask "
-                             "its own name")
-        first[path.stem] = path
+    check_unique_stems(mask_paths, "masks",
+                       "and poses are matched by stem; give each mask its own name")
     quaternions, translations = read_label_poses(poses, mask_paths)
     images = read_masks(mask_paths)
     height, width = images.shape[1:]

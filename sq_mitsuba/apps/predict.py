@@ -95,6 +95,7 @@ from sq_mitsuba.inference.images import DEFAULT_MIN_TARGET
 from sq_mitsuba.inference.predictor import DEFAULT_MIN_EXISTENCE
 from sq_mitsuba.inference.refine import RefineOptions
 from sq_mitsuba.inference.search import SEARCH_REFINEMENT, SearchOptions
+from sq_mitsuba.inputs import check_unique_stems, image_header
 from sq_mitsuba.machine import too_much_memory
 
 if TYPE_CHECKING:
@@ -106,6 +107,8 @@ DEFAULT_TURNS = SearchOptions().turns
 
 #: Suffixes of the files written per image, in order.
 OUTPUT_SUFFIXES = (".assembly.json", ".obj", ".glb", ".pose.json", ".overlay.png")
+#: Why two images of one stem are refused (:func:`~sq_mitsuba.inputs.check_unique_stems`).
+OUTPUTS_BY_STEM = "and the outputs are named by it (they would overwrite each other)"
 #: pose.json's "convention": the pose's frames and units.
 POSE_CONVENTION = ("x_cam = R(q) x_body + r; OpenCV camera frame (x right, y down, z forward); "
                    "q = (w, x, y, z); metres for a target whose longest side is target_size "
@@ -205,8 +208,6 @@ class PredictRecord:
 
 
 def _image_mode(path: Path) -> str:
-    from sq_mitsuba.inputs import image_header
-
     with image_header(path) as image:
         return image.mode
 
@@ -217,16 +218,6 @@ def has_mask_head(predictor: Any) -> bool:
     config = getattr(model, "config", None)
     return bool(getattr(model, "mask_head", None) is not None
                 or getattr(config, "mask_head", False))
-
-
-def check_unique_stems(paths: list[Path]) -> None:
-    """One-line ``ValueError`` naming ``images`` when two inputs share a stem (their output
-    files, named by the stem, would overwrite each other)."""
-    stems = [p.stem for p in paths]
-    if len(set(stems)) != len(stems):
-        twice = sorted({s for s in stems if stems.count(s) > 1})
-        raise ValueError(f"images: several inputs are named {twice[0]!r} (without suffix); "
-                         "their outputs would overwrite each other")
 
 
 def _check_inputs(paths: list[Path], camera: Any, masks: list[Path] | None,
@@ -248,7 +239,7 @@ def _check_inputs(paths: list[Path], camera: Any, masks: list[Path] | None,
         raise ValueError("masks: only used with refinement (--refine)")
     if masks is not None and len(masks) != len(paths):
         raise ValueError(f"masks: {len(masks)} given for {len(paths)} images (one per image)")
-    check_unique_stems(paths)
+    check_unique_stems(paths, "images", OUTPUTS_BY_STEM)
     paddings: list[Padding | None] = []
     problems: list[str | None] = [None] * len(paths)
     warnings: list[str | None] = [None] * len(paths)
@@ -288,8 +279,6 @@ def check_image_memory(path: Path, camera: Any, memory: int | None) -> None:
     """One line when the image at ``path``, padded as it would be, needs more memory than
     ``memory`` bytes (:data:`PREDICT_BYTES_PER_PIXEL`); nothing where its header cannot be
     read (decoding it says why) or the memory is unknown."""
-    from sq_mitsuba.inputs import image_header
-
     if memory is None:
         return
     try:

@@ -171,14 +171,15 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
     )
     from sq_mitsuba.apps.padding import padding_to_aspect
     from sq_mitsuba.apps.predict import (
+        OUTPUTS_BY_STEM,
         POSE_CONVENTION,
         check_image_memory,
         check_target_size,
-        check_unique_stems,
     )
     from sq_mitsuba.data.masks import read_gray_image, read_mask
     from sq_mitsuba.geometry.assembly import Assembly
     from sq_mitsuba.inference.loading import with_fast_path
+    from sq_mitsuba.inputs import check_unique_stems
     from sq_mitsuba.io import (
         atomic_path,
         atomic_write_json,
@@ -191,7 +192,7 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
     paths = [Path(p) for p in images]
     if len(paths) < 2:
         raise ValueError(f"images: a sequence needs at least 2 images, got {len(paths)}")
-    check_unique_stems(paths)
+    check_unique_stems(paths, "images", OUTPUTS_BY_STEM)
     given = predictor.camera if camera is None else camera
     memory = available_memory()
     for path in paths:  # every frame is held at once: each gets its share of the memory
