@@ -86,6 +86,7 @@ most; a sphere twice the model's size would score 0.52 for a true 0.13).
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -251,15 +252,15 @@ def check_data_folder(data_root: Path) -> None:
                          else f"{data_root}: not a folder (a dataset is a folder)")
 
 
-def check_mesh_ranking(options: EvalOptions, dataset: Any, data_root: Path) -> None:
-    """Refuse ``mesh_ranking`` > 0 on a split of fewer than two models (nothing to rank an
-    image's own model against), rather than skip it unsaid."""
-    if options.mesh_ranking and len(dataset.models) < 2:
-        held = ", ".join(dataset.models)
-        raise ValueError(f"mesh_ranking {options.mesh_ranking}: ranks each prediction among "
-                         f"the split's models, but the {options.split!r} split of {data_root} "
-                         f"has {len(dataset.models)} ({held}); set mesh_ranking=0 or "
-                         "evaluate a split of two models or more")
+def check_mesh_ranking(mesh_ranking: int, models: Sequence[str], source: str,
+                       setting: str = "mesh_ranking") -> None:
+    """Refuse ``mesh_ranking`` > 0 among fewer than two ``models`` (nothing to rank an image's
+    own model against), rather than skip it unsaid; ``source`` says what holds them and
+    ``setting`` names the option (a study's is ``evaluation.mesh_ranking``)."""
+    if mesh_ranking and len(models) < 2:
+        raise ValueError(f"{setting} {mesh_ranking}: ranks each prediction among the models of "
+                         f"{source}, which has {len(models)} ({', '.join(models)}); set "
+                         f"{setting}=0 or give two models or more")
 
 
 def check_outside_data(out_dir: Path, data_root: Path) -> None:
@@ -282,7 +283,8 @@ def _evaluate(predictor: Any, data_root: Path, out_dir: Path, options: EvalOptio
 
     image_size = predictor.image_size
     dataset = open_split(data_root, options.split, image_size, options.surface_points)
-    check_mesh_ranking(options, dataset, data_root)
+    check_mesh_ranking(options.mesh_ranking, dataset.models,
+                       f"the {options.split!r} split of {data_root}")
     stored_baseline = None
     if options.baseline:  # its images are read too: refused now, not after the split's work
         train_split = Spe3rDataset(data_root, "train", image_size=image_size, num_surface=1,

@@ -55,7 +55,7 @@ from typing import Any, Literal
 
 from sq_mitsuba.config import apply_overrides, in_range, to_dict, validate
 from sq_mitsuba.data.spe3r import RenderOptions
-from sq_mitsuba.evaluation.evaluate import EvalOptions
+from sq_mitsuba.evaluation.evaluate import EvalOptions, check_mesh_ranking
 from sq_mitsuba.evaluation.scoring import METRICS
 from sq_mitsuba.evaluation.tables import SHOWN, csv_text, format_stats, markdown_table, summarise
 from sq_mitsuba.inputs import finite_number, read_csv_table
@@ -270,11 +270,9 @@ def illumination_study(checkpoint: str | Path | None, models_dir: str | Path,
         scene=apply_overrides(options.render.scene, point.overrides)) for point in points}
     evaluation = dataclasses.replace(options.evaluation, split="test", baseline=False)
     validate(evaluation)
-    if evaluation.mesh_ranking and len(names) < 2:  # each point's evaluation would refuse it
-        raise ValueError(f"evaluation.mesh_ranking {evaluation.mesh_ranking}: ranks each "
-                         f"prediction among the study's models, but {models_dir} gives "
-                         f"{len(names)} ({', '.join(names)}); set evaluation.mesh_ranking=0 "
-                         "or study two models or more")
+    # Each sweep point's evaluation would refuse it, after the renders: refused now.
+    check_mesh_ranking(evaluation.mesh_ranking, names, f"the study ({models_dir})",
+                       "evaluation.mesh_ranking")
     predictor = with_fast_path(predictor, evaluation.fast)  # once, not per sweep point
     started = time.perf_counter()
     stage = out_dir / "models"
