@@ -96,7 +96,7 @@ def test_best_rotation_beats_every_other_rotation_reflections_included() -> None
     """Orthogonal Procrustes: for matrices whose SVD's U V^T is a reflection as well as for the
     others, no rotation of a dense random sample scores a larger trace(F^T M) (flipping an axis
     of U V^T, the former answer, scored lower on such matrices)."""
-    from sq_mitsuba.geometry.manhattan_frame import best_rotation
+    from sq_mitsuba.geometry.rotation import best_rotation
 
     generator = torch.Generator().manual_seed(5)
     sample = random_rotations(20_000, generator, torch.float64)
@@ -116,7 +116,7 @@ def test_best_rotation_beats_every_other_rotation_reflections_included() -> None
 @pytest.mark.parametrize("matrix", [torch.zeros(2, 3, 3), torch.zeros(3, 2),
                                     torch.full((3, 3), float("nan"))])
 def test_best_rotation_names_a_bad_matrix(matrix) -> None:
-    from sq_mitsuba.geometry.manhattan_frame import best_rotation
+    from sq_mitsuba.geometry.rotation import best_rotation
 
     with pytest.raises(ValueError, match=r"^matrix"):
         best_rotation(matrix)

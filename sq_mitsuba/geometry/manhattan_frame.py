@@ -20,21 +20,9 @@ import torch
 from torch import Tensor
 
 from sq_mitsuba.checks import check_tensor
+from sq_mitsuba.geometry.rotation import best_rotation
 
-__all__ = ["best_rotation", "frame_by_extent", "manhattan_frame"]
-
-
-def best_rotation(matrix: Tensor) -> Tensor:
-    """The rotation F (3, 3) maximising trace(F^T M) for M (3, 3) (orthogonal Procrustes,
-    Kabsch): U diag(1, 1, det(U V^T)) V^T from M's SVD. Where U V^T is a reflection the best
-    rotation flips the weakest singular direction; flipping an axis of U V^T is proper too,
-    but scores lower."""
-    check_tensor("matrix", matrix, (3, 3))
-    if matrix.dim() != 2:
-        raise ValueError(f"matrix: expected (3, 3), got {tuple(matrix.shape)}")
-    u, _, vt = torch.linalg.svd(matrix)
-    sign = torch.sign(torch.linalg.det(u @ vt))
-    return u @ torch.diag(torch.stack([sign.new_ones(()), sign.new_ones(()), sign])) @ vt
+__all__ = ["frame_by_extent", "manhattan_frame"]
 
 
 def _proper(frame: Tensor) -> Tensor:

@@ -22,6 +22,7 @@ from sq_mitsuba.checks import check_nonzero, check_tensor
 
 __all__ = [
     "axis_angle_to_matrix",
+    "best_rotation",
     "matrix_to_axis_angle",
     "matrix_to_quaternion",
     "matrix_to_rotation_6d",
@@ -195,12 +196,27 @@ def quaternion_angle(quaternion_a: Tensor, quaternion_b: Tensor) -> Tensor:
     return 2.0 * torch.atan2(torch.linalg.vector_norm(vector, dim=-1), scalar.abs())
 
 
-def mean_rotation(rotations: Tensor) -> Tensor:
-    """Chordal L2 mean (3, 3), float64, of rotations (N, 3, 3): the arithmetic mean projected
-    onto SO(3) by SVD (the rotation nearest to it in the Frobenius norm)."""
-    u, _, vh = torch.linalg.svd(rotations.double().mean(0))
+def best_rotation(matrix: Tensor) -> Tensor:
+    """The rotation F (3, 3) maximising trace(F^T M) for M (3, 3), which is the rotation
+    nearest M in the Frobenius norm (orthogonal Procrustes, Kabsch): U diag(1, 1, det(U V^T))
+    V^T from M's SVD. Where U V^T is a reflection the best rotation flips the weakest singular
+    direction; flipping an axis of U V^T is proper too, but scores lower."""
+    check_tensor("matrix", matrix, (3, 3))
+    if matrix.dim() != 2:
+        raise ValueError(f"matrix: expected (3, 3), got {tuple(matrix.shape)}")
+    return _nearest_rotation(matrix)
+
+
+def _nearest_rotation(matrix: Tensor) -> Tensor:
+    u, _, vh = torch.linalg.svd(matrix)
     d = torch.sign(torch.linalg.det(u @ vh))
     return u @ torch.diag(torch.stack([torch.ones_like(d), torch.ones_like(d), d])) @ vh
+
+
+def mean_rotation(rotations: Tensor) -> Tensor:
+    """Chordal L2 mean (3, 3), float64, of rotations (N, 3, 3): the arithmetic mean projected
+    onto SO(3) (:func:`best_rotation`'s projection, the rotation nearest it)."""
+    return _nearest_rotation(rotations.double().mean(0))
 
 
 def axis_angle_to_matrix(rotation_vector: Tensor) -> Tensor:
