@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, Any
 from sq_mitsuba.config import config_hash, to_dict
 from sq_mitsuba.data.frames import PASS_FRAMING
 from sq_mitsuba.data.spe3r.layout import MANIFEST_FORMAT
+from sq_mitsuba.version import __version__
 
 if TYPE_CHECKING:
     from sq_mitsuba.data.spe3r.render_options import RenderOptions
@@ -20,7 +21,7 @@ if TYPE_CHECKING:
     from sq_mitsuba.render.scene_config import SceneConfig
 
 __all__ = ["IDENTITY", "dataset_settings", "manifest_plan", "manifest_record",
-           "settings_differences", "tool_version"]
+           "settings_differences"]
 
 #: Settings compared between a run and the manifest of its output folder, in message order.
 IDENTITY = ("seed", "resolution", "spp", "exr", "camera", "scene_hash", "pass_frames",
@@ -28,16 +29,6 @@ IDENTITY = ("seed", "resolution", "spp", "exr", "camera", "scene_hash", "pass_fr
 # What a manifest written before a setting existed meant by it (a dataset of independent
 # images records no pass framing at all).
 _IDENTITY_BEFORE = {"pass_frames": 1, "pass_framing": None}
-
-
-def tool_version() -> str:
-    """The installed sq-mitsuba's version, or "unknown"."""
-    from importlib import metadata
-
-    try:
-        return metadata.version("sq_mitsuba")
-    except metadata.PackageNotFoundError:
-        return "unknown"
 
 
 def dataset_settings(options: RenderOptions, camera: Camera) -> dict[str, Any]:
@@ -65,7 +56,7 @@ def manifest_record(options: RenderOptions, camera: Camera, plan: dict[str, str]
         models[model] = entry
     return {
         "format": MANIFEST_FORMAT,
-        "tool": {"name": "sq-mitsuba", "version": tool_version()},
+        "tool": {"name": "sq-mitsuba", "version": __version__},
         "settings": dataset_settings(options, camera),
         "images_per_model": options.images_per_model,
         "state": state,
