@@ -108,7 +108,11 @@ MESH_RANKING_FILE = "mesh_ranking.csv"
 OUTPUT_FILES = ("per_image.csv", "per_model.csv", "per_model.md", "summary.csv", "summary.md",
                 "per_model.png", "qualitative.png", "consistency.png", "eval.json")
 """What :func:`evaluate` writes (the PNGs unless ``figures`` is off)."""
-LIGHTING_FILES = ("lighting.csv", "lighting.md", "lighting.png")
+LIGHTING_STEM = "lighting"
+"""The name of a lighting breakdown's files in an evaluation folder (LIGHTING_FILES)."""
+GROUP_TABLE_SUFFIXES = ("csv", "md", "png")
+"""What a table of metrics by group is written as: long CSV, markdown and figure."""
+LIGHTING_FILES = tuple(f"{LIGHTING_STEM}.{suffix}" for suffix in GROUP_TABLE_SUFFIXES)
 """What :func:`sq_mitsuba.evaluation.study.lighting_breakdown` writes into an evaluation folder
 from its ``per_image.csv`` (removed when an evaluation rewrites that file)."""
 

@@ -55,7 +55,12 @@ from typing import Any, Literal
 
 from sq_mitsuba.config import apply_overrides, in_range, to_dict, validate
 from sq_mitsuba.data.spe3r import RenderOptions
-from sq_mitsuba.evaluation.evaluate import EvalOptions, check_mesh_ranking
+from sq_mitsuba.evaluation.evaluate import (
+    GROUP_TABLE_SUFFIXES,
+    LIGHTING_STEM,
+    EvalOptions,
+    check_mesh_ranking,
+)
 from sq_mitsuba.evaluation.scoring import METRICS
 from sq_mitsuba.evaluation.tables import SHOWN, csv_text, format_stats, markdown_table, summarise
 from sq_mitsuba.inputs import finite_number, read_csv_table
@@ -184,7 +189,7 @@ def write_group_tables(table: Sequence[dict[str, Any]], out_dir: Path, stem: str
         "ones.\n\n" + markdown_table(["background", "phase [deg]", "method", "images",
                                       "eclipse frames", *SHOWN], md_rows)))
     plot_illumination(table, out_dir / f"{stem}.png", METRICS, title)
-    return [out_dir / f"{stem}.{suffix}" for suffix in ("csv", "md", "png")]
+    return [out_dir / f"{stem}.{suffix}" for suffix in GROUP_TABLE_SUFFIXES]
 
 
 # ------------------------------------------------------------------------------- the study
@@ -390,6 +395,6 @@ def lighting_breakdown(eval_dir: str | Path, out_dir: str | Path | None = None,
     _eclipse_at_mean_phase(rows)
     out_dir.mkdir(parents=True, exist_ok=True)
     table = group_table(rows)
-    files = write_group_tables(table, out_dir, "lighting",
+    files = write_group_tables(table, out_dir, LIGHTING_STEM,
                                f"{source}: metrics by recorded lighting ({step:g} deg bins)")
     return StudyResult(rows, table, out_dir, files)
