@@ -317,11 +317,12 @@ class SpaceScene:
             mask_scene[f"part_{tag}"] = self._mesh(f"part_{tag}", used, local, None)
         self.mask_scene = mi.load_dict(mask_scene)
         self.mask_params = mi.traverse(self.mask_scene)
-        # The first render after the scene's initial parameters change differs in the last
-        # bits from every later one (measured; later renders are identical whatever came
-        # before). One discarded frame makes each image independent of whether it was the
-        # first of its process, so a resumed run writes the same bytes as an uninterrupted one.
-        self.render(_warm_up_frame())
+        # A render before the scenes' parameters are first updated differs in the last bits
+        # from every later one (measured; later renders are identical whatever came before).
+        # Loading one frame's parameters (no render: a render's cost saved per scene) makes
+        # each image independent of whether it was the first of its scene, so a resumed run
+        # writes the same bytes as an uninterrupted one.
+        self._load_frame(_warm_up_frame())
 
     def _mesh(self, name: str, used: np.ndarray, local: np.ndarray,
               bsdf: dict[str, Any] | None) -> Any:
@@ -357,8 +358,7 @@ class SpaceScene:
                 benchmark and the tests compare the lean one against ``path``); None: the
                 scene's own.
         """
-        self._set_pose(self.mask_params, self._posed(frame))
-        self.mask_params.update()
+        self._load_mask_pose(self._posed(frame))
         return np.array(self.mi.render(self.mask_scene, integrator=integrator,
                                        seed=_render_seed(frame)), dtype=np.float64)
 
@@ -387,6 +387,29 @@ class SpaceScene:
         if not radiance:
             return RenderedFrame(np.zeros_like(coverage), coverage, depth, self.exposure)
 
+        self._load_lighting(frame, posed)
+        image = np.array(mi.render(self.scene, seed=seed), dtype=np.float64)[..., 0]
+        exposure = self.exposure
+        if self.config.exposure.mode == "auto":
+            exposure = auto_exposure(image, coverage >= 0.5, self.exposure,
+                                     self.config.exposure)
+        return RenderedFrame(image, coverage, depth, exposure)
+
+    def _load_frame(self, frame: Frame) -> None:
+        """Load ``frame``'s parameters into both scenes, as :meth:`render` does, without
+        rendering."""
+        posed = self._posed(frame)
+        self._load_mask_pose(posed)
+        self._load_lighting(frame, posed)
+
+    def _load_mask_pose(self, posed: np.ndarray) -> None:
+        self._set_pose(self.mask_params, posed)
+        self.mask_params.update()
+
+    def _load_lighting(self, frame: Frame, posed: np.ndarray) -> None:
+        """The target at ``posed``, the sun, the Earth and the stars of ``frame`` into the
+        path-traced scene."""
+        mi = self.mi
         self._set_pose(self.params, posed)
         sun = np.asarray(frame.sun_direction)
         # The directional emitter shines along its local +z: from the sun towards the target.
@@ -413,9 +436,3 @@ class SpaceScene:
             self.params.update()
         finally:
             logger.set_log_level(level)
-        image = np.array(mi.render(self.scene, seed=seed), dtype=np.float64)[..., 0]
-        exposure = self.exposure
-        if self.config.exposure.mode == "auto":
-            exposure = auto_exposure(image, coverage >= 0.5, self.exposure,
-                                     self.config.exposure)
-        return RenderedFrame(image, coverage, depth, exposure)
