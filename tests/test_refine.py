@@ -317,3 +317,45 @@ def test_a_shared_shape_names_seen_sizes_and_the_rotation_is_checked_first(pertu
         with pytest.raises(ValueError, match=f"^{match}"):
             refine_pose_and_shape(one, bad, translation, masks, camera, shared=True,
                                   relative_rotations=rotation, relative_times=times)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("warmup", [0, 4])
+def test_the_fits_adam_is_torchs_adam_and_linear_warm_up_bit_for_bit(dtype, warmup):
+    """The fits' own Adam (no torch.optim: it imports torch._dynamo, seconds) against
+    torch.optim.Adam with LinearLR stepped after each step, on a loss whose gradients change
+    every step; one parameter gets no gradient on some steps (skipped, its count too)."""
+    from sq_mitsuba.inference.fit import Adam
+
+    generator = torch.Generator().manual_seed(3)
+    start = [torch.randn(4, 3, generator=generator, dtype=dtype),
+             torch.randn(5, generator=generator, dtype=dtype),
+             torch.randn(2, 2, generator=generator, dtype=dtype)]
+    target = torch.randn(5, generator=generator, dtype=dtype)
+
+    def run(make):
+        params = [p.clone().requires_grad_(True) for p in start]
+        step = make(params)
+        for k in range(12):
+            loss = (params[0].sin() ** 2).sum() + ((params[1] - target) ** 4).sum()
+            if k % 3:  # the third parameter takes part in two steps of three
+                loss = loss + (params[2] @ params[2]).trace().exp()
+            for p in params:
+                p.grad = None
+            loss.backward()
+            step()
+        return [p.detach() for p in params]
+
+    def ours(params):
+        return Adam(params, lr=0.05, warmup=warmup).step
+
+    def torchs(params):
+        optimizer = torch.optim.Adam(params, lr=0.05)
+        scheduler = torch.optim.lr_scheduler.LinearLR(
+            optimizer, 1.0 / (warmup + 1), 1.0, warmup) if warmup else None
+        return lambda: (optimizer.step(), scheduler and scheduler.step())
+
+    mine, reference = run(ours), run(torchs)
+    for a, b, s in zip(mine, reference, start, strict=True):
+        assert not torch.equal(a, s)  # every parameter moved
+        assert torch.equal(a, b)

@@ -119,6 +119,66 @@ class FitResult:
         return float(self.final_iou.mean()) if self.final_iou is not None else float("nan")
 
 
+class Adam:
+    """``torch.optim.Adam`` with its defaults (betas 0.9 and 0.999, eps 1e-8, no weight decay),
+    and optionally ``LinearLR``'s warm-up, without ``torch.optim``.
+
+    Why ours: creating any ``torch.optim`` optimiser imports ``torch._dynamo`` (2.5 s on 2 CPU
+    cores), a quarter of what ``predict --refine`` on one image costs; the fits here move a
+    few tensors and need the update alone. Its steps are torch's operations in torch's order
+    (its single-tensor CPU path): the same parameters bit for bit (tests/test_refine.py).
+
+    Args:
+        params: the tensors to move (leaf tensors with ``requires_grad``); one whose ``grad``
+            is None at a step is left alone, its step count included, as torch does.
+        lr: the learning rate.
+        warmup: W >= 0 steps of linear warm-up, as ``LinearLR(start_factor=1 / (W + 1),
+            end_factor=1, total_iters=W)`` stepped after each step: step k (from 0) at
+            (k + 1) / (W + 1) of ``lr``, then ``lr``.
+    """
+
+    _BETA1, _BETA2, _EPS = 0.9, 0.999, 1e-8
+
+    def __init__(self, params: Sequence[Tensor], lr: float, warmup: int = 0) -> None:
+        self.params = list(params)
+        self._start = 1.0 / (warmup + 1)
+        self._warmup = warmup
+        self._epoch = 0
+        self.lr = lr * self._start if warmup else lr
+        self._steps = [0.0] * len(self.params)
+        self._exp_avg = [torch.zeros_like(p, memory_format=torch.preserve_format)
+                         for p in self.params]
+        self._exp_avg_sq = [torch.zeros_like(p, memory_format=torch.preserve_format)
+                            for p in self.params]
+
+    def zero_grad(self) -> None:
+        """Every parameter's ``grad`` to None."""
+        for param in self.params:
+            param.grad = None
+
+    @torch.no_grad()
+    def step(self) -> None:
+        """One Adam step of every parameter with a gradient, then the warm-up's rate."""
+        beta1, beta2 = self._BETA1, self._BETA2
+        for i, param in enumerate(self.params):
+            grad = param.grad
+            if grad is None:
+                continue
+            self._steps[i] += 1.0
+            step = self._steps[i]
+            exp_avg, exp_avg_sq = self._exp_avg[i], self._exp_avg_sq[i]
+            exp_avg.lerp_(grad, 1 - beta1)
+            exp_avg_sq.mul_(beta2).addcmul_(grad, grad, value=1 - beta2)
+            step_size = self.lr / (1 - beta1**step)
+            denom = (exp_avg_sq.sqrt() / (1 - beta2**step) ** 0.5).add_(self._EPS)
+            param.addcdiv_(exp_avg, denom, value=-step_size)
+        if self._warmup:
+            self._epoch += 1
+            if self._epoch <= self._warmup:  # LinearLR's recursive form, as it rounds
+                self.lr = self.lr * (1.0 + (1.0 - self._start) / (
+                    self._warmup * self._start + (self._epoch - 1) * (1.0 - self._start)))
+
+
 def default_raw(num_primitives: int, generator: torch.Generator | None = None,
                 spread: float = 0.3) -> Tensor:
     """Raw parameters (1, M, 16) of the default start: identical blobs (size 0.255, shape
@@ -219,7 +279,7 @@ def fit_assembly(
     with one_thread(options.deterministic):
         renderer = SilhouetteRenderer(fit_camera, spp=options.spp, sppp=options.sppp,
                                       seed=options.seed)
-        optimizer = torch.optim.Adam([raw], lr=options.lr)
+        optimizer = Adam([raw], lr=options.lr)
         result = FitResult(assembly=Assembly.from_raw(raw.detach()), raw=raw.detach(),
                            targets=targets, options=options)
         middle = steps // 2
@@ -232,7 +292,7 @@ def fit_assembly(
             bar = progress_bar(range(steps), desc="fit", unit="step", leave=True)
             iterator = bar
         for step in iterator:  # type: ignore[union-attr]
-            optimizer.zero_grad(set_to_none=True)
+            optimizer.zero_grad()
             # One BVH rebuild per view: each view's loss is back-propagated right after its render.
             total, coverage = render_assembly_loss(
                 Assembly.from_raw(raw), rotations, translations, renderer,

@@ -41,6 +41,7 @@ from sq_mitsuba.config import in_range, non_negative, positive, validate
 from sq_mitsuba.geometry.assembly import FIELDS, Assembly, ParameterRanges
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.rotation import axis_angle_to_matrix, matrix_to_axis_angle
+from sq_mitsuba.inference.fit import Adam
 from sq_mitsuba.model.losses import silhouette_loss
 from sq_mitsuba.render.backend import one_thread
 
@@ -287,11 +288,9 @@ def refine_pose_and_shape(assembly: Assembly, rotation: Tensor, translation: Ten
     pose_parameters = [shift] if options.rotation == "fixed" else [rotation_vector, shift]
     if times is not None and options.rotation != "fixed":
         pose_parameters.append(rate)
-    optimizer = torch.optim.Adam([change, *pose_parameters] if moving else pose_parameters,
-                                 lr=options.lr)
     warm = options.warmup  # step k of the warm-up at (k + 1) / (warmup + 1) of the rate
-    warming = torch.optim.lr_scheduler.LinearLR(optimizer, 1.0 / (warm + 1), 1.0, warm) \
-        if warm else None
+    optimizer = Adam([change, *pose_parameters] if moving else pose_parameters,
+                     lr=options.lr, warmup=warm)
 
     def current_raw() -> Tensor:
         return raw0 + change * free_fields
@@ -338,7 +337,7 @@ def refine_pose_and_shape(assembly: Assembly, rotation: Tensor, translation: Ten
 
     with one_thread(options.deterministic):  # the same start, the same result
         for step in range(options.steps):
-            optimizer.zero_grad(set_to_none=True)
+            optimizer.zero_grad()
             rotation_now, translation_now = pose()
             raw = current_raw()
             current = Assembly.from_raw(raw)
@@ -363,8 +362,6 @@ def refine_pose_and_shape(assembly: Assembly, rotation: Tensor, translation: Ten
                 improved = remember(ious, raw.detach(), rotation_now.detach(),
                                     translation_now.detach())
             optimizer.step()
-            if warming is not None:
-                warming.step()
             steps += 1
             stale = 0 if improved or step < warm else stale + 1
             if stale >= options.patience:
