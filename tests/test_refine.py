@@ -335,25 +335,26 @@ def test_the_fits_adam_is_torchs_adam_and_linear_warm_up_bit_for_bit(dtype, warm
 
     def run(make):
         params = [p.clone().requires_grad_(True) for p in start]
-        step = make(params)
+        zero_grad, step = make(params)
         for k in range(12):
             loss = (params[0].sin() ** 2).sum() + ((params[1] - target) ** 4).sum()
             if k % 3:  # the third parameter takes part in two steps of three
                 loss = loss + (params[2] @ params[2]).trace().exp()
-            for p in params:
-                p.grad = None
+            zero_grad()
             loss.backward()
             step()
         return [p.detach() for p in params]
 
     def ours(params):
-        return Adam(params, lr=0.05, warmup=warmup).step
+        optimizer = Adam(params, lr=0.05, warmup=warmup)
+        return optimizer.zero_grad, optimizer.step
 
     def torchs(params):
         optimizer = torch.optim.Adam(params, lr=0.05)
         scheduler = torch.optim.lr_scheduler.LinearLR(
             optimizer, 1.0 / (warmup + 1), 1.0, warmup) if warmup else None
-        return lambda: (optimizer.step(), scheduler and scheduler.step())
+        return (lambda: optimizer.zero_grad(set_to_none=True),
+                lambda: (optimizer.step(), scheduler and scheduler.step()))
 
     mine, reference = run(ours), run(torchs)
     for a, b, s in zip(mine, reference, start, strict=True):

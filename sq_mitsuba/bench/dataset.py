@@ -78,6 +78,7 @@ def run(options: BenchOptions) -> Report:
         for resolution in RESOLUTIONS:
             render_options = RenderOptions(resolution=resolution, spp=SPP)
             camera = render_options.dataset_camera()
+
             def build_scene(camera=camera, render_options=render_options) -> Any:
                 return SpaceScene(vertices, faces, tags, camera, render_options.scene, spp=SPP)
 

@@ -134,7 +134,8 @@ class Adam:
         lr: the learning rate.
         warmup: W >= 0 steps of linear warm-up, as ``LinearLR(start_factor=1 / (W + 1),
             end_factor=1, total_iters=W)`` stepped after each step: step k (from 0) at
-            (k + 1) / (W + 1) of ``lr``, then ``lr``.
+            (k + 1) / (W + 1) of ``lr``, then ``lr`` (LinearLR's running product of factors,
+            as it rounds).
     """
 
     _BETA1, _BETA2, _EPS = 0.9, 0.999, 1e-8

@@ -41,7 +41,6 @@ from sq_mitsuba.config import in_range, non_negative, positive, validate
 from sq_mitsuba.geometry.assembly import FIELDS, Assembly, ParameterRanges
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.rotation import axis_angle_to_matrix, matrix_to_axis_angle
-from sq_mitsuba.inference.fit import Adam
 from sq_mitsuba.model.losses import silhouette_loss
 from sq_mitsuba.render.backend import one_thread
 
@@ -208,7 +207,7 @@ def refine_pose_and_shape(assembly: Assembly, rotation: Tensor, translation: Ten
         :class:`RefineResult` holding, per item (with ``shared``: for all items at once), the
         best of the start and every step.
     """
-    from sq_mitsuba.inference.fit import resize_masks
+    from sq_mitsuba.inference.fit import Adam, resize_masks
     from sq_mitsuba.render.silhouette.renderer import (
         SilhouetteRenderer,
         mask_iou,

@@ -14,8 +14,9 @@ smaller one is an error.
 Resuming: each image's label is first written to ``<model>/.progress/<index>.json``, after its
 image and mask, so a label there means the image is complete. ``labels.json`` is assembled from
 them once a model is done. Every file is written atomically, so a run killed at any point and
-restarted with the same command ends byte-identical to an uninterrupted one; stray temporary
-files of an image are deleted before it is rendered again.
+restarted with the same command ends byte-identical to an uninterrupted one (the EXR depth
+``Z`` up to float32 rounding where Dr.Jit runs several threads: they add its samples in the
+order they finish); stray temporary files of an image are deleted before it is rendered again.
 
 Shards: ``shard="I/N"`` renders block I of N of the work, every (model, image index) pair of
 the plan (models sorted by name, indices ascending) cut into N contiguous blocks of equal size
