@@ -354,21 +354,35 @@ def test_an_interrupted_pass_study_takes_up_where_it_stopped(eval_checkpoint, pa
     assert sequences == [2]  # the second pass alone
     assert _scores(out) == _scores(whole)
     assert not (out / PARTIAL).exists()
-    # A pass's kept rows that cannot be read: the partial run is discarded, with a warning.
+    # A pass's kept rows that cannot be read, or a partial run of other settings: discarded,
+    # with a warning, and the run starts afresh (stopped in its first pass here: a fresh
+    # run's scores are the uninterrupted run's, above): its partial folder holds this run's
+    # identity and no pass.
     shutil.copytree(left, out / PARTIAL)
+    identity = (out / PARTIAL / "run.json").read_text()
     next((out / PARTIAL).glob("*__*.json")).write_text("[{")
-    with pytest.warns(UserWarning, match=r"passes discarded \(unreadable: "):
-        evaluate_passes(load_model(eval_checkpoint), pass_dataset, out, options,
-                        progress=False)
-    assert _scores(out) == _scores(whole)
-    # Other settings: a partial run of the first is discarded, with a warning.
-    (out / PARTIAL).mkdir()
-    (out / PARTIAL / "run.json").write_text('{"options": {"split": "val"}}')
-    (out / PARTIAL / "sc000_x__0.json").write_text("[]")
-    with pytest.warns(UserWarning, match="an interrupted run's passes discarded"):
-        evaluate_passes(load_model(eval_checkpoint), pass_dataset, out, options,
-                        progress=False)
-    assert _scores(out) == _scores(whole)
+    other = tmp_path / "other"
+    (other / PARTIAL).mkdir(parents=True)
+    recorded = json.loads(identity)
+    recorded["options"]["split"] = "val" if recorded["options"]["split"] != "val" else "test"
+    (other / PARTIAL / "run.json").write_text(json.dumps(recorded))
+    (other / PARTIAL / "sc000_x__0.json").write_text("[]")
+
+    def first_pass_stops(self, images, *args, **kwargs):
+        sequences.append(len(images))
+        raise KeyboardInterrupt
+
+    for folder, cause in ((out, "unreadable: "), (other, "option split: ")):
+        sequences.clear()
+        with monkeypatch.context() as patch, pytest.warns(
+                UserWarning, match=re.escape(f"an interrupted run's passes discarded ({cause}")):
+            patch.setattr(Predictor, "predict_sequence", first_pass_stops)
+            with pytest.raises(KeyboardInterrupt):
+                evaluate_passes(load_model(eval_checkpoint), pass_dataset, folder, options,
+                                progress=False)
+        assert len(sequences) == 1, cause  # the first pass began: nothing was taken as done
+        assert (folder / PARTIAL / "run.json").read_text() == identity, cause
+        assert not list((folder / PARTIAL).glob("*__*.json")), cause
 
 
 def _scores(folder):
