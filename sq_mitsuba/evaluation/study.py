@@ -172,24 +172,26 @@ def write_group_tables(table: Sequence[dict[str, Any]], out_dir: Path, stem: str
     """``<stem>.csv`` (long: one row per group and metric), ``<stem>.md`` and ``<stem>.png``."""
     from sq_mitsuba.evaluation.figures import plot_illumination
 
+    csv_path, md_path, png_path = (out_dir / f"{stem}.{suffix}"
+                                   for suffix in GROUP_TABLE_SUFFIXES)
     header = ["background", "phase_deg", "method", "images", "eclipse_frames",
               "phase_recorded_deg", "metric", "mean", "std", "median"]
     body = [[e["background"], round(e["phase_deg"], 3), e["method"], e["images"],
              e["eclipse_frames"], round(e["phase_recorded_deg"], 3), metric,
              e[f"{metric}_mean"], e[f"{metric}_std"], e[f"{metric}_median"]]
             for e in table for metric in METRICS]
-    atomic_write_text(out_dir / f"{stem}.csv", csv_text(header, body))
+    atomic_write_text(csv_path, csv_text(header, body))
     md_rows = [[e["background"], f"{e['phase_deg']:.1f}", e["method"], e["images"],
                 e["eclipse_frames"],
                 *(format_stats(e[f"{m}_mean"], e[f"{m}_std"], e[f"{m}_median"])
                   for m in SHOWN)] for e in table]
-    atomic_write_text(out_dir / f"{stem}.md", (
+    atomic_write_text(md_path, (
         f"# {title}\n\nMean ± std (median) per background, phase angle and method; every "
-        f"metric is in {stem}.csv. An eclipse group's phase angle is the mean of its recorded "
+        f"metric is in {csv_path.name}. An eclipse group's phase angle is the mean of its recorded "
         "ones.\n\n" + markdown_table(["background", "phase [deg]", "method", "images",
                                       "eclipse frames", *SHOWN], md_rows)))
-    plot_illumination(table, out_dir / f"{stem}.png", METRICS, title)
-    return [out_dir / f"{stem}.{suffix}" for suffix in GROUP_TABLE_SUFFIXES]
+    plot_illumination(table, png_path, METRICS, title)
+    return [csv_path, md_path, png_path]
 
 
 # ------------------------------------------------------------------------------- the study
