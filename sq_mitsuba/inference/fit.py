@@ -145,7 +145,7 @@ class Adam:
         self._start = 1.0 / (warmup + 1)
         self._warmup = warmup
         self._epoch = 0
-        self.lr = lr * self._start if warmup else lr
+        self.lr = lr * self._start  # LinearLR's first rate (lr itself without warm-up)
         self._steps = [0.0] * len(self.params)
         self._exp_avg = [torch.zeros_like(p, memory_format=torch.preserve_format)
                          for p in self.params]

@@ -358,7 +358,11 @@ class SpaceScene:
                 benchmark and the tests compare the lean one against ``path``); None: the
                 scene's own.
         """
-        self._load_mask_pose(self._posed(frame))
+        return self._mask_pass(frame, self._posed(frame), integrator)
+
+    def _mask_pass(self, frame: Frame, posed: np.ndarray, integrator: Any = None) -> np.ndarray:
+        """:meth:`mask_pass` with the target's vertices posed already (``posed``, (V, 3))."""
+        self._load_mask_pose(posed)
         return np.array(self.mi.render(self.mask_scene, integrator=integrator,
                                        seed=_render_seed(frame)), dtype=np.float64)
 
@@ -374,7 +378,7 @@ class SpaceScene:
         mi = self.mi
         posed = self._posed(frame)
         seed = _render_seed(frame)
-        channels = self.mask_pass(frame)
+        channels = self._mask_pass(frame, posed)
         coverage = np.clip(1.0 - channels[..., 0], 0.0, 1.0)
         depth = None
         if self.with_depth:
