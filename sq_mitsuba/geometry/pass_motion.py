@@ -98,7 +98,11 @@ def _refit(rate: Tensor, start: Tensor, readings: Tensor, times: Tensor,
         residual = matrix_to_axis_angle(readings @ (turn @ start).transpose(-1, -2))  # (K, 3)
         jacobian = torch.cat([turn, times[:, None, None] * _left_jacobian(times[:, None] * rate)],
                              dim=-1)  # (K, 3, 6)
-        step = torch.linalg.lstsq(jacobian.reshape(-1, 6), residual.reshape(-1, 1)).solution[:, 0]
+        # Convention: the SVD driver. The CPU default (gelsy, MKL's pivoted QR) is not
+        # repeatable: its last bits change with where the arrays lie in memory, and the pass's
+        # joint fit grows that into other poses from run to run.
+        step = torch.linalg.lstsq(jacobian.reshape(-1, 6), residual.reshape(-1, 1),
+                                  driver="gelsd").solution[:, 0]
         start, rate = axis_angle_to_matrix(step[:3]) @ start, rate + step[3:]
         if float(step.norm()) < 1e-12:
             break
