@@ -631,6 +631,13 @@ def test_predict_sequence_cli_writes_one_assembly_and_a_pose_per_frame(eval_chec
                  "--out", str(tmp_path / "x")]) == 2
     assert main(["predict", str(images[0]), "--sequence", "--checkpoint",
                  str(eval_checkpoint), "--out", str(tmp_path / "y")]) == 2
+    # A pass's folder given for its frames: named as a folder, not "one image".
+    capsys.readouterr()
+    assert main(["predict", str(images[0].parent), "--sequence", "--checkpoint",
+                 str(eval_checkpoint), "--out", str(tmp_path / "f")]) == 2
+    assert error_line(capsys) == (f"sq-mitsuba predict: error: image {images[0].parent}: is a "
+                                  f"folder, not a file (give the pass's frames, e.g. "
+                                  f"{images[0].parent / '*.png'}, in their order)")
     # --fit: only with --sequence, and a key the joint fit has, before any work.
     assert main(["predict", str(images[0]), "--fit", "steps=5", "--checkpoint",
                  str(eval_checkpoint), "--out", str(tmp_path / "z")]) == 2

@@ -190,6 +190,10 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
 
     check_target_size(target_size)
     paths = [Path(p) for p in images]
+    folders = [p for p in paths if p.is_dir()]
+    if folders:  # a pass kept as a folder of frames: said before "at least 2 images"
+        raise IsADirectoryError(f"image {folders[0]}: is a folder, not a file (give the "
+                                f"pass's frames, e.g. {folders[0] / '*.png'}, in their order)")
     if len(paths) < 2:
         raise ValueError(f"images: a sequence needs at least 2 images, got {len(paths)}")
     check_unique_stems(paths, "images", OUTPUTS_BY_STEM)
