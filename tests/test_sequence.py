@@ -638,6 +638,10 @@ def test_predict_sequence_cli_writes_one_assembly_and_a_pose_per_frame(eval_chec
     assert error_line(capsys) == (f"sq-mitsuba predict: error: image {images[0].parent}: is a "
                                   f"folder, not a file (give the pass's frames, e.g. "
                                   f"{images[0].parent / '*.png'}, in their order)")
+    assert main(["predict", *map(str, images), "--sequence", "--mask", str(tmp_path),
+                 "--checkpoint", str(eval_checkpoint), "--out", str(tmp_path / "g")]) == 2
+    assert error_line(capsys).startswith(f"sq-mitsuba predict: error: mask {tmp_path}: is a "
+                                         "folder, not a file (give one mask a frame")
     # --fit: only with --sequence, and a key the joint fit has, before any work.
     assert main(["predict", str(images[0]), "--fit", "steps=5", "--checkpoint",
                  str(eval_checkpoint), "--out", str(tmp_path / "z")]) == 2

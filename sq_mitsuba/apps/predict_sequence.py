@@ -211,6 +211,11 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
     mask_paths = None if masks is None else [Path(m) for m in masks]
     given_masks = None
     if mask_paths is not None:
+        folders = [m for m in mask_paths if m.is_dir()]
+        if folders:
+            raise IsADirectoryError(f"mask {folders[0]}: is a folder, not a file (give one "
+                                    f"mask a frame, e.g. {folders[0] / '*.png'}, in the "
+                                    "frames' order)")
         if len(mask_paths) != len(paths):
             raise ValueError(f"mask: {len(mask_paths)} masks for {len(paths)} images (one per "
                              "frame, in their order)")
