@@ -83,6 +83,9 @@ def test_predict_writes_the_networks_prediction_for_every_format(eval_checkpoint
         assert len(glb.geometry) == 2  # one mesh per primitive
         obj = trimesh.load(out / f"{name}.obj", force="mesh")
         assert obj.bounds is not None and len(obj.faces) > 0
+    # The same pixels, the same overlay, whatever image was drawn before it (one renderer
+    # serves them all, its samples drawn afresh for each image).
+    assert len({(out / f"{n}.overlay.png").read_bytes() for n in names}) == 1
     modes = {n: json.loads((out / f"{n}.pose.json").read_text())["image_mode"] for n in names}
     assert modes["grey"] == "L" and modes["rgb"] == "RGB" and modes["alpha"] == "LA"
     assert modes["deep"].startswith("I")

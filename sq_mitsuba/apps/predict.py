@@ -444,6 +444,7 @@ def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
             renderers[image_camera] = SilhouetteRenderer(overlay_camera(image_camera),
                                                          spp=options.overlay_spp)
         renderer = renderers[image_camera]
+        renderer.reseed(0)  # an image's overlay the same whatever images came before it
         assembly, rotation, translation = (prediction.assembly, prediction.rotation,
                                            prediction.translation)
         quaternion = prediction.quaternion
