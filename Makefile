@@ -9,7 +9,8 @@ STAMP  := $(VENV)/.installed
 TORCH  := torch==2.13.0
 # PyPI's Linux torch is the CUDA build (gigabytes); PyTorch's CPU index serves 2.13.0+cpu,
 # which pip prefers to it (a local version sorts after the public one). Where that index
-# cannot be reached, pip says so and takes the CPU wheel its own configuration points to.
+# cannot be reached pip says so (one retry, 15 s at most a try) and takes what its own
+# configuration offers: a local CPU wheel where one is set up, else PyPI's build.
 TORCH_CPU_INDEX := https://download.pytorch.org/whl/cpu
 # Dr.Jit's LLVM backend aborts on libLLVM 15; any libLLVM >= 17 works.
 LLVM_GLOB := /usr/lib/*/libLLVM.so.1[7-9]* /usr/lib/*/libLLVM.so.[2-9][0-9]* /usr/lib/*/libLLVM-1[7-9]*.so* /usr/lib/*/libLLVM-[2-9][0-9]*.so* /usr/lib/llvm-1[7-9]/lib/libLLVM*.so* /usr/lib/llvm-[2-9][0-9]/lib/libLLVM*.so*
@@ -30,7 +31,7 @@ llvm:
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	# CPU torch first, pinned, so that nothing pulls CUDA wheels.
-	$(PIP) install -q $(TORCH) --extra-index-url $(TORCH_CPU_INDEX)
+	$(PIP) install -q $(TORCH) --extra-index-url $(TORCH_CPU_INDEX) --retries 1 --timeout 15
 	$(PIP) install -q -e '.[dev]'
 	touch $(STAMP)
 

@@ -84,8 +84,13 @@ def test_predict_writes_the_networks_prediction_for_every_format(eval_checkpoint
         obj = trimesh.load(out / f"{name}.obj", force="mesh")
         assert obj.bounds is not None and len(obj.faces) > 0
     # The same pixels, the same overlay, whatever image was drawn before it (one renderer
-    # serves them all, its samples drawn afresh for each image).
-    assert len({(out / f"{n}.overlay.png").read_bytes() for n in names}) == 1
+    # serves them all, its samples drawn afresh for each image): a pose a last bit apart
+    # may move a sample across an edge, the samples running on from image to image moved
+    # dozens of edge pixels.
+    first = np.asarray(Image.open(out / f"{names[0]}.overlay.png")).astype(int)
+    for name in names[1:]:
+        other = np.asarray(Image.open(out / f"{name}.overlay.png")).astype(int)
+        assert int((other != first).any(axis=-1).sum()) <= 2, name
     modes = {n: json.loads((out / f"{n}.pose.json").read_text())["image_mode"] for n in names}
     assert modes["grey"] == "L" and modes["rgb"] == "RGB" and modes["alpha"] == "LA"
     assert modes["deep"].startswith("I")

@@ -638,10 +638,17 @@ def test_predict_sequence_cli_writes_one_assembly_and_a_pose_per_frame(eval_chec
     assert error_line(capsys) == (f"sq-mitsuba predict: error: image {images[0].parent}: is a "
                                   f"folder, not a file (give the pass's frames, e.g. "
                                   f"{images[0].parent / '*.png'}, in their order)")
+    # ... also where a count would be checked first (one image against 3 rotations).
+    rotations = tmp_path / "three.json"
+    rotations.write_text(json.dumps([[1.0, 0.0, 0.0, 0.0]] * 3))
+    assert main(["predict", str(images[0].parent), "--sequence", "--relative-rotations",
+                 str(rotations), "--checkpoint", str(eval_checkpoint), "--out",
+                 str(tmp_path / "h")]) == 2
+    assert "is a folder, not a file (give the pass's frames" in error_line(capsys)
     assert main(["predict", *map(str, images), "--sequence", "--mask", str(tmp_path),
                  "--checkpoint", str(eval_checkpoint), "--out", str(tmp_path / "g")]) == 2
     assert error_line(capsys).startswith(f"sq-mitsuba predict: error: mask {tmp_path}: is a "
-                                         "folder, not a file (give one mask a frame")
+                                         "folder, not a file (give one mask per frame")
     # --fit: only with --sequence, and a key the joint fit has, before any work.
     assert main(["predict", str(images[0]), "--fit", "steps=5", "--checkpoint",
                  str(eval_checkpoint), "--out", str(tmp_path / "z")]) == 2

@@ -44,7 +44,21 @@ from typing import Any
 import numpy as np
 import torch
 
-__all__ = ["SequenceRecord", "predict_sequence_files"]
+__all__ = ["SequenceRecord", "check_frame_files", "predict_sequence_files"]
+
+
+def check_frame_files(images: Sequence[Path | str], masks: Sequence[Path | str] | None) -> None:
+    """A one-line ``IsADirectoryError`` for a folder among the frames or their masks (a pass
+    is often kept as a folder of frames; counted as one image it would read as "at least 2
+    images, got 1"): checked before any other work."""
+    from sq_mitsuba.data.masks import check_not_folder
+
+    for path in images:
+        check_not_folder(path, "image", f"give the pass's frames, e.g. {Path(path) / '*.png'}, "
+                         "in their order")
+    for path in masks or ():
+        check_not_folder(path, "mask", f"give one mask per frame, e.g. {Path(path) / '*.png'}, "
+                         "in the frames' order")
 
 
 def _remove_earlier_pass(out: Path, stems: set[str], colmap_written: bool) -> None:
@@ -189,11 +203,8 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
     from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer
 
     check_target_size(target_size)
+    check_frame_files(images, masks)
     paths = [Path(p) for p in images]
-    folders = [p for p in paths if p.is_dir()]
-    if folders:  # a pass kept as a folder of frames: said before "at least 2 images"
-        raise IsADirectoryError(f"image {folders[0]}: is a folder, not a file (give the "
-                                f"pass's frames, e.g. {folders[0] / '*.png'}, in their order)")
     if len(paths) < 2:
         raise ValueError(f"images: a sequence needs at least 2 images, got {len(paths)}")
     check_unique_stems(paths, "images", OUTPUTS_BY_STEM)
@@ -211,11 +222,6 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
     mask_paths = None if masks is None else [Path(m) for m in masks]
     given_masks = None
     if mask_paths is not None:
-        folders = [m for m in mask_paths if m.is_dir()]
-        if folders:
-            raise IsADirectoryError(f"mask {folders[0]}: is a folder, not a file (give one "
-                                    f"mask a frame, e.g. {folders[0] / '*.png'}, in the "
-                                    "frames' order)")
         if len(mask_paths) != len(paths):
             raise ValueError(f"mask: {len(mask_paths)} masks for {len(paths)} images (one per "
                              "frame, in their order)")

@@ -168,7 +168,7 @@ def _run(args: argparse.Namespace) -> int:
 
 def _run_sequence(args: argparse.Namespace) -> int:
     from sq_mitsuba.apps.predict import PredictOptions
-    from sq_mitsuba.apps.predict_sequence import predict_sequence_files
+    from sq_mitsuba.apps.predict_sequence import check_frame_files, predict_sequence_files
     from sq_mitsuba.cli import CLIError
     from sq_mitsuba.config import ConfigError, apply_overrides
     from sq_mitsuba.geometry.camera import Camera
@@ -192,6 +192,7 @@ def _run_sequence(args: argparse.Namespace) -> int:
     except ConfigError as error:
         raise CLIError(f"--fit {error}") from None
     single = config_from_args(PredictOptions, args)
+    check_frame_files(args.images, args.mask)  # before the counts below and the model's load
     camera = Camera.load(args.camera) if args.camera is not None else None
     relative = None
     if args.relative_rotations is not None:

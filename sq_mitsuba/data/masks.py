@@ -62,11 +62,13 @@ def _one_line(error: BaseException) -> str:
     return " ".join(str(error).split()) or type(error).__name__
 
 
-def check_not_folder(path: str | Path, what: str) -> None:
-    """A one-line ``IsADirectoryError`` (``<what> <path>: is a folder, not a file``) when
-    ``path`` is a folder: given where a file is expected, it is not "no such file"."""
+def check_not_folder(path: str | Path, what: str, hint: str = "") -> None:
+    """A one-line ``IsADirectoryError`` (``<what> <path>: is a folder, not a file``, then
+    `` (<hint>)`` where given) when ``path`` is a folder: given where a file is expected, it
+    is not "no such file"."""
     if Path(path).is_dir():
-        raise IsADirectoryError(f"{what} {path}: is a folder, not a file")
+        raise IsADirectoryError(f"{what} {path}: is a folder, not a file"
+                                + (f" ({hint})" if hint else ""))
 
 
 def read_gray_image(path: str | Path, what: str = "image") -> np.ndarray:
