@@ -233,3 +233,53 @@ def test_every_registered_term_has_its_own_name_on_the_progress_bar() -> None:
     assert len(set(shown)) == len(shown)
     assert short_term_name("surface_depth") != short_term_name("surface_normal")
     assert short_term_name("chamfer") == "chamf"
+
+
+def test_the_truth_renamed_to_the_readings_naming_is_the_same_truth():
+    """``loss.axis_names = "nearest"``: a reading whose shape is the true surface under
+    another naming of the body axes is scored against the truth in that naming (Chamfer near
+    0: only the samples inside another primitive are apart; the dataset's naming scores it
+    far), and the renamed truth is the same object seen
+    the same way: points in the camera frame unchanged (``R P`` applied to ``P^T x``), each
+    symmetry still mapping the renamed surface onto itself."""
+    from sq_mitsuba.geometry.assembly import Assembly
+    from sq_mitsuba.geometry.rotation import random_rotations
+    from sq_mitsuba.geometry.so3_grid import axis_turns
+    from sq_mitsuba.model.losses import counted_surface_samples
+    from sq_mitsuba.model.network import NetworkConfig, SuperquadricNet
+    from sq_mitsuba.training.loss_terms import renamed_to_reading
+
+    torch.manual_seed(2)
+    network = SuperquadricNet(NetworkConfig(image_size=32, num_primitives=2, latent_dim=16,
+                                            hidden_dim=16)).eval()
+    k = torch.tensor([[40.0, 0, 16], [0, 40.0, 16], [0, 0, 1]])
+    with torch.no_grad():
+        output = network(torch.rand(3, 1, 32, 32), k)
+    points, _ = counted_surface_samples(Assembly(output.assembly.params.double()), 3)
+    turns = axis_turns(torch.float32)[[0, 7, 17]]
+    # The truth in the dataset's names: x = P x' of the reading's own surface.
+    surface = (points @ turns.transpose(1, 2).double()).float()
+    rotation = random_rotations(3, torch.Generator().manual_seed(4))
+    half = torch.diag(torch.tensor([1.0, -1.0, -1.0]))
+    symmetries = torch.stack([torch.eye(3), half])[None].expand(3, -1, -1, -1)
+    batch = TrainingBatch(torch.rand(3, 1, 32, 32), torch.zeros(3, 1, 32, 32), rotation,
+                          torch.tensor([[0.0, 0.0, 3.0]] * 3), torch.arange(3), surface,
+                          torch.rand(3, 12, 3), torch.zeros(3, 12), symmetries)
+    renamed = renamed_to_reading(output, batch)
+    torch.testing.assert_close(renamed.surface_points, surface @ turns, atol=1e-6, rtol=0)
+    torch.testing.assert_close(renamed.rotation, rotation @ turns)
+    torch.testing.assert_close(renamed.surface_points @ renamed.rotation.transpose(1, 2),
+                               surface @ rotation.transpose(1, 2), atol=1e-5, rtol=0)
+    torch.testing.assert_close(renamed.occupancy_points @ renamed.rotation.transpose(1, 2),
+                               batch.occupancy_points @ rotation.transpose(1, 2),
+                               atol=1e-5, rtol=0)
+    turned_back = renamed.symmetries @ turns.transpose(1, 2)[:, None] @ \
+        symmetries.transpose(-1, -2) @ turns[:, None]
+    torch.testing.assert_close(turned_back, torch.eye(3).expand(3, 2, 3, 3))
+    dataset = LossConfig(weights={"chamfer": 1.0})
+    nearest = LossConfig(weights={"chamfer": 1.0}, axis_names="nearest")
+    by_dataset = compute_terms(output, batch, LossContext(dataset))["chamfer"]
+    by_reading = compute_terms(output, batch, LossContext(nearest))["chamfer"]
+    assert float(by_reading) < 0.1 * float(by_dataset), (by_reading, by_dataset)
+    with pytest.raises(ValueError, match="axis_names: 'nearest' renames"):
+        LossConfig(weights={"chamfer": 1.0, "parts": 1.0}, axis_names="nearest")
