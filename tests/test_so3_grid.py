@@ -14,7 +14,6 @@ from sq_mitsuba.geometry.so3_grid import (
     axis_turns,
     covering_angle_deg,
     half_turns,
-    nearest_axis_turn,
     nearest_grid_index,
     so3_grid,
     super_fibonacci_quaternions,
@@ -110,29 +109,3 @@ def test_axis_turns_are_the_cube_group() -> None:
     relabelled = rotations @ turns[torch.arange(2000) % 24]
     torch.testing.assert_close(rotation_error_deg(relabelled, rotations, turns),
                                torch.zeros(2000, dtype=torch.float64), atol=1e-4, rtol=0)
-
-
-def test_nearest_axis_turn_finds_the_naming_of_a_renamed_cloud() -> None:
-    """A reading that is the truth under another naming of its axes (``truth @ P``) gets that
-    P; a reading no nearer under any other naming than by the margin keeps the identity;
-    points that do not count (``keep`` False) do not decide."""
-    generator = torch.Generator().manual_seed(3)
-    truth = torch.randn(24, 300, 3, generator=generator, dtype=torch.float64)
-    truth = truth * torch.tensor([1.0, 0.5, 0.2], dtype=torch.float64) + \
-        torch.tensor([0.3, 0.1, 0.0], dtype=torch.float64)  # no symmetry of the cube group
-    turns = axis_turns()
-    keep = torch.ones(24, 300, dtype=torch.bool)
-    got = nearest_axis_turn(truth @ turns, keep, truth)
-    torch.testing.assert_close(got, turns)
-    # A sphere reads alike under every naming: two samplings of it keep the identity.
-    balls = torch.randn(2, 4, 2000, 3, generator=generator, dtype=torch.float64)
-    balls = balls / balls.norm(dim=-1, keepdim=True)
-    got = nearest_axis_turn(balls[0], torch.ones(4, 2000, dtype=torch.bool), balls[1])
-    torch.testing.assert_close(got, turns[:1].expand(4, 3, 3))
-    # Far outliers that do not count change nothing.
-    reading = torch.cat([truth[:2] @ turns[9], torch.full((2, 50, 3), 40.0,
-                                                         dtype=torch.float64)], 1)
-    keep = torch.cat([torch.ones(2, 300, dtype=torch.bool),
-                      torch.zeros(2, 50, dtype=torch.bool)], 1)
-    torch.testing.assert_close(nearest_axis_turn(reading, keep, truth[:2]),
-                               turns[9:10].expand(2, 3, 3))

@@ -30,7 +30,6 @@ __all__ = [
     "axis_turns",
     "covering_angle_deg",
     "half_turns",
-    "nearest_axis_turn",
     "nearest_grid_index",
     "so3_grid",
     "super_fibonacci_quaternions",
@@ -148,38 +147,3 @@ def with_half_turns(rotations: Tensor) -> Tensor:
     """
     turns = half_turns(rotations.dtype, rotations.device)
     return rotations[..., None, :, :] @ turns
-
-
-def nearest_axis_turn(points: Tensor, keep: Tensor, target: Tensor, margin: float = 0.9
-                      ) -> Tensor:
-    """Per item, the turn ``P`` of :func:`axis_turns` under which the target cloud, renamed
-    (``target @ P``, i.e. ``x' = P^T x``), lies nearest the cloud ``points``; the identity
-    unless another is nearer by the factor ``margin`` (a naming is changed only where the
-    points clearly read another).
-
-    Args:
-        points: (B, N, 3) a reading's surface samples; keep: (B, N) bool, those that count.
-        target: (B, K, 3) the true surface in its own naming.
-        margin: in (0, 1]; the symmetric mean nearest distance of a turn must be below
-            ``margin`` times the identity's.
-
-    Returns:
-        (B, 3, 3) the chosen turns, dtype of ``points``.
-    """
-    turns = axis_turns(points.dtype, points.device)  # (24, 3, 3), the identity first
-    target = target.to(points.dtype)
-    counted = keep.to(points.dtype)
-    # Squared distances by one product per turn (|p|^2 + |q|^2 - 2 p.q; P keeps |q|); the
-    # root only of the nearest ones.
-    squared_points = points.square().sum(-1, keepdim=True)  # (B, N, 1)
-    squared_target = target.square().sum(-1)[:, None]  # (B, 1, K)
-    costs = []
-    for turn in turns:  # one turn at a time: a (B, N, K) block, not 24 of them at once
-        squared = (squared_points + squared_target
-                   - 2 * points @ (target @ turn).transpose(-1, -2)).clamp_min(0)
-        to_target = squared.amin(-1).sqrt()
-        to_target = (to_target * counted).sum(-1) / counted.sum(-1).clamp_min(1)
-        costs.append(to_target + squared.amin(-2).sqrt().mean(-1))
-    costs = torch.stack(costs, -1)  # (B, 24)
-    costs[:, 1:] = costs[:, 1:] / margin  # the others must beat the identity by the margin
-    return turns[costs.argmin(-1)]

@@ -49,7 +49,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Literal
 
 import torch
@@ -58,7 +58,6 @@ from torch import Tensor
 
 from sq_mitsuba.config import bounds, in_range, positive
 from sq_mitsuba.geometry.assembly import Assembly
-from sq_mitsuba.geometry.so3_grid import nearest_axis_turn
 from sq_mitsuba.model.existence import existence_surface_samples
 from sq_mitsuba.model.losses import (
     chamfer_loss,
@@ -133,22 +132,11 @@ class LossConfig:
     to the mean of the shapes it might be) or Euclidean (each point pulled alike: towards
     their median; the evaluation's Chamfer-L1 is of this kind)."""
 
-    axis_names: Literal["dataset", "nearest"] = "dataset"
-    """The body axes' names the terms score against: the dataset's (x, y, z by the model's
-    extents), or per image the one of the 24 namings (which axis is x, y, z and which end is
-    "+") under which the true surface lies nearest the reading (by 10 %:
-    :func:`~sq_mitsuba.geometry.so3_grid.nearest_axis_turn`): where two extents are nearly
-    equal the dataset's names flip between alike spacecraft, and a reader scored against them
-    can only hedge. The points, rotation and symmetries of the batch are renamed together."""
-
     def __post_init__(self) -> None:
         unknown = sorted(set(self.weights) - set(LOSS_TERMS))
         if unknown:
             raise ValueError(f"unknown loss term {unknown[0]!r} in weights (known: "
                              f"{', '.join(LOSS_TERMS)})")
-        if self.axis_names == "nearest" and self.weights.get("parts", 0.0):
-            raise ValueError("axis_names: 'nearest' renames the truth per image, the parts "
-                             "term's fitted parts are in the dataset's names (weigh parts 0)")
 
     def enabled(self) -> tuple[str, ...]:
         """Names of the terms with a non-zero weight, in registry order."""
@@ -434,35 +422,7 @@ def compute_terms(output: NetworkOutput, batch: TrainingBatch, context: LossCont
     names = enabled_terms(context.loss) if names is None else names
     # Convention: a view-frame shape is scored in the body frame through the true rotation.
     output = output.with_true_rotation(batch.rotation.to(output.rotation))
-    if context.loss.axis_names == "nearest":
-        batch = renamed_to_reading(output, batch)
     return {name: LOSS_TERMS[name].function(output, batch, context) for name in names}
-
-
-def renamed_to_reading(output: NetworkOutput, batch: TrainingBatch) -> TrainingBatch:
-    """The batch's body-frame truth in the naming of its axes nearest each reading
-    (``LossConfig.axis_names``): with ``x = P x'``, points and normals ``@ P``, the rotation
-    ``R P`` and the symmetries ``P^T S P``; the image, mask and translation unchanged."""
-    if output.view_to_body is not None:
-        raise LossTermError("loss.axis_names: 'nearest' needs a body-frame shape "
-                            "(network.shape_frame 'body')")
-    with torch.no_grad():
-        points, keep = counted_surface_samples(Assembly(output.assembly.params.detach()), 1)
-        if output.existence is not None:  # the primitives the reading keeps
-            kept = (output.existence.detach() > 0.5).repeat_interleave(
-                points.shape[1] // output.existence.shape[1], dim=1)
-            keep = (keep & kept) | ~(keep & kept).any(1, keepdim=True)
-        target = batch.surface_points.to(points)
-        turn = nearest_axis_turn(points, keep, target[:, ::max(1, target.shape[1] // 500)])
-    turn = turn.to(batch.rotation)
-
-    def rename(points: Tensor | None) -> Tensor | None:
-        return None if points is None else points @ turn.to(points)
-    return replace(
-        batch, rotation=batch.rotation @ turn, surface_points=rename(batch.surface_points),
-        occupancy_points=rename(batch.occupancy_points),
-        surface_normals=rename(batch.surface_normals),
-        symmetries=turn.transpose(-1, -2)[:, None] @ batch.symmetries @ turn[:, None])
 
 
 def total_loss(terms: Mapping[str, Tensor], weights: LossConfig | Mapping[str, float]
