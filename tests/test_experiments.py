@@ -150,12 +150,19 @@ def test_generalisation_row_reads_the_four_evaluations(tmp_path):
         "| n | 0.1200 (no baseline) | 0.0500 (no baseline) | 0.500 / - |")
 
 
-def test_generalisation_script_refuses_bad_arguments_before_any_work(tmp_path):
-    """A wrong argument count or a missing checkpoint: one line, exit 2, no test set made."""
+def test_generalisation_script_refuses_bad_arguments_before_any_work(tmp_path,
+                                                                    eval_checkpoint):
+    """A wrong argument count, a missing or unreadable checkpoint, or one that stores no
+    trivial baseline (a training run's, not exported): one line, exit 2, no test set made."""
     script = str(EXPERIMENTS / "generalisation.sh")
+    corrupt = tmp_path / "corrupt.pt"
+    corrupt.write_bytes(b"not a checkpoint")
     for argv, message in (([str(tmp_path / "work")], "usage:"),
                           ([str(tmp_path / "work"), str(tmp_path / "absent.pt"), "x"],
-                           "checkpoint not found")):
+                           "checkpoint not found"),
+                          ([str(tmp_path / "work"), str(corrupt), "x"], f"{corrupt}: "),
+                          ([str(tmp_path / "work"), str(eval_checkpoint), "x"],
+                           "stores no trivial baseline")):
         result = subprocess.run(["bash", script, *argv], capture_output=True, text=True,
                                 timeout=60)
         assert result.returncode == 2 and message in result.stderr

@@ -3,6 +3,9 @@
 #
 #   eval/experiments/generalisation.sh WORK CHECKPOINT NAME
 #
+# CHECKPOINT: an inference checkpoint that stores its trivial baseline (`sq-mitsuba export
+# --checkpoint RUN/last.pt --data TRAINING_DATA`; the shipped model does), checked first.
+#
 # (1) Once per WORK, the two test sets (every later call reuses them; nothing is trained on
 #     either):
 #     - WORK/heldout/data, the leave-family-out set: 100 models of the three held-out
@@ -28,6 +31,23 @@ HERE=$(cd "$(dirname "$0")" && pwd)
 SQ=${SQ:-$HERE/../../.venv/bin/sq-mitsuba}
 WORKERS=${WORKERS:-2}
 [ -f "$CHECKPOINT" ] || { echo "$0: checkpoint not found: $CHECKPOINT" >&2; exit 2; }
+# Before any test set is made: the held-out set has no training images, so every figure is
+# set against the trivial baseline the checkpoint stores (`sq-mitsuba export --data`); a
+# training run's own checkpoint (RUN/last.pt) stores none.
+PY=${PY:-$HERE/../../.venv/bin/python}
+"$PY" - "$CHECKPOINT" "$0" <<'CHECK' || exit 2
+import sys
+from sq_mitsuba.model.checkpoint import checkpoint_baseline, read_checkpoint
+path, script = sys.argv[1:]
+try:
+    baseline = checkpoint_baseline(read_checkpoint(path), path)
+except ValueError as error:
+    sys.exit(f"{script}: {error}")
+if baseline is None:
+    sys.exit(f"{script}: {path}: stores no trivial baseline (a training run's checkpoint?); "
+             "export it with one first: sq-mitsuba export --checkpoint RUN/last.pt --data "
+             "TRAINING_DATA --out MODEL.pt")
+CHECK
 mkdir -p "$WORK/eval"
 rows() { [ -f "$1" ] && [ "$(wc -l < "$1")" -ge "$2" ]; }  # FILE N: a library of N models
 
