@@ -660,6 +660,39 @@ def test_an_interrupt_in_an_epochs_last_step_leaves_its_validation_to_resume(
             assert row[key] == expected[key], (row["step"], key, row[key], expected[key])
 
 
+def test_an_interrupt_landing_after_the_save_waits_for_the_next_step(train_dataset, cache_dir,
+                                                                      tmp_path, monkeypatch):
+    """Ctrl-C landing just after the loop decided not to save step 5 (as the signal can, at
+    any instruction): the run goes on to step 6, saves it and stops there; it never stops at
+    a step it has not saved (it stopped at 5 with last.pt at 4, the log a step ahead)."""
+    from sq_mitsuba.training import train as train_module
+    from sq_mitsuba.training.run.interrupt import StepInterrupt
+
+    class LandsAfterTheFifthRead(StepInterrupt):
+        reads = 0
+
+        @property
+        def stop(self) -> bool:
+            value = super().stop
+            if self.pending is None:
+                steps = len(_rows(out / "log.csv")) if (out / "log.csv").is_file() else 0
+                if steps == 5:
+                    LandsAfterTheFifthRead.reads += 1
+                    if LandsAfterTheFifthRead.reads == 1:
+                        self._hold(signal.SIGINT, None)  # what the signal handler does
+            return value
+
+    monkeypatch.setattr(train_module, "StepInterrupt", LandsAfterTheFifthRead)
+    out = tmp_path / "run"
+    config = apply_overrides(load_train_config(TINY), [f"data.cache_dir={cache_dir}",
+                                                      "optim.epochs=3"])
+    with pytest.raises(KeyboardInterrupt):
+        train(config, train_dataset, out, progress=False)
+    assert LandsAfterTheFifthRead.reads == 1
+    saved = int(_read_checkpoint(out / "last.pt")["step"])
+    assert saved == len(_rows(out / "log.csv")) == 6
+
+
 def test_a_run_stopped_before_its_first_checkpoint_starts_over(train_dataset, cache_dir,
                                                                 tmp_path, capsys):
     """A folder with a run's config and logs but no checkpoint (killed before its first) holds

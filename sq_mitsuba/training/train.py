@@ -395,7 +395,10 @@ class _Loop:
                 # Every process stops at the same step (rank 0's clock decides).
                 out_of_time = stop_at is not None and done < end_step and bool(
                     broadcast_object(time.perf_counter() >= stop_at, world))
-                if done == end_step or out_of_time or interrupt.stop or (
+                # Read once: a signal landing between the save and the stop would otherwise
+                # end the run without saving the step it lands after (it waits for the next).
+                stopping = interrupt.stop
+                if done == end_step or out_of_time or stopping or (
                         epoch_end and cfg.checkpoint_each_epoch) or (
                         cfg.checkpoint_every and done % cfg.checkpoint_every == 0):
                     self.save(LAST, done)
@@ -403,7 +406,7 @@ class _Loop:
                     barrier(world)
                 if out_of_time:
                     break
-                if interrupt.stop:
+                if stopping:
                     if self.best is None:
                         self._best_is_last(result)
                     raise KeyboardInterrupt
