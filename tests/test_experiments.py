@@ -4,6 +4,7 @@ the tiny fixture dataset), so the commands the card gives keep working."""
 from __future__ import annotations
 
 import csv
+import os
 import re
 import shutil
 import subprocess
@@ -153,21 +154,41 @@ def test_generalisation_row_reads_the_four_evaluations(tmp_path):
 def test_generalisation_script_refuses_bad_arguments_before_any_work(tmp_path,
                                                                     eval_checkpoint):
     """A wrong argument count, a missing or unreadable checkpoint, or one that stores no
-    trivial baseline (a training run's, not exported): one line, exit 2, no test set made."""
+    trivial baseline (a training run's, not exported): one line, exit 2, no test set made;
+    the same checkpoint with a baseline gets past the check."""
+    from sq_mitsuba.model.checkpoint import (
+        checkpoint_network_config,
+        read_checkpoint,
+        write_checkpoint,
+    )
+
     script = str(EXPERIMENTS / "generalisation.sh")
+    env = {**os.environ, "PY": sys.executable}
     corrupt = tmp_path / "corrupt.pt"
     corrupt.write_bytes(b"not a checkpoint")
     for argv, message in (([str(tmp_path / "work")], "usage:"),
                           ([str(tmp_path / "work"), str(tmp_path / "absent.pt"), "x"],
                            "checkpoint not found"),
-                          ([str(tmp_path / "work"), str(corrupt), "x"], f"{corrupt}: "),
+                          ([str(tmp_path / "work"), str(corrupt), "x"],
+                           "not a readable checkpoint"),
                           ([str(tmp_path / "work"), str(eval_checkpoint), "x"],
                            "stores no trivial baseline")):
         result = subprocess.run(["bash", script, *argv], capture_output=True, text=True,
-                                timeout=60)
-        assert result.returncode == 2 and message in result.stderr
+                                timeout=60, env=env)
+        assert result.returncode == 2 and message in result.stderr, result.stderr
         assert result.stderr.strip().count("\n") == 0
         assert not (tmp_path / "work").exists()
+    payload = read_checkpoint(eval_checkpoint)
+    primitives = checkpoint_network_config(payload, "eval_checkpoint").num_primitives
+    payload["baseline"] = {"raw": torch.zeros(1, primitives, 16),
+                           "rotation": torch.eye(3)[None], "translation": torch.zeros(1, 3)}
+    exported = write_checkpoint(tmp_path / "exported.pt", payload)
+    # SQ=false: the first step after the checks (making the test sets) fails at once.
+    result = subprocess.run(["bash", script, str(tmp_path / "work"), str(exported), "x"],
+                            capture_output=True, text=True, timeout=60,
+                            env={**env, "SQ": "false"})
+    assert result.returncode not in (0, 2) and (tmp_path / "work" / "eval").is_dir(), \
+        result.stderr
 
 
 def test_body_frame_limits_scores_the_reading_five_ways(train_dataset, eval_checkpoint):

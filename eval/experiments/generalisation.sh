@@ -22,7 +22,8 @@
 # Environment: SQ (the command; default .venv/bin/sq-mitsuba), WORKERS (render processes,
 # default 2), REFINED (0 skips the two refined evaluations: the network's figures in a tenth
 # of the time), TURNS (the network's rows read from that many turned copies of each image,
-# `eval --turns`; default 1). Every step is skipped when its output is there, so an
+# `eval --turns`; default 1), PY (the Python that checks the checkpoint first; default
+# .venv/bin/python). Every step is skipped when its output is there, so an
 # interrupted call resumes.
 set -euo pipefail
 [ $# -eq 3 ] || { echo "usage: $0 WORK CHECKPOINT NAME" >&2; exit 2; }
