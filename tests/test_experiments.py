@@ -153,9 +153,10 @@ def test_generalisation_row_reads_the_four_evaluations(tmp_path):
 
 def test_generalisation_script_refuses_bad_arguments_before_any_work(tmp_path,
                                                                     eval_checkpoint):
-    """A wrong argument count, a missing or unreadable checkpoint, or one that stores no
-    trivial baseline (a training run's, not exported): one line, exit 2, no test set made;
-    the same checkpoint with a baseline gets past the check."""
+    """A wrong argument count, a missing checkpoint, or one that stores no trivial baseline (a
+    training run's, not exported): one line, exit 2, no test set made; the same checkpoint
+    with a baseline gets past the check. (An unreadable file takes the check's other exit, the
+    reader's one-line error: ``read_checkpoint``'s own tests.)"""
     from sq_mitsuba.model.checkpoint import (
         checkpoint_network_config,
         read_checkpoint,
@@ -164,13 +165,9 @@ def test_generalisation_script_refuses_bad_arguments_before_any_work(tmp_path,
 
     script = str(EXPERIMENTS / "generalisation.sh")
     env = {**os.environ, "PY": sys.executable}
-    corrupt = tmp_path / "corrupt.pt"
-    corrupt.write_bytes(b"not a checkpoint")
     for argv, message in (([str(tmp_path / "work")], "usage:"),
                           ([str(tmp_path / "work"), str(tmp_path / "absent.pt"), "x"],
                            "checkpoint not found"),
-                          ([str(tmp_path / "work"), str(corrupt), "x"],
-                           "not a readable checkpoint"),
                           ([str(tmp_path / "work"), str(eval_checkpoint), "x"],
                            "stores no trivial baseline")):
         result = subprocess.run(["bash", script, *argv], capture_output=True, text=True,
