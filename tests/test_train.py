@@ -668,27 +668,26 @@ def test_an_interrupt_landing_after_the_save_waits_for_the_next_step(train_datas
     from sq_mitsuba.training import train as train_module
     from sq_mitsuba.training.run.interrupt import StepInterrupt
 
-    class LandsAfterTheFifthRead(StepInterrupt):
-        reads = 0
+    class LandsAfterTheRead(StepInterrupt):
+        landed = False
 
         @property
         def stop(self) -> bool:
             value = super().stop
-            if self.pending is None:
-                steps = len(_rows(out / "log.csv")) if (out / "log.csv").is_file() else 0
-                if steps == 5:
-                    LandsAfterTheFifthRead.reads += 1
-                    if LandsAfterTheFifthRead.reads == 1:
-                        self._hold(signal.SIGINT, None)  # what the signal handler does
+            log = out / "log.csv"
+            # Step 5 (not an epoch's end) reads the flag once, for its save.
+            if self.pending is None and log.is_file() and len(_rows(log)) == 5:
+                LandsAfterTheRead.landed = True
+                self._hold(signal.SIGINT, None)  # what the signal handler does
             return value
 
-    monkeypatch.setattr(train_module, "StepInterrupt", LandsAfterTheFifthRead)
+    monkeypatch.setattr(train_module, "StepInterrupt", LandsAfterTheRead)
     out = tmp_path / "run"
     config = apply_overrides(load_train_config(TINY), [f"data.cache_dir={cache_dir}",
                                                       "optim.epochs=3"])
     with pytest.raises(KeyboardInterrupt):
         train(config, train_dataset, out, progress=False)
-    assert LandsAfterTheFifthRead.reads == 1
+    assert LandsAfterTheRead.landed
     saved = int(_read_checkpoint(out / "last.pt")["step"])
     assert saved == len(_rows(out / "log.csv")) == 6
 
