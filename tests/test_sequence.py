@@ -863,9 +863,9 @@ def test_predict_sequence_cli_fits_the_masks_it_is_given(eval_checkpoint, train_
     assert not (tmp_path / "o").exists()
 
 
-def test_the_dataset_body_frame_changes_the_frame_not_the_posed_surface(eval_checkpoint,
-                                                                       train_dataset):
-    """``canonical``: the shared assembly re-expressed in the dataset's body frame, every
+def test_the_box_body_frame_changes_the_frame_not_the_posed_surface(eval_checkpoint,
+                                                                   train_dataset):
+    """``canonical``: the shared assembly re-expressed in its oriented box's body frame, every
     pose carried along, so each frame's posed surface is the one the fit found (two fits on
     one Dr.Jit thread, bit-identical up to that last step)."""
     from PIL import Image

@@ -1,5 +1,5 @@
 """One body frame for the readings of N frames of one spacecraft (step 2 of
-:mod:`sq_mitsuba.inference.sequence`), and the dataset's body frame for an assembly (step 4).
+:mod:`sq_mitsuba.inference.sequence`), and an oriented-box body frame for an assembly (step 4).
 
 Each frame's reading lies in a body frame fixed only up to the four half turns (the principal
 axes' signs cannot be seen): :func:`align_half_turns` chooses them by shape,
@@ -7,8 +7,8 @@ axes' signs cannot be seen): :func:`align_half_turns` chooses them by shape,
 (frames in no known order), :func:`align_half_turns_in_order` by shape and smooth motion for
 frames in order, :func:`align_half_turns_by_relative` by given rotations between the frames, and
 :func:`along_motion` puts frames in order on the one constant-rate turn most of them agree
-with. :func:`canonical_frame` and :func:`reframed` express an assembly in the processed
-models' convention.
+with. :func:`canonical_frame` and :func:`reframed` express an assembly in the convention of
+models processed with ``--align obb``.
 
 Convention: poses map body to camera, ``x_cam = R x_body``; a half turn ``S`` acts on the body
 side (``R S``); tensors are float64 on the CPU.
@@ -223,9 +223,11 @@ def align_half_turns_in_order(assembly: Assembly, rotation: Tensor, reference: i
 
 
 def canonical_frame(assembly: Assembly, level: int = 3) -> tuple[Tensor, Tensor]:
-    """The body frame of the dataset convention for an assembly (batch size 1): its
-    minimum-volume oriented box's axes ordered by extent (largest on x, then y, then z; a
-    proper rotation), centred on its centre of mass.
+    """The body frame of models processed with ``--align obb`` for an assembly (batch size 1):
+    its minimum-volume oriented box's axes ordered by extent (largest on x, then y, then z; a
+    proper rotation), centred on its centre of mass. Not the default ``--align axes`` models'
+    frame (the axes they were built along), from which a spacecraft's box is often turned
+    tens of degrees by its appendages.
 
     Returns:
         ``P`` (3, 3) and ``c`` (3,) float64 such that ``x_canonical = P (x - c)``.
