@@ -275,6 +275,10 @@ def test_the_demos_pass_is_scored_from_the_files_it_shows(demo):
     rotation = quaternion_to_matrix(torch.tensor([p["q_vbs2tango"] for p in poses],
                                                  dtype=torch.float64))
     translation = torch.tensor([p["r_Vo2To_vbs"] for p in poses], dtype=torch.float64)
+    # Each pose names its frame from the demo's folder (written elsewhere first), as the
+    # single images' do.
+    assert all((out / p["image"]).is_file() and not Path(p["image"]).is_absolute()
+               for p in poses)
     renderer = SilhouetteRenderer(camera, spp=DemoOptions().silhouette_spp)
     drawn = render_assembly(Assembly(assembly.params.double().expand(frames, -1, -1)), rotation,
                             translation, renderer, DemoOptions().level).numpy() > 0.5

@@ -552,7 +552,7 @@ def test_a_multi_frame_gif_is_refused(eval_checkpoint, tmp_path, capsys):
     assert not out.exists()
 
 
-SPEED = {"Nu": 256, "Nv": 256, "ppx": 5.86e-6, "ppy": 5.86e-6, "fx": 0.0176, "fy": 0.0176,
+SPEED = {"Nu": 256, "Nv": 256, "ppx": 4.4e-5, "ppy": 4.4e-5, "fx": 0.0176, "fy": 0.0176,
          "cameraMatrix": [[400.0, 0.0, 128.0], [0.0, 400.0, 128.0], [0.0, 0.0, 1.0]],
          "distCoeffs": [0, 0, 0, 0, 0]}
 
@@ -566,6 +566,9 @@ SPEED = {"Nu": 256, "Nv": 256, "ppx": 5.86e-6, "ppy": 5.86e-6, "fx": 0.0176, "fy
      r"cameraMatrix's last row is \[0.0, 0.0, 2.0\]; an intrinsic matrix's is \[0, 0, 1\]"),
     ({"cameraMatrix": [["400", 0.0, 128.0], [0.0, 400.0, 128.0], [0.0, 0.0, 1.0]]},
      r"cameraMatrix\[0\]\[0\] must be a number, got '400' \(a string"),
+    ({"fx": 0.02}, r"fx / ppx = 454.545 px, but cameraMatrix\[0\]\[0\] = 400 px; the matrix "
+                   "is what is read: make the two agree, or remove fx"),
+    ({"ccy": 100}, r"ccy = 100 px, but cameraMatrix\[1\]\[2\] = 128 px"),
     ({"Nu": 256.5}, r"Nu must be a whole number of pixels, got 256.5"),
     ({"Nv": "256"}, r"Nv must be a number, got '256' \(a string"),
 ])
@@ -682,3 +685,32 @@ def test_read_turns_and_refine_refuse_a_reading_of_other_images(scenes, shipped,
     network = tiny.predict(other)
     with pytest.raises(ValueError, match=r"^network: a reading of other images than these 2"):
         tiny.refine(images, network)
+
+
+def test_pixels_a_viewer_would_show_otherwise_are_read_as_stored_with_a_warning(tmp_path):
+    """An EXIF orientation is not applied (a camera calibrated on the sensor's raster stays
+    the image's camera), and a 16-bit file holding 12-bit data is read on the 16-bit range:
+    both say so in one line, and the pixels are the file's own."""
+    from sq_mitsuba.data.masks import read_gray_image
+
+    pixels = np.zeros((24, 32), np.uint8)
+    pixels[4:10, 6:20] = 200
+    image = Image.fromarray(pixels)
+    exif = image.getexif()
+    exif[274] = 6  # a phone held upright: the viewer turns the stored pixels 90 deg clockwise
+    image.save(tmp_path / "portrait.jpg", exif=exif, quality=100)
+    with pytest.warns(UserWarning, match=r"portrait.jpg: its EXIF orientation \(turned 90 deg "
+                                         r"clockwise\) is not applied: read as stored, 32 x 24 px"):
+        read = read_gray_image(tmp_path / "portrait.jpg")
+    assert read.shape == (24, 32) and read[6, 10] > 0.7 and read[20, 28] < 0.05
+    twelve = np.zeros((16, 16), np.uint16)
+    twelve[4:12, 4:12] = 4000  # bright in 12 bits, 6 % of 16
+    Image.fromarray(twelve).save(tmp_path / "twelve.png")
+    with pytest.warns(UserWarning, match="a 16-bit image whose brightest pixel is 4000 of 65535"):
+        assert read_gray_image(tmp_path / "twelve.png").max() == pytest.approx(4000 / 65535)
+    with warnings.catch_warnings():  # a full 16-bit image and a plain 8-bit one: no word
+        warnings.simplefilter("error")
+        Image.fromarray(twelve * 16).save(tmp_path / "sixteen.png")
+        read_gray_image(tmp_path / "sixteen.png")
+        Image.fromarray(pixels).save(tmp_path / "plain.jpg")
+        read_gray_image(tmp_path / "plain.jpg")

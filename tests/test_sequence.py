@@ -7,6 +7,7 @@ readings made by turning a known assembly by known half turns."""
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -627,6 +628,23 @@ def test_predict_sequence_cli_writes_one_assembly_and_a_pose_per_frame(eval_chec
                                    atol=0.025 * spread)
         rotation = quaternion_to_matrix(torch.tensor(pose["q_vbs2tango"], dtype=torch.float64))
         assert float(rotation_error_deg(rotation[None], direct.rotation[k:k + 1].double())) < 1
+    # A single image predicted into the pass's folder would replace a frame's pose with one
+    # of another assembly: refused before any work, the frame's files as they were.
+    frame_pose = (out / f"{images[0].stem}.pose.json").read_bytes()
+    capsys.readouterr()
+    assert main(["predict", str(images[0]), "--checkpoint", str(eval_checkpoint), "--out",
+                 str(out), "--quiet"]) == 2
+    assert error_line(capsys) == (f"sq-mitsuba predict: error: out {out}: {images[0].stem}"
+                                  f".pose.json is a frame of the pass in this folder (sequence."
+                                  f"assembly.json); a single image's prediction would replace "
+                                  f"its pose with one of another assembly: choose another --out")
+    assert (out / f"{images[0].stem}.pose.json").read_bytes() == frame_pose
+    assert not (out / f"{images[0].stem}.assembly.json").exists()
+    # --mask before the images takes them all: said so, not "IMAGE is required".
+    assert main(["predict", "--mask", *map(str, images), "--sequence", "--checkpoint",
+                 str(eval_checkpoint), "--out", str(tmp_path / "k")]) == 2
+    assert error_line(capsys).startswith("sq-mitsuba predict: error: IMAGE: none given; --mask "
+                                         f"took every path after it ({images[0]}, ")
     assert main(["predict", str(images[0]), "--ordered", "--checkpoint", str(eval_checkpoint),
                  "--out", str(tmp_path / "x")]) == 2
     assert main(["predict", str(images[0]), "--sequence", "--checkpoint",
@@ -699,7 +717,7 @@ def test_predict_sequence_cli_writes_one_assembly_and_a_pose_per_frame(eval_chec
     assert main(["predict", *map(str, wide), "--sequence", "--checkpoint",
                  str(eval_checkpoint), "--out", str(tmp_path / "r")]) == 2
     assert f"image {wide[0]}: 64 x 48 px, another aspect ratio" in error_line(capsys)
-    assert all(not (tmp_path / name).exists() for name in "xyzwvutsrqponm")
+    assert all(not (tmp_path / name).exists() for name in "xyzwvutsrqponmk")
 
 
 @pytest.mark.slow  # end to end: `make test` runs it, `make test-fast` not
@@ -998,3 +1016,21 @@ def test_frames_named_with_spaces_get_every_file_but_the_colmap_model(eval_check
     assert not (tmp_path / "out" / "colmap").exists()
     assert (tmp_path / "out" / "frame 0.pose.json").is_file()
     assert all(path.is_file() for path in record.files)
+
+
+def test_frames_out_of_their_names_numeric_order_are_named_in_a_warning():
+    """A shell glob gives frame_10 before frame_2: an ordered pass is warned, naming the
+    first frame out of order; frames in numeric order (or named without numbers) are not."""
+    import warnings
+
+    from sq_mitsuba.apps.predict_sequence import check_frame_order
+
+    globbed = [Path(f"pass/frame_{k}.png") for k in (1, 10, 11, 2, 3)]
+    with pytest.warns(UserWarning, match=r"image pass/frame_2.png: given after frame_11.png, "
+                                         r"but its name's number says it comes before"):
+        check_frame_order(globbed)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        check_frame_order(sorted(globbed, key=lambda p: int(p.stem.split("_")[1])))
+        check_frame_order([Path("a.png"), Path("b.png"), Path("img_000009.png"),
+                           Path("img_000010.png")])

@@ -136,8 +136,11 @@ def run_pass(predictor: Any, data: Path, root: Path, surface_points: int, volume
     (model_index, _), items = next(iter(pass_groups(dataset).items()))
     paths = [dataset.image_file(item) for item in items]
     predictor = with_fast_path(predictor, True, min_target=0.0)  # every frame shows the target
+    # pose.json names each frame from the demo's folder, as the single images' do: ``root``
+    # (the demo's pass folder) is written in a staging folder first.
+    names = [path.relative_to(root.parent).as_posix() for path in paths]
     written = predict_sequence_files(paths, root / "sequence", predictor, camera=dataset.camera,
-                                     ordered=True, progress=progress)
+                                     ordered=True, progress=progress, image_names=names)
     result = written.result
     own = result.frames
     count = len(items)

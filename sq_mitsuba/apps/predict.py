@@ -43,6 +43,9 @@ stem left by an earlier run are removed, so the folder does not hold a pose of n
 printed line says "no target", and the command still succeeds (exit code 0).
 ``--set min_target=0`` takes every image for a target.
 
+A folder a pass was predicted into (``predict --sequence``) keeps its frames: an image whose
+stem names one of its poses is refused, before any work (:func:`check_not_a_pass_frame`).
+
 Units (``target_size``): the network reads every target at the dataset's unit size (the
 longest side of its aligned box 1); a target L metres long at the same pose is the scene
 scaled by L about the camera, the same image. With ``target_size`` L the assembly's files and
@@ -249,8 +252,8 @@ def _check_inputs(paths: list[Path], camera: Any, masks: list[Path] | None,
         padding = padding_to_aspect(picture.shape[1], picture.shape[0], camera)
         if padding is not None and not pad:
             raise ValueError(f"image {path}: {picture.shape[1]} x {picture.shape[0]} px has "
-                             f"another aspect ratio than the camera's {camera.width} x "
-                             f"{camera.height}; pass the images' own camera (--camera)")
+                             f"another aspect ratio than the camera given ({camera.width} x "
+                             f"{camera.height}): give the images' own camera")
         if padding is not None and (padding.padded_width * padding.padded_height
                                     > MAX_PADDING_GROWTH * picture.size):
             raise ValueError(f"image {path}: {picture.shape[1]} x {picture.shape[0]} px is too "
@@ -331,6 +334,26 @@ class _Inputs:
         return None
 
 
+def check_not_a_pass_frame(out: Path, paths: Sequence[Path]) -> None:
+    """A one-line ``ValueError`` when an image's pose file in ``out`` is a frame of a pass
+    (``predict --sequence`` wrote it, with a ``"sequence"`` entry): a single image's pose there
+    would be of another assembly than the pass's ``sequence.assembly.json`` and COLMAP model
+    beside it, which would then disagree with the folder's own files."""
+    import json
+
+    for path in paths:
+        pose = out / f"{path.stem}.pose.json"
+        try:
+            earlier = json.loads(pose.read_text(encoding="utf-8"))
+        except (OSError, ValueError):  # none, or not one a pass wrote: replaced as before
+            continue
+        if isinstance(earlier, dict) and "sequence" in earlier:
+            raise ValueError(f"out {out}: {pose.name} is a frame of the pass in this folder "
+                             f"(sequence.assembly.json); a single image's prediction would "
+                             f"replace its pose with one of another assembly: choose another "
+                             f"--out")
+
+
 def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
                   options: PredictOptions | None = None, camera: Any = None,
                   masks: list[str | Path] | None = None,
@@ -380,6 +403,7 @@ def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
     out = check_output_folder(out_dir, [f"{path.stem}{suffix}" for path in paths
                                         for suffix in OUTPUT_SUFFIXES],
                               keep=[*paths, *(mask_paths or []), *other_inputs])
+    check_not_a_pass_frame(out, paths)
     predictor = with_fast_path(predictor, options.fast, min_target=options.min_target,
                                min_existence=options.min_existence)
 
@@ -495,9 +519,8 @@ def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
             "checkpoint": str(getattr(predictor, "source", None) or ""),
             "refined": options.refine, "network_ms": round(record.network_ms, 3),
         })
-        turns = reading_turns(image_camera)
-        if turns > 1:
-            pose["turns"] = turns  # the network's reading, from that many copies
+        # The network's reading, from that many turned copies (1: the image alone).
+        pose["turns"] = reading_turns(image_camera)
         hypotheses = _rotation_hypotheses(reading)
         if hypotheses is not None:
             pose["rotation_hypotheses"] = hypotheses

@@ -32,6 +32,7 @@ stay, as ``sq-mitsuba predict`` leaves them.
 
 from __future__ import annotations
 
+import itertools
 import math
 import re
 import time
@@ -44,7 +45,8 @@ from typing import Any
 import numpy as np
 import torch
 
-__all__ = ["SequenceRecord", "check_frame_files", "predict_sequence_files"]
+__all__ = ["SequenceRecord", "check_frame_files", "check_frame_order",
+           "predict_sequence_files"]
 
 
 def check_frame_files(images: Sequence[Path | str], masks: Sequence[Path | str] | None) -> None:
@@ -59,6 +61,25 @@ def check_frame_files(images: Sequence[Path | str], masks: Sequence[Path | str] 
     for path in masks or ():
         check_not_folder(path, "mask", f"give one mask per frame, e.g. {Path(path) / '*.png'}, "
                          "in the frames' order")
+
+
+def _natural_key(name: str) -> tuple[tuple[int, int | str], ...]:
+    """``name``'s sort key with its runs of digits as numbers (``frame_2`` before ``frame_10``)."""
+    return tuple((0, int(part)) if part.isdigit() else (1, part.lower())
+                 for part in re.split(r"(\d+)", name) if part)
+
+
+def check_frame_order(paths: Sequence[Path]) -> None:
+    """Warn (one line) when frames given in order are not in their names' numeric order: a
+    shell glob sorts ``frame_10`` before ``frame_2``, and a pass taken in that order is fitted
+    on a wrong motion, its silhouettes none the worse to show it."""
+    for before, after in itertools.pairwise(paths):
+        if _natural_key(after.name) < _natural_key(before.name):
+            warnings.warn(f"image {after}: given after {before.name}, but its name's number says "
+                          "it comes before; the pass takes the frames in the order given (a "
+                          "shell glob sorts frame_10 before frame_2: sort them with `ls -v`)",
+                          stacklevel=3)
+            return
 
 
 def _remove_earlier_pass(out: Path, stems: set[str], colmap_written: bool) -> None:
@@ -157,7 +178,8 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
                            other_inputs: Sequence[str | Path] = (),
                            masks: Sequence[str | Path] | None = None,
                            progress: bool = False,
-                           target_size: float | None = None) -> SequenceRecord:
+                           target_size: float | None = None,
+                           image_names: Sequence[str] | None = None) -> SequenceRecord:
     """Predict one assembly and every pose from ``images`` (frames of one spacecraft) and write
     the files of the module docstring into ``out_dir``. ``other_inputs``: the run's other
     input files (the checkpoint, a camera or rotations file), refused if an output would
@@ -165,7 +187,9 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
     network's masks (default: the network's mask head, or the segmentation). ``progress``:
     show the stage in progress. ``target_size``: the target's longest side in metres, when
     known: the assembly and the translations written are scaled to it (``PredictOptions``'
-    field of that name; default: unit size).
+    field of that name; default: unit size). ``image_names``: what each frame's
+    ``pose.json`` records as its ``"image"``, in their order (default: the path given; the
+    demo gives paths relative to its output folder, which it writes elsewhere first).
 
     Raises:
         ValueError: one line naming the image or argument: fewer than two images, sizes that
@@ -208,6 +232,10 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
     if len(paths) < 2:
         raise ValueError(f"images: a sequence needs at least 2 images, got {len(paths)}")
     check_unique_stems(paths, "images", OUTPUTS_BY_STEM)
+    if image_names is not None and len(image_names) != len(paths):
+        raise ValueError(f"image_names: {len(image_names)} names for {len(paths)} images")
+    if ordered:
+        check_frame_order(paths)
     given = predictor.camera if camera is None else camera
     memory = available_memory()
     for path in paths:  # every frame is held at once: each gets its share of the memory
@@ -231,10 +259,11 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
                 raise ValueError(f"mask {mask_path}: {mask.shape[1]} x {mask.shape[0]} px, the "
                                  f"frames are {width} x {height} px")
     if padding_to_aspect(width, height, given) is not None:  # the single image's test
-        where = "the checkpoint's camera" if camera is None else "the camera given"
+        where, fix = (("the checkpoint's camera", "give the frames' own camera (--camera)")
+                      if camera is None else ("the camera given", "give the frames' own camera"))
         raise ValueError(f"image {paths[0]}: {width} x {height} px, another aspect ratio than "
                          f"{where} ({given.width} x {given.height}); a pass is not padded to "
-                         "it: give the frames' own camera (--camera)")
+                         f"it: {fix}")
     # COLMAP's text lines are split at white space: such names get no model (said now).
     spaced = [path.name for path in paths if any(c.isspace() for c in path.name)]
     if spaced:
@@ -285,7 +314,8 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
         # The target fields as `predict` records them (the network's call); every frame is
         # fitted all the same: one it sees no target in is refused unless its mask is given.
         pose = {
-            "image": str(path), "width": image_camera.width, "height": image_camera.height,
+            "image": str(path) if image_names is None else image_names[k],
+            "width": image_camera.width, "height": image_camera.height,
             "target": True if scores is None else bool(float(scores[k]) >= threshold),
             "target_score": None if scores is None else float(scores[k]),
             "min_target": threshold,

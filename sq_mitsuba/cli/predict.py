@@ -35,11 +35,13 @@ false and no pose (other files of that stem are removed), and it is not refined;
 still succeeds. pose.json records "target", "target_score" and "min_target" for every image.
 
 Images: any size; RGB and palette images are converted to grey (luminance), an alpha channel
-composites them on black, 16-bit images keep their range. The camera is the checkpoint's
-(the dataset's), rescaled to each image, unless --camera gives the images' own (SPEED-style
-camera.json). Without --camera, an image of another aspect ratio is padded with black to the
-camera's (its field of view then lies across the image's longer side; pose.json records the
-camera of the image's own pixels and a warning); with --camera it is an error naming the file.
+composites them on black, 16-bit images keep their range (12- or 10-bit data in a 16-bit file
+reads dark: a warning says so), an EXIF orientation is not applied (a warning). The camera is
+the checkpoint's (the dataset's), rescaled to each image, unless --camera gives the images' own
+(SPEED-style camera.json). Without --camera, an image of another aspect ratio is padded with
+black to the camera's (its field of view then lies across the image's longer side; pose.json
+records the camera of the image's own pixels and a warning); with --camera, and for the frames
+of a --sequence, it is an error naming the file.
 
 --refine searches the pose globally (the network's rotation, or a uniform grid for a network
 without a rotation distribution head, times the four half turns of the body frame, scored by
@@ -86,7 +88,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
     parser = subparsers.add_parser("predict", help=HELP, description=DESCRIPTION,
                                    formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("images", nargs="+", type=Path, metavar="IMAGE", help="input images")
+    # "*", checked in _run: after "--mask A B" argparse gives every path to --mask, and
+    # "IMAGE is required" would not say why.
+    parser.add_argument("images", nargs="*", type=Path, metavar="IMAGE",
+                        help="input images (at least one; before --mask, which takes every "
+                             "path after it)")
     parser.add_argument("--checkpoint", type=Path, default=None, metavar="PT",
                         help="checkpoint file (default: the model shipped with the package)")
     parser.add_argument("--out", type=output_path, required=True, metavar="DIR",
@@ -134,6 +140,13 @@ def _run(args: argparse.Namespace) -> int:
     from sq_mitsuba.apps.predict import PredictOptions, predict_images
     from sq_mitsuba.cli import CLIError
 
+    if not args.images:
+        if args.mask:
+            raise CLIError(f"IMAGE: none given; --mask took every path after it "
+                           f"({', '.join(map(str, args.mask[:3]))}"
+                           f"{', ...' if len(args.mask) > 3 else ''}): give the images first, "
+                           "then --mask and the masks")
+        raise CLIError("IMAGE: at least one image is required")
     if args.ordered and not args.sequence:
         raise CLIError("--ordered: only with --sequence")
     if args.fit_overrides and not args.sequence:

@@ -97,7 +97,38 @@ def read_gray_image(path: str | Path, what: str = "image") -> np.ndarray:
     if not np.isfinite(gray).all():  # a float image (TIFF) can hold them; clipping would hide
         bad = int((~np.isfinite(gray)).sum())
         raise ValueError(f"{what} {path}: {bad} pixel(s) not finite (NaN or infinite)")
+    _warn_of_surprises(image, gray, top, path, what)
     return np.clip(gray / top, 0.0, 1.0)
+
+
+#: EXIF orientations (tag 274) other than 1, as a viewer turns the stored pixels to show them.
+_EXIF_TURNS = {2: "mirrored", 3: "turned 180 deg", 4: "flipped", 5: "mirrored and turned",
+               6: "turned 90 deg clockwise", 7: "flipped and turned", 8: "turned 90 deg "
+               "counter-clockwise"}
+
+
+def _warn_of_surprises(image: Any, gray: np.ndarray, top: float, path: Path, what: str) -> None:
+    """One-line warnings where the pixels read are not what a viewer shows of the file.
+
+    Convention: an EXIF orientation is not applied (the pixels are read as stored, so that a
+    camera calibrated on the sensor's raster is the image's camera); a 16-bit image is read on
+    its whole range, so one holding 12- or 10-bit data is read 16 or 64 times too dark."""
+    import warnings
+
+    try:
+        orientation = image.getexif().get(274)
+    except Exception:  # an unreadable EXIF block is no orientation
+        orientation = None
+    if orientation in _EXIF_TURNS:
+        warnings.warn(f"{what} {path}: its EXIF orientation ({_EXIF_TURNS[orientation]}) is not "
+                      f"applied: read as stored, {gray.shape[1]} x {gray.shape[0]} px, the "
+                      "poses are in that raster's camera frame (save it upright, without the "
+                      "tag, to read it as a viewer shows it)", stacklevel=3)
+    brightest = float(gray.max()) if gray.size else 0.0
+    if top == 65535.0 and 0.0 < brightest <= 4095.0:
+        warnings.warn(f"{what} {path}: a 16-bit image whose brightest pixel is "
+                      f"{brightest:.0f} of 65535, read on the 16-bit range: if it holds 12- or "
+                      "10-bit data, scale it to 16 bits first", stacklevel=3)
 
 
 def read_mask(path: str | Path) -> np.ndarray:

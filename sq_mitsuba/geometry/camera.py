@@ -31,6 +31,25 @@ SPEED_WIDTH_PX = 1920
 DEFAULT_RESOLUTION = 256
 
 
+def _check_beside_matrix(data: dict[str, Any], matrix: list[list[float]], where: str) -> None:
+    """A one-line ``ValueError`` where the metric intrinsics a SPEED file holds beside its
+    ``cameraMatrix`` disagree with it: the matrix is the one read, so an edit of ``fx`` (say)
+    alone would otherwise be ignored without a word. Focal lengths agree to 0.1 %, principal
+    points to a pixel (conventions of the pixel centre differ by half of one)."""
+    for focal, pitch, (i, j) in (("fx", "ppx", (0, 0)), ("fy", "ppy", (1, 1))):
+        if focal in data and pitch in data and data[pitch] != 0:
+            pixels = float(data[focal]) / float(data[pitch])
+            if not math.isclose(pixels, matrix[i][j], rel_tol=1e-3):
+                raise ValueError(f"{where}: {focal} / {pitch} = {pixels:.6g} px, but "
+                                 f"cameraMatrix[{i}][{j}] = {matrix[i][j]:.6g} px; the matrix "
+                                 f"is what is read: make the two agree, or remove {focal}")
+    for centre, (i, j) in (("ccx", (0, 2)), ("ccy", (1, 2))):
+        if centre in data and abs(float(data[centre]) - matrix[i][j]) > 1.0:
+            raise ValueError(f"{where}: {centre} = {float(data[centre]):g} px, but "
+                             f"cameraMatrix[{i}][{j}] = {matrix[i][j]:g} px; the matrix is "
+                             f"what is read: make the two agree, or remove {centre}")
+
+
 @dataclass(frozen=True)
 class Camera:
     """Pinhole intrinsics of a ``width`` x ``height`` image, focal lengths and principal point
@@ -118,6 +137,7 @@ class Camera:
             for key in ("fx", "fy", "ppx", "ppy", "ccx", "ccy"):  # unused beside the matrix,
                 if key in data:  # but a NaN or a string there is a broken file all the same
                     _number(data[key], f"{where}: {key}")
+            _check_beside_matrix(data, values, where)
         else:
             for key in ("ppx", "ppy"):
                 if _number(data[key], f"{where}: {key}") <= 0:

@@ -424,7 +424,7 @@ class Predictor:
                 f"{camera.cy:g})) stretched to the network's {side} x {side} input has fx "
                 f"{stretched.fx:g}, fy {stretched.fy:g}, principal point ({stretched.cx:g}, "
                 f"{stretched.cy:g}); turned copies need fx = fy and the principal point at "
-                f"({side / 2:g}, {side / 2:g}) there: use turns=1") from None
+                f"({side / 2:g}, {side / 2:g}) there: use turns=1 (predict --turns 1)") from None
 
     def _run(self, x: Tensor, matrix: Tensor) -> NetworkOutput:
         """The network (eager, or the traced fast path) on prepared images, in eval mode."""

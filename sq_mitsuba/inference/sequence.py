@@ -40,13 +40,10 @@ its body frame and the pose of every image:
    given rotations), a frame the fit left below half its own fit's IoU is refitted alone, pose
    only, with the shared shape (:func:`~sq_mitsuba.inference.lost_frames.place_lost_frames`;
    its depth then moves alone).
-4. **An oriented-box body frame** (``options.canonical``, off by default): the result
-   expressed in the convention of models processed with ``--align obb``
-   (:func:`canonical_frame`: the fitted assembly's minimum-volume box's axes ordered by
-   extent, its centre of mass at the origin) instead of the reference reading's frame. Models
-   processed with the default ``--align axes`` keep the axes they were built along, which the
-   box does not find: on procedural spacecraft their true surface's box lies about 30 deg
-   from them (median), so the option does not bring a pass nearer their body frame.
+4. **An oriented-box body frame** (``options.canonical``, off by default): the result in
+   the frame of ``--align obb`` models (:func:`canonical_frame`: the fitted assembly's
+   minimum-volume box's axes by extent, its centre of mass at the origin), not the default
+   models' built axes, from which even their true surface's box lies about 30 deg.
 
 Convention: poses map body to camera, ``x_cam = R_j x_body + t_j`` (OpenCV frame); the body
 frame is the reference frame's reading, turned by no half turn; relative rotations are given
@@ -191,10 +188,8 @@ class SequenceOptions:
     canonical: bool = False
     """Express the result in the body frame of ``--align obb`` models: the fitted assembly's
     minimum-volume box's axes by extent, its centre of mass at the origin (else the reference
-    reading's; the result's ``half_turns`` and ``reference`` keep referring to that). Off: the
-    default models' body axes are those they were built along, and even their true surface's
-    box lies 31-34 deg from those (median over procedural spacecraft of three kinds); on 12
-    passes of held-out families the folded rotation went from 52 to 63 deg median."""
+    reading's; ``half_turns`` and ``reference`` keep referring to that). Off: even the true
+    surface's box lies 31-34 deg (median) from the default models' built axes."""
 
     def __post_init__(self) -> None:
         if self.grow and self.shape != "free":
@@ -399,7 +394,8 @@ def _frames(predictor: Any, checked: Tensor, network: Prediction, camera: Camera
         if absent:
             raise ValueError(f"images: frame {absent[0]} shows no target (its score "
                              f"{float(network.target_score[absent[0]]):.2f}); leave it out of "
-                             "the sequence, or give the frames' masks (predict_sequence's mask)")
+                             "the sequence, or give the frames' masks (predict_sequence's mask, "
+                             "predict --mask)")
     frames = predictor.refine(checked, network, camera, mask=mask,
                               search=search or FRAMES_SEARCH,
                               refinement=refinement or FRAMES_REFINEMENT)
@@ -407,7 +403,7 @@ def _frames(predictor: Any, checked: Tensor, network: Prediction, camera: Camera
     if empty:
         raise ValueError(f"images: frame {empty[0]} has no target in its mask "
                          f"({frames.fit.mask_source}); leave it out of the sequence, or give "
-                         "the frames' masks (predict_sequence's mask)")
+                         "the frames' masks (predict_sequence's mask, predict --mask)")
     return frames
 
 
