@@ -171,7 +171,12 @@ def _another_depth_prior(payload):  # the same weights' shapes, another network
 
 
 def _another_camera(payload):
-    payload["camera"] = {**payload["camera"], "fx": payload["camera"]["fx"] * 1.1}
+    import dataclasses
+
+    from sq_mitsuba.geometry.camera import Camera
+
+    camera = Camera.from_speed_dict(payload["camera"])  # a whole other camera, consistent
+    payload["camera"] = dataclasses.replace(camera, fx=camera.fx * 1.1).to_speed_dict()
 
 
 @pytest.mark.parametrize(("change", "named"), [(_another_depth_prior, "network.depth_prior"),

@@ -419,14 +419,14 @@ def test_turned_copies_read_the_network_alone(inputs, tmp_path, capsys):
     assert main(["predict", str(inputs / "grey.png"), "--out", str(tmp_path / "once"),
                  "--turns", "1", "--quiet"]) == 0
     single = json.loads((tmp_path / "once" / "grey.pose.json").read_text())
-    assert single["turns"] == 1  # recorded whatever it is: one schema for every pose file
+    assert single["turns"] == 1  # recorded wherever a pose is, 1 included
     assert angle(quaternion_to_matrix(torch.tensor(single["q_vbs2tango"], dtype=torch.float64)),
                  once.rotation[0]) < 0.1
     # With --refine: the hypotheses of the reading the search started from (8 turned copies).
     assert main(["predict", str(inputs / "grey.png"), "--out", str(tmp_path / "refined"),
                  "--refine", *SMALL_REFINE, "--quiet"]) == 0
     refined = json.loads((tmp_path / "refined" / "grey.pose.json").read_text())
-    assert refined["refined"] is True
+    assert refined["refined"] is True and refined["turns"] == 8  # the search's reading
     assert [h["probability"] for h in refined["rotation_hypotheses"]] == pytest.approx(
         probabilities, abs=1e-4)
     assert main(["predict", str(inputs / "grey.png"), "--out", str(tmp_path / "both"),

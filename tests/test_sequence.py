@@ -1034,3 +1034,7 @@ def test_frames_out_of_their_names_numeric_order_are_named_in_a_warning():
         check_frame_order(sorted(globbed, key=lambda p: int(p.stem.split("_")[1])))
         check_frame_order([Path("a.png"), Path("b.png"), Path("img_000009.png"),
                            Path("img_000010.png")])
+        # Names that tell no order by number: views, cameras; superscripts are no digits.
+        check_frame_order([Path(f"{name}.png") for name in ("front", "side", "back")])
+        check_frame_order([Path("cam_b_1.png"), Path("cam_a_2.png"), Path("1.png"),
+                           Path("a.png"), Path("1\u00b2.png"), Path("2\u00b2.png")])

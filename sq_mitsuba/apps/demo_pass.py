@@ -36,6 +36,7 @@ target score (``min_target`` 0, as the study does): the demo renders the target 
 from __future__ import annotations
 
 import math
+import os
 import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -138,7 +139,7 @@ def run_pass(predictor: Any, data: Path, root: Path, surface_points: int, volume
     predictor = with_fast_path(predictor, True, min_target=0.0)  # every frame shows the target
     # pose.json names each frame from the demo's folder, as the single images' do: ``root``
     # (the demo's pass folder) is written in a staging folder first.
-    names = [path.relative_to(root.parent).as_posix() for path in paths]
+    names = [Path(os.path.relpath(path, root.parent)).as_posix() for path in paths]
     written = predict_sequence_files(paths, root / "sequence", predictor, camera=dataset.camera,
                                      ordered=True, progress=progress, image_names=names)
     result = written.result

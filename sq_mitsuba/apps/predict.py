@@ -311,7 +311,7 @@ class _Inputs:
         """Image k as given (unpadded)."""
         from sq_mitsuba.data.masks import read_gray_image
 
-        return read_gray_image(self.paths[k])
+        return read_gray_image(self.paths[k], warn=False)  # warned when checked
 
     def padded(self, k: int, array: np.ndarray) -> np.ndarray:
         """An array of image k's size padded as image k is."""
@@ -328,7 +328,7 @@ class _Inputs:
         from sq_mitsuba.data.segmentation import segment_target
 
         if self.masks is not None:
-            return self.padded(k, read_mask(self.masks[k]))
+            return self.padded(k, read_mask(self.masks[k], warn=False))
         if self.segmented:
             return self.padded(k, segment_target(raw).mask)
         return None
@@ -519,8 +519,9 @@ def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
             "checkpoint": str(getattr(predictor, "source", None) or ""),
             "refined": options.refine, "network_ms": round(record.network_ms, 3),
         })
-        # The network's reading, from that many turned copies (1: the image alone).
-        pose["turns"] = reading_turns(image_camera)
+        # The turned copies the reading whose hypotheses are listed comes from (1: the image
+        # alone; with --refine the search's own reading, its start).
+        pose["turns"] = int(fit.turns) if options.refine else reading_turns(image_camera)
         hypotheses = _rotation_hypotheses(reading)
         if hypotheses is not None:
             pose["rotation_hypotheses"] = hypotheses

@@ -63,18 +63,20 @@ def check_frame_files(images: Sequence[Path | str], masks: Sequence[Path | str] 
                          "in the frames' order")
 
 
-def _natural_key(name: str) -> tuple[tuple[int, int | str], ...]:
-    """``name``'s sort key with its runs of digits as numbers (``frame_2`` before ``frame_10``)."""
-    return tuple((0, int(part)) if part.isdigit() else (1, part.lower())
-                 for part in re.split(r"(\d+)", name) if part)
+def _numbered(name: str) -> tuple[str, tuple[int, ...]]:
+    """``name`` as its template (each run of ASCII digits a ``#``) and those runs' numbers."""
+    return re.sub(r"[0-9]+", "#", name.lower()), tuple(map(int, re.findall(r"[0-9]+", name)))
 
 
 def check_frame_order(paths: Sequence[Path]) -> None:
     """Warn (one line) when frames given in order are not in their names' numeric order: a
     shell glob sorts ``frame_10`` before ``frame_2``, and a pass taken in that order is fitted
-    on a wrong motion, its silhouettes none the worse to show it."""
+    on a wrong motion, its silhouettes none the worse to show it. Only neighbours named alike
+    but for their numbers are compared (``front``, ``side``, ``back`` say nothing of order)."""
     for before, after in itertools.pairwise(paths):
-        if _natural_key(after.name) < _natural_key(before.name):
+        (template, number), (template_before, number_before) = (_numbered(after.name),
+                                                                _numbered(before.name))
+        if number and template == template_before and number < number_before:
             warnings.warn(f"image {after}: given after {before.name}, but its name's number says "
                           "it comes before; the pass takes the frames in the order given (a "
                           "shell glob sorts frame_10 before frame_2: sort them with `ls -v`)",

@@ -71,9 +71,11 @@ def check_not_folder(path: str | Path, what: str, hint: str = "") -> None:
                                 + (f" ({hint})" if hint else ""))
 
 
-def read_gray_image(path: str | Path, what: str = "image") -> np.ndarray:
+def read_gray_image(path: str | Path, what: str = "image", warn: bool = True) -> np.ndarray:
     """One image (H, W) as float64 in [0, 1], converted as the module docstring says: colour
     images become luminance, alpha composites on black, 16-bit images keep their range.
+    ``warn``: say where the pixels are not what a viewer shows (an EXIF orientation, 12-bit
+    data in a 16-bit file); False where the file was read and checked before.
 
     Raises:
         FileNotFoundError: ``path`` does not exist; IsADirectoryError: it is a folder.
@@ -97,7 +99,8 @@ def read_gray_image(path: str | Path, what: str = "image") -> np.ndarray:
     if not np.isfinite(gray).all():  # a float image (TIFF) can hold them; clipping would hide
         bad = int((~np.isfinite(gray)).sum())
         raise ValueError(f"{what} {path}: {bad} pixel(s) not finite (NaN or infinite)")
-    _warn_of_surprises(image, gray, top, path, what)
+    if warn:
+        _warn_of_surprises(image, gray, top, path, what)
     return np.clip(gray / top, 0.0, 1.0)
 
 
@@ -127,11 +130,11 @@ def _warn_of_surprises(image: Any, gray: np.ndarray, top: float, path: Path, wha
     brightest = float(gray.max()) if gray.size else 0.0
     if top == 65535.0 and 0.0 < brightest <= 4095.0:
         warnings.warn(f"{what} {path}: a 16-bit image whose brightest pixel is "
-                      f"{brightest:.0f} of 65535, read on the 16-bit range: if it holds 12- or "
-                      "10-bit data, scale it to 16 bits first", stacklevel=3)
+                      f"{brightest:.0f} of 65535, read on the 16-bit range: if it holds 12-, "
+                      "10- or 8-bit data, scale it to 16 bits first", stacklevel=3)
 
 
-def read_mask(path: str | Path) -> np.ndarray:
+def read_mask(path: str | Path, warn: bool = True) -> np.ndarray:
     """One mask (H, W) bool: object where the gray value exceeds half the format's range.
 
     Conversion: RGB and palette images become gray (luminance); RGBA/LA are composited on
@@ -144,7 +147,7 @@ def read_mask(path: str | Path) -> np.ndarray:
             or a full one (no background: an outline cannot be fitted to it, and it is most
             often a mask with black and white swapped); one line naming ``path``.
     """
-    mask = read_gray_image(path, "mask") > 0.5
+    mask = read_gray_image(path, "mask", warn) > 0.5
     if not mask.any():
         raise ValueError(f"mask {path}: empty (no pixel above half range: all background)")
     if mask.all():
