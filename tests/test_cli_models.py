@@ -55,7 +55,8 @@ def test_import_batch_continues_past_bad_files(tmp_path, capsys) -> None:
     # Only the written import is reported with its name; the failed ones only as failures.
     assert "good.stl -> good" in captured.out and "empty.obj ->" not in captured.out
     assert "nan.obj ->" not in captured.out
-    assert sorted(p.name for p in out.iterdir()) == ["good"]
+    assert sorted(p.name for p in out.iterdir()) == ["good", "splits.csv"]
+    assert (out / "splits.csv").read_text() == "good,test\n"  # rows of the written alone
     card = json.loads((out / "good" / "models" / "model_card.json").read_text())
     assert card["extents"] == [1.0, 0.66666667, 0.33333333]
 

@@ -627,3 +627,17 @@ def test_a_pass_lies_whole_in_one_split():
         assert len(chosen) == 1, start
     assert [k for k in range(count) if is_validation(split_index(k, {}), count)] == \
         [16, 17, 18, 19, 36, 37, 38, 39]
+
+
+def test_a_model_named_as_a_datasets_own_file_is_refused_before_any_work(model_library,
+                                                                        tmp_path):
+    """A model folder called splits.csv would stand where the dataset writes that file:
+    refused in one line naming it, no dataset folder made."""
+    library = tmp_path / "library"
+    shutil.copytree(model_library, library)
+    shutil.copytree(library / spe3r_writer.find_models(library)[0], library / "camera.json")
+    out = tmp_path / "out"
+    with pytest.raises(DatasetError, match=r"camera.json: a model named as a dataset's own "
+                                           r"file \(dataset.json, camera.json"):
+        render_dataset(library, out, RenderOptions(**OPTIONS), progress=False)
+    assert not out.exists()

@@ -206,8 +206,16 @@ def test_import_gives_every_file_its_own_folder(tmp_path, capsys) -> None:
     assert main(["models", "import", str(box), "--out", str(out), "--points", "200"]) == 0
     assert f"{box} -> a_3\n" in capsys.readouterr().out
     assert (out / "a" / "models" / "model_normalized.obj").read_bytes() == before
-    assert sorted(p.name for p in out.iterdir()) == ["a", "a_2", "a_3"]
+    assert sorted(p.name for p in out.iterdir()) == ["a", "a_2", "a_3", "splits.csv"]
     assert import_names([box, sphere, tmp_path / "b.stl"], out) == ["a_4", "a_5", "b"]
+    # Each model gets its row, test unless told: a library `dataset render` takes as it is.
+    assert read_splits(out / "splits.csv") == {"a": "test", "a_2": "test", "a_3": "test"}
+    assert main(["models", "import", str(box), "--out", str(out), "--points", "200",
+                 "--split", "train"]) == 0
+    assert read_splits(out / "splits.csv")["a_4"] == "train"
+    # A file named like a library's or dataset's own file gets another name.
+    assert import_names([tmp_path / "splits.csv.obj", tmp_path / "camera.json.stl"],
+                        tmp_path / "empty") == ["splits.csv_2", "camera.json_2"]
 
 
 def test_import_missing_file_is_an_error_before_any_work(tmp_path, capsys) -> None:

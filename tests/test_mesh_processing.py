@@ -293,3 +293,24 @@ def test_inside_is_the_majority_of_three_rays() -> None:
     assert np.isinf(t_centre[0]) and np.isfinite(t_centre[1:]).all()
     assert np.isfinite(t_above[1]) and np.isinf([t_above[0], t_above[2]]).all()
     assert caster.inside(np.stack([centre, above])).tolist() == [True, False]
+
+
+def test_a_mesh_far_from_its_origin_imports_as_it_does_at_the_origin(tmp_path) -> None:
+    """CAD files in assembly coordinates: a box 10 x 5 x 2 a million of its sizes away
+    (exact in float32) is processed as the same box at the origin, and the recorded
+    normalisation still maps the file's own vertices onto the model (against the origin's
+    volume and centre of mass, which cancel to rounding noise there)."""
+    near = trimesh.creation.box([10.0, 5.0, 2.0])
+    far = near.copy()
+    far.apply_translation([1.0e7, -2.5e6, 4.0e6])
+    for name, mesh in (("near", near), ("far", far)):
+        mesh.export(tmp_path / f"{name}.stl")
+    processed = {name: process_mesh(_tagged(mesh), recentre=True)
+                 for name, mesh in (("near", near), ("far", far))}
+    np.testing.assert_allclose(np.sort(processed["far"].mesh.vertices, axis=0),
+                               np.sort(processed["near"].mesh.vertices, axis=0), atol=1e-9)
+    matrix = processed["far"].normalisation.matrix()
+    mapped = far.vertices @ matrix[:3, :3].T + matrix[:3, 3]
+    np.testing.assert_allclose(np.sort(mapped, axis=0),
+                               np.sort(processed["far"].mesh.vertices, axis=0), atol=1e-6)
+    assert import_model(tmp_path / "far.stl", tmp_path / "lib", points=200).is_dir()

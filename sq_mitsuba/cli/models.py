@@ -38,10 +38,12 @@ Exit code 1 when some model failed, 2 on bad options (nothing written)."""
 
 IMPORT_DESCRIPTION = """\
 Import mesh files, each into its own new folder OUT/<name>/models/: the name is the file's
-stem, or <stem>_2, <stem>_3, ... when that name is already in OUT or was given to an earlier
-file of the batch; nothing is overwritten, and each file's name is printed. One batch at a
-time per OUT. Exit code 1 when some file failed, 2 on bad options or missing files (nothing
-written)."""
+stem, or <stem>_2, <stem>_3, ... when that name is already in OUT, was given to an earlier
+file of the batch or is a library's own file (splits.csv, ...); nothing is overwritten, and
+each file's name is printed. Each model imported gets its row in OUT/splits.csv: --split
+test (the default: spacecraft a model has not seen, for `eval --split test`) or train. One
+batch at a time per OUT. Exit code 1 when some file failed, 2 on bad options or missing
+files (nothing written)."""
 
 PREVIEW_DESCRIPTION = """\
 Render every model of a library (ROOT/<model>/models/model_normalized.obj, with the per-face
@@ -80,7 +82,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                      help="OBJ, PLY, STL, OFF, GLB or GLTF files")
     add_config_options(imp, ImportOptions, {"out": "--out", "method": "--method",
                                             "align": "--align", "resolution": "--resolution",
-                                            "points": "--points"},
+                                            "points": "--points", "split": "--split"},
                        metavars={"out": "DIR"})
     imp.set_defaults(func=_import)
 

@@ -46,7 +46,10 @@ the library's lock, so no live run's files are among them.
 
 Imported models are named after their file (:func:`model_name_for`). Convention: the name is
 the file's stem, or ``<stem>_2``, ``<stem>_3``, ... when the stem is already an entry of the
-output folder or was given to an earlier file of the same batch; nothing is overwritten.
+output folder, was given to an earlier file of the same batch or is a root file's name
+(``splits.csv``, ...); nothing is overwritten. Each imported model gets its row in
+``splits.csv`` (``ImportOptions.split``: test by default, since imported spacecraft are most
+often the unseen ones to evaluate on).
 """
 
 from __future__ import annotations
@@ -169,6 +172,9 @@ class ImportOptions:
     (depth fusion needs up to about 2 GiB plus 128 bytes per voxel)."""
     points: int = in_range(1, MAX_POINTS, default=DEFAULT_POINTS)
     "Points per sample set: surface, uniform, near."
+    split: Literal["train", "test"] = "test"
+    """The imported models' row in OUT/splits.csv: test (spacecraft a model has not seen, to
+    evaluate on) or train (to train on them)."""
 
     def __post_init__(self) -> None:
         # Checked for every method: with "auto" fusion may run, and an absurd value is an
@@ -506,12 +512,18 @@ def model_name_for(path: Path) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", path.stem).strip("._") or "model"
 
 
+#: Names a model folder cannot take: the files a library or a dataset keeps at its root.
+RESERVED_NAMES = frozenset({SPLITS_FILE, FAILURES_FILE, "camera.json", "dataset.json",
+                            "preview.png", "contact_sheet.png"})
+
+
 def import_names(paths: Sequence[str | Path], out_root: str | Path) -> list[str]:
     """The model name each file gets (see the module docstring): its stem, or the first free
-    ``<stem>_<k>`` (k = 2, 3, ...) when the stem is taken in ``out_root`` or by an earlier
-    file of ``paths``."""
+    ``<stem>_<k>`` (k = 2, 3, ...) when the stem is taken in ``out_root``, by an earlier file
+    of ``paths`` or by a root file of a library or dataset (:data:`RESERVED_NAMES`)."""
     root = Path(out_root)
     taken = {p.name for p in root.iterdir()} if root.is_dir() else set()
+    taken |= RESERVED_NAMES
     names = []
     for path in paths:
         base = model_name_for(Path(path))
@@ -536,7 +548,8 @@ def import_model(path: str | Path, out_root: str | Path, method: str = "auto",
     check_fusion_resolution(resolution)
     mesh = load_mesh(path)
     try:
-        model = process_mesh(mesh, method=method, align=align, resolution=resolution)
+        model = process_mesh(mesh, method=method, align=align, resolution=resolution,
+                             recentre=True)
     except MeshError as error:
         raise MeshError(f"{path}: {error}") from None
     name = name or model_name_for(path)
@@ -592,4 +605,9 @@ def _import_locked(paths: Sequence[str | Path], root: Path, options: ImportOptio
             summary.failures[name] = message
         else:
             summary.written.append(name)
+            # Its row at once (atomically, merged), as generate does: a library with a model
+            # folder and no row is one `dataset render` refuses.
+            splits = read_library_splits(root)
+            splits[name] = options.split
+            _write_splits(root, splits)
     return summary

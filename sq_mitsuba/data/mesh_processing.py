@@ -217,12 +217,27 @@ class ProcessedModel:
 
 
 def process_mesh(mesh: TaggedMesh, method: str = "auto", align: str = "axes",
-                 resolution: int = FUSION_RESOLUTION) -> ProcessedModel:
-    """Make ``mesh`` a processed model; :class:`MeshError` if an invariant fails."""
+                 resolution: int = FUSION_RESOLUTION, recentre: bool = False) -> ProcessedModel:
+    """Make ``mesh`` a processed model; :class:`MeshError` if an invariant fails.
+
+    ``recentre``: move the mesh to its box's centre first (imported files). Volumes and
+    centres of mass are sums over the faces about the origin, so a model far from it (CAD or
+    assembly coordinates, a million of its sizes away) cancels them to rounding noise; the
+    record of the normalisation keeps the source's coordinates all the same
+    (``x_model = s R (x - c) + t = s R x + (t - s R c)``). Generated models, built about
+    the origin, are processed as they are, bit for bit as before.
+    """
+    centre = np.zeros(3)
+    if recentre and len(mesh.vertices):
+        centre = (mesh.vertices.min(axis=0) + mesh.vertices.max(axis=0)) / 2
+        mesh = TaggedMesh(mesh.vertices - centre, mesh.faces, mesh.face_material)
     solid, route = make_solid(mesh, method, resolution)
     if signed_volume(solid.vertices, solid.faces) <= 0:
         raise MeshError("processed solid has zero volume")
     normalised, norm = normalise(solid, align)
+    if recentre:
+        norm = Normalisation(norm.rotation, norm.scale,
+                             norm.translation - norm.scale * norm.rotation @ centre)
     # Faces sorted by material: each material is one contiguous run of faces (one glTF
     # primitive); the per-face material array keeps the OBJ's face order.
     order = np.argsort(normalised.face_material, kind="stable")

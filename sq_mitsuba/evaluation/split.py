@@ -52,10 +52,13 @@ def open_split(data_root: str | Path, split: str, image_size: int | None,
     dataset = Spe3rDataset(data_root, split, image_size=image_size,
                            num_surface=surface_points, num_occupancy=2)
     if len(dataset) == 0:
-        where = "test models" if split == "test" else "training models (whose held-out " \
-            "images make 'val')"
+        why = {"test": "splits.csv lists no test models",
+               "train": "splits.csv lists no training models",
+               # A training model's val images are [0.4 n, 0.5 n) and [0.9 n, n) of its n.
+               "val": "it holds images [0.4 n, 0.5 n) and [0.9 n, n) of each training model's "
+                      "n: none without training models, or with fewer than 10 images each"}
         skipped = f"; left out: {', '.join(dataset.skipped)}" if dataset.skipped else ""
-        raise ValueError(f"{data_root}: the {split!r} split is empty (splits.csv lists no "
-                         f"{where}{skipped})")
+        raise ValueError(f"{data_root}: the {split!r} split is empty "
+                         f"({why.get(split, 'no images')}{skipped})")
     dataset.check()  # images of camera.json's size, readable finite points: before any work
     return dataset

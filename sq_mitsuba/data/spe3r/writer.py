@@ -108,6 +108,12 @@ def find_models(models_dir: Path) -> list[str]:
         names = sorted(set(names) | set(read_splits(splits_path)))
     if not names:
         raise DatasetError(f"{models_dir}: no model folders (<model>/{MODELS}/{MESH_FILE})")
+    # A model folder named as a dataset's own file would stand where that file is written.
+    clash = [name for name in names if name in OVERWRITE_DELETES]
+    if clash:
+        raise DatasetError(f"{models_dir / clash[0]}: a model named as a dataset's own file "
+                           f"({', '.join(OVERWRITE_DELETES)}); rename its folder (and its row "
+                           "in splits.csv)")
     return names
 
 
