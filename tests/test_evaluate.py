@@ -331,13 +331,13 @@ def test_missing_split_and_missing_data_are_one_line(eval_checkpoint, train_data
                  "--split", "test", "--out", str(tmp_path / "out_base"), "--quiet"]) == 2
     assert "--no-baseline" in error_line(capsys)
     assert not (tmp_path / "out_base").exists()
-    # An empty val says what val holds (a training model's images, none below 10 of them).
+    # An empty val says what val holds (a training model's images; not every n has some).
     assert main(["eval", "--checkpoint", str(eval_checkpoint), "--data", str(only_test),
                  "--split", "val", "--no-baseline", "--out", str(tmp_path / "out_val"),
                  "--quiet"]) == 2
     assert ("'val' split is empty (it holds images [0.4 n, 0.5 n) and [0.9 n, n) of each "
-            "training model's n: none without training models, or with fewer than 10 images "
-            "each)") in error_line(capsys)
+            "training model's n: none without training models, and some n below 10 have "
+            "none (3, 8))") in error_line(capsys)
     assert not (tmp_path / "out_val").exists()
     # Refused before any work: the journal an interrupted run left there is not touched.
     journal = tmp_path / "out_journal" / ".eval_partial"

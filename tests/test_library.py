@@ -504,3 +504,24 @@ def test_a_killed_cleanups_folder_is_removed_by_the_next_generate(library, tmp_p
     assert not beside.exists() and not alone.exists() and not (out / "sc099_first").exists()
     assert sorted(p.name for p in (out / names[1]).iterdir()) == ["models"]
     assert sorted(p.name for p in out.iterdir()) == sorted([*names, "splits.csv"])
+
+
+def test_importing_into_a_library_imported_without_rows_keeps_its_models_training(
+        tmp_path) -> None:
+    """Imports once kept no splits.csv, and `dataset render` took such models for training
+    ones: the next import writes them that row beside its own, so the library still
+    renders; a name a row holds is not reused even when its folder is gone."""
+    from sq_mitsuba.data.library import RESERVED_NAMES, import_models
+    from sq_mitsuba.data.spe3r.writer import OVERWRITE_DELETES, find_models
+
+    box = tmp_path / "box.obj"
+    trimesh.creation.box([1.0, 0.5, 0.25]).export(box)
+    out = tmp_path / "lib"
+    import_models([box], ImportOptions(out=out, points=200), progress=False)
+    (out / "splits.csv").unlink()  # as an import before rows were kept left it
+    import_models([box], ImportOptions(out=out, points=200), progress=False)
+    assert read_splits(out / "splits.csv") == {"box": "train", "box_2": "test"}
+    assert find_models(out) == ["box", "box_2"]
+    shutil.rmtree(out / "box_2")
+    assert import_names([box], out, taken=read_splits(out / "splits.csv")) == ["box_3"]
+    assert set(OVERWRITE_DELETES) <= RESERVED_NAMES  # the two lists kept together

@@ -512,17 +512,27 @@ def model_name_for(path: Path) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", path.stem).strip("._") or "model"
 
 
-#: Names a model folder cannot take: the files a library or a dataset keeps at its root.
+#: Names a model folder cannot take: the files a library or a dataset keeps at its root
+#: (``dataset render`` refuses a model folder named as one of the dataset's, its writer's
+#: ``OVERWRITE_DELETES``: written out here, since that module imports torch; a test keeps
+#: the two lists together).
 RESERVED_NAMES = frozenset({SPLITS_FILE, FAILURES_FILE, "camera.json", "dataset.json",
                             "preview.png", "contact_sheet.png"})
 
 
-def import_names(paths: Sequence[str | Path], out_root: str | Path) -> list[str]:
+def _model_folders(root: Path) -> list[str]:
+    """The model folders of a library (those holding a processed mesh), sorted."""
+    return sorted(p.parent.parent.name for p in root.glob(f"*/{MODEL_FOLDER}/{MODEL_FILES[0]}"))
+
+
+def import_names(paths: Sequence[str | Path], out_root: str | Path,
+                 taken: Iterable[str] = ()) -> list[str]:
     """The model name each file gets (see the module docstring): its stem, or the first free
     ``<stem>_<k>`` (k = 2, 3, ...) when the stem is taken in ``out_root``, by an earlier file
-    of ``paths`` or by a root file of a library or dataset (:data:`RESERVED_NAMES`)."""
+    of ``paths``, by a root file of a library or dataset (:data:`RESERVED_NAMES`) or by a
+    name of ``taken`` (the rows of ``splits.csv``, whose folders may be gone)."""
     root = Path(out_root)
-    taken = {p.name for p in root.iterdir()} if root.is_dir() else set()
+    taken = set(taken) | ({p.name for p in root.iterdir()} if root.is_dir() else set())
     taken |= RESERVED_NAMES
     names = []
     for path in paths:
@@ -591,7 +601,13 @@ def _import_locked(paths: Sequence[str | Path], root: Path, options: ImportOptio
                    progress: bool) -> LibrarySummary:
     """:func:`import_models` under the library's lock."""
     remove_dead_writes(root)  # first: a folder a killed import left empty frees its name
-    names = import_names(paths, root)
+    splits = read_library_splits(root)  # read (and so checked) once, before any model
+    if not (root / SPLITS_FILE).is_file():
+        # A library imported before imports kept rows: `dataset render` took its models for
+        # training ones; they keep that split, so that this batch's rows do not leave them
+        # without one.
+        splits = {name: "train" for name in _model_folders(root)}
+    names = import_names(paths, root, taken=set(splits))
     summary = LibrarySummary(root, names=[(str(p), n) for p, n in zip(paths, names, strict=True)])
     for path, name in _progress(list(zip(map(Path, paths), names, strict=True)), "import",
                                 "mesh", progress):
@@ -605,9 +621,8 @@ def _import_locked(paths: Sequence[str | Path], root: Path, options: ImportOptio
             summary.failures[name] = message
         else:
             summary.written.append(name)
-            # Its row at once (atomically, merged), as generate does: a library with a model
-            # folder and no row is one `dataset render` refuses.
-            splits = read_library_splits(root)
+            # Its row at once (atomically), as generate does: a library with a model folder
+            # and no row is one `dataset render` refuses.
             splits[name] = options.split
             _write_splits(root, splits)
     return summary

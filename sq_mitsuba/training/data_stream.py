@@ -266,7 +266,9 @@ def open_datasets(config: TrainConfig, data_root: Path, cache_root: Path | None 
     train_set = Spe3rDataset(data_root, "train", image_size=size, num_surface=1,
                              num_occupancy=2, seed=config.seed)
     if len(train_set) == 0:
-        raise TrainError(f"{data_root}: the train split has no images")
+        raise TrainError(f"{data_root}: the train split has no images (splits.csv marks no "
+                         "training model; imported models are test unless imported with "
+                         "--split train)")
     # Images of camera.json's size, readable finite points: refused here, before any work,
     # not at the cache build or a step later (the val split holds the same models).
     cached = cache_root is not None and fingerprint is not None and \

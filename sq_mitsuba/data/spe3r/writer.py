@@ -532,7 +532,7 @@ def prepare_dataset(models_dir: Path, out_dir: Path, options: RenderOptions
                            f"folder(s) ({', '.join(unlisted[:3])}"
                            f"{', ...' if len(unlisted) > 3 else ''}), so their split is not "
                            "known (an interrupted `models generate`? run it again to finish "
-                           "the library, or add their rows)")
+                           "the library; else add their rows, model,train or model,test)")
     manifest = _existing_manifest(out_dir, options.overwrite)
     if manifest is None and not options.overwrite:
         unmanaged = [p for p in ("camera.json", "splits.csv") if (out_dir / p).exists()] + \
