@@ -197,7 +197,24 @@ def load_torch_file(path: str | os.PathLike[str], what: str) -> Any:
             warnings.simplefilter("ignore")
             return torch.load(path, map_location="cpu", weights_only=True)
     except Exception as error:  # torch raises many types for damaged files; report one line
-        raise ValueError(f"{path}: not a readable {what} ({_torch_reason(error)})") from None
+        raise ValueError(f"{path}: not a readable {what} "
+                         f"({_foreign_file(path) or _torch_reason(error)})") from None
+
+
+def _foreign_file(path: Path) -> str | None:
+    """Why ``path`` is no torch file at all, from its first bytes (a torch file is a zip
+    archive, ``PK``, or a legacy pickle, ``0x80``), or None where it could be one: torch's own
+    error for a text file is a pickle opcode's ``KeyError: 101``."""
+    try:
+        with open(path, "rb") as handle:
+            head = handle.read(8)
+    except OSError:
+        return None
+    if not head:
+        return "an empty file"
+    if head.startswith((b"PK", b"\x80")):
+        return None
+    return f"not a torch file: it starts with {head!r}"
 
 
 def check_finite_tensors(tensors: Mapping[str, Any], where: str) -> None:

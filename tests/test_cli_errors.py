@@ -151,7 +151,7 @@ def test_interrupt_stays_exit_130(monkeypatch, capsys, no_env_traceback):
     assert "Traceback" in err and err.strip().endswith("sq-mitsuba doctor: interrupted")
 
 
-def test_an_interrupted_resumable_command_says_how_to_continue(monkeypatch, capsys,
+def test_an_interrupted_resumable_command_says_how_to_continue(monkeypatch, capsys, tmp_path,
                                                                no_env_traceback):
     """eval and train keep what they did (a journal, last.pt): the line says how to go on."""
     def interrupted(args):
@@ -170,6 +170,17 @@ def test_an_interrupted_resumable_command_says_how_to_continue(monkeypatch, caps
                                        "stopped)")
     assert main(["models", "import", "a.obj", "--out", "lib"]) == 130
     assert error_line(capsys) == "sq-mitsuba models: interrupted"
+    # train: --resume only where a step was saved (last.pt), else the way to start again.
+    monkeypatch.setattr(importlib.import_module("sq_mitsuba.cli.train"), "_run", interrupted)
+    run = tmp_path / "run"
+    assert main(["train", "--config", "c.toml", "--data", "d", "--out", str(run)]) == 130
+    assert error_line(capsys) == ("sq-mitsuba train: interrupted (no step was saved yet: the "
+                                  "same command without --resume starts it again)")
+    run.mkdir()
+    (run / "last.pt").write_bytes(b"")
+    assert main(["train", "--config", "c.toml", "--data", "d", "--out", str(run)]) == 130
+    assert error_line(capsys) == ("sq-mitsuba train: interrupted (the same command with "
+                                  "--resume continues from last.pt)")
 
 
 def test_a_terminated_run_stops_as_an_interrupted_one(tmp_path):

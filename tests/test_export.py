@@ -154,11 +154,21 @@ def test_export_averages_checkpoints_of_one_network(eval_checkpoint, train_datas
     assert load_model(bare).baseline is None
 
 
-def test_export_of_one_checkpoint_twice_predicts_as_the_checkpoint(eval_checkpoint, tmp_path):
+def test_export_of_one_checkpoint_twice_predicts_as_the_checkpoint(eval_checkpoint, tmp_path,
+                                                                   capsys):
+    import shutil
+
     single, twice = tmp_path / "single.pt", tmp_path / "twice.pt"
     assert main(["export", "--checkpoint", str(eval_checkpoint), "--no-half", "--out",
                  str(single)]) == 0
+    # One file named twice is a slip (it would weigh that run double among others): refused.
     assert main(["export", "--checkpoint", str(eval_checkpoint), str(eval_checkpoint),
+                 "--no-half", "--out", str(twice)]) == 2
+    assert error_line(capsys).endswith(f"checkpoint {eval_checkpoint}: given twice (as "
+                                       f"{eval_checkpoint}); give each run's checkpoint once")
+    assert not twice.exists()
+    copy = shutil.copy(eval_checkpoint, tmp_path / "copy.pt")  # the average of equal weights
+    assert main(["export", "--checkpoint", str(eval_checkpoint), str(copy),
                  "--no-half", "--out", str(twice)]) == 0
     images = torch.rand(3, 64, 64, generator=torch.Generator().manual_seed(2))
     a, b = load_model(single).predict(images), load_model(twice).predict(images)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import zlib
 
 import numpy as np
 import pytest
@@ -27,7 +28,9 @@ def _rows(seed: int, offset: float) -> list[dict]:
 
 
 def _eval_folder(path, split: str, label: str, offset: float):
-    rows = _rows(hash((split, label)) % 1000, offset)
+    # A seed that is the same in every process (Python's str hash is salted per process: one
+    # salt in about 70 drew two rows equal to the table's three decimals).
+    rows = _rows(zlib.crc32(f"{split}|{label}".encode()) % 1000, offset)
     write_tables(rows, path)
     atomic_write_json(path / "eval.json", {"split": split, "label": label,
                                            "num_primitives": 5})
@@ -158,3 +161,21 @@ def test_report_command(tmp_path, capsys):
     assert "0.594 ± 0.183" in (tmp_path / "r" / "report.md").read_text()
     assert main(["report", str(tmp_path / "nothing"), "--out", str(tmp_path / "r2")]) == 2
     assert "eval.json: missing" in capsys.readouterr().err
+
+
+def test_a_val_and_a_test_of_two_networks_under_one_label_are_refused(tmp_path):
+    """Two exports in one folder get one default label: their val and test must not share a
+    row. The eval.json files record the weights' sha256; the same weights pass."""
+    for split, sha in (("val", "a" * 64), ("test", "b" * 64), ("again", "a" * 64)):
+        _eval_folder(tmp_path / split, "test" if split == "again" else split, "exp", 0.0)
+        atomic_write_json(tmp_path / split / "eval.json", {
+            "split": "test" if split == "again" else split, "label": "exp",
+            "num_primitives": 5, "identity": {"checkpoint": {"sha256": sha}}})
+    with pytest.raises(ValueError, match=rf"^{tmp_path / 'test'}: run 'exp' evaluates another "
+                                         rf"network \(weights bbbbbbbbbbbb\) than "
+                                         rf"{tmp_path / 'val'} \(aaaaaaaaaaaa\); name the runs "
+                                         "apart with eval --label"):
+        write_report([tmp_path / "val", tmp_path / "test"], tmp_path / "report")
+    assert not (tmp_path / "report").exists()
+    assert "| exp |" in write_report([tmp_path / "val", tmp_path / "again"],
+                                     tmp_path / "report").read_text()

@@ -634,7 +634,11 @@ def test_eval_names_a_dataset_folder_that_is_not_there(tmp_path, capsys):
                           (tmp_path / "file", "not a folder (a dataset is a folder)")):
         assert main(["eval", "--data", str(data), "--out", str(tmp_path / "o"), "--quiet"]) == 2
         assert error_line(capsys).endswith(f"{data}: {message}")
-    assert not (tmp_path / "o").exists()
+        assert main(["train", "--config", str(Path(__file__).parents[1] / "train" / "configs"
+                                              / "tiny.toml"), "--data", str(data), "--out",
+                     str(tmp_path / "t")]) == 2
+        assert error_line(capsys).endswith(f"{data}: {message}")
+    assert not (tmp_path / "o").exists() and not (tmp_path / "t").exists()
 
 
 @pytest.mark.parametrize("label", ["a\nb", "a|b", " "])
@@ -714,3 +718,18 @@ def test_pixels_a_viewer_would_show_otherwise_are_read_as_stored_with_a_warning(
         read_gray_image(tmp_path / "sixteen.png")
         Image.fromarray(pixels).save(tmp_path / "plain.jpg")
         read_gray_image(tmp_path / "plain.jpg")
+
+
+def test_a_file_that_is_no_torch_file_says_so(tmp_path):
+    """torch's own error for a text file is a pickle opcode's "KeyError: 101"; an empty file
+    and a text file are named for what they are."""
+    from sq_mitsuba.inputs import load_torch_file
+
+    (tmp_path / "notes.pt").write_text("epoch 3, loss 0.2\n")
+    (tmp_path / "empty.pt").write_bytes(b"")
+    with pytest.raises(ValueError, match=r"notes.pt: not a readable checkpoint \(not a torch "
+                                         r"file: it starts with b'epoch 3,'\)$"):
+        load_torch_file(tmp_path / "notes.pt", "checkpoint")
+    with pytest.raises(ValueError, match=r"empty.pt: not a readable checkpoint \(an empty "
+                                         r"file\)$"):
+        load_torch_file(tmp_path / "empty.pt", "checkpoint")

@@ -164,6 +164,12 @@ def export_model(checkpoint: str | Path | Sequence[str | Path], data_root: str |
         [Path(path) for path in checkpoint]
     if not paths:
         raise ValueError("checkpoint: give at least one checkpoint to export")
+    seen: dict[Path, Path] = {}
+    for path in paths:  # the same file twice would weigh one run double in the average
+        first = seen.setdefault(path.resolve(), path)
+        if first is not path:
+            raise ValueError(f"checkpoint {path}: given twice (as {first}); give each run's "
+                             "checkpoint once")
     out = Path(out)
     if out.is_dir():
         raise ValueError(f"out {out}: is a folder; give the file to write (e.g. "

@@ -28,6 +28,7 @@ import threading
 import traceback
 import warnings
 from collections.abc import Iterator, Sequence
+from pathlib import Path
 from typing import Any, NoReturn
 
 from sq_mitsuba.outputs import interrupted
@@ -56,6 +57,10 @@ def _resume_hint(args: argparse.Namespace) -> str | None:
     action = next((getattr(args, name) for name in ("dataset_command", "models_command",
                                                     "study") if getattr(args, name, None)),
                   None)
+    if args.command == "train" and getattr(args, "out", None) is not None \
+            and not (Path(args.out) / "last.pt").is_file():
+        # Stopped before its first save: there is no step to take up.
+        return "no step was saved yet: the same command without --resume starts it again"
     return RESUME_HINTS.get(args.command if action is None else f"{args.command} {action}")
 #: The global flag (before the command) and the environment variable that show tracebacks.
 TRACEBACK_FLAG = "--traceback"

@@ -188,9 +188,26 @@ def read_paper_tables(path: str | Path) -> tuple[list[dict], list[dict]]:
     return tables[0], tables[1]
 
 
+def _weights_sha256(info: dict[str, Any]) -> str | None:
+    """The sha256 of the evaluated network's weights an ``eval.json`` records, if any."""
+    identity = info.get("identity")
+    checkpoint = identity.get("checkpoint") if isinstance(identity, dict) else None
+    sha = checkpoint.get("sha256") if isinstance(checkpoint, dict) else None
+    return sha if isinstance(sha, str) else None
+
+
 def _our_rows(folders: list[dict[str, Any]]) -> list[dict]:
     rows: dict[tuple[str, str], dict] = {}
+    # One label, one network: a val and a test evaluation of two checkpoints saved in one
+    # folder (whose name is the default label) would otherwise share a row.
+    first_of: dict[str, dict[str, Any]] = {}
     for folder in folders:
+        other = first_of.setdefault(folder["label"], folder)
+        ours, theirs = _weights_sha256(folder["info"]), _weights_sha256(other["info"])
+        if ours is not None and theirs is not None and ours != theirs:
+            raise ValueError(f"{folder['folder']}: run {folder['label']!r} evaluates another "
+                             f"network (weights {ours[:12]}) than {other['folder']} "
+                             f"({theirs[:12]}); name the runs apart with eval --label")
         for method, metrics in folder["summary"].items():
             label = folder["label"] if method == "network" else f"{folder['label']} ({method})"
             row = rows.setdefault((label, method), {"label": label, "val": {}, "test": {},

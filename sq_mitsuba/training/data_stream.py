@@ -261,7 +261,9 @@ def open_datasets(config: TrainConfig, data_root: Path, cache_root: Path | None 
     of this split for ``fingerprint`` (checked when it was built; training reads that): a
     library of thousands takes a minute to read again at every start and resume."""
     if not data_root.is_dir():
-        raise TrainError(f"{data_root}: dataset folder not found")
+        raise TrainError(f"{data_root}: " + ("not a folder (a dataset is a folder)"
+                                              if data_root.exists() else
+                                              "dataset folder not found"))
     size = config.network.image_size
     train_set = Spe3rDataset(data_root, "train", image_size=size, num_surface=1,
                              num_occupancy=2, seed=config.seed)
