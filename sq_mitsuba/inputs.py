@@ -197,8 +197,10 @@ def load_torch_file(path: str | os.PathLike[str], what: str) -> Any:
             warnings.simplefilter("ignore")
             return torch.load(path, map_location="cpu", weights_only=True)
     except Exception as error:  # torch raises many types for damaged files; report one line
-        raise ValueError(f"{path}: not a readable {what} "
-                         f"({_foreign_file(path) or _torch_reason(error)})") from None
+        reason = _torch_reason(error)
+        if not reason.startswith("refused by the safe loader"):  # a pickle it refused
+            reason = _foreign_file(path) or reason
+        raise ValueError(f"{path}: not a readable {what} ({reason})") from None
 
 
 def _foreign_file(path: Path) -> str | None:

@@ -177,6 +177,10 @@ def test_an_interrupted_resumable_command_says_how_to_continue(monkeypatch, caps
     assert error_line(capsys) == ("sq-mitsuba train: interrupted (no step was saved yet: the "
                                   "same command without --resume starts it again)")
     run.mkdir()
+    (run / "best.pt").write_bytes(b"")  # a validation's save before the first last.pt
+    assert main(["train", "--config", "c.toml", "--data", "d", "--out", str(run)]) == 130
+    assert error_line(capsys) == ("sq-mitsuba train: interrupted (no last.pt was saved: move "
+                                  "best.pt away to start again there, or choose another --out)")
     (run / "last.pt").write_bytes(b"")
     assert main(["train", "--config", "c.toml", "--data", "d", "--out", str(run)]) == 130
     assert error_line(capsys) == ("sq-mitsuba train: interrupted (the same command with "

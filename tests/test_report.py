@@ -172,9 +172,10 @@ def test_a_val_and_a_test_of_two_networks_under_one_label_are_refused(tmp_path):
             "split": "test" if split == "again" else split, "label": "exp",
             "num_primitives": 5, "identity": {"checkpoint": {"sha256": sha}}})
     with pytest.raises(ValueError, match=rf"^{tmp_path / 'test'}: run 'exp' evaluates another "
-                                         rf"network \(weights bbbbbbbbbbbb\) than "
-                                         rf"{tmp_path / 'val'} \(aaaaaaaaaaaa\); name the runs "
-                                         "apart with eval --label"):
+                                         rf"model \(weights and stored baseline bbbbbbbbbbbb\) "
+                                         rf"than {tmp_path / 'val'} \(aaaaaaaaaaaa; a "
+                                         r"checkpoint and its export differ too\); name the "
+                                         "runs apart with eval --label"):
         write_report([tmp_path / "val", tmp_path / "test"], tmp_path / "report")
     assert not (tmp_path / "report").exists()
     assert "| exp |" in write_report([tmp_path / "val", tmp_path / "again"],

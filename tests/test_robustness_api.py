@@ -733,3 +733,15 @@ def test_a_file_that_is_no_torch_file_says_so(tmp_path):
     with pytest.raises(ValueError, match=r"empty.pt: not a readable checkpoint \(an empty "
                                          r"file\)$"):
         load_torch_file(tmp_path / "empty.pt", "checkpoint")
+
+
+def test_a_protocol_0_pickle_is_still_named_as_refused_by_the_safe_loader(tmp_path):
+    """A text-looking file that is a pickle (protocol 0) keeps the safe loader's reason."""
+    import pickle
+
+    from sq_mitsuba.inputs import load_torch_file
+
+    (tmp_path / "old.pt").write_bytes(pickle.dumps(slice(1, 2), protocol=0))
+    with pytest.raises(ValueError, match=r"old.pt: not a readable checkpoint \(refused by the "
+                                         r"safe loader"):
+        load_torch_file(tmp_path / "old.pt", "checkpoint")

@@ -149,7 +149,8 @@ def export_model(checkpoint: str | Path | Sequence[str | Path], data_root: str |
 
     Raises:
         ValueError / FileNotFoundError: a corrupt or mismatched checkpoint (or one whose
-            weights are not finite), checkpoints that are not of one network (a field, the
+            weights are not finite), one checkpoint file named twice, checkpoints that are not
+            of one network (a field, the
             camera or a weight named), ``out`` a folder, a dataset without training images
             (or whose training images or points cannot be read), or ``data_root`` given for
             one checkpoint that stores a baseline already (it would be replaced; without

@@ -59,7 +59,11 @@ def _resume_hint(args: argparse.Namespace) -> str | None:
                   None)
     if args.command == "train" and getattr(args, "out", None) is not None \
             and not (Path(args.out) / "last.pt").is_file():
-        # Stopped before its first save: there is no step to take up.
+        # Stopped before its first save: there is no step to take up (a best.pt of a
+        # validation before it would stop a rerun in that folder: it says what to do).
+        if (Path(args.out) / "best.pt").is_file():
+            return ("no last.pt was saved: move best.pt away to start again there, or choose "
+                    "another --out")
         return "no step was saved yet: the same command without --resume starts it again"
     return RESUME_HINTS.get(args.command if action is None else f"{args.command} {action}")
 #: The global flag (before the command) and the environment variable that show tracebacks.

@@ -18,7 +18,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "2, with the paper's published numbers beside ours: in each column the "
                     "best of our rows in bold and, apart, the best of the paper's rows in "
                     "italics. A run's row is labelled as its eval.json records (sq-mitsuba "
-                    "eval --label).")
+                    "eval --label); its val and test must be of one model (two exports in one "
+                    "folder share a default label: name them apart).")
     parser.add_argument("folders", nargs="+", type=Path, metavar="EVAL_DIR",
                         help="evaluation folders (holding eval.json and summary.csv)")
     parser.add_argument("--out", type=output_path, required=True, metavar="DIR",

@@ -5,7 +5,9 @@ Each folder written by :func:`sq_mitsuba.evaluation.evaluate.evaluate` holds ``e
 metric). A run is identified by the label its ``eval.json`` records (``sq-mitsuba eval
 --label``; by default the checkpoint's folder name), or, for an ``eval.json`` without one, the
 folder name of the checkpoint it records, else of the evaluation folder's parent; its ``val``
-and ``test`` folders fill one row; Table 2 (number of primitives) shows each run's M. The
+and ``test`` folders fill one row, and must be of one model (the weights' and stored
+baseline's sha256 each ``eval.json`` records, where both do: else a one-line error); Table 2
+(number of primitives) shows each run's M. The
 paper's published rows (``eval/paper_tables.toml``) are printed beside ours, with a note on
 what is not comparable. Ours and the paper's are not ranked together: in each column the best
 of our rows is in bold and the best of the paper's rows in italics (each only where there are
@@ -206,8 +208,9 @@ def _our_rows(folders: list[dict[str, Any]]) -> list[dict]:
         ours, theirs = _weights_sha256(folder["info"]), _weights_sha256(other["info"])
         if ours is not None and theirs is not None and ours != theirs:
             raise ValueError(f"{folder['folder']}: run {folder['label']!r} evaluates another "
-                             f"network (weights {ours[:12]}) than {other['folder']} "
-                             f"({theirs[:12]}); name the runs apart with eval --label")
+                             f"model (weights and stored baseline {ours[:12]}) than "
+                             f"{other['folder']} ({theirs[:12]}; a checkpoint and its export "
+                             "differ too); name the runs apart with eval --label")
         for method, metrics in folder["summary"].items():
             label = folder["label"] if method == "network" else f"{folder['label']} ({method})"
             row = rows.setdefault((label, method), {"label": label, "val": {}, "test": {},
