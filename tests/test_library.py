@@ -525,3 +525,23 @@ def test_importing_into_a_library_imported_without_rows_keeps_its_models_trainin
     shutil.rmtree(out / "box_2")
     assert import_names([box], out, taken=read_splits(out / "splits.csv")) == ["box_3"]
     assert set(OVERWRITE_DELETES) <= RESERVED_NAMES  # the two lists kept together
+
+
+def test_an_imported_mesh_in_separate_pieces_is_kept_and_said(tmp_path) -> None:
+    """A panel floating beside its bus (a lost strut or node transform) imports as it is,
+    with a one-line warning naming the file and the count; one body says nothing."""
+    import warnings
+
+    from sq_mitsuba.data.library import import_model
+
+    bus = trimesh.creation.box([1.0, 1.0, 1.0])
+    panel = trimesh.creation.box([2.0, 0.05, 1.0])
+    panel.apply_translation([2.5, 0.0, 0.0])
+    trimesh.util.concatenate([bus, panel]).export(tmp_path / "apart.obj")
+    bus.export(tmp_path / "bus.obj")
+    with pytest.warns(UserWarning, match=r"apart.obj: 2 separate pieces: parts that do not "
+                                         r"touch in the file stay apart"):
+        assert import_model(tmp_path / "apart.obj", tmp_path / "lib", points=200).is_dir()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        import_model(tmp_path / "bus.obj", tmp_path / "lib", points=200)

@@ -562,6 +562,13 @@ def import_model(path: str | Path, out_root: str | Path, method: str = "auto",
                              recentre=True)
     except MeshError as error:
         raise MeshError(f"{path}: {error}") from None
+    pieces = connected_pieces(model.mesh)
+    if pieces > 1:  # kept (a real model may be so), but said: often a strut or transform lost
+        import warnings
+
+        warnings.warn(f"{path}: {pieces} separate pieces: parts that do not touch in the file "
+                      "stay apart in the model (a strut, or a node's transform, missing?)",
+                      stacklevel=2)
     name = name or model_name_for(path)
     seed = int(np.frombuffer(model.mesh.digest().encode()[:8], dtype=np.uint64)[0] % 2**32)
     samples = sample_model(model.mesh, points, points, points, seed=seed)
