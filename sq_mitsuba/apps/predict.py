@@ -334,20 +334,26 @@ class _Inputs:
         return None
 
 
-def check_not_a_pass_frame(out: Path, paths: Sequence[Path]) -> None:
-    """A one-line ``ValueError`` when an image's pose file in ``out`` is a frame of a pass
-    (``predict --sequence`` wrote it, with a ``"sequence"`` entry): a single image's pose there
-    would be of another assembly than the pass's ``sequence.assembly.json`` and COLMAP model
-    beside it, which would then disagree with the folder's own files."""
+def is_pass_pose(pose: Path) -> bool:
+    """Whether ``pose`` is a frame's pose file that ``predict --sequence`` wrote (it holds a
+    ``"sequence"`` entry); False for no file, one that cannot be read, or a single image's."""
     import json
 
+    try:
+        earlier = json.loads(pose.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    return isinstance(earlier, dict) and "sequence" in earlier
+
+
+def check_not_a_pass_frame(out: Path, paths: Sequence[Path]) -> None:
+    """A one-line ``ValueError`` when an image's pose file in ``out`` is a frame of a pass
+    (:func:`is_pass_pose`): a single image's pose there would be of another assembly than the
+    pass's ``sequence.assembly.json`` and COLMAP model beside it, which would then disagree
+    with the folder's own files."""
     for path in paths:
         pose = out / f"{path.stem}.pose.json"
-        try:
-            earlier = json.loads(pose.read_text(encoding="utf-8"))
-        except (OSError, ValueError):  # none, or not one a pass wrote: replaced as before
-            continue
-        if isinstance(earlier, dict) and "sequence" in earlier:
+        if is_pass_pose(pose):
             raise ValueError(f"out {out}: {pose.name} is a frame of the pass in this folder "
                              f"(sequence.assembly.json); a single image's prediction would "
                              f"replace its pose with one of another assembly: choose another "

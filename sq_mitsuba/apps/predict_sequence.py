@@ -87,20 +87,12 @@ def check_frame_order(paths: Sequence[Path]) -> None:
 def _remove_earlier_pass(out: Path, stems: set[str], colmap_written: bool) -> None:
     """Delete what an earlier run left in ``out`` that contradicts this pass (see the module
     docstring); files it cannot read as an earlier pass's are left alone."""
-    import json
-
     from sq_mitsuba.apps.colmap_model import COLMAP_FILES
-    from sq_mitsuba.apps.predict import OUTPUT_SUFFIXES
+    from sq_mitsuba.apps.predict import OUTPUT_SUFFIXES, is_pass_pose
 
     for pose in out.glob("*.pose.json"):
         stem = pose.name.removesuffix(".pose.json")
-        if stem in stems or not pose.is_file():
-            continue
-        try:
-            earlier = json.loads(pose.read_text(encoding="utf-8"))
-        except (OSError, ValueError):
-            continue
-        if isinstance(earlier, dict) and "sequence" in earlier:
+        if stem not in stems and is_pass_pose(pose):
             pose.unlink(missing_ok=True)
             (out / f"{stem}.overlay.png").unlink(missing_ok=True)
     for stem in stems:  # a single image's assembly beside this pass's pose of that stem

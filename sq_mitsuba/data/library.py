@@ -608,12 +608,11 @@ def _import_locked(paths: Sequence[str | Path], root: Path, options: ImportOptio
                    progress: bool) -> LibrarySummary:
     """:func:`import_models` under the library's lock."""
     remove_dead_writes(root)  # first: a folder a killed import left empty frees its name
-    splits = read_library_splits(root)  # read (and so checked) once, before any model
-    if not (root / SPLITS_FILE).is_file():
-        # A library imported before imports kept rows: `dataset render` took its models for
-        # training ones; they keep that split, so that this batch's rows do not leave them
-        # without one.
-        splits = {name: "train" for name in _model_folders(root)}
+    # Read (and so checked) once, before any model. A library imported before imports kept
+    # rows has none: `dataset render` took its models for training ones; they keep that
+    # split, so that this batch's rows do not leave them without one.
+    splits = read_library_splits(root) if (root / SPLITS_FILE).is_file() else \
+        {name: "train" for name in _model_folders(root)}
     names = import_names(paths, root, taken=set(splits))
     summary = LibrarySummary(root, names=[(str(p), n) for p, n in zip(paths, names, strict=True)])
     for path, name in _progress(list(zip(map(Path, paths), names, strict=True)), "import",
