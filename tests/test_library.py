@@ -213,6 +213,12 @@ def test_import_gives_every_file_its_own_folder(tmp_path, capsys) -> None:
     assert main(["models", "import", str(box), "--out", str(out), "--points", "200",
                  "--split", "train"]) == 0
     assert read_splits(out / "splits.csv")["a_4"] == "train"
+    # A split that is neither: one line naming the option, before any model is imported.
+    with pytest.raises(SystemExit) as stop:  # argparse's one line, exit 2
+        main(["models", "import", str(box), "--out", str(out), "--points", "200",
+              "--split", "val"])
+    assert stop.value.code == 2 and "--split: invalid choice: 'val'" in capsys.readouterr().err
+    assert not (out / "a_5").exists()
     # A file named like a library's or dataset's own file gets another name.
     assert import_names([tmp_path / "splits.csv.obj", tmp_path / "camera.json.stl"],
                         tmp_path / "empty") == ["splits.csv_2", "camera.json_2"]
