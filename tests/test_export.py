@@ -3,6 +3,8 @@ training checkpoint does, with the trivial baseline stored beside the weights.""
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 import torch
@@ -165,6 +167,13 @@ def test_export_of_one_checkpoint_twice_predicts_as_the_checkpoint(eval_checkpoi
     assert main(["export", "--checkpoint", str(eval_checkpoint), str(eval_checkpoint),
                  "--no-half", "--out", str(twice)]) == 2
     assert error_line(capsys).endswith(f"checkpoint {eval_checkpoint}: given twice (as "
+                                       f"{eval_checkpoint}); give each run's checkpoint once")
+    assert not twice.exists()
+    linked = tmp_path / "linked.pt"  # a hard link is the same file under another name
+    os.link(eval_checkpoint, linked)
+    assert main(["export", "--checkpoint", str(eval_checkpoint), str(linked),
+                 "--no-half", "--out", str(twice)]) == 2
+    assert error_line(capsys).endswith(f"checkpoint {linked}: given twice (as "
                                        f"{eval_checkpoint}); give each run's checkpoint once")
     assert not twice.exists()
     copy = shutil.copy(eval_checkpoint, tmp_path / "copy.pt")  # the average of equal weights

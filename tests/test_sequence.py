@@ -624,6 +624,7 @@ def test_predict_sequence_cli_writes_one_assembly_and_a_pose_per_frame(eval_chec
                                atol=0.05, rtol=0.05)
     for k, pose in enumerate(written):
         assert pose["target_size"] == 2.5
+        assert pose["turns"] == direct.frames.fit.turns  # the copies the frames were read from
         np.testing.assert_allclose(pose["r_Vo2To_vbs"], 2.5 * direct.translation[k].numpy(),
                                    atol=0.025 * spread)
         rotation = quaternion_to_matrix(torch.tensor(pose["q_vbs2tango"], dtype=torch.float64))

@@ -124,6 +124,16 @@ def baseline_data_note(payloads: Sequence[dict[str, Any]], data_root: Path) -> s
             f"baseline describes {data_root}")
 
 
+
+def _file_identity(path: Path) -> object:
+    """What names one file: its device and inode (a hard link or a symlink is the same file),
+    or the resolved path where it cannot be read (its absence is reported later)."""
+    try:
+        info = path.stat()
+    except OSError:
+        return path.resolve()
+    return (info.st_dev, info.st_ino)
+
 def export_model(checkpoint: str | Path | Sequence[str | Path], data_root: str | Path | None,
                  out: str | Path, options: ExportOptions | None = None,
                  notes: list[str] | None = None, start: str | Path | None = None) -> Path:
@@ -165,9 +175,9 @@ def export_model(checkpoint: str | Path | Sequence[str | Path], data_root: str |
         [Path(path) for path in checkpoint]
     if not paths:
         raise ValueError("checkpoint: give at least one checkpoint to export")
-    seen: dict[Path, Path] = {}
+    seen: dict[object, Path] = {}
     for path in paths:  # the same file twice would weigh one run double in the average
-        first = seen.setdefault(path.resolve(), path)
+        first = seen.setdefault(_file_identity(path), path)
         if first is not path:
             raise ValueError(f"checkpoint {path}: given twice (as {first}); give each run's "
                              "checkpoint once")

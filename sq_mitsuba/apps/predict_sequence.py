@@ -319,6 +319,7 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
             "target_size": target_size,
             "camera": image_camera.to_speed_dict(),
             "checkpoint": str(getattr(predictor, "source", None) or ""),
+            "turns": int(own.fit.turns),  # the frame's reading: the search's copies
             "sequence": {"frame": k, "frames": count, "reference": result.reference,
                          "iou": record.iou[k], "frame_iou": record.frame_iou[k],
                          "half_turn": [[float(v) for v in row] for row in result.half_turns[k]],
