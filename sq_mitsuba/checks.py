@@ -155,6 +155,19 @@ def check_rotations(name: str, rotations: torch.Tensor) -> None:
     gram = matrices.transpose(-1, -2) @ matrices
     error = float((gram - torch.eye(3, dtype=torch.float64, device=gram.device)).abs().amax()) \
         if gram.numel() else 0.0
-    if error > ORTHONORMAL_TOLERANCE or bool((torch.linalg.det(matrices) <= 0).any()):
-        raise ValueError(f"{name}: not rotation matrices (|R^T R - I| up to {error:.2g}, or "
-                         "a reflection)")
+    if error > ORTHONORMAL_TOLERANCE:
+        raise ValueError(f"{name}: not rotation matrices (|R^T R - I| up to {error:.2g}, "
+                         f"tolerance {ORTHONORMAL_TOLERANCE:g})")
+    if bool((torch.linalg.det(matrices) <= 0).any()):
+        raise ValueError(f"{name}: not rotation matrices (a reflection among them: "
+                         "determinant -1)")
+
+
+def python_scalar(value: object) -> object:
+    """A numpy integer or bool as Python's (``np.int64(8)`` -> 8, ``np.True_`` -> True), for
+    counts and switches a user computed with numpy; anything else as it is (to be checked)."""
+    import numpy as np
+
+    if isinstance(value, np.integer | np.bool_):
+        return value.item()
+    return value

@@ -208,8 +208,12 @@ def test_bad_input_is_a_one_line_error_naming_the_argument(predictor):
         with pytest.raises(ValueError, match=f"^{message}") as info:
             predictor.predict(images)
         assert "\n" not in str(info.value)
-    with pytest.raises(ValueError, match=r"^camera: is for 64 x 64 images, the images are 96"):
+    with pytest.raises(ValueError, match=r"^camera: none given, and the predictor's camera is "
+                       r"for 64 x 64 images, the images are 96 x 64 \(another aspect ratio\); "
+                       r"pass theirs, e.g. Camera.from_fov\(fov_x_deg, 96, 64\)$"):
         predictor.predict(torch.zeros(1, 64, 96))
+    with pytest.raises(ValueError, match=r"^camera: is for 64 x 64 images, the images are 96"):
+        predictor.predict(torch.zeros(1, 64, 96), camera=CAMERA)
     with pytest.raises(ValueError, match=r"^camera: expected a Camera"):
         predictor.predict(x, camera=CAMERA.matrix())
 

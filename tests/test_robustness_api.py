@@ -379,7 +379,8 @@ def test_search_and_refinement_options_are_checked_before_any_work(shipped):
             (dict(search=SearchOptions(turns=500)), turns + "500$"),
             (dict(search=SearchOptions(resolution=1)), r"search\.resolution: expected a value"),
             (dict(refinement=RefineOptions(steps=0, lr=-1.0)), r"refinement\.steps: expected"),
-            (dict(search={"grid": 8}), "search: expected a SearchOptions, got dict$"),
+            (dict(search={"grid": 8}), r"search: expected a SearchOptions, got dict \(build one "
+                 r"from it: SearchOptions\(\*\*d\)\)$"),
             (dict(refinement=SEARCH), "refinement: expected a RefineOptions, got SearchOptions$")):
         passes.clear()
         with pytest.raises(ValueError, match=f"^{message}") as info:
@@ -745,3 +746,110 @@ def test_a_protocol_0_pickle_is_still_named_as_refused_by_the_safe_loader(tmp_pa
     with pytest.raises(ValueError, match=r"old.pt: not a readable checkpoint \(refused by the "
                                          r"safe loader"):
         load_torch_file(tmp_path / "old.pt", "checkpoint")
+
+
+# --- what a new user of the API got wrong (a user review, 2026-12-01) -------------------------
+
+
+def test_a_colour_image_is_refused_with_the_mean_as_the_hint_and_channels_warned():
+    """(H, W, 3), (1, H, W, 3) and (1, 3, H, W) cannot be grey batches: refused, naming the
+    channels' axis and the mean to take. (3, H, W) can (three grey images), so it is read as
+    such, but warned where the three are as alike as one picture's channels; three views of
+    a scene are not warned."""
+    rgb = np.random.default_rng(0).random((32, 40, 3)).astype(np.float32)
+    for array, axis, one in ((rgb, 2, "[None]"), (rgb[None], 3, ""),
+                             (rgb.transpose(2, 0, 1)[None], 1, "")):
+        with pytest.raises(ValueError, match=rf"^images: expected shape \(B, H, W\) or \(B, 1, "
+                           rf"H, W\) \(grey\), got {re.escape(str(array.shape))}: colour channels "
+                           rf"along axis {axis}\? give their mean, e.g. images.mean\({axis}\)"
+                           rf"{re.escape(one)}$"):
+            prepare_images(array)
+    ramp = torch.linspace(0, 1, 40).expand(32, 40)
+    channels = torch.stack([0.9 * ramp, 0.8 * ramp + 0.1, 0.7 * ramp])  # one picture, tinted
+    with pytest.warns(UserWarning, match=r"^images: 3 images alike as the channels of one "
+                      r"colour image \(shape \(3, 32, 40\) read as \(B, H, W\)"):
+        assert prepare_images(channels).shape == (3, 1, 32, 40)
+    views = torch.stack([ramp, ramp.flip(-1), ramp.flip(-2) ** 2])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert prepare_images(views).shape == (3, 1, 32, 40)
+
+
+def test_numpy_scalars_count_and_switch_as_python_numbers(shipped, scenes):
+    image = scenes["spacecraft"][:1]
+    reference = shipped.predict(image, turns=1)
+    read = shipped.predict(image, turns=np.int64(1), refine=np.bool_(False))
+    assert read.turns == 1 and type(read.turns) is int
+    torch.testing.assert_close(read.rotation, reference.rotation, rtol=0, atol=0)
+    with pytest.raises(ValueError, match=r"^refine: expected True or False, got 'yes'$"):
+        shipped.predict(image, refine="yes")
+
+
+def test_a_prediction_prints_in_a_line_and_its_items_and_factors_are_named(shipped, scenes):
+    prediction = shipped.predict(scenes["spacecraft"][:2])
+    text = repr(prediction)
+    assert text.startswith("Prediction(2 images of ") and "network reading" in text
+    assert "\n" not in text and len(text) < 300  # the dataclass's own repr: 15,000 characters
+    assert repr(shipped).startswith("Predictor(source=") and "image_size=96" in repr(shipped)
+    with pytest.raises(IndexError, match=r"^item: 5 is out of range for an assembly batch of 2$"):
+        prediction.item_assembly(5)
+    torch.testing.assert_close(prediction.scaled(torch.tensor(2.5)).translation,
+                               prediction.scaled(2.5).translation, rtol=0, atol=0)
+    for factor, got in (("2", "'2'"), (torch.ones(3), r"a tensor of shape \(3,\)")):
+        with pytest.raises(ValueError, match=rf"^factor: expected one number for the whole "
+                           rf"batch \(the target's longest side in metres\), got {got}$"):
+            prediction.scaled(factor)
+
+
+def test_the_pass_names_its_options_and_an_empty_mask_given_before_any_search(shipped, scenes):
+    """Options of the wrong type or with a bad field are named as the argument
+    (``options``, ``options.steps``); a mask given empty for a frame is refused before any
+    frame is searched, naming the mask, not the images (with the masks given)."""
+    import inspect
+
+    from sq_mitsuba.inference import SequenceOptions
+
+    assert {"ordered", "mask", "options", "relative_rotations"} <= set(
+        inspect.signature(type(shipped).predict_sequence).parameters)
+    frames = scenes["spacecraft"][:2]
+    with pytest.raises(ValueError, match=r"^options: expected a SequenceOptions, got dict \(build "
+                       r"one from it: SequenceOptions\(\*\*d\)\)$"):
+        shipped.predict_sequence(frames, options={"steps": 5})
+    with pytest.raises(ValueError, match=r"^options\.steps: "):
+        shipped.predict_sequence(frames, options=SequenceOptions(steps=0))
+    masks = np.zeros((2, *frames.shape[-2:]), np.uint8)
+    masks[0, 20:40, 20:40] = 255
+    # (After the search an empty mask would be "images: frame 1 has no target in its mask".)
+    with pytest.raises(ValueError, match=r"^mask: frame 1's holds no target pixel; leave "
+                       r"the frame out of the sequence, or give a mask of its target$"):
+        shipped.predict_sequence(frames, mask=masks)
+
+
+def test_rotations_of_two_dtypes_reflections_and_no_rotations_at_all():
+    from sq_mitsuba.geometry.metrics import rotation_error_deg
+    from sq_mitsuba.geometry.rotation import matrix_to_quaternion, mean_rotation, random_rotations
+    from sq_mitsuba.render.silhouette.renderer import assembly_camera_vertices
+
+    rotations = random_rotations(4, torch.Generator().manual_seed(3), torch.float64)
+    labels = random_rotations(4, torch.Generator().manual_seed(4), torch.float64)
+    mixed = rotation_error_deg(rotations.float(), labels)  # a float32 reading, float64 labels
+    assert mixed.dtype == torch.float64
+    torch.testing.assert_close(mixed, rotation_error_deg(rotations.float().double(), labels))
+    reflection = torch.diag(torch.tensor([1.0, 1.0, -1.0]))[None]
+    with pytest.raises(ValueError, match=r"^matrix: not rotation matrices \(a reflection among "
+                       r"them: determinant -1\)$"):
+        matrix_to_quaternion(reflection)
+    with pytest.raises(ValueError, match=r"^matrix: not rotation matrices \(\|R\^T R - I\| up "
+                       r"to 3, tolerance 0.001\)$"):
+        matrix_to_quaternion(2 * torch.eye(3))
+    with pytest.raises(ValueError, match=r"^rotations: expected \(N, 3, 3\) with N >= 1, got "
+                       r"\(0, 3, 3\)$"):
+        mean_rotation(rotations[:0])
+    with pytest.raises(ValueError, match=r"^rotation: not rotation matrices \(\|R\^T R - I\| up "
+                       r"to 3"):  # a scaled pose would draw a scaled assembly
+        assembly_camera_vertices(Assembly.from_values(torch.full((1, 1, 3), 0.2),
+                                                      torch.full((1, 1, 2), 0.5)),
+                                 2 * torch.eye(3)[None], torch.tensor([[0.0, 0.0, 3.0]]))
+    with pytest.raises(ValueError, match=r"^resolution: expected a positive integer \(pixels a "
+                       r"side\), got '256'$"):
+        Camera.default("256")

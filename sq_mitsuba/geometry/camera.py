@@ -81,7 +81,14 @@ class Camera:
     @classmethod
     def default(cls, resolution: int = DEFAULT_RESOLUTION) -> Camera:
         """The project's default camera: square image with the SPEED camera's horizontal field
-        of view (35.45 deg), principal point at the image centre; fx = fy = 400.45 at 256 px."""
+        of view (35.45 deg), principal point at the image centre; fx = fy = 400.45 at 256 px.
+
+        Raises:
+            ValueError: naming ``resolution`` unless a positive integer (pixels a side).
+        """
+        if isinstance(resolution, bool) or not isinstance(resolution, int) or resolution < 1:
+            raise ValueError(f"resolution: expected a positive integer (pixels a side), got "
+                             f"{resolution!r}")
         focal = SPEED_FOCAL_LENGTH_M / SPEED_PIXEL_PITCH_M * resolution / SPEED_WIDTH_PX
         return cls(focal, focal, resolution / 2, resolution / 2, resolution, resolution)
 

@@ -18,7 +18,7 @@ import torch
 from torch import Tensor
 from torch.nn import functional as F
 
-from sq_mitsuba.checks import check_nonzero, check_tensor
+from sq_mitsuba.checks import check_nonzero, check_rotations, check_tensor
 
 __all__ = [
     "axis_angle_to_matrix",
@@ -92,12 +92,14 @@ def matrix_to_quaternion(matrix: Tensor) -> Tensor:
     accurate near 180 degree rotations where w -> 0.
 
     Args:
-        matrix: (..., 3, 3) rotation matrices.
+        matrix: (..., 3, 3) rotation matrices (a reflection or a scaled matrix is refused:
+            it has no quaternion; a value check, see :func:`~sq_mitsuba.checks.value_checks`).
 
     Returns:
         (..., 4).
     """
     _check_matrix("matrix", matrix)
+    check_rotations("matrix", matrix.reshape(-1, 3, 3))
     m = matrix
     m00, m11, m22 = m[..., 0, 0], m[..., 1, 1], m[..., 2, 2]
     # 4 q_i^2 for i = w, x, y, z.
@@ -170,7 +172,10 @@ def rotation_angle(rotation_a: Tensor, rotation_b: Tensor) -> Tensor:
     """
     _check_matrix("rotation_a", rotation_a)
     _check_matrix("rotation_b", rotation_b)
-    relative = rotation_a.transpose(-1, -2) @ rotation_b
+    # Convention: rotations of two floating dtypes are compared in the wider (a float32
+    # reading against float64 labels), as torch's elementwise operations would.
+    dtype = torch.promote_types(rotation_a.dtype, rotation_b.dtype)
+    relative = rotation_a.to(dtype).transpose(-1, -2) @ rotation_b.to(dtype)
     cos = 0.5 * (relative.diagonal(dim1=-2, dim2=-1).sum(-1) - 1.0)
     skew = torch.stack([relative[..., 2, 1] - relative[..., 1, 2],
                         relative[..., 0, 2] - relative[..., 2, 0],
@@ -215,7 +220,15 @@ def _nearest_rotation(matrix: Tensor) -> Tensor:
 
 def mean_rotation(rotations: Tensor) -> Tensor:
     """Chordal L2 mean (3, 3), float64, of rotations (N, 3, 3): the arithmetic mean projected
-    onto SO(3) (:func:`best_rotation`'s projection, the rotation nearest it)."""
+    onto SO(3) (:func:`best_rotation`'s projection, the rotation nearest it).
+
+    Raises:
+        ValueError: naming ``rotations``: another shape, none (N = 0), NaN.
+    """
+    check_tensor("rotations", rotations, (3, 3), min_dims=3)
+    if rotations.dim() != 3 or rotations.shape[0] == 0:
+        raise ValueError(f"rotations: expected (N, 3, 3) with N >= 1, got "
+                         f"{tuple(rotations.shape)}")
     return _nearest_rotation(rotations.double().mean(0))
 
 

@@ -8,7 +8,9 @@ frame by :mod:`.body_frame`, primitives optionally grown where its silhouettes m
 masks by :mod:`.grow`). Imports the model layer and those below it; never the training
 layer.
 
-``Predictor``, ``Prediction`` and ``load_model`` are importable from here, loaded on first use.
+``Predictor``, ``Prediction``, ``SequencePrediction``, ``load_model`` and the options of the
+search, the refinement and the pass (``SearchOptions``, ``RefineOptions``,
+``SequenceOptions``) are importable from here, loaded on first use.
 """
 
 from __future__ import annotations
@@ -16,7 +18,9 @@ from __future__ import annotations
 from importlib import import_module
 from typing import Any
 
-_PUBLIC = {"Predictor": "predictor", "Prediction": "predictor", "load_model": "loading"}
+_PUBLIC = {"Predictor": "predictor", "Prediction": "prediction",
+           "SequencePrediction": "prediction", "load_model": "loading",
+           "SearchOptions": "search", "RefineOptions": "refine", "SequenceOptions": "sequence"}
 __all__ = sorted(_PUBLIC)
 
 

@@ -75,11 +75,20 @@ def prepare_images(images: Tensor | np.ndarray, channels: int = 1) -> Tensor:
     if images.is_meta:
         raise ValueError("images: a meta tensor (no values); give the images themselves")
     images = images.detach()
-    if images.dim() == 3 and channels == 1:
-        images = images[:, None]
+    given = tuple(images.shape)
     expected = "(B, H, W) or (B, 1, H, W)" if channels == 1 else f"(B, {channels}, H, W)"
+    axis = _colour_axis(given) if channels == 1 else None
+    if axis is not None:
+        one = "[None]" if len(given) == 3 else ""  # (H, W, C): one image
+        raise ValueError(f"images: expected shape {expected} (grey), got {given}: colour "
+                         f"channels along axis {axis}? give their mean, e.g. "
+                         f"images.mean({axis}){one}")
+    if images.dim() == 3 and channels == 1:
+        if images.shape[0] == 3:
+            _warn_if_channels(images)
+        images = images[:, None]
     if images.dim() != 4 or images.shape[1] != channels or images.numel() == 0:
-        raise ValueError(f"images: expected shape {expected}, got {tuple(images.shape)}")
+        raise ValueError(f"images: expected shape {expected}, got {given}")
     check_image_size(images.shape[-1], images.shape[-2], "images")
     if images.dtype == torch.uint8:
         return images.float() / 255.0
@@ -92,6 +101,40 @@ def prepare_images(images: Tensor | np.ndarray, channels: int = 1) -> Tensor:
         raise ValueError(f"images: float values must lie in [0, 1], got [{low:.4g}, {high:.4g}]"
                          " (divide uint8-range floats by 255)")
     return images
+
+
+def _colour_axis(shape: tuple[int, ...]) -> int | None:
+    """The axis of an RGB(A) image's channels in a shape no grey batch can have: the last of
+    (H, W, C) or (B, H, W, C), or the second of (B, C, H, W), 3 or 4 long (a grey image is at
+    least 8 px a side); None otherwise."""
+    from sq_mitsuba.inputs import MIN_IMAGE_SIDE
+
+    if len(shape) in (3, 4) and shape[-1] in (3, 4) and min(shape[-3:-1]) >= MIN_IMAGE_SIDE:
+        return len(shape) - 1
+    if len(shape) == 4 and shape[1] in (3, 4) and min(shape[-2:]) >= MIN_IMAGE_SIDE:
+        return 1
+    return None
+
+
+def _warn_if_channels(images: Tensor) -> None:
+    """Warn where three grey images (3, H, W) look like one colour image's channels (C, H, W):
+    the same picture in each (correlation above 0.995 between every pair; a grey render's
+    channels are equal). Three frames of a pass are not that alike: neighbouring frames of
+    the held-out passes correlate up to 0.985, so a colour photo whose channels differ more
+    goes unwarned (the docs say (B, H, W) is B grey images)."""
+    import warnings
+
+    flat = images.reshape(3, -1).double()
+    flat = flat - flat.mean(dim=1, keepdim=True)
+    norms = flat.norm(dim=1)
+    if bool((norms <= 0).any()):
+        return
+    correlation = (flat @ flat.T) / (norms[:, None] * norms[None, :])
+    if float(correlation.min()) > 0.995:
+        warnings.warn(f"images: 3 images alike as the channels of one colour image (shape "
+                      f"{tuple(images.shape)} read as (B, H, W): 3 grey images); for one colour "
+                      "image give its mean over the channels, e.g. images.mean(0, keepdim=True)",
+                      stacklevel=2)
 
 
 def resize_images(images: Tensor, size: int) -> Tensor:

@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import replace
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 import torch
@@ -43,7 +43,10 @@ from sq_mitsuba.inference.prediction import Fit, MaskChoice, Prediction
 from sq_mitsuba.inference.refine import RefineOptions
 from sq_mitsuba.inference.search import SEARCH_REFINEMENT, SearchOptions, search_and_refine
 
-__all__ = ["fit_options", "fit_prediction", "masks_to_fit", "search_start", "segmented"]
+T = TypeVar("T")
+
+__all__ = ["checked_options", "fit_options", "fit_prediction", "masks_to_fit", "search_start",
+           "segmented"]
 
 
 def fit_options(search: SearchOptions | None, refinement: RefineOptions | None
@@ -55,14 +58,24 @@ def fit_options(search: SearchOptions | None, refinement: RefineOptions | None
             :class:`~sq_mitsuba.config.ConfigError` naming the field
             (``search.turns: expected a value in [1, 64], got 500``).
     """
-    search = SearchOptions() if search is None else search
-    refinement = SEARCH_REFINEMENT if refinement is None else refinement
-    for name, value, kind in (("search", search, SearchOptions),
-                              ("refinement", refinement, RefineOptions)):
-        if not isinstance(value, kind):
-            raise ValueError(f"{name}: expected a {kind.__name__}, got {type(value).__name__}")
-        validate(value, name)
-    return search, refinement
+    return (checked_options(search, SearchOptions(), "search"),
+            checked_options(refinement, SEARCH_REFINEMENT, "refinement"))
+
+
+def checked_options(value: Any, default: T, name: str) -> T:
+    """``value`` (None: ``default``) checked as an options object of ``default``'s class.
+
+    Raises:
+        ValueError: naming ``name`` for another type (a dict: build the class from it);
+            :class:`~sq_mitsuba.config.ConfigError` naming ``name.field`` for a bad field.
+    """
+    value = default if value is None else value
+    kind = type(default)
+    if not isinstance(value, kind):
+        hint = f" (build one from it: {kind.__name__}(**d))" if isinstance(value, dict) else ""
+        raise ValueError(f"{name}: expected a {kind.__name__}, got {type(value).__name__}{hint}")
+    validate(value, name)
+    return value
 
 
 def search_start(predictor: Any, images: Tensor, network: Prediction, camera: Camera,

@@ -9,6 +9,7 @@ Convention: poses map body to camera in the OpenCV frame (x right, y down, z for
 
 from __future__ import annotations
 
+import numbers
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -24,17 +25,25 @@ __all__ = ["MASK_SOURCES", "Fit", "MaskChoice", "Prediction", "SequencePredictio
 #: caller (a mask file, the ground truth).
 MASK_SOURCES = ("network", "segmentation", "given")
 #: The mask a prediction is fitted to: "network" (the mask head; the segmentation for a network
-#: without one), "segmentation", or the masks themselves, (B, H, W) bool or float in [0, 1]
-#: (above 0.5 is the target), a tensor or numpy array; None: "network".
+#: without one), "segmentation", or the masks themselves, (B, H, W) bool, float in [0, 1]
+#: (above 0.5 is the target) or integer (non-zero is the target: a 0/255 uint8 mask reads as
+#: it looks), a tensor or numpy array; None: "network".
 MaskChoice = str | Tensor | np.ndarray | None
 
 
-def _one_factor(factor: object) -> None:
-    """Refuse a tensor ``factor`` in one line: a prediction's lengths scale as one (the
-    number itself is checked by :meth:`~sq_mitsuba.geometry.assembly.Assembly.scaled`)."""
-    if isinstance(factor, Tensor):
+def _one_factor(factor: object) -> float:
+    """``factor`` as one number (a 0-d tensor's value), or a one-line ``ValueError``: a
+    prediction's lengths scale as one (the number itself is checked by
+    :meth:`~sq_mitsuba.geometry.assembly.Assembly.scaled`)."""
+    if isinstance(factor, Tensor) and factor.dim() == 0 and factor.is_floating_point():
+        return float(factor)
+    if isinstance(factor, Tensor) or isinstance(factor, bool) \
+            or not isinstance(factor, numbers.Real):
+        got = f"a tensor of shape {tuple(factor.shape)}" if isinstance(factor, Tensor) \
+            else repr(factor)
         raise ValueError(f"factor: expected one number for the whole batch (the target's "
-                         f"longest side in metres), got a tensor of shape {tuple(factor.shape)}")
+                         f"longest side in metres), got {got}")
+    return factor
 
 
 @dataclass(frozen=True)
@@ -104,7 +113,9 @@ class Prediction:
         camera: intrinsics of the given images (after any rescaling of the camera passed in).
         rotation_hypotheses: (B, K, 3, 3) distinct candidate rotations, best first: the modes
             of a distribution head (K = the predictor's ``hypotheses``), or ``rotation``
-            alone (K = 1) for a regressing head.
+            alone (K = 1) for a regressing head. On a fitted prediction they, the scores, the
+            mask and the log-probabilities stay the search's start's (float32, where the
+            fitted pose and assembly are float64): the fitted ``rotation`` is none of them.
         rotation_scores: (B, K) the network's probability of each hypothesis (1 for a
             regressing head's single one).
         mask: (B, H, W) the mask head's probability that a pixel of the given images shows
@@ -168,6 +179,12 @@ class Prediction:
     turns: int = 1
     scale: float = 1.0
 
+    def __repr__(self) -> str:  # the fields hold whole images and grids: a summary
+        kind = "network reading" if self.fit is None else "fitted"
+        return (f"Prediction({self.rotation.shape[0]} images of {self.camera.width} x "
+                f"{self.camera.height}, {kind}, assembly={self.assembly!r}, "
+                f"turns={self.turns}, scale={self.scale:g})")
+
     def scaled(self, factor: float) -> Prediction:
         """This prediction for a target ``factor`` times the size the network assumes.
 
@@ -188,7 +205,7 @@ class Prediction:
         Raises:
             ValueError: one line naming ``factor`` when it is not a finite number > 0.
         """
-        _one_factor(factor)
+        factor = _one_factor(factor)
         assembly = self.assembly.scaled(factor)  # checks the number before any other work
         primitives = None if self.primitives is None else \
             Assembly(self.primitives).scaled(factor).params
@@ -207,10 +224,11 @@ class Prediction:
         Raises:
             IndexError: naming ``item`` outside the batch.
         """
-        own = self.assembly[item]  # (1, W, 16); an IndexError names the item
+        item = self.assembly._item(item, "item")  # an IndexError naming the item
+        own = self.assembly[item]  # (1, W, 16)
         if self.primitive_index is None:
             return own
-        real = self.primitive_index[range(self.assembly.batch_size)[item]] >= 0
+        real = self.primitive_index[item] >= 0
         return Assembly(own.params[:, real.to(own.params.device)])
 
 
@@ -222,7 +240,8 @@ class SequencePrediction:
         assembly: the shared assembly (batch size 1), in the body frame.
         rotation: (N, 3, 3) body -> camera rotation of each frame; translation: (N, 3).
         quaternion: (N, 4) ``rotation`` as (w, x, y, z), w >= 0.
-        frames: each frame's own prediction (the shipped path, before the joint fit).
+        frames: the frames' own fitted readings (the shipped path, before the joint fit): one
+            :class:`Prediction` whose batch is the N frames.
         reference: index of the frame whose body frame is the result's (before
             ``SequenceOptions.canonical``'s change of frame, which these two do not follow).
         half_turns: (N, 3, 3) the half turn S_j that carries frame j's reading into the
@@ -254,6 +273,11 @@ class SequencePrediction:
     frames_seconds: float = 0.0
     scale: float = 1.0
 
+    def __repr__(self) -> str:
+        return (f"SequencePrediction({self.rotation.shape[0]} frames, assembly="
+                f"{self.assembly!r}, reference={self.reference}, steps={self.steps}, "
+                f"scale={self.scale:g})")
+
     def scaled(self, factor: float) -> SequencePrediction:
         """This result for a target ``factor`` times the size the network assumes: the shared
         assembly, every translation and the frames' own predictions scaled
@@ -263,7 +287,7 @@ class SequencePrediction:
         Raises:
             ValueError: one line naming ``factor`` when it is not a finite number > 0.
         """
-        _one_factor(factor)
+        factor = _one_factor(factor)
         return replace(self, assembly=self.assembly.scaled(factor),
                        translation=self.translation * factor,
                        frames=self.frames.scaled(factor), scale=self.scale * float(factor))

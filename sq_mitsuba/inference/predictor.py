@@ -6,7 +6,7 @@ checkpoint. Example::
 
     predictor = sq_mitsuba.load_model("run/checkpoint.pt")
     prediction = predictor.predict(images)          # (B, H, W) uint8 or float in [0, 1]
-    prediction.assembly.export("item0.glb", item=0)
+    prediction.item_assembly(0).export("item0.glb")  # image 0's own primitives
     prediction.rotation, prediction.translation     # x_cam = R x_body + t
     prediction.rotation_hypotheses                  # (B, K, 3, 3), best first
     prediction.mask                                 # (B, H, W) in [0, 1], or None
@@ -48,6 +48,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from sq_mitsuba.checks import python_scalar
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.image_turns import check_rotation_exact, z_rotation
@@ -75,6 +76,7 @@ from sq_mitsuba.model.rotation_grid import RotationGridPoseHead, turned_cells
 if TYPE_CHECKING:  # the search and refinement load Mitsuba's bridge: imported when used
     from sq_mitsuba.inference.refine import RefineOptions
     from sq_mitsuba.inference.search import SearchOptions
+    from sq_mitsuba.inference.sequence import SequenceOptions
 
 __all__ = ["Prediction", "Predictor", "prepare_images"]
 
@@ -152,6 +154,13 @@ class Predictor:
         #: rotation (1, 3, 3) and translation (1, 3) of their labels.
         self.baseline: tuple[Tensor, Tensor, Tensor] | None = None
 
+    def __repr__(self) -> str:
+        device = next(self.model.parameters()).device
+        return (f"Predictor(source={str(self.source) if self.source else None!r}, "
+                f"image_size={self.image_size}, camera={self.camera.width} x "
+                f"{self.camera.height}, device={device}, fast={self.fast}, "
+                f"min_target={self.min_target:g})")
+
     @property
     def image_size(self) -> int:
         """Side S of the network's square input."""
@@ -204,6 +213,7 @@ class Predictor:
             ValueError: naming ``images``, ``camera``, ``turns``, ``refine``, ``mask``, or
                 ``search`` / ``refinement`` (or their field: ``search.turns``).
         """
+        refine, turns = python_scalar(refine), python_scalar(turns)
         if not isinstance(refine, bool):
             raise ValueError(f"refine: expected True or False, got {refine!r}")
         if not refine:
@@ -247,6 +257,7 @@ class Predictor:
         """
         from sq_mitsuba.inference.pipeline import fit_prediction
 
+        turns = python_scalar(turns)
         x, camera = self._prepared(images, camera)
         count = x.images.shape[0]
         _check_unit_scale(network=network, reuse=getattr(reuse, "start", None))
@@ -270,20 +281,27 @@ class Predictor:
         return fit_prediction(self, x.checked, network, turns=turns, mask=mask, search=search,
                               refinement=refinement, reuse=reuse)
 
-    def predict_sequence(self, images: Tensor | np.ndarray, camera: Camera | None = None,
-                         **kwargs: object) -> SequencePrediction:
+    def predict_sequence(self, images: Tensor | np.ndarray, camera: Camera | None = None, *,
+                         relative_rotations: Tensor | np.ndarray | None = None,
+                         ordered: bool = False, mask: MaskChoice = None,
+                         options: SequenceOptions | None = None,
+                         search: SearchOptions | None = None,
+                         refinement: RefineOptions | None = None,
+                         progress: bool = False) -> SequencePrediction:
         """One assembly and every pose from N >= 2 images of the same spacecraft: each frame
         read by the shipped path, the half turns resolved across frames, then one shape and N
         poses fitted to every frame's mask at once
-        (:func:`~sq_mitsuba.inference.sequence.predict_sequence`, which documents the keyword
-        arguments: ``relative_rotations``, ``mask``, ``options``, ``search``, ``refinement``).
+        (:func:`~sq_mitsuba.inference.sequence.predict_sequence` documents every argument;
+        ``SequenceOptions`` is :class:`sq_mitsuba.inference.sequence.SequenceOptions`).
 
         Returns:
             A :class:`~sq_mitsuba.inference.prediction.SequencePrediction`.
         """
         from sq_mitsuba.inference.sequence import predict_sequence
 
-        return predict_sequence(self, images, camera, **kwargs)
+        return predict_sequence(self, images, camera, relative_rotations=relative_rotations,
+                                ordered=ordered, mask=mask, options=options, search=search,
+                                refinement=refinement, progress=progress)
 
     def read_turns(self, images: Tensor | np.ndarray, prediction: Prediction, turns: int,
                    camera: Camera | None = None) -> Prediction:
@@ -295,6 +313,7 @@ class Predictor:
         Raises:
             ValueError: naming ``images``, ``camera``, ``turns`` or ``prediction``.
         """
+        turns = python_scalar(turns)
         x, camera = self._prepared(images, camera)
         self.check_turns(turns, camera)  # 1 runs for every network and camera, as in predict
         count = x.images.shape[0]
@@ -321,7 +340,15 @@ class Predictor:
         dtype, and the camera of the given images."""
         x = prepare_images(images, self.model.config.in_channels)
         height, width = x.shape[-2:]
-        camera = camera_for(self.camera if camera is None else camera, width, height)
+        try:
+            camera = camera_for(self.camera if camera is None else camera, width, height)
+        except ValueError:
+            if camera is not None:
+                raise
+            raise ValueError(f"camera: none given, and the predictor's camera is for "
+                             f"{self.camera.width} x {self.camera.height} images, the images are "
+                             f"{width} x {height} (another aspect ratio); pass theirs, e.g. "
+                             f"Camera.from_fov(fov_x_deg, {width}, {height})") from None
         parameter = next(self.model.parameters())
         resized = resize_images(x.to(device=parameter.device, dtype=parameter.dtype),
                                 self.image_size)

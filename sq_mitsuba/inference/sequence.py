@@ -66,7 +66,7 @@ import torch
 from torch import Tensor
 
 from sq_mitsuba.checks import check_rotations
-from sq_mitsuba.config import in_range, non_negative, positive, validate
+from sq_mitsuba.config import in_range, non_negative, positive
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.rotation import matrix_to_quaternion, mean_rotation
@@ -80,6 +80,7 @@ from sq_mitsuba.inference.body_frame import (
 )
 from sq_mitsuba.inference.images import array_to_tensor, prepare_images
 from sq_mitsuba.inference.lost_frames import place_lost_frames
+from sq_mitsuba.inference.pipeline import checked_options, masks_to_fit
 from sq_mitsuba.inference.prediction import Prediction, SequencePrediction
 from sq_mitsuba.inference.refine import RefineOptions, refine_pose_and_shape
 from sq_mitsuba.inference.search import (
@@ -230,8 +231,7 @@ def fit_sequence(assembly: Assembly, rotation: Tensor, translation: Tensor, mask
         The assembly (batch size 1), rotation (N, 3, 3), translation (N, 3), each frame's IoU
         (N,) at the best step (by the mean IoU), the steps taken and the loss per step.
     """
-    options = options or SequenceOptions()
-    validate(options)
+    options = checked_options(options, SequenceOptions(), "options")
     assembly = Assembly(assembly.params.detach().double())
     rotation, translation = rotation.detach().double(), translation.detach().double()
     stages = [(options.shape_steps, False)] if options.shape_steps and \
@@ -359,8 +359,7 @@ def predict_sequence(predictor: Any, images: Tensor | np.ndarray, camera: Camera
     from sq_mitsuba.progress import progress_bar
 
     started = time.perf_counter()
-    options = options or SequenceOptions()
-    validate(options)
+    options = checked_options(options, SequenceOptions(), "options")
     checked = prepare_images(images, predictor.model.config.in_channels)
     count = checked.shape[0]
     if count < 2:
@@ -389,13 +388,16 @@ def _frames(predictor: Any, checked: Tensor, network: Prediction, camera: Camera
             mask: Any, search: Any, refinement: Any) -> Prediction:
     """Each frame's own search and refinement, after refusing a frame without a target."""
     count = checked.shape[0]
-    if network.target is not None and (mask is None or isinstance(mask, str)):
-        absent = [k for k in range(count) if not bool(network.target[k])]
-        if absent:
-            raise ValueError(f"images: frame {absent[0]} shows no target (its score "
-                             f"{float(network.target_score[absent[0]]):.2f}); leave it out of "
-                             "the sequence, or give the frames' masks (predict_sequence's mask, "
-                             "predict --mask)")
+    if mask is not None and not isinstance(mask, str):  # the user's masks: before any search
+        empty = [k for k, kept in enumerate(masks_to_fit(network, checked, mask)[1]) if not kept]
+        if empty:
+            raise ValueError(f"mask: frame {empty[0]}'s holds no target pixel; leave the frame "
+                             "out of the sequence, or give a mask of its target")
+    elif network.target is not None and not bool(network.target.all()):
+        k = int((~network.target).nonzero()[0])
+        raise ValueError(f"images: frame {k} shows no target (its score "
+                         f"{float(network.target_score[k]):.2f}); leave it out of the sequence, "
+                         "or give the frames' masks (predict_sequence's mask, predict --mask)")
     frames = predictor.refine(checked, network, camera, mask=mask,
                               search=search or FRAMES_SEARCH,
                               refinement=refinement or FRAMES_REFINEMENT)
@@ -428,8 +430,7 @@ def sequence_from_frames(frames: Prediction, relative: Tensor | None = None,
     from sq_mitsuba.render.silhouette.batch import PoseSilhouettes
 
     started = time.perf_counter() if started is None else started
-    options = options or SequenceOptions()
-    validate(options)
+    options = checked_options(options, SequenceOptions(), "options")
     fit = frames.fit
     if fit is None or len(fit.iou) < 2:
         raise ValueError("frames: expected N >= 2 frames fitted (predict(images, refine=True))")

@@ -49,7 +49,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from sq_mitsuba.checks import check_tensor
+from sq_mitsuba.checks import check_rotations, check_tensor
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.metrics import mask_iou  # noqa: F401  (re-exported for callers)
 from sq_mitsuba.render.backend import interrupts_deferred, mitsuba
@@ -708,8 +708,12 @@ def assembly_camera_vertices(assembly: Any, rotation: Tensor, translation: Tenso
         rotation: (B, 3, 3) body-to-camera rotations R.
         translation: (B, 3) body-to-camera translations t: ``x_cam = R x_body + t``.
         level: icosphere subdivision level of each primitive's mesh (3: 642 vertices).
+
+    Raises:
+        ValueError: naming ``rotation`` where it is no rotation (a scaled matrix would draw
+            a scaled assembly: a value check), ``translation`` or ``assembly``.
     """
-    check_tensor("rotation", rotation, (3, 3), min_dims=3)
+    check_rotations("rotation", rotation)
     check_tensor("translation", translation, (3,), min_dims=2)
     if rotation.dim() != 3 or translation.dim() != 2 or rotation.shape[0] != translation.shape[0]:
         raise ValueError(f"rotation, translation: expected (B, 3, 3) and (B, 3), got "
