@@ -800,8 +800,11 @@ def apply_overrides(obj: T, overrides: Iterable[str]) -> T:
         key, sep, raw = item.partition("=")
         segments = [s.strip() for s in key.split(".")]
         key = ".".join(segments)
-        if not sep or not all(segments):
-            raise ConfigError(f"override {item!r}: expected KEY=VALUE, e.g. sun.enabled=false")
+        if not all(segments):
+            raise ConfigError(f"override {item!r}: expected KEY=VALUE, KEY a dotted field name "
+                              "(e.g. sun.enabled=false)")
+        if not sep:
+            raise ConfigError(f"override {item!r}: no '='; expected {key}=VALUE")
         obj = _override(obj, segments, 0, raw.strip(), key)
     return obj
 

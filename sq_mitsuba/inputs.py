@@ -51,6 +51,7 @@ __all__ = [
     "finite_number",
     "image_header",
     "load_torch_file",
+    "one_line",
     "open_image",
     "read_csv_table",
 ]
@@ -71,8 +72,13 @@ def _label(what: str, path: Path) -> str:
     return f"{what} {path}" if what else str(path)
 
 
-def _one_line(error: BaseException) -> str:
+def one_line(error: BaseException) -> str:
+    """An error's message as one short line for ours: whitespace collapsed; a message longer
+    than 160 characters cut to its first sentence (torch's run on for pages), then to 160
+    with "..."; the error's type where it says nothing."""
     text = " ".join(str(error).split()) or type(error).__name__
+    if len(text) > _MAX_REASON:
+        text = text.split(". ")[0].rstrip(".")
     return text if len(text) <= _MAX_REASON else text[: _MAX_REASON - 3] + "..."
 
 
@@ -140,12 +146,12 @@ def open_image(path: str | os.PathLike[str], what: str = "image", verify: bool =
         raise ValueError(f"{where}: not an image (no format PIL reads)") from None
     except Image.DecompressionBombError as error:
         raise ValueError(f"{where}: above the largest image size, {MAX_IMAGE_PIXELS:,} pixels "
-                         f"({_one_line(error)})") from None
+                         f"({one_line(error)})") from None
     except (OSError, SyntaxError, EOFError) as error:
         # PIL reports damaged data as OSError ("image file is truncated"), SyntaxError (bad
         # chunk headers) or EOFError.
         raise ValueError(f"{where}: cannot read image (corrupt or truncated: "
-                         f"{_one_line(error)})") from None
+                         f"{one_line(error)})") from None
 
 
 # ----------------------------------------------------------------------------- torch files
@@ -162,7 +168,7 @@ def _torch_reason(error: BaseException) -> str:
         detail = [line for line in detail if line and "weights_only" not in line]
         cause = detail[0] if detail else "an object other than tensors and plain values"
         return (f"refused by the safe loader, which reads tensors and plain values only: "
-                f"{_one_line(cause)}")
+                f"{one_line(cause)}")
     if (lines and ("PytorchStreamReader" in lines[0] or "miniz" in lines[0])) or (
             isinstance(error, OSError) and error.errno == 22):  # EINVAL
         # torch's zip reader: "failed finding central directory. This is an internal miniz
@@ -170,7 +176,7 @@ def _torch_reason(error: BaseException) -> str:
         # Invalid argument"): the file is cut short or damaged.
         return "corrupt or truncated: not a valid .pt file"
     text = f"{type(error).__name__}: {lines[0]}" if lines else type(error).__name__
-    return _one_line(text) if "weights_only" not in text else type(error).__name__
+    return one_line(text) if "weights_only" not in text else type(error).__name__
 
 
 def load_torch_file(path: str | os.PathLike[str], what: str) -> Any:
@@ -307,7 +313,7 @@ def read_csv_table(path: str | os.PathLike[str], columns: Sequence[str]) -> list
     except UnicodeDecodeError as error:
         raise ValueError(f"{path}: not UTF-8 text (byte {error.start})") from None
     except csv.Error as error:
-        raise ValueError(f"{path}: malformed CSV ({_one_line(error)})") from None
+        raise ValueError(f"{path}: malformed CSV ({one_line(error)})") from None
     if not rows:
         raise ValueError(f"{path}: no rows below the header")
     return rows

@@ -41,9 +41,12 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys, no_env_traceback):
      "argument --out: an empty path"),
     (["dataset", "render", "--models", "m", "--out", "o", "--spp", "many"],
      "sq-mitsuba dataset render", "argument --spp: invalid int value: 'many'"),
-    (["eval", "--data", "d", "--out", "o", "--no-such-option"], "sq-mitsuba",
-     "unrecognized arguments: --no-such-option"),
-], ids=["no-command", "unknown-command", "bad-value", "bad-type-of-an-action", "unknown-option"])
+    (["eval", "--data", "d", "--out", "o", "--no-such-option"], "sq-mitsuba eval",
+     "unrecognized arguments: --no-such-option"),  # the command whose help lists its options
+    (["study", "passes", "--data", "d", "--out", "o", "--refien", "2"], "sq-mitsuba study passes",
+     "unrecognized arguments: --refien 2"),
+], ids=["no-command", "unknown-command", "bad-value", "bad-type-of-an-action", "unknown-option",
+        "unknown-option-of-a-subcommand"])
 def test_a_usage_error_is_one_line_and_exit_2(argv, command, message, capsys):
     """argparse's own errors too: one line naming the command and where to read more, not the
     usage block before it."""
@@ -248,30 +251,32 @@ def test_a_process_prints_pythons_traceback_with_the_flag(tmp_path):
     assert loud.stderr.strip().splitlines()[-1].startswith("FileNotFoundError: ")
 
 
+@pytest.mark.parametrize("name", ["stdout", "stderr"])  # | head, or 2>&1 | head
 @pytest.mark.parametrize("buffering", [1, -1])  # line-buffered (as PYTHONUNBUFFERED), blocks
-def test_a_closed_stdout_keeps_a_finished_runs_output(buffering, tmp_path, monkeypatch,
+def test_a_closed_stdout_keeps_a_finished_runs_output(buffering, name, tmp_path, monkeypatch,
                                                       no_env_traceback):
     """``sq-mitsuba ... | true``: the summary cannot be shown, but the run is done; its files
-    stay and it exits 0 (a BrokenPipeError used to count as a failure and delete them)."""
+    stay and it exits 0 (a BrokenPipeError used to count as a failure and delete them). The
+    same for stderr, where progress bars and warnings go (``2>&1 | head -1``)."""
     def finished(args):
         args.out.mkdir(parents=True, exist_ok=True)
-        print("a line while working")
+        print("a line while working", file=getattr(sys, name))
         (args.out / "report.md").write_text("done")
-        print("wrote 1 file")
+        print("wrote 1 file", file=getattr(sys, name))
         return 0
 
     read, write = os.pipe()
     os.close(read)  # the reader has gone
-    stdout = open(write, "w", buffering=buffering)
-    monkeypatch.setattr(sys, "stdout", stdout)
+    stream = open(write, "w", buffering=buffering)
+    monkeypatch.setattr(sys, name, stream)
     monkeypatch.setattr(importlib.import_module("sq_mitsuba.cli.report"), "_run", finished)
     try:
         assert main(["report", str(tmp_path), "--out", str(tmp_path / "out")]) == 0
-        print("after the run")  # silenced for good: no error at exit either
-        stdout.flush()
+        print("after the run", file=stream)  # silenced for good: no error at exit either
+        stream.flush()
     finally:
         monkeypatch.undo()
-        stdout.close()
+        stream.close()
     assert (tmp_path / "out" / "report.md").read_text() == "done"
 
 

@@ -421,7 +421,8 @@ def test_override_errors_name_the_key():
     assert error(apply_overrides, base, ["pose.elevation_deg.x=3"]).startswith(
         "pose.elevation_deg.x:"
     )
-    assert "expected KEY=VALUE" in error(apply_overrides, base, ["steps"])
+    assert "override 'steps': no '='; expected steps=VALUE" in error(apply_overrides, base,
+                                                                     ["steps"])
     assert "expected KEY=VALUE" in error(apply_overrides, base, ["scene..sun=1"])
     with pytest.raises(TypeError):
         apply_overrides(base, "steps=1")

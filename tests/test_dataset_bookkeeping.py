@@ -141,6 +141,17 @@ def test_a_pass_dataset_of_an_earlier_framing_is_not_resumed(library, tmp_path, 
     assert error.count("\n") == 1 and tree(out) == before
 
 
+def test_passes_that_do_not_divide_the_images_are_refused_before_any_work(library, tmp_path,
+                                                                          capsys):
+    """3 images in passes of 2 would end in a pass of 1, which study passes then refuses."""
+    out = tmp_path / "short"
+    assert render_cli(library, out, "--images-per-model", "3", "--pass-frames", "2") == 2
+    assert capsys.readouterr().err.strip().endswith(
+        "pass_frames (--pass-frames) 2 does not divide images_per_model (--images-per-model) "
+        "3: the last pass would be short; give a multiple, e.g. 2")
+    assert not out.exists()
+
+
 @pytest.mark.parametrize("extra, named", [
     (["--resolution", "40"], "resolution 32 (this run: 40)"),
     (["--seed", "12"], "seed 11 (this run: 12)"),
@@ -296,6 +307,48 @@ def test_rerun_after_a_kill_cleans_stray_temporary_files(reference, library, tmp
     summary = render_dataset(library, out, RenderOptions(**TINY), progress=False)
     assert summary.rendered == 3 and summary.complete
     assert tree(out) == tree(reference)
+
+
+def test_a_rerun_renders_again_the_images_of_a_finished_model_deleted_or_cut_short(
+        reference, library, tmp_path):
+    """A finished model whose image was deleted and whose mask was cut short since (by hand,
+    a full disk elsewhere): the rerun renders those two images again, not "already there",
+    and the dataset is the reference again, byte for byte."""
+    out = tmp_path / "data"
+    shutil.copytree(reference, out)
+    model = sorted(json.loads((out / "dataset.json").read_text())["models"])[0]
+    (out / model / "images" / "000001.png").unlink()
+    cut = out / model / "masks" / "000002.png"
+    cut.write_bytes(cut.read_bytes()[:-20])  # its end lost
+    summary = render_dataset(library, out, RenderOptions(**TINY), progress=False)
+    assert summary.rendered == 2 and summary.complete
+    assert tree(out) == tree(reference)
+
+
+
+def test_a_model_of_the_same_name_from_another_library_is_refused_before_any_work(
+        reference, library, tmp_path, capsys):
+    """Rendering another library into a finished dataset adds its models; one whose name the
+    dataset holds but whose mesh differs is refused (its images are of the other model),
+    before any file changes. A card that differs beside the same mesh is the same model."""
+    out, other = tmp_path / "data", tmp_path / "other"
+    shutil.copytree(reference, out)
+    shutil.copytree(library, other)
+    model = sorted(json.loads((out / "dataset.json").read_text())["models"])[0]
+    card = other / model / "models" / "model_card.json"
+    card.write_text(card.read_text() + "\n")
+    before = tree(out)
+    assert render_cli(other, out) == 0  # the card alone: nothing to render
+    assert tree(out) == before
+    mesh = other / model / "models" / "model_normalized.obj"
+    mesh.write_text(mesh.read_text() + "# generated again\n")
+    capsys.readouterr()
+    assert render_cli(other, out) == 2
+    error = capsys.readouterr().err
+    assert error.strip().endswith(f"{out / model / 'models' / 'model_normalized.obj'}: differs "
+                                  f"from {mesh}, the model the dataset's images of {model} were "
+                                  "rendered from; render into another folder, or use --overwrite")
+    assert tree(out) == before
 
 
 # ------------------------------------------------------------------------ failures, splits

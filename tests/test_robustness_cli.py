@@ -338,3 +338,32 @@ def test_bench_curves_refuses_the_options_it_does_not_use(extra, capsys, monkeyp
                  "--out", "o"]) == EXIT_ERROR
     assert error_line(capsys) == (f"sq-mitsuba bench: error: {extra[0]}: not used by the "
                                   "curves suite")
+
+
+def test_a_library_a_file_and_a_missing_folder_are_named_for_what_they_are(train_dataset,
+                                                                           tmp_path, capsys):
+    """A new user's slips (a review, 2026-12-01): a model library given to dataset check, a
+    file given as a dataset's output folder, a folder that is not there given to report."""
+    import shutil
+
+    library = tmp_path / "library"  # what models generate writes: model folders, no camera
+    for card in train_dataset.glob("*/models/model_card.json"):
+        shutil.copytree(card.parent, library / card.parent.parent.name / "models")
+    assert main(["dataset", "check", str(library)]) == EXIT_ERROR
+    assert error_line(capsys).endswith(f"{library}: a model library, not a dataset: render one "
+                                       f"with sq-mitsuba dataset render --models {library} "
+                                       "--out DATA (or check a library's models with sq-mitsuba "
+                                       "models preview)")
+    a_file = tmp_path / "a_file"
+    a_file.write_text("mine")
+    assert main(["dataset", "render", "--models", str(library), "--out", str(a_file),
+                 "--images-per-model", "1", "--quiet"]) == EXIT_ERROR
+    assert error_line(capsys).endswith(f"{a_file}: exists and is not a folder; give a folder "
+                                       "to render into")
+    assert a_file.read_text() == "mine"
+    assert main(["report", str(tmp_path / "nowhere"), "--out", str(tmp_path / "r")]) == 2
+    assert error_line(capsys).endswith(f"{tmp_path / 'nowhere'}: no such folder")
+    assert main(["report", str(a_file), "--out", str(tmp_path / "r")]) == 2
+    assert error_line(capsys).endswith(f"{a_file}: not a folder (give an evaluation folder, as "
+                                       "`sq-mitsuba eval --out` wrote it)")
+    assert not (tmp_path / "r").exists()

@@ -79,6 +79,18 @@ def test_illumination_study_end_to_end(eval_checkpoint, train_dataset, tmp_path,
                  and r["method"] == "network" and r["metric"] == "chamfer_l1_paper")
     assert float(entry["mean"]) == pytest.approx(np.mean(network_at_0))
     assert int(entry["images"]) == 2
+    # A rerun of other settings into the same folder: refused in the study's terms (it has
+    # no --overwrite), the renders as they were.
+    for changed, said in ((["--set", "render.spp=8", "--poses", "2"], "spp 4 (this run: 8)"),
+                          (["--set", "render.spp=4", "--poses", "1"],
+                           "--poses 1 is below the dataset's 2")):
+        assert main(["study", "illumination", "--checkpoint", str(eval_checkpoint), "--models",
+                     str(train_dataset), "--out", str(out), "--step", "90",
+                     "--set", "render.resolution=64", *changed, "--quiet"]) == 2
+        message = error_line(capsys)
+        assert said in message and "--overwrite" not in message, message
+        assert message.endswith(f"a study of other settings: delete {out} to start over, or "
+                                "give another --out)")
 
 
 def test_breakdown_of_an_evaluation_by_recorded_lighting(eval_checkpoint, train_dataset,
@@ -148,4 +160,14 @@ def test_bad_study_input_is_one_line(eval_checkpoint, train_dataset, tmp_path, c
                  "--set", "evaluation.refine=false", "--set", "evaluation.mesh_ranking=4",
                  "--quiet"]) == 2
     assert "evaluation.mesh_ranking 4" in error_line(capsys)
+    assert not (tmp_path / "o").exists()
+    # Fields the study sets itself would be ignored: refused, naming them.
+    for field, value, said in (("render.shard", "1/2", "'1/2'"),
+                               ("render.images_per_model", "7", "7; give --poses"),
+                               ("evaluation.baseline", "true", "True"),
+                               ("evaluation.split", "val", "'val'")):
+        assert main(["study", "illumination", "--models", str(train_dataset), "--checkpoint",
+                     str(eval_checkpoint), "--out", str(tmp_path / "o"),
+                     "--set", f"{field}={value}", "--quiet"]) == 2
+        assert error_line(capsys).endswith(f"{field}: set by the study itself, got {said}")
     assert not (tmp_path / "o").exists()

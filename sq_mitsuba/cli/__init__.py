@@ -9,9 +9,10 @@ built, so :func:`main` builds only the parser of the command it runs; for the co
 ``sq-mitsuba --help`` a module may define ``HELP`` (its one-line help) and import its config
 classes inside ``register``, and is then listed without being registered.
 
-A closed stdout (``sq-mitsuba predict ... | head -1``) is not a failed run: what the command
-prints after the reader has gone is dropped, the run finishes and keeps its files, and the exit
-code is that of the run (0 on success), not an error (see :func:`_closed_stdout_is_quiet`).
+A closed stdout or stderr (``sq-mitsuba predict ... | head -1``, ``... 2>&1 | head -1``) is not
+a failed run: what the command prints after the reader has gone is dropped, the run finishes
+and keeps its files, and the exit code is that of the run (0 on success), not an error (see
+:func:`_closed_stdout_is_quiet`, :func:`_closed_stderr_is_quiet`).
 """
 
 from __future__ import annotations
@@ -112,7 +113,7 @@ def build_parser(command: str | None = None, listing: bool = False) -> argparse.
                 f"error (a bug) with code {EXIT_INTERNAL}. To see the full traceback instead, "
                 f"give {TRACEBACK_FLAG} before the command (sq-mitsuba {TRACEBACK_FLAG} fit "
                 f"...) or set the environment variable {TRACEBACK_ENV}=1. A closed standard "
-                "output (a pipe whose reader has gone) is not an error: the run finishes, "
+                "output or error (a pipe whose reader has gone) is not an error: the run finishes, "
                 "keeps its files and exits as it would have."),
     )
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}",
@@ -191,9 +192,9 @@ def _terminate_as_interrupt() -> Iterator[None]:
 
 
 class _QuietWhenClosed:
-    """A stdout whose reader may go away: a ``BrokenPipeError`` on writing or flushing points
-    the file descriptor at ``/dev/null`` (so nothing, not even Python's flush at exit, raises
-    again) and the text is dropped. Everything else is the wrapped stream's."""
+    """A stdout or stderr whose reader may go away: a ``BrokenPipeError`` on writing or
+    flushing points the file descriptor at ``/dev/null`` (so nothing, not even Python's flush
+    at exit, raises again) and the text is dropped. Everything else is the wrapped stream's."""
 
     def __init__(self, stream: Any) -> None:
         self._stream = stream
@@ -250,9 +251,43 @@ def _closed_stdout_is_quiet() -> Iterator[None]:
         sys.stdout = stream
 
 
+@contextlib.contextmanager
+def _closed_stderr_is_quiet() -> Iterator[None]:
+    """Run the block with a closed stderr dropping what is written (progress bars, warnings)
+    instead of raising: ``sq-mitsuba eval ... 2>&1 | head -1`` used to end the run at its
+    next progress line and delete its files, with no message (stderr was the closed pipe)."""
+    stream = sys.stderr
+    if isinstance(stream, _QuietWhenClosed) or not isinstance(stream, io.TextIOBase):
+        yield
+        return
+    sys.stderr = _QuietWhenClosed(stream)
+    try:
+        yield
+    finally:
+        with contextlib.suppress(OSError, ValueError):  # nowhere left to say it
+            sys.stderr.flush()
+        sys.stderr = stream
+
+
+def _parse(parser: argparse.ArgumentParser, argv: list[str]) -> argparse.Namespace:
+    """``parser.parse_args(argv)``, but an unknown option is reported by the (sub)command
+    it was given to (``sq-mitsuba eval: error: unrecognized arguments: --refien (see
+    sq-mitsuba eval --help)``), not by the top-level parser, whose help does not list it."""
+    args, extra = parser.parse_known_args(argv)
+    if extra:
+        owner = parser
+        for word in argv:  # the deepest subcommand named in argv
+            choices = next((action.choices for action in owner._actions
+                            if isinstance(action, argparse._SubParsersAction)), {})
+            if word in choices:
+                owner = choices[word]
+        owner.error(f"unrecognized arguments: {' '.join(extra)}")
+    return args
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run ``sq-mitsuba argv``; returns the exit code (see the module docstring for errors)."""
-    with _terminate_as_interrupt(), _closed_stdout_is_quiet():
+    with _terminate_as_interrupt(), _closed_stderr_is_quiet(), _closed_stdout_is_quiet():
         return _main(argv)
 
 
@@ -261,9 +296,9 @@ def _main(argv: Sequence[str] | None) -> int:
     # The command is the first word after the global options (only --traceback).
     first = next((i for i, word in enumerate(argv) if word != TRACEBACK_FLAG), len(argv))
     command = argv[first] if first < len(argv) and argv[first] in command_names() else None
-    args = build_parser(command, listing=True).parse_args(argv)
+    args = _parse(build_parser(command, listing=True), argv)
     if not hasattr(args, "func"):  # a listed-only command was reached some other way
-        args = build_parser(args.command).parse_args(argv)
+        args = _parse(build_parser(args.command), argv)
     show_traceback = args.traceback or traceback_from_environment()
     from sq_mitsuba.outputs import all_or_nothing
 

@@ -63,7 +63,7 @@ def add_config_options(parser: argparse.ArgumentParser, config_class: type,
     for name, flag in flags.items():
         default = getattr(defaults, name)
         shown = list(default) if isinstance(default, tuple) else default
-        help_text = (helps or {}).get(name, docs.get(name, "")).rstrip(".")
+        help_text = _plain_text((helps or {}).get(name, docs.get(name, ""))).rstrip(".")
         kwargs = _option_kwargs(hints[name], default)
         if metavars and name in metavars:
             kwargs["metavar"] = metavars[name]
@@ -189,3 +189,12 @@ def field_default(config_class: type, name: str) -> Any:
         if item.name == name:
             return getattr(config_class(), name)
     raise KeyError(name)
+
+
+def _plain_text(doc: str) -> str:
+    """A field docstring as ``--help`` shows it: reST's ``code`` as `code` and a role's
+    :func:`name` (or :class:, :meth:, ...) as its name, the leading ~ of a path dropped."""
+    import re
+
+    doc = re.sub(r":[a-z]+:`~?([^`]+)`", lambda m: m.group(1).rsplit(".", 1)[-1], doc)
+    return doc.replace("``", "`")

@@ -78,7 +78,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     check.set_defaults(func=_check)
 
     preview = commands.add_parser(
-        "preview", help="contact sheet of images with mask outlines and pose axes")
+        "preview", help="contact sheet of images with mask outlines and pose axes",
+        description="A contact sheet of --count images of a rendered dataset, spread over its "
+                    "models: each image with its mask's outline and the body axes drawn at its "
+                    "labelled pose (x red, y green, z blue), to see that labels, masks and "
+                    "images agree. The dataset is only read.")
     preview.add_argument("root", type=Path, help="dataset folder")
     preview.add_argument("--out", type=output_path, default=None, metavar="PNG",
                          help="PNG to write (default ROOT_preview.png beside the dataset "

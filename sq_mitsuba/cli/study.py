@@ -15,8 +15,7 @@ from sq_mitsuba.cli._options import (
 
 HELP = ("studies of a trained model (illumination: phase angle, Earth, eclipse; passes: one "
         "assembly from N frames)")
-DESCRIPTION = """\
-`study passes --help`: one assembly from N frames of a pass against each frame alone.
+ILLUMINATION = """\
 Two ways to see how lighting changes the results:
 
   study illumination --models LIB --out DIR [--checkpoint PT] [--poses N] [--step 15]
@@ -36,7 +35,15 @@ Two ways to see how lighting changes the results:
     writes lighting.{csv,md,png} (into EVAL_DIR by default).
 
 Renderer and evaluation settings go through --set, e.g. --set render.resolution=128
---set render.spp=32 --set evaluation.refinement.steps=20 --set evaluation.refine=false."""
+--set render.spp=32 --set evaluation.refinement.steps=20 --set evaluation.refine=false; the
+study sets render.images_per_model (--poses), render.shard, render.overwrite,
+evaluation.split and evaluation.baseline itself (given, they are refused). A rerun of other
+settings into one --out is refused: delete the folder to start over."""
+DESCRIPTION = f"""\
+`study illumination --help`: metrics against the sun's phase angle, the Earth and eclipses.
+`study passes --help`: one assembly from N frames of a pass against each frame alone.
+
+{ILLUMINATION}"""
 
 FLAGS = {"poses": "--poses", "step": "--step", "split": "--split",
          "max_models": "--max-models"}
@@ -50,7 +57,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     studies = parser.add_subparsers(dest="study", metavar="STUDY", required=True)
     illumination = studies.add_parser(
         "illumination", help="metrics against the sun phase angle, with and without the "
-                             "Earth, and in eclipse", description=DESCRIPTION,
+                             "Earth, and in eclipse", description=ILLUMINATION,
         formatter_class=argparse.RawDescriptionHelpFormatter)
     source = illumination.add_mutually_exclusive_group(required=True)
     source.add_argument("--models", type=Path, metavar="DIR",

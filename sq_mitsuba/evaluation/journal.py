@@ -45,6 +45,7 @@ from torch import Tensor
 
 from sq_mitsuba.config import flatten_dict
 from sq_mitsuba.geometry.assembly import Assembly
+from sq_mitsuba.inputs import one_line
 from sq_mitsuba.io import atomic_write_bytes, atomic_write_json, read_json
 from sq_mitsuba.version import __version__
 
@@ -339,7 +340,7 @@ class EvalJournal:
                 record = BatchRecord.from_plain(torch.load(path, map_location="cpu",
                                                            weights_only=True))
             except Exception as error:  # torch, pickle and zip fail in many ways
-                reason = " ".join(str(error).split())[:100] or type(error).__name__
+                reason = one_line(error)
                 raise ValueError(f"{path}: unreadable journal batch ({reason}); delete it to "
                                  "compute that batch again, or rerun without --resume") \
                     from None

@@ -56,6 +56,10 @@ def read_eval_folder(folder: str | Path) -> dict[str, Any]:
             network's metrics, a row given twice.
     """
     folder = Path(folder)
+    if not folder.is_dir():
+        raise FileNotFoundError(f"{folder}: " + ("not a folder (give an evaluation folder, "
+                                "as `sq-mitsuba eval --out` wrote it)" if folder.exists()
+                                else "no such folder"))
     for name in ("eval.json", "summary.csv"):
         if not (folder / name).is_file():
             raise FileNotFoundError(f"{folder / name}: missing (not an evaluation folder?)")

@@ -93,6 +93,40 @@ class StudyOptions:
     "Evaluation settings (split 'test' and no baseline: every study model is a test model)."
 
 
+# Fields the study sets itself (its --poses, every model's images, one run of the test split
+# without a baseline): a value given for them would be ignored, so it is refused.
+_STUDY_SET = {"render.images_per_model": "--poses", "render.shard": None,
+              "render.overwrite": None, "evaluation.split": None, "evaluation.baseline": None}
+
+
+def _check_study_set_fields(options: StudyOptions) -> None:
+    """One-line ``ValueError`` naming a field of ``_STUDY_SET`` given another value than its
+    default: the study would silently use its own."""
+    defaults = StudyOptions()
+    for name, instead in _STUDY_SET.items():
+        part, key = name.split(".")
+        value = getattr(getattr(options, part), key)
+        if value != getattr(getattr(defaults, part), key):
+            hint = f"; give {instead}" if instead else ""
+            raise ValueError(f"{name}: set by the study itself, got {value!r}{hint}")
+
+
+def _render_point(models: Path, out: Path, render: RenderOptions) -> Any:
+    """One sweep point's images: ``render_dataset``, its refusal of a folder of another run
+    told in the study's own terms (it has no --overwrite: the folder goes)."""
+    from sq_mitsuba.data.spe3r import render_dataset
+    from sq_mitsuba.data.spe3r.layout import DatasetError
+
+    try:
+        return render_dataset(models, out, render, progress=False)
+    except DatasetError as error:
+        text = str(error).replace("images_per_model", "--poses").replace(
+            "use --overwrite to start over, or another --out",
+            f"a study of other settings: delete {out.parent.parent} to start over, or give "
+            "another --out")
+        raise DatasetError(text) from None
+
+
 @dataclass(frozen=True)
 class SweepPoint:
     """One lighting of the sweep: its name, background, phase angle and scene overrides."""
@@ -249,7 +283,6 @@ def illumination_study(checkpoint: str | Path | None, models_dir: str | Path,
         out_dir: output folder (a rerun with the same settings resumes its renders).
         options: :class:`StudyOptions`.
     """
-    from sq_mitsuba.data.spe3r import render_dataset
     from sq_mitsuba.evaluation.evaluate import evaluate
     from sq_mitsuba.evaluation.journal import (
         JOURNAL,
@@ -265,6 +298,7 @@ def illumination_study(checkpoint: str | Path | None, models_dir: str | Path,
 
     options = options or StudyOptions()
     validate(options)
+    _check_study_set_fields(options)
     models_dir, out_dir = Path(models_dir), Path(out_dir)
     predictor = load_model(checkpoint)
     check_predictor(predictor)
@@ -289,8 +323,7 @@ def illumination_study(checkpoint: str | Path | None, models_dir: str | Path,
     for point in progress_bar(points, desc="illumination study", unit="point",
                               disable=not progress):
         tick = time.perf_counter()
-        summary = render_dataset(stage, out_dir / "renders" / point.name, renders[point.name],
-                                 progress=False)
+        summary = _render_point(stage, out_dir / "renders" / point.name, renders[point.name])
         if summary.failures:
             model, reason = next(iter(summary.failures.items()))
             raise ValueError(f"{out_dir / 'renders' / point.name}: {model} failed to render "

@@ -40,10 +40,9 @@ def check_device(device: str | torch.device) -> torch.device:
         try:
             torch.empty(1, device=parsed)
         except Exception as error:  # each backend fails in its own way (RuntimeError, ...)
-            text = " ".join(str(error).split())
-            reason = text.split(". ")[0].rstrip(".")  # its first sentence (torch's run on)
-            reason = (reason[:157] + "...") if len(reason) > 160 else reason or \
-                type(error).__name__
+            from sq_mitsuba.inputs import one_line
+
+            reason = one_line(error)
             raise ValueError(f"device: {str(parsed)!r} is not available ({reason})") from None
     return parsed
 

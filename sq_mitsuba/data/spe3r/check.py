@@ -290,6 +290,13 @@ def _check_points(model_dir: Path, ours: bool, report: CheckReport) -> None:
         report.problems.append(str(error).replace(f"{model_dir.parent}/", "", 1))
 
 
+def is_model_library(root: Path) -> bool:
+    """Whether ``root`` is a model library rather than a dataset: no ``camera.json`` and no
+    dataset manifest, but model folders with their cards (what ``models generate`` writes)."""
+    return not (root / "camera.json").exists() and not (root / "dataset.json").exists() \
+        and any(root.glob("*/models/model_card.json"))
+
+
 def check_dataset(root: str | Path, options: CheckOptions | None = None, *,
                   progress: bool = True, **fields: Any) -> CheckReport:
     """Validate a dataset (see the module docstring); problems are collected, not raised.
@@ -312,6 +319,10 @@ def check_dataset(root: str | Path, options: CheckOptions | None = None, *,
         raise FileNotFoundError(f"{root}: no such folder")
     if not root.is_dir():
         raise DatasetError(f"{root}: not a folder (expected a dataset folder)")
+    if is_model_library(root):
+        raise DatasetError(f"{root}: a model library, not a dataset: render one with "
+                           f"sq-mitsuba dataset render --models {root} --out DATA (or check a "
+                           "library's models with sq-mitsuba models preview)")
     try:
         manifest = read_manifest(root)
     except (OSError, ValueError) as error:

@@ -119,6 +119,8 @@ def find_models(models_dir: Path) -> list[str]:
 
 def check_writable(out_dir: Path) -> None:
     """Create ``out_dir`` and write a file there (a unique name: shards may check at once)."""
+    if out_dir.exists() and not out_dir.is_dir():
+        raise DatasetError(f"{out_dir}: exists and is not a folder; give a folder to render into")
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
         fd, name = tempfile.mkstemp(prefix=".write-test.", dir=out_dir)
@@ -166,6 +168,25 @@ def _copy_model_files(source: Path, target: Path, has_images: bool = False) -> N
                 shutil.copyfile(item, tmp)
 
 
+def _check_same_model(source: Path, target: Path) -> None:
+    """A finished model of the dataset (``target``, its copied model files) against the
+    library's (``source``): its images are of the library's model unless its mesh or samples
+    differ (another library with a model of the same name, or a model generated again). The
+    model cards compared first (a few hundred bytes): equal cards are the same model."""
+    card = "model_card.json"
+    if not source.is_dir() or ((source / card).is_file() and (target / card).is_file()
+                               and (source / card).read_bytes() == (target / card).read_bytes()):
+        return  # a model the library no longer has is kept as rendered
+    for name in _PIXEL_FILES:
+        mine, theirs = target / name, source / name
+        if mine.is_file() and theirs.is_file() and (
+                mine.stat().st_size != theirs.stat().st_size
+                or mine.read_bytes() != theirs.read_bytes()):
+            raise DatasetError(f"{mine}: differs from {theirs}, the model the dataset's images "
+                               f"of {target.parent.name} were rendered from; render into "
+                               "another folder, or use --overwrite")
+
+
 def render_image(scene: Any, vertices: np.ndarray, options: RenderOptions, model: str,
                  index: int, model_out: Path) -> None:
     """Render image ``index`` of ``model`` with ``scene`` (a :class:`SpaceScene`) and write its
@@ -211,10 +232,24 @@ def _image_done(model_out: Path, index: int, assembled: list[Any], exr: bool) ->
     name = _name(index)
     if index >= len(assembled) and not (model_out / PROGRESS / f"{name}.json").is_file():
         return False
-    files = [model_out / IMAGES / f"{name}.png", model_out / MASKS / f"{name}.png"]
-    if exr:
-        files.append(model_out / EXR / f"{name}.exr")
-    return all(path.is_file() for path in files)
+    pictures = [model_out / IMAGES / f"{name}.png", model_out / MASKS / f"{name}.png"]
+    if exr and not (model_out / EXR / f"{name}.exr").is_file():
+        return False
+    return all(_png_complete(path) for path in pictures)
+
+
+_PNG_END = b"\x00\x00\x00\x00IEND\xaeB`\x82"  # the IEND chunk every whole PNG ends with
+
+
+def _png_complete(path: Path) -> bool:
+    """Whether ``path`` is a file ending as a PNG does: a file deleted or cut short since it
+    was written (the writes themselves are atomic) is rendered again; twelve bytes read."""
+    try:
+        with open(path, "rb") as file:
+            file.seek(-len(_PNG_END), os.SEEK_END)
+            return file.read() == _PNG_END
+    except OSError:  # missing, or shorter than the chunk
+        return False
 
 
 def _remove_stray_temps(model_out: Path, index: int) -> None:
@@ -276,12 +311,12 @@ def render_model(models_dir: Path, out_dir: Path, model: str, camera: Camera,
     if len(assembled) > count:
         raise DatasetError(f"{model_out / 'labels.json'}: {len(assembled)} labels, more than "
                            f"images_per_model {count}")
-    if len(assembled) == count:
+    todo = [i for i in indices if not _image_done(model_out, i, assembled, options.exr)]
+    if len(assembled) == count and not todo:
         tick(len(indices))
         _assemble(model_out, count)  # removes a .progress left by a concurrent assembly
         _clear_failures(out_dir, model)
         return 0, len(indices)
-    todo = [i for i in indices if not _image_done(model_out, i, assembled, options.exr)]
     skipped = len(indices) - len(todo)
     tick(skipped)
     if todo:
@@ -519,6 +554,11 @@ def prepare_dataset(models_dir: Path, out_dir: Path, options: RenderOptions
     holds a dataset of other settings (unless ``options.overwrite``)."""
     camera = options.dataset_camera()
     check_render_resources(camera, options)
+    if options.images_per_model % options.pass_frames:  # a short last pass: refused by passes
+        whole = options.pass_frames * max(1, options.images_per_model // options.pass_frames)
+        raise DatasetError(f"pass_frames (--pass-frames) {options.pass_frames} does not divide "
+                           f"images_per_model (--images-per-model) {options.images_per_model}: "
+                           f"the last pass would be short; give a multiple, e.g. {whole}")
     found = find_models(models_dir)
     if out_dir.resolve() == models_dir.resolve():
         raise DatasetError(f"{out_dir}: the output folder is the model library; render into "
@@ -557,6 +597,9 @@ def prepare_dataset(models_dir: Path, out_dir: Path, options: RenderOptions
                                f"{manifest['images_per_model']}; a dataset grows but does not "
                                f"shrink (use --overwrite to start over, or another --out)")
     old_models = sorted(manifest["models"]) if manifest is not None else []
+    if not options.overwrite:  # images of another model under one name: before any work
+        for model in sorted(set(found) & set(old_models)):
+            _check_same_model(models_dir / model / MODELS, out_dir / model / MODELS)
     check_writable(out_dir)
     if options.overwrite:
         _clear_dataset(out_dir, old_models)
