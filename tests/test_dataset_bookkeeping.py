@@ -11,6 +11,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -510,3 +511,20 @@ def test_a_model_folder_without_a_row_in_the_librarys_splits_is_refused(library,
                                            rf"\({dropped}\)"):
         render_dataset(models, out, RenderOptions(**TINY), progress=False)
     assert not out.exists()
+
+
+def test_reading_a_dataset_whose_rendering_has_not_finished_says_so(reference, tmp_path):
+    """splits.csv is written when the last model finishes: a reader of a dataset stopped
+    before that says why it is missing, from the manifest's state."""
+    from sq_mitsuba.data.spe3r.dataset import Spe3rDataset
+
+    out = tmp_path / "data"
+    shutil.copytree(reference, out)
+    (out / "splits.csv").unlink()
+    manifest = json.loads((out / "dataset.json").read_text())
+    manifest["state"] = "rendering"
+    (out / "dataset.json").write_text(json.dumps(manifest))
+    with pytest.raises(DatasetError, match=re.escape(
+            f"{out / 'splits.csv'}: missing; its rendering has not finished (dataset.json says "
+            "so): run the render command again") + "$"):
+        Spe3rDataset(out)

@@ -150,6 +150,7 @@ def test_bad_labels_are_reported_per_entry_and_the_rest_is_checked(fresh, tmp_pa
     assert f"{train}/labels.json: entry 1 (000001.png): r_Vo2To_vbs_true: expected a list " \
            f"of 3 numbers" in problems
     assert f"{test}/masks/000009.png: no label names it" in problems
+    assert f"{train}/images/000000.png: no label" not in problems  # a bad entry names it
     assert f"{train}/labels.json: changed since dataset.json was written" in problems
     # The test model's masks were still compared with the mesh.
     assert len(report.iou) == IMAGES

@@ -203,7 +203,7 @@ def test_refinement_rows_and_summary_tables(val_eval):
                                           else "segmentation")  # the tiny model has no mask head
         else:
             assert row["search_score"] == row["refine_iou_after"] == row["mask_source"] == ""
-    assert all(0 <= float(r["segmentation_iou"]) <= 1 for r in rows
+    assert all(0 <= float(r["mask_iou"]) <= 1 for r in rows
                if r["method"] in ("search", "refined"))
     # The search keeps the network's assembly: its shape metrics are the network's.
     for network, search in zip((r for r in rows if r["method"] == "network"),

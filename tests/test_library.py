@@ -357,6 +357,18 @@ def test_a_rerun_keeps_complete_models_and_rebuilds_the_rest(tmp_path, capsys) -
                                progress=False)
     assert summary.kept == [names[0], names[2]]
     assert (out / names[1] / "models" / "model_normalized.glb").is_file()
+    # So is one whose files were cut short or emptied since: the same files again.
+    files = {name: (out / names[k] / "models" / name).read_bytes() for k, name in
+             ((0, "model_normalized.obj"), (1, "model_normalized.glb"), (2, "samples.npz"))}
+    for k, name in enumerate(files):  # the OBJ cut inside its last face: its counts hold
+        (out / names[k] / "models" / name).write_bytes(
+            files[name][:-4] if k == 0 else files[name][:len(files[name]) // 2])
+    (out / names[1] / "models" / "model_normalized.glb").write_bytes(b"")
+    summary = generate_library(GenerateOptions(out=out, count=3, seed=SEED, points=200),
+                               progress=False)
+    assert summary.kept == [] and summary.written == names
+    assert {k: (out / names[i] / "models" / k).read_bytes()
+            for i, k in enumerate(files)} == files
     summary = generate_library(GenerateOptions(out=out, count=3, seed=SEED, points=150),
                                progress=False)
     assert summary.ok and summary.kept == []

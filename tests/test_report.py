@@ -18,11 +18,12 @@ from sq_mitsuba.io import atomic_write_json
 def _rows(seed: int, offset: float) -> list[dict]:
     rng = np.random.default_rng(seed)
     rows = []
-    for method in ("network", "baseline"):
+    for method in ("network", "baseline", "refined_gt"):  # the last a reference: -1 better
         for model in ("sat_a", "sat_b"):
             for index in range(5):
                 row = {"model": model, "index": index, "method": method, "filename": ""}
-                row.update({m: float(rng.uniform(0, 1) + offset) for m in METRICS})
+                shift = offset - (1.0 if method == "refined_gt" else 0.0)
+                row.update({m: float(rng.uniform(0, 1) + shift) for m in METRICS})
                 rows.append(row)
     return rows
 
@@ -68,7 +69,7 @@ def test_report_holds_ours_and_the_papers_numbers_with_the_best_in_bold(tmp_path
     assert "| paper (a) chamfer + reprojection | *0.054 ± 0.026* |" in report
     assert [cell for cell in paper if cell.startswith("*")] == ["*0.054 ± 0.026*"]
     assert "**0.054 ± 0.026**" not in report
-    assert "**bold**: the best of our rows" in report
+    assert "**bold**: the best of our methods' rows" in report
     assert "Not directly comparable" in report
     text = (tmp_path / "report" / "report.csv").read_text()
     assert "*" not in text
@@ -90,11 +91,16 @@ def _best(cells: list[str], pick) -> str:
 
 
 def _column(report: str, table: str, index: int) -> tuple[list[str], list[str]]:
-    """Cells of column ``index`` of ``table`` in report.md: our rows', the paper's rows'."""
+    """Cells of column ``index`` of ``table`` in report.md: our methods' rows', the paper's
+    rows'. The baseline's rows, a reference, are never bold (checked here) nor ranked."""
     section = report.split(f"## {table}")[1].split("## ")[0]
     rows = [line.strip("|").split(" | ") for line in section.splitlines()
             if line.startswith("| ") and not line.startswith("| run ")]
-    ours = [r[index].strip() for r in rows if not r[0].strip().startswith("paper")]
+    reference = ("(baseline)", "(refined_gt)")
+    references = [r[index].strip() for r in rows if r[0].strip().endswith(reference)]
+    assert len(references) >= 2 and not _bold(references)
+    ours = [r[index].strip() for r in rows if not r[0].strip().startswith("paper")
+            and not r[0].strip().endswith(reference)]
     paper = [r[index].strip() for r in rows if r[0].strip().startswith("paper")]
     return ours, paper
 
@@ -160,7 +166,10 @@ def test_report_command(tmp_path, capsys):
     assert main(["report", str(tmp_path / "run" / "val"), "--out", str(tmp_path / "r")]) == 0
     assert "0.594 ± 0.183" in (tmp_path / "r" / "report.md").read_text()
     assert main(["report", str(tmp_path / "nothing"), "--out", str(tmp_path / "r2")]) == 2
-    assert "eval.json: missing" in capsys.readouterr().err
+    assert capsys.readouterr().err.strip().endswith(f"{tmp_path / 'nothing'}: no such folder")
+    (tmp_path / "empty").mkdir()
+    assert main(["report", str(tmp_path / "empty"), "--out", str(tmp_path / "r2")]) == 2
+    assert "empty/eval.json: missing (not an evaluation folder?)" in capsys.readouterr().err
 
 
 def test_a_val_and_a_test_of_two_networks_under_one_label_are_refused(tmp_path):

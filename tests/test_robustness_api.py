@@ -757,17 +757,25 @@ def test_a_colour_image_is_refused_with_the_mean_as_the_hint_and_channels_warned
     such, but warned where the three are as alike as one picture's channels; three views of
     a scene are not warned."""
     rgb = np.random.default_rng(0).random((32, 40, 3)).astype(np.float32)
-    for array, axis, one in ((rgb, 2, "[None]"), (rgb[None], 3, ""),
-                             (rgb.transpose(2, 0, 1)[None], 1, "")):
+    rgba = torch.from_numpy(np.concatenate([rgb, np.ones_like(rgb[..., :1])], -1) * 255)
+    for array, axis, hint in ((rgb, 2, "images.mean(axis=2)[None]"),
+                              (rgb[None], 3, "images.mean(axis=3)"),
+                              (rgb.transpose(2, 0, 1)[None], 1, "images.mean(axis=1)"),
+                              (rgba.to(torch.uint8), 2, "images[..., :3].float().mean(2)[None] "
+                                                        "/ 255")):
         with pytest.raises(ValueError, match=rf"^images: expected shape \(B, H, W\) or \(B, 1, "
-                           rf"H, W\) \(grey\), got {re.escape(str(array.shape))}: colour channels "
-                           rf"along axis {axis}\? give their mean, e.g. images.mean\({axis}\)"
-                           rf"{re.escape(one)}$"):
+                           rf"H, W\) \(grey\), got {re.escape(str(tuple(array.shape)))}: colour "
+                           rf"channels along axis {axis}\? give their mean, e.g. "
+                           rf"{re.escape(hint)}$"):
             prepare_images(array)
+        grey = prepare_images(eval(hint, {"images": array}))  # the hint runs, as grey images
+        assert grey.shape[-2:] == (32, 40) and float(grey.max()) <= 1.0
     ramp = torch.linspace(0, 1, 40).expand(32, 40)
     channels = torch.stack([0.9 * ramp, 0.8 * ramp + 0.1, 0.7 * ramp])  # one picture, tinted
     with pytest.warns(UserWarning, match=r"^images: 3 images alike as the channels of one "
-                      r"colour image \(shape \(3, 32, 40\) read as \(B, H, W\)"):
+                      r"colour image \(shape \(3, 32, 40\) read as \(B, H, W\): 3 grey images\); "
+                      r"for one colour image give its mean over the channels, e.g. "
+                      r"images.mean\(0\)\[None\]$"):
         assert prepare_images(channels).shape == (3, 1, 32, 40)
     views = torch.stack([ramp, ramp.flip(-1), ramp.flip(-2) ** 2])
     with warnings.catch_warnings():
@@ -793,8 +801,9 @@ def test_a_prediction_prints_in_a_line_and_its_items_and_factors_are_named(shipp
     assert repr(shipped).startswith("Predictor(source=") and "image_size=96" in repr(shipped)
     with pytest.raises(IndexError, match=r"^item: 5 is out of range for an assembly batch of 2$"):
         prediction.item_assembly(5)
-    torch.testing.assert_close(prediction.scaled(torch.tensor(2.5)).translation,
-                               prediction.scaled(2.5).translation, rtol=0, atol=0)
+    for number in (torch.tensor(2.5), torch.tensor(2), np.float32(2.5)):  # one number each
+        torch.testing.assert_close(prediction.scaled(number).translation,
+                                   prediction.scaled(float(number)).translation, rtol=0, atol=0)
     for factor, got in (("2", "'2'"), (torch.ones(3), r"a tensor of shape \(3,\)")):
         with pytest.raises(ValueError, match=rf"^factor: expected one number for the whole "
                            rf"batch \(the target's longest side in metres\), got {got}$"):
@@ -820,7 +829,7 @@ def test_the_pass_names_its_options_and_an_empty_mask_given_before_any_search(sh
     masks = np.zeros((2, *frames.shape[-2:]), np.uint8)
     masks[0, 20:40, 20:40] = 255
     # (After the search an empty mask would be "images: frame 1 has no target in its mask".)
-    with pytest.raises(ValueError, match=r"^mask: frame 1's holds no target pixel; leave "
+    with pytest.raises(ValueError, match=r"^mask: frame 1's mask holds no target pixel; leave "
                        r"the frame out of the sequence, or give a mask of its target$"):
         shipped.predict_sequence(frames, mask=masks)
 
@@ -853,3 +862,4 @@ def test_rotations_of_two_dtypes_reflections_and_no_rotations_at_all():
     with pytest.raises(ValueError, match=r"^resolution: expected a positive integer \(pixels a "
                        r"side\), got '256'$"):
         Camera.default("256")
+    assert Camera.default(np.int64(256)) == Camera.default(256)

@@ -16,7 +16,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Collate folders written by `sq-mitsuba eval` (one split of one run each) "
                     "into report.md and report.csv in the layout of the paper's Tables 1 and "
                     "2, with the paper's published numbers beside ours: in each column the "
-                    "best of our rows in bold and, apart, the best of the paper's rows in "
+                    "best of our methods' rows in bold (the baseline and the refinement "
+                    "against the true mask, references, are not ranked) and, apart, the best "
+                    "of the paper's rows in "
                     "italics. A run's row is labelled as its eval.json records (sq-mitsuba "
                     "eval --label); its val and test must be of one model (two exports in one "
                     "folder share a default label: name them apart).")

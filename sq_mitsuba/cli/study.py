@@ -138,7 +138,12 @@ def _passes(args: argparse.Namespace) -> int:
 
 
 def _illumination(args: argparse.Namespace) -> int:
-    from sq_mitsuba.evaluation.study import StudyOptions, illumination_study, lighting_breakdown
+    from sq_mitsuba.evaluation.study import (
+        STUDY_SET,
+        StudyOptions,
+        illumination_study,
+        lighting_breakdown,
+    )
 
     options = config_from_args(StudyOptions, args)
     if args.eval_dir is not None:
@@ -154,6 +159,11 @@ def _illumination(args: argparse.Namespace) -> int:
     else:
         if args.out is None:
             raise CLIError("--out: required with --models")
+        for given in getattr(args, "overrides", None) or []:  # the study would not use them
+            key = given.split("=", 1)[0].strip()
+            if key in STUDY_SET:
+                hint = f"; give {STUDY_SET[key]}" if STUDY_SET[key] else ""
+                raise CLIError(f"--set {given}: set by the study itself{hint}")
         result = illumination_study(args.checkpoint, args.models, args.out, options,
                                     progress=not args.quiet)
     print(result.describe())

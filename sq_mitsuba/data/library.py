@@ -65,6 +65,7 @@ from typing import Literal
 import numpy as np
 
 from sq_mitsuba.config import bounds, in_range, validate
+from sq_mitsuba.data.mesh_io import SAMPLES_FILE
 from sq_mitsuba.data.mesh_processing import (
     MESH_SUFFIXES,
     MODEL_FILES,
@@ -418,7 +419,36 @@ def model_complete(root: Path, entry: CatalogueEntry, points: int) -> bool:
     # from another catalogue is built again (cheap, rare) so its card says this one.
     if ours != ("procedural", entry.archetype, entry.seed, entry.catalogue_seed, entry.split):
         return False
-    return all(card["samples"].get(k) == points for k in ("surface", "uniform", "near"))
+    if not all(card["samples"].get(k) == points for k in ("surface", "uniform", "near")):
+        return False
+    return files_intact(folder, card)
+
+
+def files_intact(folder: Path, card: dict) -> bool:
+    """Whether a model's files are as written, as far as a quick look tells (about a
+    millisecond a model): the OBJ holds the card's vertex and face counts and ends its last
+    line, the GLB is as long as its header says, the samples archive's index (at its end)
+    reads. A file cut short or emptied since (by hand, a full disk) makes the model be built
+    again by a rerun rather than kept as "already there"; a NaN written into the samples is
+    the renderer's to refuse (``check_model_points``)."""
+    import struct
+    import zipfile
+
+    try:
+        text = (folder / "model_normalized.obj").read_bytes()
+        counts = (text.count(b"\nv "), text.count(b"\nf "))
+        if counts != (card.get("vertices"), card.get("faces")) or not text.endswith(b"\n"):
+            return False  # (the writer ends every line: a cut inside the last face shows)
+        glb = folder / "model_normalized.glb"
+        with open(glb, "rb") as file:
+            header = file.read(12)
+        if len(header) < 12 or header[:4] != b"glTF" or \
+                struct.unpack("<I", header[8:12])[0] != glb.stat().st_size:
+            return False
+        with zipfile.ZipFile(folder / SAMPLES_FILE) as archive:  # its index is at its end
+            return bool(archive.namelist())
+    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile):
+        return False
 
 
 def _generate_one(entry: CatalogueEntry, root: Path, points: int) -> str | None:

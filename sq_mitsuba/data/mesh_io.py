@@ -114,7 +114,8 @@ def read_tagged_obj(path: str | Path) -> TaggedMesh:
                 tags = np.asarray(archive["face_material"], dtype=np.int16)
                 if len(tags) != len(faces):
                     raise ValueError(f"{samples}: face_material has {len(tags)} entries for "
-                                     f"{len(faces)} faces of {path.name}")
+                                     f"the {len(faces)} faces of {path} (one of the two files "
+                                     "cut short or from another model)")
     return TaggedMesh(vertices, faces, tags)
 
 

@@ -97,7 +97,7 @@ def evaluate_batch(predictor: Any, dataset: Any, chunk: Sequence[int], number: i
         for method in ("search", "refined"):
             extras[method] = {"search_score": fit.search_score,
                               "refine_iou_after": fit.iou,
-                              "segmentation_iou": mask_iou_gt}
+                              "mask_iou": mask_iou_gt}
             sources[method] = fit.mask_source
         if options.refine_ground_truth:
             # The one-pass reading, as refine takes (the turned start is reused from fit).

@@ -58,7 +58,8 @@ JOURNAL = ".eval_partial"
 #: The run's identity inside :data:`JOURNAL`.
 RUN_FILE = "run.json"
 #: Version of the journal's files: a journal of another version is refused as another run's.
-FORMAT = 2  # 2: the scored models' files and the package version joined the identity
+FORMAT = 3  # 2: the scored models' files and the package version joined the identity;
+#            3: per_image.csv's segmentation_iou became mask_iou (rows of 2 lack it)
 
 
 # ------------------------------------------------------------------------------- identity

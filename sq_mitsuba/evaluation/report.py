@@ -10,10 +10,11 @@ baseline's sha256 each ``eval.json`` records, where both do: else a one-line err
 (number of primitives) shows each run's M. The
 paper's published rows (``eval/paper_tables.toml``) are printed beside ours, with a note on
 what is not comparable. Ours and the paper's are not ranked together: in each column the best
-of our rows is in bold and the best of the paper's rows in italics (each only where there are
-two rows or more to choose from). Inputs are read strictly: a
-folder, summary or paper table that is missing, empty, cut short, malformed or holds NaN where
-a number is due is a one-line error naming the file, before anything is written.
+of our methods' rows (not the baseline's nor the true mask's refinement: references) is in
+bold and the best of the paper's rows in italics (each only where there are two rows or more
+to choose from). Inputs are read strictly: a folder, summary or paper table that is missing,
+empty, cut short, malformed or holds NaN where a number is due is a one-line error naming the
+file, before anything is written.
 """
 
 from __future__ import annotations
@@ -36,8 +37,9 @@ NOT_COMPARABLE = (
     "spacecraft models rendered in Unreal Engine, released as SPE3R) and a GPU training run; "
     "ours from the dataset named in each run's eval.json. Both use the 'paper' Chamfer "
     "convention (L1 nearest neighbours, the two directions summed, unit-size models), so "
-    "that column's definition matches; the occnet convention and the camera-frame Chamfer "
-    "are in each run's summary.md.")
+    "that column's definition matches; E_R is the raw rotation error, as the paper's (the "
+    "error over the symmetries and the folded one are in each run's summary.md, as are the "
+    "occnet convention and the camera-frame Chamfer).")
 
 
 def read_eval_folder(folder: str | Path) -> dict[str, Any]:
@@ -50,16 +52,18 @@ def read_eval_folder(folder: str | Path) -> dict[str, Any]:
     its row.
 
     Raises:
-        FileNotFoundError: ``<folder>/eval.json: missing ...`` (or ``summary.csv``).
+        FileNotFoundError: ``<folder>: no such folder``, or ``<folder>/eval.json: missing
+            ...`` (or ``summary.csv``); NotADirectoryError: ``<folder>: not a folder ...``.
         ValueError: one line naming the file (and row) for anything else amiss: not JSON,
             another split, an empty, cut-short or malformed ``summary.csv``, NaN in the
             network's metrics, a row given twice.
     """
     folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise NotADirectoryError(f"{folder}: not a folder (give an evaluation folder, as "
+                                 "`sq-mitsuba eval --out` wrote it)")
     if not folder.is_dir():
-        raise FileNotFoundError(f"{folder}: " + ("not a folder (give an evaluation folder, "
-                                "as `sq-mitsuba eval --out` wrote it)" if folder.exists()
-                                else "no such folder"))
+        raise FileNotFoundError(f"{folder}: no such folder")
     for name in ("eval.json", "summary.csv"):
         if not (folder / name).is_file():
             raise FileNotFoundError(f"{folder / name}: missing (not an evaluation folder?)")
@@ -219,7 +223,7 @@ def _our_rows(folders: list[dict[str, Any]]) -> list[dict]:
             label = folder["label"] if method == "network" else f"{folder['label']} ({method})"
             row = rows.setdefault((label, method), {"label": label, "val": {}, "test": {},
                                                     "M": folder["info"].get("num_primitives"),
-                                                    "paper": False})
+                                                    "paper": False, "method": method})
             split = folder["split"]
             if metrics and any(key in row[split] for _, key, _, _ in COLUMNS):
                 raise ValueError(f"{folder['folder']}: a second {split} evaluation of the run "
@@ -233,8 +237,11 @@ def _our_rows(folders: list[dict[str, Any]]) -> list[dict]:
 
 #: How the best value of a column is marked in report.md, among our rows and the paper's.
 EMPHASIS = {False: "**", True: "*"}
-BEST_NOTE = ("In each column, **bold**: the best of our rows; *italics*: the best of the "
-             "paper's rows (the two groups are not ranked together).")
+BEST_NOTE = ("In each column, **bold**: the best of our methods' rows; *italics*: the best "
+             "of the paper's rows (the two groups are not ranked together; the baseline and "
+             "the refinement against the true mask, references, are not ranked).")
+#: Our rows that are references, not methods: never marked best.
+REFERENCES = ("baseline", "refined_gt")
 
 
 def _table(rows: list[dict], with_m: bool
@@ -246,7 +253,8 @@ def _table(rows: list[dict], with_m: bool
         f"{split} {title}" for split in ("val", "test") for _, _, title, _ in COLUMNS]
     best: dict[tuple[bool, str, str], float] = {}
     for paper in (False, True):
-        group = [r for r in rows if r.get("paper", False) == paper]
+        group = [r for r in rows if r.get("paper", False) == paper
+                 and r.get("method") not in REFERENCES]
         for split in ("val", "test"):
             for _, key, _, lower in COLUMNS:
                 values = [r[split][key][0] for r in group if key in r[split]]
@@ -266,7 +274,8 @@ def _table(rows: list[dict], with_m: bool
                 mean, std = row[split][key]
                 text = f"{mean:.3f} ± {std:.3f}"
                 cells.append(text)
-                emphasis = EMPHASIS[paper] if best.get((paper, split, key)) == mean else ""
+                emphasis = EMPHASIS[paper] if best.get((paper, split, key)) == mean \
+                    and row.get("method") not in REFERENCES else ""
                 marks.append(f"{emphasis}{text}{emphasis}")
         plain.append(cells)
         marked.append(marks)

@@ -88,27 +88,17 @@ class StudyOptions:
     max_models: int | None = in_range(1, 100_000, default=None)
     "Use at most this many of them (spread evenly over their sorted names; None: all)."
     render: RenderOptions = field(default_factory=RenderOptions)
-    "Dataset renderer settings (images_per_model, shard and overwrite are set by the study)."
+    "Dataset renderer settings (images_per_model, shard and overwrite are set by the study:"
+    " its values here are not used; the CLI refuses them in --set)."
     evaluation: EvalOptions = field(default_factory=_study_evaluation)
-    "Evaluation settings (split 'test' and no baseline: every study model is a test model)."
+    "Evaluation settings (split 'test' and no baseline, whatever they say here: every study"
+    " model is a test model)."
 
 
-# Fields the study sets itself (its --poses, every model's images, one run of the test split
-# without a baseline): a value given for them would be ignored, so it is refused.
-_STUDY_SET = {"render.images_per_model": "--poses", "render.shard": None,
-              "render.overwrite": None, "evaluation.split": None, "evaluation.baseline": None}
-
-
-def _check_study_set_fields(options: StudyOptions) -> None:
-    """One-line ``ValueError`` naming a field of ``_STUDY_SET`` given another value than its
-    default: the study would silently use its own."""
-    defaults = StudyOptions()
-    for name, instead in _STUDY_SET.items():
-        part, key = name.split(".")
-        value = getattr(getattr(options, part), key)
-        if value != getattr(getattr(defaults, part), key):
-            hint = f"; give {instead}" if instead else ""
-            raise ValueError(f"{name}: set by the study itself, got {value!r}{hint}")
+#: Fields the study sets itself, whatever the options say (its --poses as every model's
+#: images, one run of the test split without a baseline), with the option that sets them.
+STUDY_SET = {"render.images_per_model": "--poses", "render.shard": None,
+             "render.overwrite": None, "evaluation.split": None, "evaluation.baseline": None}
 
 
 def _render_point(models: Path, out: Path, render: RenderOptions) -> Any:
@@ -120,10 +110,12 @@ def _render_point(models: Path, out: Path, render: RenderOptions) -> Any:
     try:
         return render_dataset(models, out, render, progress=False)
     except DatasetError as error:
-        text = str(error).replace("images_per_model", "--poses").replace(
+        instead = f"delete {out.parent.parent} to start over, or give another --out"
+        text = str(error).replace("images_per_model (--images-per-model)", "--poses").replace(
+            "images_per_model", "--poses").replace(
             "use --overwrite to start over, or another --out",
-            f"a study of other settings: delete {out.parent.parent} to start over, or give "
-            "another --out")
+            f"a study of other settings: {instead}").replace(
+            "render into another folder, or use --overwrite", instead)
         raise DatasetError(text) from None
 
 
@@ -298,7 +290,6 @@ def illumination_study(checkpoint: str | Path | None, models_dir: str | Path,
 
     options = options or StudyOptions()
     validate(options)
-    _check_study_set_fields(options)
     models_dir, out_dir = Path(models_dir), Path(out_dir)
     predictor = load_model(checkpoint)
     check_predictor(predictor)

@@ -20,9 +20,10 @@ __all__ = ["COLUMNS", "EXTRAS", "LIGHTING", "MASK_SOURCES", "SHOWN", "as_number"
            "format_stats", "label_record", "markdown_table", "summarise", "write_tables"]
 
 #: Search and refinement columns: the search's best soft IoU at its resolution, the refinement's
-#: IoU after it (refinement resolution), and the IoU of the image's mask against the ground
-#: truth (``search`` and ``refined`` rows).
-EXTRAS = ("search_score", "refine_iou_after", "segmentation_iou")
+#: IoU after it (refinement resolution), and ``mask_iou``, the IoU of the mask fitted (the one
+#: ``mask_source`` names: the network's, the segmentation's) against the true mask (``search``
+#: and ``refined`` rows; it was ``segmentation_iou`` before 2026-12-01, whatever the source).
+EXTRAS = ("search_score", "refine_iou_after", "mask_iou")
 #: Mask sources named in the ``mask_source`` column.
 MASK_SOURCES = ("network", "segmentation", "ground truth")
 #: The label's lighting record (empty where the dataset has none, e.g. the SPE3R release).

@@ -20,7 +20,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from sq_mitsuba.checks import check_tensor
+from sq_mitsuba.checks import check_tensor, python_scalar
 from sq_mitsuba.inputs import check_camera_intrinsics
 from sq_mitsuba.io import read_json
 
@@ -86,6 +86,7 @@ class Camera:
         Raises:
             ValueError: naming ``resolution`` unless a positive integer (pixels a side).
         """
+        resolution = python_scalar(resolution)  # np.int64(256) is 256
         if isinstance(resolution, bool) or not isinstance(resolution, int) or resolution < 1:
             raise ValueError(f"resolution: expected a positive integer (pixels a side), got "
                              f"{resolution!r}")

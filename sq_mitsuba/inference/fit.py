@@ -17,7 +17,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from sq_mitsuba.checks import check_tensor
+from sq_mitsuba.checks import check_rotations, check_tensor
 from sq_mitsuba.config import bounds, in_range, positive, validate
 from sq_mitsuba.geometry.assembly import NUM_PARAMS, Assembly
 from sq_mitsuba.geometry.camera import Camera
@@ -254,7 +254,7 @@ def fit_assembly(
         raise ValueError(f"masks: size {tuple(masks.shape[1:])} differs from the camera's "
                          f"{(camera.height, camera.width)} (height, width)")
     views = masks.shape[0]
-    check_tensor("rotations", rotations, (3, 3), min_dims=3)
+    check_rotations("rotations", rotations)  # before the renderer: a scaled pose is no pose
     check_tensor("translations", translations, (3,), min_dims=2)
     if rotations.shape != (views, 3, 3) or translations.shape != (views, 3):
         raise ValueError(f"rotations, translations: expected ({views}, 3, 3) and ({views}, 3) "

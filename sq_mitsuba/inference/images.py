@@ -65,7 +65,8 @@ def prepare_images(images: Tensor | np.ndarray, channels: int = 1) -> Tensor:
     """
     from sq_mitsuba.inputs import check_image_size
 
-    if isinstance(images, np.ndarray):
+    numpy = isinstance(images, np.ndarray)
+    if numpy:
         if images.dtype != np.uint8 and images.dtype.kind != "f":
             raise ValueError(f"images: expected uint8 or floating point, got {images.dtype}")
         images = array_to_tensor(images)
@@ -79,17 +80,17 @@ def prepare_images(images: Tensor | np.ndarray, channels: int = 1) -> Tensor:
     expected = "(B, H, W) or (B, 1, H, W)" if channels == 1 else f"(B, {channels}, H, W)"
     axis = _colour_axis(given) if channels == 1 else None
     if axis is not None:
-        one = "[None]" if len(given) == 3 else ""  # (H, W, C): one image
         raise ValueError(f"images: expected shape {expected} (grey), got {given}: colour "
                          f"channels along axis {axis}? give their mean, e.g. "
-                         f"images.mean({axis}){one}")
+                         f"{_grey_hint(given, axis, numpy, images.dtype == torch.uint8)}")
+    three = images.dim() == 3 and channels == 1 and images.shape[0] == 3
     if images.dim() == 3 and channels == 1:
-        if images.shape[0] == 3:
-            _warn_if_channels(images)
         images = images[:, None]
     if images.dim() != 4 or images.shape[1] != channels or images.numel() == 0:
         raise ValueError(f"images: expected shape {expected}, got {given}")
     check_image_size(images.shape[-1], images.shape[-2], "images")
+    if three:
+        _warn_if_channels(images[:, 0], numpy)
     if images.dtype == torch.uint8:
         return images.float() / 255.0
     if not images.is_floating_point():
@@ -116,7 +117,21 @@ def _colour_axis(shape: tuple[int, ...]) -> int | None:
     return None
 
 
-def _warn_if_channels(images: Tensor) -> None:
+def _grey_hint(shape: tuple[int, ...], axis: int, numpy: bool, uint8: bool,
+               one: bool = False) -> str:
+    """How to make grey images of a colour array of ``shape`` (channels along ``axis``),
+    as code for its type: numpy or torch, uint8 scaled to [0, 1], alpha left out, one
+    image given its batch axis (``one``, or (H, W, C))."""
+    channels = shape[axis]
+    pick = "" if channels == 3 else ("[..., :3]" if axis == len(shape) - 1 else
+                                     f"[{':, ' * axis}:3]")
+    mean = f"mean(axis={axis})" if numpy else f"float().mean({axis})" if uint8 else \
+        f"mean({axis})"
+    batch = "[None]" if one or (len(shape) == 3 and axis == 2) else ""
+    return f"images{pick}.{mean}{batch}{' / 255' if uint8 else ''}"
+
+
+def _warn_if_channels(images: Tensor, numpy: bool) -> None:
     """Warn where three grey images (3, H, W) look like one colour image's channels (C, H, W):
     the same picture in each (correlation above 0.995 between every pair; a grey render's
     channels are equal). Three frames of a pass are not that alike: neighbouring frames of
@@ -124,17 +139,19 @@ def _warn_if_channels(images: Tensor) -> None:
     goes unwarned (the docs say (B, H, W) is B grey images)."""
     import warnings
 
-    flat = images.reshape(3, -1).double()
+    step = max(1, max(images.shape[-2:]) // 128)  # a sample of pixels, a few kB
+    flat = images[:, ::step, ::step].reshape(3, -1).float()
     flat = flat - flat.mean(dim=1, keepdim=True)
     norms = flat.norm(dim=1)
     if bool((norms <= 0).any()):
         return
     correlation = (flat @ flat.T) / (norms[:, None] * norms[None, :])
     if float(correlation.min()) > 0.995:
+        hint = _grey_hint(tuple(images.shape), 0, numpy, images.dtype == torch.uint8, True)
         warnings.warn(f"images: 3 images alike as the channels of one colour image (shape "
                       f"{tuple(images.shape)} read as (B, H, W): 3 grey images); for one colour "
-                      "image give its mean over the channels, e.g. images.mean(0, keepdim=True)",
-                      stacklevel=2)
+                      f"image give its mean over the channels, e.g. {hint}",
+                      stacklevel=5)  # prepare_images, the predictor, its caller's call
 
 
 def resize_images(images: Tensor, size: int) -> Tensor:

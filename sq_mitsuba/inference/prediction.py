@@ -13,6 +13,7 @@ import numbers
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+import torch
 from torch import Tensor
 
 from sq_mitsuba.geometry.assembly import Assembly
@@ -35,7 +36,8 @@ def _one_factor(factor: object) -> float:
     """``factor`` as one number (a 0-d tensor's value), or a one-line ``ValueError``: a
     prediction's lengths scale as one (the number itself is checked by
     :meth:`~sq_mitsuba.geometry.assembly.Assembly.scaled`)."""
-    if isinstance(factor, Tensor) and factor.dim() == 0 and factor.is_floating_point():
+    if isinstance(factor, Tensor) and factor.dim() == 0 and not factor.is_complex() \
+            and factor.dtype != torch.bool:
         return float(factor)
     if isinstance(factor, Tensor) or isinstance(factor, bool) \
             or not isinstance(factor, numbers.Real):

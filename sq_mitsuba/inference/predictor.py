@@ -200,7 +200,8 @@ class Predictor:
                 reading, its ``fit`` what was fitted.
             mask: with ``refine``, the mask to fit: "network" (default: the mask head, or the
                 segmentation for a network without one), "segmentation" (the threshold
-                segmentation of the image), or masks (B, H, W) bool or float in [0, 1].
+                segmentation of the image), or masks (B, H, W): bool, float in [0, 1]
+                (above 0.5 is the target) or integer (non-zero is the target).
             search, refinement: with ``refine``, the search's and the refinement's settings
                 (defaults: :class:`~sq_mitsuba.inference.search.SearchOptions` and
                 :data:`~sq_mitsuba.inference.search.SEARCH_REFINEMENT`).

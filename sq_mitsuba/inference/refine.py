@@ -36,7 +36,7 @@ from typing import Literal
 import torch
 from torch import Tensor
 
-from sq_mitsuba.checks import check_tensor
+from sq_mitsuba.checks import check_rotations, check_tensor
 from sq_mitsuba.config import in_range, non_negative, positive, validate
 from sq_mitsuba.geometry.assembly import FIELDS, Assembly, ParameterRanges
 from sq_mitsuba.geometry.camera import Camera
@@ -222,7 +222,7 @@ def refine_pose_and_shape(assembly: Assembly, rotation: Tensor, translation: Ten
     if shared and assembly.batch_size != 1:
         raise ValueError(f"assembly: a shared shape has batch size 1, got {assembly.batch_size}")
     # rotation first: relative_times and the batch size are checked against its length.
-    check_tensor("rotation", rotation, (3, 3), min_dims=3)
+    check_rotations("rotation", rotation)
     if relative_rotations is not None and not shared:
         raise ValueError("relative_rotations: only with a shared shape (shared=True)")
     if relative_times is not None:

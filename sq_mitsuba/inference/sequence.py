@@ -391,8 +391,8 @@ def _frames(predictor: Any, checked: Tensor, network: Prediction, camera: Camera
     if mask is not None and not isinstance(mask, str):  # the user's masks: before any search
         empty = [k for k, kept in enumerate(masks_to_fit(network, checked, mask)[1]) if not kept]
         if empty:
-            raise ValueError(f"mask: frame {empty[0]}'s holds no target pixel; leave the frame "
-                             "out of the sequence, or give a mask of its target")
+            raise ValueError(f"mask: frame {empty[0]}'s mask holds no target pixel; leave the "
+                             "frame out of the sequence, or give a mask of its target")
     elif network.target is not None and not bool(network.target.all()):
         k = int((~network.target).nonzero()[0])
         raise ValueError(f"images: frame {k} shows no target (its score "

@@ -232,6 +232,9 @@ def _check_files(root: Path, model: str, labels: list[Any], camera: Camera,
             f" ({filename})" if isinstance(filename, str) else "")
         if problem is not None:
             report.problems.append(f"{where}: {problem}")
+            if isinstance(filename, str):  # named by an entry, if a bad one: not "no label"
+                for folder in (IMAGES, MASKS):
+                    named[folder].add(_find(root, model, folder, filename).name)
             continue
         arrays = {}
         for folder in (IMAGES, MASKS):

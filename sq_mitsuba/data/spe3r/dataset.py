@@ -86,10 +86,12 @@ class Spe3rDataset(torch.utils.data.Dataset):
             if not (self.root / required).is_file():
                 library = required == "camera.json" and any(
                     self.root.glob("*/models/model_card.json"))
+                unfinished = required == "splits.csv" and _rendering(self.root)
                 raise DatasetError(f"{self.root / required}: missing" + (
                     f"; {self.root} is a model library, not a dataset: render one with "
                     f"sq-mitsuba dataset render --models {self.root} --out DATA" if library
-                    else ""))
+                    else "; its rendering has not finished (dataset.json says so): run the "
+                    "render command again" if unfinished else ""))
         try:
             self.camera = Camera.load(self.root / "camera.json")
         except ValueError as error:
@@ -226,3 +228,15 @@ class Spe3rDataset(torch.utils.data.Dataset):
             "occupancy_points": torch.from_numpy(occupancy.astype(np.float32)),
             "occupancy_labels": torch.from_numpy(labels.astype(np.float32)),
         }
+
+
+def _rendering(root: Path) -> bool:
+    """Whether ``root``'s manifest says its rendering has not finished (the last model to
+    finish writes splits.csv): False where there is none or it cannot be read."""
+    from sq_mitsuba.io import read_json
+
+    try:
+        manifest = read_json(root / "dataset.json")
+    except (OSError, ValueError):
+        return False
+    return isinstance(manifest, dict) and manifest.get("state") == "rendering"

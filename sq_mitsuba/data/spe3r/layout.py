@@ -161,7 +161,8 @@ def load_model(model_dir: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | No
         if face_material is not None:
             if len(face_material) != len(faces):
                 raise DatasetError(f"{samples_path}: face_material has {len(face_material)} "
-                                   f"entries for {len(faces)} faces")
+                                   f"entries for the {len(faces)} faces of {mesh_path} (one of "
+                                   "the two files cut short or from another model)")
             tags = np.asarray(MATERIALS)[np.asarray(face_material, dtype=np.int64)]
     return vertices, faces, tags
 
