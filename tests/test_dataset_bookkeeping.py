@@ -528,3 +528,18 @@ def test_reading_a_dataset_whose_rendering_has_not_finished_says_so(reference, t
             f"{out / 'splits.csv'}: missing; its rendering has not finished (dataset.json says "
             "so): run the render command again") + "$"):
         Spe3rDataset(out)
+
+
+def test_a_manifest_with_nan_in_its_settings_is_named(reference, library, tmp_path, capsys):
+    """Python's json reads NaN: a manifest whose settings hold one is named by dataset check
+    and refused by a rerun, touching no file."""
+    out = tmp_path / "data"
+    shutil.copytree(reference, out)
+    text = (out / "dataset.json").read_text()
+    (out / "dataset.json").write_text(re.sub(r'"spp": \d+', '"spp": NaN', text, count=1))
+    report = check_dataset(out, per_model=0, progress=False)
+    assert f"{out / 'dataset.json'}: settings.spp: not a finite number" in report.problems
+    before = tree(out)
+    assert render_cli(library, out) == 2
+    assert capsys.readouterr().err.strip().endswith("settings.spp: not a finite number")
+    assert tree(out) == before

@@ -274,7 +274,23 @@ def read_manifest(root: Path) -> dict[str, Any] | None:
         if not isinstance(entry, dict):
             raise DatasetError(f"{path}: models.{model}: expected an object, got "
                                f"{_short(entry)}")
+    where = _not_finite(manifest["settings"], "settings")  # Python's json reads NaN
+    if where is not None:
+        raise DatasetError(f"{path}: {where}: not a finite number")
     return manifest
+
+
+def _not_finite(value: Any, where: str) -> str | None:
+    """The dotted place of the first NaN or infinity in parsed JSON ``value``, or None."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return where
+    items = value.items() if isinstance(value, dict) else \
+        enumerate(value) if isinstance(value, list) else ()
+    for key, item in items:
+        found = _not_finite(item, f"{where}.{key}")
+        if found is not None:
+            return found
+    return None
 
 
 def balanced_occupancy(points: np.ndarray, inside: np.ndarray, count: int,
