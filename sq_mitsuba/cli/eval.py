@@ -29,12 +29,13 @@ against the ground-truth mask as an upper bound (row 'refined_gt'). Silhouettes 
 apart poses with the same outline.
 
 Outputs in --out: per_image.csv (every metric and the label's lighting: phase angle, Earth in
-view, eclipse, visibility), per_model.{csv,md}, summary.{csv,md} (mean ± std and median),
-per_model.png (bars per model, as the paper's Fig. 10), qualitative.png (Fig. 12),
-consistency.png (Fig. 11) and eval.json (settings, images/s); with --set mesh_ranking=256,
-mesh_ranking.csv: for 256 network predictions (spread evenly), the rank of the image's own
-model among every model of the split by Chamfer-L1 (is the shape read from the image?; a
-split of one model is refused).
+view, eclipse, visibility; on the search and refined rows the search's score, the refinement's
+IoU and mask_iou, the fitted mask's IoU with the true mask), per_model.{csv,md},
+summary.{csv,md} (mean ± std and median), per_model.png (bars per model, as the paper's
+Fig. 10), qualitative.png (Fig. 12), consistency.png (Fig. 11) and eval.json (settings,
+images/s); with --set mesh_ranking=256, mesh_ranking.csv: for 256 network predictions (spread
+evenly), the rank of the image's own model among every model of the split by Chamfer-L1 (is
+the shape read from the image?; a split of one model is refused).
 `sq-mitsuba report` collates eval folders into the paper's tables.
 
 Without --checkpoint the model shipped with the package is used. A checkpoint that does not

@@ -311,8 +311,9 @@ def illumination_study(checkpoint: str | Path | None, models_dir: str | Path,
     _stage_models(models_dir, names, stage)
     rows: list[dict[str, Any]] = []
     seconds = {"render": 0.0, "evaluate": 0.0}
-    for point in progress_bar(points, desc="illumination study", unit="point",
-                              disable=not progress):
+    images = len(names) * options.poses  # each point renders and evaluates them all
+    for point in progress_bar(points, desc=f"illumination study ({images} images a point)",
+                              unit="point", disable=not progress):
         tick = time.perf_counter()
         summary = _render_point(stage, out_dir / "renders" / point.name, renders[point.name])
         if summary.failures:
