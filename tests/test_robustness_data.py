@@ -210,9 +210,14 @@ def test_check_says_a_stopped_render_has_not_finished(train_dataset, tmp_path, c
     manifest["state"] = "rendering"  # what a render killed part-way leaves
     (data / "dataset.json").write_text(json.dumps(manifest))
     (data / "splits.csv").unlink()  # the last model to finish writes it
+    unfinished = sorted(manifest["models"])[0]  # one model stopped before its labels.json
+    (data / unfinished / "labels.json").unlink()
+    finished = len(manifest["models"]) - 1
     assert main(["dataset", "check", str(data), "--quiet"]) == 1
     out = capsys.readouterr().out
     assert "rendering has not finished" in out and "splits.csv: missing" in out, out
+    # The models finished so far are checked all the same (they were skipped: "0 models").
+    assert finished >= 2 and f"{finished} models" in out and unfinished not in out, out
 
 
 def test_check_of_a_missing_folder_is_bad_input(tmp_path, capsys):

@@ -336,22 +336,28 @@ def check_dataset(root: str | Path, options: CheckOptions | None = None, *,
         # A stopped render leaves no splits.csv (the last model to finish writes it): say why.
         report.problems.append(f"dataset.json: state {manifest.get('state')!r}: rendering has "
                                f"not finished (run the render command again)")
+    partial = False
     try:
         camera = Camera.load(root / "camera.json")
         splits = read_splits(root / "splits.csv")
     except FileNotFoundError as error:
-        why = " (written when rendering finishes)" if unfinished and \
-            Path(str(error.filename)).name == "splits.csv" else ""
+        partial = unfinished and Path(str(error.filename)).name == "splits.csv"
+        why = " (written when rendering finishes)" if partial else ""
         report.problems.append(f"{error.filename}: missing{why}")
-        return report
+        if not partial:
+            return report
+        # The models finished so far are checked all the same (camera.json was read).
+        splits = {model: str(entry.get("split")) for model, entry in manifest["models"].items()
+                  if (root / model / "labels.json").is_file()}
     except (OSError, ValueError) as error:
         report.problems.append(str(error))
         return report
-    failed = _check_bookkeeping(root, camera, splits, manifest, report)
-    strays = _stray_files(root, failed)
-    report.problems += strays[:MAX_LISTED]
-    if len(strays) > MAX_LISTED:
-        report.problems.append(f"... and {len(strays) - MAX_LISTED} more stray files")
+    if not partial:  # an unfinished dataset's bookkeeping is not yet whole
+        failed = _check_bookkeeping(root, camera, splits, manifest, report)
+        strays = _stray_files(root, failed)
+        report.problems += strays[:MAX_LISTED]
+        if len(strays) > MAX_LISTED:
+            report.problems.append(f"... and {len(strays) - MAX_LISTED} more stray files")
     ours = manifest is not None
     exr = bool(ours and manifest["settings"].get("exr"))
     spp_mask = options.spp
