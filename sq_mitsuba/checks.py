@@ -88,7 +88,10 @@ def check_tensor(
     if not isinstance(value, torch.Tensor):
         raise ValueError(f"{name}: expected a torch.Tensor, got {type(value).__name__}")
     needed = len(trailing) if min_dims is None else min_dims
-    want = "(..., " + ", ".join("*" if t is None else str(t) for t in trailing) + ")"
+    # A dimension of any size is N (then M, ...): "(..., N, 3)", points of 3 coordinates.
+    sizes = iter("NMKL")
+    want = "(..., " + ", ".join(next(sizes, "any") if t is None else str(t)
+                                for t in trailing) + ")"
     if value.dim() < needed or any(
         t is not None and value.shape[value.dim() - len(trailing) + i] != t
         for i, t in enumerate(trailing)

@@ -495,7 +495,7 @@ def test_the_turned_copies_mask_is_their_mean_computed_copy_by_copy():
                        ((mask, logits, angles[None]), "angles")):
         with pytest.raises(ValueError, match=f"^{name}: expected shape"):
             turned_back_mask(*args, height, width)
-    with pytest.raises(ValueError, match=r"^mask: expected shape \(\.\.\., \*, 40, 50\)"):
+    with pytest.raises(ValueError, match=r"^mask: expected shape \(\.\.\., N, 40, 50\)"):
         turned_back_mask(mask, logits, angles, height, 50)
 
 
