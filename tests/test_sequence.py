@@ -625,6 +625,7 @@ def test_predict_sequence_cli_writes_one_assembly_and_a_pose_per_frame(eval_chec
     for k, pose in enumerate(written):
         assert pose["target_size"] == 2.5
         assert pose["turns"] == direct.frames.fit.turns  # the copies the frames were read from
+        assert pose["sequence"]["poses"] == direct.poses in ("motion", "readings")
         np.testing.assert_allclose(pose["r_Vo2To_vbs"], 2.5 * direct.translation[k].numpy(),
                                    atol=0.025 * spread)
         rotation = quaternion_to_matrix(torch.tensor(pose["q_vbs2tango"], dtype=torch.float64))
@@ -945,6 +946,7 @@ def test_given_relative_rotations_start_the_pass_at_the_mean_of_the_carried_read
         frames = load_model(eval_checkpoint).predict(images / 255, refine=True)
         result = sequence.sequence_from_frames(frames, relative, options=SequenceOptions(
             steps=2))
+    assert result.poses == "given"
     carried = (relative.transpose(-1, -2) @ frames.rotation.double() @ result.half_turns
                ).numpy()
     u, _, vh = np.linalg.svd(carried.mean(0))

@@ -124,13 +124,19 @@ class SequenceRecord:
     frame_iou: list[float] = field(default_factory=list)
     seconds: float = 0.0
     result: Any = None
+    ordered: bool = False
 
     def describe(self) -> str:
         count = len(self.iou)
+        poses = getattr(self.result, "poses", None)
+        how = {"motion": "; the frames kept on one constant-rate turn",
+               "given": "; the frames related by the rotations given",
+               "readings": "; each frame's rotation from its own reading (no turn found that "
+                           "enough frames agree on)" if self.ordered else ""}.get(poses, "")
         return (f"{count} frames: one assembly, {count} poses in {self.seconds:.1f} s "
                 f"({self.seconds / max(count, 1):.2f} s per frame); silhouette IoU against the "
                 f"masks {np.mean(self.frame_iou):.3f} (each frame's own search) -> "
-                f"{np.mean(self.iou):.3f} (one shape, all frames)")
+                f"{np.mean(self.iou):.3f} (one shape, all frames){how}")
 
 
 def _side_rotation(pitch_deg: float, yaw_deg: float) -> torch.Tensor:
@@ -269,7 +275,7 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
                                  for suffix in (".pose.json", ".overlay.png")],
                               keep=[*paths, *(mask_paths or []), *other_inputs])
     predictor = with_fast_path(predictor, True)
-    record = SequenceRecord()
+    record = SequenceRecord(ordered=ordered)
     started = time.perf_counter()
     frames = torch.from_numpy(np.stack(pictures)).float()
     kwargs: dict[str, Any] = {} if options is None else {"options": options}
@@ -324,7 +330,8 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
                          "iou": record.iou[k], "frame_iou": record.frame_iou[k],
                          "half_turn": [[float(v) for v in row] for row in result.half_turns[k]],
                          "mask_source": "file" if mask_paths is not None
-                         else own.fit.mask_source, "steps": result.steps},
+                         else own.fit.mask_source, "steps": result.steps,
+                         "poses": result.poses},
         }
         atomic_write_json(out / f"{path.stem}.pose.json", pose)
         record.files.append(out / f"{path.stem}.pose.json")

@@ -444,9 +444,15 @@ class Assembly:
             "version": JSON_VERSION,
             "dtype": str(self.params.dtype).removeprefix("torch."),
             "conventions": {
-                "rotation_6d": "first two rows of the primitive-to-assembly rotation matrix",
+                "size": "semi-axes (a1, a2, a3) of the primitive, in its own frame",
+                "rotation_6d": "the first two rows r1, r2 of the primitive-to-assembly rotation "
+                               "as read, not normalised: R has rows b1 = r1 / |r1|, b2 = the "
+                               "part of r2 orthogonal to b1, normalised, b3 = b1 x b2",
                 "transform": "x_assembly = R @ taper(x_primitive) + translation",
+                "taper": "taper(x, y, z) = ((1 - k1 z / a3) x, (1 - k2 z / a3) y, z)",
                 "shape": "dual superquadric exponents (e1, e2) in [0, 1]",
+                "units": "lengths for the target size of the pose file beside it (target_size;"
+                         " 1 where none is given: the dataset's unit size)",
             },
             "primitives": primitives,
         }

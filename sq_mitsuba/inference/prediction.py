@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import numbers
 from dataclasses import dataclass, field, replace
+from typing import Literal
 
 import numpy as np
 import torch
@@ -254,6 +255,10 @@ class SequencePrediction:
             fit's resolution; a frame the fit lost and that was placed again, its refit's:
             :mod:`~sq_mitsuba.inference.lost_frames`); frame_iou: (N,) the same of each
             frame's own fit (at its refinement's resolution).
+        poses: what set the frames' rotations relative to each other: "motion" (frames in
+            order kept on one constant-rate turn that enough of their readings agree with),
+            "given" (the relative rotations passed in) or "readings" (each frame's own, as
+            unordered frames, ``motion="free"``, or a pass whose readings agree on no turn).
         steps: Adam steps taken; seconds: wall time of the whole sequence (frames included);
             frames_seconds: of the frames' own path alone (network, search, refinement).
         scale: the target's longest side in metres the lengths are for (1: the network's
@@ -272,6 +277,7 @@ class SequencePrediction:
     steps: int = 0
     seconds: float = 0.0
     losses: list[float] = field(default_factory=list)
+    poses: Literal["motion", "given", "readings"] = "readings"
     frames_seconds: float = 0.0
     scale: float = 1.0
 

@@ -40,15 +40,13 @@ its body frame and the pose of every image:
    given rotations), a frame the fit left below half its own fit's IoU is refitted alone, pose
    only, with the shared shape (:func:`~sq_mitsuba.inference.lost_frames.place_lost_frames`;
    its depth then moves alone).
-4. **An oriented-box body frame** (``options.canonical``, off by default): the result in
-   the frame of ``--align obb`` models (:func:`canonical_frame`: the fitted assembly's
-   minimum-volume box's axes by extent, its centre of mass at the origin), not the default
-   models' built axes, from which even their true surface's box lies about 30 deg.
+4. **An oriented-box body frame** (``options.canonical``, off): the result in the frame of
+   ``--align obb`` models (:func:`canonical_frame`: the fitted assembly's minimum-volume box's
+   axes by extent), not the models' built axes (even their true surface's box is ~30 deg off).
 
 Convention: poses map body to camera, ``x_cam = R_j x_body + t_j`` (OpenCV frame); the body
 frame is the reference frame's reading, turned by no half turn; relative rotations are given
-as ``Q_j = R_j R_0^T`` (frame 0 first, ``Q_0 = I``). Tensors of the result are float64 on the
-CPU.
+as ``Q_j = R_j R_0^T`` (frame 0 first, ``Q_0 = I``). The result's tensors: float64, CPU.
 
 Limits: frames that all show one outline constrain the shape's depth no better than one
 image; a symmetric target's half turns stay ambiguous, harmlessly for the shape, not for the
@@ -445,8 +443,9 @@ def sequence_from_frames(frames: Prediction, relative: Tensor | None = None,
         turns = align_half_turns_by_views(frames.assembly, frames.rotation, reference,
                                           options.level, options.near_views_deg)
     rotation = frames.rotation.double() @ turns  # x_ref = S x_j  =>  R_j x_j = (R_j S) x_ref
-    times = None  # the frames' times, when the rate of turn moves in the joint fit
+    times, poses = None, "readings"  # the frames' times (the rate moves); what set the poses
     if relative is not None:  # given, they take precedence over the pass's own motion
+        poses = "given"
         carried = relative.transpose(-1, -2) @ rotation  # each frame's estimate of R_0
         rotation = relative @ mean_rotation(carried)
     elif ordered and options.motion != "free":
@@ -455,6 +454,7 @@ def sequence_from_frames(frames: Prediction, relative: Tensor | None = None,
                                  options.motion_max_rate_deg, options.motion_min_share)
         if on_motion is not None:
             rotation, turns, reference, motion_relative = on_motion
+            poses = "motion"
             if options.motion in ("held", "fitted"):
                 relative = motion_relative  # one rotation (and with "fitted" the rate) moves
             if options.motion == "fitted":
@@ -496,5 +496,5 @@ def sequence_from_frames(frames: Prediction, relative: Tensor | None = None,
     return SequencePrediction(
         assembly=assembly, rotation=rotation, translation=translation,
         quaternion=matrix_to_quaternion(rotation), frames=frames, reference=reference,
-        half_turns=turns, iou=ious, frame_iou=fit.iou.clone(), steps=steps,
+        half_turns=turns, iou=ious, frame_iou=fit.iou.clone(), steps=steps, poses=poses,
         seconds=time.perf_counter() - started, losses=losses, frames_seconds=frames_seconds)
