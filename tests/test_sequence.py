@@ -1041,3 +1041,26 @@ def test_frames_out_of_their_names_numeric_order_are_named_in_a_warning():
         check_frame_order([Path(f"{name}.png") for name in ("front", "side", "back")])
         check_frame_order([Path("cam_b_1.png"), Path("cam_a_2.png"), Path("1.png"),
                            Path("a.png"), Path("1\u00b2.png"), Path("2\u00b2.png")])
+
+
+def test_the_printed_line_says_what_set_the_frames_rotations():
+    """The summary of `predict --sequence` names the pass's poses (SequencePrediction.poses),
+    and why frames in order kept their own readings: no turn found, or motion='free'."""
+    from types import SimpleNamespace
+
+    from sq_mitsuba.apps.predict_sequence import SequenceRecord
+
+    def line(poses: str, ordered: bool = True, free: bool = False) -> str:
+        return SequenceRecord(iou=[0.8, 0.9], frame_iou=[0.7, 0.8], seconds=2.0,
+                              result=SimpleNamespace(poses=poses), ordered=ordered,
+                              free=free).describe()
+
+    assert line("motion").endswith("(one shape, all frames); the frames kept on one "
+                                   "constant-rate turn")
+    assert line("motion start").endswith("the frames that disagreed with one constant-rate "
+                                         "turn started from it")
+    assert line("given").endswith("the frames related by the rotations given")
+    assert line("readings").endswith("each frame's rotation from its own reading (no turn "
+                                     "found that enough frames agree on)")
+    assert line("readings", free=True).endswith("(motion='free')")
+    assert line("readings", ordered=False).endswith("(one shape, all frames)")

@@ -8,7 +8,8 @@ Files written to the output folder (each atomically; the folder is all or nothin
   ``sq-mitsuba predict`` writes (``q_vbs2tango``, ``r_Vo2To_vbs``, convention, camera,
   ``target``, ``target_score``, ``min_target``: the network's call, as ``predict`` records
   it; every frame is fitted all the same, one it sees no target in only with its mask given),
-  with the frame's IoU after the joint fit and the half turn that carried its own reading;
+  with the frame's IoU after the joint fit, the half turn that carried its own reading and
+  what set the frames' rotations (``poses``: ``SequencePrediction.poses``);
 - ``<image stem>.overlay.png`` per frame: the image with the frame's own searched silhouette
   (red), the shared assembly's at the frame's pose (green) and the mask's outline (yellow);
 - ``sequence.png``: the shared assembly from six sides (one colour per primitive);
@@ -125,14 +126,18 @@ class SequenceRecord:
     seconds: float = 0.0
     result: Any = None
     ordered: bool = False
+    free: bool = False  # motion="free": the frames in order were not put on a turn
 
     def describe(self) -> str:
         count = len(self.iou)
         poses = getattr(self.result, "poses", None)
+        why = "motion='free'" if self.free else "no turn found that enough frames agree on"
         how = {"motion": "; the frames kept on one constant-rate turn",
+               "motion start": "; the frames that disagreed with one constant-rate turn "
+                               "started from it",
                "given": "; the frames related by the rotations given",
-               "readings": "; each frame's rotation from its own reading (no turn found that "
-                           "enough frames agree on)" if self.ordered else ""}.get(poses, "")
+               "readings": f"; each frame's rotation from its own reading ({why})"
+                           if self.ordered else ""}.get(poses, "")
         return (f"{count} frames: one assembly, {count} poses in {self.seconds:.1f} s "
                 f"({self.seconds / max(count, 1):.2f} s per frame); silhouette IoU against the "
                 f"masks {np.mean(self.frame_iou):.3f} (each frame's own search) -> "
@@ -275,7 +280,8 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
                                  for suffix in (".pose.json", ".overlay.png")],
                               keep=[*paths, *(mask_paths or []), *other_inputs])
     predictor = with_fast_path(predictor, True)
-    record = SequenceRecord(ordered=ordered)
+    record = SequenceRecord(ordered=ordered,
+                            free=getattr(options, "motion", None) == "free")
     started = time.perf_counter()
     frames = torch.from_numpy(np.stack(pictures)).float()
     kwargs: dict[str, Any] = {} if options is None else {"options": options}

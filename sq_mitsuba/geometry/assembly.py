@@ -451,8 +451,9 @@ class Assembly:
                 "transform": "x_assembly = R @ taper(x_primitive) + translation",
                 "taper": "taper(x, y, z) = ((1 - k1 z / a3) x, (1 - k2 z / a3) y, z)",
                 "shape": "dual superquadric exponents (e1, e2) in [0, 1]",
-                "units": "lengths for the target size of the pose file beside it (target_size;"
-                         " 1 where none is given: the dataset's unit size)",
+                "units": "the lengths of the poses it was read or fitted with (predict: "
+                         "metres for its pose file's target_size, 1 = the dataset's unit "
+                         "size; fit: those of the poses given)",
             },
             "primitives": primitives,
         }

@@ -257,8 +257,10 @@ class SequencePrediction:
             frame's own fit (at its refinement's resolution).
         poses: what set the frames' rotations relative to each other: "motion" (frames in
             order kept on one constant-rate turn that enough of their readings agree with),
-            "given" (the relative rotations passed in) or "readings" (each frame's own, as
-            unordered frames, ``motion="free"``, or a pass whose readings agree on no turn).
+            "motion start" (``motion="start"``: the frames that disagree start from it, then
+            every frame moves alone), "given" (the relative rotations passed in) or
+            "readings" (each frame's own: unordered frames, ``motion="free"``, or a pass
+            whose readings agree on no one turn).
         steps: Adam steps taken; seconds: wall time of the whole sequence (frames included);
             frames_seconds: of the frames' own path alone (network, search, refinement).
         scale: the target's longest side in metres the lengths are for (1: the network's
@@ -277,7 +279,7 @@ class SequencePrediction:
     steps: int = 0
     seconds: float = 0.0
     losses: list[float] = field(default_factory=list)
-    poses: Literal["motion", "given", "readings"] = "readings"
+    poses: Literal["motion", "motion start", "given", "readings"] = "readings"
     frames_seconds: float = 0.0
     scale: float = 1.0
 

@@ -42,7 +42,7 @@ its body frame and the pose of every image:
    its depth then moves alone).
 4. **An oriented-box body frame** (``options.canonical``, off): the result in the frame of
    ``--align obb`` models (:func:`canonical_frame`: the fitted assembly's minimum-volume box's
-   axes by extent), not the models' built axes (even their true surface's box is ~30 deg off).
+   axes by extent, centred), not the models' built axes (their true surface's box: ~30 deg).
 
 Convention: poses map body to camera, ``x_cam = R_j x_body + t_j`` (OpenCV frame); the body
 frame is the reference frame's reading, turned by no half turn; relative rotations are given
@@ -454,7 +454,7 @@ def sequence_from_frames(frames: Prediction, relative: Tensor | None = None,
                                  options.motion_max_rate_deg, options.motion_min_share)
         if on_motion is not None:
             rotation, turns, reference, motion_relative = on_motion
-            poses = "motion"
+            poses = "motion start" if options.motion == "start" else "motion"
             if options.motion in ("held", "fitted"):
                 relative = motion_relative  # one rotation (and with "fitted" the rate) moves
             if options.motion == "fitted":
