@@ -117,8 +117,12 @@ def _register_passes(studies: argparse._SubParsersAction) -> None:
                         help="checkpoint file (default: the model shipped with the package)")
     passes.add_argument("--out", type=output_path, required=True, metavar="DIR",
                         help="output folder (created)")
-    add_config_options(passes, PassOptions, PASS_FLAGS, metavars={"counts": "N",
-                                                                  "passes": "K"})
+    add_config_options(passes, PassOptions, PASS_FLAGS, metavars={"counts": "N", "passes": "K"},
+                       helps={"ordered": "the frames are read in the order they were taken (a "
+                                         "pass, kept on one constant-rate turn); "
+                                         "--no-ordered: as an unordered set, and a dataset of "
+                                         "independent images is scored too, each model's "
+                                         "images as one set of views"})
     add_set_option(passes, "pass options", "sequence.steps=80")
     passes.add_argument("--quiet", action="store_true", help="no progress bar")
     passes.set_defaults(func=_passes)
