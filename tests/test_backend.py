@@ -73,3 +73,22 @@ def test_doctor_command(capsys):
     assert main(["doctor"]) == 0
     out = capsys.readouterr().out
     assert "variant" in out and "ok" in out
+
+
+def test_a_variant_the_environment_forces_and_cannot_run_says_to_unset_it(tmp_path):
+    """SQ_MITSUBA_VARIANT=cuda_ad_mono on a machine without a GPU: the message names the
+    variable and what to do (it said to install libllvm19, which was there)."""
+    import subprocess
+    import sys
+
+    env = {**os.environ, backend.VARIANT_ENV: "cuda_ad_mono"}
+    env.pop("SQ_MITSUBA_TRACEBACK", None)
+    done = subprocess.run([sys.executable, "-m", "sq_mitsuba", "doctor"], env=env,
+                          capture_output=True, text=True, cwd=tmp_path, timeout=120)
+    if done.returncode == 0:
+        pytest.skip("this machine runs cuda_ad_mono")
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.strip().splitlines()[-1] == (
+        "sq-mitsuba doctor: error: Mitsuba variant 'cuda_ad_mono' (from SQ_MITSUBA_VARIANT) "
+        "cannot run here (no CUDA driver or GPU?); unset SQ_MITSUBA_VARIANT to use the first "
+        "that can (cuda_ad_mono, llvm_ad_mono)")

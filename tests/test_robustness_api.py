@@ -655,6 +655,8 @@ def test_eval_refuses_a_label_that_would_break_the_reports_tables(tmp_path, monk
 @pytest.mark.parametrize(("quaternion", "translation", "needle"), [
     ([2.0, 0.0, 0.0, 0.0], [0.0, 0.0, 2.0], "q_vbs2tango_true has norm 2, not 1"),
     ([1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1e9], "puts the object at z = 1e+09 m"),
+    # Beside the image: no assembly at that origin reaches the mask (it fitted IoU 0, exit 0).
+    ([1.0, 0.0, 0.0, 0.0], [50.0, 0.0, 10.0], "px beside its mask, where an assembly reaches"),
 ])
 def test_fit_refuses_a_pose_that_is_not_one(tmp_path, capsys, quaternion, translation, needle):
     mask = np.zeros((48, 48), np.uint8)

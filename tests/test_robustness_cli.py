@@ -367,3 +367,12 @@ def test_a_library_a_file_and_a_missing_folder_are_named_for_what_they_are(train
     assert error_line(capsys).endswith(f"{a_file}: not a folder (give an evaluation folder, as "
                                        "`sq-mitsuba eval --out` wrote it)")
     assert not (tmp_path / "r").exists()
+
+
+def test_the_machine_line_says_threads_beyond_the_cores_as_such():
+    """--threads 64 on 2 cores was written "64 of 2 cores used"."""
+    cores = os.cpu_count()
+    line = bench.machine_description(bench.BenchOptions(threads=cores + 62, device="cpu"))
+    assert f"{cores + 62} threads on {cores} cores" in line
+    assert f"1 of {cores} cores used" in bench.machine_description(
+        bench.BenchOptions(threads=1, device="cpu"))

@@ -161,6 +161,9 @@ def run_fit(masks: Sequence[str | Path], poses: str | Path, out: str | Path,
                           progress=progress)
 
     out.mkdir(parents=True, exist_ok=True)
+    # An earlier run's log goes first: the log, written last, says the other files are this
+    # run's and complete (an interrupt between them leaves no log beside mixed files).
+    (out / "fit_log.json").unlink(missing_ok=True)
     result.assembly.save(out / "assembly.json")
     result.assembly.export(out / "assembly.glb")
     plot_fit(result, out / "fit.png")
@@ -190,6 +193,16 @@ def _check_depths(mask_paths: list[Path], masks: Any, translations: Any, camera:
                              f"{2 * ASSEMBLY_REACH_M:.2f} m across) spans at most "
                              f"{widest:.3g} px, but its mask spans {extent} px (a depth in "
                              "other units than metres?)")
+        # Sideways: an origin whose assembly cannot reach the mask fits nothing (no gradient).
+        u, v = (float(x) for x in camera.project(translations[k:k + 1].double())[0])
+        gap_u = max(float(columns[0]) - u, u - float(columns[-1]) - 1, 0.0)
+        gap_v = max(float(rows[0]) - v, v - float(rows[-1]) - 1, 0.0)
+        gap = (gap_u ** 2 + gap_v ** 2) ** 0.5
+        if gap > widest / 2:
+            raise ValueError(f"labels {poses}: the pose of {path.name!r} puts the object's "
+                             f"origin at pixel ({u:.0f}, {v:.0f}), {gap:.0f} px "
+                             f"beside its mask, where an assembly reaches at most "
+                             f"{widest / 2:.3g} px from it (another frame's translation?)")
 
 
 __all__ = ["ASSEMBLY_REACH_M", "OUTPUT_FILES", "FitRun", "fit_log", "run_fit"]

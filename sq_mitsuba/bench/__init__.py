@@ -213,7 +213,10 @@ def machine_description(options: BenchOptions) -> str:
     if options.device.startswith("cuda") and torch.cuda.is_available():
         where = f"GPU {torch.cuda.get_device_name()}"
     else:
-        where = f"{cpu_model()}, {options.threads} of {os.cpu_count()} cores used"
+        cores = os.cpu_count() or options.threads
+        where = f"{cpu_model()}, " + (f"{options.threads} of {cores} cores used"
+                                      if options.threads <= cores else
+                                      f"{options.threads} threads on {cores} cores")
     return (f"{platform.node() or 'host'} ({where}; {platform.system()} {platform.machine()}, "
             f"Python {platform.python_version()}, torch {torch.__version__})")
 

@@ -18,7 +18,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "bench", help="time the library's costly steps (rendering, geometry, data, training, "
                       "evaluation)",
-        description="Run benchmark suites; --write records them in eval/BENCHMARKS.md. "
+        description="Run benchmark suites; --write records them in the source checkout's "
+                    "eval/BENCHMARKS.md (the package's own, wherever the command runs). "
+                    "'models' times one model a run, every archetype at least once: --repeats "
+                    "is held between 14 and 64 models there. "
                     "'curves' trains configs for equal wall time on --data and plots held-out "
                     "Chamfer-L1 against time (--out's learning_curves.png; with --write "
                     "eval/figures/learning_curves.png); a rerun into the same --out keeps the "
@@ -26,7 +29,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("suite", choices=[*suites, "all", "curves"], help="which suite to run")
     add_config_options(parser, bench.BenchOptions, FLAGS)
     parser.add_argument("--write", action="store_true",
-                        help="store the figures in eval/BENCHMARKS.md")
+                        help=f"store the figures in {bench.BENCHMARKS_MD}")
     curves = parser.add_argument_group("curves")
     curves.add_argument("--data", type=Path, metavar="DIR",
                         help="SPE3R-layout dataset (default: none; required by curves)")

@@ -185,6 +185,13 @@ def _set_up(variant: str | None) -> ModuleType:
         if _backend_works(name):
             mi.set_variant(name)
             return mi
+    if variant is None and requested:  # the environment chose it: that is what to change
+        raise BackendError(
+            f"Mitsuba variant {requested!r} (from {VARIANT_ENV}) cannot run here"
+            + (" (no CUDA driver or GPU?)" if requested.startswith("cuda") else
+               " (libLLVM missing? `make setup` installs libllvm19)"
+               if requested.startswith("llvm") else "")
+            + f"; unset {VARIANT_ENV} to use the first that can ({', '.join(PREFERRED_VARIANTS)})")
     raise BackendError(
         f"no Mitsuba variant can run (tried {', '.join(candidates)}): install libllvm19 "
         "(`make setup`) for the CPU, or a CUDA driver for the GPU"
