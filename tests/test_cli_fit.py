@@ -148,6 +148,11 @@ def test_mask_formats_are_converted_then_thresholded_at_half_range(tmp_path):
     for name in images:
         mask = read_mask(tmp_path / name)
         assert mask.dtype == np.bool_ and np.array_equal(mask, truth), name
+    # Black and white swapped (the target black on white): read as given, and warned.
+    Image.fromarray(np.where(truth, 0, 255).astype(np.uint8)).save(tmp_path / "swapped.png")
+    with pytest.warns(UserWarning, match=r"swapped\.png: 100% of its border is target \(black "
+                      r"and white swapped\? the target is white on black\)$"):
+        assert np.array_equal(read_mask(tmp_path / "swapped.png"), ~truth)
 
 
 def _refused(capsys, argv, out, *needles):

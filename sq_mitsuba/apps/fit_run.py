@@ -64,7 +64,8 @@ class FitRun:
         result = self.result
         ious = ", ".join(f"{float(v):.3f}" for v in result.final_iou)
         return (f"fitted {result.options.num_primitives} primitive(s) to {len(self.masks)} "
-                f"mask(s): mean IoU {result.mean_iou:.3f} ({ious}); wrote "
+                f"mask(s): mean IoU {result.mean_iou:.3f} ({ious}) at the fit's "
+                f"{result.options.resolution} px (--resolution); wrote "
                 f"{self.out}/{', '.join(OUTPUT_FILES)}")
 
 

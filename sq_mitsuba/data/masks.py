@@ -14,6 +14,7 @@ z], "r_Vo2To_vbs_true": [x, y, z]}``; the pose maps body to camera (OpenCV frame
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -116,8 +117,6 @@ def _warn_of_surprises(image: Any, gray: np.ndarray, top: float, path: Path, wha
     Convention: an EXIF orientation is not applied (the pixels are read as stored, so that a
     camera calibrated on the sensor's raster is the image's camera); a 16-bit image is read on
     its whole range, so one holding 12- or 10-bit data is read 16 or 64 times too dark."""
-    import warnings
-
     try:
         orientation = image.getexif().get(274)
     except Exception:  # an unreadable EXIF block is no orientation
@@ -153,6 +152,10 @@ def read_mask(path: str | Path, warn: bool = True) -> np.ndarray:
     if mask.all():
         raise ValueError(f"mask {path}: full (every pixel above half range: no background to "
                          "fit an outline against; black and white swapped?)")
+    border = np.concatenate([mask[0], mask[-1], mask[:, 0], mask[:, -1]])
+    if warn and border.mean() > 0.9:  # a target filling the frame's edge all round is rare
+        warnings.warn(f"mask {path}: {border.mean():.0%} of its border is target (black and "
+                      "white swapped? the target is white on black)", stacklevel=2)
     return mask
 
 
