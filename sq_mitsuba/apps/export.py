@@ -124,7 +124,6 @@ def baseline_data_note(payloads: Sequence[dict[str, Any]], data_root: Path) -> s
             f"baseline describes {data_root}")
 
 
-
 def _file_identity(path: Path) -> object:
     """What names one file: its device and inode (a hard link or a symlink is the same file),
     or the resolved path where it cannot be read (its absence is reported later)."""
@@ -133,6 +132,7 @@ def _file_identity(path: Path) -> object:
     except OSError:
         return path.resolve()
     return (info.st_dev, info.st_ino)
+
 
 def export_model(checkpoint: str | Path | Sequence[str | Path], data_root: str | Path | None,
                  out: str | Path, options: ExportOptions | None = None,

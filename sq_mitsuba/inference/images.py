@@ -65,8 +65,8 @@ def prepare_images(images: Tensor | np.ndarray, channels: int = 1) -> Tensor:
     """
     from sq_mitsuba.inputs import check_image_size
 
-    numpy = isinstance(images, np.ndarray)
-    if numpy:
+    from_numpy = isinstance(images, np.ndarray)
+    if from_numpy:
         if images.dtype != np.uint8 and images.dtype.kind != "f":
             raise ValueError(f"images: expected uint8 or floating point, got {images.dtype}")
         images = array_to_tensor(images)
@@ -82,7 +82,7 @@ def prepare_images(images: Tensor | np.ndarray, channels: int = 1) -> Tensor:
     if axis is not None:
         raise ValueError(f"images: expected shape {expected} (grey), got {given}: colour "
                          f"channels along axis {axis}? give their mean, e.g. "
-                         f"{_grey_hint(given, axis, numpy, images.dtype == torch.uint8)}")
+                         f"{_grey_hint(given, axis, from_numpy, images.dtype == torch.uint8)}")
     three = images.dim() == 3 and channels == 1 and images.shape[0] == 3
     if images.dim() == 3 and channels == 1:
         images = images[:, None]
@@ -90,7 +90,7 @@ def prepare_images(images: Tensor | np.ndarray, channels: int = 1) -> Tensor:
         raise ValueError(f"images: expected shape {expected}, got {given}")
     check_image_size(images.shape[-1], images.shape[-2], "images")
     if three:
-        _warn_if_channels(images[:, 0], numpy)
+        _warn_if_channels(images[:, 0], from_numpy)
     if images.dtype == torch.uint8:
         return images.float() / 255.0
     if not images.is_floating_point():

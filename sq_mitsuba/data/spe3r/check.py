@@ -57,6 +57,7 @@ from sq_mitsuba.data.spe3r.layout import (
     SAMPLES_FILE,
     DatasetError,
     check_model_points,
+    is_model_library,
     label_problem,
     load_model,
     read_image,
@@ -291,13 +292,6 @@ def _check_points(model_dir: Path, ours: bool, report: CheckReport) -> None:
         check_model_points(model_dir)
     except DatasetError as error:
         report.problems.append(str(error).replace(f"{model_dir.parent}/", "", 1))
-
-
-def is_model_library(root: Path) -> bool:
-    """Whether ``root`` is a model library rather than a dataset: no ``camera.json`` and no
-    dataset manifest, but model folders with their cards (what ``models generate`` writes)."""
-    return not (root / "camera.json").exists() and not (root / "dataset.json").exists() \
-        and any(root.glob("*/models/model_card.json"))
 
 
 def check_dataset(root: str | Path, options: CheckOptions | None = None, *,

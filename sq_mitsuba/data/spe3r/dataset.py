@@ -16,11 +16,13 @@ from sq_mitsuba.data.spe3r.layout import (
     DatasetError,
     balanced_occupancy,
     check_model_points,
+    is_model_library,
     is_validation,
     label_problem,
     model_points,
     read_gray,
     read_labels,
+    read_manifest,
     read_splits,
     resize,
 )
@@ -84,8 +86,7 @@ class Spe3rDataset(torch.utils.data.Dataset):
         self.root = Path(root)
         for required in ("camera.json", "splits.csv"):
             if not (self.root / required).is_file():
-                library = required == "camera.json" and any(
-                    self.root.glob("*/models/model_card.json"))
+                library = required == "camera.json" and is_model_library(self.root)
                 unfinished = required == "splits.csv" and _rendering(self.root)
                 raise DatasetError(f"{self.root / required}: missing" + (
                     f"; {self.root} is a model library, not a dataset: render one with "
@@ -233,10 +234,8 @@ class Spe3rDataset(torch.utils.data.Dataset):
 def _rendering(root: Path) -> bool:
     """Whether ``root``'s manifest says its rendering has not finished (the last model to
     finish writes splits.csv): False where there is none or it cannot be read."""
-    from sq_mitsuba.io import read_json
-
     try:
-        manifest = read_json(root / "dataset.json")
-    except (OSError, ValueError):
+        manifest = read_manifest(root)
+    except DatasetError:
         return False
-    return isinstance(manifest, dict) and manifest.get("state") == "rendering"
+    return manifest is not None and manifest.get("state") == "rendering"

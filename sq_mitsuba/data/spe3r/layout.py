@@ -293,6 +293,13 @@ def _not_finite(value: Any, where: str) -> str | None:
     return None
 
 
+def is_model_library(root: Path) -> bool:
+    """Whether ``root`` is a model library rather than a dataset: no ``camera.json`` and no
+    dataset manifest, but model folders with their cards (what ``models generate`` writes)."""
+    return not (root / "camera.json").exists() and not (root / "dataset.json").exists() \
+        and any(root.glob("*/models/model_card.json"))
+
+
 def balanced_occupancy(points: np.ndarray, inside: np.ndarray, count: int,
                         rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     inside_idx, outside_idx = np.flatnonzero(inside), np.flatnonzero(~inside)

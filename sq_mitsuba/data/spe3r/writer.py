@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import filecmp
 import functools
 import hashlib
 import json
@@ -157,8 +158,7 @@ def _copy_model_files(source: Path, target: Path, has_images: bool = False) -> N
     for item in sorted(source.iterdir()):
         if item.is_file() and not item.name.startswith("."):
             destination = target / item.name
-            if destination.exists() and destination.stat().st_size == item.stat().st_size \
-                    and destination.read_bytes() == item.read_bytes():
+            if destination.exists() and filecmp.cmp(destination, item, shallow=False):
                 continue
             if has_images and destination.exists() and item.name in _PIXEL_FILES:
                 raise DatasetError(f"{destination}: differs from {item}, the model the "
@@ -175,13 +175,11 @@ def _check_same_model(source: Path, target: Path) -> None:
     model cards compared first (a few hundred bytes): equal cards are the same model."""
     card = "model_card.json"
     if not source.is_dir() or ((source / card).is_file() and (target / card).is_file()
-                               and (source / card).read_bytes() == (target / card).read_bytes()):
+                               and filecmp.cmp(source / card, target / card, shallow=False)):
         return  # a model the library no longer has is kept as rendered
     for name in _PIXEL_FILES:
         mine, theirs = target / name, source / name
-        if mine.is_file() and theirs.is_file() and (
-                mine.stat().st_size != theirs.stat().st_size
-                or mine.read_bytes() != theirs.read_bytes()):
+        if mine.is_file() and theirs.is_file() and not filecmp.cmp(mine, theirs, shallow=False):
             raise DatasetError(f"{mine}: differs from {theirs}, the model the dataset's images "
                                f"of {target.parent.name} were rendered from; render into "
                                "another folder, or use --overwrite")
