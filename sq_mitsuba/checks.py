@@ -132,6 +132,16 @@ def check_broadcast(**tensors: torch.Tensor) -> torch.Size:
         raise ValueError(f"batch dims do not broadcast: {shapes}") from None
 
 
+def check_same_shape(**tensors: torch.Tensor) -> torch.Size:
+    """The common shape of the named tensors (a prediction and its truth, item by item);
+    ``ValueError`` naming them if they differ, where broadcasting would score every pair."""
+    shapes = {tuple(t.shape) for t in tensors.values()}
+    if len(shapes) != 1:
+        listing = ", ".join(f"{k}={tuple(v.shape)}" for k, v in tensors.items())
+        raise ValueError(f"{', '.join(tensors)}: expected the same shape, got {listing}")
+    return next(iter(tensors.values())).shape
+
+
 def check_same_dtype(**tensors: torch.Tensor) -> torch.dtype:
     """The common dtype of the named tensors; ``ValueError`` if they differ."""
     dtypes = {t.dtype for t in tensors.values()}

@@ -573,13 +573,22 @@ def load(cls: type[T], path: str | PathLike[str]) -> T:
 
 
 def save(obj: Any, path: str | PathLike[str]) -> None:
-    """Write a config to a ``.toml`` or ``.json`` file (by suffix) that :func:`load` reads back."""
+    """Write a config to a ``.toml`` or ``.json`` file (by suffix) that :func:`load` reads back
+    (whole or not at all: a temporary file beside it, renamed; this module imports nothing of
+    the project, so not ``sq_mitsuba.io``'s helper)."""
+    import os
+
     path = Path(path)
     if _suffix(path) == ".toml":
         text = to_toml(obj)
     else:
         text = json.dumps(to_dict(obj), indent=2, ensure_ascii=False) + "\n"
-    path.write_text(text, encoding="utf-8")
+    temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")  # the usual permissions
+    try:
+        temporary.write_text(text, encoding="utf-8")
+        os.replace(temporary, path)
+    finally:
+        temporary.unlink(missing_ok=True)
 
 
 # --- exporting ------------------------------------------------------------------------------

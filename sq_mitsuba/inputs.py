@@ -355,12 +355,22 @@ def check_quaternions(data: Any, count: int, what: str, where: str) -> list[list
     return quaternions
 
 
+def _same_file(a: Path, b: Path) -> bool:
+    """Whether two paths name one file (a path typed twice, or a link to it)."""
+    try:
+        return a.samefile(b)
+    except OSError:
+        return a == b
+
+
 def check_unique_stems(paths: Sequence[Path], what: str, consequence: str) -> None:
     """One-line ``ValueError`` when two of ``paths`` share a file stem (the name without its
     suffix: ``a.png`` and ``a.jpg``), naming ``what`` and both files, then ``consequence``
     (what the stem decides: the outputs' names, the pose a mask takes)."""
     first: dict[str, Path] = {}
     for path in paths:
+        if path.stem in first and _same_file(first[path.stem], path):
+            raise ValueError(f"{what}: {path} given twice")
         if path.stem in first:
             raise ValueError(f"{what} {first[path.stem]} and {path}: one file stem "
                              f"{path.stem!r}, {consequence}")

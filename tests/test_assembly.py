@@ -177,6 +177,9 @@ def test_json_errors_name_the_problem(tmp_path):
     data["primitives"][0]["shape"] = [0.5, float("nan")]
     with pytest.raises(ValueError, match="shape"):
         Assembly.from_dict(data)
+    data["primitives"][0]["shape"] = [True, False]  # JSON's true is no number
+    with pytest.raises(ValueError, match=r"primitives\[0\]\.shape"):
+        Assembly.from_dict(data)
     with pytest.raises(FileNotFoundError):
         Assembly.load(tmp_path / "missing.json")
 
@@ -214,6 +217,25 @@ def test_export_rejects_unknown_format(tmp_path):
 def test_bad_input_names_the_argument(build, name):
     with pytest.raises(ValueError, match=name):
         build()
+
+
+@pytest.mark.parametrize(("column", "value", "problem"), [
+    (0, 0.0, "size must be positive"), (3, 1.5, "shape must lie in"),
+    (14, -1.0, "taper"), (8, 0.0, "degenerate 6D"),
+])
+def test_out_of_range_values_are_refused_unless_value_checks_are_off(column, value, problem):
+    """The constructor's range checks read the values (on a GPU, a wait each), so they follow
+    the value-check switch, as the NaN scan does."""
+    from sq_mitsuba.checks import value_checks
+
+    params = random_assembly(batch=1, count=2).params.clone()
+    params[0, 1, column] = value
+    if column == 8:  # both 6D rows zero
+        params[0, 1, 8:14] = 0.0
+    with pytest.raises(ValueError, match=problem):
+        Assembly(params)
+    with value_checks(False):
+        assert Assembly(params).params is params
 
 
 def test_a_rotated_assembly_is_the_assembly_at_turned_points():

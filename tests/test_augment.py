@@ -13,8 +13,9 @@ from sq_mitsuba.config import ConfigError, from_dict
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.image_turns import check_rotation_exact, rotate_batch, z_rotation
+from sq_mitsuba.geometry.metrics import mask_iou
 from sq_mitsuba.geometry.rotation import quaternion_to_matrix, random_quaternions
-from sq_mitsuba.render.silhouette.renderer import mask_iou, render_assembly
+from sq_mitsuba.render.silhouette.renderer import render_assembly
 from sq_mitsuba.training.augment import AugmentConfig, augment_batch
 
 SIZE = 64

@@ -93,6 +93,11 @@ def test_bad_arguments(tmp_path):
         camera.unproject(torch.zeros(4, 3), 1.0)
     with pytest.raises(ValueError, match="depth"):
         camera.unproject(torch.zeros(4, 2), float("inf"))
+    # A depth of more items than pixels made (3, 2, 3) points of (2, 2) pixels.
+    with pytest.raises(ValueError, match=r"^depth: shape \(3, 2\) does not broadcast"):
+        camera.unproject(torch.zeros(2, 2), torch.ones(3, 2))
+    with pytest.raises(ValueError, match=r"^depth: shape \(3,\)"):
+        camera.unproject(torch.zeros(2, 2), torch.ones(3))
     with pytest.raises(ValueError, match="width"):
         camera.rescaled(0)
     with pytest.raises(ValueError, match="fov_x_deg"):

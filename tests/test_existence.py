@@ -237,6 +237,24 @@ def test_parsimony_is_the_expected_count_and_needs_existence():
         assert "\n" not in message
 
 
+def test_a_distributed_run_refuses_a_head_no_weighted_term_reads():
+    """DistributedDataParallel waits for a gradient of every parameter its outputs reach: a
+    mask head with the mask term unweighted stopped a 2-process run at its second step. The
+    check follows the gradients of a probe: refused naming the head; accepted once the term
+    is weighed, the head frozen, or in one process."""
+    net = SuperquadricNet(NetworkConfig(**TINY, num_primitives=2, mask_head=True)).eval()
+    output = net(torch.zeros(1, 1, SIZE, SIZE), CAMERA.matrix())
+    unread = LossConfig(weights={"chamfer": 10.0, "rotation": 0.1})
+    with pytest.raises(LossTermError, match=r"^network output 'mask_logits': no weighted loss "
+                                            r"term reads it, so \d+ parameters \(mask_head\.\*\)"):
+        check_terms(unread, output, net)
+    check_terms(unread, output)  # one process: its mask head just stays put
+    check_terms(LossConfig(weights={"chamfer": 10.0, "mask": 1.0}), output, net)
+    net.freeze_except(("encoder.", "sq_generator.", "pose_head.", "latent_head."))
+    frozen = net(torch.zeros(1, 1, SIZE, SIZE), CAMERA.matrix())
+    check_terms(unread, frozen, net)
+
+
 def test_the_chamfer_term_follows_the_existence_logits():
     """A network with existence trains the probabilistic Chamfer (equal to today's term once
     every primitive surely exists) and the parsimony term."""

@@ -8,10 +8,11 @@ import torch
 from sq_mitsuba.evaluation.figures import plot_fit
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.camera import Camera
+from sq_mitsuba.geometry.metrics import mask_iou
 from sq_mitsuba.geometry.rotation import random_rotations
 from sq_mitsuba.inference.fit import default_raw, fit_assembly, resize_masks
 from sq_mitsuba.model.losses import silhouette_loss
-from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer, mask_iou, render_assembly
+from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer, render_assembly
 
 
 def _target_views(views: int = 3, resolution: int = 64, seed: int = 3):

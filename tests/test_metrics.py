@@ -188,3 +188,23 @@ def test_a_zero_quaternion_or_true_distance_is_an_error_not_nan():
     # Value checks switched off (a hot loop): no check, the arithmetic's own result.
     with value_checks(False):
         assert bool(torch.isnan(quaternion_to_matrix(q)[1]).all())
+
+
+def test_a_prediction_and_truth_of_different_batches_are_refused_not_broadcast():
+    """(1, 3, 3) against (B, 3, 3) broadcast to B errors of one prediction against every
+    truth: a silent mistake in a metric, now one line naming both arguments."""
+    from sq_mitsuba.geometry.metrics import rotation_error_deg, speed_score
+
+    rotations = torch.eye(3, dtype=torch.float64).expand(3, 3, 3)
+    with pytest.raises(ValueError, match=r"^pred_rotation, gt_rotation: expected the same "
+                                         r"shape, got pred_rotation=\(1, 3, 3\)"):
+        rotation_error_deg(rotations[:1], rotations)
+    t = torch.tensor([[0.0, 0.0, 2.0]] * 3, dtype=torch.float64)
+    with pytest.raises(ValueError, match=r"^pred_translation, gt_translation"):
+        translation_error(t[:1], t)
+    q = torch.tensor([[1.0, 0.0, 0.0, 0.0]] * 3, dtype=torch.float64)
+    with pytest.raises(ValueError, match=r"^quaternion_pred, quaternion_true"):
+        speed_score(q[:1], q, t, t)
+    with pytest.raises(ValueError, match=r"^translation_pred, translation_true"):
+        speed_score(q, q, t, t[:2])
+    assert rotation_error_deg(rotations, rotations).shape == (3,)

@@ -216,6 +216,8 @@ def test_predict_without_checkpoint_uses_the_shipped_model(eval_checkpoint, inpu
 def test_bad_inputs_are_one_line_naming_the_file(eval_checkpoint, inputs, tmp_path, capsys):
     square_camera = tmp_path / "camera.json"
     square_camera.write_text(json.dumps(load_model(eval_checkpoint).camera.to_speed_dict()))
+    (tmp_path / "other").mkdir()
+    shutil.copy(inputs / "grey.png", tmp_path / "other" / "grey.png")
     cases = [
         ([str(inputs / "grey.png"), str(inputs / "cropped.png")],
          ["--camera", str(square_camera)],
@@ -228,7 +230,10 @@ def test_bad_inputs_are_one_line_naming_the_file(eval_checkpoint, inputs, tmp_pa
          ["--refine", "--mask", str(inputs / "mask.png")], "1 given for 2 images"),
         ([str(inputs / "grey.png")], ["--refine", "--mask", str(inputs / "cropped.png")],
          f"mask {inputs / 'cropped.png'}: 64 x 48 px"),
-        ([str(inputs / "grey.png"), str(inputs / "grey.png")], [], "one file stem 'grey'"),
+        ([str(inputs / "grey.png"), str(inputs / "grey.png")], [],
+         f"images: {inputs / 'grey.png'} given twice"),
+        ([str(inputs / "grey.png"), str(tmp_path / "other" / "grey.png")], [],
+         "one file stem 'grey'"),
         ([str(inputs / "grey.png")], ["--camera", str(tmp_path / "nocam.json")],
          f"camera {tmp_path / 'nocam.json'}: no such file"),
     ]
@@ -570,3 +575,30 @@ def test_the_summary_averages_refine_times_over_the_refined_images(monkeypatch, 
     summary = capsys.readouterr().out.splitlines()[-1]
     assert ("search 1000 ms, search + refinement 3000 ms per refined image; 1 without a "
             "target") in summary, summary
+
+
+def test_a_run_stopped_between_an_images_files_leaves_no_old_pose_beside_new_ones(
+        eval_checkpoint, inputs, tmp_path, monkeypatch, capsys):
+    """A rerun that fails while exporting an image's GLB (a full disk, an interrupt) must not
+    leave the first run's pose.json beside its new assembly: the pose goes first and is
+    written last, as the mark of a complete set."""
+    out = tmp_path / "out"
+    run = ["predict", str(inputs / "grey.png"), "--checkpoint", str(eval_checkpoint),
+           "--out", str(out), "--quiet"]
+    assert main(run) == 0
+    assert (out / "grey.pose.json").is_file()
+    real_export = Assembly.export
+
+    def failing_export(self, path, *args, **kwargs):
+        if str(path).endswith(".glb"):
+            raise OSError(28, "No space left on device")
+        return real_export(self, path, *args, **kwargs)
+
+    monkeypatch.setattr(Assembly, "export", failing_export)
+    assert main([*run, "--target-size", "2"]) != 0
+    capsys.readouterr()
+    assert (out / "grey.assembly.json").is_file()  # the new run's, written before the GLB
+    assert not (out / "grey.pose.json").exists()
+    monkeypatch.setattr(Assembly, "export", real_export)
+    assert main([*run, "--target-size", "2"]) == 0
+    assert json.loads((out / "grey.pose.json").read_text())["image"].endswith("grey.png")

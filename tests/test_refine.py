@@ -11,6 +11,7 @@ import torch
 from sq_mitsuba.config import ConfigError, from_dict
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.camera import Camera
+from sq_mitsuba.geometry.metrics import mask_iou
 from sq_mitsuba.geometry.rotation import random_rotations
 from sq_mitsuba.inference.refine import (
     OUTLINE_REFINEMENT,
@@ -19,7 +20,7 @@ from sq_mitsuba.inference.refine import (
     refine_pose_and_shape,
 )
 from sq_mitsuba.inference.search import SEARCH_REFINEMENT
-from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer, mask_iou, render_assembly
+from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer, render_assembly
 
 RESOLUTION = 64
 

@@ -75,6 +75,31 @@ def test_6d_round_trip(device):
                                                                     device=device))
 
 
+def test_6d_is_the_first_two_rows_and_gram_schmidt_keeps_the_first():
+    """The convention by hand: a quarter turn about z, x -> y, has rows (0, -1, 0), (1, 0, 0),
+    its 6D vector; a 6D vector's first row keeps its direction, the second loses its part
+    along the first (columns, or the other order, would fail both)."""
+    quarter = torch.tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], dtype=F64)
+    assert matrix_to_rotation_6d(quarter).tolist() == [0.0, -1.0, 0.0, 1.0, 0.0, 0.0]
+    matrix = rotation_6d_to_matrix(torch.tensor([0.0, 3.0, 0.0, 2.0, 5.0, 0.0], dtype=F64))
+    expected = torch.tensor([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]], dtype=F64)
+    torch.testing.assert_close(matrix, expected, atol=1e-15, rtol=0)
+
+
+def test_quaternions_follow_speeds_projection():
+    """SPEED's published projection puts body points in the camera as quat2dcm(q)^T p + r,
+    with quat2dcm its direction-cosine matrix of the scalar-first q, written out here from
+    its formula (an independent reference): our body-to-camera matrix of q must be that."""
+    q = random_quaternions(64, torch.Generator().manual_seed(8), dtype=F64)
+    q0, q1, q2, q3 = q.unbind(-1)
+    dcm = torch.stack([
+        2 * q0**2 - 1 + 2 * q1**2, 2 * q1 * q2 + 2 * q0 * q3, 2 * q1 * q3 - 2 * q0 * q2,
+        2 * q1 * q2 - 2 * q0 * q3, 2 * q0**2 - 1 + 2 * q2**2, 2 * q2 * q3 + 2 * q0 * q1,
+        2 * q1 * q3 + 2 * q0 * q2, 2 * q2 * q3 - 2 * q0 * q1, 2 * q0**2 - 1 + 2 * q3**2,
+    ], -1).reshape(64, 3, 3)
+    torch.testing.assert_close(quaternion_to_matrix(q), dcm.transpose(-1, -2))
+
+
 def test_6d_gradcheck(device):
     raw = torch.randn(4, 6, generator=torch.Generator().manual_seed(4), dtype=F64
                       ).to(device).requires_grad_()

@@ -7,6 +7,7 @@ import torch
 
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.camera import Camera
+from sq_mitsuba.geometry.metrics import mask_iou
 from sq_mitsuba.geometry.rotation import random_rotations
 from sq_mitsuba.geometry.so3_grid import covering_angle_deg, so3_grid, with_half_turns
 from sq_mitsuba.inference.refine import RefineOptions
@@ -17,7 +18,7 @@ from sq_mitsuba.inference.search import (
     search_poses,
 )
 from sq_mitsuba.render.silhouette.batch import PoseSilhouettes
-from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer, mask_iou, render_assembly
+from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer, render_assembly
 
 RESOLUTION = 64
 GRID = 2048

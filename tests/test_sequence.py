@@ -1063,4 +1063,7 @@ def test_the_printed_line_says_what_set_the_frames_rotations():
     assert line("readings").endswith("each frame's rotation from its own reading (no turn "
                                      "found that enough frames agree on)")
     assert line("readings", free=True).endswith("(motion='free')")
-    assert line("readings", ordered=False).endswith("(one shape, all frames)")
+    assert line("readings", ordered=False).endswith(
+        "each frame's rotation from its own reading, its half turn chosen by the shape (frames "
+        "whose outlines look alike may be half a turn apart: --ordered or "
+        "--relative-rotations relate them)")

@@ -1084,8 +1084,9 @@ def test_reprojection_alone_fits_the_silhouettes(one_spacecraft, cache_dir, tmp_
     """
     from sq_mitsuba.data.spe3r import Spe3rDataset
     from sq_mitsuba.geometry.assembly import Assembly
+    from sq_mitsuba.geometry.metrics import mask_iou
     from sq_mitsuba.model.network import SuperquadricNet
-    from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer, mask_iou, render_assembly
+    from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer, render_assembly
 
     weights = dict.fromkeys(("chamfer", "occupancy", "rotation_6d", "translation", "overlap",
                              "taper"), 0.0)

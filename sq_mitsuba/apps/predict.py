@@ -588,10 +588,14 @@ def _png_bytes(picture: np.ndarray) -> bytes:
 def _write_outputs(stem: Path, record: PredictRecord, pose: dict[str, Any], assembly: Any,
                    overlay: bytes | None, level: int) -> PredictRecord:
     """Write one image's files (:data:`OUTPUT_SUFFIXES`; its pose.json alone, and the stem's
-    other files of an earlier run removed, for an image without a target)."""
+    other files of an earlier run removed, for an image without a target). The pose.json goes
+    first and comes back last: a run stopped in between leaves no earlier pose beside the new
+    shape, and a pose.json means its image's files are complete."""
     from sq_mitsuba.io import atomic_write_bytes, atomic_write_json
 
     files = record.files
+    pose_path = Path(f"{stem}.pose.json")
+    pose_path.unlink(missing_ok=True)
     if assembly is None:
         for suffix in OUTPUT_SUFFIXES:
             if suffix != ".pose.json":
@@ -600,12 +604,12 @@ def _write_outputs(stem: Path, record: PredictRecord, pose: dict[str, Any], asse
         files.append(assembly.save(Path(f"{stem}.assembly.json")))
         files.append(assembly.export(Path(f"{stem}.obj"), level=level))
         files.append(assembly.export(Path(f"{stem}.glb"), level=level))
-    atomic_write_json(Path(f"{stem}.pose.json"), pose)
-    files.append(Path(f"{stem}.pose.json"))
     if overlay is not None:
         overlay_path = Path(f"{stem}.overlay.png")
         atomic_write_bytes(overlay_path, overlay)
         files.append(overlay_path)
+    atomic_write_json(pose_path, pose)
+    files.append(pose_path)
     return record
 
 

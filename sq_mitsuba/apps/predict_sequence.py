@@ -137,7 +137,10 @@ class SequenceRecord:
                                "started from it",
                "given": "; the frames related by the rotations given",
                "readings": f"; each frame's rotation from its own reading ({why})"
-                           if self.ordered else ""}.get(poses, "")
+                           if self.ordered else "; each frame's rotation from its own reading, "
+                           "its half turn chosen by the shape (frames whose outlines look "
+                           "alike may be half a turn apart: --ordered or "
+                           "--relative-rotations relate them)"}.get(poses, "")
         return (f"{count} frames: one assembly, {count} poses in {self.seconds:.1f} s "
                 f"({self.seconds / max(count, 1):.2f} s per frame); silhouette IoU against the "
                 f"masks {np.mean(self.frame_iou):.3f} (each frame's own search) -> "

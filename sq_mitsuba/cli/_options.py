@@ -183,14 +183,6 @@ def output_path(text: str) -> Path:
     return Path(text)
 
 
-def field_default(config_class: type, name: str) -> Any:
-    """The default of field ``name`` of ``config_class`` (for help texts of positional args)."""
-    for item in dataclasses.fields(config_class):
-        if item.name == name:
-            return getattr(config_class(), name)
-    raise KeyError(name)
-
-
 def _plain_text(doc: str) -> str:
     """A field docstring as ``--help`` shows it: reST's ``code`` as `code` and a role's
     :func:`name` (or :class:, :meth:, ...) as its name, the leading ~ of a path dropped."""

@@ -12,8 +12,8 @@ import torch
 from torch import Tensor
 
 from sq_mitsuba.evaluation.methods import METHODS
+from sq_mitsuba.geometry.metrics import mask_iou
 from sq_mitsuba.inference.fit import FitResult
-from sq_mitsuba.render.silhouette.renderer import mask_iou
 
 
 def plot_fit(result: FitResult, path: str | Path, title: str | None = None) -> Path:

@@ -133,11 +133,11 @@ class PassResult:
 
     def describe(self) -> str:
         """A few lines: the main figures per N and method."""
-        lines = [f"scored {len(self.passes)} pass(es)"]
+        lines = [f"scored {len(self.passes)} pass(es): means, (m) medians"]
         for (count, method), stats in sorted(self.summary.items()):
             lines.append(f"  N={count} {method}: " + ", ".join(
-                f"{name} {stats[name][2 if statistic == 'median' else 0]:.3f}"
-                for name, _, statistic in PLOTTED if name in stats))
+                f"{name} {stats[name][2 if how == 'median' else 0]:.3f}{' (m)' * (how == 'median')}"
+                for name, _, how in PLOTTED if name in stats))
         lines.append(f"wrote {len(self.files)} files to {self.out_dir}")
         return "\n".join(lines)
 

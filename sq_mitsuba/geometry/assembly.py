@@ -35,7 +35,7 @@ import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
-from sq_mitsuba.checks import check_rotations, check_tensor
+from sq_mitsuba.checks import check_rotations, check_tensor, value_checks_enabled
 from sq_mitsuba.geometry.icosphere import icosphere_angles, icosphere_faces
 from sq_mitsuba.geometry.rotation import matrix_to_rotation_6d, rotation_6d_to_matrix
 from sq_mitsuba.geometry.superquadric import (
@@ -84,7 +84,9 @@ class Assembly:
 
     Build one with :meth:`from_raw` (network outputs), :meth:`from_values` (explicit fields) or
     the constructor (a ready (B, M, 16) tensor). Gradients flow from every output back to
-    ``params``.
+    ``params``. The constructor refuses sizes not positive, shape exponents outside [0, 1],
+    tapers of magnitude 1 or more and degenerate 6D rotations, unless value checks are off
+    (:func:`sq_mitsuba.checks.value_checks`: the training step's, as these read the values).
     """
 
     def __init__(self, params: Tensor):
@@ -92,6 +94,8 @@ class Assembly:
         if params.dim() != 3:
             raise ValueError(f"params: expected shape (B, M, 16), got {tuple(params.shape)}")
         self.params = params
+        if not value_checks_enabled():  # each check below waits for a GPU: hot loops skip them
+            return
         with torch.no_grad():
             if bool((self.size <= 0).any()):
                 raise ValueError("params: size must be positive")
@@ -485,7 +489,8 @@ class Assembly:
                 value = primitive.get(name) if isinstance(primitive, dict) else None
                 width = columns.stop - columns.start
                 if (not isinstance(value, list) or len(value) != width
-                        or not all(isinstance(v, int | float) and math.isfinite(v)
+                        or not all(isinstance(v, int | float) and not isinstance(v, bool)
+                                   and math.isfinite(v)
                                    for v in value)):
                     raise ValueError(f"primitives[{index}].{name}: expected {width} finite numbers")
                 row += value

@@ -241,7 +241,11 @@ class Camera:
         if not bool(torch.isfinite(depth).all()):
             raise ValueError("depth: contains NaN or infinite values")
         u, v = pixels.unbind(-1)
-        z = torch.broadcast_to(depth, u.shape) if depth.dim() <= u.dim() else depth
+        try:
+            z = torch.broadcast_to(depth, u.shape)
+        except RuntimeError:
+            raise ValueError(f"depth: shape {tuple(depth.shape)} does not broadcast to the "
+                             f"pixels' {tuple(u.shape)} (pixels (..., 2), depth (...))") from None
         return torch.stack(((u - self.cx) / self.fx * z, (v - self.cy) / self.fy * z, z), dim=-1)
 
     def pixel_centers(self, dtype: torch.dtype = torch.float32,

@@ -28,7 +28,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from sq_mitsuba.checks import check_nonzero, check_tensor
+from sq_mitsuba.checks import check_nonzero, check_same_shape, check_tensor
 from sq_mitsuba.geometry.nearest import nearest_neighbours
 from sq_mitsuba.geometry.rotation import quaternion_angle, rotation_angle
 
@@ -183,6 +183,7 @@ def rotation_error_deg(pred_rotation: Tensor, gt_rotation: Tensor,
     """
     check_tensor("pred_rotation", pred_rotation, (3, 3), min_dims=3)
     check_tensor("gt_rotation", gt_rotation, (3, 3), min_dims=3)
+    check_same_shape(pred_rotation=pred_rotation, gt_rotation=gt_rotation)
     if symmetries is None:
         return rotation_angle_deg(pred_rotation, gt_rotation)
     check_tensor("symmetries", symmetries, (3, 3), min_dims=3)
@@ -195,6 +196,7 @@ def translation_error(pred_translation: Tensor, gt_translation: Tensor,
     """|t_true - t_pred| (B,) in metres, or divided by |t_true| when ``relative``."""
     check_tensor("pred_translation", pred_translation, (3,))
     check_tensor("gt_translation", gt_translation, (3,))
+    check_same_shape(pred_translation=pred_translation, gt_translation=gt_translation)
     error = torch.linalg.vector_norm(gt_translation - pred_translation, dim=-1)
     if relative:
         check_nonzero("gt_translation", gt_translation)
@@ -232,6 +234,8 @@ def speed_score(
     """
     check_tensor("translation_pred", translation_pred, (3,))
     check_tensor("translation_true", translation_true, (3,))
+    check_same_shape(quaternion_pred=quaternion_pred, quaternion_true=quaternion_true)
+    check_same_shape(translation_pred=translation_pred, translation_true=translation_true)
     check_nonzero("translation_true", translation_true)
     e_q = quaternion_angle(quaternion_pred, quaternion_true)
     e_t = torch.linalg.vector_norm(translation_true - translation_pred, dim=-1) / \

@@ -21,6 +21,7 @@ from torch.nn import functional as F
 from sq_mitsuba.checks import check_nonzero, check_rotations, check_tensor
 
 __all__ = [
+    "IDENTITY_6D",
     "axis_angle_to_matrix",
     "best_rotation",
     "matrix_to_axis_angle",
@@ -34,6 +35,10 @@ __all__ = [
     "rotation_6d_to_matrix",
     "rotation_angle",
 ]
+
+IDENTITY_6D = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0)
+"""The identity's 6D rotation (the first two rows of I): the start of every rotation head
+and fit."""
 
 
 def _check_matrix(name: str, matrix: Tensor) -> None:
@@ -235,7 +240,7 @@ def mean_rotation(rotations: Tensor) -> Tensor:
 def axis_angle_to_matrix(rotation_vector: Tensor) -> Tensor:
     """Rotation vectors (..., 3) (axis times angle, radians) -> rotation matrices (..., 3, 3),
     by the exponential of their skew-symmetric matrices (differentiable, exact at 0)."""
-    w = rotation_vector
+    w = check_tensor("rotation_vector", rotation_vector, (3,))
     zero = torch.zeros_like(w[..., 0])
     skew = torch.stack([torch.stack([zero, -w[..., 2], w[..., 1]], -1),
                         torch.stack([w[..., 2], zero, -w[..., 0]], -1),

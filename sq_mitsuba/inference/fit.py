@@ -21,19 +21,17 @@ from sq_mitsuba.checks import check_rotations, check_tensor
 from sq_mitsuba.config import bounds, in_range, positive, validate
 from sq_mitsuba.geometry.assembly import NUM_PARAMS, Assembly
 from sq_mitsuba.geometry.camera import Camera
+from sq_mitsuba.geometry.metrics import mask_iou
+from sq_mitsuba.geometry.rotation import IDENTITY_6D
 from sq_mitsuba.machine import available_memory, too_much_memory
 from sq_mitsuba.model.losses import silhouette_loss
 from sq_mitsuba.render.backend import one_thread
 from sq_mitsuba.render.silhouette.renderer import (
     DEFAULT_SPP,
     SilhouetteRenderer,
-    mask_iou,
     render_assembly,
     render_assembly_loss,
 )
-
-# Raw 6D rotation of the identity (first two rows of I); Assembly.from_raw keeps 6D as is.
-_IDENTITY_6D = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0)
 
 #: Bytes per pixel of one silhouette render and its backward pass (Dr.Jit LLVM on the CPU;
 #: measured growth 60-75 B/px from 512 x 512 to 2048 x 2048 at spp 16, independent of spp,
@@ -187,7 +185,7 @@ def default_raw(num_primitives: int, generator: torch.Generator | None = None,
     translations of std ``spread`` so that the primitives do not receive identical
     gradients."""
     raw = torch.zeros(1, num_primitives, NUM_PARAMS, dtype=torch.float64)
-    raw[..., 8:14] = torch.tensor(_IDENTITY_6D, dtype=torch.float64)
+    raw[..., 8:14] = torch.tensor(IDENTITY_6D, dtype=torch.float64)
     if num_primitives > 1:
         raw[..., 5:8] = spread * torch.randn(1, num_primitives, 3, generator=generator,
                                              dtype=torch.float64)
@@ -195,11 +193,13 @@ def default_raw(num_primitives: int, generator: torch.Generator | None = None,
 
 
 def resize_masks(masks: Tensor, height: int, width: int) -> Tensor:
-    """Masks (V, H, W) averaged down (area) or up (nearest) to (V, height, width) in [0, 1]."""
+    """Masks (V, H, W) averaged down (area) or up (nearest) to (V, height, width) in [0, 1];
+    "area" where neither side grows."""
     masks = masks.to(torch.float64)[:, None]
     if masks.shape[-2:] == (height, width):
         return masks[:, 0]
-    mode = "area" if height <= masks.shape[-2] else "nearest"
+    shrink = height <= masks.shape[-2] and width <= masks.shape[-1]
+    mode = "area" if shrink else "nearest"
     return F.interpolate(masks, size=(height, width), mode=mode)[:, 0].clamp(0, 1)
 
 

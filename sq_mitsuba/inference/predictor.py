@@ -17,12 +17,12 @@ checkpoint. Example::
     fitted.network, fitted.fit.iou                  # the network's reading; what was fitted
 
 Convention:
-    - Images are resized to the network's S x S input (``config.image_size``): ``area``
-      (box average) when both sides shrink, bilinear (``align_corners=False``) when both grow,
-      antialiased bilinear otherwise. Pixel edges scale with the image, so the intrinsics
-      follow by :meth:`~sq_mitsuba.geometry.camera.Camera.rescaled`; a non-square image is
-      stretched to S x S and its intrinsics stretch with it, so the pose stays consistent
-      (though the network was trained on unstretched squares).
+    - Images are resized to the network's S x S input (``config.image_size``) by antialiased
+      bilinear interpolation, the training images' filter
+      (:func:`~sq_mitsuba.inference.images.resize_images`). Pixel edges scale with the
+      image, so the intrinsics follow by :meth:`~sq_mitsuba.geometry.camera.Camera.rescaled`;
+      a non-square image is stretched to S x S and its intrinsics stretch with it, so the pose
+      stays consistent (though the network was trained on unstretched squares).
     - A camera for another image size with the same aspect ratio is taken to have the same
       field of view and is rescaled to the images' size first.
     - Poses map body to camera in the OpenCV frame (x right, y down, z forward):

@@ -207,10 +207,10 @@ def refine_pose_and_shape(assembly: Assembly, rotation: Tensor, translation: Ten
         :class:`RefineResult` holding, per item (with ``shared``: for all items at once), the
         best of the start and every step.
     """
+    from sq_mitsuba.geometry.metrics import mask_iou
     from sq_mitsuba.inference.fit import Adam, resize_masks
     from sq_mitsuba.render.silhouette.renderer import (
         SilhouetteRenderer,
-        mask_iou,
         render_assembly,
         render_assembly_loss,
     )

@@ -36,7 +36,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from sq_mitsuba.geometry.rotation import rotation_6d_to_matrix
+from sq_mitsuba.geometry.rotation import IDENTITY_6D, rotation_6d_to_matrix
 
 if TYPE_CHECKING:
     from sq_mitsuba.model.network_config import NetworkConfig
@@ -55,7 +55,6 @@ __all__ = [
     "register_pose_head",
 ]
 
-IDENTITY_6D = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0)
 #: Raw position outputs of every pose head: (a_u, a_v) image position, a_z depth.
 POSITION_OUTPUTS = 3
 

@@ -55,6 +55,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import functools
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -65,6 +66,7 @@ from torch import Tensor, nn
 
 from sq_mitsuba.config import validate
 from sq_mitsuba.geometry.assembly import NUM_PARAMS, Assembly, ParameterRanges
+from sq_mitsuba.geometry.rotation import IDENTITY_6D
 from sq_mitsuba.model import rotation_grid  # noqa: F401  (registers the "grid" pose head)
 from sq_mitsuba.model.encoder import EfficientNet, fold_batchnorm
 from sq_mitsuba.model.heads import LATENT_HEADS, POSE_HEADS, MaskHead
@@ -86,7 +88,6 @@ __all__ = [
     "upgrade_state_dict",
 ]
 
-_IDENTITY_6D = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0)
 _LN2 = math.log(2.0)
 #: Initial existence probability of every primitive (its logit is the last layer's bias).
 INITIAL_EXISTENCE = 0.9
@@ -195,11 +196,12 @@ class NetworkOutput:
     surface_depth: Tensor | None = None
     surface_normals: Tensor | None = None
 
-    @property
+    @functools.cached_property
     def assembly(self) -> Assembly:
         """The assembly in the body frame: ``Assembly.from_raw(raw)`` with the default
         :class:`ParameterRanges`, turned by ``view_to_body`` where the network reads shapes in
-        the view frame."""
+        the view frame. Built once per output (the training step's loss terms all read it;
+        ``dataclasses.replace`` makes a new output, with its own)."""
         assembly = Assembly.from_raw(self.raw, ParameterRanges())
         if self.view_to_body is None:
             return assembly
@@ -235,7 +237,7 @@ def initial_raw(num_primitives: int, spread: float = 0.25) -> Tensor:
     origin along :func:`sphere_directions` (one primitive: at the origin). The last layer's
     biases start here, and part targets are fitted from here (``model.part_targets``)."""
     raw = torch.zeros(1, num_primitives, NUM_PARAMS, dtype=torch.float64)
-    raw[..., 8:14] = torch.tensor(_IDENTITY_6D, dtype=torch.float64)
+    raw[..., 8:14] = torch.tensor(IDENTITY_6D, dtype=torch.float64)
     if num_primitives > 1:
         # Raw translation r gives translation_scale tanh(r): invert for the wanted centres.
         centres = spread * sphere_directions(num_primitives)

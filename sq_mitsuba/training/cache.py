@@ -167,11 +167,6 @@ class ImageCache:
     def __repr__(self) -> str:
         return f"ImageCache({len(self)} items, {self.size} px, {self.folder})"
 
-    def mask_array(self, indices: Sequence[int] | np.ndarray) -> np.ndarray:
-        """Masks (B, S, S) uint8 in {0, 1} of the items ``indices``."""
-        rows = self.masks[np.asarray(indices, dtype=np.int64)]
-        return np.unpackbits(rows, axis=-1, count=self.size)
-
     def batch(self, indices: Sequence[int] | np.ndarray) -> dict[str, Tensor]:
         """Collated items: ``image`` (B, 1, S, S) float32 in [0, 1] (exactly the dataset's
         values, k / 255), ``mask`` (B, 1, S, S) float32 in {0, 1}, ``quaternion`` (B, 4),

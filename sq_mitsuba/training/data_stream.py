@@ -23,6 +23,7 @@ import torch
 from torch import Tensor
 
 from sq_mitsuba.data.spe3r import Spe3rDataset
+from sq_mitsuba.data.symmetry import model_symmetries, stack_symmetries
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.image_turns import check_rotation_exact
 from sq_mitsuba.training.augment import (
@@ -179,7 +180,7 @@ POOL_MODELS = 64
 def symmetry_table(root: Path, models: Sequence[str], cache_dir: Path | None = None,
                    workers: int | None = None) -> Tensor:
     """(models, S, 3, 3) body-frame symmetries per model, padded with identities (identity
-    alone where the symmetry module or a model's analysis is unavailable). The analysis of
+    alone where a model's analysis fails). The analysis of
     each model is kept in ``cache_dir`` (never in the dataset, which is only read).
 
     The analysis costs about 0.4 s per model on one core, minutes for a library of
@@ -196,14 +197,9 @@ def symmetry_table(root: Path, models: Sequence[str], cache_dir: Path | None = N
             found = list(pool.map(_model_symmetries, *arguments, chunksize=8))
     else:
         found = list(map(_model_symmetries, *arguments))
-    sets = [torch.eye(3, dtype=torch.float32)[None] if matrices is None
-            else torch.as_tensor(matrices, dtype=torch.float32).reshape(-1, 3, 3)
+    sets = [np.eye(3)[None] if matrices is None else np.asarray(matrices).reshape(-1, 3, 3)
             for matrices in found]
-    width = max(len(s) for s in sets)
-    table = torch.eye(3).repeat(len(sets), width, 1, 1)
-    for i, matrices in enumerate(sets):
-        table[i, :len(matrices)] = matrices
-    return table
+    return torch.from_numpy(stack_symmetries(sets)).to(torch.float32)
 
 
 def _symmetry_workers(models: int, processes: int = 1) -> int:
@@ -217,10 +213,6 @@ def _symmetry_workers(models: int, processes: int = 1) -> int:
 def _model_symmetries(model_dir: Path, cache_dir: Path | None) -> np.ndarray | None:
     """One model's symmetries (S, 3, 3), or None where they cannot be analysed (a worker's
     job of :func:`symmetry_table`)."""
-    try:
-        from sq_mitsuba.data.symmetry import model_symmetries
-    except ImportError:
-        return None
     try:
         return np.asarray(model_symmetries(model_dir, cache_dir=cache_dir))
     except (OSError, ValueError):

@@ -402,9 +402,15 @@ def enabled_terms(config: LossConfig | Mapping[str, float]) -> tuple[str, ...]:
     return tuple(name for name in LOSS_TERMS if weights.get(name, 0.0) != 0)
 
 
-def check_terms(config: LossConfig, output: NetworkOutput) -> None:
+def check_terms(config: LossConfig, output: NetworkOutput,
+                distributed_model: torch.nn.Module | None = None) -> None:
     """Refuse (one line) a config whose weighted terms need an output field that ``output``
-    (a network output) lacks or leaves None, or that weighs nothing."""
+    (a network output) lacks or leaves None, or that weighs nothing; with
+    ``distributed_model`` (the network of a distributed run, ``output`` its forward pass with
+    gradients), also one whose optional output (a head's) no weighted term reads while
+    trainable parameters feed it alone: DistributedDataParallel waits for a gradient of
+    every parameter its outputs reach, so such a run stopped at its second step with torch's
+    error, after a first update of unaveraged gradients (one process trains it as it is)."""
     names = enabled_terms(config)
     if not names:
         raise LossTermError("loss.weights: every term has weight 0")
@@ -413,6 +419,36 @@ def check_terms(config: LossConfig, output: NetworkOutput) -> None:
             if getattr(output, needed, None) is None:
                 raise LossTermError(f"loss.weights.{name}: the term needs the network output "
                                     f"'{needed}', which this network does not produce")
+    if distributed_model is None:
+        return
+    optional = {f for term in LOSS_TERMS.values() for f in term.needs}
+    read = {f for name in names for f in LOSS_TERMS[name].needs}
+    tensors = {k: v for k, v in vars(output).items()
+               if isinstance(v, Tensor) and v.requires_grad}
+    unread = [k for k in tensors if k in optional and k not in read]
+    fed = _reached(distributed_model, [v for k, v in tensors.items() if k not in unread])
+    alone = {k: _reached(distributed_model, [tensors[k]]) - fed for k in unread}
+    unread = [k for k in unread if alone[k]]
+    if unread:
+        heads = sorted({name.split(".")[0] for k in unread for name in alone[k]})
+        count = len(set().union(*(alone[k] for k in unread)))
+        raise LossTermError(
+            f"network output {', '.join(repr(k) for k in unread)}: no weighted loss term reads "
+            f"it, so {count} parameters ({', '.join(h + '.*' for h in heads)}) get no "
+            "gradient, which a distributed run cannot train; weigh a term that reads it (e.g. "
+            "loss.weights.mask for network.mask_head), leave the head out, freeze it "
+            "(optim.trainable) or train in one process")
+
+
+def _reached(model: torch.nn.Module, tensors: list[Tensor]) -> set[str]:
+    """Names of the trainable parameters of ``model`` that ``tensors`` depend on."""
+    named = [(n, p) for n, p in model.named_parameters() if p.requires_grad]
+    if not tensors or not named:
+        return set()
+    total = torch.stack([t.float().sum() for t in tensors]).sum()
+    grads = torch.autograd.grad(total, [p for _, p in named], allow_unused=True,
+                                retain_graph=True)
+    return {n for (n, _), g in zip(named, grads, strict=True) if g is not None}
 
 
 def compute_terms(output: NetworkOutput, batch: TrainingBatch, context: LossContext,

@@ -38,6 +38,7 @@ from torch import Tensor, nn
 from sq_mitsuba.checks import value_checks
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer
+from sq_mitsuba.render.silhouette.seeds import ITEM_SEED_STRIDE
 from sq_mitsuba.training.batch import TrainingBatch
 from sq_mitsuba.training.config import TrainConfig
 from sq_mitsuba.training.distributed import World, any_rank
@@ -221,7 +222,8 @@ def loss_context(config: TrainConfig, renderer: SilhouetteRenderer | None, step:
     if renderer is not None:
         # Item j of this process is item rank * local + j of the global batch.
         local = config.optim.batch_size // world.size
-        renderer.reseed(seed_of(config.seed, STREAMS["render"], step) + 7919 * world.rank * local)
+        renderer.reseed(seed_of(config.seed, STREAMS["render"], step)
+                        + ITEM_SEED_STRIDE * world.rank * local)
     return LossContext(config.loss, config.reprojection, renderer, generator,
                        part_targets=part_targets)
 

@@ -206,12 +206,12 @@ def _train(config: TrainConfig | None, data_root: Path, out_dir: Path, resume: b
         fingerprint = dataset_fingerprint(data_root)
     if checkpoint is not None:
         check_resumable(checkpoint, config, fingerprint, out_dir, data_root)
-    model = _build_network(config, sources, resuming=checkpoint is not None)
     device = _device_of(config)
     world = start_distributed(device)
     run = TrainRun(config, data_root, out_dir, fingerprint, device, world, checkpoint,
                    max_steps, max_seconds, progress)
-    try:
+    try:  # the network first: a config it cannot train makes no folder
+        model = _build_network(config, sources, checkpoint is not None, world.distributed)
         if world.main:
             out_dir.mkdir(parents=True, exist_ok=True)
             remove_stale_temporaries(out_dir)
@@ -228,7 +228,8 @@ def _train(config: TrainConfig | None, data_root: Path, out_dir: Path, resume: b
             dist.destroy_process_group()
 
 
-def _build_network(config: TrainConfig, sources: DataSources, resuming: bool) -> nn.Module:
+def _build_network(config: TrainConfig, sources: DataSources, resuming: bool, distributed: bool
+                   ) -> nn.Module:
     """The network from the seed (every process alike) and ``init_from`` (not when resuming),
     after checking that it builds (``network.pretrained`` loads) and feeds every loss term."""
     torch.manual_seed(config.seed)
@@ -250,10 +251,10 @@ def _build_network(config: TrainConfig, sources: DataSources, resuming: bool) ->
     size = config.network.image_size
     camera = sources.train_set.camera.rescaled(size, size)
     model.eval()  # no statistics updated, no random draw
-    with torch.no_grad():
+    with torch.set_grad_enabled(distributed):  # a distributed run's check follows gradients
         probe = model(torch.zeros(1, config.network.in_channels, size, size), camera.matrix())
     try:
-        check_terms(config.loss, probe)
+        check_terms(config.loss, probe, model if distributed else None)
     except LossTermError as error:
         raise TrainError(str(error)) from None
     return model.train()

@@ -429,17 +429,6 @@ def pressurised_module(radius: float, length: float, material: str = "white_pain
     return parts
 
 
-def node_module(radius: float, length: float, material: str = "white_paint") -> list[Part]:
-    """A node along z, centred at the origin, with a docking port stub on +-x and +-y."""
-    parts = [Part("node", material, prism(16, radius, length))]
-    for k in range(4):
-        stub = transform_solid(prism(16, radius * 0.45, radius * 0.5), frame_z_to((1, 0, 0)),
-                               (radius * 1.1, 0, 0))
-        parts.append(Part("docking_port", "aluminium",
-                          transform_solid(stub, rotation_about((0, 0, 1), 90 * k))))
-    return parts
-
-
 def capsule(radius: float, height: float, thin: float) -> list[Part]:
     """A crew or cargo capsule: a cone frustum from its heat shield at the origin up along
     +z, the heat shield a flat disc reaching a tenth of the height behind the origin."""

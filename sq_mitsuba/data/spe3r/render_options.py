@@ -90,10 +90,6 @@ class RenderOptions:
                              "a new folder")
 
     @property
-    def shard_index(self) -> int:
-        return parse_shard(self.shard)[0]
-
-    @property
     def shard_count(self) -> int:
         return parse_shard(self.shard)[1]
 

@@ -37,13 +37,13 @@ from torch import Tensor
 from sq_mitsuba.checks import check_tensor
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.render.backend import interrupts_deferred, mitsuba
+from sq_mitsuba.render.silhouette.seeds import CALL_SEED_STRIDE
 
 __all__ = ["PoseSilhouettes"]
 
 MESH_ID = "pose_mesh"
 #: Rays per Dr.Jit launch at most (bounds memory: about 100 bytes per ray in flight).
 DEFAULT_MAX_RAYS = 1 << 22
-_SEED_STRIDE = 0x9E3779B1
 
 
 class PoseSilhouettes:
@@ -175,7 +175,7 @@ class PoseSilhouettes:
         else:
             # A hash of (pixel and sub-sample, call): the same in every view. (A PCG32 of
             # views x pixels lanes would give every lane, so every view, its own stream.)
-            state = (2 * (self.seed + _SEED_STRIDE * self._calls)) & 0xFFFFFFFF
+            state = (2 * (self.seed + CALL_SEED_STRIDE * self._calls)) & 0xFFFFFFFF
             du = mi.sample_tea_float32(sample, dr.opaque(mi.UInt32, state))
             dv = mi.sample_tea_float32(sample, dr.opaque(mi.UInt32, (state + 1) & 0xFFFFFFFF))
         x = (mi.Float(column) + du - dr.opaque(mi.Float, camera.cx)) / dr.opaque(

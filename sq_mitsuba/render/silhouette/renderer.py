@@ -50,10 +50,11 @@ import torch
 from torch import Tensor
 
 from sq_mitsuba.checks import check_rotations, check_tensor
+from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.camera import Camera
-from sq_mitsuba.geometry.metrics import mask_iou  # noqa: F401  (re-exported for callers)
 from sq_mitsuba.render.backend import interrupts_deferred, mitsuba
 from sq_mitsuba.render.silhouette.integrator import register as register_integrator
+from sq_mitsuba.render.silhouette.seeds import CALL_SEED_STRIDE, ITEM_SEED_STRIDE
 from sq_mitsuba.render.silhouette.tiled import TiledSilhouettes, tiled_seeds
 from sq_mitsuba.render.silhouette.workers import SilhouetteWorkers, WorkerError
 
@@ -74,7 +75,6 @@ def default_sppp(camera: Camera) -> int:
     """Silhouette samples per pixel that spend :data:`DEFAULT_SILHOUETTE_SAMPLES` per image."""
     return max(1, round(DEFAULT_SILHOUETTE_SAMPLES / (camera.width * camera.height)))
 
-_SEED_STRIDE = 0x9E3779B1  # decorrelates the seeds of successive calls (golden-ratio step)
 
 
 def sensor_dict(camera: Camera) -> dict[str, Any]:
@@ -383,7 +383,8 @@ class SilhouetteRenderer:
         """The samples' seed of one item of a call (``seed``: the base seed, default the
         renderer's; a backward pass passes its forward pass's, which reseed() may have left)."""
         base = self.seed if seed is None else seed
-        return (base + _SEED_STRIDE * (2 * call + int(backward)) + 7919 * item) & 0xFFFFFFFF
+        return (base + CALL_SEED_STRIDE * (2 * call + int(backward))
+                + ITEM_SEED_STRIDE * item) & 0xFFFFFFFF
 
     def _load(self, vertices: Tensor, token: tuple[int, int], requires_grad: bool) -> Any:
         """Put one item's vertices (V, 3) into the scene (rebuilds the BVH)."""
@@ -699,7 +700,7 @@ class _RenderedLoss(torch.autograd.Function):
         return grad_vertices * grad_loss, None, None
 
 
-def assembly_camera_vertices(assembly: Any, rotation: Tensor, translation: Tensor,
+def assembly_camera_vertices(assembly: Assembly, rotation: Tensor, translation: Tensor,
                              level: int = 3) -> tuple[Tensor, Tensor]:
     """Merged assembly meshes moved to the camera frame: vertices (B, N, 3), faces (F, 3).
 
@@ -728,7 +729,7 @@ def assembly_camera_vertices(assembly: Any, rotation: Tensor, translation: Tenso
     return camera_vertices, faces
 
 
-def render_assembly(assembly: Any, rotation: Tensor, translation: Tensor,
+def render_assembly(assembly: Assembly, rotation: Tensor, translation: Tensor,
                     renderer: SilhouetteRenderer, level: int = 3) -> Tensor:
     """Silhouettes (B, H, W) of superquadric assemblies at camera poses.
 
@@ -741,7 +742,7 @@ def render_assembly(assembly: Any, rotation: Tensor, translation: Tensor,
     return renderer.render(vertices, faces)
 
 
-def render_assembly_loss(assembly: Any, rotation: Tensor, translation: Tensor,
+def render_assembly_loss(assembly: Assembly, rotation: Tensor, translation: Tensor,
                          renderer: SilhouetteRenderer, loss_fn: Callable[[Tensor, int], Tensor],
                          level: int = 3) -> tuple[Tensor, Tensor]:
     """``sum_i loss_fn(silhouette_i, i)`` with one BVH rebuild per item (see

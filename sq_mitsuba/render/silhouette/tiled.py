@@ -49,6 +49,7 @@ from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.render.backend import interrupts_deferred, mitsuba
 from sq_mitsuba.render.silhouette.integrator import TILED_PLUGIN
 from sq_mitsuba.render.silhouette.integrator import register as register_integrator
+from sq_mitsuba.render.silhouette.seeds import CALL_SEED_STRIDE
 
 __all__ = ["DEFAULT_MARGIN", "TileLayout", "TiledResult", "TiledSilhouettes", "default_margin"]
 
@@ -69,7 +70,6 @@ NEAR = 1e-3
 #: spp 8, forward + backward) 256 items took 327 ms in one launch, 207 / 149 / 154 / 178 ms in
 #: chunks of 128 / 64 / 32 / 16; at 128 px the best chunk was 32 (189 ms).
 DEFAULT_MAX_ITEMS = 32
-_SEED_STRIDE = 0x9E3779B1
 _CHUNK_STRIDE = 0x632BE5AB
 _TILED_SALT = 0x5BD1E995  # keeps the tiled seeds apart from the per-item ones
 
@@ -430,5 +430,5 @@ class _Layout:
 
 def tiled_seeds(seed: int, call: int) -> tuple[int, int]:
     """Forward and backward Mitsuba seeds of a tiled call: from the base seed and the call."""
-    return tuple((seed + _SEED_STRIDE * (2 * call + backward) + _TILED_SALT) & 0xFFFFFFFF
+    return tuple((seed + CALL_SEED_STRIDE * (2 * call + backward) + _TILED_SALT) & 0xFFFFFFFF
                  for backward in (0, 1))  # type: ignore[return-value]
