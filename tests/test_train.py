@@ -707,6 +707,7 @@ def test_a_run_stopped_before_its_first_checkpoint_starts_over(train_dataset, ca
     code, err = _cli([*common, "--max-steps", "1"], capsys)
     assert code == 0, err
     assert [row["step"] for row in _rows(out / "log.csv")] == ["1"]
+    assert b"\r" not in (out / "log.csv").read_bytes()  # appended rows end as the header does
     code, err = _cli([*common, "--max-steps", "1"], capsys)
     assert code == 2 and "already holds a training run" in err
     # A run stopped at once (a second Ctrl-C) after a validation's best.pt, before its first
@@ -717,6 +718,26 @@ def test_a_run_stopped_before_its_first_checkpoint_starts_over(train_dataset, ca
     assert code == 2 and "holds a run's best.pt but no last.pt to resume from" in err
     code, err = _cli([*common, "--resume"], capsys)
     assert code == 2 and "nothing to resume" in err
+    # A folder of the user's whose files share a run's names is not a stopped run: refused,
+    # its files kept (a run rewrote log.csv in it); other files are left alone.
+    own = tmp_path / "notes"
+    own.mkdir()
+    (own / "notes.txt").write_text("precious")
+    (own / "log.csv").write_text("keep")
+    mine = [*common[:5], "--out", str(own), "--quiet", "--set", f"data.cache_dir={cache_dir}"]
+    code, err = _cli([*mine, "--max-steps", "1"], capsys)
+    assert code == 2 and f"{own}: holds log.csv, not of a training run" in err, err
+    assert (own / "log.csv").read_text() == "keep"
+    (own / "log.csv").unlink()
+    code, err = _cli([*mine, "--max-steps", "1"], capsys)
+    assert code == 0, err
+    assert (own / "notes.txt").read_text() == "precious" and (own / "last.pt").is_file()
+    # A batch larger than the training images (16 here) repeats them each step: said.
+    big = [*common[:5], "--out", str(tmp_path / "big"), "--quiet", "--set",
+           f"data.cache_dir={cache_dir}", "--set", "optim.batch_size=32", "--max-steps", "1"]
+    code, err = _cli(big, capsys)
+    assert code == 0 and "warning: optim.batch_size: 32 is more than the 16 training images" \
+        in err, err
 
 
 def test_resume_does_not_need_the_start_it_was_initialised_from(train_dataset, cache_dir,

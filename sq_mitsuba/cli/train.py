@@ -29,12 +29,16 @@ data.cache_dir is set). The dataset is only read. One run at a time per --out: a
 into a folder another run is writing stops with one line (exit code 2).
 
 --resume continues the run in --out from last.pt exactly where it stopped (same config and
-dataset required; the config defaults to the checkpoint's). A corrupt image stops the cache
-build with an error naming the file; a loss that is not finite stops training and leaves the
-last checkpoint as it was.
+dataset required; the config defaults to the checkpoint's; bit for bit in one process on the
+CPU, up to float rounding under torchrun). To train longer, start a new run from the last
+one's weights (--set init_from=RUN/last.pt; the optimiser starts afresh). A corrupt image
+stops the cache build with an error naming the file; a loss that is not finite stops training
+and leaves the last checkpoint as it was.
 
-Distributed: torchrun --nproc_per_node N $(which sq-mitsuba) train ... runs N processes
-(gloo on the CPU, nccl on CUDA) that split each batch of optim.batch_size images.
+Distributed: .venv/bin/torchrun --nproc_per_node N .venv/bin/sq-mitsuba train ... runs N
+processes (gloo on the CPU, nccl on CUDA) that split each batch of optim.batch_size images.
+A part of the network whose output no weighted loss term reads is refused there (a mask head
+with loss.weights.mask = 0): every trained parameter needs a gradient.
 
 Fields (--set key=value) and their defaults:
 """

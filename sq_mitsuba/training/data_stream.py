@@ -263,6 +263,13 @@ def open_datasets(config: TrainConfig, data_root: Path, cache_root: Path | None 
         raise TrainError(f"{data_root}: the train split has no images (splits.csv marks no "
                          "training model; imported models are test unless imported with "
                          "--split train)")
+    images = min(len(train_set), config.data.train_images or len(train_set))
+    if config.optim.batch_size > images:
+        import warnings
+
+        warnings.warn(f"optim.batch_size: {config.optim.batch_size} is more than the {images} "
+                      "training images: each step repeats them (and holds them all in memory "
+                      "as many times)", stacklevel=2)
     # Images of camera.json's size, readable finite points: refused here, before any work,
     # not at the cache build or a step later (the val split holds the same models).
     cached = cache_root is not None and fingerprint is not None and \

@@ -87,6 +87,23 @@ def check_out_dir(out_dir: Path, resume: bool) -> None:
         raise TrainError(f"{out_dir}: holds a run's {BEST} but no {LAST} to resume from (the "
                          f"run stopped before its first checkpoint); move {BEST} away to start "
                          "over there, or choose another output folder")
+    if not resume and not _holds_a_run_config(out_dir / CONFIG_FILE):
+        theirs = [name for name in (CONFIG_FILE, LOG_FILE, VAL_FILE, CURVES_FILE)
+                  if (out_dir / name).exists()]
+        if theirs:  # not a stopped run's: a user's files a run would overwrite
+            raise TrainError(f"{out_dir}: holds {', '.join(theirs)}, not of a training run, "
+                             "which a run would overwrite; choose another output folder")
+
+
+def _holds_a_run_config(path: Path) -> bool:
+    """Whether ``path`` is a training run's ``config.json`` (its network and optim tables)."""
+    import json
+
+    try:
+        config = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    return isinstance(config, dict) and {"network", "optim"} <= set(config)
 
 
 def check_cache_dir(cache_dir: Path | None) -> None:

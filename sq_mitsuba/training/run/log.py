@@ -55,7 +55,7 @@ class RunLog:
         self._rewrite(self.log_path, self.log_fields, self.rows)
         self._rewrite(self.val_path, self.val_fields, self.val_rows)
         self._log = open(self.log_path, "a", newline="", encoding="utf-8")
-        self._writer = csv.DictWriter(self._log, self.log_fields)
+        self._writer = csv.DictWriter(self._log, self.log_fields, lineterminator="\n")
         self.tensorboard = None
         if tensorboard:
             with contextlib.suppress(ImportError):
