@@ -280,7 +280,9 @@ class StepBench:
                                                     for name, value in pairs.items()})
             for name in names:
                 start = time.perf_counter()
-                terms = compute_terms(leaves, batch, context, (name,))
+                # A new output per term: its own assembly (built once per output), whose graph
+                # this term's backward frees.
+                terms = compute_terms(dataclasses.replace(leaves), batch, context, (name,))
                 total_loss(terms, {name: cfg.loss.weights[name]}).backward()
                 times[name] += time.perf_counter() - start
         start = time.perf_counter()

@@ -182,8 +182,7 @@ def _train(config: TrainConfig | None, data_root: Path, out_dir: Path, resume: b
            main_process: bool) -> TrainResult:
     """:func:`train` under the run folder's lock (rank 0)."""
     # Checks before any work and before anything is written: the run folder (again, under
-    # the lock: a run that ended meanwhile), the checkpoint, the config, the dataset, the
-    # network.
+    # the lock: a run that ended meanwhile), the checkpoint, the config, the dataset.
     if main_process:
         check_out_dir(out_dir, resume)
     checkpoint = read_resumed(out_dir) if resume else None
@@ -249,10 +248,10 @@ def _build_network(config: TrainConfig, sources: DataSources, resuming: bool, di
     except ValueError as error:
         raise TrainError(f"optim.{error}") from None
     size = config.network.image_size
-    camera = sources.train_set.camera.rescaled(size, size)
+    matrix = sources.train_set.camera.rescaled(size, size).matrix()
     model.eval()  # no statistics updated, no random draw
     with torch.set_grad_enabled(distributed):  # a distributed run's check follows gradients
-        probe = model(torch.zeros(1, config.network.in_channels, size, size), camera.matrix())
+        probe = model(torch.zeros(1, config.network.in_channels, size, size), matrix)
     try:
         check_terms(config.loss, probe, model if distributed else None)
     except LossTermError as error:
