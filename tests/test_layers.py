@@ -133,7 +133,8 @@ def test_no_package_folder_holds_more_than_fifteen_modules():
     crowded = {str(folder.relative_to(PACKAGE.parent)): count
                for folder in [PACKAGE, *(p for p in PACKAGE.rglob("*") if p.is_dir())]
                if (count := len(list(folder.glob("*.py")))) > MAX_MODULES}
-    assert crowded == {}
+    assert crowded == {}, (f"more than {MAX_MODULES} modules in a folder: {crowded}; group "
+                           "some by role in a subpackage (as training/run/), docs/README.md")
 
 
 def test_shared_utilities_import_nothing_of_the_project():
@@ -283,4 +284,5 @@ def test_no_file_in_the_learning_layers_is_over_500_lines():
     long = {str(p.relative_to(PACKAGE)): n for layer in ("model", "training", "inference")
             for p in (PACKAGE / layer).rglob("*.py")
             if (n := len(p.read_text(encoding="utf-8").splitlines())) > 500}
-    assert long == {}
+    assert long == {}, (f"over 500 lines: {long}; split the file by role (one file, one "
+                        "role), docs/README.md")

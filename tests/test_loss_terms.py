@@ -233,3 +233,15 @@ def test_every_registered_term_has_its_own_name_on_the_progress_bar() -> None:
     assert len(set(shown)) == len(shown)
     assert short_term_name("surface_depth") != short_term_name("surface_normal")
     assert short_term_name("chamfer") == "chamf"
+
+
+def test_every_registered_term_is_named_where_users_look(capsys):
+    """The term names are written by hand in `train --help` (LossConfig.weights' docstring)
+    and in docs/training.md: a term registered in the package must appear in both."""
+    with pytest.raises(SystemExit):
+        main(["train", "--help"])
+    help_text = " ".join(capsys.readouterr().out.split())
+    guide = (ROOT / "docs" / "training.md").read_text()
+    for name in LOSS_TERMS:
+        assert name in help_text, f"{name}: not in train --help"
+        assert name in guide, f"{name}: not in docs/training.md"

@@ -1,7 +1,8 @@
 """Evaluate a trained model on a dataset split: per-image metrics, tables, charts, figures.
 
 :func:`evaluate` runs the network over the ``val`` or ``test`` split of an SPE3R-layout
-dataset and scores every image with every metric of :mod:`sq_mitsuba.geometry.metrics`, for
+dataset and scores every image with every metric of ``METRICS``
+(:mod:`sq_mitsuba.evaluation.scoring`, computed by :mod:`sq_mitsuba.geometry.metrics`), for
 up to four methods:
 
 - ``network``: the network's prediction;

@@ -56,7 +56,8 @@ def open_split(data_root: str | Path, split: str, image_size: int | None,
                "train": "splits.csv lists no training models",
                # A training model's val images are [0.4 n, 0.5 n) and [0.9 n, n) of its n.
                "val": "it holds images [0.4 n, 0.5 n) and [0.9 n, n) of each training model's "
-                      "n: none without training models, and some n below 10 have none (3, 8)"}
+                      "n: none without training models, nor for n of 1-4, 6 or 8 (render 10 or "
+                      "more images a model, or evaluate --split test)"}
         skipped = f"; left out: {', '.join(dataset.skipped)}" if dataset.skipped else ""
         raise ValueError(f"{data_root}: the {split!r} split is empty "
                          f"({why.get(split, 'no images')}{skipped})")
