@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 from pathlib import Path
@@ -138,7 +139,8 @@ def test_a_ready_point_cache_spares_reading_the_models_points_again(train_datase
 
     root = tmp_path / "data"
     shutil.copytree(train_dataset, root)
-    config, fingerprint, cache = TrainConfig(), dataset_fingerprint(root), tmp_path / "cache"
+    config = TrainConfig(optim=dataclasses.replace(TrainConfig().optim, batch_size=4))
+    fingerprint, cache = dataset_fingerprint(root), tmp_path / "cache"
     dataset = _dataset(root)
     samples = root / dataset.models[0] / "models" / "samples.npz"
     good = samples.read_bytes()

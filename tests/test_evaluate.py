@@ -336,8 +336,8 @@ def test_missing_split_and_missing_data_are_one_line(eval_checkpoint, train_data
                  "--split", "val", "--no-baseline", "--out", str(tmp_path / "out_val"),
                  "--quiet"]) == 2
     assert ("'val' split is empty (it holds images [0.4 n, 0.5 n) and [0.9 n, n) of each "
-            "training model's n: none without training models, and some n below 10 have "
-            "none (3, 8))") in error_line(capsys)
+            "training model's n: none without training models, nor for n of 1-4, 6 or 8 "
+            "(render 10 or more images a model, or evaluate --split test))") in error_line(capsys)
     assert not (tmp_path / "out_val").exists()
     # Refused before any work: the journal an interrupted run left there is not touched.
     journal = tmp_path / "out_journal" / ".eval_partial"

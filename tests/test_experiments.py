@@ -52,6 +52,7 @@ def _run_script(command: list[str]) -> subprocess.CompletedProcess:
     return subprocess.CompletedProcess(command, code, out.getvalue(), err.getvalue())
 
 
+@pytest.mark.filterwarnings("ignore:optim.batch_size")  # the study's batch of 32 on 12 images
 def test_rotation_views_trains_and_scores_both_view_sets(train_dataset, tmp_path):
     """The experiment is a run of the real trainer: its log holds the pose terms alone."""
     data = tmp_path / "data"

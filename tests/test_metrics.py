@@ -208,3 +208,21 @@ def test_a_prediction_and_truth_of_different_batches_are_refused_not_broadcast()
     with pytest.raises(ValueError, match=r"^translation_pred, translation_true"):
         speed_score(q, q, t, t[:2])
     assert rotation_error_deg(rotations, rotations).shape == (3,)
+
+
+def test_symmetries_take_one_rotation_an_item_and_speed_pairs_one_batch():
+    """(B, T, 3, 3) with symmetries paired T with S (180 deg where 0 was right); a quaternion
+    batch of 1 against translations of 4 mixed a (1,) and a (4,) score."""
+    from sq_mitsuba.geometry.metrics import rotation_error_deg, speed_score
+    from sq_mitsuba.geometry.rotation import random_rotations
+    from sq_mitsuba.geometry.so3_grid import half_turns
+
+    truth = random_rotations(8, torch.Generator().manual_seed(3), dtype=torch.float64)
+    turns = half_turns(torch.float64)
+    assert float(rotation_error_deg(truth @ turns[1], truth, turns).max()) < 1e-6
+    with pytest.raises(ValueError, match=r"^pred_rotation: expected \(B, 3, 3\) with symmetries"):
+        rotation_error_deg(truth.reshape(2, 4, 3, 3), truth.reshape(2, 4, 3, 3), turns)
+    q = torch.tensor([[1.0, 0.0, 0.0, 0.0]], dtype=torch.float64)
+    t = torch.tensor([[0.0, 0.0, 2.0]] * 4, dtype=torch.float64)
+    with pytest.raises(ValueError, match=r"^quaternion_pred, translation_pred"):
+        speed_score(q, q, t, t + 0.1)

@@ -226,3 +226,13 @@ def test_axis_angle_round_trip_through_the_matrix():
     exact = axis_angle_to_matrix(torch.tensor([0.0, 0.0, math.pi], dtype=torch.float64))
     torch.testing.assert_close(matrix_to_axis_angle(exact).abs(),
                                torch.tensor([0.0, 0.0, math.pi], dtype=torch.float64))
+
+
+def test_a_degenerate_6d_vector_is_refused_not_made_a_rotation():
+    """F.normalize made a zero row a unit one: (0, ..., 0) became the zero matrix and parallel
+    rows a rank-1 matrix, both returned as rotations."""
+    for d6 in ([0.0] * 6, [1.0, 0.0, 0.0, 2.0, 0.0, 0.0]):
+        with pytest.raises(ValueError, match=r"^d6: degenerate 6D rotation"):
+            rotation_6d_to_matrix(torch.tensor(d6, dtype=F64))
+    with pytest.raises(ValueError, match=r"^dtype: expected a floating-point dtype"):
+        random_rotations(2, dtype=torch.int64)

@@ -364,3 +364,27 @@ def test_the_taper_narrows_towards_plus_z_as_the_paper_writes():
     ratio = crossing(z, 0) / crossing(-z, 0)
     assert ratio == pytest.approx((1 - k * z / a3) / (1 + k * z / a3), rel=1e-6)
     assert crossing(z, 1) == pytest.approx(crossing(-z, 1), rel=1e-6)  # k2 = 0: y untouched
+
+
+def test_no_points_give_no_values_and_a_second_derivative_is_refused():
+    """N = 0 points: (0,) values, as Assembly.inside_outside gives (an IndexError before).
+    The dual function's backward is hand-written, first order: asked for a graph of its
+    gradient (a gradient penalty) it raises, where it had handed back a gradient whose own
+    derivative came out zero."""
+    from sq_mitsuba.geometry.superquadric import inside_outside
+
+    size, shape = torch.ones(3, dtype=torch.float64), torch.tensor([0.5, 0.5], dtype=torch.float64)
+    assert inside_outside(torch.zeros(0, 3, dtype=torch.float64), size, shape).shape == (0,)
+    assert inside_outside_dual(torch.zeros(0, 3, dtype=torch.float64), size, shape).shape == (0,)
+    points = torch.rand(5, 3, dtype=torch.float64, requires_grad=True)
+    first, = torch.autograd.grad(inside_outside_dual(points, size, shape).sum(), points)
+    assert torch.isfinite(first).all()
+    with pytest.raises(RuntimeError, match="first derivatives only"):
+        torch.autograd.grad(inside_outside_dual(points, size, shape).sum(), points,
+                            create_graph=True)
+
+
+def test_the_icosphere_angles_are_copies():
+    eta, _ = icosphere_angles(2, torch.float64)
+    eta[0] = 5.0
+    assert float(icosphere_angles(2, torch.float64)[0][0]) != 5.0

@@ -41,6 +41,7 @@ from sq_mitsuba.geometry.rotation import matrix_to_rotation_6d, rotation_6d_to_m
 from sq_mitsuba.geometry.superquadric import (
     dual_field,
     dual_scales,
+    first_derivatives_only,
     surface_points_dual,
     taper,
     untaper,
@@ -567,6 +568,7 @@ class _AssemblyInsideOutside(torch.autograd.Function):
         return f
 
     @staticmethod
+    @first_derivatives_only
     @once_differentiable
     def backward(ctx, grad_f: Tensor):
         (points, linear, taper_, g1, z_rel, factor_x, factor_y, xb, yb, zb,

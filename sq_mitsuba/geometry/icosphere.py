@@ -87,16 +87,21 @@ def _angles_numpy(level: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 @functools.cache
+def _angles_tensors(level: int, dtype: torch.dtype, device: str | torch.device
+                    ) -> tuple[torch.Tensor, torch.Tensor]:
+    eta, omega = _angles_numpy(level)
+    return (torch.tensor(eta, dtype=dtype, device=device),
+            torch.tensor(omega, dtype=dtype, device=device))
+
+
 def icosphere_angles(
     level: int = 3, dtype: torch.dtype = torch.float32, device: str | torch.device = "cpu"
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """(eta, omega) of the icosphere's vertices as tensors (V,), cached per dtype and device.
-
-    The cached tensors are shared: do not modify them in place.
-    """
-    eta, omega = _angles_numpy(level)
-    return (torch.as_tensor(eta, dtype=dtype, device=device),
-            torch.as_tensor(omega, dtype=dtype, device=device))
+    """(eta, omega) of the icosphere's vertices as tensors (V,): copies of tensors cached per
+    level, dtype and device (on a GPU a copy there, not a transfer; the cached tensors
+    themselves were returned before, and one in-place edit changed every later call's)."""
+    eta, omega = _angles_tensors(level, dtype, device)
+    return eta.clone(), omega.clone()
 
 
 @functools.cache

@@ -76,8 +76,9 @@ def _directional_means(pred: Tensor, gt: Tensor, p: float, pred_mask: Tensor | N
     for a, b in zip(_clouds("pred", pred, pred_mask), _clouds("gt", gt, gt_mask), strict=True):
         forward.append(np.mean(nearest_neighbours(a, b, p)[0] ** power))
         backward.append(np.mean(nearest_neighbours(b, a, p)[0] ** power))
-    return (torch.tensor(forward, dtype=torch.float64),
-            torch.tensor(backward, dtype=torch.float64))
+    # On the inputs' device (the search runs on the CPU): a caller divides by distances there.
+    return (torch.tensor(forward, dtype=torch.float64, device=pred.device),
+            torch.tensor(backward, dtype=torch.float64, device=pred.device))
 
 
 def chamfer_l1(pred: Tensor, gt: Tensor,
@@ -187,6 +188,9 @@ def rotation_error_deg(pred_rotation: Tensor, gt_rotation: Tensor,
     if symmetries is None:
         return rotation_angle_deg(pred_rotation, gt_rotation)
     check_tensor("symmetries", symmetries, (3, 3), min_dims=3)
+    if pred_rotation.dim() != 3:  # (B, T, 3, 3) would pair T with S instead of the min over S
+        raise ValueError(f"pred_rotation: expected (B, 3, 3) with symmetries, got "
+                         f"{tuple(pred_rotation.shape)}")
     candidates = gt_rotation[:, None] @ symmetries.to(gt_rotation.dtype)
     return rotation_angle_deg(pred_rotation[:, None], candidates).amin(dim=1)
 
@@ -236,6 +240,9 @@ def speed_score(
     check_tensor("translation_true", translation_true, (3,))
     check_same_shape(quaternion_pred=quaternion_pred, quaternion_true=quaternion_true)
     check_same_shape(translation_pred=translation_pred, translation_true=translation_true)
+    if quaternion_pred.shape[:-1] != translation_pred.shape[:-1]:
+        raise ValueError(f"quaternion_pred, translation_pred: expected the same batch shape, "
+                         f"got {tuple(quaternion_pred.shape)} and {tuple(translation_pred.shape)}")
     check_nonzero("translation_true", translation_true)
     e_q = quaternion_angle(quaternion_pred, quaternion_true)
     e_t = torch.linalg.vector_norm(translation_true - translation_pred, dim=-1) / \

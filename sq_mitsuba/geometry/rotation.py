@@ -18,7 +18,7 @@ import torch
 from torch import Tensor
 from torch.nn import functional as F
 
-from sq_mitsuba.checks import check_nonzero, check_rotations, check_tensor
+from sq_mitsuba.checks import check_nonzero, check_rotations, check_tensor, value_checks_enabled
 
 __all__ = [
     "IDENTITY_6D",
@@ -56,6 +56,10 @@ def rotation_6d_to_matrix(d6: Tensor) -> Tensor:
     """
     check_tensor("d6", d6, (6,))
     a1, a2 = d6[..., :3], d6[..., 3:]
+    if value_checks_enabled() and d6.numel():  # F.normalize would make a zero row a rotation
+        cross = torch.linalg.vector_norm(torch.linalg.cross(a1, a2, dim=-1), dim=-1)
+        if bool((cross <= 1e-8 * a1.norm(dim=-1) * a2.norm(dim=-1) + 1e-30).any()):
+            raise ValueError("d6: degenerate 6D rotation (zero or parallel rows)")
     b1 = F.normalize(a1, dim=-1)
     b2 = F.normalize(a2 - (b1 * a2).sum(-1, keepdim=True) * b1, dim=-1)
     b3 = torch.linalg.cross(b1, b2, dim=-1)
@@ -159,6 +163,8 @@ def random_rotations(
     device: torch.device | str = "cpu",
 ) -> Tensor:
     """Rotation matrices (n, 3, 3), uniform on SO(3) (Shoemake's subgroup algorithm)."""
+    if not dtype.is_floating_point:
+        raise ValueError(f"dtype: expected a floating-point dtype, got {dtype}")
     return quaternion_to_matrix(random_quaternions(n, generator, torch.float64, device)).to(
         dtype)
 

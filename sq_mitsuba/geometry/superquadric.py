@@ -21,6 +21,7 @@ between.
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import NamedTuple
 
@@ -28,7 +29,12 @@ import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
-from sq_mitsuba.checks import check_broadcast, check_same_dtype, check_tensor
+from sq_mitsuba.checks import (
+    check_broadcast,
+    check_same_dtype,
+    check_tensor,
+    value_checks_enabled,
+)
 
 __all__ = [
     "dual_superellipse",
@@ -52,12 +58,12 @@ def fexp(x: Tensor, p: Tensor | float) -> Tensor:
 def _check_params(size: Tensor, shape: Tensor) -> None:
     check_tensor("size", size, (3,))
     check_tensor("shape", shape, (2,))
-    if bool((size <= 0).any()):
+    if value_checks_enabled() and bool((size <= 0).any()):  # a value check: a GPU wait
         raise ValueError("size: semi-axes must be positive")
 
 
 def _check_dual_shape(shape: Tensor) -> None:
-    if bool(((shape < 0) | (shape > 1)).any()):
+    if value_checks_enabled() and bool(((shape < 0) | (shape > 1)).any()):
         raise ValueError("shape: the dual forms need e in [0, 1]")
 
 
@@ -168,7 +174,7 @@ def inside_outside(points: Tensor, size: Tensor, shape: Tensor) -> Tensor:
     """
     check_tensor("points", points, (3,), min_dims=2)
     _check_params(size, shape)
-    check_broadcast(points=points[..., 0, :], size=size, shape=shape)
+    check_broadcast(points=points[..., :1, :], size=size[..., None, :], shape=shape[..., None, :])
     scaled = torch.abs(points / size[..., None, :])
     e1, e2 = shape[..., None, 0], shape[..., None, 1]
     cross = scaled[..., 0] ** (2.0 / e2) + scaled[..., 1] ** (2.0 / e2)
@@ -242,6 +248,22 @@ def dual_scales(shape: Tensor) -> tuple[Tensor, Tensor]:
     return torch.exp2(0.5 * e_dual - 1.0), 2.0 / e_dual
 
 
+def first_derivatives_only(backward):
+    """Decorate a hand-written ``backward`` (under ``once_differentiable``) to raise when asked
+    for a graph of its gradient (``create_graph=True``: a gradient penalty, a Hessian):
+    ``once_differentiable`` alone hands back gradients without one, and a second derivative
+    through them came out zero without a word."""
+
+    @functools.wraps(backward)
+    def checked(ctx, *grads):
+        if torch.is_grad_enabled():  # the engine enables grad mode for create_graph=True
+            raise RuntimeError("the dual inside-outside function has first derivatives only (a "
+                               "hand-written backward): no second derivative (create_graph=True)")
+        return backward(ctx, *grads)
+
+    return checked
+
+
 class _InsideOutsideDual(torch.autograd.Function):
     """Dual inside-outside function with a hand-derived backward (see ``inside_outside_dual``).
 
@@ -265,6 +287,7 @@ class _InsideOutsideDual(torch.autograd.Function):
         return f
 
     @staticmethod
+    @first_derivatives_only
     @once_differentiable
     def backward(ctx, grad_f: Tensor):
         scaled, inv_scale, size, alpha, d_x, d_y, d_z, d_alpha1, d_alpha2 = ctx.saved_tensors
@@ -324,7 +347,7 @@ def inside_outside_dual(points: Tensor, size: Tensor, shape: Tensor) -> Tensor:
     check_tensor("points", points, (3,), min_dims=2)
     _check_params(size, shape)
     _check_dual_shape(shape)
-    check_broadcast(points=points[..., 0, :], size=size, shape=shape)
+    check_broadcast(points=points[..., :1, :], size=size[..., None, :], shape=shape[..., None, :])
     check_same_dtype(points=points, size=size, shape=shape)
     return _InsideOutsideDual.apply(points, size[..., None, :], shape[..., None, :])
 
