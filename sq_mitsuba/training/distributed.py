@@ -14,6 +14,7 @@ variant, nccl) is written but untested here, and not bit-reproducible.
 from __future__ import annotations
 
 import os
+import warnings
 from dataclasses import dataclass
 from typing import Any
 
@@ -56,7 +57,14 @@ class CpuSyncBatchNorm(nn.BatchNorm2d):
         dims = [0, *range(2, x.dim())]
         wide = x.to(torch.float64)
         count = wide.new_tensor([x.numel() / channels])
-        packed = all_reduce(torch.cat([wide.sum(dims), (wide * wide).sum(dims), count]))
+        with warnings.catch_warnings():
+            # Deprecated in favour of _functional_collectives.all_reduce (not checked here);
+            # this one's backward sums the gradients over processes, as the statistics'
+            # gradient needs (input gradients equal BatchNorm2d's over the global batch to
+            # 3e-16 in float64, 2 processes).
+            warnings.filterwarnings("ignore", "torch.distributed.nn.functional.all_reduce is "
+                                    "deprecated", FutureWarning)
+            packed = all_reduce(torch.cat([wide.sum(dims), (wide * wide).sum(dims), count]))
         total = packed[-1]
         mean = packed[:channels] / total
         var = (packed[channels:2 * channels] / total - mean * mean).clamp_min(0)
@@ -180,9 +188,13 @@ def wrap_model(model: nn.Module, device: torch.device, world: World) -> nn.Modul
         model = nn.SyncBatchNorm.convert_sync_batchnorm(model)
     else:
         model = convert_cpu_sync_batchnorm(model)
-    return nn.parallel.DistributedDataParallel(
-        model, device_ids=[device.index] if device.type == "cuda" else None,
-        broadcast_buffers=False, find_unused_parameters=True)
+    with warnings.catch_warnings():
+        # broadcast_buffers=False is deprecated for forward_sync_buffers=False, which still
+        # syncs at the start; the running statistics are each process's own (from one seed).
+        warnings.filterwarnings("ignore", "`broadcast_buffers` is deprecated", FutureWarning)
+        return nn.parallel.DistributedDataParallel(
+            model, device_ids=[device.index] if device.type == "cuda" else None,
+            broadcast_buffers=False, find_unused_parameters=True)
 
 
 def unwrap(model: nn.Module) -> nn.Module:
