@@ -236,3 +236,15 @@ def test_a_degenerate_6d_vector_is_refused_not_made_a_rotation():
             rotation_6d_to_matrix(torch.tensor(d6, dtype=F64))
     with pytest.raises(ValueError, match=r"^dtype: expected a floating-point dtype"):
         random_rotations(2, dtype=torch.int64)
+
+
+def test_angles_name_batches_that_do_not_broadcast_and_widen_mixed_dtypes():
+    rotations = random_rotations(3, torch.Generator().manual_seed(4), dtype=F64)
+    with pytest.raises(ValueError, match=r"^rotation_a, rotation_b: shapes \(3, 3, 3\) and "
+                                         r"\(2, 3, 3\) do not broadcast"):
+        rotation_angle(rotations, rotations[:2])
+    with pytest.raises(ValueError, match=r"quaternion_a=\(3, 4\), quaternion_b=\(2, 4\)"):
+        quaternion_angle(torch.ones(3, 4), torch.ones(2, 4))
+    q = random_quaternions(3, torch.Generator().manual_seed(5), dtype=F64)
+    mixed = quaternion_angle(q.float(), q)  # was a RuntimeError from linalg.cross
+    assert mixed.dtype == F64 and float(mixed.max()) < 1e-3

@@ -18,7 +18,13 @@ import torch
 from torch import Tensor
 from torch.nn import functional as F
 
-from sq_mitsuba.checks import check_nonzero, check_rotations, check_tensor, value_checks_enabled
+from sq_mitsuba.checks import (
+    check_broadcast,
+    check_nonzero,
+    check_rotations,
+    check_tensor,
+    value_checks_enabled,
+)
 
 __all__ = [
     "IDENTITY_6D",
@@ -183,6 +189,11 @@ def rotation_angle(rotation_a: Tensor, rotation_b: Tensor) -> Tensor:
     """
     _check_matrix("rotation_a", rotation_a)
     _check_matrix("rotation_b", rotation_b)
+    try:
+        torch.broadcast_shapes(rotation_a.shape[:-2], rotation_b.shape[:-2])
+    except RuntimeError:
+        raise ValueError(f"rotation_a, rotation_b: shapes {tuple(rotation_a.shape)} and "
+                         f"{tuple(rotation_b.shape)} do not broadcast") from None
     # Convention: rotations of two floating dtypes are compared in the wider (a float32
     # reading against float64 labels), as torch's elementwise operations would.
     dtype = torch.promote_types(rotation_a.dtype, rotation_b.dtype)
@@ -204,7 +215,9 @@ def quaternion_angle(quaternion_a: Tensor, quaternion_b: Tensor) -> Tensor:
     check_tensor("quaternion_b", quaternion_b, (4,))
     check_nonzero("quaternion_a", quaternion_a)
     check_nonzero("quaternion_b", quaternion_b)
-    a, b = F.normalize(quaternion_a, dim=-1), F.normalize(quaternion_b, dim=-1)
+    check_broadcast(quaternion_a=quaternion_a, quaternion_b=quaternion_b)
+    dtype = torch.promote_types(quaternion_a.dtype, quaternion_b.dtype)  # as rotation_angle
+    a, b = F.normalize(quaternion_a.to(dtype), dim=-1), F.normalize(quaternion_b.to(dtype), dim=-1)
     a, b = torch.broadcast_tensors(a, b)
     (wa, va), (wb, vb) = (a[..., 0], a[..., 1:]), (b[..., 0], b[..., 1:])
     scalar = wa * wb + (va * vb).sum(-1)  # the scalar part of conj(a) b: <a, b>
