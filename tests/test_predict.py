@@ -532,7 +532,7 @@ def test_the_overlay_blends_as_the_formula_says():
 
 
 def test_a_second_pass_into_one_folder_leaves_nothing_of_the_first(eval_checkpoint, inputs,
-                                                                   tmp_path):
+                                                                   tmp_path, capsys):
     """Frames of an earlier pass that this one lacks, and a single image's assembly of one of
     its stems, are of another assembly than sequence.assembly.json: removed. Files of single
     images of other stems stay."""
@@ -552,7 +552,10 @@ def test_a_second_pass_into_one_folder_leaves_nothing_of_the_first(eval_checkpoi
     (out / "a.glb").write_text("a single image's assembly")
     (out / "z.pose.json").write_text(json.dumps({"image": "z.png"}))  # a single image's
     (out / "z.glb").write_text("z's assembly")
+    capsys.readouterr()
     sequence("a", "b")
+    # c's pose and overlay, and a's single-image GLB: said, not removed silently.
+    assert "(and removed 3 of an earlier pass)" in capsys.readouterr().out
     names = {p.name for p in out.iterdir() if not p.name.startswith(".")}
     assert names == {"sequence.assembly.json", "sequence.glb", "sequence.png", "colmap",
                      "a.pose.json", "a.overlay.png", "b.pose.json", "b.overlay.png",

@@ -85,28 +85,35 @@ def check_frame_order(paths: Sequence[Path]) -> None:
             return
 
 
-def _remove_earlier_pass(out: Path, stems: set[str], colmap_written: bool) -> None:
+def _remove_earlier_pass(out: Path, stems: set[str], colmap_written: bool) -> int:
     """Delete what an earlier run left in ``out`` that contradicts this pass (see the module
-    docstring); files it cannot read as an earlier pass's are left alone."""
+    docstring); files it cannot read as an earlier pass's are left alone. Returns how many
+    files went."""
     from sq_mitsuba.apps.colmap_model import COLMAP_FILES
     from sq_mitsuba.apps.predict import OUTPUT_SUFFIXES, is_pass_pose
 
+    gone = []
     for pose in out.glob("*.pose.json"):
         stem = pose.name.removesuffix(".pose.json")
         if stem not in stems and is_pass_pose(pose):
-            pose.unlink(missing_ok=True)
-            (out / f"{stem}.overlay.png").unlink(missing_ok=True)
+            gone += [pose, out / f"{stem}.overlay.png"]
     for stem in stems:  # a single image's assembly beside this pass's pose of that stem
-        for suffix in OUTPUT_SUFFIXES:
-            if suffix not in (".pose.json", ".overlay.png"):
-                (out / f"{stem}{suffix}").unlink(missing_ok=True)
+        gone += [out / f"{stem}{suffix}" for suffix in OUTPUT_SUFFIXES
+                 if suffix not in (".pose.json", ".overlay.png")]
     if not colmap_written and (out / "colmap").is_dir():
-        for name in COLMAP_FILES:
-            (out / "colmap" / name).unlink(missing_ok=True)
+        gone += [out / "colmap" / name for name in COLMAP_FILES]
+    removed = 0
+    for path in gone:
+        if path.is_file():
+            path.unlink()
+            removed += 1
+    if not colmap_written and (out / "colmap").is_dir():
         try:
             (out / "colmap").rmdir()
         except OSError:  # holds the user's own files: they stay
             pass
+    return removed
+
 
 #: The views of ``sequence.png``: (label, (pitch, yaw) in degrees of the body -> camera
 #: rotation), the assembly at the centre; "seen from +x" puts the camera on the body's +x axis.
@@ -127,6 +134,7 @@ class SequenceRecord:
     result: Any = None
     ordered: bool = False
     free: bool = False  # motion="free": the frames in order were not put on a turn
+    removed: int = 0  # files of an earlier pass in the folder, removed
 
     def describe(self) -> str:
         count = len(self.iou)
@@ -353,5 +361,6 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
         record.files += write_colmap_model(out / "colmap", image_camera,
                                            [p.name for p in paths], result.quaternion.double(),
                                            metric.translation.double())
-    _remove_earlier_pass(out, {path.stem for path in paths}, colmap_written=not spaced)
+    record.removed = _remove_earlier_pass(out, {path.stem for path in paths},
+                                          colmap_written=not spaced)
     return record

@@ -218,7 +218,8 @@ def _run_sequence(args: argparse.Namespace) -> int:
                                     ordered=args.ordered, other_inputs=inputs,
                                     masks=args.mask, progress=not args.quiet,
                                     target_size=single.target_size)
-    print(f"{record.describe()}; wrote {len(record.files)} files to {args.out}")
+    removed = f" (and removed {record.removed} of an earlier pass)" if record.removed else ""
+    print(f"{record.describe()}; wrote {len(record.files)} files to {args.out}{removed}")
     return 0
 
 
