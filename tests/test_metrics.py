@@ -226,3 +226,13 @@ def test_symmetries_take_one_rotation_an_item_and_speed_pairs_one_batch():
     t = torch.tensor([[0.0, 0.0, 2.0]] * 4, dtype=torch.float64)
     with pytest.raises(ValueError, match=r"^quaternion_pred, translation_pred"):
         speed_score(q, q, t, t + 0.1)
+
+
+def test_camera_frame_chamfer_refuses_an_unbatched_rotation():
+    """A (3, 3) rotation passed the batch-size check for B = 3 (its first dim is 3)."""
+    points = torch.rand(3, 10, 3, dtype=torch.float64)
+    rotations = torch.eye(3, dtype=torch.float64).expand(3, 3, 3)
+    t = torch.tensor([[0.0, 0.0, 2.0]] * 3, dtype=torch.float64)
+    with pytest.raises(ValueError, match=r"^pred_rotation: expected \(B, 3, 3\), got \(3, 3\)"):
+        camera_frame_chamfer(points, rotations[0], t, points, rotations, t)
+    assert camera_frame_chamfer(points, rotations, t, points, rotations, t).abs().max() == 0

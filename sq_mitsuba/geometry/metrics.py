@@ -129,6 +129,9 @@ def camera_frame_chamfer(pred_points: Tensor, pred_rotation: Tensor, pred_transl
                                   ("pred_translation", pred_translation, (3,)),
                                   ("gt_translation", gt_translation, (3,))):
         check_tensor(name, value, trailing)
+        if value.dim() != len(trailing) + 1:  # an unbatched (3, 3) read as a batch of 3
+            raise ValueError(f"{name}: expected (B, {', '.join(map(str, trailing))}), got "
+                             f"{tuple(value.shape)}")
     check_nonzero("gt_translation", gt_translation)
     batch = {name: value.shape[0] for name, value in (
         ("pred_points", pred_points), ("pred_rotation", pred_rotation),
