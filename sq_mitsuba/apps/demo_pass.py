@@ -198,9 +198,12 @@ def pass_section(record: PassRecord, prefix: str = "pass") -> Any:
         "Mean over the frames, scored at the rendered resolution (the single images above "
         "at the network's input size); 'frame to frame': the "
         "error of the rotation from the frame before to this one, which several views pin "
-        "even where the absolute rotation (which axis is which) stays wrong. Overlays: red, "
-        "each frame searched alone; green, the shared assembly at the frame's pose; yellow, "
-        "the outline of the mask the fit reads from the image.",
+        "even where the absolute rotation (which axis is which) stays wrong. Overlays (as "
+        "'predict --sequence' writes them): red, each frame searched alone; green, the shared "
+        "assembly at the frame's pose; yellow, the outline of the mask the fit reads from the "
+        "image (the network's, not the true mask the single images above outline: where it "
+        "misses dark faces or arrays, green can fill yellow while the 2D IoU against the "
+        "truth stays low).",
     ]
     return PageSection(
         title=f"A pass of {record.frames} images: one assembly and every pose",

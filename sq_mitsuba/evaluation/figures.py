@@ -330,9 +330,10 @@ def plot_illumination(table: Sequence[dict], path: str | Path,
                 mean = np.array([r[f"{metric}_mean"] for r in group], float)
                 std = np.array([r[f"{metric}_std"] for r in group], float)
                 label = f"{background}, {method}"
-                if background == "eclipse":
-                    axis.errorbar(x, mean, yerr=std, fmt="s", color="black", ms=4,
-                                  mfc="white" if m else "black", capsize=2, label=label)
+                if background == "eclipse":  # one marker a method, side by side
+                    axis.errorbar(x + 4.0 * m, mean, yerr=std, fmt="sD^v"[m % 4],
+                                  color="black", ms=4, mfc="white" if m else "black",
+                                  capsize=2, label=label)
                     continue
                 colour = line_colours[b % len(line_colours)]
                 axis.plot(x, mean, styles[m % len(styles)], color=colour, marker=".",
@@ -351,6 +352,7 @@ def plot_illumination(table: Sequence[dict], path: str | Path,
     figure.legend(handles, labels, loc="lower center", fontsize=7,
                   ncol=min(4, max(len(labels), 1)), frameon=False)
     figure.suptitle((title + "\n" if title else "") + "metrics against the sun phase angle "
-                    "(lines: mean; shaded: ± std; squares: eclipse frames)", fontsize=9)
+                    "(lines: mean; shaded: ± std; black markers: eclipse frames, one shape "
+                    "a method)", fontsize=9)
     figure.tight_layout(rect=(0, 0.04 + 0.02 * math.ceil(len(labels) / 4), 1, 1))
     return save_figure(figure, path)

@@ -494,7 +494,7 @@ def _plot(summary: dict[tuple[int, str], dict[str, tuple[float, ...]]], counts: 
         axis.set_title(f"{title}, {statistic}", fontsize=9)
         axis.grid(alpha=0.3)
     axes[0].legend(fontsize=8)
-    figure.suptitle(f"One assembly from N frames against each frame alone ({passes} pass(es))",
-                    fontsize=10)
+    figure.suptitle(f"One assembly from the first N frames of each of {passes} pass(es) "
+                    "against those frames alone (every line scores the same N frames)", fontsize=10)
     figure.tight_layout()
     return save_figure(figure, path)
