@@ -69,7 +69,7 @@ def overlay_silhouettes(assembly: Any, rotation: Any, translation: Any, renderer
     from sq_mitsuba.render.silhouette.renderer import render_assembly
 
     with torch.no_grad():
-        coverage = render_assembly(assembly, rotation, translation, renderer, level).numpy()
+        coverage = render_assembly(assembly, rotation, translation, renderer, level).cpu().numpy()
     return [resized_coverage(item, shape[1], shape[0]) for item in coverage]
 
 

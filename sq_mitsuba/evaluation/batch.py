@@ -90,7 +90,7 @@ def evaluate_batch(predictor: Any, dataset: Any, chunk: Sequence[int], number: i
                                   refinement=options.refinement)
         fit = fitted.fit
         search_seconds, refine_seconds = fit.search_seconds, fit.seconds
-        mask_iou_gt = mask_iou(fit.mask.double(), gt_masks.double())
+        mask_iou_gt = mask_iou(fit.mask.double().cpu(), gt_masks.double())
         candidates["search"] = (Assembly(fit.start.assembly.params.detach().double()),
                                 fit.search_rotation, fit.search_translation)
         candidates["refined"] = (fitted.assembly, fitted.rotation, fitted.translation)
@@ -114,6 +114,13 @@ def evaluate_batch(predictor: Any, dataset: Any, chunk: Sequence[int], number: i
                                   baseline[1].expand(size, -1, -1),
                                   baseline[2].expand(size, -1))
     stage("scoring")
+    # Scored on the CPU with the dataset's tensors, whatever device the predictor reads on.
+    candidates = {method: (Assembly(assembly.params.detach().cpu()), rotation.detach().cpu(),
+                           translation.detach().cpu())
+                  for method, (assembly, rotation, translation) in candidates.items()}
+    extras = {method: {k: v.detach().cpu() if isinstance(v, Tensor) else v
+                       for k, v in values.items()}
+              for method, values in extras.items()}
     for method, (assembly, rotation, translation) in candidates.items():
         metrics = score(assembly, rotation, translation, batch, renderer, symmetries,
                         volumes, options.level)

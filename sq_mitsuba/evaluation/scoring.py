@@ -191,9 +191,9 @@ def baseline_prediction(predictor: Any, data_root: Path, count: int,
         for start in range(0, len(indices), batch_size):
             batch = collate([train[i] for i in indices[start:start + batch_size]])
             prediction = every.predict(batch["image"], camera)
-            raws.append(raw_from_assembly(prediction.assembly))
+            raws.append(raw_from_assembly(prediction.assembly).cpu())  # labels: CPU
             if prediction.existence is not None:
-                existences.append(prediction.existence)
+                existences.append(prediction.existence.cpu())
             rotations.append(batch["rotation"])
             translations.append(batch["translation"])
             bar.update(len(batch["rotation"]))

@@ -238,8 +238,8 @@ def canonical_frame(assembly: Assembly, level: int = 3) -> tuple[Tensor, Tensor]
     # convex hull of the union is that of all its primitives, so parts inside others do not
     # change the box.
     vertices, faces = assembly.merged_mesh(level)
-    points = vertices[0].detach().double().numpy()
-    rotation = alignment_rotation(points, faces.numpy(), "obb")
+    points = vertices[0].detach().double().cpu().numpy()
+    rotation = alignment_rotation(points, faces.cpu().numpy(), "obb")
     # The centre of mass of the union: uniform points in the bounding box that it holds.
     low, high = points.min(0), points.max(0)
     grid = torch.from_numpy(np.random.default_rng(0).uniform(low, high, (20_000, 3)))

@@ -119,7 +119,7 @@ def reading_from_turns(prediction: Prediction, output: NetworkOutput, angles: Te
     kept, every = (params, None) if rows is None else (gathered_primitives(params, rows), params)
 
     scale = prediction.pixel.new_tensor([width / side, height / side])
-    back = z_rotation(angles[1:]).to(dtype)[:, None, :2, :2]  # (T - 1, 1, 2, 2)
+    back = z_rotation(angles[1:]).to(output.pixel.device, dtype)[:, None, :2, :2]  # (T-1,1,2,2)
     offsets = per_copy(output.pixel).to(dtype) - 0.5 * side
     pixels = torch.cat([prediction.pixel[None] / scale,
                         (back.transpose(-1, -2) @ offsets[..., None])[..., 0] + 0.5 * side])

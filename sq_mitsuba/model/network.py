@@ -64,6 +64,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from sq_mitsuba.checks import value_checks_enabled
 from sq_mitsuba.config import validate
 from sq_mitsuba.geometry.assembly import NUM_PARAMS, Assembly, ParameterRanges
 from sq_mitsuba.geometry.rotation import IDENTITY_6D
@@ -217,8 +218,7 @@ class NetworkOutput:
 
     @property
     def existence(self) -> Tensor | None:
-        """(B, M) each primitive's existence probability, ``sigmoid(existence_logits)``, or
-        None without an existence head."""
+        """(B, M) each primitive's existence probability (None without an existence head)."""
         return None if self.existence_logits is None else torch.sigmoid(self.existence_logits)
 
 
@@ -257,6 +257,8 @@ def check_camera_matrix(camera_matrix: Tensor, batch: int) -> Tensor:
         raise ValueError(f"camera_matrix: expected shape (3, 3) or ({batch}, 3, 3), "
                          f"got {tuple(camera_matrix.shape)}")
     k = camera_matrix.expand(batch, 3, 3)
+    if not value_checks_enabled():  # each check reads the device: a training step skips them
+        return k
     with torch.no_grad():
         if not bool(torch.isfinite(k).all()):
             raise ValueError("camera_matrix: contains NaN or infinite values")
@@ -270,8 +272,7 @@ def check_camera_matrix(camera_matrix: Tensor, batch: int) -> Tensor:
 
 
 def _check_names(config: NetworkConfig) -> None:
-    """Raise ValueError (one line) for an unknown head or normalisation (the encoder is
-    checked by the config itself)."""
+    """One-line ValueError for an unknown head or normalisation (the config checks encoders)."""
     for field, registry in (("latent", LATENT_HEADS), ("pose_head", POSE_HEADS)):
         value = getattr(config, field)
         if value not in registry:
@@ -374,8 +375,7 @@ class SuperquadricNet(nn.Module):
         self.train(self.training)
 
     def train(self, mode: bool = True) -> SuperquadricNet:
-        """``nn.Module.train``, except that modules with only frozen parameters stay in eval
-        mode (:meth:`freeze_except`)."""
+        """``nn.Module.train``; modules of frozen parameters alone stay in eval mode."""
         super().train(mode)
         if mode:
             for module in self.modules():
@@ -438,8 +438,8 @@ class SuperquadricNet(nn.Module):
         maps = self.encoder.forward_pyramid(normalised)
         z_sq, z_pose = self.latent_head(maps)
         pose = self.pose_head(z_pose)
-        size = images.new_tensor([width, height])
-        pixel = 0.5 * size * (1.0 + self.config.pixel_extent * torch.tanh(pose.position[:, :2]))
+        spread = 1.0 + self.config.pixel_extent * torch.tanh(pose.position[:, :2])  # no copy
+        pixel = torch.stack([0.5 * width * spread[:, 0], 0.5 * height * spread[:, 1]], dim=-1)
         focal_ratio = torch.sqrt(k[:, 0, 0] * k[:, 1, 1] / (width * height))  # (B,)
         depth_scale = self.config.depth_prior / self.config.prior_focal_ratio / _LN2
         depth = depth_scale * focal_ratio * F.softplus(pose.position[:, 2])

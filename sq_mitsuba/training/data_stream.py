@@ -22,6 +22,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from sq_mitsuba.checks import value_checks
 from sq_mitsuba.data.spe3r import Spe3rDataset
 from sq_mitsuba.data.symmetry import model_symmetries, stack_symmetries
 from sq_mitsuba.geometry.camera import Camera
@@ -127,8 +128,9 @@ class TrainingStream:
                                     self.images.size)
         rotation, translation = moved["rotation"], moved["translation"]
         if host.augmentation is not None:
-            image, mask, rotation, translation = apply_augmentation(
-                image, mask, rotation, translation, host.augmentation, self.camera)
+            with value_checks(False):  # checked where cached; a scan here would wait for a GPU
+                image, mask, rotation, translation = apply_augmentation(
+                    image, mask, rotation, translation, host.augmentation, self.camera)
         return TrainingBatch(
             image=image, mask=mask, rotation=rotation, translation=translation,
             model_index=moved["model_index"], surface_points=moved["surface_points"],
