@@ -250,6 +250,11 @@ def test_a_distributed_run_refuses_a_head_no_weighted_term_reads():
         check_terms(unread, output, net)
     check_terms(unread, output)  # one process: its mask head just stays put
     check_terms(LossConfig(weights={"chamfer": 10.0, "mask": 1.0}), output, net)
+    # A pose-only run leaves the shape's branch (read through the assembly, from raw) unread.
+    pose_only = LossConfig(weights={"rotation_6d": 1.0, "translation": 1.0})
+    with pytest.raises(LossTermError, match=r"^network output 'raw', 'mask_logits'.*"
+                                            r"\(latent_head\.\*, mask_head\.\*, sq_generator"):
+        check_terms(pose_only, output, net)
     net.freeze_except(("encoder.", "sq_generator.", "pose_head.", "latent_head."))
     frozen = net(torch.zeros(1, 1, SIZE, SIZE), CAMERA.matrix())
     check_terms(unread, frozen, net)

@@ -81,6 +81,11 @@ def test_default_raw_and_resize():
     masks[0, :4, :4] = True
     assert torch.allclose(resize_masks(masks, 2, 2)[0],
                           torch.tensor([[1.0, 0.0], [0.0, 0.0]], dtype=torch.float64))
+    # Shrunk in height, grown in width: nearest, values 0 or 1 (area, chosen by the height
+    # alone before, averaged 3 set rows of 4 to 0.75).
+    masks[0, 3] = False
+    mixed = resize_masks(masks, 2, 16)[0]
+    assert mixed.shape == (2, 16) and set(mixed.unique().tolist()) == {0.0, 1.0}
 
 
 def test_fit_bad_input():

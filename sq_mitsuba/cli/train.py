@@ -66,7 +66,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="continue the run in --out from its last.pt")
     parser.add_argument("--max-steps", type=int, metavar="N",
                         help="stop after N steps in total (the schedule still spans every "
-                             "epoch; --resume continues; default: no stop before the end)")
+                             "epoch; --resume continues; 0 checks everything, builds the caches "
+                             "and stops before the first step, with no checkpoint to resume "
+                             "from; default: no stop before the end)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.set_defaults(func=_run)
 

@@ -353,6 +353,6 @@ def plot_illumination(table: Sequence[dict], path: str | Path,
                   ncol=min(4, max(len(labels), 1)), frameon=False)
     figure.suptitle((title + "\n" if title else "") + "metrics against the sun phase angle "
                     "(lines: mean; shaded: ± std; black markers: eclipse frames, one shape "
-                    "a method)", fontsize=9)
+                    "a method, each 4 deg to the right of the one before)", fontsize=9)
     figure.tight_layout(rect=(0, 0.04 + 0.02 * math.ceil(len(labels) / 4), 1, 1))
     return save_figure(figure, path)

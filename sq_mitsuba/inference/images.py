@@ -161,7 +161,7 @@ def resize_images(images: Tensor, size: int) -> Tensor:
     if tuple(images.shape[-2:]) == (size, size):
         return images
     # Not "area": a box filter differs from the training images' triangle filter by up to
-    # 16-60 grey levels at edges (256 px -> 96-224), a shift the network never saw.
+    # 16-63 grey levels at edges (256 px -> 96-224), a shift the network never saw.
     return F.interpolate(images, size=(size, size), mode="bilinear", align_corners=False,
                          antialias=True)
 

@@ -55,7 +55,6 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import functools
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -197,12 +196,13 @@ class NetworkOutput:
     surface_depth: Tensor | None = None
     surface_normals: Tensor | None = None
 
-    @functools.cached_property
+    @property
     def assembly(self) -> Assembly:
         """The assembly in the body frame: ``Assembly.from_raw(raw)`` with the default
         :class:`ParameterRanges`, turned by ``view_to_body`` where the network reads shapes in
-        the view frame. Built once per output (the training step's loss terms all read it;
-        ``dataclasses.replace`` makes a new output, with its own)."""
+        the view frame. Built anew on each access: each loss term backpropagates through its
+        own (one shared assembly sums the terms' gradients in another order, and training
+        would no longer repeat the shipped model's runs bit for bit)."""
         assembly = Assembly.from_raw(self.raw, ParameterRanges())
         if self.view_to_body is None:
             return assembly

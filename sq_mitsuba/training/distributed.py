@@ -35,6 +35,15 @@ __all__ = [
 ]
 
 
+# torch deprecates torch.distributed.nn.functional.all_reduce for
+# _functional_collectives.all_reduce (not checked here); the old one's backward sums the
+# gradients over processes, as the statistics' gradient needs (input gradients equal
+# BatchNorm2d's over the global batch to 3e-16 in float64, 2 processes). One filter, set
+# once: a catch_warnings in forward would swap the process's filters every step.
+warnings.filterwarnings("ignore", "torch.distributed.nn.functional.all_reduce is deprecated",
+                        FutureWarning)
+
+
 class CpuSyncBatchNorm(nn.BatchNorm2d):
     """BatchNorm2d whose training statistics span every process of a distributed run, on
     the CPU (torch's SyncBatchNorm needs a GPU).
@@ -57,14 +66,7 @@ class CpuSyncBatchNorm(nn.BatchNorm2d):
         dims = [0, *range(2, x.dim())]
         wide = x.to(torch.float64)
         count = wide.new_tensor([x.numel() / channels])
-        with warnings.catch_warnings():
-            # Deprecated in favour of _functional_collectives.all_reduce (not checked here);
-            # this one's backward sums the gradients over processes, as the statistics'
-            # gradient needs (input gradients equal BatchNorm2d's over the global batch to
-            # 3e-16 in float64, 2 processes).
-            warnings.filterwarnings("ignore", "torch.distributed.nn.functional.all_reduce is "
-                                    "deprecated", FutureWarning)
-            packed = all_reduce(torch.cat([wide.sum(dims), (wide * wide).sum(dims), count]))
+        packed = all_reduce(torch.cat([wide.sum(dims), (wide * wide).sum(dims), count]))
         total = packed[-1]
         mean = packed[:channels] / total
         var = (packed[channels:2 * channels] / total - mean * mean).clamp_min(0)

@@ -421,8 +421,8 @@ def check_terms(config: LossConfig, output: NetworkOutput,
                                     f"'{needed}', which this network does not produce")
     if distributed_model is None:
         return
-    optional = {f for term in LOSS_TERMS.values() for f in term.needs}
-    read = {f for name in names for f in LOSS_TERMS[name].needs}
+    optional = {f for term in LOSS_TERMS.values() for n in term.needs for f in _FIELDS.get(n, (n,))}
+    read = {f for name in names for n in LOSS_TERMS[name].needs for f in _FIELDS.get(n, (n,))}
     tensors = {k: v for k, v in vars(output).items()
                if isinstance(v, Tensor) and v.requires_grad}
     unread = [k for k in tensors if k in optional and k not in read]
@@ -438,6 +438,11 @@ def check_terms(config: LossConfig, output: NetworkOutput,
             "gradient, which a distributed run cannot train; weigh a term that reads it (e.g. "
             "loss.weights.mask for network.mask_head), leave the head out, freeze it "
             "(optim.trainable) or train in one process")
+
+
+# The output fields behind a need that is no field: the assembly is read from raw, turned by
+# view_to_body, its primitives weighed by existence_logits.
+_FIELDS = {"assembly": ("raw", "view_to_body", "existence_logits")}
 
 
 def _reached(model: torch.nn.Module, tensors: list[Tensor]) -> set[str]:
