@@ -188,11 +188,13 @@ def rotation_hypotheses(logits: Tensor, grid: Tensor, count: int,
     if logits.dim() != 2 or grid.shape != (logits.shape[1], 3, 3):
         raise ValueError(f"expected logits (B, G) and grid (G, 3, 3), got "
                          f"{tuple(logits.shape)} and {tuple(grid.shape)}")
-    probabilities = logits.float().softmax(dim=-1)
+    # The greedy loop runs on the host, whatever the device: on a GPU each of its small
+    # steps would wait for the device (about a hundred an image); one copy each way instead.
+    probabilities = logits.detach().float().softmax(dim=-1).cpu()
     order = probabilities.argsort(dim=-1, descending=True)[:, : max(8 * count, 64)]
     limit = math.cos(math.radians(separation_deg))
-    flat = grid.reshape(-1, 9).to(probabilities)
-    rotations = grid.new_zeros(logits.shape[0], count, 3, 3)
+    flat = grid.detach().reshape(-1, 9).cpu().to(probabilities)
+    chosen = torch.zeros(logits.shape[0], count, dtype=torch.long)
     scores = probabilities.new_zeros(logits.shape[0], count)
     for item in range(logits.shape[0]):
         kept: list[int] = []
@@ -205,10 +207,9 @@ def rotation_hypotheses(logits: Tensor, grid: Tensor, count: int,
             kept.append(cell)
             if len(kept) == count:
                 break
-        chosen = torch.tensor(kept + [kept[0]] * (count - len(kept)), device=grid.device)
-        rotations[item] = grid[chosen]
+        chosen[item] = torch.tensor(kept + [kept[0]] * (count - len(kept)))
         scores[item, : len(kept)] = probabilities[item, kept]
-    return rotations, scores
+    return grid[chosen.to(grid.device)], scores.to(logits.device)
 
 
 @torch.no_grad()
