@@ -114,7 +114,11 @@ class Assembly:
 
     @classmethod
     def from_raw(cls, raw: Tensor, ranges: ParameterRanges | None = None) -> Assembly:
-        """Squash unconstrained outputs (B, M, 16) into valid parameters (see ParameterRanges)."""
+        """Squash unconstrained outputs (B, M, 16) into valid parameters (see ParameterRanges).
+
+        The 6D rotation (columns 8-13) is kept as it is, so raw zeros there are a degenerate
+        rotation and refused: a head starts its 6D outputs at
+        :data:`~sq_mitsuba.geometry.rotation.IDENTITY_6D` (as the network's bias does)."""
         ranges = ranges or ParameterRanges()
         check_tensor("raw", raw, (None, NUM_PARAMS), min_dims=3)
         size = ranges.size_min + ranges.size_span * torch.sigmoid(raw[..., FIELDS["size"]])
