@@ -100,14 +100,15 @@ def _remove_earlier_pass(out: Path, stems: set[str], colmap_written: bool) -> in
     for stem in stems:  # a single image's assembly beside this pass's pose of that stem
         gone += [out / f"{stem}{suffix}" for suffix in OUTPUT_SUFFIXES
                  if suffix not in (".pose.json", ".overlay.png")]
-    if not colmap_written and (out / "colmap").is_dir():
+    stale_colmap = not colmap_written and (out / "colmap").is_dir()
+    if stale_colmap:
         gone += [out / "colmap" / name for name in COLMAP_FILES]
     removed = 0
     for path in gone:
         if path.is_file():
             path.unlink()
             removed += 1
-    if not colmap_written and (out / "colmap").is_dir():
+    if stale_colmap:
         try:
             (out / "colmap").rmdir()
         except OSError:  # holds the user's own files: they stay

@@ -37,7 +37,11 @@ from torch.autograd.function import once_differentiable
 
 from sq_mitsuba.checks import check_rotations, check_tensor, value_checks_enabled
 from sq_mitsuba.geometry.icosphere import icosphere_angles, icosphere_faces
-from sq_mitsuba.geometry.rotation import matrix_to_rotation_6d, rotation_6d_to_matrix
+from sq_mitsuba.geometry.rotation import (
+    degenerate_6d,
+    matrix_to_rotation_6d,
+    rotation_6d_to_matrix,
+)
 from sq_mitsuba.geometry.superquadric import (
     dual_field,
     dual_scales,
@@ -104,10 +108,7 @@ class Assembly:
                 raise ValueError("params: shape must lie in [0, 1]")
             if bool((self.taper.abs() >= 1).any()):
                 raise ValueError("params: taper must satisfy |k| < 1")
-            d6 = self.rotation_6d
-            first, second = d6[..., :3], d6[..., 3:]
-            cross = torch.linalg.vector_norm(torch.linalg.cross(first, second, dim=-1), dim=-1)
-            if bool((cross <= 1e-8 * (first.norm(dim=-1) * second.norm(dim=-1) + 1e-30)).any()):
+            if bool(degenerate_6d(self.rotation_6d).any()):
                 raise ValueError("params: degenerate 6D rotation (zero or parallel rows)")
 
     # ---------------------------------------------------------------- construction

@@ -30,6 +30,7 @@ __all__ = [
     "IDENTITY_6D",
     "axis_angle_to_matrix",
     "best_rotation",
+    "degenerate_6d",
     "matrix_to_axis_angle",
     "matrix_to_quaternion",
     "matrix_to_rotation_6d",
@@ -47,6 +48,14 @@ IDENTITY_6D = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0)
 and fit."""
 
 
+def degenerate_6d(d6: Tensor) -> Tensor:
+    """(...,) bool: the 6D vectors (..., 6) whose two rows are zero or parallel (no rotation:
+    Gram-Schmidt has no second direction), within a relative 1e-8."""
+    a1, a2 = d6[..., :3], d6[..., 3:]
+    cross = torch.linalg.vector_norm(torch.linalg.cross(a1, a2, dim=-1), dim=-1)
+    return cross <= 1e-8 * a1.norm(dim=-1) * a2.norm(dim=-1) + 1e-30
+
+
 def _check_matrix(name: str, matrix: Tensor) -> None:
     check_tensor(name, matrix, (3, 3))
 
@@ -62,10 +71,9 @@ def rotation_6d_to_matrix(d6: Tensor) -> Tensor:
     """
     check_tensor("d6", d6, (6,))
     a1, a2 = d6[..., :3], d6[..., 3:]
-    if value_checks_enabled() and d6.numel():  # F.normalize would make a zero row a rotation
-        cross = torch.linalg.vector_norm(torch.linalg.cross(a1, a2, dim=-1), dim=-1)
-        if bool((cross <= 1e-8 * a1.norm(dim=-1) * a2.norm(dim=-1) + 1e-30).any()):
-            raise ValueError("d6: degenerate 6D rotation (zero or parallel rows)")
+    # F.normalize would make a zero row a rotation.
+    if value_checks_enabled() and d6.numel() and bool(degenerate_6d(d6).any()):
+        raise ValueError("d6: degenerate 6D rotation (zero or parallel rows)")
     b1 = F.normalize(a1, dim=-1)
     b2 = F.normalize(a2 - (b1 * a2).sum(-1, keepdim=True) * b1, dim=-1)
     b3 = torch.linalg.cross(b1, b2, dim=-1)

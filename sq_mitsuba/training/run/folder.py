@@ -21,7 +21,7 @@ import torch
 from torch import Tensor, nn
 
 from sq_mitsuba.config import flatten_dict, from_dict, to_dict
-from sq_mitsuba.io import atomic_path, check_output_folder
+from sq_mitsuba.io import atomic_path, check_output_folder, read_json
 from sq_mitsuba.model.checkpoint import load_weights, read_checkpoint, write_checkpoint
 from sq_mitsuba.training.cache import manifest_hash
 from sq_mitsuba.training.config import TrainConfig
@@ -97,10 +97,8 @@ def check_out_dir(out_dir: Path, resume: bool) -> None:
 
 def _holds_a_run_config(path: Path) -> bool:
     """Whether ``path`` is a training run's ``config.json`` (its network and optim tables)."""
-    import json
-
     try:
-        config = json.loads(path.read_text(encoding="utf-8"))
+        config = read_json(path)
     except (OSError, ValueError):
         return False
     return isinstance(config, dict) and {"network", "optim"} <= set(config)
