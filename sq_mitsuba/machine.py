@@ -9,6 +9,7 @@ instead of being killed for memory after minutes.
 from __future__ import annotations
 
 import os
+from collections.abc import MutableMapping
 from pathlib import Path
 
 #: Where Linux says which control groups this process is in, and where their limits are.
@@ -81,3 +82,31 @@ def too_much_memory(what: str, need: int, memory: int, advice: str) -> str:
     more than the M this process may use; {advice}"``."""
     return (f"{what} needs about {memory_text(need)} of memory, more than the "
             f"{memory_text(memory)} this process may use; {advice}")
+
+
+def narrow_to_local_gpu(environ: MutableMapping[str, str] = os.environ) -> str | None:
+    """Give each process of a multi-process run (torchrun's ``WORLD_SIZE`` > 1) its own GPU
+    alone: ``CUDA_VISIBLE_DEVICES`` becomes the ``LOCAL_RANK``-th of the devices listed there
+    (all when unset), so that torch and Dr.Jit both see that one device, as ``cuda:0``.
+
+    Why: Dr.Jit 1.x has no call that chooses a CUDA device; it renders on the first visible
+    one, so without this every process would render on GPU 0 while its network ran on GPU r.
+    Call it before torch or Mitsuba first touches CUDA (the variable is read once, at CUDA's
+    start); ``sq-mitsuba train`` does.
+
+    Returns:
+        The device it kept, or None where it changed nothing (one process, no LOCAL_RANK, one
+        device listed already, or fewer devices listed than local ranks: torch's error then
+        names the missing device).
+    """
+    if int(environ.get("WORLD_SIZE", "1") or 1) <= 1 or "LOCAL_RANK" not in environ:
+        return None
+    rank = int(environ["LOCAL_RANK"])
+    listed = environ.get("CUDA_VISIBLE_DEVICES")
+    devices = [d.strip() for d in listed.split(",") if d.strip()] if listed is not None \
+        else None
+    if devices is not None and (len(devices) <= 1 or rank >= len(devices)):
+        return None
+    kept = str(rank) if devices is None else devices[rank]
+    environ["CUDA_VISIBLE_DEVICES"] = kept
+    return kept

@@ -34,6 +34,19 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys, no_env_traceback):
     assert not (tmp_path / "out").exists()
 
 
+def test_a_torchrun_process_names_its_rank_in_its_error(tmp_path, capsys, monkeypatch,
+                                                        no_env_traceback):
+    """Every process of a torchrun run prints its own errors (one may fail alone): those of
+    ranks > 0 say whose they are; rank 0's, like a one-process run's, read as ever."""
+    monkeypatch.setenv("WORLD_SIZE", "4")
+    monkeypatch.setenv("RANK", "3")
+    assert main(_report(tmp_path)) == EXIT_ERROR
+    assert error_line(capsys).startswith("sq-mitsuba report (rank 3 of 4): error: ")
+    monkeypatch.setenv("RANK", "0")
+    assert main(_report(tmp_path)) == EXIT_ERROR
+    assert error_line(capsys).startswith("sq-mitsuba report: error: ")
+
+
 @pytest.mark.parametrize("argv, command, message", [
     ([], "sq-mitsuba", "the following arguments are required: COMMAND"),
     (["bogus"], "sq-mitsuba", "argument COMMAND: invalid choice: 'bogus'"),

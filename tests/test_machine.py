@@ -7,7 +7,12 @@ from pathlib import Path
 
 import pytest
 
-from sq_mitsuba.machine import available_memory, memory_text, too_much_memory
+from sq_mitsuba.machine import (
+    available_memory,
+    memory_text,
+    narrow_to_local_gpu,
+    too_much_memory,
+)
 
 GIB = 2**30
 
@@ -69,3 +74,21 @@ def test_the_refusal_is_one_line_naming_need_memory_and_advice():
     line = too_much_memory("image a.png: 10 x 10 px", 3 * GIB, GIB, "scale it down")
     assert line == ("image a.png: 10 x 10 px needs about 3 GiB of memory, more than the 1 GiB "
                     "this process may use; scale it down")
+
+
+@pytest.mark.parametrize(("environ", "kept", "visible"), [
+    ({"WORLD_SIZE": "4", "LOCAL_RANK": "2"}, "2", "2"),             # every GPU: the r-th
+    ({"WORLD_SIZE": "4", "LOCAL_RANK": "1", "CUDA_VISIBLE_DEVICES": "4,5,6,7"}, "5", "5"),
+    ({"WORLD_SIZE": "2", "LOCAL_RANK": "0", "CUDA_VISIBLE_DEVICES": "GPU-a, GPU-b"}, "GPU-a",
+     "GPU-a"),                                                         # UUIDs, spaces
+    ({"WORLD_SIZE": "2", "LOCAL_RANK": "1", "CUDA_VISIBLE_DEVICES": "3"}, None, "3"),  # one
+    ({"WORLD_SIZE": "4", "LOCAL_RANK": "3", "CUDA_VISIBLE_DEVICES": "0,1"}, None, "0,1"),
+    ({"WORLD_SIZE": "1", "LOCAL_RANK": "0"}, None, None),             # one process
+    ({"LOCAL_RANK": "1"}, None, None),                                 # not torchrun's
+    ({"WORLD_SIZE": "2"}, None, None),
+])
+def test_each_torchrun_process_keeps_its_own_gpu(environ, kept, visible):
+    """Dr.Jit renders on the first visible GPU: each process must see its own alone."""
+    environ = dict(environ)
+    assert narrow_to_local_gpu(environ) == kept
+    assert environ.get("CUDA_VISIBLE_DEVICES") == visible

@@ -330,6 +330,8 @@ def test_a_run_into_a_locked_output_refuses_and_a_killed_holder_blocks_nothing(
         assert _digest(out) == {LOCK_NAME: _digest(out)[LOCK_NAME]}
         commands = {
             "train": _train(train_dataset, out, "--max-steps", "1"),
+            # the lock's message, not "nothing to resume" (a fresh run has no last.pt yet)
+            "train --resume": _train(train_dataset, out, "--resume"),
             "eval": _eval(eval_checkpoint, train_dataset, out, "--quiet"),
             "models": ["models", "generate", "--count", "1", "--points", "1000", "--out",
                        str(out)],

@@ -970,6 +970,8 @@ def test_torchrun_stopped_by_ctrl_c_saves_one_step_and_matches_one_process(
             os.killpg(process.pid, signal.SIGKILL)
             process.wait()
     assert (out / "last.pt").is_file(), output[-3000:]
+    # One line for the run, rank 0's (every process was interrupted alike).
+    assert output.count("sq-mitsuba train: interrupted") == 1, output[-3000:]
     b = _read_checkpoint(out / "last.pt")
     steps = int(b["step"])
     assert steps == len(_rows(out / "log.csv")) >= TORCHRUN_STEPS_BEFORE_CTRL_C, output[-3000:]

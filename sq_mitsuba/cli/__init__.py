@@ -144,6 +144,15 @@ def _one_line(error: BaseException) -> str:
     return "; ".join(lines) or type(error).__name__
 
 
+def _speaker(command: str) -> str:
+    """Who speaks in a message: ``sq-mitsuba COMMAND``, and in a process of a multi-process
+    run (torchrun's ``RANK`` > 0) its rank: each process of such a run prints its own errors
+    and warnings (one may fail alone), so they must say whose they are."""
+    rank, size = int(os.environ.get("RANK", "0") or 0), int(os.environ.get("WORLD_SIZE", "1") or 1)
+    return f"sq-mitsuba {command}" + (f" (rank {rank} of {size})" if rank > 0 and size > 1
+                                      else "")
+
+
 def _warning_printer(command: str):
     """A ``warnings.showwarning`` that prints a warning as one line, ``sq-mitsuba COMMAND:
     warning: ...``, without Python's file, line number and source line."""
@@ -152,7 +161,7 @@ def _warning_printer(command: str):
         text = _one_line(message) if isinstance(message, Warning) else " ".join(
             str(message).split())
         try:
-            print(f"sq-mitsuba {command}: warning: {text}", file=file or sys.stderr)
+            print(f"{_speaker(command)}: warning: {text}", file=file or sys.stderr)
         except OSError:  # no stderr to write to: as Python's own does, say nothing
             pass
 
@@ -315,18 +324,19 @@ def _main(argv: Sequence[str] | None) -> int:
             if show_traceback:
                 traceback.print_exc()
             hint = _resume_hint(args)
-            print(f"sq-mitsuba {args.command}: interrupted" + (f" ({hint})" if hint else ""),
-                  file=sys.stderr)
+            if _speaker(args.command) == f"sq-mitsuba {args.command}":  # rank 0 for them all
+                print(f"sq-mitsuba {args.command}: interrupted" + (f" ({hint})" if hint else ""),
+                      file=sys.stderr)
             return EXIT_INTERRUPTED
         if show_traceback:
             raise
         if isinstance(error, CLIError | ValueError | OSError | BackendError):  # bad input
-            print(f"sq-mitsuba {args.command}: error: {_one_line(error)}", file=sys.stderr)
+            print(f"{_speaker(args.command)}: error: {_one_line(error)}", file=sys.stderr)
             return EXIT_ERROR
         # A bug: still one line, but named as such, and how to see more.
         name, detail = type(error).__name__, _one_line(error)
         what = name if detail == name else f"{name}: {detail}"
-        print(f"sq-mitsuba {args.command}: internal error: {what} ({TRACEBACK_HINT})",
+        print(f"{_speaker(args.command)}: internal error: {what} ({TRACEBACK_HINT})",
               file=sys.stderr)
         return EXIT_INTERNAL
 

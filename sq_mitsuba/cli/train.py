@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 from pathlib import Path
 
 from sq_mitsuba.cli import CLIError
@@ -74,6 +75,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _run(args: argparse.Namespace) -> int:
+    from sq_mitsuba.machine import narrow_to_local_gpu
+
+    narrow_to_local_gpu()  # before torch starts CUDA: each torchrun process renders on its GPU
     from sq_mitsuba.config import ConfigError, apply_overrides, from_dict
     from sq_mitsuba.training.config import TrainConfig, load_train_config
     from sq_mitsuba.training.train import train
@@ -102,6 +106,8 @@ def _run(args: argparse.Namespace) -> int:
         last = result.validation[-1]
         best = (f"; last validation: Chamfer-L1 {last['chamfer_l1']:.4f}, 2D IoU "
                 f"{last['iou_2d']:.3f}, rotation error {last['rotation_error_deg']:.1f} deg")
+    if int(os.environ.get("RANK", "0") or 0) > 0:  # one summary for a torchrun run: rank 0's
+        return 0
     print(f"trained {result.steps}/{result.total_steps} steps{rate}{best}; wrote "
           f"{result.out_dir}")
     for note in result.notes:

@@ -30,6 +30,7 @@ from torch import Tensor
 
 from sq_mitsuba.checks import check_nonzero, check_same_shape, check_tensor
 from sq_mitsuba.geometry.nearest import nearest_neighbours
+from sq_mitsuba.geometry.pose import transform_points
 from sq_mitsuba.geometry.rotation import quaternion_angle, rotation_angle
 
 __all__ = [
@@ -140,10 +141,8 @@ def camera_frame_chamfer(pred_points: Tensor, pred_rotation: Tensor, pred_transl
     if len(set(batch.values())) != 1:  # a (1, 3, 3) pose would broadcast over B items
         raise ValueError(f"camera_frame_chamfer: batch sizes differ: {batch}")
     dtype = torch.float64
-    placed_pred = pred_points.to(dtype) @ pred_rotation.to(dtype).transpose(-1, -2) + \
-        pred_translation.to(dtype)[:, None]
-    placed_gt = gt_points.to(dtype) @ gt_rotation.to(dtype).transpose(-1, -2) + \
-        gt_translation.to(dtype)[:, None]
+    placed_pred = transform_points(pred_points.to(dtype), pred_rotation, pred_translation)
+    placed_gt = transform_points(gt_points.to(dtype), gt_rotation, gt_translation)
     distance = torch.linalg.vector_norm(gt_translation.to(dtype), dim=-1)
     return chamfer_l1(placed_pred, placed_gt, convention, pred_mask=pred_mask) / distance
 

@@ -8,6 +8,11 @@ Convention:
       body to camera.
     - The 6D representation (Zhou et al. 2019) is the first two *rows* of R, flattened (the
       PyTorch3D convention); Gram-Schmidt maps any non-degenerate 6 numbers back to a rotation.
+    - Euler angles name their axes in the order the rotations are applied to the frame
+      (intrinsic): "ZYX" with angles (a, b, c) is R = R_z(a) @ R_y(b) @ R_x(c), the aerospace
+      yaw, pitch, roll ("3-2-1"); read right to left it is the same rotation about fixed axes
+      (extrinsic X, then Y, then Z). The twelve conventions: six Tait-Bryan ("XYZ", ...) and six
+      proper Euler ("ZXZ", ...).
 """
 
 from __future__ import annotations
@@ -31,11 +36,16 @@ __all__ = [
     "axis_angle_to_matrix",
     "best_rotation",
     "degenerate_6d",
+    "euler_angles_to_matrix",
     "matrix_to_axis_angle",
+    "matrix_to_euler_angles",
     "matrix_to_quaternion",
     "matrix_to_rotation_6d",
     "mean_rotation",
     "quaternion_angle",
+    "quaternion_apply",
+    "quaternion_invert",
+    "quaternion_multiply",
     "quaternion_to_matrix",
     "random_quaternions",
     "random_rotations",
@@ -285,3 +295,116 @@ def matrix_to_axis_angle(matrix: Tensor) -> Tensor:
     # angle / sin(angle / 2) -> 2 as the angle -> 0.
     scale = torch.where(sine > 1e-12, angle / sine.clamp_min(1e-12), torch.full_like(sine, 2.0))
     return quaternion[..., 1:] * scale
+
+
+def quaternion_multiply(quaternion_a: Tensor, quaternion_b: Tensor) -> Tensor:
+    """Hamilton product ``a b`` of quaternions (..., 4), broadcast over the batch dims:
+    ``quaternion_to_matrix(a b) == quaternion_to_matrix(a) @ quaternion_to_matrix(b)`` (b
+    applied first). Unit inputs give a unit product; the sign is not made w >= 0 (it is the
+    product's)."""
+    check_tensor("quaternion_a", quaternion_a, (4,))
+    check_tensor("quaternion_b", quaternion_b, (4,))
+    check_broadcast(quaternion_a=quaternion_a, quaternion_b=quaternion_b)
+    dtype = torch.promote_types(quaternion_a.dtype, quaternion_b.dtype)
+    a, b = torch.broadcast_tensors(quaternion_a.to(dtype), quaternion_b.to(dtype))
+    (wa, va), (wb, vb) = (a[..., :1], a[..., 1:]), (b[..., :1], b[..., 1:])
+    w = wa * wb - (va * vb).sum(-1, keepdim=True)
+    v = wa * vb + wb * va + torch.linalg.cross(va, vb, dim=-1)
+    return torch.cat([w, v], dim=-1)
+
+
+def quaternion_invert(quaternion: Tensor) -> Tensor:
+    """The inverse (..., 4) of non-zero quaternions (..., 4): the conjugate over the squared
+    norm, so that ``quaternion_multiply(q, quaternion_invert(q))`` is (1, 0, 0, 0); for a unit
+    quaternion, the conjugate, the inverse rotation."""
+    check_tensor("quaternion", quaternion, (4,))
+    check_nonzero("quaternion", quaternion)
+    conjugate = torch.cat([quaternion[..., :1], -quaternion[..., 1:]], dim=-1)
+    return conjugate / (quaternion * quaternion).sum(-1, keepdim=True)
+
+
+def quaternion_apply(quaternion: Tensor, points: Tensor) -> Tensor:
+    """Points (..., 3) rotated by quaternions (..., 4) (normalised implicitly, as in
+    :func:`quaternion_to_matrix`), broadcast over the batch dims: the same as
+    ``(quaternion_to_matrix(q) @ points[..., None])[..., 0]``, without forming the matrix."""
+    check_tensor("quaternion", quaternion, (4,))
+    check_tensor("points", points, (3,))
+    check_nonzero("quaternion", quaternion)
+    batch = check_broadcast(quaternion=quaternion, points=points)
+    dtype = torch.promote_types(quaternion.dtype, points.dtype)
+    q = F.normalize(quaternion.to(dtype), dim=-1).expand(*batch, 4)
+    w, u, p = q[..., :1], q[..., 1:], points.to(dtype).expand(*batch, 3)
+    # p' = p + 2 w (u x p) + 2 u x (u x p), the sandwich q p q* written with cross products.
+    twice_cross = 2.0 * torch.linalg.cross(u, p, dim=-1)
+    return p + w * twice_cross + torch.linalg.cross(u, twice_cross, dim=-1)
+
+
+_AXES = {"X": 0, "Y": 1, "Z": 2}
+
+
+def _euler_axes(convention: str) -> tuple[int, int, int]:
+    """The axis indices of an Euler convention ("ZYX", "ZXZ", ...), refusing others."""
+    if (not isinstance(convention, str) or len(convention) != 3
+            or any(c not in _AXES for c in convention)
+            or convention[0] == convention[1] or convention[1] == convention[2]):
+        raise ValueError(f"convention: expected three axes of X, Y, Z, no two in a row alike "
+                         f"(e.g. 'ZYX' or 'ZXZ'), got {convention!r}")
+    i, j, k = (_AXES[c] for c in convention)
+    return i, j, k
+
+
+def _axis_rotation(axis: int, angle: Tensor) -> Tensor:
+    """Rotations (..., 3, 3) by ``angle`` (...) about the coordinate axis ``axis``."""
+    cos, sin = torch.cos(angle), torch.sin(angle)
+    one, zero = torch.ones_like(angle), torch.zeros_like(angle)
+    p, q = (axis + 1) % 3, (axis + 2) % 3
+    entries = [[zero] * 3 for _ in range(3)]
+    entries[axis][axis] = one
+    entries[p][p], entries[p][q], entries[q][p], entries[q][q] = cos, -sin, sin, cos
+    return torch.stack([torch.stack(row, -1) for row in entries], -2)
+
+
+def euler_angles_to_matrix(angles: Tensor, convention: str = "ZYX") -> Tensor:
+    """Euler angles (..., 3), radians, -> rotation matrices (..., 3, 3):
+    ``R = R_{c0}(angles[..., 0]) @ R_{c1}(angles[..., 1]) @ R_{c2}(angles[..., 2])`` for the
+    convention's axes c0 c1 c2 (intrinsic, see the module's convention; default "ZYX": yaw,
+    pitch, roll)."""
+    axes = _euler_axes(convention)
+    check_tensor("angles", angles, (3,))
+    first, second, third = (_axis_rotation(a, angles[..., n]) for n, a in enumerate(axes))
+    return first @ second @ third
+
+
+def matrix_to_euler_angles(matrix: Tensor, convention: str = "ZYX") -> Tensor:
+    """Rotation matrices (..., 3, 3) -> Euler angles (..., 3), radians, the inverse of
+    :func:`euler_angles_to_matrix`: the first and last in (-pi, pi], the middle in
+    [-pi/2, pi/2] (Tait-Bryan) or [0, pi] (proper Euler).
+
+    At gimbal lock (the middle angle at +-pi/2, or at 0 or pi) only the sum or difference of
+    the outer two is defined: the last is then 0 and the first carries the rest, so the angles
+    still give the matrix back.
+    """
+    i, j, k = _euler_axes(convention)
+    _check_matrix("matrix", matrix)
+    check_rotations("matrix", matrix.reshape(-1, 3, 3))
+    m = matrix
+    if i != k:  # Tait-Bryan: the sign of the permutation (i, j, k)
+        sign = 1.0 if (j - i) % 3 == 1 else -1.0
+        middle = torch.asin((sign * m[..., i, k]).clamp(-1.0, 1.0))
+        first = torch.atan2(-sign * m[..., j, k], m[..., k, k])
+        last = torch.atan2(-sign * m[..., i, j], m[..., i, i])
+        locked = m[..., j, k].square() + m[..., k, k].square() < 1e-12
+    else:  # proper Euler: the sign of (i, j, m) with m the third axis
+        other = 3 - i - j
+        sign = 1.0 if (j - i) % 3 == 1 else -1.0
+        middle = torch.acos(m[..., i, i].clamp(-1.0, 1.0))
+        first = torch.atan2(m[..., j, i], -sign * m[..., other, i])
+        last = torch.atan2(m[..., i, j], sign * m[..., i, other])
+        locked = m[..., j, i].square() + m[..., other, i].square() < 1e-12
+    if bool(locked.any()):
+        # The last angle 0: R = R_i(first) R_j(middle), so R_i(first) = R R_j(middle)^T.
+        rest = m @ _axis_rotation(j, middle).transpose(-1, -2)
+        p, q = (i + 1) % 3, (i + 2) % 3
+        first = torch.where(locked, torch.atan2(rest[..., q, p], rest[..., p, p]), first)
+        last = torch.where(locked, torch.zeros_like(last), last)
+    return torch.stack([first, middle, last], dim=-1)

@@ -165,12 +165,11 @@ def train(config: TrainConfig | None, data_root: str | Path, out_dir: str | Path
     if max_seconds is not None and not max_seconds > 0:
         raise TrainError(f"max_seconds: expected > 0, got {max_seconds}")
     main_process = int(os.environ.get("RANK", "0")) == 0
-    if main_process:
-        check_out_dir(out_dir, resume)
     created = not out_dir.exists()
     # One run at a time in a run folder: rank 0 holds its lock from here to the end (a second
-    # run into it stops with one line; the lock goes with the process, kill -9 included), and
-    # every check below sees the folder as no other run will change it.
+    # run into it stops with the lock's line before the folder's checks, a --resume too; the
+    # lock goes with the process, kill -9 included, and removes what it made if a check
+    # refuses), and every check below sees the folder as no other run will change it.
     with output_lock(out_dir, command="sq-mitsuba train") if main_process else \
             contextlib.nullcontext():
         return _train(config, data_root, out_dir, resume, max_steps, progress, max_seconds,
@@ -181,8 +180,8 @@ def _train(config: TrainConfig | None, data_root: Path, out_dir: Path, resume: b
            max_steps: int | None, progress: bool, max_seconds: float | None, created: bool,
            main_process: bool) -> TrainResult:
     """:func:`train` under the run folder's lock (rank 0)."""
-    # Checks before any work and before anything is written: the run folder (again, under
-    # the lock: a run that ended meanwhile), the checkpoint, the config, the dataset.
+    # Checks before any work and before anything is written: the run folder (under the
+    # lock), the checkpoint, the config, the dataset.
     if main_process:
         check_out_dir(out_dir, resume)
     checkpoint = read_resumed(out_dir) if resume else None
@@ -273,7 +272,8 @@ def _device_of(config: TrainConfig) -> torch.device:
     if config.device == "cuda" or (config.device == "auto" and torch.cuda.is_available()):
         if not torch.cuda.is_available():
             raise TrainError("device: 'cuda' asked for, but torch sees no CUDA device")
-        return torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
+        local = int(os.environ.get("LOCAL_RANK", "0"))  # given its GPU alone, cuda:0
+        return torch.device("cuda", local if torch.cuda.device_count() > 1 else 0)
     return torch.device("cpu")
 
 
