@@ -92,3 +92,26 @@ def test_a_variant_the_environment_forces_and_cannot_run_says_to_unset_it(tmp_pa
         "sq-mitsuba doctor: error: Mitsuba variant 'cuda_ad_mono' (from SQ_MITSUBA_VARIANT) "
         "cannot run here (no CUDA driver or GPU?); unset SQ_MITSUBA_VARIANT to use the first "
         "that can (cuda_ad_mono, llvm_ad_mono)")
+
+
+def test_a_variant_set_by_name_stays_and_the_integrators_follow_it(monkeypatch):
+    """$SQ_MITSUBA_VARIANT chooses the first variant only: after a variant set by name
+    (training asks for cuda_ad_mono; llvm_ad_rgb stands in here, no GPU), the plain
+    mitsuba() every renderer calls keeps it, and the project's integrators, which Mitsuba
+    registers per variant, are registered in it too."""
+    from sq_mitsuba.render.silhouette.integrator import COVERAGE_PLUGIN, PLUGIN, register
+
+    mi = backend.mitsuba()
+    first = mi.variant()
+    monkeypatch.setenv(backend.VARIANT_ENV, first)
+    register()
+    try:
+        mi.set_variant("llvm_ad_rgb")
+        assert backend.mitsuba().variant() == "llvm_ad_rgb"
+        register()
+        # "Plugin not found" when registered in the first variant only.
+        mi.load_dict({"type": PLUGIN, "max_depth": 1})
+        mi.load_dict({"type": COVERAGE_PLUGIN})
+    finally:
+        mi.set_variant(first)
+    assert backend.mitsuba().variant() == first

@@ -209,7 +209,8 @@ def test_bad_labels_are_refused_naming_file_and_entry(fit_inputs, tmp_path, caps
     bad = tmp_path / "labels.json"
     for key, value, needle in (("q_vbs2tango_true", [float("nan"), 0, 0, 1], "NaN"),
                                ("r_Vo2To_vbs_true", [0.0, 2.0], "3 numbers"),
-                               ("q_vbs2tango_true", [0, 0, 0, 0], "zero norm")):
+                               ("q_vbs2tango_true", [0, 0, 0, 0], "zero norm"),
+                               ("r_Vo2To_vbs_true", [0.0, 0.0, -5.0], "not in front")):
         entries = json.loads(json.dumps(labels))
         entries[1][key] = value
         bad.write_text(json.dumps(entries))  # NaN is written as the bare word NaN

@@ -274,6 +274,28 @@ def test_reader_reads_an_spe3r_shaped_fixture_with_jpg_images(tmp_path):
     points, labels = item["occupancy_points"], item["occupancy_labels"].bool()
     in_box = (points.abs() < torch.tensor([0.5, 0.25, 0.15])).all(-1)
     assert (in_box == labels).float().mean() > 0.99
+    # The preview finds the .png masks of .jpg labels as the reader does.
+    from sq_mitsuba.data.spe3r.preview import preview_dataset
+
+    assert preview_dataset(root, tmp_path / "preview.png", count=2).stat().st_size > 0
+
+
+def test_occupancy_of_a_model_without_samples_covers_its_whole_box(tmp_path):
+    """A release mesh has no samples.npz: its occupancy points are drawn in a cube about the
+    mesh's box (a cube about the origin left out the far end of a lopsided model)."""
+    import trimesh
+
+    from sq_mitsuba.data.spe3r.layout import model_points
+
+    (tmp_path / "sat" / "models").mkdir(parents=True)
+    box = trimesh.creation.box((1.6, 0.4, 0.4))
+    box.apply_translation((0.5, 0.0, 0.0))  # spans x from -0.3 to 1.3
+    box.export(tmp_path / "sat" / "models" / "model_normalized.obj")
+    points = model_points(tmp_path / "sat")
+    uniform, inside = points["points"][:50_000], points["inside"][:50_000]
+    assert uniform[:, 0].min() < -0.25 and uniform[:, 0].max() > 1.25
+    far = inside & (uniform[:, 0] > 0.9)  # the box's far end, outside [-0.5, 0.5]^3
+    assert far.sum() > 0.2 * inside.sum()
 
 
 def test_reader_errors_name_the_file(dataset, tmp_path):
@@ -287,6 +309,44 @@ def test_reader_errors_name_the_file(dataset, tmp_path):
         Spe3rDataset(broken, "train")
     with pytest.raises(ValueError, match="split"):
         Spe3rDataset(dataset, "validation")
+
+
+@pytest.mark.parametrize("index", [99, -1, 2.5])
+def test_a_material_index_that_is_none_is_one_line_naming_the_samples(model_library, tmp_path,
+                                                                      index):
+    """An index past the material list stopped a whole render with an IndexError; a negative
+    one silently lit the model as another material."""
+    model = spe3r_writer.find_models(model_library)[0]
+    copy = tmp_path / model
+    shutil.copytree(model_library / model, copy)
+    samples_path = copy / "models" / "samples.npz"
+    with np.load(samples_path) as archive:
+        samples = dict(archive)
+    samples["face_material"] = samples["face_material"].astype(type(index))
+    samples["face_material"][3] = index
+    np.savez(samples_path, **samples)
+    with pytest.raises(DatasetError, match=r"samples\.npz: face_material holds .* outside"):
+        load_model(copy)
+
+
+@pytest.mark.parametrize(("text", "message"), [
+    ("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 0 1 2\nv 0 0 1\n", ":4: face index 0"),
+    ("v 0 0 0\nv 1 0\nv 0 1 0\nv 0 0 1\nf 1 2 3\n", ":2: a vertex needs 3 coordinates"),
+    ("v 0 0 x\n", ":1: 'x' is not a number"),
+    ("v 0 0 0\nf -3 -2 -1\n", ":2: a relative face index reaches before"),
+])
+def test_an_obj_that_misnumbers_its_vertices_is_refused_naming_the_line(tmp_path, text,
+                                                                      message):
+    """Read on, each would put faces on other vertices than the file meant (index 0 on the
+    next vertex defined, a short vertex line shifting every later index)."""
+    from sq_mitsuba.data.mesh_io import read_obj
+
+    path = tmp_path / "mesh.obj"
+    path.write_text(text)
+    with pytest.raises(ValueError, match=f"mesh.obj{message}"):
+        read_obj(path)
+    path.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf -3 -2 -1\n")  # relative indices: fine
+    assert read_obj(path)[1].tolist() == [[0, 1, 2]]
 
 
 # ------------------------------------------------------------------------ light

@@ -100,9 +100,9 @@ def test_best_rotation_beats_every_other_rotation_reflections_included() -> None
 
     generator = torch.Generator().manual_seed(5)
     sample = random_rotations(20_000, generator, torch.float64)
+    matrices = torch.randn(20, 3, 3, generator=generator, dtype=torch.float64)
     reflected = 0
-    for _ in range(20):
-        matrix = torch.randn(3, 3, generator=generator, dtype=torch.float64)
+    for matrix in matrices:
         u, _, vt = torch.linalg.svd(matrix)
         reflected += int(torch.linalg.det(u @ vt) < 0)
         best = best_rotation(matrix)
@@ -111,9 +111,12 @@ def test_best_rotation_beats_every_other_rotation_reflections_included() -> None
         score = float(torch.trace(best.T @ matrix))
         assert score >= float(torch.einsum("kij,ij->k", sample, matrix).max()) - 1e-9
     assert reflected >= 5  # both kinds of matrix were tried
+    # A batch (here (4, 5, 3, 3)) gives each matrix's own answer.
+    batched = best_rotation(matrices.reshape(4, 5, 3, 3)).reshape(20, 3, 3)
+    torch.testing.assert_close(batched, torch.stack([best_rotation(m) for m in matrices]))
 
 
-@pytest.mark.parametrize("matrix", [torch.zeros(2, 3, 3), torch.zeros(3, 2),
+@pytest.mark.parametrize("matrix", [torch.zeros(3, 2), torch.zeros(2, 3, 4),
                                     torch.full((3, 3), float("nan"))])
 def test_best_rotation_names_a_bad_matrix(matrix) -> None:
     from sq_mitsuba.geometry.rotation import best_rotation

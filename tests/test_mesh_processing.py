@@ -314,3 +314,18 @@ def test_a_mesh_far_from_its_origin_imports_as_it_does_at_the_origin(tmp_path) -
     np.testing.assert_allclose(np.sort(mapped, axis=0),
                                np.sort(processed["far"].mesh.vertices, axis=0), atol=1e-6)
     assert import_model(tmp_path / "far.stl", tmp_path / "lib", points=200).is_dir()
+
+
+@pytest.mark.parametrize(("faces", "message"), [
+    ([[0, 1, 3]], r"faces: expected integer indices in \[0, 3\), got int64 in \[0, 3\]"),
+    ([[0, 1, -1]], r"in \[-1, 1\]"),
+    ([[0.0, 1.0, 2.0]], "float64"),
+])
+def test_a_ray_caster_refuses_faces_past_its_vertices(faces, message):
+    """Cast to uint32 unchecked, -1 became 4294967295 and Mitsuba built its BVH reading past
+    the vertex buffer before numpy failed elsewhere."""
+    vertices = np.eye(3)
+    with pytest.raises(ValueError, match=message):
+        RayCaster(vertices, np.asarray(faces))
+    with pytest.raises(ValueError, match="vertices: not finite"):
+        RayCaster(np.array([[0.0, 0.0, np.nan], [1, 0, 0], [0, 1, 0]]), [[0, 1, 2]])

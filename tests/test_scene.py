@@ -388,3 +388,21 @@ def test_an_image_does_not_depend_on_being_its_scenes_first(eight_models, with_d
             np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-6)
         elif a is not None:
             assert a.tobytes() == b.tobytes(), name
+
+
+def test_material_tags_are_names_or_indices_and_an_unknown_one_is_refused():
+    """An unknown tag rendered the default grey unnoticed (a MATERIALS index read as the
+    string "0", a misspelt name)."""
+    from sq_mitsuba.render.materials import MATERIALS
+    from sq_mitsuba.render.space import SpaceScene, _face_tags
+
+    assert _face_tags(np.array([0, 2]), 2).tolist() == [MATERIALS[0], MATERIALS[2]]
+    assert _face_tags(None, 2).tolist() == ["default", "default"]
+    vertices = np.array([[0.0, 0, 3], [1, 0, 3], [0, 1, 3], [0, 0, 4]])
+    faces = np.array([[0, 1, 2], [0, 1, 3], [0, 2, 3], [1, 2, 3]])
+    camera, config = Camera.default(16), SceneConfig()
+    for tags, message in ((np.array(["gold-mli"] * 4), "'gold-mli': no such material"),
+                          (np.array([0, 1, 2, 99]), "indices outside the materials"),
+                          (np.array(["gold_mli"] * 3), "one tag per face")):
+        with pytest.raises(ValueError, match=message):
+            SpaceScene(vertices, faces, tags, camera, config, spp=1)

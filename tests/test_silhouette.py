@@ -258,6 +258,8 @@ def test_bad_renderer_arguments(off_centre_camera):
         SilhouetteRenderer("camera.json")
     with pytest.raises(ValueError, match="sppp"):
         SilhouetteRenderer(off_centre_camera, sppp=0)
+    with pytest.raises(ValueError, match="workers: 2 with batched=True"):
+        SilhouetteRenderer(off_centre_camera, workers=2, batched=True)
     with pytest.raises(ValueError, match="rotation"):
         render_assembly(Assembly.from_values(torch.ones(1, 1, 3) * 0.2, torch.ones(1, 1, 2)),
                         torch.eye(3), torch.zeros(1, 3), None)
@@ -294,6 +296,20 @@ def test_render_loss_matches_render_then_backward():
     assert cosine > 0.98
     with pytest.raises(ValueError, match="loss_fn"):
         renderer.render_loss(vertices, faces, "not callable")
+    # Without a gradient to compute (no_grad, or vertices that need none) no backward pass
+    # is rendered: the same loss and images as the forward pass of the gradient path.
+    calls = []
+    backward = renderer._vertex_gradient
+    renderer._vertex_gradient = lambda *args: calls.append(1) or backward(*args)
+    renderer.reseed(5)
+    with_grad = renderer.render_loss(vertices.clone().requires_grad_(), faces, per_item)
+    assert calls
+    calls.clear()
+    renderer.reseed(5)
+    with torch.no_grad():
+        without = renderer.render_loss(vertices.clone().requires_grad_(), faces, per_item)
+    assert not calls and without[0].item() == with_grad[0].item()
+    assert torch.equal(without[1], with_grad[1])
 
 
 # ---------------------------------------------------------------------------- topology cache

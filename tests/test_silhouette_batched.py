@@ -290,6 +290,11 @@ def test_a_loss_that_vmap_cannot_map_runs_item_by_item(batch):
     renderer.reseed(1)
     loss_loop, _ = renderer.render_target_loss(vertices, faces, masks, thresholded)
     assert float(loss_loop) == pytest.approx(float(loss_vmap), rel=1e-5)
+    # A loss of one element, shape (1,), passes as the per-item path takes it.
+    renderer.reseed(1)
+    loss_one, _ = renderer.render_target_loss(
+        vertices, faces, masks, lambda coverage, target: mask_mse(coverage, target).reshape(1))
+    assert float(loss_one) == pytest.approx(float(loss_vmap), rel=1e-5)
 
 
 # ---------------------------------------------------------------------------- bad input

@@ -213,3 +213,16 @@ def test_symmetry_table_in_worker_processes_matches_one_process(tmp_path):
         assert as_axes(row.numpy()[:1 + len(axes)]) == axes
         assert all(np.array_equal(m, np.eye(3)) for m in row.numpy()[1 + len(axes):])
     assert len(list((tmp_path / "pool").glob("*.json"))) == len(shapes)
+
+
+def test_two_passing_half_turns_bring_the_third():
+    """Half turns about x and y compose to the one about z: a set with two of them alone is no
+    group, and a symmetry-aware loss would count the implied pose as an error."""
+    from sq_mitsuba.data.symmetry import passing_axes
+
+    threshold = 0.01
+    assert passing_axes({"x": 0.0095, "y": 0.0098, "z": 0.0103}, threshold) == ["x", "y", "z"]
+    assert passing_axes({"x": 0.0095, "y": 0.02, "z": 0.0103}, threshold) == ["x"]
+    assert passing_axes({"x": 0.02, "y": 0.03, "z": 0.04}, threshold) == []
+    turns = [HALF_TURNS[a] for a in "xyz"]
+    np.testing.assert_allclose(turns[0] @ turns[1], turns[2], atol=1e-12)  # why: the product

@@ -216,8 +216,8 @@ def read_label_poses(labels_path: str | Path, names: Sequence[str | Path]
         FileNotFoundError: no ``labels_path``.
         ValueError: malformed JSON, an entry without ``filename``, two entries with one stem,
             no entry for a name, or an entry whose quaternion is not 4 finite numbers of norm
-            1 or whose translation is not 3 finite numbers; one line naming the file and the
-            entry (index and filename).
+            1 or whose translation is not 3 finite numbers with z > 0 (the target in front of
+            the camera); one line naming the file and the entry (index and filename).
     """
     labels_path = Path(labels_path)
     check_not_folder(labels_path, "labels")
@@ -251,7 +251,11 @@ def read_label_poses(labels_path: str | Path, names: Sequence[str | Path]
         if abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE:
             raise ValueError(f"{where}: {QUATERNION_KEY} has norm {norm:.6g}, not 1 (within "
                              f"{QUATERNION_NORM_TOLERANCE:g}): not a rotation quaternion")
+        translation = _numbers(entry, TRANSLATION_KEY, 3, where)
+        if not translation[2] > 0:  # as the dataset reader refuses it
+            raise ValueError(f"{where}: {TRANSLATION_KEY}: the target is not in front of the "
+                             f"camera (z = {translation[2]:g})")
         quaternions.append(q)
-        translations.append(_numbers(entry, TRANSLATION_KEY, 3, where))
+        translations.append(translation)
     return (torch.tensor(quaternions, dtype=torch.float64),
             torch.tensor(translations, dtype=torch.float64))

@@ -42,7 +42,9 @@ class TaggedMesh:
     face_material: np.ndarray
 
     def digest(self) -> str:
-        """SHA-256 of the geometry and materials (vertices rounded to 1e-9)."""
+        """SHA-256 of the geometry and materials (vertices rounded to 1e-9): an identity of
+        the mesh as made, not of its OBJ (written to 7 decimals, read back it digests
+        otherwise)."""
         h = hashlib.sha256()
         h.update(np.ascontiguousarray(np.round(self.vertices, 9), dtype="<f8").tobytes())
         h.update(np.ascontiguousarray(self.faces, dtype="<i8").tobytes())
@@ -68,19 +70,28 @@ def read_obj(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     vertices, faces, tags = [], [], []
     current = MATERIALS.index("aluminium")
     with open(path, encoding="utf-8", errors="replace") as handle:
-        for line in handle:
+        for number, line in enumerate(handle, 1):
             parts = line.split()
             if not parts:
                 continue
-            if parts[0] == "v" and len(parts) >= 4:
-                vertices.append([float(x) for x in parts[1:4]])
+            if parts[0] == "v":
+                # A short vertex line dropped would shift every later face onto other vertices.
+                if len(parts) < 4:
+                    raise ValueError(f"{path}:{number}: a vertex needs 3 coordinates, got "
+                                     f"{len(parts) - 1}")
+                vertices.append([_number(float, x, path, number) for x in parts[1:4]])
             elif parts[0] == "usemtl" and len(parts) > 1:
                 name = parts[1]
                 current = MATERIALS.index(name) if name in MATERIALS else MATERIALS.index(
                     "aluminium")
             elif parts[0] == "f" and len(parts) >= 4:
-                idx = [int(p.split("/")[0]) for p in parts[1:]]
+                idx = [_number(int, p.split("/")[0], path, number) for p in parts[1:]]
+                if 0 in idx:  # OBJ counts from 1 (negative: back from the last vertex read)
+                    raise ValueError(f"{path}:{number}: face index 0 (OBJ indices start at 1)")
                 idx = [i - 1 if i > 0 else len(vertices) + i for i in idx]
+                if min(idx) < 0:
+                    raise ValueError(f"{path}:{number}: a relative face index reaches before "
+                                     "the first vertex")
                 for k in range(1, len(idx) - 1):
                     faces.append([idx[0], idx[k], idx[k + 1]])
                     tags.append(current)
@@ -97,6 +108,35 @@ def read_obj(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return points, triangles, np.asarray(tags, np.int16)
 
 
+def _number(kind: type, text: str, path: Path, line: int) -> float | int:
+    """``kind(text)`` (float or int) or a ValueError naming the file and line."""
+    try:
+        return kind(text)
+    except ValueError:
+        raise ValueError(f"{path}:{line}: {text!r} is not a number") from None
+
+
+def check_face_material(face_material: np.ndarray, faces: int, where: Path | str,
+                        mesh: Path | str) -> np.ndarray:
+    """``face_material`` (F,) as int16 indices into :data:`MATERIALS`, or a ValueError naming
+    ``where``: another length than the mesh's ``faces``, not integers, or an index outside
+    0 .. len(MATERIALS) - 1 (an index past the end would stop a render, a negative one would
+    silently pick another material)."""
+    values = np.asarray(face_material)
+    if values.ndim != 1:
+        raise ValueError(f"{where}: face_material has shape {values.shape}, expected "
+                         f"({faces},): one index per face of {mesh}")
+    if len(values) != faces:
+        raise ValueError(f"{where}: face_material has {len(values)} entries for the {faces} "
+                         f"faces of {mesh} (one of the two files cut short or from another "
+                         "model)")
+    if len(values) and (values.dtype.kind not in "iu" or values.min() < 0
+                        or values.max() >= len(MATERIALS)):
+        raise ValueError(f"{where}: face_material holds {values.dtype} values outside the "
+                         f"material indices 0..{len(MATERIALS) - 1}")
+    return values.astype(np.int16)
+
+
 def read_tagged_obj(path: str | Path) -> TaggedMesh:
     """A processed model's OBJ with its per-face material tags.
 
@@ -111,11 +151,7 @@ def read_tagged_obj(path: str | Path) -> TaggedMesh:
     if samples.is_file():
         with np.load(samples) as archive:
             if "face_material" in archive:
-                tags = np.asarray(archive["face_material"], dtype=np.int16)
-                if len(tags) != len(faces):
-                    raise ValueError(f"{samples}: face_material has {len(tags)} entries for "
-                                     f"the {len(faces)} faces of {path} (one of the two files "
-                                     "cut short or from another model)")
+                tags = check_face_material(archive["face_material"], len(faces), samples, path)
     return TaggedMesh(vertices, faces, tags)
 
 

@@ -244,20 +244,19 @@ def quaternion_angle(quaternion_a: Tensor, quaternion_b: Tensor) -> Tensor:
 
 
 def best_rotation(matrix: Tensor) -> Tensor:
-    """The rotation F (3, 3) maximising trace(F^T M) for M (3, 3), which is the rotation
-    nearest M in the Frobenius norm (orthogonal Procrustes, Kabsch): U diag(1, 1, det(U V^T))
-    V^T from M's SVD. Where U V^T is a reflection the best rotation flips the weakest singular
-    direction; flipping an axis of U V^T is proper too, but scores lower."""
+    """The rotations F (..., 3, 3) maximising trace(F^T M) for matrices M (..., 3, 3), which
+    are the rotations nearest M in the Frobenius norm (orthogonal Procrustes, Kabsch):
+    U diag(1, 1, det(U V^T)) V^T from M's SVD. Where U V^T is a reflection the best rotation
+    flips the weakest singular direction; flipping an axis of U V^T is proper too, but scores
+    lower."""
     check_tensor("matrix", matrix, (3, 3))
-    if matrix.dim() != 2:
-        raise ValueError(f"matrix: expected (3, 3), got {tuple(matrix.shape)}")
     return _nearest_rotation(matrix)
 
 
 def _nearest_rotation(matrix: Tensor) -> Tensor:
     u, _, vh = torch.linalg.svd(matrix)
-    d = torch.sign(torch.linalg.det(u @ vh))
-    return u @ torch.diag(torch.stack([torch.ones_like(d), torch.ones_like(d), d])) @ vh
+    d = torch.sign(torch.linalg.det(u @ vh))  # +-1: U and V^T are orthogonal
+    return torch.cat([u[..., :2], u[..., 2:] * d[..., None, None]], dim=-1) @ vh
 
 
 def mean_rotation(rotations: Tensor) -> Tensor:

@@ -51,10 +51,17 @@ def check_variant_environment() -> None:
 
 
 def _configure_cache() -> None:
-    if CACHE_ENV not in os.environ:
-        cache = PROJECT_ROOT / ".drjit-cache"
+    """Dr.Jit's compiled kernels in the checkout's ``.drjit-cache`` (kept with the project,
+    shared by its processes); an installed package (no checkout above it: ``PROJECT_ROOT`` is
+    site-packages) or a folder that cannot be made keeps Dr.Jit's own default."""
+    if CACHE_ENV in os.environ or not (PROJECT_ROOT / "pyproject.toml").is_file():
+        return
+    cache = PROJECT_ROOT / ".drjit-cache"
+    try:
         cache.mkdir(exist_ok=True)
-        os.environ[CACHE_ENV] = str(cache)
+    except OSError:  # a read-only checkout
+        return
+    os.environ[CACHE_ENV] = str(cache)
 
 
 def _backend_works(variant: str) -> bool:
@@ -140,7 +147,8 @@ def one_thread(enabled: bool = True) -> Iterator[None]:
 
 
 def mitsuba(variant: str | None = None) -> ModuleType:
-    """The ``mitsuba`` module with a working variant set (idempotent).
+    """The ``mitsuba`` module with a working variant set (idempotent: without ``variant``,
+    the variant already set stays; ``$SQ_MITSUBA_VARIANT`` chooses only the first).
 
     Importing Mitsuba and Dr.Jit and setting the variant hold Ctrl-C back until done (see
     :func:`interrupts_deferred`): interrupted half-way, their extensions fail in ways that are
@@ -160,8 +168,11 @@ def mitsuba(variant: str | None = None) -> ModuleType:
     check_variant_environment()
     mi = sys.modules.get("mitsuba")
     current = mi.variant() if mi is not None and hasattr(mi, "variant") else None
-    if current is not None and (variant or os.environ.get(VARIANT_ENV)) in (None, current):
-        return mi  # the common case, set up already: nothing to hold back
+    # Set up already (the common case): nothing to hold back. A call that names no variant
+    # keeps the one set, which may be another than $SQ_MITSUBA_VARIANT's: training asks for
+    # cuda_ad_mono by name, and its renderers' plain calls must not switch back.
+    if current is not None and variant in (None, current):
+        return mi
     with interrupts_deferred():
         return _set_up(variant)
 

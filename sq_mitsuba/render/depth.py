@@ -47,12 +47,20 @@ class RayCaster:
     """
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray) -> None:
-        vertices = np.asarray(vertices, dtype=np.float32)
-        faces = np.asarray(faces, dtype=np.uint32)
+        source = np.asarray(vertices, dtype=np.float64)
+        vertices = source.astype(np.float32)
+        faces = np.asarray(faces)
         if vertices.ndim != 2 or vertices.shape[1] != 3 or len(vertices) == 0:
             raise ValueError(f"vertices: expected shape (V>0, 3), got {vertices.shape}")
+        if not np.isfinite(source).all():
+            raise ValueError("vertices: not finite (NaN or infinite)")
         if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
             raise ValueError(f"faces: expected shape (F>0, 3), got {faces.shape}")
+        # Checked before the cast: -1 would become 4294967295, a read past the vertices.
+        if faces.dtype.kind not in "iu" or faces.min() < 0 or faces.max() >= len(vertices):
+            raise ValueError(f"faces: expected integer indices in [0, {len(vertices)}), got "
+                             f"{faces.dtype} in [{faces.min()}, {faces.max()}]")
+        faces = faces.astype(np.uint32)
         mi = _mitsuba()
         self._mi = mi
         mesh = mi.Mesh("raycast_mesh", len(vertices), len(faces), has_vertex_normals=False)
@@ -61,7 +69,8 @@ class RayCaster:
         params["faces"] = mi.UInt32(faces.ravel())
         params.update()
         self._scene = mi.load_dict({"type": "scene", "mesh": mesh})
-        # Geometric normals from the float64 input, indexed by the hit's primitive index.
+        # Geometric normals of the mesh Mitsuba intersects (its float32 vertices), computed in
+        # float64, indexed by the hit's primitive index.
         v = vertices.astype(np.float64)
         self._normals = np.cross(v[faces[:, 1]] - v[faces[:, 0]], v[faces[:, 2]] - v[faces[:, 0]])
 

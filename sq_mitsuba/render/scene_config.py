@@ -13,8 +13,9 @@ the field before any image is rendered.
 
 Convention: camera frame OpenCV (x right, y down, z forward); a pose maps body to camera,
 ``x_cam = R x_body + t``, with R = quaternion_to_matrix(q), q = (w, x, y, z). Directions
-(sun, Earth) are unit vectors in the camera frame pointing *from the target towards* the
-body. The phase angle is the angle at the target between the directions to the sun and to the
+(sun, Earth) are unit vectors in the camera frame pointing from the target towards the sun
+and towards the Earth's centre (the Earth is far enough that the camera sees it in the same
+direction). The phase angle is the angle at the target between the directions to the sun and to the
 camera: 0 deg lights the visible side fully, 90 deg half of it, 180 deg back-lights it.
 """
 

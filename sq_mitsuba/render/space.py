@@ -227,13 +227,32 @@ def _warm_up_frame() -> Frame:
                  earth_rotation=identity, star_rotation=identity, eclipse=False)
 
 
+def _face_tags(face_material: np.ndarray | None, faces: int) -> np.ndarray:
+    """(F,) material tags (strings) of ``face_material`` (tags, MATERIALS indices or None)."""
+    if face_material is None:
+        return np.full(faces, "default")
+    values = np.asarray(face_material)
+    if values.ndim != 1 or len(values) != faces:
+        raise ValueError(f"face_material: expected one tag per face ({faces}), got shape "
+                         f"{values.shape}")
+    if values.dtype.kind not in "iu":
+        return values.astype(str)
+    from sq_mitsuba.render.materials import MATERIALS
+
+    if len(values) and (values.min() < 0 or values.max() >= len(MATERIALS)):
+        raise ValueError(f"face_material: indices outside the materials 0..{len(MATERIALS) - 1}")
+    return np.asarray(MATERIALS)[values]
+
+
 class SpaceScene:
     """Renders one model in the space scene, frame after frame (see the module docstring).
 
     Args:
         vertices: (V, 3) model vertices, body frame.
         faces: (F, 3) triangle indices.
-        face_material: (F,) material tag per face (strings), or None for the default.
+        face_material: (F,) material per face: tags (strings, keys of the materials) or
+            indices into :data:`sq_mitsuba.render.materials.MATERIALS`; None for the default.
+            A tag the materials lack is refused (it would render grey, unnoticed).
         camera: dataset camera (fx must equal fy: Mitsuba has one field of view).
         config: scene configuration (``exposure.mode = "auto"`` sets each frame's exposure
             from its own radiance, see :func:`auto_exposure`).
@@ -263,10 +282,12 @@ class SpaceScene:
         self.camera, self.config, self.spp = camera, config, spp
         self.vertices = vertices
         materials = materials or load_materials()
-        tags = (np.full(len(faces), "default") if face_material is None
-                else np.asarray(face_material).astype(str))
-        if len(tags) != len(faces):
-            raise ValueError("face_material: expected one tag per face")
+        tags = _face_tags(face_material, len(faces))
+        known = sorted(key for key in materials if not key.startswith("_"))
+        unknown = sorted(set(tags.tolist()) - set(known))
+        if unknown:
+            raise ValueError(f"face_material: {', '.join(map(repr, unknown[:5]))}: no such "
+                             f"material (known: {', '.join(known)})")
         self.parts: list[tuple[str, np.ndarray, np.ndarray]] = []  # (key, vertex ids, faces)
         for tag in sorted(set(tags.tolist())):
             part_faces = faces[tags == tag]

@@ -431,7 +431,8 @@ def pressurised_module(radius: float, length: float, material: str = "white_pain
 
 def capsule(radius: float, height: float, thin: float) -> list[Part]:
     """A crew or cargo capsule: a cone frustum from its heat shield at the origin up along
-    +z, the heat shield a flat disc reaching a tenth of the height behind the origin."""
+    +z, the heat shield a flat disc centred on the origin, a tenth of the height thick (at
+    least ``thin``): it reaches half that behind the origin."""
     cone = transform_solid(prism(CIRCLE_SEGMENTS, radius, height, radius * 0.4), None,
                            (0, 0, height / 2))
     shield = transform_solid(prism(CIRCLE_SEGMENTS, radius * 1.02, max(thin, 0.1 * height)),

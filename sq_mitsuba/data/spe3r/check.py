@@ -57,6 +57,7 @@ from sq_mitsuba.data.spe3r.layout import (
     SAMPLES_FILE,
     DatasetError,
     check_model_points,
+    find_image,
     is_model_library,
     label_problem,
     load_model,
@@ -171,16 +172,6 @@ def _stray_files(root: Path, unfinished_ok: set[str]) -> list[str]:
     return strays
 
 
-def _find(root: Path, model: str, folder: str, filename: str) -> Path:
-    """The image or mask of a label (SPE3R's .jpg images accepted, as the reader does)."""
-    path = root / model / folder / filename
-    if not path.is_file():
-        for suffix in (".png", ".jpg", ".jpeg"):
-            if path.with_suffix(suffix).is_file():
-                return path.with_suffix(suffix)
-    return path
-
-
 def _check_bookkeeping(root: Path, camera: Camera, splits: dict[str, str],
                        manifest: dict[str, Any] | None, report: CheckReport) -> set[str]:
     """Manifest, failures.json and splits.csv agree; returns the failed models."""
@@ -235,11 +226,11 @@ def _check_files(root: Path, model: str, labels: list[Any], camera: Camera,
             report.problems.append(f"{where}: {problem}")
             if isinstance(filename, str):  # named by an entry, if a bad one: not "no label"
                 for folder in (IMAGES, MASKS):
-                    named[folder].add(_find(root, model, folder, filename).name)
+                    named[folder].add(find_image(root, model, folder, filename).name)
             continue
         arrays = {}
         for folder in (IMAGES, MASKS):
-            path = _find(root, model, folder, filename)
+            path = find_image(root, model, folder, filename)
             named[folder].add(path.name)
             try:
                 image = read_image(path, verify=path.suffix.lower() == ".png")

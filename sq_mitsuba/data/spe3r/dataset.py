@@ -16,6 +16,7 @@ from sq_mitsuba.data.spe3r.layout import (
     DatasetError,
     balanced_occupancy,
     check_model_points,
+    find_image,
     is_model_library,
     is_validation,
     label_problem,
@@ -69,8 +70,9 @@ class Spe3rDataset(torch.utils.data.Dataset):
         root: dataset folder.
         split: "train", "val" (images [0.4 n, 0.5 n) and [0.9 n, n) of each train model with n
             its image count: SPE3R's 400-499 and 900-999 at n = 1000) or "test".
-        image_size: S, the side images and masks are resized to (default 128; None:
-            ``camera.json``'s width, the images as rendered).
+        image_size: S, the side of the square images and masks are resized to (default
+            128; None: ``camera.json``'s width, the images as rendered when they are square;
+            a W x H camera's images are stretched to W x W, the intrinsics with them).
         num_surface, num_occupancy: points per item (2,500 and 10,000 by default).
         seed: makes the point subsets reproducible (item i uses seed + i).
     """
@@ -133,14 +135,10 @@ class Spe3rDataset(torch.utils.data.Dataset):
         return len(self.items)
 
     def _image_path(self, model: str, folder: str, filename: str) -> Path:
-        path = self.root / model / folder / filename
-        if path.is_file():
-            return path
-        for suffix in (".png", ".jpg", ".jpeg"):
-            candidate = path.with_suffix(suffix)
-            if candidate.is_file():
-                return candidate
-        raise DatasetError(f"{path}: missing")
+        path = find_image(self.root, model, folder, filename)
+        if not path.is_file():
+            raise DatasetError(f"{path}: missing")
+        return path
 
     def check(self, points: bool = True) -> None:
         """Refuse, before any work, what would stop a run over this split part-way: an image

@@ -134,7 +134,7 @@ def load_model(model_dir: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | No
     The OBJ is read in file order (trimesh regroups the faces of multi-material OBJs, which
     would detach them from the per-face tags of ``samples.npz``).
     """
-    from sq_mitsuba.data.mesh_io import read_obj
+    from sq_mitsuba.data.mesh_io import check_face_material, read_obj
     from sq_mitsuba.render.materials import MATERIALS
 
     mesh_path = model_dir / MODELS / MESH_FILE
@@ -159,13 +159,26 @@ def load_model(model_dir: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | No
         except Exception as error:  # numpy raises several kinds on corrupt archives
             raise DatasetError(f"{samples_path}: cannot read ({error})") from None
         if face_material is not None:
-            if len(face_material) != len(faces):
-                raise DatasetError(f"{samples_path}: face_material has {len(face_material)} "
-                                   f"entries for the {len(faces)} faces of {mesh_path} (one of "
-                                   "the two files cut short or from another model)")
-            tags = np.asarray(MATERIALS)[np.asarray(face_material, dtype=np.int64)]
+            try:
+                indices = check_face_material(face_material, len(faces), samples_path,
+                                              mesh_path)
+            except ValueError as error:
+                raise DatasetError(str(error)) from None
+            tags = np.asarray(MATERIALS)[indices]
     return vertices, faces, tags
 
+
+
+def find_image(root: Path, model: str, folder: str, filename: str) -> Path:
+    """The file of a label's image or mask, ``root/model/folder/filename``, or the same stem
+    as .png, .jpg or .jpeg where that is the file there (SPE3R's labels name .jpg images while
+    its masks are .png); the path as named when none exists (its reader says "missing")."""
+    path = root / model / folder / filename
+    if not path.is_file():
+        for suffix in (".png", ".jpg", ".jpeg"):
+            if path.with_suffix(suffix).is_file():
+                return path.with_suffix(suffix)
+    return path
 
 
 def read_image(path: Path, verify: bool = False) -> Image.Image:
@@ -426,8 +439,13 @@ def model_points(model_dir: Path) -> dict[str, np.ndarray]:
     mesh = trimesh.Trimesh(vertices, faces, process=False)
     rng = np.random.default_rng(0)
     surface, faces_hit = trimesh.sample.sample_surface(mesh, 100_000, seed=0)
-    uniform = rng.uniform(-0.5, 0.5, (50_000, 3))
-    near = surface[:50_000] + rng.normal(scale=0.01, size=(50_000, 3))
+    # The cube around the mesh's box, not the origin (its centre of mass: a long boom on one
+    # side would reach out of a cube about it), and as large as the mesh (a release mesh
+    # need not be of unit size).
+    low, high = vertices.min(axis=0), vertices.max(axis=0)
+    side = float((high - low).max())
+    uniform = (low + high) / 2 + side * rng.uniform(-0.5, 0.5, (50_000, 3))
+    near = surface[:50_000] + rng.normal(scale=0.01 * side, size=(50_000, 3))
     points = np.concatenate([uniform, near])
     inside = RayCaster(vertices, faces).inside(points)
     return {"surface": np.asarray(surface), "normals": np.asarray(mesh.face_normals[faces_hit]),

@@ -6,6 +6,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 from sq_mitsuba.config import in_range, validate
@@ -14,6 +15,7 @@ from sq_mitsuba.data.spe3r.layout import (
     MASKS,
     DatasetError,
     dataset_models,
+    find_image,
     label_problem,
     read_gray,
     read_labels,
@@ -94,10 +96,14 @@ def preview_dataset(root: str | Path, out: str | Path | None = None,
     for axis in axes.flat:
         axis.axis("off")
     for axis, (model, label) in zip(axes.flat, chosen, strict=False):
-        image = read_gray(root / model / IMAGES / label["filename"])
-        mask = read_gray(root / model / MASKS / label["filename"]) >= 128
-        axis.imshow(image, cmap="gray", vmin=0, vmax=255)
-        axis.contour(mask, levels=[0.5], colors=["#ffcc00"], linewidths=0.6)
+        image = read_gray(find_image(root, model, IMAGES, label["filename"]))
+        mask = read_gray(find_image(root, model, MASKS, label["filename"])) >= 128
+        # Pixel (i, j) covers [j, j+1) x [i, i+1) (docs/conventions.md), as Camera.project
+        # places points: imshow's default would put its centre at (j, i), half a pixel off.
+        height, width = image.shape
+        axis.imshow(image, cmap="gray", vmin=0, vmax=255, extent=(0, width, height, 0))
+        axis.contour(np.arange(width) + 0.5, np.arange(height) + 0.5, mask, levels=[0.5],
+                     colors=["#ffcc00"], linewidths=0.6)
         rotation = quaternion_to_matrix(torch.tensor(label["q_vbs2tango_true"],
                                                      dtype=torch.float64))
         origin = torch.tensor(label["r_Vo2To_vbs_true"], dtype=torch.float64)

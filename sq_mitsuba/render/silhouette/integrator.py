@@ -35,16 +35,18 @@ COVERAGE_PLUGIN = "target_coverage"
 #: ``silhouette_projective`` for a scene of many items in tiles of one film
 #: (:mod:`sq_mitsuba.render.silhouette.tiled`): the silhouette samples shared equally by items.
 TILED_PLUGIN = "silhouette_projective_tiled"
-_registered = False
+#: The variants the integrators are registered in: Mitsuba keeps plugins per variant, so a
+#: process that changes variant registers them again.
+_registered: set[str] = set()
 
 
 def register() -> None:
     """Register the ``silhouette_projective``, ``silhouette_projective_tiled`` and
-    ``target_coverage`` integrators with Mitsuba (idempotent; sets up the variant first)."""
-    global _registered
-    if _registered:
-        return
+    ``target_coverage`` integrators with Mitsuba in the active variant (idempotent; sets up
+    the variant first)."""
     mi = mitsuba()
+    if mi.variant() in _registered:
+        return
     import drjit as dr
 
     # Importing Mitsuba's AD integrators compiles their @dr.syntax functions: Ctrl-C there
@@ -163,4 +165,4 @@ def register() -> None:
     mi.register_integrator(PLUGIN, lambda props: SilhouetteProjectiveIntegrator(props))
     mi.register_integrator(TILED_PLUGIN, lambda props: TiledIntegrator(props))
     mi.register_integrator(COVERAGE_PLUGIN, lambda props: TargetCoverageIntegrator(props))
-    _registered = True
+    _registered.add(mi.variant())

@@ -54,7 +54,7 @@ from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.render.backend import interrupts_deferred, mitsuba
 from sq_mitsuba.render.silhouette.integrator import register as register_integrator
-from sq_mitsuba.render.silhouette.seeds import CALL_SEED_STRIDE, ITEM_SEED_STRIDE
+from sq_mitsuba.render.silhouette.seeds import render_seed
 from sq_mitsuba.render.silhouette.tiled import TiledSilhouettes, tiled_seeds
 from sq_mitsuba.render.silhouette.workers import SilhouetteWorkers, WorkerError
 
@@ -220,6 +220,9 @@ class SilhouetteRenderer:
         if batched and integrator != "silhouette_projective":
             raise ValueError(f"batched: needs the integrator 'silhouette_projective', got "
                              f"{integrator!r}")
+        if batched and workers:  # the batched path renders in this process: said, not ignored
+            raise ValueError(f"workers: {workers} with batched=True, which renders every item "
+                             "in this process; use workers=0")
         self.integrator = integrator
         self.camera = camera
         self.spp = spp
@@ -382,9 +385,7 @@ class SilhouetteRenderer:
     def _seed(self, call: int, item: int, backward: bool, seed: int | None = None) -> int:
         """The samples' seed of one item of a call (``seed``: the base seed, default the
         renderer's; a backward pass passes its forward pass's, which reseed() may have left)."""
-        base = self.seed if seed is None else seed
-        return (base + CALL_SEED_STRIDE * (2 * call + int(backward))
-                + ITEM_SEED_STRIDE * item) & 0xFFFFFFFF
+        return render_seed(self.seed if seed is None else seed, call, item, backward)
 
     def _load(self, vertices: Tensor, token: tuple[int, int], requires_grad: bool) -> Any:
         """Put one item's vertices (V, 3) into the scene (rebuilds the BVH)."""
@@ -488,13 +489,18 @@ class SilhouetteRenderer:
         if not callable(loss_fn):
             raise ValueError("loss_fn: expected a callable (coverage (H, W), item) -> scalar")
         self._prepare(vertices, faces)
+        requires_grad = torch.is_grad_enabled() and vertices.requires_grad
 
         def run(detached: Tensor, call: int) -> tuple[float, Tensor, Tensor]:
             losses, coverage, grad = self._loss_items(detached, call, range(detached.shape[0]),
-                                                      loss_fn, requires_grad=True)
+                                                      loss_fn, requires_grad=requires_grad)
             return float(sum(losses.tolist())), coverage, grad  # in item order
 
-        return _RenderedLoss.apply(vertices, self, run)
+        if requires_grad:
+            return _RenderedLoss.apply(vertices, self, run)
+        total, coverage, _ = run(vertices.detach(), self._next_call())  # no backward to render
+        return (vertices.new_tensor(total),
+                coverage.to(dtype=vertices.dtype, device=vertices.device))
 
     def render_target_loss(self, vertices: Tensor, faces: Tensor, targets: Tensor,
                            loss: Callable[[Tensor, Tensor], Tensor]) -> tuple[Tensor, Tensor]:

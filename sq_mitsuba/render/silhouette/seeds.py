@@ -15,3 +15,12 @@ CALL_SEED_STRIDE = 0x9E3779B1
 
 ITEM_SEED_STRIDE = 7919
 """Seed step between the items of one call (a prime)."""
+
+
+def render_seed(base: int, call: int, item: int = 0, backward: bool = False,
+                salt: int = 0) -> int:
+    """The 32-bit seed of one render: item ``item`` of call ``call`` (its backward pass with
+    ``backward``), from the renderer's ``base`` seed; ``salt`` sets a renderer's samples apart
+    from another's at the same seed (the tiled renderer's)."""
+    return (base + CALL_SEED_STRIDE * (2 * call + int(backward)) + ITEM_SEED_STRIDE * item
+            + salt) & 0xFFFFFFFF

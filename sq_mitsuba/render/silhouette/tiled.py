@@ -49,7 +49,7 @@ from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.render.backend import interrupts_deferred, mitsuba
 from sq_mitsuba.render.silhouette.integrator import TILED_PLUGIN
 from sq_mitsuba.render.silhouette.integrator import register as register_integrator
-from sq_mitsuba.render.silhouette.seeds import CALL_SEED_STRIDE
+from sq_mitsuba.render.silhouette.seeds import render_seed
 
 __all__ = ["DEFAULT_MARGIN", "TileLayout", "TiledResult", "TiledSilhouettes", "default_margin"]
 
@@ -186,6 +186,8 @@ def _item_losses(loss: Callable[[Tensor, Tensor], Tensor], coverage: Tensor,
     except Exception:  # a loss vmap cannot trace (data-dependent control flow, .item(), ...)
         losses = torch.stack([loss(c, t).reshape(()) for c, t in zip(coverage, targets,
                                                                      strict=True)])
+    if losses.dim() > 1 and losses[0].numel() == 1:  # one element each, as the per-item
+        losses = losses.reshape(-1)                     # path takes it: (B, 1) -> (B,)
     if losses.shape != (coverage.shape[0],):
         raise ValueError("loss: must return a scalar tensor per item")
     return losses
@@ -430,5 +432,6 @@ class _Layout:
 
 def tiled_seeds(seed: int, call: int) -> tuple[int, int]:
     """Forward and backward Mitsuba seeds of a tiled call: from the base seed and the call."""
-    return tuple((seed + CALL_SEED_STRIDE * (2 * call + backward) + _TILED_SALT) & 0xFFFFFFFF
-                 for backward in (0, 1))  # type: ignore[return-value]
+    forward, backward = (render_seed(seed, call, backward=b, salt=_TILED_SALT)
+                         for b in (False, True))
+    return forward, backward
