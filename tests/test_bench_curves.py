@@ -20,32 +20,6 @@ from sq_mitsuba.training.config import load_train_config
 TINY = Path(__file__).resolve().parents[1] / "train" / "configs" / "tiny.toml"
 
 
-def test_learning_curves_on_the_tiny_dataset(train_dataset, tmp_path):
-    from sq_mitsuba.bench.curves import (
-        curves_report,
-        learning_curves,
-        plot_learning_curves,
-    )
-
-    tiny = load_train_config(TINY)
-    configs = {"tiny": tiny, "tiny, no augmentation": apply_overrides(
-        tiny, ["augment.probability=0"])}
-    curves = learning_curves(train_dataset, tmp_path / "runs", minutes=2 / 60, points=2,
-                             val_images=2, progress=False, configs=configs)
-    assert [c.label for c in curves] == list(configs)
-    for curve in curves:
-        assert 1 <= len(curve.seconds) <= 2
-        assert curve.seconds == sorted(curve.seconds) and curve.seconds[0] > 0
-        assert curve.steps == sorted(curve.steps) and curve.steps[0] >= 1
-        assert all(math.isfinite(v) and v > 0 for v in curve.chamfer_l1)
-    assert (tmp_path / "runs" / "tiny_no_augmentation" / "last.pt").is_file()
-    png = plot_learning_curves(curves, tmp_path / "curves.png")
-    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    table = curves_report(curves, 2 / 60, train_dataset, png)
-    rows = [line for line in table.splitlines() if line.startswith("| tiny")]
-    assert len(rows) == sum(len(c.seconds) for c in curves)
-
-
 def test_only_a_recorded_run_draws_the_repository_figure(tmp_path):
     from sq_mitsuba.bench.curves import CURVES_PNG, curves_figure_path
 
@@ -114,10 +88,16 @@ def _same(a, b) -> bool:
 def test_a_curve_cut_between_points_continues_from_its_last_point(train_dataset, tmp_path):
     """A run killed (SIGKILL) a step into training towards its second point: the rerun keeps
     the first point as recorded, starts again from that point's checkpoint, and measures the
-    second; a rerun of the finished curve trains nothing."""
+    second (beside a second config's curve drawn from nothing, plotted and reported); a rerun
+    of the finished curves trains nothing."""
     import torch
 
-    from sq_mitsuba.bench.curves import CURVE_FILE, learning_curves
+    from sq_mitsuba.bench.curves import (
+        CURVE_FILE,
+        curves_report,
+        learning_curves,
+        plot_learning_curves,
+    )
 
     out, minutes = tmp_path / "runs", 2 / 60  # a second a slice: a step or more each
     log = tmp_path / "child.log"
@@ -130,20 +110,38 @@ def test_a_curve_cut_between_points_continues_from_its_last_point(train_dataset,
     assert len(first["seconds"]) == 1 and not first["finished"]
     moved_on = torch.load(out / "tiny" / "last.pt", weights_only=True)["step"]
     assert moved_on > first["steps"][0]  # training past the point, to be done again
-    long = {"tiny": apply_overrides(load_train_config(TINY), ["optim.epochs=1000"])}
+    # The rerun also draws a second curve from nothing (its own folder): two configs side by
+    # side, plotted and reported, as `bench curves` does.
+    tiny = apply_overrides(load_train_config(TINY), ["optim.epochs=1000"])
+    long = {"tiny": tiny,
+            "tiny, no augmentation": apply_overrides(tiny, ["augment.probability=0"])}
     curves = learning_curves(train_dataset, out, minutes=minutes, points=2, val_images=2,
                              progress=False, configs=long)
+    assert [c.label for c in curves] == list(long)
+    for each in curves:
+        assert 1 <= len(each.seconds) <= 2
+        assert each.seconds == sorted(each.seconds) and each.seconds[0] > 0
+        assert each.steps == sorted(each.steps) and each.steps[0] >= 1
+        assert all(math.isfinite(v) and v > 0 for v in each.chamfer_l1)
+    assert (out / "tiny_no_augmentation" / "last.pt").is_file()
+    png = plot_learning_curves(curves, tmp_path / "curves.png")
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    table = curves_report(curves, minutes, train_dataset, png)
+    rows = [line for line in table.splitlines() if line.startswith("| tiny")]
+    assert len(rows) == sum(len(c.seconds) for c in curves)
     curve = curves[0]
     assert curve.finished and len(curve.seconds) == 2
     assert curve.seconds[0] == first["seconds"][0] and curve.steps[0] == first["steps"][0]
     assert curve.chamfer_l1[0] == first["chamfer_l1"][0]
     assert curve.steps[1] > curve.steps[0] and curve.seconds[1] > curve.seconds[0]
     assert sorted(p.name for p in (out / "tiny").glob("point_*.pt")) == ["point_2.pt"]
-    stamp = os.stat(out / "tiny" / "last.pt").st_mtime_ns
+    stamps = [os.stat(out / name / "last.pt").st_mtime_ns
+              for name in ("tiny", "tiny_no_augmentation")]
     again = learning_curves(train_dataset, out, minutes=minutes, points=2, val_images=2,
                             progress=False, configs=long)
-    assert _same(again[0], curve)
-    assert os.stat(out / "tiny" / "last.pt").st_mtime_ns == stamp
+    assert all(_same(a, b) for a, b in zip(again, curves, strict=True))
+    assert [os.stat(out / name / "last.pt").st_mtime_ns
+            for name in ("tiny", "tiny_no_augmentation")] == stamps
 
 
 def test_a_run_folder_of_other_settings_is_refused_before_any_training(train_dataset,

@@ -219,7 +219,8 @@ def test_training_fit_scores_training_models_as_a_test_split(train_dataset, eval
     env = {"SQ": f"{sys.executable} -m sq_mitsuba", "PATH": "/usr/bin:/bin"}
     script = str(EXPERIMENTS / "training_fit.sh")
     result = subprocess.run(["bash", script, str(train_dataset), str(eval_checkpoint), str(out),
-                             f"{prefix}:2", "--", "--no-baseline"],
+                             f"{prefix}:2", "--", "--no-baseline", "--set", "surface_points=500",
+                             "--set", "volume_points=2000"],  # which models, not their scores
                             capture_output=True, text=True, timeout=300, env=env)
     assert result.returncode == 0, result.stderr
     with (out / "per_image.csv").open() as handle:
