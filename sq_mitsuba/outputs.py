@@ -12,7 +12,11 @@
 
 A run interrupted with Ctrl-C keeps what it wrote (``study illumination`` resumes its renders),
 also where the interrupt comes out of Dr.Jit as a ``RuntimeError`` caused by it
-(:func:`interrupted`); the CLI handles SIGTERM as Ctrl-C.
+(:func:`interrupted`); the CLI handles SIGTERM as Ctrl-C. A run that fails by no fault of its
+input (out of memory, a disk error, a bug: anything but a ``ValueError``, the project's bad
+input) still keeps the entries named ``keep``: the journals of finished work a rerun takes up
+(``eval``'s ``.eval_partial``, a study's renders), which would otherwise go with hours of work
+in them. Bad input leaves nothing, as before any work.
 
 One output takes one run at a time (a second run into it would see the first one's temporary
 files as strays, and the two would mix their files): :func:`output_lock` holds an exclusive
@@ -47,7 +51,7 @@ import os
 import re
 import shutil
 import sys
-from collections.abc import Iterator
+from collections.abc import Collection, Iterator
 from pathlib import Path
 
 __all__ = ["LOCK_NAME", "TEMPORARY_NAME", "OutputBusyError", "all_or_nothing", "holds_lock",
@@ -244,7 +248,7 @@ def _remove_empty(created: Path | None, folder: Path) -> None:
 
 @contextlib.contextmanager
 def all_or_nothing(out: str | Path | None, file: bool = False, lock: bool = True,
-                   command: str | None = None) -> Iterator[None]:
+                   command: str | None = None, keep: Collection[str] = ()) -> Iterator[None]:
     """Run the block as a command writing into ``out`` (see the module docstring).
 
     Args:
@@ -253,6 +257,9 @@ def all_or_nothing(out: str | Path | None, file: bool = False, lock: bool = True
         lock: hold :func:`output_lock` on ``out`` for the block, taken first (another run
             into ``out`` is refused with :class:`OutputBusyError` before anything else).
         command: the command, for the message another run prints.
+        keep: names of entries at the top of ``out`` a run that failed other than by bad
+            input (a ``ValueError``) keeps (finished work a rerun resumes); the folder then
+            stays too.
     """
     if out is None:
         yield
@@ -269,7 +276,8 @@ def all_or_nothing(out: str | Path | None, file: bool = False, lock: bool = True
             yield
         except Exception as error:
             if not interrupted(error):  # Ctrl-C inside Dr.Jit comes as a RuntimeError
-                _remove_added(out, created, before)
+                _remove_added(out, created, before,
+                              set() if isinstance(error, ValueError) else set(keep))
             raise
 
 
@@ -288,14 +296,18 @@ def interrupted(error: BaseException) -> bool:
     return False
 
 
-def _remove_added(out: Path, created: Path | None, before: set[Path] | None) -> None:
+def _remove_added(out: Path, created: Path | None, before: set[Path] | None,
+                  keep: set[str]) -> None:
     """Delete what a failed run added: ``created`` (the outermost folder it made, or the file
-    ``out``) as a whole, or the entries of ``out`` not in ``before``."""
-    if created is not None:
+    ``out``) as a whole, or the entries of ``out`` not in ``before``; entries named in
+    ``keep`` stay, with the folders above them."""
+    kept = bool(keep) and out.is_dir() and any((out / name).exists() for name in keep)
+    if created is not None and not kept:
         _remove(created)
-    elif before is not None and out.is_dir():
-        for path in set(out.iterdir()) - before:
-            _remove(path)
+    elif out.is_dir() and (created is not None or before is not None):
+        for path in set(out.iterdir()) - (before if created is None else set()):
+            if path.name not in keep:
+                _remove(path)
 
 
 def _remove(path: Path) -> None:

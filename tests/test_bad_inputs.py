@@ -681,6 +681,29 @@ def test_all_or_nothing_removes_what_a_failed_run_added(tmp_path):
     with all_or_nothing(old):
         (old / "done.txt").write_text("ok")
     assert "done.txt" in _entries(old)
+    # Finished work a rerun resumes (a journal) stays after any failure, with the folder the
+    # run made for it: out of memory or a disk error after hours must not take it along.
+    # Bad input (a ValueError) leaves nothing, the journal included.
+    for error, kept in ((MemoryError, [".eval_partial"]), (OSError, [".eval_partial"]),
+                        (RuntimeError, [".eval_partial"]), (ValueError, [])):
+        fresh = tmp_path / f"fresh_{error.__name__}"
+        with pytest.raises(error), all_or_nothing(fresh, keep=(".eval_partial",)):
+            (fresh / ".eval_partial").mkdir()
+            (fresh / ".eval_partial" / "batch_000001.pt").write_text("a finished batch")
+            (fresh / "per_image.csv").write_text("partial")
+            raise error("late failure")
+        assert _entries(fresh) == kept, error
+    with pytest.raises(MemoryError), all_or_nothing(old, keep=(".eval_partial",)):
+        (old / ".eval_partial").mkdir()
+        (old / "added.txt").write_text("partial")
+        raise MemoryError
+    assert ".eval_partial" in _entries(old) and "added.txt" not in _entries(old)
+    # Nothing of it written yet: the folder the run made goes as before.
+    with pytest.raises(MemoryError), all_or_nothing(tmp_path / "none",
+                                                    keep=(".eval_partial",)):
+        (tmp_path / "none" / "per_image.csv").write_text("partial")
+        raise MemoryError
+    assert not (tmp_path / "none").exists()
 
 
 # --------------------------------------------------------------- normal runs print no warnings

@@ -302,3 +302,17 @@ def test_bad_inputs() -> None:
         EfficientNetB0(num_classes=0)
     with pytest.raises(ValueError, match="drop_connect_rate"):
         EfficientNetB0(drop_connect_rate=1.0)
+
+
+def test_an_encoder_without_its_head_says_to_read_its_maps() -> None:
+    """A network with spatial latents drops the encoder's 1280-channel head: pooled features
+    are then no more (it failed with "'NoneType' object is not callable")."""
+    from sq_mitsuba.model.network import NetworkConfig, SuperquadricNet
+
+    network = SuperquadricNet(NetworkConfig(image_size=64, latent="spatial", latent_dim=8,
+                                            hidden_dim=8, num_primitives=2))
+    images = torch.rand(1, 1, 64, 64)
+    assert network.encoder.head is None
+    with pytest.raises(ValueError, match="forward_pyramid"):
+        network.encoder(images)
+    assert len(network.encoder.forward_pyramid(images)) == 4  # strides 4, 8, 16, 32

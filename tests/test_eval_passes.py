@@ -344,6 +344,9 @@ def test_an_interrupted_pass_study_takes_up_where_it_stopped(eval_checkpoint, pa
     # What the interrupt left, for the unreadable rows below: the files a second run
     # interrupted in the same pass writes, without running it again.
     left = shutil.copytree(out / PARTIAL, tmp_path / "left")
+    # A write killed mid-way leaves its temporary, cut short: it is no pass (it discarded
+    # every kept pass when read as one).
+    (out / PARTIAL / ".sc000_x__1.k3j4l5.tmp.json").write_text("[{")
     sequences.clear()
     with monkeypatch.context() as patch:
         patch.setattr(Predictor, "predict_sequence",

@@ -213,6 +213,12 @@ def test_the_identity_names_an_option_only_the_journal_has_and_hashes_what_decid
     assert identity_difference({"options": {"a": 1}}, {"options": {}}) == \
         "option a: 1 there, absent now"
     assert identity_difference({"options": {"a": 1}}, {"options": {"a": 1}}) is None
+    # Only the image list is told by its length; other lists as they are.
+    assert identity_difference({"options": {"counts": [1, 2, 4, 8, 16]}},
+                               {"options": {"counts": [1, 2, 4, 8, 12]}}) == \
+        "option counts: [1, 2, 4, 8, 16] there, [1, 2, 4, 8, 12] now"
+    assert identity_difference({"images": list(range(6))}, {"images": list(range(5))}) == \
+        "images: 6 images there, 5 images now"
     predictor = load_model(eval_checkpoint)
     raw = torch.zeros(1, predictor.num_primitives, 16)
     predictor.baseline = (raw, torch.eye(3)[None], torch.zeros(1, 3))

@@ -278,11 +278,16 @@ def test_eval_times_the_network_after_one_untimed_call(train_dataset, eval_check
         return real_predict(images, *args, **kwargs)
 
     predictor.predict = recording
+    # The refinement's own settings, given without it, are not this run's (eval.json and the
+    # resume identity hold the defaults: a --resume is not refused over them).
     options = EvalOptions(limit=2, figures=False, baseline=False, fast=False,
-                          surface_points=300, volume_points=2000)
+                          surface_points=300, volume_points=2000, mask="segmentation",
+                          refine_ground_truth=False)
     result = evaluate(predictor, train_dataset, tmp_path / "eval", options, progress=False)
     assert result.images == 2
     assert len(calls) == 2 and calls[0].equal(calls[1])
+    recorded = json.loads((tmp_path / "eval" / "eval.json").read_text())["options"]
+    assert (recorded["mask"], recorded["refine_ground_truth"]) == ("network", True)
 
 
 # ------------------------------------------------------------------- 3, 5: one run per output

@@ -174,3 +174,13 @@ def test_turned_distributions_multiply_back_in_the_unturned_frame() -> None:
     torch.testing.assert_close(single, noise[0].log_softmax(-1))
     with pytest.raises(ValueError, match="expected logits"):
         turned_log_probabilities(noise[0], cells)
+
+
+def test_a_grid_too_small_for_a_cell_and_its_neighbours_is_a_config_error() -> None:
+    """Each cell's reading is refined over its 8 nearest: 8 cells built a network that failed
+    with torch's "selected index k out of range"."""
+    from sq_mitsuba.config import ConfigError, validate
+
+    with pytest.raises(ConfigError, match="rotation_cells"):
+        validate(NetworkConfig(rotation_cells=8))
+    validate(NetworkConfig(rotation_cells=9))

@@ -103,12 +103,11 @@ def run(options: BenchOptions) -> Report:
                      f"{mask_samples(render_options.scene.mask.spp, camera)} spp, "
                      f"{mi.variant()}")
             report.timings.append(timing)
-            rates = sorted(1.0 / s for s in samples)
+            low, high = Timing("rate", [1.0 / s for s in samples]).spread
             target = TARGETS[resolution]
             report.notes.append(
                 f"throughput at {resolution} px: median {1.0 / timing.median:.2f} images/s "
-                f"(IQR of per-image rate {rates[len(rates) // 4]:.2f} - "
-                f"{rates[(3 * len(rates)) // 4]:.2f})"
+                f"(IQR of per-image rate {low:.2f} - {high:.2f})"
                 + (f"; target >= {1.0 / target:.0f} images/s" if target else ""))
             report.notes.append(mask_pass_ratio(report, scene, vertices, resolution, options))
         report.notes += visibility_notes(root)

@@ -24,6 +24,7 @@ Everything runs on the CPU (Mitsuba's LLVM variant, scipy KD-trees); ``--device`
 from __future__ import annotations
 
 import os
+import statistics
 import tempfile
 from pathlib import Path
 
@@ -51,6 +52,7 @@ def run(options: BenchOptions) -> Report:
     from sq_mitsuba.apps.predict import PredictOptions, predict_files
     from sq_mitsuba.data.spe3r import Spe3rDataset
     from sq_mitsuba.evaluation.evaluate import EvalOptions, evaluate
+    from sq_mitsuba.evaluation.scoring import METRICS
     from sq_mitsuba.inference.loading import load_model
     from sq_mitsuba.inference.predictor import Predictor
     from sq_mitsuba.inference.refine import (
@@ -94,9 +96,9 @@ def run(options: BenchOptions) -> Report:
                 name, [1.0 / r for r in rates],
                 note=f"{images} images of {RESOLUTION} px in one batch; network + "
                      f"{'2 searches + refinements (segmented and GT mask) + ' if refine else ''}"
-                     "11 metrics for each method"))
+                     f"{len(METRICS)} metrics for each method"))
             report.notes.append(f"{name.split(',')[0]}: median "
-                                f"{sorted(rates)[len(rates) // 2]:.2f} images/s")
+                                f"{statistics.median(rates):.2f} images/s")
 
         item = dataset[0]
         image, mask = item["image"], item["mask"][:, :, :] > 0.5

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import shutil
+import statistics
 import tempfile
 import time
 from pathlib import Path
@@ -74,4 +75,4 @@ def run(options: BenchOptions) -> Report:
     ], notes=[f"{n} models of the default catalogue (seed 0), every archetype at least once; "
               "procedural models take the exact boolean route.",
               f"64 models at the median end-to-end time: about "
-              f"{64 * sorted(total_s)[len(total_s) // 2]:.0f} s."], options=options)
+              f"{64 * statistics.median(total_s):.0f} s."], options=options)

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import functools
 import os
+import statistics
 import time
 
 import torch
@@ -92,7 +93,7 @@ def _mask_loss_rows(report: Report, camera, vertices: torch.Tensor, faces: torch
                     repeats=repeats, warmup=1)
             finally:
                 renderer.close()
-            medians[label] = sorted(samples)[len(samples) // 2]
+            medians[label] = statistics.median(samples)
             report.timings.append(Timing(
                 f"mask loss forward + backward, {label}, {size}, per image",
                 [t / BATCH for t in samples],
@@ -188,7 +189,7 @@ def _batched_rows(report: Report, device: torch.device, repeats: int) -> None:
                     f"{BATCHED_SIDE} x {BATCHED_SIDE}, per image", [t / count for t in values],
                     note=f"level {BATCHED_LEVEL}, spp {BATCHED_SPP}, mask_mse; {fitting} of "
                          f"{count} items fit a tile" + ("" if cuda else "; one Dr.Jit thread")))
-            medians = {label: sorted(v)[len(v) // 2] for label, v in samples.items()}
+            medians = {label: statistics.median(v) for label, v in samples.items()}
             base = medians["per item"]
             ratios = ", ".join(f"{label} {value / base:.2f} x"
                                for label, value in medians.items() if label != "per item")

@@ -76,6 +76,10 @@ TRACEBACK_HINT = (f"rerun with 'sq-mitsuba {TRACEBACK_FLAG} ...' (or {TRACEBACK_
 #: folder, or one file; stray temporary files go at start-up, a failed run's output with it.
 ALL_OR_NOTHING = {"eval": "folder", "predict": "folder", "fit": "folder", "report": "folder",
                   "study": "folder", "export": "file"}
+#: What a failed run of a command keeps in its --out (finished work a rerun resumes): eval's
+#: journal; a study's renders, evaluations and journals.
+KEEP_ON_FAILURE = {"eval": (".eval_partial",),
+                   "study": (".passes_partial", "models", "renders", "evals")}
 
 
 class CLIError(Exception):
@@ -314,8 +318,9 @@ def _main(argv: Sequence[str] | None) -> int:
     kind = ALL_OR_NOTHING.get(args.command)
     try:
         check_variant_environment()  # a misspelled variant: before any work, not mid-render
-        with warnings.catch_warnings(), all_or_nothing(getattr(args, "out", None) if kind
-                                                       else None, kind == "file"):
+        with warnings.catch_warnings(), all_or_nothing(
+                getattr(args, "out", None) if kind else None, kind == "file",
+                keep=KEEP_ON_FAILURE.get(args.command, ())):
             if not show_traceback:  # warnings as one line each (--traceback: Python's own)
                 warnings.showwarning = _warning_printer(args.command)
             return int(args.func(args) or 0)

@@ -37,8 +37,10 @@ Two ways to see how lighting changes the results:
 Renderer and evaluation settings go through --set, e.g. --set render.resolution=128
 --set render.spp=32 --set evaluation.refinement.steps=20 --set evaluation.refine=false; the
 study sets render.images_per_model (--poses), render.shard, render.overwrite,
-evaluation.split and evaluation.baseline itself (given, they are refused). A rerun of other
-settings into one --out is refused: delete the folder to start over."""
+evaluation.split and evaluation.baseline itself (given, they are refused). A rerun with
+other render settings into one --out is refused (delete the folder to start over); one with
+other evaluation settings reuses the renders and evaluates every point again, replacing
+evals/. A run that fails (not interrupted) keeps its renders and evaluations for the rerun."""
 DESCRIPTION = f"""\
 `study illumination --help`: metrics against the sun's phase angle, the Earth and eclipses.
 `study passes --help`: one assembly from N frames of a pass against each frame alone.

@@ -88,7 +88,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
 
@@ -241,6 +241,7 @@ def evaluate(predictor: Any, data_root: str | Path, out_dir: str | Path,
 
     options = options or EvalOptions()
     validate(options)
+    options = effective_options(options)
     check_predictor(predictor)
     data_root, out_dir = Path(data_root), Path(out_dir)
     check_data_folder(data_root)
@@ -248,6 +249,19 @@ def evaluate(predictor: Any, data_root: str | Path, out_dir: str | Path,
     check_outside_data(out_dir, data_root)
     with output_lock(out_dir, command="sq-mitsuba eval"):  # re-entrant: the CLI holds it
         return _evaluate(predictor, data_root, out_dir, options, progress, label, resume)
+
+
+def effective_options(options: EvalOptions) -> EvalOptions:
+    """``options`` as a run uses them: without ``refine`` the refinement's own settings
+    (``mask``, ``search``, ``refinement``, ``refine_ground_truth``) act on nothing, so they
+    are its defaults (in ``eval.json`` and the run's identity: a ``--resume`` is not refused,
+    nor a finished evaluation run again, over a setting that changed nothing)."""
+    if options.refine:
+        return options
+    defaults = EvalOptions()
+    return replace(options, mask=defaults.mask, search=defaults.search,
+                   refinement=defaults.refinement,
+                   refine_ground_truth=defaults.refine_ground_truth)
 
 
 def check_data_folder(data_root: Path) -> None:

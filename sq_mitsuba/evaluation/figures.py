@@ -258,7 +258,9 @@ def plot_consistency(dataset, views: Sequence[Sequence[int]], predictor, camera,
                      figure_camera, path: str | Path, level: int = 3) -> Path:
     """For each model, several of its images and the assembly predicted from each, all shown
     from one fixed view of the body frame (as the paper's Fig. 11): predictions that agree
-    whatever the image look alike, primitive colours included.
+    whatever the image look alike, primitive colours included. Each is the network's single
+    reading of the image (``eval --turns T`` scores readings of T turned copies; the figure
+    shows how far single readings agree).
 
     Args:
         views: per model shown, dataset item indices of its images.

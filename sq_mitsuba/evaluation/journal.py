@@ -148,7 +148,7 @@ def run_identity(predictor: Any, data_root: str | Path, options: dict[str, Any],
 def _shown(key: str, value: Any) -> str:
     if value == "<absent>":  # a field one of the two runs does not have
         return "absent"
-    if isinstance(value, list) and len(value) > 4:
+    if key == "images" and isinstance(value, list) and len(value) > 4:
         return f"{len(value)} images"
     if key.endswith("sha256") or key.endswith("fingerprint"):
         return f"{str(value)[:12]}..."

@@ -254,15 +254,14 @@ def evaluate_passes(predictor: Any, data_root: str | Path, out_dir: str | Path,
     # At the dataset's own resolution (image_size None: camera.json's width).
     dataset = open_split(data_root, options.split, None, options.surface_points)
     groups = pass_groups(dataset, views=not options.ordered)
-    longest = max(options.counts)
-    short = [key for key, items in groups.items() if len(items) < longest]
+    longest, keys = max(options.counts), sorted(groups)
+    keys = [keys[k] for k in evenly(len(keys), options.passes)]
+    short = [key for key in keys if len(groups[key]) < longest]  # of the passes read only
     if short:
         model_index, number = short[0]
         raise ValueError(f"counts: {longest} frames asked, but pass {number} of model "
                          f"{dataset.models[model_index]} has {len(groups[short[0]])} "
                          f"({len(short)} pass(es) too short)")
-    keys = sorted(groups)
-    keys = [keys[k] for k in evenly(len(keys), options.passes)]
     # Every frame of a dataset shows its target: each is fitted whatever its target score.
     predictor = with_fast_path(predictor, options.fast, min_target=0.0)
     _check_frames(predictor, dataset, {k: groups[k][:longest] for k in keys},
@@ -409,9 +408,9 @@ def _partial_passes(out_dir: Path, predictor: Any, data_root: Path,
     if (folder / RUN_FILE).is_file():
         difference = journal_difference(out_dir, identity, PARTIAL)
         if difference is None:
-            try:
+            try:  # not ".*": a killed write's temporary, no pass
                 done = {path.name: json.loads(path.read_text(encoding="utf-8"))
-                        for path in sorted(folder.glob("*__*.json"))}
+                        for path in sorted(folder.glob("[!.]*__*.json"))}
             except (OSError, ValueError) as error:
                 difference = f"unreadable: {error}"
         if difference is not None:

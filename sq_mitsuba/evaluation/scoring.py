@@ -23,7 +23,7 @@ from sq_mitsuba.geometry.rotation import matrix_to_quaternion, mean_rotation
 from sq_mitsuba.geometry.so3_grid import axis_turns, half_turns
 from sq_mitsuba.inference.refine import raw_from_assembly
 
-__all__ = ["HIGHER_IS_BETTER", "METRICS", "ModelData", "baseline_prediction", "score",
+__all__ = ["METRICS", "ModelData", "baseline_prediction", "score",
            "volume_points"]
 
 #: Metric columns of ``per_image.csv``, in order.
@@ -31,8 +31,6 @@ METRICS = ("chamfer_l1_paper", "chamfer_l1_occnet", "chamfer_l2", "iou_2d", "iou
            "rotation_error_deg", "rotation_error_sym_deg", "rotation_error_folded_deg",
            "translation_error_m", "translation_error_rel", "speed_score", "camera_chamfer",
            "rotation_error_axes_deg")
-#: Metrics where higher is better (the others: lower is better).
-HIGHER_IS_BETTER = ("iou_2d", "iou_3d")
 
 
 def score(assembly: Assembly, rotation: Tensor, translation: Tensor, batch: dict[str, Any],

@@ -275,7 +275,7 @@ def illumination_study(checkpoint: str | Path | None, models_dir: str | Path,
         out_dir: output folder (a rerun with the same settings resumes its renders).
         options: :class:`StudyOptions`.
     """
-    from sq_mitsuba.evaluation.evaluate import evaluate
+    from sq_mitsuba.evaluation.evaluate import effective_options, evaluate
     from sq_mitsuba.evaluation.journal import (
         JOURNAL,
         RUN_FILE,
@@ -324,7 +324,7 @@ def illumination_study(checkpoint: str | Path | None, models_dir: str | Path,
         tick = time.perf_counter()
         data, folder = out_dir / "renders" / point.name, out_dir / "evals" / point.name
         point_rows = None
-        identity = run_identity(predictor, data, to_dict(evaluation))
+        identity = run_identity(predictor, data, to_dict(effective_options(evaluation)))
         if finished_evaluation(folder, identity):
             with contextlib.suppress(OSError, ValueError):  # unreadable: evaluated again
                 point_rows = read_per_image(folder / "per_image.csv")
@@ -416,9 +416,9 @@ def lighting_breakdown(eval_dir: str | Path, out_dir: str | Path | None = None,
             background = "eclipse"
         else:
             background = "earth" if _flag(row["earth_in_view"]) else "space"
-        centre = (min(int(phase // step), bins - 1) + 0.5) * step
+        low = min(int(phase // step), bins - 1) * step  # the last bin ends at 180
         rows.append({**row, "background": background,
-                     "phase_deg": min(centre, 180.0)})
+                     "phase_deg": (low + min(low + step, 180.0)) / 2})
     _eclipse_at_mean_phase(rows)
     out_dir.mkdir(parents=True, exist_ok=True)
     table = group_table(rows)

@@ -16,7 +16,7 @@ import numpy as np
 from sq_mitsuba.evaluation.scoring import METRICS
 from sq_mitsuba.io import atomic_write_text
 
-__all__ = ["COLUMNS", "EXTRAS", "LIGHTING", "MASK_SOURCES", "SHOWN", "as_number", "csv_text",
+__all__ = ["COLUMNS", "EXTRAS", "LIGHTING", "SHOWN", "as_number", "csv_text",
            "format_stats", "label_record", "markdown_table", "summarise", "write_tables"]
 
 #: Search and refinement columns: the search's best soft IoU at its resolution, the refinement's
@@ -24,8 +24,6 @@ __all__ = ["COLUMNS", "EXTRAS", "LIGHTING", "MASK_SOURCES", "SHOWN", "as_number"
 #: ``mask_source`` names: the network's, the segmentation's) against the true mask (``search``
 #: and ``refined`` rows; it was ``segmentation_iou`` before 2026-12-01, whatever the source).
 EXTRAS = ("search_score", "refine_iou_after", "mask_iou")
-#: Mask sources named in the ``mask_source`` column.
-MASK_SOURCES = ("network", "segmentation", "ground truth")
 #: The label's lighting record (empty where the dataset has none, e.g. the SPE3R release).
 LIGHTING = ("phase_angle_deg", "earth_in_view", "eclipse", "target_visibility")
 #: Columns of ``per_image.csv``.

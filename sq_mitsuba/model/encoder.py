@@ -344,8 +344,13 @@ class EfficientNet(nn.Module):
         return maps
 
     def forward_features(self, images: Tensor) -> Tensor:
-        """Pooled features (B, 1280) of images (B, in_channels, H, W), ignoring the classifier."""
+        """Pooled features (B, 1280) of images (B, in_channels, H, W), ignoring the classifier;
+        an encoder whose 1280-channel head was dropped (a network with spatial latents) has
+        none: use :meth:`forward_pyramid`."""
         self._check_images(images)
+        if self.head is None:
+            raise ValueError("encoder: its 1280-channel head was dropped (spatial latents); "
+                             "read its maps with forward_pyramid")
         x = self.head(self.stages(self.stem(images)))  # (B, 1280, H/32, W/32)
         return x.mean(dim=(2, 3))
 

@@ -21,8 +21,10 @@ Convention:
       ``[s4, s8, s16, s32, head]`` (strides 4, 8, 16, 32; the head map is 1280 channels).
     - A pose head's ``position`` (B, 3) is raw: ``(a_u, a_v, a_z)``, turned into the image
       position and depth by the network (one convention for every head).
-    - ``reset_last_layer(gain)`` makes a head's initial prediction the identity rotation at
-      the image centre and the typical depth (small last-layer weights, chosen biases).
+    - ``reset_last_layer(gain)`` makes a head's initial prediction the image centre at the
+      typical depth (small last-layer weights, chosen biases), and the 6D head's rotation the
+      identity; the grid head starts near uniform over its cells (its first reading is an
+      arbitrary cell).
 """
 
 from __future__ import annotations

@@ -408,8 +408,8 @@ def rotation_distribution_loss(logits: Tensor, gt_rotation: Tensor,
         logits: (B, G) scores over the super-Fibonacci grid of G cells (a distribution head's
             ``rotation_logits``).
         gt_rotation: (B, 3, 3) true body -> camera rotations.
-        symmetries: (B, S, 3, 3) each model's body-frame symmetries (identity included);
-            None: the identity alone.
+        symmetries: (B, S, 3, 3) each model's body-frame symmetries (identity included), or
+            (S, 3, 3) shared by the batch (as :func:`rotation_loss`); None: the identity.
 
     Returns:
         (B,) ``-sum_g target_g log softmax(logits)_g`` with the targets of
@@ -417,11 +417,14 @@ def rotation_distribution_loss(logits: Tensor, gt_rotation: Tensor,
         equivalent of the true rotation counts as right, each spread over nearby cells.
     """
     check_tensor("logits", logits, min_dims=2)
-    if symmetries is None:
-        symmetries = torch.eye(3, dtype=gt_rotation.dtype,
-                               device=gt_rotation.device).expand(len(gt_rotation), 1, 3, 3)
+    check_tensor("gt_rotation", gt_rotation, (3, 3), min_dims=3)
+    if logits.dim() != 2 or gt_rotation.dim() != 3 or len(logits) != len(gt_rotation):
+        raise ValueError(f"logits, gt_rotation: expected (B, G) and (B, 3, 3), got "
+                         f"{tuple(logits.shape)} and {tuple(gt_rotation.shape)}")
+    equivalents = _symmetric_targets(gt_rotation.float(), symmetries)  # (B, S, 3, 3): R S
+    identity = torch.eye(3, device=equivalents.device).expand(len(equivalents), 3, 3)
     cells = _grid_on(logits.shape[-1], logits.device)
-    targets = soft_rotation_targets(gt_rotation.float(), symmetries.float(), cells)
+    targets = soft_rotation_targets(identity, equivalents, cells)
     return -(targets.to(logits) * logits.log_softmax(dim=-1)).sum(dim=-1)
 
 
@@ -445,7 +448,8 @@ def taper_loss(assembly: Assembly) -> Tensor:
 
     Convention: k^2 rather than |k|: smooth at k = 0 (no gradient kink that would pin tapers
     to exactly zero) and growing fastest for the large tapers that turn a primitive into a
-    wedge; a taper earns its keep only when the shape terms gain more than 0.01 k^2.
+    wedge; at the weight 0.01, one factor k of one primitive costs 0.01 k^2 / (2 M) against
+    one item's shape terms (the mean runs over the M primitives' two factors).
     """
     if not isinstance(assembly, Assembly):
         raise ValueError(f"assembly: expected an Assembly, got {type(assembly).__name__}")

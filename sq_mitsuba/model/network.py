@@ -46,9 +46,9 @@ Convention:
       typical depth ``depth_prior`` at the dataset camera.
     - Initial prediction (last layers: small weights, chosen biases): M primitives of semi-axes
       0.255 (raw size 0), shape 0.5, identity rotation, no taper, centres spread on a sphere of
-      radius ``init_spread`` around the origin; pose rotation near identity, origin near the
-      image centre at the typical depth. Existence logits start at ln 9 (every primitive
-      present with probability 0.9), so a network grown from one without them starts as it.
+      radius ``init_spread`` around the origin; pose rotation near identity (the 6D head; the
+      grid head's scores near uniform), origin near the image centre at the typical depth.
+      Existence logits start at ln 9 (p = 0.9: one grown from a network without them starts as it).
 """
 
 from __future__ import annotations

@@ -82,8 +82,9 @@ class NetworkConfig:
     "Width of the two hidden layers of every generator MLP."
     spatial_channels: int = in_range(1, 4096, default=128)
     "Channels of the spatial latent head's grid-wide convolution (the authors' 128)."
-    rotation_cells: int = in_range(8, 100_000, default=4608)
-    "Cells of the grid pose head's SO(3) grid (4,608: about 9 deg apart)."
+    rotation_cells: int = in_range(9, 100_000, default=4608)
+    """Cells of the grid pose head's SO(3) grid (4,608: about 9 deg apart; each cell's 8
+    nearest refine its reading, so at least 9)."""
     image_size: int = in_range(32, 1024, default=128)
     "Side S in pixels of the square images the network is trained on (the predictor resizes to it)."
     drop_connect_rate: float = in_range(0.0, 1.0, high_inclusive=False, default=0.2)

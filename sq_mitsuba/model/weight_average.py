@@ -114,6 +114,14 @@ def fine_tune_start(start: Mapping[str, Tensor], network: NetworkConfig, seed: i
     Raises:
         ValueError: ``<where>: weights do not fit config.network (...)``.
     """
+    bare = dataclasses.replace(network, pretrained=None)
+    with torch.random.fork_rng():
+        encoder = [k for k in SuperquadricNet(bare).state_dict() if k.startswith("encoder.")]
+    if all(key in start for key in encoder):
+        # The start replaces every ImageNet weight: their file, perhaps on another machine
+        # (the one that trained the fine-tunes), is not read (loading it draws no random
+        # numbers, so the other layers are drawn alike).
+        network = bare
     torch.manual_seed(seed)
     model = SuperquadricNet(network)
     load_weights(model, start, where, partial=True)
