@@ -67,6 +67,33 @@ def _tumble(count: int, step_deg: float, start_seed: int, step_seed: int) -> tor
     return torch.stack([torch.linalg.matrix_power(step, k) @ start for k in range(count)])
 
 
+def test_shape_costs_count_each_readings_own_samples_alone():
+    """Readings that keep other numbers of primitives have clouds of other lengths: padded
+    to one length, the copies of a point must not weigh in the mean (one point stood for
+    three quarters of a reading's samples, and chose another half turn in 8 of 40 pairs).
+    Reference: the Chamfer distance of each pair's own samples, computed alone."""
+    from sq_mitsuba.inference.body_frame import _shape_costs, _surface
+    from sq_mitsuba.model.existence import gathered_primitives
+    from sq_mitsuba.model.losses import counted_surface_samples
+
+    generator = torch.Generator().manual_seed(0)
+    signs = torch.diagonal(half_turns(), dim1=-2, dim2=-1)
+    for _ in range(6):
+        params = Assembly.from_raw(torch.randn(2, 4, 16, generator=generator,
+                                               dtype=torch.float64)).params
+        # Reading 0 keeps 4 primitives, reading 1 one (and 3 stand-ins, as a pass gathers).
+        batch = Assembly(gathered_primitives(params, torch.tensor([[0, 1, 2, 3],
+                                                                   [0, -1, -1, -1]])))
+        costs = _shape_costs(*_surface(batch, 1), 0)[1]
+        points, keep = counted_surface_samples(batch, 1)
+        own, target = points[1][keep[1]], points[0][keep[0]]
+        assert len(own) < len(target)
+        for turn, sign in enumerate(signs):
+            distances = torch.cdist(own * sign, target)
+            exact = 0.5 * (distances.amin(1).mean() + distances.amin(0).mean())
+            assert float(costs[turn]) == pytest.approx(float(exact), rel=1e-12)
+
+
 def test_half_turns_in_order_follow_the_motion_where_the_shape_cannot_tell():
     """A box symmetric under every half turn: its readings look alike whatever S_j, but the
     rotations of a slow tumble, read with random half turns, are smoothest when undone."""
@@ -159,7 +186,7 @@ def test_the_reference_keeps_its_frame_when_its_own_rotation_is_misread():
     weight = 2.0  # the shape outweighs the one misread step: the right answer is no turn
     found = align_half_turns_in_order(readings, read, reference, shape_weight=weight)
 
-    clouds = _surface(readings, 2)
+    clouds, valid = _surface(readings, 2)
     target = clouds[reference]
     extent = float((target.amax(0) - target.amin(0)).norm())
 
@@ -167,7 +194,8 @@ def test_the_reference_keeps_its_frame_when_its_own_rotation_is_misread():
         poses = read @ chosen
         steps = ((poses[1:] * poses[:-1]).sum((-1, -2)) - 1).div(2).clamp(-1, 1).arccos()
         shapes = _chamfer(clouds * torch.diagonal(chosen, dim1=-2, dim2=-1)[:, None],
-                          target[None].expand(count, -1, -1))
+                          target[None].expand(count, -1, -1), valid,
+                          valid[reference][None].expand(count, -1))
         return float(steps.sum() + weight * shapes.sum() / extent)
 
     identity = turns[[0] * count]

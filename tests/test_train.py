@@ -26,7 +26,7 @@ from sq_mitsuba.cli import main
 from sq_mitsuba.config import apply_overrides, from_dict, to_dict
 from sq_mitsuba.training.config import TrainConfig, load_train_config
 from sq_mitsuba.training.loss_terms import LOSS_TERMS
-from sq_mitsuba.training.train import cosine_lr_factor, train
+from sq_mitsuba.training.train import TrainError, cosine_lr_factor, train
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = sorted((ROOT / "train" / "configs").glob("*.toml"))
@@ -1393,3 +1393,34 @@ def test_a_resumed_log_keeps_every_step_once_in_the_csv_and_tensorboard(val_upto
     assert [(e.step, e.value) for e in events.Scalars("train/loss")] == expected_train
     assert [(e.step, pytest.approx(e.value)) for e in events.Scalars("val/chamfer_l1")] == \
         expected_val
+
+
+def test_the_normal_term_refuses_a_model_without_normals(train_dataset, tmp_path):
+    """An older library's samples.npz holds no normals: read as zeros, the surface-normal
+    term was 0 for its images, with no gradient, and the head trained on nothing unnoticed."""
+    data = Path(shutil.copytree(train_dataset, tmp_path / "data"))
+    model = next(line.split(",")[0] for line in (data / "splits.csv").read_text().split()
+                 if line.endswith(",train"))
+    samples = data / model / "models" / "samples.npz"
+    with np.load(samples) as archive:
+        arrays = {k: v for k, v in archive.items() if k != "surface_normals"}
+    np.savez(samples, **arrays)
+    config = apply_overrides(load_train_config(TINY), [
+        f"data.cache_dir={tmp_path / 'cache'}", "network.normal_head=true",
+        "loss.weights.surface_normal=1"])
+    with pytest.raises(TrainError, match=rf"{model}/models/samples\.npz holds no surface "
+                                         "normals"):
+        train(config, data, tmp_path / "run", progress=False, max_steps=1)
+    assert not (tmp_path / "run" / "last.pt").exists()
+
+
+def test_a_blur_wider_than_the_input_is_a_config_error(train_dataset, tmp_path):
+    """Reflect padding needs the kernel (3 sigma) inside the image: a wider blur was accepted
+    and failed with torch's padding error at the first step it fired."""
+    config = apply_overrides(load_train_config(TINY), [
+        f"data.cache_dir={tmp_path / 'cache'}", "augment.blur=true", "augment.probability=1",
+        "augment.blur_sigma=[0.3, 20.0]", "network.image_size=32"])
+    with pytest.raises(TrainError, match=r"augment\.blur_sigma: 20 px reaches past the 32 px "
+                                         r"network input; at most 10\.3 px"):
+        train(config, train_dataset, tmp_path / "run", progress=False, max_steps=1)
+    assert not (tmp_path / "run").exists()

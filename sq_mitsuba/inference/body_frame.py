@@ -32,32 +32,41 @@ __all__ = ["align_half_turns", "align_half_turns_by_relative", "align_half_turns
            "align_half_turns_in_order", "along_motion", "canonical_frame", "reframed"]
 
 
-def _surface(assembly: Assembly, level: int) -> Tensor:
+def _surface(assembly: Assembly, level: int) -> tuple[Tensor, Tensor]:
     """Surface samples (B, P, 3), float64, that count (not inside another primitive; all of an
-    item when none does), padded to one length by repeating an item's first point."""
+    item when none does), padded to one length by repeating an item's first point, and which
+    of them are its own (B, P) bool: the copies must not count in a mean (where frames keep
+    other numbers of primitives one point would weigh as a whole primitive's samples)."""
     from sq_mitsuba.model.losses import counted_surface_samples
 
     points, keep = counted_surface_samples(Assembly(assembly.params.detach().double()), level)
     kept = [p[k] if bool(k.any()) else p for p, k in zip(points, keep, strict=True)]
     length = max(len(p) for p in kept)
-    return torch.stack([torch.cat([p, p[:1].expand(length - len(p), 3)]) for p in kept])
+    padded = torch.stack([torch.cat([p, p[:1].expand(length - len(p), 3)]) for p in kept])
+    valid = torch.arange(length)[None] < torch.tensor([len(p) for p in kept])[:, None]
+    return padded, valid
 
 
-def _chamfer(a: Tensor, b: Tensor) -> Tensor:
-    """Symmetric mean nearest-neighbour distance between clouds a (..., P, 3), b (..., Q, 3)."""
+def _chamfer(a: Tensor, b: Tensor, valid_a: Tensor, valid_b: Tensor) -> Tensor:
+    """Symmetric mean nearest-neighbour distance between clouds a (..., P, 3), b (..., Q, 3),
+    over their valid points (masks (..., P), (..., Q))."""
     distances = torch.cdist(a, b)
-    return 0.5 * (distances.amin(dim=-1).mean(dim=-1) + distances.amin(dim=-2).mean(dim=-1))
+    to_b = distances.masked_fill(~valid_b[..., None, :], torch.inf).amin(dim=-1)  # (..., P)
+    to_a = distances.masked_fill(~valid_a[..., :, None], torch.inf).amin(dim=-2)  # (..., Q)
+    return 0.5 * ((to_b * valid_a).sum(-1) / valid_a.sum(-1)
+                  + (to_a * valid_b).sum(-1) / valid_b.sum(-1))
 
 
-def _shape_costs(clouds: Tensor, reference: int) -> Tensor:
+def _shape_costs(clouds: Tensor, valid: Tensor, reference: int) -> Tensor:
     """(N, 4): the Chamfer distance of each reading's surface samples ``clouds`` (N, P, 3)
-    turned by each half turn (the order of :func:`~sq_mitsuba.geometry.so3_grid.half_turns`)
-    to the reading ``reference``'s."""
-    target = clouds[reference]
+    (``valid`` (N, P): its own, not padding) turned by each half turn (the order of
+    :func:`~sq_mitsuba.geometry.so3_grid.half_turns`) to the reading ``reference``'s."""
     # (N, 4, P, 3): every reading turned by every half turn (a diagonal matrix: x -> S x).
     signs = torch.diagonal(half_turns(), dim1=-2, dim2=-1)
-    turned = clouds[:, None] * signs[None, :, None, :]
-    costs = _chamfer(turned.flatten(0, 1), target[None].expand(turned.shape[0] * 4, -1, -1))
+    turned = (clouds[:, None] * signs[None, :, None, :]).flatten(0, 1)
+    count = turned.shape[0]
+    costs = _chamfer(turned, clouds[reference][None].expand(count, -1, -1),
+                     valid.repeat_interleave(4, dim=0), valid[reference][None].expand(count, -1))
     return costs.reshape(len(clouds), 4)
 
 
@@ -71,7 +80,7 @@ def align_half_turns(assembly: Assembly, reference: int, level: int = 2) -> Tens
         reference: index of the reading whose body frame is kept.
         level: icosphere level of the surface samples.
     """
-    best = _shape_costs(_surface(assembly, level), reference).argmin(dim=1)
+    best = _shape_costs(*_surface(assembly, level), reference).argmin(dim=1)
     best[reference] = 0  # the identity comes first in half_turns()
     return half_turns()[best]
 
@@ -104,7 +113,7 @@ def align_half_turns_by_views(assembly: Assembly, rotation: Tensor, reference: i
     Returns:
         (N, 3, 3) float64 half turns S_j, ``x_ref = S_j x_j``.
     """
-    costs = _shape_costs(_surface(assembly, level), reference)  # (N, 4)
+    costs = _shape_costs(*_surface(assembly, level), reference)  # (N, 4)
     count = len(costs)
     rotation = rotation.double()
     # (N, N, 4): the angle between R_i and R_j T_d, radians.
@@ -196,10 +205,10 @@ def align_half_turns_in_order(assembly: Assembly, rotation: Tensor, reference: i
     """
     turns = half_turns()
     count = len(rotation)
-    clouds = _surface(assembly, level)
-    target = clouds[reference]
+    clouds, valid = _surface(assembly, level)
+    target = clouds[reference]  # its padding repeats a point of its own: the extent holds
     extent = float((target.amax(0) - target.amin(0)).norm()) or 1.0
-    unary = shape_weight * _shape_costs(clouds, reference) / extent  # (N, 4)
+    unary = shape_weight * _shape_costs(clouds, valid, reference) / extent  # (N, 4)
     # The reference keeps its frame (S_ref = I): the readings' shapes are compared with its
     # own. Left free, a reference turned by G would have every other reading compared with
     # G x_ref, and its one shape cost could outweigh the other frames' together.

@@ -167,6 +167,8 @@ def write_checkpoint(path: str | os.PathLike[str], payload: dict[str, Any]) -> P
     # temporary file's random name), so the same payload would not give the same bytes.
     with atomic_path(path) as tmp, open(tmp, "wb") as stream:
         torch.save(payload, stream)
+        stream.flush()
+        os.fsync(stream.fileno())  # on disk before the rename: the file a --resume needs
     return path
 
 

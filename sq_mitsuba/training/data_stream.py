@@ -283,6 +283,10 @@ def open_datasets(config: TrainConfig, data_root: Path, cache_root: Path | None 
         else []
     if config.augment.enabled and config.augment.rotation:
         check_rotation_exact(train_set.camera.rescaled(size, size))
+    if config.augment.enabled and config.augment.blur and \
+            math.ceil(3 * config.augment.blur_sigma[1]) >= size:  # the kernel's reach, 3 sigma
+        raise TrainError(f"augment.blur_sigma: {config.augment.blur_sigma[1]:g} px reaches past "
+                         f"the {size} px network input; at most {(size - 1) / 3:.3g} px")
     part_targets = None
     if config.loss.weights.get("parts", 0.0) > 0:
         try:
@@ -327,6 +331,18 @@ def _build_caches(run: TrainRun, sources: DataSources, cache_root: Path) -> None
         raise
 
 
+def _check_normals(points: PointCache, data_root: Path) -> None:
+    """Refuse (one line) training the surface-normal term on a model whose samples hold no
+    normals (read as zeros: the term would be 0 for its images, with no gradient)."""
+    offsets = points.surface_offsets
+    for index, model in enumerate(points.models):
+        if not np.any(points.normals[offsets[index]:offsets[index + 1]]):
+            samples = data_root / model / "models" / "samples.npz"
+            raise TrainError(f"loss.weights.surface_normal: {samples} holds no surface normals "
+                             "(an older library's); make the model again (sq-mitsuba models "
+                             "generate) or weigh the term 0")
+
+
 def open_training_data(run: TrainRun, sources: DataSources) -> TrainingData:
     """The caches of ``sources`` (rank 0 builds them, the others wait and open them) and the
     stream of training batches over them."""
@@ -343,6 +359,8 @@ def open_training_data(run: TrainRun, sources: DataSources) -> TrainingData:
         raise TrainError(error)
     train_set = sources.train_set
     points = open_point_cache(train_set, cache_root, run.fingerprint)
+    if cfg.loss.weights.get("surface_normal", 0.0) > 0:
+        _check_normals(points, run.data_root)
     images = open_image_cache(train_set, "train", cache_root, run.fingerprint)
     # Validation runs on rank 0 only; the others receive its metrics.
     val_images = (open_image_cache(sources.val_set, "val", cache_root, run.fingerprint,
@@ -363,6 +381,6 @@ def open_training_data(run: TrainRun, sources: DataSources) -> TrainingData:
                             symmetry_table(run.data_root, train_set.models,
                                            Path(cache_root) / "symmetries",
                                            workers=_symmetry_workers(len(train_set.models),
-                                                                     run.world.size)))
+                                                                     run.world.local_size)))
     return TrainingData(stream, points, val_images, bool(sources.val_indices), train_set.camera,
                         camera)

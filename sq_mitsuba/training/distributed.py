@@ -7,8 +7,9 @@ step's batch and renders its own items; gradients are averaged by DistributedDat
 batch (torch's SyncBatchNorm on CUDA, :class:`CpuSyncBatchNorm` on the CPU), so N processes
 follow the same trajectory as one process with the same global batch, up to float rounding
 (other summation orders; tested: 3 steps agree to 1e-5) and the encoder's stochastic depth,
-whose random draws are per process. The CUDA path (device ``cuda``, Mitsuba's ``cuda_ad_mono``
-variant, nccl) is written but untested here, and not bit-reproducible.
+whose random draws are per process; with ``reprojection.items`` each process renders that
+many of its own slice (N x items a step in all). The CUDA path (device ``cuda``, Mitsuba's
+``cuda_ad_mono`` variant, nccl) is written but untested here, and not bit-reproducible.
 """
 
 from __future__ import annotations
@@ -119,6 +120,12 @@ class World:
     @property
     def distributed(self) -> bool:
         return self.size > 1
+
+    @property
+    def local_size(self) -> int:
+        """Processes of the run on this machine (torchrun's ``LOCAL_WORLD_SIZE``), which share
+        its cores (on several nodes, fewer than ``size``)."""
+        return int(os.environ.get("LOCAL_WORLD_SIZE", self.size)) if self.distributed else 1
 
 
 def start_distributed(device: torch.device) -> World:

@@ -15,8 +15,9 @@ __all__ = ["cosine_lr_factor", "make_optimizer"]
 
 def cosine_lr_factor(step: int, total_steps: int, warmup_steps: int = 0,
                      min_ratio: float = 0.0) -> float:
-    """Learning-rate multiplier of step ``step`` (0-based): linear warm-up over
-    ``warmup_steps``, then a cosine from 1 down to ``min_ratio`` at the last step."""
+    """Learning-rate multiplier of step ``step`` (0-based): a linear warm-up over W =
+    ``warmup_steps`` steps, 1/W, 2/W, ..., 1 (the peak held at steps W - 1 and W), then a
+    cosine from 1 down to ``min_ratio`` at the last step."""
     if warmup_steps > 0 and step < warmup_steps:
         return (step + 1) / warmup_steps
     span = max(1, total_steps - 1 - warmup_steps)

@@ -166,10 +166,9 @@ def train(config: TrainConfig | None, data_root: str | Path, out_dir: str | Path
         raise TrainError(f"max_seconds: expected > 0, got {max_seconds}")
     main_process = int(os.environ.get("RANK", "0")) == 0
     created = not out_dir.exists()
-    # One run at a time in a run folder: rank 0 holds its lock from here to the end (a second
-    # run into it stops with the lock's line before the folder's checks, a --resume too; the
-    # lock goes with the process, kill -9 included, and removes what it made if a check
-    # refuses), and every check below sees the folder as no other run will change it.
+    # One run at a time in a run folder: rank 0 holds its lock to the end (a second run, a
+    # --resume too, stops with the lock's line before the folder's checks; the lock dies with
+    # its process, kill -9 included): every check below sees the folder as no run changes it.
     with output_lock(out_dir, command="sq-mitsuba train") if main_process else \
             contextlib.nullcontext():
         return _train(config, data_root, out_dir, resume, max_steps, progress, max_seconds,
@@ -307,7 +306,8 @@ class _Loop:
         else:
             torch.manual_seed(seed_of(cfg.seed, STREAMS["torch"], world.rank))
         self.validation_due = checkpoint is not None and self._validation_skipped(run.start_step)
-        self.renderer = reprojection_renderer(cfg, data.dataset_camera, run.device, world.size)
+        self.renderer = reprojection_renderer(cfg, data.dataset_camera, run.device,
+                                              world.local_size)
         self.val_renderer = (SilhouetteRenderer(data.camera, spp=cfg.validation.spp)
                              if data.val_images is not None and world.main else None)
         self.log: RunLog | None = None

@@ -200,6 +200,8 @@ def copy_checkpoint(source: Path, target: Path) -> None:
     serialising it again."""
     with atomic_path(target) as tmp:
         shutil.copyfile(source, tmp)
+        with open(tmp, "rb") as stream:  # on disk before the rename, as write_checkpoint
+            os.fsync(stream.fileno())
 
 
 def save_checkpoint(path: Path, run: TrainRun, step: int, *, model: nn.Module,
