@@ -103,6 +103,9 @@ def test_fit_bad_input():
         fit_assembly(masks, camera, rotations, translations, steps=0)
     with pytest.raises(ValueError, match="loss"):
         fit_assembly(masks, camera, rotations, translations, loss="l2")
+    # One assembly for every view: a start per view would fit each view its own.
+    with pytest.raises(ValueError, match=r"^init_raw: expected \(1, 1, 16\), got \(2, 1, 16\)"):
+        fit_assembly(masks, camera, rotations, translations, init_raw=torch.zeros(2, 1, 16))
 
 
 def test_fit_options_defaults_bounds_and_keyword_overrides():

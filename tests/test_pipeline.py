@@ -222,6 +222,13 @@ def test_the_fit_records_what_was_fitted_and_keeps_the_networks_reading(eval_che
                          refinement=REFINEMENT, reuse=fit)
     with pytest.raises(ValueError, match=r"^reuse: "):
         predictor.refine(image, network, mask=other, turns=fit.turns + 1, reuse=fit)
+    # Nor a fit under another camera (its start's depth and pixels are that camera's).
+    from sq_mitsuba.geometry.camera import Camera
+
+    wider = Camera.from_fov(50.0, 64, 64)
+    with pytest.raises(ValueError, match=r"^reuse: .* under this camera"):
+        predictor.refine(image, predictor.predict(image, wider), wider, mask=other,
+                         search=SEARCH, refinement=REFINEMENT, reuse=fit)
 
 
 def test_an_empty_mask_keeps_the_start_with_nan_scores(eval_checkpoint, train_dataset):

@@ -957,9 +957,16 @@ def test_given_relative_rotations_start_the_pass_at_the_mean_of_the_carried_read
     model = next(line.split(",")[0] for line in
                  (train_dataset / "splits.csv").read_text().splitlines()
                  if line.endswith(",test"))
-    labels = json.loads((train_dataset / model / "labels.json").read_text())[:4]
+    labels = json.loads((train_dataset / model / "labels.json").read_text())
     images = torch.from_numpy(np.stack([np.asarray(Image.open(
         train_dataset / model / "images" / label["filename"])) for label in labels])).float()
+    with one_thread():
+        # Four frames the tiny network's mask lets the refinement fit (a frame it leaves
+        # unfitted is refused: its NaN IoU would win the reference's argmax).
+        readings = load_model(eval_checkpoint).predict(images / 255, refine=True)
+    chosen = torch.nonzero(readings.fit.fitted)[:4, 0].tolist()
+    assert len(chosen) == 4
+    images, labels = images[chosen], [labels[k] for k in chosen]
     truth = quaternion_to_matrix(torch.tensor([label["q_vbs2tango_true"] for label in labels],
                                               dtype=torch.float64))
     relative = truth @ truth[0].T  # Q_j = R_j R_0^T
@@ -990,6 +997,15 @@ def test_given_relative_rotations_start_the_pass_at_the_mean_of_the_carried_read
         frames.rotation, relative, result.reference))
     with pytest.raises(ValueError, match=r"^relative_rotations: expected \(4, 3, 3\)"):
         sequence.sequence_from_frames(frames, relative[:2])
+    # A frame not fitted (its IoU NaN) would win the reference's argmax; a scaled reading is
+    # not at the unit size the joint fit works at.
+    import dataclasses
+
+    unfitted = dataclasses.replace(frames, fit=dataclasses.replace(
+        frames.fit, iou=torch.tensor([0.5, float("nan"), 0.6, 0.7]).to(frames.fit.iou)))
+    for bad in (unfitted, frames.scaled(4.0)):
+        with pytest.raises(ValueError, match=r"^frames: expected N >= 2 frames, each fitted"):
+            sequence.sequence_from_frames(bad, relative)
 
 
 def test_a_frame_the_joint_fit_lost_is_placed_again(known_pass):

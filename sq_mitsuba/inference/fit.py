@@ -275,6 +275,9 @@ def fit_assembly(
         raw = default_raw(num_primitives, generator)
     else:
         check_tensor("init_raw", init_raw, (num_primitives, NUM_PARAMS), min_dims=3)
+        if init_raw.shape != (1, num_primitives, NUM_PARAMS):  # one assembly for every view
+            raise ValueError(f"init_raw: expected (1, {num_primitives}, {NUM_PARAMS}), got "
+                             f"{tuple(init_raw.shape)}")
         raw = init_raw.detach().to(torch.float64).clone()
     raw.requires_grad_(True)
     with one_thread(options.deterministic):

@@ -274,9 +274,11 @@ class Predictor:
             raise ValueError(f"network: a reading of other images than these {count} (its "
                              "fingerprint differs); read these with predict(images)")
         if reuse is not None and not (isinstance(reuse, Fit) and turns in (None, reuse.turns)
-                                      and self._same_images(reuse.start, x)):
-            raise ValueError(f"reuse: expected the fit of these {count} images, from as many "
-                             "turned copies as turns asks (its start's fingerprint differs)")
+                                      and self._same_images(reuse.start, x)
+                                      and reuse.start.camera == camera):
+            raise ValueError(f"reuse: expected the fit of these {count} images under this "
+                             "camera, from as many turned copies as turns asks (its start's "
+                             "fingerprint or camera differs)")
         if turns is not None:  # as predict checks it
             self.check_turns(turns, camera)
         return fit_prediction(self, x.checked, network, turns=turns, mask=mask, search=search,

@@ -211,9 +211,8 @@ def fit_sequence(assembly: Assembly, rotation: Tensor, translation: Tensor, mask
                  relative_rotations: Tensor | None = None, relative_times: Tensor | None = None
                  ) -> tuple[Assembly, Tensor, Tensor, Tensor, int, list[float]]:
     """One shared assembly and N poses fitted at once to N masks through Mitsuba silhouettes
-    (:func:`~sq_mitsuba.inference.refine.refine_pose_and_shape` with ``shared=True``): first
-    the shape alone for ``options.shape_steps`` steps (the poses held: many views constrain
-    it), then the shape and the poses together for ``options.steps``.
+    (:func:`~sq_mitsuba.inference.refine.refine_pose_and_shape`, ``shared=True``): the shape
+    alone for ``options.shape_steps`` steps (the poses held), then with the poses.
 
     Args:
         assembly: the start, batch size 1, in the body frame.
@@ -422,7 +421,7 @@ def sequence_from_frames(frames: Prediction, relative: Tensor | None = None,
             the frames took (for :attr:`SequencePrediction.seconds`).
 
     Raises:
-        ValueError: naming ``frames`` (unfitted, or fewer than two) or ``relative_rotations``.
+        ValueError: naming ``frames`` (unfitted, scaled, fewer than 2) or ``relative_rotations``.
     """
     from sq_mitsuba.inference.fit import resize_masks
     from sq_mitsuba.render.silhouette.batch import PoseSilhouettes
@@ -430,8 +429,9 @@ def sequence_from_frames(frames: Prediction, relative: Tensor | None = None,
     started = time.perf_counter() if started is None else started
     options = checked_options(options, SequenceOptions(), "options")
     fit = frames.fit
-    if fit is None or len(fit.iou) < 2:
-        raise ValueError("frames: expected N >= 2 frames fitted (predict(images, refine=True))")
+    if fit is None or len(fit.iou) < 2 or not bool(fit.iou.isfinite().all()) or frames.scale != 1:
+        raise ValueError("frames: expected N >= 2 frames, each fitted (no NaN IoU), at unit size "
+                         "(predict(images, refine=True))")
     relative = _check_relative(relative, len(fit.iou))
     reference = int(torch.argmax(fit.iou))
     if relative is not None:  # the given rotations settle the half turns, shapes or not
