@@ -84,7 +84,12 @@ def too_much_memory(what: str, need: int, memory: int, advice: str) -> str:
             f"{memory_text(memory)} this process may use; {advice}")
 
 
-def narrow_to_local_gpu(environ: MutableMapping[str, str] = os.environ) -> str | None:
+#: One folder per NVIDIA GPU the driver sees (Linux): a count that does not start CUDA.
+NVIDIA_GPUS = Path("/proc/driver/nvidia/gpus")
+
+
+def narrow_to_local_gpu(environ: MutableMapping[str, str] = os.environ,
+                        gpus_folder: Path = NVIDIA_GPUS) -> str | None:
     """Give each process of a multi-process run (torchrun's ``WORLD_SIZE`` > 1) its own GPU
     alone: ``CUDA_VISIBLE_DEVICES`` becomes the ``LOCAL_RANK``-th of the devices listed there
     (all when unset), so that torch and Dr.Jit both see that one device, as ``cuda:0``.
@@ -96,8 +101,9 @@ def narrow_to_local_gpu(environ: MutableMapping[str, str] = os.environ) -> str |
 
     Returns:
         The device it kept, or None where it changed nothing (one process, no LOCAL_RANK, one
-        device listed already, or fewer devices listed than local ranks: torch's error then
-        names the missing device).
+        device listed already, or fewer devices listed, or fewer GPUs in ``gpus_folder``,
+        than local ranks: torch's error then names the missing device, where a process given
+        none would have trained on the CPU beside the others' GPUs).
     """
     if int(environ.get("WORLD_SIZE", "1") or 1) <= 1 or "LOCAL_RANK" not in environ:
         return None
@@ -105,6 +111,8 @@ def narrow_to_local_gpu(environ: MutableMapping[str, str] = os.environ) -> str |
     listed = environ.get("CUDA_VISIBLE_DEVICES")
     devices = [d.strip() for d in listed.split(",") if d.strip()] if listed is not None \
         else None
+    if devices is None and gpus_folder.is_dir() and rank >= len(list(gpus_folder.iterdir())):
+        return None
     if devices is not None and (len(devices) <= 1 or rank >= len(devices)):
         return None
     kept = str(rank) if devices is None else devices[rank]

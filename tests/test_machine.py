@@ -87,8 +87,21 @@ def test_the_refusal_is_one_line_naming_need_memory_and_advice():
     ({"LOCAL_RANK": "1"}, None, None),                                 # not torchrun's
     ({"WORLD_SIZE": "2"}, None, None),
 ])
-def test_each_torchrun_process_keeps_its_own_gpu(environ, kept, visible):
+def test_each_torchrun_process_keeps_its_own_gpu(environ, kept, visible, tmp_path):
     """Dr.Jit renders on the first visible GPU: each process must see its own alone."""
     environ = dict(environ)
-    assert narrow_to_local_gpu(environ) == kept
+    assert narrow_to_local_gpu(environ, tmp_path / "no_driver") == kept
     assert environ.get("CUDA_VISIBLE_DEVICES") == visible
+
+
+def test_a_rank_past_the_machines_gpus_is_left_to_torchs_error(tmp_path):
+    """Four processes on a machine of two GPUs: ranks 2 and 3 are not pointed at GPUs that do
+    not exist (they trained on the CPU beside the others' nccl); torch's own error names
+    the missing device."""
+    gpus = tmp_path / "gpus"
+    for address in ("0000:17:00.0", "0000:65:00.0"):
+        (gpus / address).mkdir(parents=True)
+    for rank, kept in (("1", "1"), ("2", None)):
+        environ = {"WORLD_SIZE": "4", "LOCAL_RANK": rank}
+        assert narrow_to_local_gpu(environ, gpus) == kept
+        assert environ.get("CUDA_VISIBLE_DEVICES") == kept

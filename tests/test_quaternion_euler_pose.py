@@ -104,6 +104,14 @@ def test_euler_angles_are_the_product_of_turns_about_the_named_axes(convention):
     torch.testing.assert_close(euler_angles_to_matrix(read, convention),
                                euler_angles_to_matrix(locked, convention))
     assert (read[:, 2] == 0).all()
+    # Near the lock (1e-6 rad in float64, 1e-4 in float32) the angles still give the matrix
+    # back to the dtype's precision (asin and a fixed threshold lost half the digits there).
+    for dtype, off, tolerance in ((F64, 1e-6, 1e-12), (torch.float32, 1e-4, 3e-7)):
+        near = locked.clone()
+        near[:, 1] += torch.tensor([off, -off], dtype=F64) * (1 if proper else -1)
+        matrix = euler_angles_to_matrix(near, convention).to(dtype)
+        back = euler_angles_to_matrix(matrix_to_euler_angles(matrix, convention), convention)
+        assert float((back - matrix).abs().max()) < tolerance, (dtype, off)
 
 
 def test_euler_angles_gradcheck_and_the_aerospace_default():
@@ -143,6 +151,12 @@ def test_poses_compose_invert_and_relate_as_their_4x4_matrices(device):
                                homogeneous(ra, ta) @ homogeneous(rb, tb))
     torch.testing.assert_close(homogeneous(*compose_poses(*relative_pose(ra, ta, rb, tb), ra, ta)),
                                homogeneous(rb, tb))
+    # The widest dtype wins: a float64 translation is not rounded to float32 points' dtype.
+    far = torch.tensor([1e8 + 1.0, 0.0, 0.0], dtype=F64, device=device)
+    eye = torch.eye(3, device=device)
+    assert transform_points(torch.zeros(1, 3, device=device), eye, far)[0, 0] == 1e8 + 1.0
+    assert invert_pose(eye, far)[1][0] == -(1e8 + 1.0)
+    assert compose_poses(eye, far, eye, torch.zeros(3, device=device))[1][0] == 1e8 + 1.0
 
 
 @pytest.mark.parametrize(("call", "name"), [

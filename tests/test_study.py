@@ -122,11 +122,13 @@ def test_breakdown_of_an_evaluation_by_recorded_lighting(eval_checkpoint, train_
         assert int(got[key]["images"]) == len(values)
         assert float(got[key]["mean"]) == pytest.approx(np.mean(values))
     assert {r["metric"] for r in table} == set(METRICS)
-    # A step that does not divide 180: the last bin, [150, 180], is drawn at its centre.
-    assert main(["study", "illumination", "--eval", str(folder), "--step", "50"]) == 0
+    # A step that does not divide 180: the last bin, [100, 180] (the recorded phases reach
+    # past 100 deg), is drawn at its centre, 140 (it was drawn at 150).
+    assert max(float(r["phase_angle_deg"]) for r in rows) > 100
+    assert main(["study", "illumination", "--eval", str(folder), "--step", "100"]) == 0
     centres = {float(r["phase_deg"]) for r in read_rows(folder / "lighting.csv")
                if r["background"] != "eclipse"}
-    assert centres <= {25.0, 75.0, 125.0, 165.0}, centres
+    assert 140.0 in centres and centres <= {50.0, 140.0}, centres
     # Another evaluation into the folder: its per_image.csv is new, so the breakdown of the
     # earlier one goes (study illumination --eval makes this one's).
     evaluate(load_model(eval_checkpoint), train_dataset, folder,

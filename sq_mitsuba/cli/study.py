@@ -40,7 +40,9 @@ study sets render.images_per_model (--poses), render.shard, render.overwrite,
 evaluation.split and evaluation.baseline itself (given, they are refused). A rerun with
 other render settings into one --out is refused (delete the folder to start over); one with
 other evaluation settings reuses the renders and evaluates every point again, replacing
-evals/. A run that fails (not interrupted) keeps its renders and evaluations for the rerun."""
+evals/. A run that fails other than on bad input (out of memory, a disk error) keeps its
+renders and evaluations for the rerun; bad input (a model that cannot be rendered) leaves
+nothing."""
 DESCRIPTION = f"""\
 `study illumination --help`: metrics against the sun's phase angle, the Earth and eclipses.
 `study passes --help`: one assembly from N frames of a pass against each frame alone.

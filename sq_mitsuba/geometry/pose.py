@@ -41,7 +41,8 @@ def transform_points(points: Tensor, rotation: Tensor, translation: Tensor) -> T
     """
     check_tensor("points", points, (None, 3), min_dims=2)
     _check_pose(rotation, translation)
-    dtype = torch.promote_types(points.dtype, rotation.dtype)
+    dtype = torch.promote_types(torch.promote_types(points.dtype, rotation.dtype),
+                                translation.dtype)
     try:
         return (points.to(dtype) @ rotation.to(dtype).transpose(-1, -2)
                 + translation.to(dtype)[..., None, :])
@@ -52,21 +53,28 @@ def transform_points(points: Tensor, rotation: Tensor, translation: Tensor) -> T
 
 
 def invert_pose(rotation: Tensor, translation: Tensor) -> tuple[Tensor, Tensor]:
-    """The inverse pose ``(R^T, -R^T t)`` (..., 3, 3), (..., 3): it maps back what ``(R, t)``
-    maps (``R`` must be a rotation; its transpose is taken as its inverse)."""
+    """The inverse pose ``(R^T, -R^T t)`` (..., 3, 3), (..., 3), in the wider of the inputs'
+    dtypes: it maps back what ``(R, t)`` maps (``R`` must be a rotation; its transpose is
+    taken as its inverse)."""
     _check_pose(rotation, translation)
-    inverse = rotation.transpose(-1, -2)
-    return inverse, -(inverse @ translation[..., None].to(inverse))[..., 0]
+    dtype = torch.promote_types(rotation.dtype, translation.dtype)  # the wider of the two
+    inverse = rotation.to(dtype).transpose(-1, -2)
+    return inverse, -(inverse @ translation.to(dtype)[..., None])[..., 0]
 
 
 def compose_poses(rotation_a: Tensor, translation_a: Tensor, rotation_b: Tensor,
                   translation_b: Tensor) -> tuple[Tensor, Tensor]:
     """The pose ``a after b``, (..., 3, 3), (..., 3): ``x -> R_a (R_b x + t_b) + t_a``, i.e.
-    ``(R_a R_b, R_a t_b + t_a)``; the batch dims of both poses broadcast."""
+    ``(R_a R_b, R_a t_b + t_a)``, in the widest of the inputs' dtypes; the batch dims of
+    both poses broadcast."""
     _check_pose(rotation_a, translation_a, "a: ")
     _check_pose(rotation_b, translation_b, "b: ")
+    dtype = torch.promote_types(torch.promote_types(rotation_a.dtype, rotation_b.dtype),
+                                torch.promote_types(translation_a.dtype, translation_b.dtype))
+    rotation_a, rotation_b = rotation_a.to(dtype), rotation_b.to(dtype)
     rotation = rotation_a @ rotation_b
-    translation = (rotation_a @ translation_b[..., None].to(rotation_a))[..., 0] + translation_a
+    translation = (rotation_a @ translation_b.to(dtype)[..., None])[..., 0] + \
+        translation_a.to(dtype)
     return rotation, translation
 
 

@@ -387,19 +387,21 @@ def matrix_to_euler_angles(matrix: Tensor, convention: str = "ZYX") -> Tensor:
     _check_matrix("matrix", matrix)
     check_rotations("matrix", matrix.reshape(-1, 3, 3))
     m = matrix
-    if i != k:  # Tait-Bryan: the sign of the permutation (i, j, k)
-        sign = 1.0 if (j - i) % 3 == 1 else -1.0
-        middle = torch.asin((sign * m[..., i, k]).clamp(-1.0, 1.0))
+    # The middle angle by atan2 (asin and acos lose half the digits near the lock); locked
+    # where its cosine (Tait-Bryan) or sine (proper) is below a few units in the last place.
+    sign = 1.0 if (j - i) % 3 == 1 else -1.0  # of the permutation (i, j, k) or (i, j, m)
+    if i != k:  # Tait-Bryan
+        reach = torch.hypot(m[..., j, k], m[..., k, k])  # |cos middle|
+        middle = torch.atan2(sign * m[..., i, k], reach)
         first = torch.atan2(-sign * m[..., j, k], m[..., k, k])
         last = torch.atan2(-sign * m[..., i, j], m[..., i, i])
-        locked = m[..., j, k].square() + m[..., k, k].square() < 1e-12
-    else:  # proper Euler: the sign of (i, j, m) with m the third axis
+    else:  # proper Euler, m the third axis
         other = 3 - i - j
-        sign = 1.0 if (j - i) % 3 == 1 else -1.0
-        middle = torch.acos(m[..., i, i].clamp(-1.0, 1.0))
+        reach = torch.hypot(m[..., j, i], m[..., other, i])  # sin middle
+        middle = torch.atan2(reach, m[..., i, i])
         first = torch.atan2(m[..., j, i], -sign * m[..., other, i])
         last = torch.atan2(m[..., i, j], sign * m[..., i, other])
-        locked = m[..., j, i].square() + m[..., other, i].square() < 1e-12
+    locked = reach < 4 * torch.finfo(m.dtype).eps
     if bool(locked.any()):
         # The last angle 0: R = R_i(first) R_j(middle), so R_i(first) = R R_j(middle)^T.
         rest = m @ _axis_rotation(j, middle).transpose(-1, -2)

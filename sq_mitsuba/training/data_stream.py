@@ -332,8 +332,9 @@ def _build_caches(run: TrainRun, sources: DataSources, cache_root: Path) -> None
 
 
 def _check_normals(points: PointCache, data_root: Path) -> None:
-    """Refuse (one line) training the surface-normal term on a model whose samples hold no
-    normals (read as zeros: the term would be 0 for its images, with no gradient)."""
+    """Refuse (one line), before the first step, training the surface-normal term on a model
+    whose samples hold no normals (read as zeros: the term would be 0 for its images, with
+    no gradient); the point cache that carries the normals is built by then."""
     offsets = points.surface_offsets
     for index, model in enumerate(points.models):
         if not np.any(points.normals[offsets[index]:offsets[index + 1]]):
