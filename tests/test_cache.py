@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import shutil
 from pathlib import Path
 
@@ -150,12 +151,19 @@ def test_a_ready_point_cache_spares_reading_the_models_points_again(train_datase
             open_datasets(config, root, *arguments)
 
     samples.write_bytes(good)
-    assert not point_cache_ready(dataset.models, cache, fingerprint)
+    assert not point_cache_ready(root, dataset.models, cache, fingerprint)
     open_point_cache(dataset, cache, fingerprint)
-    assert point_cache_ready(dataset.models, cache, fingerprint)
-    assert not point_cache_ready(dataset.models, cache, "another dataset")
-    assert not point_cache_ready(dataset.models[1:], cache, fingerprint)
-    samples.write_bytes(b"not an archive")
+    assert point_cache_ready(root, dataset.models, cache, fingerprint)
+    assert not point_cache_ready(root, dataset.models, cache, "another dataset")
+    assert not point_cache_ready(root, dataset.models[1:], cache, fingerprint)
+    # The models' files are not read again: a damaged file of the same size and time (the
+    # key's stat of it) is not noticed.
+    stat = samples.stat()
+    samples.write_bytes(b"x" * len(good))
+    os.utime(samples, ns=(stat.st_atime_ns, stat.st_mtime_ns))
     assert open_datasets(config, root, cache, fingerprint).train_set.models == dataset.models
     with pytest.raises(DatasetError, match=r"samples\.npz"):
         open_datasets(config, root, cache, "another dataset")
+    # A model made again (another samples.npz) gets new points, not the cache's stale ones.
+    samples.write_bytes(good)
+    assert not point_cache_ready(root, dataset.models, cache, fingerprint)

@@ -253,7 +253,14 @@ def test_an_empty_mask_keeps_the_start_with_nan_scores(eval_checkpoint, train_da
     ({"refine": True, "mask": [[0]]}, "mask: expected 'network', 'segmentation', a tensor"),
     ({"refine": True, "turns": 4}, "turns: reading the rotation from turned copies needs"),
 ])
-def test_bad_pipeline_input_is_one_line_naming_the_argument(eval_checkpoint, kwargs, message):
+def test_bad_pipeline_input_is_one_line_naming_the_argument(eval_checkpoint, kwargs, message,
+                                                            monkeypatch):
+    from sq_mitsuba.inference import pipeline
+
+    def no_turned_copies(*args, **kwargs):  # a bad mask is refused before they run
+        raise AssertionError("the turned copies ran before the input was checked")
+
+    monkeypatch.setattr(pipeline, "search_start", no_turned_copies)
     predictor = load_model(eval_checkpoint)
     with pytest.raises(ValueError, match=message) as info:
         predictor.predict(torch.zeros(1, 64, 64), **kwargs)

@@ -45,8 +45,8 @@ from sq_mitsuba.inference.search import SEARCH_REFINEMENT, SearchOptions, search
 
 T = TypeVar("T")
 
-__all__ = ["checked_options", "fit_options", "fit_prediction", "masks_to_fit", "search_start",
-           "segmented"]
+__all__ = ["checked_mask", "checked_options", "fit_options", "fit_prediction", "masks_to_fit",
+           "search_start", "segmented"]
 
 
 def fit_options(search: SearchOptions | None, refinement: RefineOptions | None
@@ -114,16 +114,27 @@ def masks_to_fit(start: Prediction, images: Tensor, mask: MaskChoice
         ValueError: naming ``mask``: an unknown choice, a wrong type, dtype or shape, NaN or
             float values outside [0, 1].
     """
+    mask = checked_mask(mask, images)
+    if isinstance(mask, str):
+        if mask == "network" and start.mask is not None:
+            masks = start.mask.detach().cpu() > 0.5
+            return masks, masks.flatten(1).any(dim=1), "network"
+        masks, usable = segmented(images)
+        return masks, usable, "segmentation"
+    return mask, mask.flatten(1).any(dim=1), "given"
+
+
+def checked_mask(mask: MaskChoice, images: Tensor) -> str | Tensor:
+    """``mask`` checked against the images (B, C, H, W): the choice ("network" for None), or
+    the given masks as (B, H, W) bool on the CPU; a one-line ValueError naming ``mask``
+    otherwise (called before the network's turned copies run, and again by
+    :func:`masks_to_fit`)."""
     count, height, width = images.shape[0], images.shape[-2], images.shape[-1]
     if mask is None or isinstance(mask, str):
         choice = mask or "network"
         if choice not in ("network", "segmentation"):
             raise ValueError(f"mask: expected 'network', 'segmentation' or masks, got {mask!r}")
-        if choice == "network" and start.mask is not None:
-            masks = start.mask.detach().cpu() > 0.5
-            return masks, masks.flatten(1).any(dim=1), "network"
-        masks, usable = segmented(images)
-        return masks, usable, "segmentation"
+        return choice
     if isinstance(mask, np.ndarray):
         if mask.dtype.kind not in "biuf":
             raise ValueError(f"mask: expected a bool or float array, got dtype {mask.dtype}")
@@ -145,7 +156,7 @@ def masks_to_fit(start: Prediction, images: Tensor, mask: MaskChoice
         mask = mask > 0.5
     elif mask.dtype != torch.bool:
         mask = mask != 0
-    return mask, mask.flatten(1).any(dim=1), "given"
+    return mask
 
 
 def segmented(images: Tensor) -> tuple[Tensor, Tensor]:
@@ -195,6 +206,7 @@ def fit_prediction(predictor: Any, images: Tensor, network: Prediction, *,
     """
     # Checked before the turned copies run, and whether or not any item is fitted.
     search, refinement = fit_options(search, refinement)
+    mask = checked_mask(mask, images)
     camera = network.camera
     started = time.perf_counter()
     if reuse is None:

@@ -15,7 +15,8 @@ the subset) and written atomically: built in a temporary sibling, ``meta.json`` 
 renamed. A folder whose ``meta.json`` matches is reused; anything else is rebuilt. The
 dataset fingerprint (:func:`dataset_fingerprint`) hashes the dataset manifest
 (``dataset.json``) where there is one, ``camera.json``, ``splits.csv`` and every
-``labels.json``: a re-rendered or edited dataset gets a new cache.
+``labels.json``: a re-rendered or edited dataset gets a new cache; the point cache's key also
+holds each model's ``samples.npz`` size and time (a model made again gets new points).
 
 Beside them, ``symmetries/`` keeps each training model's half-turn symmetries
 (:func:`sq_mitsuba.data.symmetry.model_symmetries` with ``cache_dir``, one record per model
@@ -372,17 +373,28 @@ class PointCache:
                 np.asarray(self.normals[first + chosen]))
 
 
-def _point_cache_folder(models: Sequence[str], cache_root: str | Path,
+def _point_cache_folder(root: Path, models: Sequence[str], cache_root: str | Path,
                         fingerprint: str) -> tuple[Path, dict[str, Any]]:
-    key = {"version": CACHE_VERSION, "fingerprint": fingerprint, "models": list(models)}
+    """The folder and key of the point cache of ``models`` of the dataset at ``root``: its
+    fingerprint (labels, not points) and each model's ``samples.npz`` size and time, so that
+    a model made again keeps no stale points (a stat a model, not a read)."""
+    samples = []
+    for model in models:
+        path = Path(root) / model / "models" / "samples.npz"
+        stat = path.stat() if path.is_file() else None
+        samples.append(None if stat is None else [stat.st_size, stat.st_mtime_ns])
+    key = {"version": CACHE_VERSION, "fingerprint": fingerprint, "models": list(models),
+           "samples": samples}
     return Path(cache_root) / f"points-{_key_digest(key)}", key
 
 
-def point_cache_ready(models: Sequence[str], cache_root: str | Path, fingerprint: str) -> bool:
+def point_cache_ready(root: str | Path, models: Sequence[str], cache_root: str | Path,
+                      fingerprint: str) -> bool:
     """Whether ``cache_root`` holds the finished :class:`PointCache` of these models of the
-    dataset with this fingerprint: their points were then read, and checked, when it was
-    built, and training reads them from it, not from the models' files."""
-    folder, key = _point_cache_folder(models, cache_root, fingerprint)
+    dataset at ``root`` with this fingerprint, their samples as they are now: their points
+    were then read, and checked, when it was built, and training reads them from it, not
+    from the models' files."""
+    folder, key = _point_cache_folder(Path(root), models, cache_root, fingerprint)
     meta = _read_meta(folder)
     return meta is not None and meta.get("key") == key
 
@@ -392,7 +404,7 @@ def open_point_cache(dataset: Any, cache_root: str | Path, fingerprint: str,
     """The :class:`PointCache` of every model of ``dataset`` (``dataset.model_points``),
     built on first use under ``cache_root``."""
     models = list(dataset.models)
-    folder, key = _point_cache_folder(models, cache_root, fingerprint)
+    folder, key = _point_cache_folder(Path(dataset.root), models, cache_root, fingerprint)
     meta = _read_meta(folder)
     if meta is not None and meta.get("key") == key:
         return PointCache(folder)

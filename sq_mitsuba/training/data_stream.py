@@ -275,7 +275,7 @@ def open_datasets(config: TrainConfig, data_root: Path, cache_root: Path | None 
     # Images of camera.json's size, readable finite points: refused here, before any work,
     # not at the cache build or a step later (the val split holds the same models).
     cached = cache_root is not None and fingerprint is not None and \
-        point_cache_ready(train_set.models, cache_root, fingerprint)
+        point_cache_ready(train_set.root, train_set.models, cache_root, fingerprint)
     train_set.check(points=not cached)
     val_set = Spe3rDataset(data_root, "val", image_size=size, num_surface=1, num_occupancy=2,
                            seed=config.seed)
