@@ -20,10 +20,12 @@ def _dataset(root: Path, split: str = "train", size: int = 32) -> Spe3rDataset:
     return Spe3rDataset(root, split, image_size=size, num_surface=1, num_occupancy=2)
 
 
-def test_image_cache_equals_dataset_items(train_dataset, tmp_path):
+def test_image_cache_equals_dataset_items(train_dataset, tmp_path, monkeypatch):
     dataset = _dataset(train_dataset)
     fingerprint = dataset_fingerprint(train_dataset)
-    cache = open_image_cache(dataset, "train", tmp_path, fingerprint, workers=2)
+    with monkeypatch.context() as patch:  # pixels alone: no model's points are read for it
+        patch.setattr(Spe3rDataset, "model_points", lambda *args: pytest.fail("points read"))
+        cache = open_image_cache(dataset, "train", tmp_path, fingerprint, workers=2)
     assert len(cache) == len(dataset) > 0
     batch = cache.batch(np.arange(len(cache)))
     for i in range(len(dataset)):

@@ -216,7 +216,9 @@ def _label_of(dataset: Any, item: int) -> dict[str, Any]:
 
 
 def _decode(dataset: Any, item: int) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
-    sample = dataset[item]
+    # The pixels alone where the dataset can give them: its models' points are not read (for
+    # a release without samples.npz each would be sampled from its mesh again).
+    sample = dataset.pixel_item(item) if hasattr(dataset, "pixel_item") else dataset[item]
     image = np.rint(sample["image"][0].numpy() * 255.0).astype(np.uint8)
     mask = (sample["mask"][0].numpy() > 0.5).astype(np.uint8)
     return image, mask, sample

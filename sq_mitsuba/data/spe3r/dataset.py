@@ -196,9 +196,10 @@ class Spe3rDataset(torch.utils.data.Dataset):
                                f"{image.shape[0]} px")
         return image, mask
 
-    def __getitem__(self, item: int) -> dict[str, Any]:
+    def pixel_item(self, item: int) -> dict[str, Any]:
+        """The item of :meth:`__getitem__` without its model's points: image, mask, pose,
+        camera and names (what a cache of images keeps; the model's points are not read)."""
         model_index, index, label = self.items[item]
-        model = self.models[model_index]
         size = self.image_size
         image, mask = self.read_pair(item)
         image = resize(image, size, Image.BILINEAR)
@@ -206,23 +207,28 @@ class Spe3rDataset(torch.utils.data.Dataset):
         # picked one corner of each block, a quarter pixel off the image at half size.
         mask = resize(mask, size, Image.BOX)
         quaternion = torch.tensor(label["q_vbs2tango_true"], dtype=torch.float32)
-        camera = self.camera.rescaled(size, size)
-        points = self.model_points(model_index)
-        rng = np.random.default_rng(self.seed + item)
-        surface = points["surface"][rng.choice(len(points["surface"]), self.num_surface,
-                                               replace=len(points["surface"]) < self.num_surface)]
-        occupancy, labels = balanced_occupancy(points["points"], points["inside"],
-                                                self.num_occupancy, rng)
         return {
             "image": torch.from_numpy(image.astype(np.float32) / 255.0)[None],
             "mask": torch.from_numpy((mask >= 128).astype(np.float32))[None],
             "quaternion": quaternion,
             "rotation": quaternion_to_matrix(quaternion),
             "translation": torch.tensor(label["r_Vo2To_vbs_true"], dtype=torch.float32),
-            "camera": camera.matrix(),
-            "model": model,
+            "camera": self.camera.rescaled(size, size).matrix(),
+            "model": self.models[model_index],
             "model_index": model_index,
             "index": index,
+        }
+
+    def __getitem__(self, item: int) -> dict[str, Any]:
+        sample = self.pixel_item(item)
+        points = self.model_points(sample["model_index"])
+        rng = np.random.default_rng(self.seed + item)
+        surface = points["surface"][rng.choice(len(points["surface"]), self.num_surface,
+                                               replace=len(points["surface"]) < self.num_surface)]
+        occupancy, labels = balanced_occupancy(points["points"], points["inside"],
+                                                self.num_occupancy, rng)
+        return {
+            **sample,
             "surface_points": torch.from_numpy(surface.astype(np.float32)),
             "occupancy_points": torch.from_numpy(occupancy.astype(np.float32)),
             "occupancy_labels": torch.from_numpy(labels.astype(np.float32)),
