@@ -169,3 +169,28 @@ def test_a_ready_point_cache_spares_reading_the_models_points_again(train_datase
     # A model made again (another samples.npz) gets new points, not the cache's stale ones.
     samples.write_bytes(good)
     assert not point_cache_ready(root, dataset.models, cache, fingerprint)
+
+
+def test_a_killed_builds_temporary_folder_goes_with_the_next_build(tmp_path):
+    """A build killed by SIGKILL (or for memory) left its temporary folder, memory maps and
+    all, for ever: the next build on this machine removes those of dead processes and keeps
+    a live one's and other machines' (a cache on a shared disk)."""
+    import socket
+    import subprocess
+    import sys
+
+    from sq_mitsuba.training.cache import _temporary
+
+    folder = tmp_path / "images-train-32px-abc"
+    host = socket.gethostname()
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                          capture_output=True, text=True, check=True).stdout.strip()
+    stale = tmp_path / f".{folder.name}.tmp-{host}-{dead}"
+    live = tmp_path / f".{folder.name}.tmp-{host}-{os.getppid()}"
+    elsewhere = tmp_path / f".{folder.name}.tmp-another-machine-{dead}"
+    for path in (stale, live, elsewhere):
+        (path / "images.u8").parent.mkdir()
+        (path / "images.u8").write_bytes(b"partial")
+    mine = _temporary(folder)
+    assert mine.name == f".{folder.name}.tmp-{host}-{os.getpid()}" and mine.is_dir()
+    assert not stale.exists() and live.exists() and elsewhere.exists()

@@ -34,6 +34,7 @@ import hashlib
 import json
 import os
 import shutil
+import socket
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -113,11 +114,31 @@ def _publish(tmp: Path, folder: Path) -> None:
 
 
 def _temporary(folder: Path) -> Path:
+    """A fresh temporary sibling of ``folder`` for this process, named by its machine and
+    process id; those of this machine's processes no longer alive (a build killed by SIGKILL
+    or for memory: their memory maps can be gigabytes) are removed, a live one's (another run
+    building into a shared cache) and other machines' (a shared disk) kept."""
     folder.parent.mkdir(parents=True, exist_ok=True)
-    tmp = folder.with_name(f".{folder.name}.tmp-{os.getpid()}")
+    prefix = f".{folder.name}.tmp-{socket.gethostname()}-"
+    for stale in folder.parent.glob(f"{prefix}*"):
+        owner = stale.name[len(prefix):]
+        if owner.isdigit() and int(owner) != os.getpid() and not _alive(int(owner)):
+            shutil.rmtree(stale, ignore_errors=True)
+    tmp = folder.with_name(f"{prefix}{os.getpid()}")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir()
     return tmp
+
+
+def _alive(pid: int) -> bool:
+    """Whether a process ``pid`` runs on this machine."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process: alive
+        return True
+    return True
 
 
 # ------------------------------------------------------------------------ images
