@@ -361,3 +361,36 @@ def test_the_fits_adam_is_torchs_adam_and_linear_warm_up_bit_for_bit(dtype, warm
     for a, b, s in zip(mine, reference, start, strict=True):
         assert not torch.equal(a, s)  # every parameter moved
         assert torch.equal(a, b)
+
+
+def test_a_stand_in_follows_its_host_where_the_shape_moves():
+    """An item padded with a stand-in (its first primitive shrunk, for a batch whose items keep
+    more primitives): where the shape moves, the stand-in is rebuilt from its host at every
+    step, so it stays inside it (held, the host moved off it and it came into sight: the IoU
+    recorded was not that of the item's own primitives, which is what is written out)."""
+    from sq_mitsuba.model.existence import STAND_IN_SCALE, gathered_primitives
+
+    camera = Camera.from_fov(35.45, 32, 32)
+    params = Assembly.from_values(torch.tensor([[[0.3, 0.15, 0.1]]], dtype=torch.float64),
+                                  torch.full((1, 1, 2), 0.5, dtype=torch.float64),
+                                  torch.zeros(1, 1, 3, dtype=torch.float64),
+                                  torch.eye(3, dtype=torch.float64)[None, None]).params
+    padded = Assembly(gathered_primitives(params, torch.tensor([[0, -1]])))
+    rotation = torch.eye(3, dtype=torch.float64)[None]
+    translation = torch.tensor([[0.0, 0.0, 3.0]], dtype=torch.float64)
+    moved = params.clone()
+    moved[..., 5] += 0.25  # the target lies to the right: the shape's centre moves there
+    with torch.no_grad():
+        masks = render_assembly(Assembly(moved), rotation, translation,
+                                SilhouetteRenderer(camera, spp=4), 1) > 0.5
+    options = RefineOptions(steps=40, patience=40, resolution=32, level=1, spp=4, sppp=4,
+                            shape="extent", rotation="fixed", depth="fixed", lr=0.02)
+    result = refine_pose_and_shape(padded, rotation, translation, masks, camera, options,
+                                   own=torch.tensor([[True, False]]))
+    host, stand_in = result.assembly.params[0]
+    assert float(host[5]) > 0.02  # the host moved towards the mask
+    torch.testing.assert_close(stand_in[3:], host[3:])  # the same centre, shape and pose
+    torch.testing.assert_close(stand_in[:3], STAND_IN_SCALE * host[:3])
+    with pytest.raises(ValueError, match=r"^own: expected \(1, 2\) bool"):
+        refine_pose_and_shape(padded, rotation, translation, masks, camera, options,
+                              own=torch.tensor([[False, True]]))

@@ -235,9 +235,10 @@ def fit_prediction(predictor: Any, images: Tensor, network: Prediction, *,
         # A regressed rotation (no distribution) is searched over a uniform grid of SO(3).
         hypotheses = None if start.rotation_log_probabilities is None else \
             start.rotation_hypotheses.detach().cpu()[chosen]
+        own = None if start.primitive_index is None else start.primitive_index.cpu() >= 0
         result = search_and_refine(Assembly(params[chosen]), rotation[chosen],
                                    translation[chosen], masks[chosen], camera, hypotheses,
-                                   search, refinement)
+                                   search, refinement, None if own is None else own[chosen])
         search_rotation[chosen] = result.search_rotation.double()
         search_translation[chosen] = result.search_translation.double()
         search_score[chosen] = result.search.score.double()

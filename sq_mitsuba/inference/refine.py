@@ -42,6 +42,7 @@ from sq_mitsuba.config import in_range, non_negative, positive, validate
 from sq_mitsuba.geometry.assembly import FIELDS, Assembly, ParameterRanges
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.rotation import axis_angle_to_matrix, matrix_to_axis_angle
+from sq_mitsuba.model.existence import gathered_primitives
 from sq_mitsuba.model.losses import silhouette_loss
 from sq_mitsuba.render.backend import one_thread
 
@@ -188,7 +189,8 @@ def refine_pose_and_shape(assembly: Assembly, rotation: Tensor, translation: Ten
                           masks: Tensor, camera: Camera,
                           options: RefineOptions | None = None, *, shared: bool = False,
                           relative_rotations: Tensor | None = None,
-                          relative_times: Tensor | None = None) -> RefineResult:
+                          relative_times: Tensor | None = None,
+                          own: Tensor | None = None) -> RefineResult:
     """Refine B predictions against B target masks through the Mitsuba silhouette.
 
     Args:
@@ -203,6 +205,11 @@ def refine_pose_and_shape(assembly: Assembly, rotation: Tensor, translation: Ten
             rotation ``R_0 = Q_0^T rotation[0]`` moves, not B; None: each view's own.
         relative_times: with ``relative_rotations`` of a constant-rate turn, (B,) the views'
             times: the rate of turn moves too (module docstring); None: the ``Q_j`` held.
+        own: (B, M) bool, the rows that are their item's own primitives; False marks a
+            stand-in a batch pads an item with (its first row shrunk: where the shape moves,
+            rebuilt from that row at every step, so it stays inside it and out of sight, and
+            left out of the shape prior's mean, so an item's fit does not depend on its
+            batch-mates' counts); None: every row.
 
     Returns:
         :class:`RefineResult` holding, per item (with ``shared``: for all items at once), the
@@ -264,6 +271,13 @@ def refine_pose_and_shape(assembly: Assembly, rotation: Tensor, translation: Ten
     for name in _MOVING_FIELDS[options.shape]:
         free_fields[FIELDS[name]] = 1.0
     free_fields = free_fields.expand_as(raw0).clone()
+    if own is not None:
+        if tuple(own.shape) != tuple(raw0.shape[:2]) or own.dtype != torch.bool or \
+                not bool(own[:, 0].all()):
+            raise ValueError(f"own: expected ({raw0.shape[0]}, {raw0.shape[1]}) bool, each "
+                             f"item's first row its own, got {tuple(own.shape)} {own.dtype}")
+        own = own.cpu()
+        free_fields = free_fields * own[..., None].to(dtype)
     if options.seen_sizes:
         free_fields[..., FIELDS["size"]] *= _seen_fraction(assembly, rotation0, translation0)
     change = torch.zeros_like(raw0, requires_grad=moving)
@@ -294,6 +308,15 @@ def refine_pose_and_shape(assembly: Assembly, rotation: Tensor, translation: Ten
 
     def current_raw() -> Tensor:
         return raw0 + change * free_fields
+
+    standing_in = own is not None and moving and not bool(own.all())
+    rows = None if own is None else torch.where(own, torch.arange(own.shape[1]), -1)
+
+    def shaped(raw: Tensor) -> Assembly:
+        """The assembly of ``raw``; where the shape moves, each stand-in rebuilt from its
+        item's first row as the batch made it (a held one was left in sight by its host)."""
+        current = Assembly.from_raw(raw)
+        return Assembly(gathered_primitives(current.params, rows)) if standing_in else current
 
     def pose() -> tuple[Tensor, Tensor]:
         if not shared:
@@ -340,12 +363,15 @@ def refine_pose_and_shape(assembly: Assembly, rotation: Tensor, translation: Ten
             optimizer.zero_grad()
             rotation_now, translation_now = pose()
             raw = current_raw()
-            current = Assembly.from_raw(raw)
+            current = shaped(raw)
             silhouette, coverage = render_assembly_loss(
                 current, rotation_now, translation_now, renderer,
                 lambda view, i: silhouette_loss(view[None], targets[i, None].to(view.dtype),
                                                 options.loss), options.level)
-            prior = options.prior_weight * ((raw - raw0) ** 2).mean(dim=(1, 2)).sum() \
+            moved = (raw - raw0) ** 2
+            moved = moved.mean(dim=(1, 2)) if own is None else (moved * own[..., None]).sum(
+                dim=(1, 2)) / (moved.shape[-1] * own.sum(dim=1).clamp_min(1))
+            prior = options.prior_weight * moved.sum() \
                 + options.rotation_prior * rotation_vector.square().sum()
             if options.depth_prior:  # the change of depth that pose() applies, squared
                 depth = shift[:, 2] * shift_axes[2]
@@ -369,9 +395,9 @@ def refine_pose_and_shape(assembly: Assembly, rotation: Tensor, translation: Ten
         with torch.no_grad():
             rotation_now, translation_now = pose()
             raw = current_raw()
-            coverage = render_assembly(Assembly.from_raw(raw), rotation_now, translation_now,
+            coverage = render_assembly(shaped(raw), rotation_now, translation_now,
                                        renderer, options.level)
             remember(mask_iou(coverage, targets), raw.detach(), rotation_now, translation_now)
     assert iou_before is not None
-    return RefineResult(Assembly.from_raw(best_raw), best_rotation, best_translation,
+    return RefineResult(shaped(best_raw), best_rotation, best_translation,
                         iou_before, best_iou.clone(), steps, losses)

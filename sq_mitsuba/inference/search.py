@@ -387,7 +387,7 @@ class SearchRenderers:
 
 def _refine_best_of(assembly: Assembly, rotations: Tensor, translations: Tensor,
                     masks: Tensor, camera: Camera, search: SearchOptions,
-                    refine: RefineOptions) -> RefineResult:
+                    refine: RefineOptions, own: Tensor | None = None) -> RefineResult:
     """Refine ``keep`` starts per image ((B, k, 3, 3) rotations, (B, k, 3) translations):
     ``screen_steps`` each, then the best (by IoU) of each image to ``refine.steps``."""
     batch, kept = rotations.shape[:2]
@@ -396,7 +396,8 @@ def _refine_best_of(assembly: Assembly, rotations: Tensor, translations: Tensor,
         screened = refine_pose_and_shape(
             Assembly(params.repeat_interleave(kept, 0)), rotations.flatten(0, 1),
             translations.flatten(0, 1), masks.repeat_interleave(kept, 0), camera,
-            replace(refine, steps=search.screen_steps, patience=search.screen_steps))
+            replace(refine, steps=search.screen_steps, patience=search.screen_steps),
+            own=None if own is None else own.repeat_interleave(kept, 0))
         winner = screened.iou_after.reshape(batch, kept).argmax(dim=1)
         chosen = torch.arange(batch) * kept + winner
         params = screened.assembly.params.detach().double()[chosen]
@@ -405,7 +406,7 @@ def _refine_best_of(assembly: Assembly, rotations: Tensor, translations: Tensor,
     else:
         start_rotation, start_translation = rotations[:, 0], translations[:, 0]
     return refine_pose_and_shape(Assembly(params), start_rotation, start_translation, masks,
-                                 camera, refine)
+                                 camera, refine, own=own)
 
 
 def better_of(best: RefineResult, result: RefineResult) -> RefineResult:
@@ -425,7 +426,8 @@ def better_of(best: RefineResult, result: RefineResult) -> RefineResult:
 def search_and_refine(assembly: Assembly, rotation: Tensor, translation: Tensor,
                       masks: Tensor, camera: Camera, hypotheses: Tensor | None = None,
                       search: SearchOptions | None = None,
-                      refine: RefineOptions | None = None) -> SearchRefineResult:
+                      refine: RefineOptions | None = None,
+                      own: Tensor | None = None) -> SearchRefineResult:
     """The global search, then the local refinement of its best few, for B images.
 
     Args:
@@ -438,6 +440,8 @@ def search_and_refine(assembly: Assembly, rotation: Tensor, translation: Tensor,
         search: :class:`SearchOptions`; refine: :class:`RefineOptions` of the final
             refinement (default :data:`SEARCH_REFINEMENT`; the screening uses its settings
             with ``screen_steps`` steps).
+        own: (B, M) bool, each item's own rows (False: a stand-in the batch pads it with);
+            see :func:`~sq_mitsuba.inference.refine.refine_pose_and_shape`.
 
     Returns:
         :class:`SearchRefineResult`. Each pass keeps the best result so far by IoU, so a later
@@ -468,7 +472,8 @@ def search_and_refine(assembly: Assembly, rotation: Tensor, translation: Tensor,
         top = current.best(search.keep)
         rows = torch.arange(shape.batch_size)[:, None]
         result = _refine_best_of(shape, current.candidates[rows, top],
-                                 current.translations[rows, top], masks, camera, search, refine)
+                                 current.translations[rows, top], masks, camera, search, refine,
+                                 own)
         best = result if best is None else better_of(best, result)
         rounds.append(float(best.iou_after.mean()))
         if round_index + 1 < search.rounds:
