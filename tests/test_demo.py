@@ -467,6 +467,10 @@ def test_a_running_demos_temporary_folder_is_left_alone(tmp_path):
         path.mkdir()
     assert remove_stale_staging(out) == [stale]
     assert not stale.exists() and live.is_dir() and other.is_dir()
+    # A name with glob characters is taken as it is (it matched nothing).
+    bracketed = tmp_path / f".demo[1].new.{dead.pid}.x4"
+    bracketed.mkdir()
+    assert remove_stale_staging(tmp_path / "demo[1]") == [bracketed]
 
 
 def test_folders_built_aside_and_renamed_get_the_usual_permissions(demo, tmp_path):

@@ -7,6 +7,7 @@ readings made by turning a known assembly by known half turns."""
 from __future__ import annotations
 
 import math
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -670,6 +671,34 @@ def test_predict_sequence_cli_writes_one_assembly_and_a_pose_per_frame(eval_chec
                                   f"its pose with one of another assembly: choose another --out")
     assert (out / f"{images[0].stem}.pose.json").read_bytes() == frame_pose
     assert not (out / f"{images[0].stem}.assembly.json").exists()
+    # An image named "sequence": its files are the pass's own names, into a pass's folder
+    # (it would replace the shared assembly) or as a frame (its cleanup removed them).
+    named = tmp_path / "named" / "sequence.png"
+    named.parent.mkdir()
+    shutil.copyfile(images[0], named)
+    shared_file = (out / "sequence.assembly.json").read_bytes()
+    assert main(["predict", str(named), "--checkpoint", str(eval_checkpoint), "--out",
+                 str(out), "--quiet"]) == 2
+    assert "holds a pass (sequence.assembly.json), which an image named sequence.png would " \
+        "replace" in error_line(capsys)
+    assert (out / "sequence.assembly.json").read_bytes() == shared_file
+    assert main(["predict", str(named), *map(str, images[1:]), "--sequence", "--checkpoint",
+                 str(eval_checkpoint), "--out", str(tmp_path / "s"), "--quiet"]) == 2
+    assert f"image {named}: a frame named 'sequence'" in error_line(capsys)
+    # A rerun stopped in its renders (Ctrl-C) leaves the pass's files as they were: the
+    # renders come before any write.
+    import sq_mitsuba.apps.overlay as overlay_module
+
+    def stopped(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    with monkeypatch.context() as patch:
+        patch.setattr(overlay_module, "overlay_silhouettes", stopped)
+        assert main(["predict", *map(str, images), "--sequence", "--ordered", "--checkpoint",
+                     str(eval_checkpoint), "--out", str(out), "--quiet"]) == 130
+    assert (out / "sequence.assembly.json").read_bytes() == shared_file
+    assert (out / f"{images[0].stem}.pose.json").read_bytes() == frame_pose
+    capsys.readouterr()
     # --mask before the images takes them all: said so, not "IMAGE is required".
     assert main(["predict", "--mask", *map(str, images), "--sequence", "--checkpoint",
                  str(eval_checkpoint), "--out", str(tmp_path / "k")]) == 2

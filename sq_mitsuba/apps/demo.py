@@ -51,6 +51,7 @@ drawn at the rendered resolution.
 
 from __future__ import annotations
 
+import glob
 import math
 import os
 import shutil
@@ -167,7 +168,7 @@ def remove_stale_staging(out_dir: Path) -> list[Path]:
     (killed before it could clean up: ``.<name>.new.<pid>.*`` beside ``out_dir``); a running
     demo's folder stays. Returns the folders deleted."""
     removed = []
-    for path in out_dir.absolute().parent.glob(f".{out_dir.name}.new.*.*"):
+    for path in out_dir.absolute().parent.glob(f".{glob.escape(out_dir.name)}.new.*.*"):
         pid = path.name[len(f".{out_dir.name}.new."):].split(".")[0]
         if not pid.isdigit() or not path.is_dir():
             continue

@@ -353,6 +353,9 @@ def check_not_a_pass_frame(out: Path, paths: Sequence[Path]) -> None:
     with the folder's own files."""
     for path in paths:
         pose = out / f"{path.stem}.pose.json"
+        if path.stem == "sequence" and (out / "sequence.assembly.json").is_file():
+            raise ValueError(f"out {out}: holds a pass (sequence.assembly.json), which an "
+                             f"image named {path.name} would replace: choose another --out")
         if is_pass_pose(pose):
             raise ValueError(f"out {out}: {pose.name} is a frame of the pass in this folder "
                              f"(sequence.assembly.json); a single image's prediction would "

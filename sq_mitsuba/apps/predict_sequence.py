@@ -1,7 +1,9 @@
 """``sq-mitsuba predict IMAGES... --sequence``: N images of one spacecraft in, one assembly and
 every pose out (``Predictor.predict_sequence``).
 
-Files written to the output folder (each atomically; the folder is all or nothing):
+Files written to the output folder (each atomically, after every render; a run that fails
+removes what it added, and one stopped part-way leaves no ``sequence.assembly.json``, which is
+written last, beside the frames' new poses):
 
 - ``sequence.assembly.json`` and ``sequence.glb``: the shared assembly in its body frame;
 - ``<image stem>.pose.json`` per frame: the frame's pose of that assembly, in the layout
@@ -253,6 +255,11 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
         raise ValueError(f"image_names: {len(image_names)} names for {len(paths)} images")
     if ordered:
         check_frame_order(paths)
+    named = next((path for path in paths if path.stem == "sequence"), None)
+    if named is not None:  # its single-image files would be the pass's own (and go with them)
+        raise ValueError(f"image {named}: a frame named 'sequence' would share its files' "
+                         "names with the pass's sequence.assembly.json and sequence.glb; "
+                         "rename it")
     given = predictor.camera if camera is None else camera
     memory = available_memory()
     for path in paths:  # every frame is held at once: each gets its share of the memory
@@ -315,18 +322,20 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
     # The files at the target's size; the pictures from the result as fitted (the same
     # images: the scene scaled about the camera).
     metric = result if target_size is None else result.scaled(target_size)
-    record.files.append(metric.assembly.save(out / "sequence.assembly.json"))
-    record.files.append(metric.assembly.export(out / "sequence.glb"))
-    record.files.append(_sides_picture(result.assembly, out / "sequence.png"))
     own = result.frames
     image_camera = own.camera
     renderer = SilhouetteRenderer(overlay_camera(image_camera), spp=4)
     count = len(paths)
     shape = pictures[0].shape
+    # The renders before any file: a failure there leaves the folder as it was.
     shared = overlay_silhouettes(Assembly(result.assembly.params.expand(count, -1, -1)),
                                  result.rotation, result.translation, renderer, 3, shape)
     alone = overlay_silhouettes(Assembly(own.assembly.params.double()), own.rotation.double(),
                                 own.translation.double(), renderer, 3, shape)
+    # The shared assembly written last, an earlier pass's removed first: a run stopped in
+    # between leaves frames without their assembly, never beside an earlier pass's.
+    (out / "sequence.assembly.json").unlink(missing_ok=True)
+    record.files.append(_sides_picture(result.assembly, out / "sequence.png"))
     scores, threshold = own.target_score, float(predictor.min_target)
     for k, (path, picture) in enumerate(zip(paths, pictures, strict=True)):
         # The target fields as `predict` records them (the network's call); every frame is
@@ -362,6 +371,8 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
         record.files += write_colmap_model(out / "colmap", image_camera,
                                            [p.name for p in paths], result.quaternion.double(),
                                            metric.translation.double())
+    record.files.append(metric.assembly.export(out / "sequence.glb"))
+    record.files.append(metric.assembly.save(out / "sequence.assembly.json"))
     record.removed = _remove_earlier_pass(out, {path.stem for path in paths},
                                           colmap_written=not spaced)
     return record

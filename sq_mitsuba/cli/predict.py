@@ -156,7 +156,8 @@ def _run(args: argparse.Namespace) -> int:
     if args.sequence:
         return _run_sequence(args)
     options = config_from_args(PredictOptions, args)
-    if not options.refine:  # the fit's settings would be ignored: refused, as the API does
+    if not options.refine:  # the fit's settings would be ignored: refused here (the API
+        # takes them without --refine and leaves them unused)
         for override in getattr(args, "overrides", None) or []:
             if override.split("=", 1)[0].strip().split(".")[0] in ("mask", "search",
                                                                    "refinement"):
