@@ -162,7 +162,7 @@ def comms_relay(rng: np.random.Generator, thin: float) -> list[Part]:
     ViaSat, TDRS, GPS, Galileo): a tall box bus (sometimes with a stacked antenna module),
     long twin arrays on the north and south faces, one to four large dishes - reflectors on
     arms at the east and west faces, dishes on the Earth deck, TDRS-like huge dishes on
-    booms - horns, or a navigation antenna panel. Varies: array span 2-6 x the bus per wing
+    booms - horns, or a navigation antenna panel. Varies: array span 1.5-5 x the bus per wing
     and its style, cant and yoke; dish count, size, arms and tilts; the stack."""
     size = np.array([rng.uniform(1.8, 3.2), rng.uniform(1.8, 3.0), rng.uniform(2.0, 5.5)])
     bus = G.box_body(size, pick(rng, BUS_MATERIALS))
@@ -225,7 +225,7 @@ def comms_relay(rng: np.random.Generator, thin: float) -> list[Part]:
 
 def deep_space_probe(rng: np.random.Generator, thin: float) -> list[Part]:
     """Outer-planet and deep-space probes (Voyager, Pioneer, Galileo, Cassini, New Horizons,
-    Ulysses): a high-gain dish two to five times the bus across, one to three finned RTGs -
+    Ulysses): a high-gain dish one to three times the bus across, one to three finned RTGs -
     all on one boom, on separate booms, or on the bus - an instrument boom with a scan
     platform, magnetometer masts several times the body long and wire antennas, all at
     off-axis angles; sometimes a tall propulsion stack. Varies: bus shape (decagon, triangle,
@@ -617,7 +617,8 @@ def planetary_orbiter(rng: np.random.Generator, thin: float) -> list[Part]:
     on the side, or on a deployment boom; twin wings (flat, crosses or MAVEN-like gull wings)
     or a single wing on a yoke; an articulated payload platform on an arm, long radar dipoles
     crossing the bus, magnetometer masts. Varies: dish size and mount (fixed or boom), power
-    layout and angles, the payload arm, dipole length (3-8 x the bus)."""
+    layout and angles, the payload arm, dipole length (6-16 x the bus tip to tip, 3-8 each
+    side)."""
     size = np.array([rng.uniform(1.4, 3.0), rng.uniform(1.4, 2.6), rng.uniform(1.2, 3.0)])
     bus = G.box_body(size, pick(rng, MLI))
     parts = list(bus.parts)
@@ -722,7 +723,7 @@ def heliophysics(rng: np.random.Generator, thin: float) -> list[Part]:
             parts += G.mount(P.telescope_tube(rng.uniform(0.1, 0.3), rng.uniform(0.4, 1.4),
                                               0.02, door=False), site, Z,
                              G.tilted(rng, X, 5), lift=-0.05)
-    vee = rng.uniform(0, 35)  # wings swept towards the sun
+    vee = rng.uniform(0, 35)  # wings swept back, away from the sun (as Parker's)
     span = body * rng.uniform(1.0, 3.0)
     for side in (Y, -Y):
         site = bus.toward(side, (rng.uniform(-0.3, 0.0) * size[0], 0, 0))
@@ -1092,7 +1093,8 @@ def module_stack(rng: np.random.Generator, thin: float) -> list[Part]:
     """Modular stations without a long truss (Mir, Salyut, Skylab, Tiangong, Gateway): chains
     of pressurised modules from a core node, radial modules off nodes (crosses and Ts),
     arrays on the modules (pairs, Skylab's windmill of four on a mount, a single large
-    wing, round discs on the power module), docked capsules. Varies: module count (3-8),
+    wing, round discs on the power module), docked capsules. Varies: module count (3-11, the
+    node included),
     lengths, branching, array layouts and angles."""
     radius = rng.uniform(1.8, 2.3)
     parts = _module_cluster(rng, thin, radius, (0, 0, 0), X, int(rng.integers(2, 6)),
@@ -1154,17 +1156,23 @@ HELD_OUT_FAMILIES: frozenset[str] = frozenset({
 
 They measure how a network generalises to spacecraft *classes* it has not seen, built from
 parts and attachments it has seen in other families: a probe (``planetary_orbiter``: dishes
-on booms, gull wings, radar dipoles; its parts appear in ``deep_space_probe``,
-``heliophysics``, ``sep_probe``), an observatory (``infrared_observatory``: layered
-sunshields, segmented mirrors, cryostats; tubes, dishes and shields appear in
-``observatory`` and ``heliophysics``) and a human-spaceflight cluster (``module_stack``:
-module chains, crosses, windmill arrays; modules and nodes appear in ``station_truss`` and
-``crewed_cargo``). Three of the fourteen families (about a fifth), one from each group,
-none of the simplest. Their models are in the ``"test"`` split of
+on booms, gull wings, radar dipoles; dishes and booms appear in ``deep_space_probe``,
+``heliophysics`` and ``sep_probe``, gull wings in ``smallsat``, dipoles in no training
+family), an observatory (``infrared_observatory``: layered sunshields, segmented mirrors,
+cryostats; tubes, dishes and shields appear in ``observatory`` and ``heliophysics``; its
+Planck/Gaia "skirt" and Herschel "cryostat" styles, about half of its models, are close to
+the old archetype ``sunshade_observatory``, which the archetype-trained models saw: only its
+JWST-like style is far from everything trained on) and a human-spaceflight cluster
+(``module_stack``: module chains, radial crosses, windmill arrays; built by the module
+cluster ``station_truss`` uses too, so its chains, crosses, docked capsules and wings on
+modules come from a training family's code path: what is new is their scale and count).
+Three of the fourteen families (about a fifth), one from each group, none of the simplest.
+Their models are in the ``"test"`` split of
 :func:`~sq_mitsuba.data.spacecraft.generator.composed_catalogue` (see ``is_held_out``).
 
-Changing this set (or a held-out family's recipe) invalidates every comparison made with it:
-a network trained with a family in its training set has seen that family.
+Changing this set (or a held-out family's recipe, or a helper it shares with a training
+family: tests/test_composer.py pins their geometry) invalidates every comparison made with
+it: a network trained with a family in its training set has seen that family.
 """
 TRAINING_FAMILIES: frozenset[str] = frozenset(FAMILIES) - HELD_OUT_FAMILIES
 """The families a network may train on: :data:`FAMILIES` less :data:`HELD_OUT_FAMILIES`."""

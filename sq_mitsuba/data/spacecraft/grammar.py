@@ -195,8 +195,8 @@ class Body:
 
     def toward(self, direction: Sequence[float], shift: Sequence[float] = (0.0, 0.0, 0.0),
                ) -> Site:
-        """:meth:`ray` in the body frame: from the centre moved by ``shift`` (kept inside)
-        along ``direction``."""
+        """:meth:`ray` in the body frame: from the centre moved by ``shift`` along
+        ``direction`` (the shift is not clamped: keep it within the body's half sizes)."""
         rt = self.rotation.T
         return self.ray(rt @ unit(direction), rt @ np.asarray(shift, float))
 
