@@ -268,8 +268,9 @@ def test_an_input_an_output_would_overwrite_is_refused(eval_checkpoint, inputs, 
         (folder / name).write_bytes(grey)
     runs = [(["q.png", "q.overlay.png"], [], "q.overlay.png: an output of this run would "
                                              "overwrite it"),
-            (["sequence.png", "f2.png"], ["--sequence"], "sequence.png: an output of this run "
-                                                         "would overwrite it")]
+            # (a frame named "sequence" is refused first: its files are the pass's names)
+            (["sequence.png", "f2.png"], ["--sequence"], "a frame named 'sequence' would "
+                                                         "share its files' names")]
     for names, extra, expected in runs:
         before = sorted(p.name for p in folder.iterdir())
         assert main(["predict", *(str(folder / n) for n in names), *extra, "--checkpoint",
