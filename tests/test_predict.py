@@ -606,3 +606,24 @@ def test_a_run_stopped_between_an_images_files_leaves_no_old_pose_beside_new_one
     monkeypatch.setattr(Assembly, "export", real_export)
     assert main([*run, "--target-size", "2"]) == 0
     assert json.loads((out / "grey.pose.json").read_text())["image"].endswith("grey.png")
+
+
+def test_options_and_output_are_checked_before_any_image_is_decoded(eval_checkpoint, tmp_path,
+                                                                    capsys, monkeypatch):
+    """A wrong option is said before every image is decoded (over thousands of full-size
+    frames that took minutes): no image is read for it."""
+    import sq_mitsuba.apps.predict as predict_module
+
+    def no_decoding(*args, **kwargs):
+        raise AssertionError("images decoded before the options were checked")
+
+    monkeypatch.setattr(predict_module, "_check_inputs", no_decoding)
+    image = tmp_path / "a.png"
+    Image.fromarray(np.zeros((64, 64), np.uint8)).save(image)
+    assert main(["predict", str(image), "--refine", "--turns", "4", "--checkpoint",
+                 str(eval_checkpoint), "--out", str(tmp_path / "out"), "--quiet"]) == 2
+    assert "turns: 4 is for the network's reading alone" in error_line(capsys)
+    (tmp_path / "file").write_text("a file, not a folder")
+    assert main(["predict", str(image), "--checkpoint", str(eval_checkpoint), "--out",
+                 str(tmp_path / "file"), "--quiet"]) == 2
+    assert str(tmp_path / "file") in error_line(capsys)

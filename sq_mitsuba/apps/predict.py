@@ -400,9 +400,8 @@ def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
     # the network reads one itself.
     segmented = mask_paths is None and options.refine and not (
         options.mask == "network" and has_mask_head(predictor))
-    paddings, problems, warnings = _check_inputs(paths, camera, mask_paths, options,
-                                                 pad=not explicit_camera, segmented=segmented)
-    inputs = _Inputs(paths, paddings, mask_paths, segmented)
+    # What needs no pixels first: a wrong option or output is said before every image is
+    # decoded (and perhaps segmented).
     if options.turns is not None and options.turns > 1 and options.refine:
         raise ValueError(f"turns: {options.turns} is for the network's reading alone; with "
                          "--refine the search reads its own turned copies (--set "
@@ -413,6 +412,9 @@ def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
                                         for suffix in OUTPUT_SUFFIXES],
                               keep=[*paths, *(mask_paths or []), *other_inputs])
     check_not_a_pass_frame(out, paths)
+    paddings, problems, warnings = _check_inputs(paths, camera, mask_paths, options,
+                                                 pad=not explicit_camera, segmented=segmented)
+    inputs = _Inputs(paths, paddings, mask_paths, segmented)
     predictor = with_fast_path(predictor, options.fast, min_target=options.min_target,
                                min_existence=options.min_existence)
 
