@@ -49,6 +49,7 @@ def _end_workers(pool: ProcessPoolExecutor) -> None:
     # The executor keeps no public handle on its processes; an executor without them (a
     # future Python) falls back to waiting, as a plain pool does.
     processes = list((getattr(pool, "_processes", None) or {}).values())
+    manager = getattr(pool, "_executor_manager_thread", None)  # shutdown drops the handle
     pool.shutdown(wait=False, cancel_futures=True)
     for process in processes:
         if process.is_alive():
@@ -57,6 +58,11 @@ def _end_workers(pool: ProcessPoolExecutor) -> None:
         process.join(timeout=10)
         if process.is_alive():
             process.kill()
+    # The executor's own thread, seeing its workers gone, closes its pipes: let it finish
+    # here, not race the interpreter's exit, which wakes it through a pipe it may have just
+    # closed ("Exception ignored ... Bad file descriptor" after a Ctrl-C, now and then).
+    if manager is not None and manager.is_alive():
+        manager.join(timeout=5)
 
 
 @contextmanager
