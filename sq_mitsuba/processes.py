@@ -22,7 +22,19 @@ from concurrent.futures import ProcessPoolExecutor
 from contextlib import contextmanager
 from typing import Any
 
-__all__ = ["ignore_group_signals", "worker_pool"]
+__all__ = ["ignore_group_signals", "process_alive", "worker_pool"]
+
+
+def process_alive(pid: int) -> bool:
+    """Whether process ``pid`` runs on this machine (another user's counts: it cannot be
+    signalled, but it is there). Decides whether a dead run's temporary folder may go."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
 
 
 def ignore_group_signals(*_: object) -> None:

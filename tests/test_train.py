@@ -23,7 +23,7 @@ import pytest
 import torch
 
 from sq_mitsuba.cli import main
-from sq_mitsuba.config import apply_overrides, from_dict, to_dict
+from sq_mitsuba.config import apply_overrides, flatten_dict, from_dict, to_dict
 from sq_mitsuba.training.config import TrainConfig, load_train_config
 from sq_mitsuba.training.loss_terms import LOSS_TERMS
 from sq_mitsuba.training.train import TrainError, cosine_lr_factor, train
@@ -147,25 +147,14 @@ def test_configs_say_what_they_reproduce():
                                validation=shipped.validation) == shipped
 
 
-def _flat(tree: dict, prefix: str = "") -> dict:
-    """A nested config dict as {"section.field": value}."""
-    flat = {}
-    for key, value in tree.items():
-        if isinstance(value, dict):
-            flat.update(_flat(value, f"{prefix}{key}."))
-        else:
-            flat[f"{prefix}{key}"] = value
-    return flat
-
-
 def test_twin_configs_differ_only_in_values():
     """Each config left out of the two-step runs differs from its twin in the fields named
     only: a config given its own heads, terms or trainable set needs its own run."""
     stems = {path.stem for path in CONFIGS}
     for stem, (twin, fields) in SAME_RUN_AS.items():
         assert stem in stems and twin in stems and twin not in SAME_RUN_AS, stem
-        mine, theirs = (_flat(to_dict(load_train_config(ROOT / "train" / "configs" /
-                                                        f"{name}.toml")))
+        mine, theirs = (flatten_dict(to_dict(load_train_config(ROOT / "train" / "configs" /
+                                                               f"{name}.toml")))
                         for name in (stem, twin))
         differing = {key for key in mine.keys() | theirs.keys()
                      if mine.get(key) != theirs.get(key)}

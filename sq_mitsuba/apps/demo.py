@@ -73,6 +73,7 @@ from sq_mitsuba.apps.demo_options import (
 )
 from sq_mitsuba.config import to_dict, validate
 from sq_mitsuba.geometry.assembly import Assembly
+from sq_mitsuba.processes import process_alive
 
 # ------------------------------------------------------------------------------ checks
 
@@ -170,15 +171,9 @@ def remove_stale_staging(out_dir: Path) -> list[Path]:
     removed = []
     for path in out_dir.absolute().parent.glob(f".{glob.escape(out_dir.name)}.new.*.*"):
         pid = path.name[len(f".{out_dir.name}.new."):].split(".")[0]
-        if not pid.isdigit() or not path.is_dir():
-            continue
-        try:
-            os.kill(int(pid), 0)
-        except ProcessLookupError:
+        if pid.isdigit() and path.is_dir() and not process_alive(int(pid)):
             shutil.rmtree(path, ignore_errors=True)
             removed.append(path)
-        except PermissionError:  # another user's live process
-            continue
     return removed
 
 

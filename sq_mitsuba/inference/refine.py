@@ -277,7 +277,6 @@ def refine_pose_and_shape(assembly: Assembly, rotation: Tensor, translation: Ten
             raise ValueError(f"own: expected ({raw0.shape[0]}, {raw0.shape[1]}) bool, each "
                              f"item's first row its own, got {tuple(own.shape)} {own.dtype}")
         own = own.cpu()
-        free_fields = free_fields * own[..., None].to(dtype)
     if options.seen_sizes:
         free_fields[..., FIELDS["size"]] *= _seen_fraction(assembly, rotation0, translation0)
     change = torch.zeros_like(raw0, requires_grad=moving)
@@ -310,7 +309,7 @@ def refine_pose_and_shape(assembly: Assembly, rotation: Tensor, translation: Ten
         return raw0 + change * free_fields
 
     standing_in = own is not None and moving and not bool(own.all())
-    rows = None if own is None else torch.where(own, torch.arange(own.shape[1]), -1)
+    rows = torch.where(own, torch.arange(own.shape[1]), -1) if standing_in else None
 
     def shaped(raw: Tensor) -> Assembly:
         """The assembly of ``raw``; where the shape moves, each stand-in rebuilt from its

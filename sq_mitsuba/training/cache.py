@@ -44,8 +44,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from sq_mitsuba.data.spe3r.layout import DatasetError, read_splits
+from sq_mitsuba.data.spe3r.layout import MODELS, SAMPLES_FILE, DatasetError, read_splits
 from sq_mitsuba.io import atomic_write_json
+from sq_mitsuba.processes import process_alive
 
 __all__ = ["CACHE_VERSION", "ImageCache", "PointCache", "dataset_fingerprint", "decode_pixels",
            "manifest_hash", "open_image_cache", "open_point_cache"]
@@ -122,23 +123,12 @@ def _temporary(folder: Path) -> Path:
     prefix = f".{folder.name}.tmp-{socket.gethostname()}-"
     for stale in folder.parent.glob(f"{prefix}*"):
         owner = stale.name[len(prefix):]
-        if owner.isdigit() and int(owner) != os.getpid() and not _alive(int(owner)):
+        if owner.isdigit() and int(owner) != os.getpid() and not process_alive(int(owner)):
             shutil.rmtree(stale, ignore_errors=True)
     tmp = folder.with_name(f"{prefix}{os.getpid()}")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir()
     return tmp
-
-
-def _alive(pid: int) -> bool:
-    """Whether a process ``pid`` runs on this machine."""
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # another user's process: alive
-        return True
-    return True
 
 
 # ------------------------------------------------------------------------ images
@@ -403,7 +393,7 @@ def _point_cache_folder(root: Path, models: Sequence[str], cache_root: str | Pat
     a model made again keeps no stale points (a stat a model, not a read)."""
     samples = []
     for model in models:
-        path = Path(root) / model / "models" / "samples.npz"
+        path = Path(root) / model / MODELS / SAMPLES_FILE
         stat = path.stat() if path.is_file() else None
         samples.append(None if stat is None else [stat.st_size, stat.st_mtime_ns])
     key = {"version": CACHE_VERSION, "fingerprint": fingerprint, "models": list(models),

@@ -23,7 +23,7 @@ import torch
 from torch import Tensor
 
 from sq_mitsuba.checks import value_checks
-from sq_mitsuba.data.spe3r import Spe3rDataset
+from sq_mitsuba.data.spe3r import MODELS, SAMPLES_FILE, Spe3rDataset
 from sq_mitsuba.data.symmetry import model_symmetries, stack_symmetries
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.image_turns import check_rotation_exact
@@ -337,8 +337,11 @@ def _check_normals(points: PointCache, data_root: Path) -> None:
     no gradient); the point cache that carries the normals is built by then."""
     offsets = points.surface_offsets
     for index, model in enumerate(points.models):
-        if not np.any(points.normals[offsets[index]:offsets[index + 1]]):
-            samples = data_root / model / "models" / "samples.npz"
+        # A model's normals are all there or all zeros (usable_normals): its first few tell,
+        # not a read of the whole memory-mapped file (gigabytes for a large library).
+        first = offsets[index]
+        if not np.any(points.normals[first:min(first + 16, offsets[index + 1])]):
+            samples = data_root / model / MODELS / SAMPLES_FILE
             raise TrainError(f"loss.weights.surface_normal: {samples} holds no surface normals "
                              "(an older library's); make the model again (sq-mitsuba models "
                              "generate) or weigh the term 0")

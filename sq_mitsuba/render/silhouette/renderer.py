@@ -496,11 +496,7 @@ class SilhouetteRenderer:
                                                       loss_fn, requires_grad=requires_grad)
             return float(sum(losses.tolist())), coverage, grad  # in item order
 
-        if requires_grad:
-            return _RenderedLoss.apply(vertices, self, run)
-        total, coverage, _ = run(vertices.detach(), self._next_call())  # no backward to render
-        return (vertices.new_tensor(total),
-                coverage.to(dtype=vertices.dtype, device=vertices.device))
+        return self._fused(vertices, run, requires_grad)
 
     def render_target_loss(self, vertices: Tensor, faces: Tensor, targets: Tensor,
                            loss: Callable[[Tensor, Tensor], Tensor]) -> tuple[Tensor, Tensor]:
@@ -553,11 +549,7 @@ class SilhouetteRenderer:
                     detached, targets, call, range(detached.shape[0]), loss, requires_grad)
             return float(sum(losses.tolist())), coverage, grad  # in item order
 
-        if requires_grad:
-            return _RenderedLoss.apply(vertices, self, run)
-        total, coverage, _ = run(vertices.detach(), self._next_call())
-        return (vertices.new_tensor(total),
-                coverage.to(dtype=vertices.dtype, device=vertices.device))
+        return self._fused(vertices, run, requires_grad)
 
     def _tiled_target_loss(self, vertices: Tensor, faces: Tensor, targets: Tensor,
                            loss: Callable[[Tensor, Tensor], Tensor]) -> tuple[Tensor, Tensor]:
@@ -597,9 +589,16 @@ class SilhouetteRenderer:
                 grad[index] = alone[2].to(grad)
             return losses.double().sum(), coverage, grad
 
+        return self._fused(vertices, run, requires_grad)
+
+    def _fused(self, vertices: Tensor, run: Callable[[Tensor, int], tuple[Any, Tensor, Tensor]],
+               requires_grad: bool) -> tuple[Tensor, Tensor]:
+        """The fused losses' (loss, coverage) from ``run``: through :class:`_RenderedLoss`
+        where a gradient is wanted, else its forward pass alone (no backward rendered)."""
         if requires_grad:
             return _RenderedLoss.apply(vertices, self, run)
         total, coverage, _ = run(vertices.detach(), self._next_call())
+        total = total if isinstance(total, Tensor) else vertices.new_tensor(total)
         return (total.to(dtype=vertices.dtype, device=vertices.device),
                 coverage.to(dtype=vertices.dtype, device=vertices.device))
 
