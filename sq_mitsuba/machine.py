@@ -1,4 +1,5 @@
-"""What this machine lets a process use, for the checks that refuse work it cannot do.
+"""What this machine lets a process use, for the checks that refuse work it cannot do, and
+where the process stands in a multi-process run (:func:`launch_ranks`).
 
 Every command that could ask for more memory than there is (a dataset render at a large
 resolution, depth fusion, a fit, a large image to predict) estimates its need first and
@@ -9,7 +10,8 @@ instead of being killed for memory after minutes.
 from __future__ import annotations
 
 import os
-from collections.abc import MutableMapping
+from collections.abc import Mapping, MutableMapping
+from dataclasses import dataclass
 from pathlib import Path
 
 #: Where Linux says which control groups this process is in, and where their limits are.
@@ -88,6 +90,59 @@ def too_much_memory(what: str, need: int, memory: int, advice: str) -> str:
 NVIDIA_GPUS = Path("/proc/driver/nvidia/gpus")
 
 
+@dataclass(frozen=True)
+class LaunchRanks:
+    """This process's place in a multi-process run, as its launcher (torchrun) describes it in
+    the environment: ``rank`` of ``size`` processes in all (``RANK``, ``WORLD_SIZE``), and
+    ``local_rank`` of ``local_size`` on this machine (``LOCAL_RANK``, ``LOCAL_WORLD_SIZE``).
+    One process alone: 0 of 1, 0 of 1."""
+
+    rank: int = 0
+    size: int = 1
+    local_rank: int = 0
+    local_size: int = 1
+
+    @property
+    def distributed(self) -> bool:
+        return self.size > 1
+
+
+def launch_ranks(environ: Mapping[str, str] = os.environ) -> LaunchRanks:
+    """The launcher's ranks from ``environ`` (an unset or empty variable: one process's value;
+    ``LOCAL_WORLD_SIZE`` unset: ``WORLD_SIZE``, every process on this machine; ``WORLD_SIZE``
+    unset or 1: one process, rank 0, whatever ranks another launcher set).
+
+    Raises:
+        ValueError: one line naming the variable: not an integer, negative, a size below 1, or
+            a rank not below its size.
+    """
+    def read(name: str, default: int, low: int) -> int:
+        text = environ.get(name, "").strip()
+        if not text:
+            return default
+        try:
+            value = int(text)
+        except ValueError:
+            value = low - 1
+        if value < low:
+            raise ValueError(f"{name}: expected an integer >= {low} (set by the launcher, e.g. "
+                             f"torchrun), got {environ[name]!r}")
+        return value
+
+    size = read("WORLD_SIZE", 1, 1)
+    ranks = LaunchRanks(read("RANK", 0, 0), size, read("LOCAL_RANK", 0, 0),
+                        read("LOCAL_WORLD_SIZE", size, 1))
+    if not ranks.distributed:  # one process is rank 0, whatever another launcher left set
+        return LaunchRanks()
+    for rank, total, names in ((ranks.rank, ranks.size, "RANK and WORLD_SIZE"),
+                               (ranks.local_rank, ranks.local_size,
+                                "LOCAL_RANK and LOCAL_WORLD_SIZE")):
+        if rank >= total:
+            raise ValueError(f"{names}: rank {rank} of {total} processes (a rank lies below "
+                             "its size)")
+    return ranks
+
+
 def narrow_to_local_gpu(environ: MutableMapping[str, str] = os.environ,
                         gpus_folder: Path = NVIDIA_GPUS) -> str | None:
     """Give each process of a multi-process run (torchrun's ``WORLD_SIZE`` > 1) its own GPU
@@ -105,9 +160,10 @@ def narrow_to_local_gpu(environ: MutableMapping[str, str] = os.environ,
         than local ranks: torch's error then names the missing device, where a process given
         none would have trained on the CPU beside the others' GPUs).
     """
-    if int(environ.get("WORLD_SIZE", "1") or 1) <= 1 or "LOCAL_RANK" not in environ:
+    ranks = launch_ranks(environ)
+    if not ranks.distributed or not environ.get("LOCAL_RANK", "").strip():
         return None
-    rank = int(environ["LOCAL_RANK"])
+    rank = ranks.local_rank
     listed = environ.get("CUDA_VISIBLE_DEVICES")
     devices = [d.strip() for d in listed.split(",") if d.strip()] if listed is not None \
         else None

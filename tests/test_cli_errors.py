@@ -45,6 +45,11 @@ def test_a_torchrun_process_names_its_rank_in_its_error(tmp_path, capsys, monkey
     monkeypatch.setenv("RANK", "0")
     assert main(_report(tmp_path)) == EXIT_ERROR
     assert error_line(capsys).startswith("sq-mitsuba report: error: ")
+    # A malformed variable: one line naming it, before any work, the speaker untagged.
+    monkeypatch.setenv("LOCAL_RANK", "zero")
+    assert main(_report(tmp_path)) == EXIT_ERROR
+    assert error_line(capsys) == ("sq-mitsuba report: error: LOCAL_RANK: expected an integer "
+                                  ">= 0 (set by the launcher, e.g. torchrun), got 'zero'")
 
 
 @pytest.mark.parametrize("argv, command, message", [

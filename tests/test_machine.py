@@ -8,7 +8,9 @@ from pathlib import Path
 import pytest
 
 from sq_mitsuba.machine import (
+    LaunchRanks,
     available_memory,
+    launch_ranks,
     memory_text,
     narrow_to_local_gpu,
     too_much_memory,
@@ -105,3 +107,34 @@ def test_a_rank_past_the_machines_gpus_is_left_to_torchs_error(tmp_path):
         environ = {"WORLD_SIZE": "4", "LOCAL_RANK": rank}
         assert narrow_to_local_gpu(environ, gpus) == kept
         assert environ.get("CUDA_VISIBLE_DEVICES") == kept
+
+
+def test_launch_ranks_read_torchruns_variables():
+    assert launch_ranks({}) == LaunchRanks(0, 1, 0, 1) and not launch_ranks({}).distributed
+    ranks = launch_ranks({"RANK": "5", "WORLD_SIZE": "8", "LOCAL_RANK": "1",
+                          "LOCAL_WORLD_SIZE": "4"})
+    assert ranks == LaunchRanks(5, 8, 1, 4) and ranks.distributed
+    # LOCAL_WORLD_SIZE unset: every process on this machine; empty values: unset.
+    assert launch_ranks({"WORLD_SIZE": "2", "RANK": "1", "LOCAL_RANK": "1"}).local_size == 2
+    assert launch_ranks({"RANK": "", "WORLD_SIZE": " "}) == LaunchRanks()
+    assert launch_ranks({"RANK": "3", "LOCAL_RANK": "1"}) == LaunchRanks()  # one process
+
+
+@pytest.mark.parametrize("environ, message", [
+    ({"WORLD_SIZE": "2", "LOCAL_RANK": "first"},
+     "LOCAL_RANK: expected an integer >= 0 (set by the launcher, e.g. torchrun), got 'first'"),
+    ({"RANK": "-1", "WORLD_SIZE": "2"}, "RANK: expected an integer >= 0"),
+    ({"RANK": "one"}, "RANK: expected an integer >= 0"),  # malformed even for one process
+    ({"WORLD_SIZE": "0"}, "WORLD_SIZE: expected an integer >= 1"),
+    ({"WORLD_SIZE": "2.5"}, "WORLD_SIZE: expected an integer >= 1"),
+    ({"RANK": "4", "WORLD_SIZE": "4"}, "RANK and WORLD_SIZE: rank 4 of 4 processes"),
+    ({"WORLD_SIZE": "4", "LOCAL_RANK": "2", "LOCAL_WORLD_SIZE": "2"},
+     "LOCAL_RANK and LOCAL_WORLD_SIZE: rank 2 of 2 processes"),
+])
+def test_launch_ranks_refuse_malformed_variables_in_one_line(environ, message):
+    with pytest.raises(ValueError) as error:
+        launch_ranks(environ)
+    assert str(error.value).startswith(message) and "\n" not in str(error.value)
+    if "LOCAL" in message:  # the GPU choice reads them through the same check
+        with pytest.raises(ValueError, match=message.split(":")[0]):
+            narrow_to_local_gpu(dict(environ), Path("/nonexistent"))

@@ -188,6 +188,38 @@ def test_a_later_round_replaces_only_the_images_it_betters(scene):
         assert torch.equal(kept.translation[k], source.translation[k])
 
 
+def test_an_image_is_refined_as_it_would_be_alone(scene):
+    """An image's search and refinement do not depend on its batch: its place (which once
+    seeded its silhouette samples), its batch-mates' stopping and the stand-ins their counts
+    pad it with. Image 1 alone (its two own primitives) and in a batch of three, second,
+    padded with one stand-in, its neighbours of other shapes, give the same pose and shape."""
+    from sq_mitsuba.model.existence import gathered_primitives
+
+    truth, rotation, translation, masks, camera = scene
+    start = with_half_turns(rotation)[:, 2] @ torch.linalg.matrix_exp(
+        0.1 * torch.tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 0.0]],
+                           dtype=torch.float64))
+    own = torch.tensor([[True, True, True], [True, True, False], [True, True, True]])
+    padded = gathered_primitives(truth.params * torch.tensor([1.0, 1.2, 0.9],
+                                 dtype=torch.float64)[:, None, None],
+                                 torch.where(own, torch.arange(3), -1))
+    search = SearchOptions(grid=0, keep=2, screen_steps=3, rounds=2)
+    refine = RefineOptions(steps=12, patience=2, shape="extent")
+    together = search_and_refine(Assembly(padded), start, translation, masks, camera, None,
+                                 search, refine, own)
+    alone = search_and_refine(Assembly(padded[1:2, :2]), start[1:2], translation[1:2],
+                              masks[1:2], camera, None, search, refine)
+    torch.testing.assert_close(together.rotation[1:2], alone.rotation, rtol=0, atol=1e-9)
+    torch.testing.assert_close(together.translation[1:2], alone.translation, rtol=0, atol=1e-9)
+    torch.testing.assert_close(together.iou[1:2], alone.iou, rtol=0, atol=1e-9)
+    torch.testing.assert_close(together.assembly.params[1:2, :2], alone.assembly.params,
+                               rtol=0, atol=1e-9)
+    # The stand-in is rebuilt from the refined first row, shrunk, as the batch made it.
+    torch.testing.assert_close(
+        together.assembly.params[1:2], gathered_primitives(
+            together.assembly.params[1:2], torch.tensor([[0, 1, -1]])), rtol=0, atol=0)
+
+
 def test_bad_input_gives_one_line_errors(scene):
     truth, rotation, translation, masks, camera = scene
     candidates = pose_candidates(rotation, grid=8)

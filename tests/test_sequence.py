@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+import trimesh
 from output_checks import error_line, one_torch_thread  # noqa: F401 (autouse fixture)
 
 from sq_mitsuba.geometry.assembly import Assembly
@@ -607,16 +608,20 @@ def test_predict_sequence_cli_writes_one_assembly_and_a_pose_per_frame(eval_chec
     images = sorted((train_dataset / model / "images").glob("*.png"))[:3]
     out = tmp_path / "pass"
     capsys.readouterr()
-    # --target-size: the files at a target 2.5 m long, the API's answer at unit size x 2.5.
+    # --target-size: the files at a target 2.5 m long, the API's answer at unit size x 2.5;
+    # --level and --set overlay_spp reach the pass's GLB and overlays.
     assert main(["predict", *map(str, images), "--sequence", "--ordered", "--checkpoint",
                  str(eval_checkpoint), "--out", str(out), "--fit", "steps=5",
-                 "--target-size", "2.5"]) == 0
+                 "--target-size", "2.5", "--level", "1", "--set", "overlay_spp=2"]) == 0
     stages = capsys.readouterr().err  # the stage in progress, one line each in a log
     for stage in ("network", "search and refinement", "one assembly, every pose"):
         assert f"3 frames: {stage}" in stages, stages
     assert "\r" not in stages and "3/3" in stages.splitlines()[-1]
     shared = Assembly.load(out / "sequence.assembly.json")
     assert shared.batch_size == 1 and (out / "sequence.glb").stat().st_size > 0
+    glb = trimesh.load(out / "sequence.glb", force="scene")
+    assert sum(len(mesh.vertices) for mesh in glb.geometry.values()) == \
+        shared.params.shape[1] * 42  # level 1: 42 vertices a primitive (level 3: 642)
     assert (out / "sequence.png").stat().st_size > 0
     for k, image in enumerate(images):
         pose = json.loads((out / f"{image.stem}.pose.json").read_text())
@@ -736,8 +741,7 @@ def test_predict_sequence_cli_writes_one_assembly_and_a_pose_per_frame(eval_chec
                  "--checkpoint", str(eval_checkpoint), "--out", str(tmp_path / "q")]) == 2
     assert error_line(capsys).startswith("sq-mitsuba predict: error: --target-size: expected")
     # The single image's options are refused, not ignored.
-    for extra, name in ((["--turns", "8"], "v"), (["--level", "5"], "u"), (["--no-fast"], "t"),
-                        (["--refine"], "s")):
+    for extra, name in ((["--turns", "8"], "v"), (["--no-fast"], "t"), (["--refine"], "s")):
         capsys.readouterr()
         assert main(["predict", *map(str, images), "--sequence", *extra, "--checkpoint",
                      str(eval_checkpoint), "--out", str(tmp_path / name)]) == 2

@@ -285,7 +285,8 @@ def _build(options: DemoOptions, out: Path, predictor: Any, training_config: Any
                                 preset.resolution, preset.spp, options.seed, progress)
         try:
             passed = run_pass(fast, pass_data, out / "pass", options.surface_points,
-                              options.points, options.level, options.silhouette_spp, progress)
+                              options.points, options.level, options.silhouette_spp, progress,
+                              overlay_spp=options.overlay_spp)
         except ValueError as error:  # a frame without a target to fit: the images stand
             pass_skipped = f"the pass of {first} could not be fitted: {error}"
             warnings.warn(pass_skipped, stacklevel=2)

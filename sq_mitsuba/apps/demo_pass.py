@@ -28,9 +28,10 @@ Files, under the demo's ``pass/``::
 
 Convention: as ``sq-mitsuba study passes``, the frames are read and scored at the rendered
 resolution (what a user hands ``predict --sequence``), not at the network's input size as
-the demo's single images are; the primitive meshes and the 2D IoU's samples are the demo's
-(``DemoOptions.level``, ``silhouette_spp``). Every frame is fitted whatever the network's
-target score (``min_target`` 0, as the study does): the demo renders the target in each.
+the demo's single images are; the primitive meshes, the 2D IoU's samples and the overlays'
+are the demo's (``DemoOptions.level``, ``silhouette_spp``, ``overlay_spp``). Every frame is
+fitted whatever the network's target score (``min_target`` 0, as the study does): the demo
+renders the target in each.
 """
 
 from __future__ import annotations
@@ -113,15 +114,16 @@ def render_pass(library: Path, model: str, root: Path, frames: int, resolution: 
 
 
 def run_pass(predictor: Any, data: Path, root: Path, surface_points: int, volume_points: int,
-             level: int, silhouette_spp: int, progress: bool) -> PassRecord:
+             level: int, silhouette_spp: int, progress: bool, overlay_spp: int = 16
+             ) -> PassRecord:
     """``predict --sequence`` on the one pass of ``data`` (files into ``root/sequence``), each
     frame scored as the module docstring says (``root/per_frame.csv``).
 
     Args:
         surface_points: true surface points per frame for the Chamfer distances;
         volume_points: uniform points of the model for the 3D IoU; level: icosphere level of
-        the primitive meshes scored; silhouette_spp: samples per pixel of the 2D IoU's
-        silhouettes.
+        the primitive meshes scored, and of the GLB and overlays written; silhouette_spp:
+        samples per pixel of the 2D IoU's silhouettes; overlay_spp: of the overlays'.
     """
     from sq_mitsuba.apps.predict_sequence import predict_sequence_files
     from sq_mitsuba.evaluation.passes import pass_groups, score_frames
@@ -141,7 +143,8 @@ def run_pass(predictor: Any, data: Path, root: Path, surface_points: int, volume
     # (the demo's pass folder) is written in a staging folder first.
     names = [Path(os.path.relpath(path, root.parent)).as_posix() for path in paths]
     written = predict_sequence_files(paths, root / "sequence", predictor, camera=dataset.camera,
-                                     ordered=True, progress=progress, image_names=names)
+                                     ordered=True, progress=progress, image_names=names,
+                                     level=level, overlay_spp=overlay_spp)
     result = written.result
     own = result.frames
     count = len(items)

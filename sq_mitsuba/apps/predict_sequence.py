@@ -198,7 +198,8 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
                            masks: Sequence[str | Path] | None = None,
                            progress: bool = False,
                            target_size: float | None = None,
-                           image_names: Sequence[str] | None = None) -> SequenceRecord:
+                           image_names: Sequence[str] | None = None, level: int = 3,
+                           overlay_spp: int = 4) -> SequenceRecord:
     """Predict one assembly and every pose from ``images`` (frames of one spacecraft) and write
     the files of the module docstring into ``out_dir``. ``other_inputs``: the run's other
     input files (the checkpoint, a camera or rotations file), refused if an output would
@@ -209,6 +210,8 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
     field of that name; default: unit size). ``image_names``: what each frame's
     ``pose.json`` records as its ``"image"``, in their order (default: the path given; the
     demo gives paths relative to its output folder, which it writes elsewhere first).
+    ``level``: icosphere level of the GLB's meshes and the overlays' silhouettes (0-5);
+    ``overlay_spp``: samples per pixel of the overlays' silhouettes (1-1024).
 
     Raises:
         ValueError: one line naming the image or argument: fewer than two images, sizes that
@@ -245,6 +248,9 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
     from sq_mitsuba.machine import available_memory
     from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer
 
+    for name, value, low, high in (("level", level, 0, 5), ("overlay_spp", overlay_spp, 1, 1024)):
+        if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
+            raise ValueError(f"{name}: expected an integer in [{low}, {high}], got {value!r}")
     check_target_size(target_size)
     check_frame_files(images, masks)
     paths = [Path(p) for p in images]
@@ -324,14 +330,14 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
     metric = result if target_size is None else result.scaled(target_size)
     own = result.frames
     image_camera = own.camera
-    renderer = SilhouetteRenderer(overlay_camera(image_camera), spp=4)
+    renderer = SilhouetteRenderer(overlay_camera(image_camera), spp=overlay_spp)
     count = len(paths)
     shape = pictures[0].shape
     # The renders before any file: a failure there leaves the folder as it was.
     shared = overlay_silhouettes(Assembly(result.assembly.params.expand(count, -1, -1)),
-                                 result.rotation, result.translation, renderer, 3, shape)
+                                 result.rotation, result.translation, renderer, level, shape)
     alone = overlay_silhouettes(Assembly(own.assembly.params.double()), own.rotation.double(),
-                                own.translation.double(), renderer, 3, shape)
+                                own.translation.double(), renderer, level, shape)
     # The shared assembly written last, an earlier pass's removed first: a run stopped in
     # between leaves frames without their assembly, never beside an earlier pass's.
     (out / "sequence.assembly.json").unlink(missing_ok=True)
@@ -371,7 +377,7 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
         record.files += write_colmap_model(out / "colmap", image_camera,
                                            [p.name for p in paths], result.quaternion.double(),
                                            metric.translation.double())
-    record.files.append(metric.assembly.export(out / "sequence.glb"))
+    record.files.append(metric.assembly.export(out / "sequence.glb", level=level))
     record.files.append(metric.assembly.save(out / "sequence.assembly.json"))
     record.removed = _remove_earlier_pass(out, {path.stem for path in paths},
                                           colmap_written=not spaced)

@@ -32,6 +32,7 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any, NoReturn
 
+from sq_mitsuba.machine import LaunchRanks, launch_ranks
 from sq_mitsuba.outputs import interrupted
 from sq_mitsuba.render.backend import BackendError, check_variant_environment
 from sq_mitsuba.version import __version__
@@ -152,9 +153,12 @@ def _speaker(command: str) -> str:
     """Who speaks in a message: ``sq-mitsuba COMMAND``, and in a process of a multi-process
     run (torchrun's ``RANK`` > 0) its rank: each process of such a run prints its own errors
     and warnings (one may fail alone), so they must say whose they are."""
-    rank, size = int(os.environ.get("RANK", "0") or 0), int(os.environ.get("WORLD_SIZE", "1") or 1)
-    return f"sq-mitsuba {command}" + (f" (rank {rank} of {size})" if rank > 0 and size > 1
-                                      else "")
+    try:
+        ranks = launch_ranks()
+    except ValueError:  # said by main's own check: untagged here
+        ranks = LaunchRanks()
+    return f"sq-mitsuba {command}" + (f" (rank {ranks.rank} of {ranks.size})"
+                                      if ranks.rank > 0 and ranks.distributed else "")
 
 
 def _warning_printer(command: str):
@@ -318,6 +322,7 @@ def _main(argv: Sequence[str] | None) -> int:
     kind = ALL_OR_NOTHING.get(args.command)
     try:
         check_variant_environment()  # a misspelled variant: before any work, not mid-render
+        launch_ranks()  # and a malformed RANK, WORLD_SIZE, LOCAL_RANK or LOCAL_WORLD_SIZE
         with warnings.catch_warnings(), all_or_nothing(
                 getattr(args, "out", None) if kind else None, kind == "file",
                 keep=KEEP_ON_FAILURE.get(args.command, ())):

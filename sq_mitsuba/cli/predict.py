@@ -66,8 +66,9 @@ assembly) and <stem>.overlay.png (its own fit in red, the shared assembly in gre
 colmap/ (every pose as a COLMAP sparse model, text format: the start of structure from
 motion, e.g. colmap point_triangulator --input_path DIR/colmap).
 --mask gives each frame's mask (one per image, in their order) in place of the network's;
-a frame the network sees no target in (its score below --set min_target, the one --set a
-pass takes) is refused unless masks are given.
+a frame the network sees no target in (its score below --set min_target) is refused unless
+masks are given. A pass takes --level, --target-size and three --set fields: min_target,
+level and overlay_spp (its overlays' and GLB's meshes and samples).
 --relative-rotations FILE gives the rotations between the frames when they are known (e.g.
 from the servicer's navigation, for a target that holds its attitude): a JSON list of one
 quaternion [w, x, y, z] per image, in their order, each the target's rotation into that
@@ -180,6 +181,10 @@ def _run(args: argparse.Namespace) -> int:
     return 0
 
 
+SEQUENCE_SETTINGS = ("min_target", "level", "overlay_spp")
+"""The single image's settings (``--set``) that a pass (``--sequence``) uses too."""
+
+
 def _run_sequence(args: argparse.Namespace) -> int:
     from sq_mitsuba.apps.predict import PredictOptions
     from sq_mitsuba.apps.predict_sequence import check_frame_files, predict_sequence_files
@@ -189,18 +194,20 @@ def _run_sequence(args: argparse.Namespace) -> int:
     from sq_mitsuba.inference.loading import load_model
     from sq_mitsuba.inference.sequence import SequenceOptions
 
-    # A pass refines every frame, on the fast path, and draws its own overlays: the single
-    # image's options would be silently ignored. Two apply: --target-size and the threshold
-    # on the target-present score (--set min_target), below which a frame is refused.
+    # A pass refines every frame, on the fast path: the single image's fit options would be
+    # silently ignored. What applies: --target-size, --level and the overlays' samples (--set
+    # overlay_spp), and the threshold on the target-present score (--set min_target), below
+    # which a frame is refused.
     overrides = [override for override in getattr(args, "overrides", None) or []
-                 if override.split("=", 1)[0].strip() != "min_target"]
+                 if override.split("=", 1)[0].strip() not in SEQUENCE_SETTINGS]
     unused = [flag for flag, given in (("--refine", hasattr(
-        args, "refine")), ("--turns", hasattr(args, "turns")), ("--level", hasattr(args, "level")),
+        args, "refine")), ("--turns", hasattr(args, "turns")),
         ("--fast / --no-fast", hasattr(args, "fast")),
         (f"--set {overrides[0] if overrides else ''}", overrides)) if given]
     if unused:
         raise CLIError(f"{unused[0]}: not used with --sequence (every frame is refined, on the "
-                       "fast path; --fit sets the joint fit; --set takes min_target only)")
+                       "fast path; --fit sets the joint fit; --set takes "
+                       f"{', '.join(SEQUENCE_SETTINGS)} only)")
     try:
         options = apply_overrides(SequenceOptions(), args.fit_overrides)
     except ConfigError as error:
@@ -218,7 +225,8 @@ def _run_sequence(args: argparse.Namespace) -> int:
                                     relative_rotations=relative, options=options,
                                     ordered=args.ordered, other_inputs=inputs,
                                     masks=args.mask, progress=not args.quiet,
-                                    target_size=single.target_size)
+                                    target_size=single.target_size, level=single.level,
+                                    overlay_spp=single.overlay_spp)
     removed = f" (and removed {record.removed} of an earlier pass)" if record.removed else ""
     print(f"{record.describe()}; wrote {len(record.files)} files to {args.out}{removed}")
     return 0

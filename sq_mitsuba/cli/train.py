@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import argparse
-import os
 from pathlib import Path
 
 from sq_mitsuba.cli import CLIError
 from sq_mitsuba.cli._options import output_path
 from sq_mitsuba.io import inside_folder
+from sq_mitsuba.machine import launch_ranks
 
 HELP = "train the network on a dataset"
 DESCRIPTION = """\
@@ -106,7 +106,7 @@ def _run(args: argparse.Namespace) -> int:
         last = result.validation[-1]
         best = (f"; last validation: Chamfer-L1 {last['chamfer_l1']:.4f}, 2D IoU "
                 f"{last['iou_2d']:.3f}, rotation error {last['rotation_error_deg']:.1f} deg")
-    if int(os.environ.get("RANK", "0") or 0) > 0:  # one summary for a torchrun run: rank 0's
+    if launch_ranks().rank > 0:  # one summary for a torchrun run: rank 0's
         return 0
     print(f"trained {result.steps}/{result.total_steps} steps{rate}{best}; wrote "
           f"{result.out_dir}")

@@ -364,21 +364,27 @@ class Assembly:
         local = taper(local, self.taper, self.size)
         return local @ self.rotation.transpose(-1, -2) + self.translation[:, :, None]
 
-    def inside_other_mask(self, points: Tensor) -> Tensor:
-        """Which of each primitive's surface points lie strictly inside another primitive.
+    def inside_others(self, points: Tensor) -> Tensor:
+        """Which other primitive each primitive's surface points lie strictly inside.
 
         Args:
             points: (B, M, V, 3), e.g. from :meth:`surface_points`.
 
         Returns:
-            (B, M, V) bool, computed without gradient.
+            (B, M, M, V) bool, computed without gradient: ``[b, j, m, v]`` says that point v
+            of primitive m lies strictly inside primitive j (never for j = m).
         """
         batch, count, per, _ = points.shape
         with torch.no_grad():
             values = self.inside_outside(points.reshape(batch, count * per, 3))
             values = values.reshape(batch, count, count, per)  # (B, other, owner, V)
             own = torch.eye(count, dtype=torch.bool, device=points.device)[None, :, :, None]
-            return ((values < 1.0) & ~own).any(dim=1)
+            return (values < 1.0) & ~own
+
+    def inside_other_mask(self, points: Tensor) -> Tensor:
+        """Which of each primitive's surface points (B, M, V, 3) lie strictly inside another
+        primitive: (B, M, V) bool, without gradient (:meth:`inside_others`, any other)."""
+        return self.inside_others(points).any(dim=1)
 
     def surface_points_with_mask(self, level: int = 3) -> tuple[Tensor, Tensor]:
         """:meth:`surface_points` and :meth:`inside_other_mask` of them: (B, M, V, 3), (B, M, V)."""

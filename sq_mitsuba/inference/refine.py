@@ -3,8 +3,10 @@
 Starting from a predicted assembly and pose, Adam moves the assembly's raw parameters and a
 pose correction so that the Mitsuba silhouette matches the target's mask; a quadratic prior
 keeps the raw parameters near the prediction. Each batch item is refined on its own (the
-losses of the items are summed, and Adam's steps are per element; its silhouette samples are
-drawn by its place in the batch, and the batch stops together), and each item returns the
+losses of the items are summed, and Adam's steps are per element; but its silhouette samples
+are drawn by its place in the batch, and the batch stops together: the search,
+:func:`~sq_mitsuba.inference.search.search_and_refine`, therefore calls this image by image,
+so that an image's fit does not depend on its batch), and each item returns the
 best parameters seen, by IoU, the start included: refinement never makes an item worse at the
 refinement resolution. With ``shape = "pose"`` only the pose moves: the assembly stays the
 network's (the default after the global search, :mod:`sq_mitsuba.inference.search`, where

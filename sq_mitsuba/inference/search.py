@@ -385,28 +385,38 @@ class SearchRenderers:
 # ------------------------------------------------------------------------------- with refinement
 
 
-def _refine_best_of(assembly: Assembly, rotations: Tensor, translations: Tensor,
-                    masks: Tensor, camera: Camera, search: SearchOptions,
-                    refine: RefineOptions, own: Tensor | None = None) -> RefineResult:
+def _refine_each(assembly: Assembly, rotations: Tensor, translations: Tensor, masks: Tensor,
+                 camera: Camera, search: SearchOptions, refine: RefineOptions,
+                 own: Tensor | None = None) -> RefineResult:
     """Refine ``keep`` starts per image ((B, k, 3, 3) rotations, (B, k, 3) translations):
-    ``screen_steps`` each, then the best (by IoU) of each image to ``refine.steps``."""
-    batch, kept = rotations.shape[:2]
+    ``screen_steps`` each, then the best (by IoU) to ``refine.steps``. Image by image, on its
+    own rows (``own``), so that its fit is what it would be alone (in a batch its samples are
+    drawn by its place, it stops with the batch, its mesh carries its batch-mates' stand-ins);
+    the stand-ins come back rebuilt from the refined first row (:func:`gathered_primitives`)."""
+    from sq_mitsuba.model.existence import gathered_primitives
     params = assembly.params.detach().double()
-    if kept > 1 and search.screen_steps > 0:
-        screened = refine_pose_and_shape(
-            Assembly(params.repeat_interleave(kept, 0)), rotations.flatten(0, 1),
-            translations.flatten(0, 1), masks.repeat_interleave(kept, 0), camera,
-            replace(refine, steps=search.screen_steps, patience=search.screen_steps),
-            own=None if own is None else own.repeat_interleave(kept, 0))
-        winner = screened.iou_after.reshape(batch, kept).argmax(dim=1)
-        chosen = torch.arange(batch) * kept + winner
-        params = screened.assembly.params.detach().double()[chosen]
-        start_rotation, start_translation = screened.rotation[chosen], screened.translation[
-            chosen]
-    else:
-        start_rotation, start_translation = rotations[:, 0], translations[:, 0]
-    return refine_pose_and_shape(Assembly(params), start_rotation, start_translation, masks,
-                                 camera, refine, own=own)
+    rows, kept = torch.arange(params.shape[1]), rotations.shape[1]
+    results: list[tuple[Tensor, RefineResult]] = []
+    for i in range(rotations.shape[0]):
+        mine = torch.ones_like(rows, dtype=torch.bool) if own is None else own[i].cpu()
+        start, rotation, translation = params[i:i + 1, mine], rotations[i], translations[i]
+        if kept > 1 and search.screen_steps > 0:
+            screened = refine_pose_and_shape(
+                Assembly(start.repeat(kept, 1, 1)), rotation, translation,
+                masks[i:i + 1].repeat(kept, 1, 1), camera,
+                replace(refine, steps=search.screen_steps, patience=search.screen_steps))
+            best = int(screened.iou_after.argmax())  # the first of equals, as argmax was
+            start = screened.assembly.params.detach().double()[best:best + 1]
+            rotation, translation = screened.rotation[best:], screened.translation[best:]
+        result = refine_pose_and_shape(Assembly(start), rotation[:1], translation[:1],
+                                       masks[i:i + 1], camera, refine)
+        padded = params[i:i + 1].clone()
+        padded[:, mine] = result.assembly.params.detach().double()
+        results.append((gathered_primitives(padded, torch.where(mine, rows, -1)[None]), result))
+    return RefineResult(Assembly(torch.cat([p for p, _ in results])),
+                        *(torch.cat([getattr(r, name) for _, r in results]) for name in
+                          ("rotation", "translation", "iou_before", "iou_after")),
+                        max(r.steps for _, r in results))
 
 
 def better_of(best: RefineResult, result: RefineResult) -> RefineResult:
@@ -445,7 +455,8 @@ def search_and_refine(assembly: Assembly, rotation: Tensor, translation: Tensor,
 
     Returns:
         :class:`SearchRefineResult`. Each pass keeps the best result so far by IoU, so a later
-        pass never makes an image worse at the refinement resolution.
+        pass never makes an image worse at the refinement resolution. An image's result is
+        what it would be alone, wherever the batch puts it (refined image by image).
 
     Raises:
         ValueError: naming the argument: see :func:`pose_candidates` and
@@ -471,9 +482,9 @@ def search_and_refine(assembly: Assembly, rotation: Tensor, translation: Tensor,
     for round_index in range(search.rounds):
         top = current.best(search.keep)
         rows = torch.arange(shape.batch_size)[:, None]
-        result = _refine_best_of(shape, current.candidates[rows, top],
-                                 current.translations[rows, top], masks, camera, search, refine,
-                                 own)
+        result = _refine_each(shape, current.candidates[rows, top],
+                              current.translations[rows, top], masks, camera, search, refine,
+                              own)
         best = result if best is None else better_of(best, result)
         rounds.append(float(best.iou_after.mean()))
         if round_index + 1 < search.rounds:

@@ -74,12 +74,7 @@ def existence_surface_samples(assembly: Assembly, level: int = 3) -> tuple[Tenso
         inside primitive j (j != m), as :func:`probabilistic_chamfer_loss` takes them.
     """
     points = assembly.surface_points(level)
-    batch, count, per, _ = points.shape
-    with torch.no_grad():
-        values = assembly.inside_outside(points.reshape(batch, count * per, 3))
-        values = values.reshape(batch, count, count, per)  # (B, other, owner, V)
-        own = torch.eye(count, dtype=torch.bool, device=points.device)[None, :, :, None]
-        return points, (values < 1.0) & ~own
+    return points, assembly.inside_others(points)
 
 
 @torch.no_grad()

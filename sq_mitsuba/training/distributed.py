@@ -14,13 +14,14 @@ many of its own slice (N x items a step in all). The CUDA path (device ``cuda``,
 
 from __future__ import annotations
 
-import os
 import warnings
 from dataclasses import dataclass
 from typing import Any
 
 import torch
 from torch import Tensor, nn
+
+from sq_mitsuba.machine import launch_ranks
 
 __all__ = [
     "CpuSyncBatchNorm",
@@ -125,13 +126,13 @@ class World:
     def local_size(self) -> int:
         """Processes of the run on this machine (torchrun's ``LOCAL_WORLD_SIZE``), which share
         its cores (on several nodes, fewer than ``size``)."""
-        return int(os.environ.get("LOCAL_WORLD_SIZE", self.size)) if self.distributed else 1
+        return launch_ranks().local_size if self.distributed else 1
 
 
 def start_distributed(device: torch.device) -> World:
     """Join the process group torchrun describes (``WORLD_SIZE`` > 1); else one process."""
-    size = int(os.environ.get("WORLD_SIZE", "1"))
-    if size <= 1:
+    launch = launch_ranks()
+    if not launch.distributed:
         return World()
     import torch.distributed as dist
 
@@ -143,8 +144,7 @@ def start_distributed(device: torch.device) -> World:
         dist.init_process_group(backend="cpu:gloo,cuda:nccl" if device.type == "cuda"
                                 else "gloo")
         owns = True
-    return World(dist.get_rank(), dist.get_world_size(),
-                  int(os.environ.get("LOCAL_RANK", "0")), owns)
+    return World(dist.get_rank(), dist.get_world_size(), launch.local_rank, owns)
 
 
 def all_mean(values: Tensor, world: World) -> Tensor:

@@ -58,7 +58,6 @@ Temporary files an earlier run left when killed mid-write are removed when the n
 from __future__ import annotations
 
 import contextlib
-import os
 import shutil
 import time
 from pathlib import Path
@@ -71,6 +70,7 @@ from sq_mitsuba.config import from_dict, to_dict
 from sq_mitsuba.config import validate as validate_config
 from sq_mitsuba.data.spe3r import DatasetError
 from sq_mitsuba.io import atomic_write_json
+from sq_mitsuba.machine import launch_ranks
 from sq_mitsuba.model.network import SuperquadricNet
 from sq_mitsuba.outputs import output_lock
 from sq_mitsuba.progress import progress_bar
@@ -164,7 +164,7 @@ def train(config: TrainConfig | None, data_root: str | Path, out_dir: str | Path
         raise TrainError(f"max_steps: expected >= 0, got {max_steps}")
     if max_seconds is not None and not max_seconds > 0:
         raise TrainError(f"max_seconds: expected > 0, got {max_seconds}")
-    main_process = int(os.environ.get("RANK", "0")) == 0
+    main_process = launch_ranks().rank == 0
     created = not out_dir.exists()
     # One run at a time in a run folder: rank 0 holds its lock to the end (a second run, a
     # --resume too, stops with the lock's line before the folder's checks; the lock dies with
@@ -271,7 +271,7 @@ def _device_of(config: TrainConfig) -> torch.device:
     if config.device == "cuda" or (config.device == "auto" and torch.cuda.is_available()):
         if not torch.cuda.is_available():
             raise TrainError("device: 'cuda' asked for, but torch sees no CUDA device")
-        local = int(os.environ.get("LOCAL_RANK", "0"))  # given its GPU alone, cuda:0
+        local = launch_ranks().local_rank  # given its GPU alone, cuda:0
         return torch.device("cuda", local if torch.cuda.device_count() > 1 else 0)
     return torch.device("cpu")
 
