@@ -848,6 +848,15 @@ def test_an_image_beyond_the_machines_memory_is_refused_before_it_is_read(bad, t
     assert not out.exists()
     monkeypatch.setattr(machine, "available_memory", lambda: pixels * PREDICT_BYTES_PER_PIXEL)
     assert main(["predict", str(bad / "image.png"), "--out", str(out), "--quiet"]) == 0
+    # An image too long to be padded to the camera's square is refused for what it is (its
+    # side below the minimum, its aspect ratio), not for the memory its padding would take.
+    monkeypatch.setattr(machine, "available_memory", lambda: 2**30)
+    for width, height, message in ((40000, 4, "below the smallest image size, 8 x 8 px"),
+                                   (40000, 30, "too far from the camera's aspect ratio")):
+        Image.fromarray(np.full((height, width), 90, np.uint8)).save(tmp_path / "long.png")
+        line = _run(capsys, ["predict", tmp_path / "long.png", "--out", tmp_path / "long"])
+        assert message in line and "memory" not in line, line
+    assert not (tmp_path / "long").exists()
 
 
 def test_a_model_library_given_for_a_dataset_is_named_as_such(tmp_path):
@@ -865,3 +874,27 @@ def test_a_model_library_given_for_a_dataset_is_named_as_such(tmp_path):
     (tmp_path / "sc000_x" / "models" / "model_card.json").unlink()
     with pytest.raises(ValueError, match=r"camera\.json: missing$"):
         Spe3rDataset(tmp_path, "train")
+
+
+def test_a_rendered_dataset_without_its_samples_is_said_not_silently_sampled(train_dataset,
+                                                                             tmp_path):
+    """The SPE3R release has no samples.npz and its meshes are sampled, silently; a dataset
+    sq-mitsuba rendered (dataset.json) has them, and its scores are on them: a model that
+    lost its samples is said once, naming the file and the count."""
+    from sq_mitsuba.data.spe3r import Spe3rDataset
+
+    data = Path(shutil.copytree(train_dataset, tmp_path / "data"))
+    dataset = Spe3rDataset(data, "train", image_size=64)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        dataset.check()  # every samples.npz there: nothing said
+    model = dataset.models[dataset.items[0][0]]
+    samples = data / model / "models" / "samples.npz"
+    samples.unlink()
+    with pytest.warns(UserWarning, match=rf"^{re.escape(str(samples))}: missing \(1 model\(s\) "
+                      r"of .*, a dataset sq-mitsuba rendered\): their points are sampled"):
+        dataset.check()
+    (data / "dataset.json").unlink()  # as the release: no manifest, sampled without a word
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        Spe3rDataset(data, "train", image_size=64).check()

@@ -161,3 +161,35 @@ def test_a_run_folder_of_other_settings_is_refused_before_any_training(train_dat
     with pytest.raises(ValueError, match=r"runs/tiny: holds a run that is not this curve's"):
         learning_curves(train_dataset, out, minutes=1, points=2, val_images=2,
                         progress=False, configs=tiny)
+
+
+def test_an_out_inside_the_dataset_is_refused_before_any_training(train_dataset, tmp_path,
+                                                                   capsys):
+    """An --out in the dataset folder (or one that cannot be written) is refused at once,
+    naming --out: nothing trained, nothing left in the dataset (the first evaluation used to
+    refuse it only after a slice of training, its logs and caches left there)."""
+    import shutil
+
+    from sq_mitsuba.bench.curves import learning_curves
+    from sq_mitsuba.cli import main
+
+    data = shutil.copytree(train_dataset, tmp_path / "data")  # the fixture's stays clean
+    before = sorted(data.rglob("*"))
+    with pytest.raises(ValueError, match=rf"^out {data / 'bc'}: inside the dataset folder "
+                                         rf"{data}, which the curves only read"):
+        learning_curves(data, data / "bc", minutes=0.001, points=1, val_images=2,
+                        progress=False, configs={"tiny": load_train_config(TINY)})
+    for out in (data / "bc", data):
+        assert main(["bench", "curves", "--data", str(data), "--minutes", "0.001",
+                     "--configs", "cpu", "--out", str(out)]) == 2
+        assert capsys.readouterr().err.strip() == (
+            f"sq-mitsuba bench: error: --out {out}: inside the dataset folder {data}, which "
+            "the curves only read; choose a folder outside it")
+    assert sorted(data.rglob("*")) == before
+    blocked = tmp_path / "file"
+    blocked.write_text("mine")
+    assert main(["bench", "curves", "--data", str(data), "--minutes", "0.001", "--configs",
+                 "cpu", "--out", str(blocked / "bc")]) == 2
+    assert capsys.readouterr().err.strip() == (f"sq-mitsuba bench: error: --out {blocked}/bc: "
+                                               f"{blocked} is a file, not a folder")
+    assert blocked.read_text() == "mine"

@@ -323,3 +323,13 @@ def test_a_stdout_that_cannot_be_written_for_another_reason_is_an_error(tmp_path
     monkeypatch.undo()
     assert stopped.value.code == 2
     assert capsys.readouterr().err.strip().endswith("No space left on device")
+
+
+@pytest.mark.parametrize("setting", ["refinement.steps=5", "search.grid=576", "mask=segmentation",
+                                     "refine_ground_truth=false"])
+def test_eval_refuses_the_fits_settings_without_refine(setting, tmp_path, capsys):
+    """They would act on nothing: one line before any work (predict says the same)."""
+    assert main(["eval", "--data", str(tmp_path / "d"), "--out", str(tmp_path / "o"),
+                 "--set", setting]) == EXIT_ERROR
+    assert error_line(capsys) == f"sq-mitsuba eval: error: --set {setting}: only used with --refine"
+    assert not (tmp_path / "o").exists()

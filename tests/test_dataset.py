@@ -454,15 +454,14 @@ def test_mask_pass_renders_what_the_path_integrator_renders(model_library, with_
         np.testing.assert_allclose(lean[..., 1:], general[..., 1:], rtol=1e-6, atol=0)
 
 
-def test_bad_models_fail_alone_and_leave_nothing_partial(model_library, tmp_path, monkeypatch):
+def test_a_failed_model_fails_alone_and_leaves_nothing_partial(model_library, tmp_path,
+                                                               monkeypatch):
+    """A model that fails mid-render (a full disk) is a failure of that model alone; it keeps
+    only complete images. (A model that cannot be read is refused before any work:
+    test_dataset_bookkeeping.py::test_a_broken_library_model_is_refused_before_any_work.)"""
     library = tmp_path / "library"
     shutil.copytree(model_library, library)
     good, other = spe3r_writer.find_models(library)
-    broken = tmp_path / "library" / "broken_model" / "models"
-    broken.mkdir(parents=True)
-    (broken / "model_normalized.obj").write_text("this is not a mesh\n")
-    with open(library / "splits.csv", "a") as handle:
-        handle.write("broken_model,train\nmissing_model,train\n")
     real_write_png = spe3r_writer.write_png
 
     def disk_full_for_other(path: Path, array: np.ndarray) -> None:
@@ -476,15 +475,13 @@ def test_bad_models_fail_alone_and_leave_nothing_partial(model_library, tmp_path
     out = tmp_path / "out"
     summary = render_dataset(library, out, RenderOptions(**OPTIONS), progress=False)
     assert summary.models_done == [good]
-    assert set(summary.failures) == {"broken_model", "missing_model", other}
-    assert "model_normalized.obj" in summary.failures["broken_model"]
+    assert set(summary.failures) == {other}
     assert "No space left" in summary.failures[other]
     # The failed model keeps only complete images (each with its label); nothing partial.
     assert sorted(p.name for p in (out / other / "images").iterdir()) == ["000000.png"]
     assert sorted(p.name for p in (out / other / ".progress").iterdir()) == ["000000.json"]
     assert not (out / other / "labels.json").exists()
     assert not list(out.rglob("*.tmp*"))
-    assert not (out / "broken_model" / "images").exists()
 
 
 def test_cli_reports_failures_and_unwritable_output(model_library, tmp_path, capsys):
@@ -517,6 +514,32 @@ def test_check_finds_a_wrong_mask_and_preview_draws(dataset, tmp_path, capsys):
     assert main(["dataset", "preview", str(dataset), "--out", str(jpeg)]) == 2
     assert f"out {jpeg}: a preview is written as PNG" in capsys.readouterr().err
     assert not jpeg.exists()
+
+
+def test_preview_refuses_bad_input_in_one_line_before_drawing(dataset, model_library,
+                                                              tmp_path, capsys):
+    """A preview whose --out folder cannot take it drew every image, then failed naming the
+    temporary file of its atomic write; a folder that does not exist was named as its missing
+    camera.json. Each is one line naming what was given, exit 2, nothing written."""
+    (tmp_path / "a_file").write_text("a file, not a folder")
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    cases = [([str(dataset), "--out", str(tmp_path / "a_file" / "p.png")],
+              f"out {tmp_path / 'a_file' / 'p.png'}: {tmp_path / 'a_file'} is a file, not a "
+              "folder"),
+             ([str(tmp_path / "nowhere")], f"{tmp_path / 'nowhere'}: no such folder"),
+             ([str(empty)], f"{empty}: not a dataset (no camera.json and no dataset.json)"),
+             ([str(model_library)], f"{model_library}: a model library, not a dataset")]
+    if Path("/proc/self").is_dir():
+        cases.append(([str(dataset), "--out", "/proc/p.png"],
+                      "out /proc/p.png: cannot write in /proc ("))
+    for argv, said in cases:
+        capsys.readouterr()
+        assert main(["dataset", "preview", *argv, "--count", "2"]) == 2, argv
+        err = capsys.readouterr().err
+        assert len(err.splitlines()) == 1 and f"error: {said}" in err and ".tmp" not in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a_file", "empty"]
+    assert not list(empty.iterdir())
 
 
 def test_exr_holds_linear_radiance_depth_and_coverage(model_library, tmp_path):

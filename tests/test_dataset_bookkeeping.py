@@ -356,53 +356,79 @@ def test_a_model_of_the_same_name_from_another_library_is_refused_before_any_wor
 
 
 def test_failed_models_are_left_out_of_the_splits(reference, library, tmp_path):
-    models = tmp_path / "models"
-    shutil.copytree(library, models)
-    broken = models / "broken_model" / "models"
-    broken.mkdir(parents=True)
-    (broken / "model_normalized.obj").write_text("v 0 0 0\n")
-    with open(models / "splits.csv", "a") as handle:
-        handle.write("broken_model,train\nmissing_model,test\n")
+    """A model that fails while the others render (here its labels.json damaged since: a
+    broken library model is refused before any work instead) is listed in failures.json, left
+    out of splits.csv and recorded with no images; repaired, running again renders it."""
     out = tmp_path / "data"
-    summary = render_dataset(models, out, RenderOptions(**TINY), progress=False)
-    assert summary.complete and set(summary.failures) == {"broken_model", "missing_model"}
+    shutil.copytree(reference, out)
+    failed = sorted(json.loads((out / "dataset.json").read_text())["models"])[1]
+    (out / failed / "labels.json").write_text("[{")
+    summary = render_dataset(library, out, RenderOptions(**TINY), progress=False)
+    assert summary.complete and set(summary.failures) == {failed}
     failures = json.loads((out / "failures.json").read_text())
-    assert set(failures) == {"broken_model", "missing_model"}
-    assert "model_normalized.obj" in failures["broken_model"]
-    assert "missing" in failures["missing_model"]
-    assert (out / "splits.csv").read_bytes() == (reference / "splits.csv").read_bytes()
+    assert set(failures) == {failed} and "labels.json: not valid JSON" in failures[failed]
+    assert failed not in (out / "splits.csv").read_text()
+    assert (out / "splits.csv").read_text() in (reference / "splits.csv").read_text()
     manifest = json.loads((out / "dataset.json").read_text())
-    assert manifest["models"]["broken_model"]["images"] == 0
-    assert Spe3rDataset(out, "train", image_size=16, num_surface=10, num_occupancy=10)
+    assert manifest["models"][failed]["images"] == 0
     report = check_dataset(out, per_model=1, progress=False)
     assert report.ok, report.summary()
-    assert any("broken_model: failed" in note for note in report.notes)
-    # The broken model repaired: running again renders it and drops it from failures.json.
-    shutil.copytree(library / sorted(p.name for p in library.iterdir() if p.is_dir())[0],
-                    models / "broken_model", dirs_exist_ok=True)
-    (models / "splits.csv").write_text((library / "splits.csv").read_text()
-                                       + "broken_model,train\n")
-    summary = render_dataset(models, out, RenderOptions(**TINY), progress=False)
-    assert set(summary.failures) == {"missing_model"}
-    assert set(json.loads((out / "failures.json").read_text())) == {"missing_model"}
-    assert "broken_model,train" in (out / "splits.csv").read_text()
+    assert any(f"{failed}: failed" in note for note in report.notes)
+    # Repaired as the failure says (its folder deleted): rendered again, the same bytes.
+    shutil.rmtree(out / failed)
+    summary = render_dataset(library, out, RenderOptions(**TINY), progress=False)
+    assert not summary.failures and not (out / "failures.json").exists()
+    assert tree(out) == tree(reference)
 
 
-def test_a_model_whose_points_hold_nan_fails_at_render_not_later(library, tmp_path):
-    """A library model with a NaN surface point is a failed model of the render (it was
-    copied into the dataset, and found only by `dataset check` or a training run)."""
-    models = tmp_path / "models"
-    shutil.copytree(library, models)
-    model = sorted(p.name for p in models.iterdir() if p.is_dir())[0]
-    path = models / model / "models" / "samples.npz"
+def _delete_mesh(model: Path) -> None:
+    (model / "models" / "model_normalized.obj").unlink()
+
+
+def _text_samples(model: Path) -> None:
+    (model / "models" / "samples.npz").write_text("not an archive\n")
+
+
+def _nan_point(model: Path) -> None:
+    path = model / "models" / "samples.npz"
     with np.load(path) as samples:
         arrays = {key: samples[key] for key in samples.files}
     arrays["surface_points"] = arrays["surface_points"].copy()
     arrays["surface_points"][0, 0] = np.nan
     np.savez(path, **arrays)
-    summary = render_dataset(models, tmp_path / "data", RenderOptions(**TINY), progress=False)
-    assert set(summary.failures) == {model}
-    assert "samples.npz" in summary.failures[model] and "finite" in summary.failures[model]
+
+
+def _delete_folder(model: Path) -> None:
+    shutil.rmtree(model)  # its row in splits.csv stays: listed but missing
+
+
+#: Damage to one library model -> what the one-line refusal says after the model file's path.
+BROKEN_MODELS = {"mesh deleted": (_delete_mesh, "model_normalized.obj: missing"),
+                 "samples.npz a text file": (_text_samples, "samples.npz: corrupt or "
+                                             "truncated: not a valid .npz file"),
+                 "NaN point": (_nan_point, "samples.npz: surface_points: 1 of 2000 points "
+                               "hold NaN or infinite values"),
+                 "listed folder missing": (_delete_folder, "model_normalized.obj: missing")}
+
+
+@pytest.mark.parametrize("case", BROKEN_MODELS)
+def test_a_broken_library_model_is_refused_before_any_work(library, tmp_path, capsys, case):
+    """A model whose files cannot be read stops the render before any file is written, in one
+    line naming the file (exit 2; it was a failed model after the others' images, and a
+    partial dataset). A samples.npz that is no archive is not met with numpy's advice to load
+    it "unsafely" with allow_pickle."""
+    damage, said = BROKEN_MODELS[case]
+    models = tmp_path / "models"
+    shutil.copytree(library, models)
+    model = sorted(p.name for p in models.iterdir() if p.is_dir())[1]
+    damage(models / model)
+    out = tmp_path / "data"
+    capsys.readouterr()
+    assert render_cli(models, out) == 2
+    error = capsys.readouterr().err.strip()
+    assert "\n" not in error and f"{models / model / 'models'}/" in error, error
+    assert error.endswith(said) and "allow_pickle" not in error, error
+    assert not out.exists()
 
 
 def test_reader_skips_a_listed_model_that_is_missing(reference, tmp_path):
@@ -511,6 +537,33 @@ def test_a_model_folder_without_a_row_in_the_librarys_splits_is_refused(library,
                                            rf"\({dropped}\)"):
         render_dataset(models, out, RenderOptions(**TINY), progress=False)
     assert not out.exists()
+
+
+def test_a_library_without_splits_takes_each_models_split_from_its_card(library, tmp_path):
+    """Without the library's splits.csv a model's split is the one its model_card.json
+    records (a test model rendered as train would silently train); only a model whose card
+    says none is a train model, said once in one warning counting them."""
+    models = tmp_path / "models"
+    shutil.copytree(library, models)
+    (models / "splits.csv").unlink()
+    cards = {path.parent.parent.name: json.loads(path.read_text())
+             for path in sorted(models.glob("*/models/model_card.json"))}
+    assert sorted(card["split"] for card in cards.values()) == ["test", "train"]
+    one = dict(TINY, images_per_model=1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # every split known: nothing to warn about
+        render_dataset(models, tmp_path / "data", RenderOptions(**one), progress=False)
+    assert (tmp_path / "data" / "splits.csv").read_text() == \
+        "".join(f"{name},{card['split']}\n" for name, card in sorted(cards.items()))
+    test_model = next(name for name, card in cards.items() if card["split"] == "test")
+    card_path = models / test_model / "models" / "model_card.json"
+    card_path.write_text(json.dumps({**cards[test_model], "split": None}))
+    with pytest.warns(UserWarning) as caught:
+        render_dataset(models, tmp_path / "guessed", RenderOptions(**one), progress=False)
+    assert [str(w.message) for w in caught] == [
+        f"{models}: no splits.csv and no split in the model card of 1 model(s) ({test_model}): "
+        "rendered as train models"]
+    assert f"{test_model},train" in (tmp_path / "guessed" / "splits.csv").read_text()
 
 
 def test_reading_a_dataset_whose_rendering_has_not_finished_says_so(reference, tmp_path):

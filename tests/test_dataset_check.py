@@ -172,6 +172,25 @@ def test_reader_names_a_mask_of_another_size(fresh, tmp_path):
     assert [p.split(":")[0] for p in report.problems] == [f"{train}/masks/000001.png"]
 
 
+def test_a_folder_that_is_no_dataset_is_bad_input_not_a_problem(tmp_path, capsys):
+    """A folder with neither camera.json nor dataset.json is no dataset: exit 2 and one line
+    saying so (it was exit 1 with "camera.json: missing" as a problem of the dataset), as a
+    model library already is. A dataset that lost its camera.json still has problems."""
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    (folder / "splits.csv").write_text("a,train\n")
+    assert main(["dataset", "check", str(folder), "--quiet"]) == 2
+    captured = capsys.readouterr()
+    assert captured.err.strip() == (
+        f"sq-mitsuba dataset: error: {folder}: not a dataset (no camera.json and no "
+        "dataset.json); render one with sq-mitsuba dataset render --models LIBRARY --out DATA")
+    assert "problem" not in captured.out
+    with pytest.raises(DatasetError, match="not a dataset"):
+        check_dataset(folder, progress=False)
+    (folder / "dataset.json").write_text("{}")  # a render's, broken: problems, exit 1
+    assert main(["dataset", "check", str(folder), "--quiet"]) == 1
+
+
 def test_check_options_are_range_checked(fresh, capsys):
     root = fresh(64)
     for bad, message in [(["--per-model", "-3"], "--per-model: expected a value in [0, "),

@@ -187,18 +187,24 @@ def test_a_bad_frame_of_the_last_pass_is_refused_before_the_first_is_scored(
     frame = sorted((data / model / "images").iterdir())[-1]
     good = frame.read_bytes()
     mask = frame.parent.parent / "masks" / frame.name
-    cases = [(good[: len(good) // 2], mask.parent.parent / "images" / mask.name,
-              "cannot read image"),
-             (None, mask, r"mask is 64 x 64 px, its image 000002.png is 32 x 32 px")]
+    good_mask = mask.read_bytes()
+    # The image of another size than camera.json is blamed, not its mask; a mask of another
+    # size than its image is.
+    cases = [(good[: len(good) // 2], frame, "cannot read image"),
+             (None, frame, r"32 x 32 px, but its mask and camera.json 64 x 64 px"),
+             ("mask", mask, r"mask is 32 x 32 px, its image 000002.png is 64 x 64 px")]
     for k, (content, named, message) in enumerate(cases):
+        frame.write_bytes(good)
+        mask.write_bytes(good_mask)
         if isinstance(content, bytes):
             frame.write_bytes(content)
         else:
-            Image.fromarray(np.zeros((32, 32), np.uint8)).save(frame)
+            Image.fromarray(np.zeros((32, 32), np.uint8)).save(named)
         with pytest.raises(ValueError, match=rf"^{re.escape(str(named))}: .*{message}"):
             evaluate_passes(predictor, data, tmp_path / f"out{k}", SMALL, progress=False)
         assert searched == [] and not (tmp_path / f"out{k}").exists()
     frame.write_bytes(good)
+    mask.write_bytes(good_mask)
     # A black middle frame: named (frame 1), also when passes of two frames are all fitted.
     middle = sorted((data / model / "images").iterdir())[1]
     kept = middle.read_bytes()

@@ -289,14 +289,19 @@ def test_without_resume_a_journal_is_not_used(interrupted, uninterrupted, eval_c
     assert (tampered / "per_image.csv").read_bytes() == \
         (uninterrupted / "per_image.csv").read_bytes()
     assert not (tampered / JOURNAL).exists()
-    # --resume on a finished folder (no journal left) says it evaluates from the start, and
-    # does (stopped in its first batch: what follows is the run above).
+    # --resume on a finished folder (no journal left) replaces nothing: one line, before any
+    # work (it once evaluated from the start, over a finished run of other settings).
+    finished = {p.name: p.read_bytes() for p in tampered.iterdir() if p.is_file()}
     capsys.readouterr()
     with monkeypatch.context() as patch:
-        batches = Batches(patch, lambda numbers: True)
-        assert main(_argv(eval_checkpoint, train_dataset, tampered, "--resume")) == 130
-    assert batches.numbers == [1]
-    assert "no interrupted evaluation to resume" in capsys.readouterr().err
+        batches = Batches(patch)
+        assert main(_argv(eval_checkpoint, train_dataset, tampered, "--resume")) == 2
+    assert batches.numbers == []
+    assert error_line(capsys) == (f"sq-mitsuba eval: error: {tampered}: --resume, but the "
+                                  "evaluation there is finished (eval.json; nothing to "
+                                  "resume): rerun without --resume to evaluate again, or use "
+                                  "another --out")
+    assert {p.name: p.read_bytes() for p in tampered.iterdir() if p.is_file()} == finished
 
 
 # ------------------------------------------------------------------------------ study

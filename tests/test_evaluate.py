@@ -30,11 +30,12 @@ from sq_mitsuba.model import checkpoint as checkpoint_module
 from sq_mitsuba.model.checkpoint import checkpoint_payload, read_checkpoint, write_checkpoint
 from sq_mitsuba.model.network import NetworkConfig, SuperquadricNet
 
-#: Small settings: few refinement steps and points (the defaults are for real evaluations).
+#: Small settings: few points (the defaults are for real evaluations) ...
+SMALL_SCORES = ["--set", "surface_points=500", "--set", "volume_points=3000",
+                "--set", "qualitative=2", "--set", "consistency_views=2", "--quiet"]
+#: ... and, for --refine (refused without it), few refinement steps.
 SMALL = ["--set", "refinement.steps=3", "--set", "refinement.patience=3",
-         "--set", "search.grid=128", "--set", "search.screen_steps=2",
-         "--set", "surface_points=500", "--set", "volume_points=3000",
-         "--set", "qualitative=2", "--set", "consistency_views=2", "--quiet"]
+         "--set", "search.grid=128", "--set", "search.screen_steps=2", *SMALL_SCORES]
 
 
 @pytest.fixture(scope="module")
@@ -230,7 +231,7 @@ def test_report_on_the_eval_output_holds_ours_and_the_papers_numbers(
     test_out = val_eval.parent / "test"
     assert main(["eval", "--checkpoint", str(eval_checkpoint), "--data", str(train_dataset),
                  "--split", "test", "--out", str(test_out), "--limit", "3", "--no-figures",
-                 *SMALL]) == 0
+                 *SMALL_SCORES]) == 0
     assert len(read_rows(test_out / "per_image.csv")) == 3 * 2  # network and baseline
     assert not (test_out / "qualitative.png").exists()
     capsys.readouterr()
@@ -258,7 +259,7 @@ def test_a_rerun_stopped_among_its_writes_leaves_no_finished_evaluation(
     shutil.copytree(val_eval, out)
     before = {name: (out / name).read_bytes() for name in OUTPUT_FILES}
     argv = ["eval", "--checkpoint", str(eval_checkpoint), "--data", str(train_dataset),
-            "--split", "val", "--out", str(out), "--limit", "2", *SMALL]
+            "--split", "val", "--out", str(out), "--limit", "2", *SMALL_SCORES]
 
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
@@ -356,7 +357,7 @@ def test_missing_split_and_missing_data_are_one_line(eval_checkpoint, train_data
     (ranked / "mesh_ranking.csv").write_text("an earlier run's ranking\n")
     assert main(["eval", "--checkpoint", str(eval_checkpoint), "--data", str(train_dataset),
                  "--split", "test", "--out", str(ranked), "--limit", "1", "--no-baseline",
-                 "--no-figures", *SMALL, "--set", "mesh_ranking=4"]) == 2
+                 "--no-figures", *SMALL_SCORES, "--set", "mesh_ranking=4"]) == 2
     line = error_line(capsys)
     assert "mesh_ranking" in line and "'test' split" in line
     assert (ranked / "mesh_ranking.csv").read_text() == "an earlier run's ranking\n"
@@ -455,7 +456,7 @@ def test_turned_copies_without_a_distribution_head_are_one_line(eval_checkpoint,
                                                                 tmp_path, capsys):
     out = tmp_path / "refused"
     code = main(["eval", "--checkpoint", str(eval_checkpoint), "--data", str(train_dataset),
-                 "--split", "val", "--out", str(out), "--set", "turns=8", *SMALL])
+                 "--split", "val", "--out", str(out), "--set", "turns=8", *SMALL_SCORES])
     line = error_line(capsys)
     assert code == 2 and ("turns: reading the rotation from turned copies needs a "
                           "rotation-distribution head") in line

@@ -394,3 +394,95 @@ def test_export_keeps_the_fine_tunes_existence_logits_when_asked(eval_checkpoint
     assert "plain_a.pt: keep_existence needs a network whose slots carry existence" in \
         error_line(capsys)
     assert not any((tmp_path / name).exists() for name in ("no_start.pt", "plain.pt", "api.pt"))
+
+
+def test_export_replaces_an_exported_model_and_nothing_else(eval_checkpoint, tmp_path, capsys):
+    """An existing --out is replaced only where it is an exported model (re-exporting): a
+    training run's last.pt (what --resume needs), a checkpoint without an export's record and
+    any other file are refused before anything is written, and kept byte for byte."""
+    from sq_mitsuba.model.checkpoint import write_checkpoint
+
+    payload = read_checkpoint(eval_checkpoint)
+    run = tmp_path / "run"
+    training = write_checkpoint(run / "last.pt", {
+        **payload, "optimizer": {"state": {}, "param_groups": []}, "scheduler": {}})
+    picture = tmp_path / "figure.png"
+    Image.new("L", (4, 4), 128).save(picture)
+    camera = tmp_path / "camera.json"
+    camera.write_text('{"fx": 1}\n')
+    for path, named in ((training, "a training checkpoint"),
+                        (tmp_path / "hand.pt", "not an exported model"),
+                        (picture, "not an sq_mitsuba checkpoint"),
+                        (camera, "not an sq_mitsuba checkpoint")):
+        if not path.exists():  # a checkpoint of this project with no export's record
+            write_checkpoint(path, payload)
+        before = path.read_bytes()
+        assert main(["export", "--checkpoint", str(eval_checkpoint), "--out", str(path)]) == 2
+        line = error_line(capsys)
+        assert f"out {path}: " in line and named in line, line
+        assert line.endswith("export replaces only an exported model: choose another --out")
+        assert path.read_bytes() == before
+    assert sorted(p.name for p in run.iterdir()) == ["last.pt"]  # no temporary left behind
+    # An exported model is replaced: exported in half precision, then again in full.
+    model = tmp_path / "model.pt"
+    assert main(["export", "--checkpoint", str(eval_checkpoint), "--out", str(model)]) == 0
+    assert main(["export", "--checkpoint", str(eval_checkpoint), "--no-half", "--out",
+                 str(model)]) == 0
+    weights = [v for v in read_checkpoint(model)["model"].values() if v.is_floating_point()]
+    assert weights and all(v.dtype == torch.float32 for v in weights)
+
+
+def _dataset_copy(train_dataset, path):
+    """A copy of the training fixture's dataset, to damage."""
+    import shutil
+
+    return shutil.copytree(train_dataset, path)
+
+
+def test_export_refuses_an_out_inside_a_dataset_folder(eval_checkpoint, train_dataset,
+                                                       tmp_path, capsys):
+    """Inside --data, or inside any folder holding a dataset.json: refused before writing (the
+    file would become part of a dataset that export only reads)."""
+    for out in (train_dataset / "model.pt", train_dataset / "new" / "model.pt"):
+        assert main(["export", "--checkpoint", str(eval_checkpoint), "--out", str(out)]) == 2
+        assert error_line(capsys).endswith(
+            f"out {out}: inside the dataset folder {train_dataset.resolve()}, which export only "
+            "reads; write the model outside it")
+        assert not out.exists() and not (train_dataset / "new").exists()
+    data = _dataset_copy(train_dataset, tmp_path / "data")
+    (data / "dataset.json").unlink()  # a dataset without a manifest (the SPE3R release's)
+    out = data / "model.pt"
+    assert main(["export", "--checkpoint", str(eval_checkpoint), "--data", str(data),
+                 "--out", str(out)]) == 2
+    assert error_line(capsys).endswith(f"out {out}: inside the dataset folder {data}, which "
+                                       "export only reads; write the model outside it")
+    assert not out.exists()
+
+
+def test_export_without_training_images_says_to_leave_data_out(eval_checkpoint, train_dataset,
+                                                               tmp_path, capsys):
+    """A --data whose train split is empty (its labels gone): the way out is export's own
+    (leave --data out), not eval's --no-baseline, and each model left out is said once; with
+    one train model left the baseline is computed, the other's warning said once too."""
+    data = _dataset_copy(train_dataset, tmp_path / "data")
+    train_models = [line.split(",")[0] for line in (data / "splits.csv").read_text().split()
+                    if line.endswith(",train")]
+    assert len(train_models) == 2
+    (data / train_models[0] / "labels.json").unlink()
+    out = tmp_path / "out" / "model.pt"
+    assert main(["export", "--checkpoint", str(eval_checkpoint), "--data", str(data),
+                 "--baseline-images", "2", "--out", str(out)]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].endswith(
+        f"{data / train_models[0] / 'labels.json'}: missing; model {train_models[0]} left out "
+        "of the train split"), err
+    out.unlink()
+    (data / train_models[1] / "labels.json").unlink()
+    assert main(["export", "--checkpoint", str(eval_checkpoint), "--data", str(data),
+                 "--out", str(out)]) == 2
+    *warned, error = capsys.readouterr().err.strip().splitlines()
+    assert len(warned) == 2 and len(set(warned)) == 2, warned
+    assert error.endswith(f"{data}: no images for the baseline (its 'train' split is empty); "
+                          "give the training dataset as --data, or leave --data out to store "
+                          "no baseline")
+    assert not out.exists()

@@ -234,6 +234,32 @@ def test_import_missing_file_is_an_error_before_any_work(tmp_path, capsys) -> No
     assert not out.exists()
 
 
+def test_generate_and_import_refuse_a_dataset_as_out(library, tmp_path, capsys) -> None:
+    """A rendered dataset holds a copy of each model and a splits.csv: generating or
+    importing into it rewrote them silently. Refused in one line before any work (exit 2),
+    as `dataset render` refuses the library as its output; the dataset byte for byte kept."""
+    from sq_mitsuba.data.spe3r import RenderOptions, render_dataset
+
+    data = tmp_path / "data"
+    one = tmp_path / "one"
+    name = _models(library)[0].parent.name
+    shutil.copytree(library / name, one / name)
+    (one / "splits.csv").write_text(f"{name},test\n")
+    render_dataset(one, data, RenderOptions(images_per_model=1, resolution=16, spp=1),
+                   progress=False)
+    before = {p: p.read_bytes() for p in sorted(data.rglob("*")) if p.is_file()}
+    box = tmp_path / "box.stl"
+    trimesh.creation.box([1.0, 0.5, 0.25]).export(box)
+    for argv in (["generate", "--count", "1", "--seed", str(SEED), "--points", "300"],
+                 ["import", str(box), "--points", "200"]):
+        capsys.readouterr()
+        assert main(["models", *argv, "--out", str(data)]) == 2
+        assert capsys.readouterr().err.strip() == (
+            f"sq-mitsuba models: error: {data}: the output folder is a dataset (it holds "
+            "dataset.json), not a model library; write the models into another folder")
+        assert {p: p.read_bytes() for p in sorted(data.rglob("*")) if p.is_file()} == before
+
+
 @pytest.mark.parametrize("argv, flag", [
     (["generate", "--seed", "-1"], "--seed"),
     (["generate", "--seed", str(2**32)], "--seed"),
@@ -313,6 +339,29 @@ def test_contact_sheet_size_checked_before_rendering(library, tmp_path) -> None:
     with pytest.raises(ConfigError, match="spp"):
         contact_sheet(library, ContactSheetOptions(spp=0))
     assert not (tmp_path / "sheet.png").exists()
+
+
+OUT_FOLDER_CASES = {"under a file": ("a_file/sheet.png", "/a_file is a file, not a folder"),
+                    "in /proc": ("/proc/sheet.png", "cannot write in /proc")}
+
+
+@pytest.mark.parametrize("case", OUT_FOLDER_CASES)
+def test_a_contact_sheet_out_that_cannot_be_written_is_refused_before_rendering(
+        library, tmp_path, capsys, case) -> None:
+    """An --out whose folder cannot take the sheet rendered every model, then failed naming
+    the temporary file of the atomic write; now one line naming --out, before any render
+    (no progress bar)."""
+    where, reason = OUT_FOLDER_CASES[case]
+    if where.startswith("/proc") and not Path("/proc/self").is_dir():
+        pytest.skip("no /proc here")
+    (tmp_path / "a_file").write_text("a file, not a folder")
+    out = Path(where) if where.startswith("/") else tmp_path / where
+    assert main(["models", "preview", str(library), "--out", str(out), "--size", "16",
+                 "--spp", "1"]) == 2
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1, err  # no progress bar: nothing was rendered
+    assert err.startswith(f"sq-mitsuba models: error: out {out}: ") and reason in err, err
+    assert ".tmp" not in err and not out.exists()
 
 
 def test_a_model_in_both_splits_is_refused_naming_the_line(tmp_path):

@@ -189,3 +189,38 @@ def test_a_val_and_a_test_of_two_networks_under_one_label_are_refused(tmp_path):
     assert not (tmp_path / "report").exists()
     assert "| exp |" in write_report([tmp_path / "val", tmp_path / "again"],
                                      tmp_path / "report").read_text()
+
+
+@pytest.mark.parametrize(("old", "new", "named"), [
+    ('chamfer_convention = "paper"', 'chamfer_convention = "occnet"',
+     "source.chamfer_convention 'occnet': the report compares our 'paper'-convention "
+     "Chamfer-L1 (chamfer_l1_paper) with the paper's, so its numbers must be in that "
+     "convention ('paper')"),
+    ("[source]\n", "[source]\nbogus = 1\n",
+     "source.bogus: unknown key (expected title and chamfer_convention)"),
+    ('chamfer_convention = "paper"\n', "",
+     "source.chamfer_convention: missing (the report compares Chamfer-L1 in the 'paper' "
+     "convention: say so)"),
+    ("title = ", "title = 3 # ", "source.title: expected a name, got 3"),
+], ids=["another convention", "unknown key", "no convention", "title not text"])
+def test_report_reads_the_papers_source_strictly(old, new, named, tmp_path, capsys):
+    """The [source] table says which Chamfer convention the paper's numbers use; the report
+    compares them with our 'paper' column and says both use it: another convention, an
+    unknown key or none stated is refused (one line naming it), nothing written."""
+    from sq_mitsuba.cli import main
+
+    _eval_folder(tmp_path / "run" / "val", "val", "run", 0.0)
+    text = PAPER_TABLES.read_text()
+    assert old in text
+    paper = tmp_path / "paper.toml"
+    paper.write_text(text.replace(old, new, 1))
+    out = tmp_path / "report"
+    assert main(["report", str(tmp_path / "run" / "val"), "--out", str(out), "--paper",
+                 str(paper)]) == 2
+    assert capsys.readouterr().err.strip() == \
+        f"sq-mitsuba report: error: paper tables {paper}: {named}"
+    assert not out.exists()
+    # The file as shipped passes, and the note says what it checked.
+    assert main(["report", str(tmp_path / "run" / "val"), "--out", str(out), "--paper",
+                 str(PAPER_TABLES)]) == 0
+    assert "Both use the 'paper' Chamfer convention" in (out / "report.md").read_text()

@@ -376,3 +376,20 @@ def test_the_machine_line_says_threads_beyond_the_cores_as_such():
     assert f"{cores + 62} threads on {cores} cores" in line
     assert f"1 of {cores} cores used" in bench.machine_description(
         bench.BenchOptions(threads=1, device="cpu"))
+
+
+def test_train_max_steps_0_says_it_trained_nothing_and_wrote_no_checkpoint(train_dataset,
+                                                                           tmp_path, capsys):
+    """--max-steps 0 checks everything and builds the caches (its documented use): its summary
+    says no step ran and no checkpoint exists to resume, not "trained 0/N steps; wrote OUT"."""
+    from pathlib import Path
+
+    tiny = Path(__file__).resolve().parents[1] / "train" / "configs" / "tiny.toml"
+    out = tmp_path / "run"
+    assert main(["train", "--config", str(tiny), "--data", str(train_dataset), "--out",
+                 str(out), "--max-steps", "0", "--quiet"]) == 0
+    said = capsys.readouterr().out.strip()
+    assert said == ("--max-steps 0: checked the config and the dataset and built the caches, "
+                    "then stopped before the first step; no checkpoint written, so nothing to "
+                    f"--resume (training into {out} again starts the run)")
+    assert not list(out.glob("*.pt"))

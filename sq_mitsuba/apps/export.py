@@ -27,6 +27,7 @@ resolve (the model card's figures are measured with the exported file).
 from __future__ import annotations
 
 import os
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -36,7 +37,8 @@ import torch
 
 from sq_mitsuba.config import in_range, validate
 from sq_mitsuba.inference.predictor import Predictor
-from sq_mitsuba.io import check_inputs_kept, check_output_folder
+from sq_mitsuba.inputs import load_torch_file
+from sq_mitsuba.io import check_inputs_kept, check_output_folder, inside_folder
 from sq_mitsuba.model.checkpoint import (
     FORMAT,
     VERSION,
@@ -134,6 +136,55 @@ def _file_identity(path: Path) -> object:
     return (info.st_dev, info.st_ino)
 
 
+def check_replaceable(out: Path) -> None:
+    """Refuse an existing ``out`` that is not an exported model: re-exporting replaces one,
+    but a training run's ``last.pt`` (which ``--resume`` needs), a checkpoint written by hand
+    or a user's file named by mistake is never overwritten.
+
+    An exported model is an sq_mitsuba checkpoint with the ``source`` record
+    :func:`export_model` writes and no ``optimizer`` (a training checkpoint's); read with
+    ``weights_only=True``, as every checkpoint is.
+
+    Raises:
+        ValueError: ``out <out>: ...`` naming what it is.
+    """
+    if not out.exists():
+        return
+    if not out.is_file():
+        raise ValueError(f"out {out}: exists and is not a file; give the file to write")
+    try:
+        payload = load_torch_file(out, "checkpoint")
+    except ValueError:
+        payload = None
+    keep = "; export replaces only an exported model: choose another --out"
+    if not isinstance(payload, dict) or payload.get("format") != FORMAT:
+        raise ValueError(f"out {out}: exists and is not an sq_mitsuba checkpoint{keep}")
+    if "optimizer" in payload:
+        raise ValueError(f"out {out}: a training checkpoint (its optimiser state is what "
+                         f"--resume needs){keep}")
+    if "source" not in payload:
+        raise ValueError(f"out {out}: an sq_mitsuba checkpoint, but not an exported model "
+                         f"(no 'source' record){keep}")
+
+
+def check_outside_datasets(out: Path, data_root: Path | None) -> None:
+    """Refuse an ``out`` inside ``data_root`` or inside any dataset folder (one holding a
+    ``dataset.json`` manifest): the file would become part of a dataset, which export only
+    reads (as ``eval`` and ``train`` refuse their outputs there).
+
+    Raises:
+        ValueError: ``out <out>: inside the dataset folder <folder> ...``.
+    """
+    from sq_mitsuba.data.spe3r.layout import MANIFEST
+
+    folders = [] if data_root is None or not inside_folder(out, data_root) else [data_root]
+    parent = out.parent.resolve()  # links followed, as inside_folder does
+    folders += [folder for folder in (parent, *parent.parents) if (folder / MANIFEST).is_file()]
+    if folders:
+        raise ValueError(f"out {out}: inside the dataset folder {folders[0]}, which export "
+                         "only reads; write the model outside it")
+
+
 def export_model(checkpoint: str | Path | Sequence[str | Path], data_root: str | Path | None,
                  out: str | Path, options: ExportOptions | None = None,
                  notes: list[str] | None = None, start: str | Path | None = None) -> Path:
@@ -144,7 +195,8 @@ def export_model(checkpoint: str | Path | Sequence[str | Path], data_root: str |
             or several of one network fine-tuned from one start: their weights' average.
         data_root: the training dataset (its train split gives the baseline); None: no
             baseline is stored (for one checkpoint, one it stores is kept).
-        out: the file to write; its folder is created.
+        out: the file to write; its folder is created. An exported model there is replaced
+            (re-exporting); anything else there is refused.
         options: see :class:`ExportOptions`.
         start: the checkpoint ``checkpoint`` was fine-tuned from (its ``init_from``, e.g. the
             archetype model), or None. Given, the exported weights are ``options.start_share``
@@ -161,7 +213,10 @@ def export_model(checkpoint: str | Path | Sequence[str | Path], data_root: str |
         ValueError / FileNotFoundError: a corrupt or mismatched checkpoint (or one whose
             weights are not finite), one checkpoint file named twice, checkpoints that are not
             of one network (a field, the
-            camera or a weight named), ``out`` a folder, a dataset without training images
+            camera or a weight named), ``out`` a folder, an existing ``out`` that is not an
+            exported model (:func:`check_replaceable`: a training checkpoint, any other
+            file), ``out`` inside a dataset folder (:func:`check_outside_datasets`), a
+            dataset without training images
             (or whose training images or points cannot be read), or ``data_root`` given for
             one checkpoint that stores a baseline already (it would be replaced; without
             ``data_root`` it is kept); checked before ``out`` is touched.
@@ -186,6 +241,8 @@ def export_model(checkpoint: str | Path | Sequence[str | Path], data_root: str |
         raise ValueError(f"out {out}: is a folder; give the file to write (e.g. "
                          f"{out / 'model.pt'})")
     check_inputs_kept([*paths, *([Path(start)] if start is not None else [])], [out])
+    check_outside_datasets(out, None if data_root is None else Path(data_root))
+    check_replaceable(out)
     payloads = [read_checkpoint(path) for path in paths]
     for path, payload in zip(paths, payloads, strict=True):
         model_from_checkpoint(payload, str(path))  # refuse a mismatched file early
@@ -217,8 +274,11 @@ def export_model(checkpoint: str | Path | Sequence[str | Path], data_root: str |
             raise ValueError(f"{paths[0]}: stores a baseline already, which --data "
                              f"{data_root} would replace; export without --data to keep it")
         train = Spe3rDataset(data_root, "train", image_size=8, num_surface=1, num_occupancy=2)
-        if len(train):
-            train.check()  # images and points read by the baseline: refused before work
+        if not len(train):  # said here: the shared message's way out is eval's option
+            raise ValueError(f"{data_root}: no images for the baseline (its 'train' split is "
+                             "empty); give the training dataset as --data, or leave --data "
+                             "out to store no baseline")
+        train.check()  # images and points read by the baseline: refused before work
         note = baseline_data_note(payloads, data_root)
         if note is not None:
             notes.append(note)
@@ -246,13 +306,16 @@ def export_model(checkpoint: str | Path | Sequence[str | Path], data_root: str |
     if start_record is not None:
         exported["source"]["start"] = start_record
     if data_root is not None:
+        from sq_mitsuba.data.spe3r import MissingModelWarning
         from sq_mitsuba.evaluation.scoring import baseline_prediction
 
         # The baseline of the weights as shipped (rounded), not of the float32 originals.
         model, camera = model_from_checkpoint(exported, str(out))
-        raw, rotation, translation = baseline_prediction(
-            Predictor(model, camera), Path(data_root), options.baseline_images,
-            options.batch_size)
+        with warnings.catch_warnings():  # a model left out was said once, when checked above
+            warnings.simplefilter("ignore", MissingModelWarning)
+            raw, rotation, translation = baseline_prediction(
+                Predictor(model, camera), Path(data_root), options.baseline_images,
+                options.batch_size)
         exported["baseline"] = {"raw": raw.float(), "rotation": rotation.float(),
                                 "translation": translation.float()}
         exported["source"]["baseline_data"] = str(data_root)

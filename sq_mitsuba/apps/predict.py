@@ -281,7 +281,8 @@ def _check_inputs(paths: list[Path], camera: Any, masks: list[Path] | None,
 def check_image_memory(path: Path, camera: Any, memory: int | None) -> None:
     """One line when the image at ``path``, padded as it would be, needs more memory than
     ``memory`` bytes (:data:`PREDICT_BYTES_PER_PIXEL`); nothing where its header cannot be
-    read (decoding it says why) or the memory is unknown."""
+    read (decoding it says why), the memory is unknown, or the image is too far from the
+    camera's aspect ratio to be padded (the checks after decoding name that)."""
     if memory is None:
         return
     try:
@@ -291,6 +292,8 @@ def check_image_memory(path: Path, camera: Any, memory: int | None) -> None:
         return
     padding = padding_to_aspect(width, height, camera)
     pixels = width * height if padding is None else padding.padded_width * padding.padded_height
+    if pixels > MAX_PADDING_GROWTH * width * height:
+        return  # never padded: refused for its size or aspect ratio once read, not for memory
     if pixels * PREDICT_BYTES_PER_PIXEL > memory:
         raise ValueError(too_much_memory(
             f"image {path}: {width} x {height} px ({PREDICT_BYTES_PER_PIXEL} bytes a pixel)",

@@ -34,6 +34,7 @@ __all__ = [
     "CURVES_PNG",
     "CURVE_CONFIGS",
     "Curve",
+    "check_curves_output",
     "curves_figure_path",
     "curves_report",
     "learning_curves",
@@ -77,6 +78,24 @@ def run_folder(out_dir: Path, label: str) -> Path:
     return out_dir / label.replace(",", "").replace(" ", "_")
 
 
+def check_curves_output(data_root: str | Path, out_dir: str | Path) -> Path:
+    """``out_dir`` as a Path, if the curves can write their runs there: not the dataset folder
+    ``data_root`` nor inside it (the runs' logs, caches and evaluations would become part of
+    the dataset, which they only read), and writable (:func:`~sq_mitsuba.io.
+    check_output_folder`). Called before any training: the first evaluation would refuse it
+    only after a slice of training, its files left in the dataset.
+
+    Raises:
+        ValueError: ``out <out_dir>: ...`` (one line).
+    """
+    from sq_mitsuba.io import check_output_folder, inside_folder
+
+    if inside_folder(out_dir, data_root):
+        raise ValueError(f"out {out_dir}: inside the dataset folder {data_root}, which the "
+                         "curves only read; choose a folder outside it")
+    return check_output_folder(out_dir)
+
+
 def learning_curves(data_root: str | Path, out_dir: str | Path, minutes: float,
                     labels: Sequence[str] | None = None, points: int = 4,
                     val_images: int = 64, progress: bool = True,
@@ -102,7 +121,8 @@ def learning_curves(data_root: str | Path, out_dir: str | Path, minutes: float,
         One :class:`Curve` per config, in order.
 
     Raises:
-        ValueError: one line naming the argument or the run folder, before any training.
+        ValueError: one line naming the argument or the run folder (an ``out_dir`` inside
+            ``data_root`` or not writable: :func:`check_curves_output`), before any training.
     """
     from sq_mitsuba.config import apply_overrides, to_dict
 
@@ -128,6 +148,7 @@ def learning_curves(data_root: str | Path, out_dir: str | Path, minutes: float,
         if folders.count(folder) > 1:
             raise ValueError(f"configs: {label!r} and another label share the run folder "
                              f"{folder!r}; name them apart")
+    check_curves_output(data_root, out_dir)
     settings = {label: {"label": label, "minutes": minutes, "points": points,
                         "val_images": val_images, "data": str(data_root.resolve()),
                         "config": to_dict(config)} for label, config in configs.items()}

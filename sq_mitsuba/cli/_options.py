@@ -175,6 +175,14 @@ def _check_given_once(config_class: type, flags: Mapping[str, str], given: list[
         seen[key] = f"--set {override}"
 
 
+def refuse_unused_settings(args: argparse.Namespace, fields: tuple[str, ...], flag: str) -> None:
+    """A ``--set`` of one of ``fields`` (a field, or a table's: ``search.grid``) is refused
+    in one line where ``flag`` is not given: it would act on nothing, silently."""
+    for override in getattr(args, "overrides", None) or []:
+        if override.split("=", 1)[0].strip().split(".")[0] in fields:
+            raise CLIError(f"--set {override}: only used with {flag}")
+
+
 def output_path(text: str) -> Path:
     """The argparse type of an output path: an empty one is refused, not taken for the working
     folder (``Path("")`` is ``.``)."""

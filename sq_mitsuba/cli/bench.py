@@ -69,7 +69,7 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def _curves(args: argparse.Namespace) -> int:
-    from sq_mitsuba.bench.curves import run_curves
+    from sq_mitsuba.bench.curves import check_curves_output, run_curves
 
     for name, flag in FLAGS.items():  # run_curves takes none of them: refused, not ignored
         if hasattr(args, name):  # the options are absent from args unless given
@@ -80,5 +80,10 @@ def _curves(args: argparse.Namespace) -> int:
             raise CLIError(f"{flag}: required by the curves suite")
     if not args.minutes > 0:
         raise CLIError(f"--minutes: expected > 0, got {args.minutes}")
+    try:  # before any training: said as the option the user gave ("--out ...")
+        check_curves_output(args.data, args.out)
+    except ValueError as error:
+        message = str(error)
+        raise CLIError(f"--{message}" if message.startswith("out") else message) from None
     print(run_curves(args.data, args.out, args.minutes, args.configs, write=args.write))
     return 0

@@ -10,6 +10,7 @@ from sq_mitsuba.cli._options import (
     add_set_option,
     config_from_args,
     output_path,
+    refuse_unused_settings,
 )
 
 HELP = "evaluate a trained model on a dataset split (metrics, tables, figures)"
@@ -98,6 +99,9 @@ def _run(args: argparse.Namespace) -> int:
         raise CLIError(f"--label {args.label!r}: expected one line without '|' (it names a "
                        "row of report.md's tables)")
     options = config_from_args(EvalOptions, args)
+    if not options.refine:  # they would act on nothing (the API takes them and says nothing)
+        refuse_unused_settings(args, ("mask", "search", "refinement", "refine_ground_truth"),
+                               "--refine")
     result = evaluate_checkpoint(args.checkpoint, args.data, args.out, options,
                                  progress=not args.quiet, label=args.label,
                                  resume=args.resume)

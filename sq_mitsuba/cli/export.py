@@ -17,7 +17,9 @@ the run it came from; no optimiser, scheduler or RNG state. A --data that is not
 the checkpoint was trained on (by the fingerprint it records) is said in one line. The
 shipped model (sq_mitsuba/model/weights/model.pt) is such a file. Written atomically; a corrupt or
 mismatched checkpoint, or a dataset without training images, is a one-line error (exit 2)
-before anything is written.
+before anything is written. An existing --out is replaced only where it is an exported model
+(exporting again); a training checkpoint (a run's last.pt) or any other file there is refused,
+as is an --out inside a dataset folder (--data, or any folder holding dataset.json).
 
 Several checkpoints (--checkpoint A.pt B.pt ...) of one network, fine-tuned from one start
 (e.g. each on a different library), export as the average of their

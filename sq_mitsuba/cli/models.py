@@ -34,6 +34,7 @@ named cs<i:05d>_<family>; three families are held out of training for good
 With --generator graph the models are free-form part graphs (a core body and a random tree
 of bodies, booms, arrays, dishes, panels and instruments, no family's layout), named
 pg<i:05d>_part_graph.
+OUT must not be a rendered dataset (a folder holding dataset.json or camera.json).
 Exit code 1 when some model failed, 2 on bad options (nothing written)."""
 
 IMPORT_DESCRIPTION = """\
@@ -41,9 +42,10 @@ Import mesh files, each into its own new folder OUT/<name>/models/: the name is 
 stem, or <stem>_2, <stem>_3, ... when that name is already in OUT, was given to an earlier
 file of the batch or is a library's own file (splits.csv, ...); nothing is overwritten, and
 each file's name is printed. Each model imported gets its row in OUT/splits.csv: --split
-test (the default: spacecraft a model has not seen, for `eval --split test`) or train. One
-batch at a time per OUT. Exit code 1 when some file failed, 2 on bad options or missing
-files (nothing written)."""
+test (the default: spacecraft a model has not seen, for `eval --split test`) or train. OUT
+must not be a rendered dataset (holding dataset.json or camera.json). One batch at a time per
+OUT. Exit code 1 when some file failed, 2 on bad options or missing files (nothing
+written)."""
 
 PREVIEW_DESCRIPTION = """\
 Render every model of a library (ROOT/<model>/models/model_normalized.obj, with the per-face

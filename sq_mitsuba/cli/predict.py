@@ -11,6 +11,7 @@ from sq_mitsuba.cli._options import (
     add_set_option,
     config_from_args,
     output_path,
+    refuse_unused_settings,
 )
 
 if TYPE_CHECKING:
@@ -159,10 +160,7 @@ def _run(args: argparse.Namespace) -> int:
     options = config_from_args(PredictOptions, args)
     if not options.refine:  # the fit's settings would be ignored: refused here (the API
         # takes them without --refine and leaves them unused)
-        for override in getattr(args, "overrides", None) or []:
-            if override.split("=", 1)[0].strip().split(".")[0] in ("mask", "search",
-                                                                   "refinement"):
-                raise CLIError(f"--set {override}: only used with --refine")
+        refuse_unused_settings(args, ("mask", "search", "refinement"), "--refine")
     records = predict_images(args.images, args.out, args.checkpoint, args.camera, args.mask,
                              options, progress=not args.quiet)
     for record in records:

@@ -27,7 +27,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--out", type=output_path, required=True, metavar="DIR",
                         help="output folder for report.md and report.csv")
     parser.add_argument("--paper", type=Path, default=None, metavar="TOML",
-                        help="the paper's published tables, read strictly (default: "
+                        help="the paper's published tables, read strictly; its [source] "
+                             "must state chamfer_convention = \"paper\", the convention "
+                             "compared (default: "
                              f"{PAPER_TABLES.relative_to(PAPER_TABLES.parents[1])} of a source "
                              "checkout, when present)")
     parser.set_defaults(func=_run)

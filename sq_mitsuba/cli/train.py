@@ -108,6 +108,13 @@ def _run(args: argparse.Namespace) -> int:
                 f"{last['iou_2d']:.3f}, rotation error {last['rotation_error_deg']:.1f} deg")
     if launch_ranks().rank > 0:  # one summary for a torchrun run: rank 0's
         return 0
+    if result.steps == 0 and result.last_checkpoint is None:
+        # --max-steps 0, its documented use (help above): not "trained 0/N steps; wrote OUT",
+        # which reads as a run to resume.
+        print(f"--max-steps 0: checked the config and the dataset and built the caches, then "
+              f"stopped before the first step; no checkpoint written, so nothing to --resume "
+              f"(training into {result.out_dir} again starts the run)")
+        return 0
     print(f"trained {result.steps}/{result.total_steps} steps{rate}{best}; wrote "
           f"{result.out_dir}")
     for note in result.notes:

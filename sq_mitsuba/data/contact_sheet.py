@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 
 from sq_mitsuba.config import in_range, validate
-from sq_mitsuba.data.mesh_io import SAMPLES_FILE, read_tagged_obj
-from sq_mitsuba.io import atomic_path
+from sq_mitsuba.data.mesh_io import SAMPLES_FILE, read_npz, read_tagged_obj
+from sq_mitsuba.io import atomic_path, check_output_folder
 
 LABEL_HEIGHT = 14
 """Pixels under each tile for the model's name."""
@@ -71,17 +71,30 @@ def library_models(root: str | Path) -> list[Path]:
 
 
 def _check_samples(path: Path) -> None:
-    """``ValueError`` (one line) unless ``path`` is absent or an ``.npz`` archive whose
-    ``face_material`` (if any) numpy reads: not numpy's own message, which for a file that is
-    no archive advises loading it "unsafely" with ``allow_pickle``."""
-    if not path.is_file():
-        return
+    """``ValueError`` (one line, :func:`~sq_mitsuba.data.mesh_io.read_npz`'s) unless ``path``
+    is absent or an ``.npz`` archive whose ``face_material`` (if any) numpy reads."""
+    if path.is_file():
+        read_npz(path, ["face_material"])
+
+
+def check_output_file(out: str | Path) -> Path:
+    """``out`` as a Path, if its folder is (or can be created as) a writable folder and
+    ``out`` is not a folder: checked before the work, so that a run does not render everything
+    and then fail naming the temporary file of its atomic write. The one-line ``ValueError``
+    of :func:`~sq_mitsuba.io.check_output_folder`, naming ``out`` as given rather than its
+    folder."""
+    out = Path(out)
     try:
-        with np.load(path) as archive:
-            if "face_material" in archive.files:
-                np.asarray(archive["face_material"])
-    except Exception:  # numpy, zipfile and zlib raise many kinds for damaged archives
-        raise ValueError(f"{path}: corrupt or truncated: not a valid .npz file") from None
+        check_output_folder(out.parent, [out.name])
+    except ValueError as error:
+        message, prefix = str(error), f"out {out.parent}: "
+        if message.startswith(prefix):  # it names the folder: name the file given instead
+            reason = message[len(prefix):]
+            if reason.startswith("exists and is not a folder"):
+                reason = f"{out.parent} is a file, not a folder"
+            message = f"out {out}: {reason}"
+        raise ValueError(message) from None
+    return out
 
 
 def contact_sheet(root: str | Path, options: ContactSheetOptions | None = None,
@@ -122,6 +135,7 @@ def contact_sheet(root: str | Path, options: ContactSheetOptions | None = None,
                          "megapixels; lower the size or set a limit")
     for obj in files:  # before any render: an archive numpy cannot read stops the sheet
         _check_samples(obj.parent / SAMPLES_FILE)
+    check_output_file(out)  # before any render too: not an error naming a temporary file
     sheet = Image.new("L", (width, height), color=0)
     draw = ImageDraw.Draw(sheet)
     for k, obj in enumerate(progress_bar(files, desc="preview", unit="model",

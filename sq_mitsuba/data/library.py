@@ -260,8 +260,16 @@ def _write_splits(root: Path, splits: dict[str, str]) -> None:
 
 
 def _check_root(root: Path) -> None:
-    """A folder that is, or can be created as, a writable folder: checked before any work."""
+    """A folder that is, or can be created as, a writable folder, and not a rendered dataset
+    (whose model copies and splits.csv a batch would silently rewrite, as ``dataset render``
+    refuses the library as its output): checked before any work."""
+    from sq_mitsuba.data.spe3r.layout import MANIFEST
+
     check_output_folder(root)
+    held = [name for name in (MANIFEST, "camera.json") if (root / name).exists()]
+    if held:
+        raise ValueError(f"{root}: the output folder is a dataset (it holds {held[0]}), not a "
+                         "model library; write the models into another folder")
 
 
 def _remove_dead_folder(path: Path) -> None:

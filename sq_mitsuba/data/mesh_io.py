@@ -16,6 +16,7 @@ from __future__ import annotations
 import hashlib
 import json
 import struct
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -137,6 +138,31 @@ def check_face_material(face_material: np.ndarray, faces: int, where: Path | str
     return values.astype(np.int16)
 
 
+NOT_AN_NPZ = "corrupt or truncated: not a valid .npz file"
+"""What a ``.npz`` file numpy cannot read is said to be (not numpy's own words)."""
+
+
+def read_npz(path: str | Path, keys: Iterable[str] | None = None) -> dict[str, np.ndarray]:
+    """The arrays ``keys`` (default: all) of the ``.npz`` archive ``path``; a key the archive
+    lacks is left out (what a missing array means is the caller's to say).
+
+    Raises:
+        FileNotFoundError: no such file.
+        ValueError: ``"<path>: corrupt or truncated: not a valid .npz file"`` for anything
+            numpy cannot read: not numpy's own message, which for a file that is no archive
+            advises loading it "unsafely" with ``allow_pickle``.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such file")
+    try:
+        with np.load(path) as archive:  # allow_pickle stays False: a library is not trusted
+            wanted = archive.files if keys is None else [k for k in keys if k in archive.files]
+            return {key: np.asarray(archive[key]) for key in wanted}
+    except Exception:  # numpy, zipfile and zlib raise many kinds for damaged archives
+        raise ValueError(f"{path}: {NOT_AN_NPZ}") from None
+
+
 def read_tagged_obj(path: str | Path) -> TaggedMesh:
     """A processed model's OBJ with its per-face material tags.
 
@@ -149,9 +175,9 @@ def read_tagged_obj(path: str | Path) -> TaggedMesh:
     vertices, faces, tags = read_obj(path)
     samples = path.parent / SAMPLES_FILE
     if samples.is_file():
-        with np.load(samples) as archive:
-            if "face_material" in archive:
-                tags = check_face_material(archive["face_material"], len(faces), samples, path)
+        face_material = read_npz(samples, ["face_material"]).get("face_material")
+        if face_material is not None:
+            tags = check_face_material(face_material, len(faces), samples, path)
     return TaggedMesh(vertices, faces, tags)
 
 

@@ -57,6 +57,8 @@ __all__ = ["JOURNAL", "RUN_FILE", "BatchRecord", "EvalJournal", "checkpoint_iden
 JOURNAL = ".eval_partial"
 #: The run's identity inside :data:`JOURNAL`.
 RUN_FILE = "run.json"
+#: Written last by a finished evaluation (:mod:`sq_mitsuba.evaluation.evaluate`).
+FINISHED_FILE = "eval.json"
 #: Version of the journal's files: a journal of another version is refused as another run's.
 FORMAT = 3  # 2: the scored models' files and the package version joined the identity;
 #            3: per_image.csv's segmentation_iou became mask_iou (rows of 2 lack it)
@@ -325,6 +327,10 @@ class EvalJournal:
                               "batch(es) discarded (--resume would have continued them)",
                               stacklevel=2)
             elif resume:
+                if (Path(out_dir) / FINISHED_FILE).is_file():  # --resume never replaces it
+                    raise ValueError(f"{out_dir}: --resume, but the evaluation there is "
+                                     f"finished ({FINISHED_FILE}; nothing to resume): rerun "
+                                     "without --resume to evaluate again, or use another --out")
                 warnings.warn(f"{out_dir}: no interrupted evaluation to resume (no "
                               f"{JOURNAL}/{RUN_FILE}): evaluating from the start", stacklevel=2)
             self.clear()

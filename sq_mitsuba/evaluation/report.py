@@ -124,6 +124,47 @@ def _cell(text: str, where: str, required: bool) -> float | None:
     return finite_number(text, where)
 
 
+#: The Chamfer-L1 convention of our column (``chamfer_l1_paper``), which the paper's rows must
+#: state in ``[source]``: the comparison does not convert between conventions.
+CHAMFER_CONVENTION = "paper"
+#: The keys of a paper-tables file's ``[source]`` table; ``chamfer_convention`` is required
+#: (the report's note says both columns use one convention: the file must say its own).
+SOURCE_KEYS = ("title", "chamfer_convention")
+
+
+def _check_source(source: Any, where: str) -> None:
+    """A paper-tables file's ``[source]`` table, strictly: the Chamfer convention of its
+    numbers, which must be :data:`CHAMFER_CONVENTION`, and optionally a ``title``; no other
+    key.
+
+    Convention: a file in another convention (``occnet``, say) is refused, not compared with
+    another of our columns: its rows would also need our runs' numbers in that convention in
+    Table 1 and 2's layout, and a refusal keeps the report's note ("both use the 'paper'
+    Chamfer convention") true by construction.
+    """
+    if source is None:
+        raise ValueError(f"{where}: no [source] table (title, chamfer_convention: the "
+                         "convention of its Chamfer-L1)")
+    if not isinstance(source, dict):
+        raise ValueError(f"{where}: source must be a table (title, chamfer_convention)")
+    unknown = sorted(set(source) - set(SOURCE_KEYS))
+    if unknown:
+        raise ValueError(f"{where}: source.{unknown[0]}: unknown key (expected "
+                         f"{' and '.join(SOURCE_KEYS)})")
+    if "chamfer_convention" not in source:
+        raise ValueError(f"{where}: source.chamfer_convention: missing (the report compares "
+                         f"Chamfer-L1 in the {CHAMFER_CONVENTION!r} convention: say so)")
+    title = source.get("title", "untitled")
+    if not isinstance(title, str) or not title.strip():
+        raise ValueError(f"{where}: source.title: expected a name, got {title!r}")
+    convention = source["chamfer_convention"]
+    if convention != CHAMFER_CONVENTION:
+        raise ValueError(f"{where}: source.chamfer_convention {convention!r}: the report "
+                         f"compares our {CHAMFER_CONVENTION!r}-convention Chamfer-L1 "
+                         f"(chamfer_l1_paper) with the paper's, so its numbers must be in "
+                         f"that convention ({CHAMFER_CONVENTION!r})")
+
+
 #: The range of each paper metric's mean (Chamfer-L1 >= 0, an angle in degrees, an IoU).
 PAPER_RANGES = {"chamfer_l1": (0.0, math.inf), "rotation_error_deg": (0.0, 180.0),
                 "iou_2d": (0.0, 1.0)}
@@ -145,9 +186,11 @@ def _pair(value: Any, where: str, metric: str) -> tuple[float, float]:
 
 def read_paper_tables(path: str | Path) -> tuple[list[dict], list[dict]]:
     """The rows of Tables 1 and 2 of a paper-tables TOML (see ``eval/paper_tables.toml``),
-    strictly: only the tables ``table1`` and ``table2`` (and a ``source`` note), at least one
-    row, every row a ``label``, ``val`` and ``test`` with ``[mean, std]`` of each metric, and
-    Table 2's rows their number of ``primitives``.
+    strictly: only the tables ``table1``, ``table2`` and ``source``, at least one row, every
+    row a ``label``, ``val`` and ``test`` with ``[mean, std]`` of each metric, Table 2's rows
+    their number of ``primitives``, and ``source`` the ``chamfer_convention``
+    :data:`CHAMFER_CONVENTION` (and optionally a ``title``): a file in another convention is
+    refused rather than compared with another column (:func:`_check_source`).
 
     Raises:
         ValueError: ``paper tables <path>: ...`` (missing, not TOML, or a bad entry, named).
@@ -195,6 +238,7 @@ def read_paper_tables(path: str | Path) -> tuple[list[dict], list[dict]]:
         tables.append(rows)
     if not tables[0] and not tables[1]:
         raise ValueError(f"{where}: no rows in table1 or table2 (is it the paper's tables?)")
+    _check_source(data.get("source"), where)
     return tables[0], tables[1]
 
 

@@ -51,6 +51,7 @@ from sq_mitsuba.data.spe3r.layout import (
     FAILURE_MARKS,
     FAILURES,
     IMAGES,
+    MANIFEST,
     MASKS,
     MODELS,
     PROGRESS,
@@ -285,6 +286,29 @@ def _check_points(model_dir: Path, ours: bool, report: CheckReport) -> None:
         report.problems.append(str(error).replace(f"{model_dir.parent}/", "", 1))
 
 
+def check_dataset_root(root: Path) -> None:
+    """Refuse, before any work, a ``root`` that is no dataset at all (bad input, not a dataset
+    with problems): one line. ``dataset check`` and ``dataset preview`` both start here.
+
+    Raises:
+        FileNotFoundError: ``root`` does not exist.
+        DatasetError: ``root`` is a file, a model library, or a folder with neither
+            ``camera.json`` nor ``dataset.json`` (every dataset has one: SPE3R's release
+            the camera, a render the manifest from before its first image).
+    """
+    if not root.exists():
+        raise FileNotFoundError(f"{root}: no such folder")
+    if not root.is_dir():
+        raise DatasetError(f"{root}: not a folder (expected a dataset folder)")
+    if is_model_library(root):
+        raise DatasetError(f"{root}: a model library, not a dataset: render one with "
+                           f"sq-mitsuba dataset render --models {root} --out DATA (or check a "
+                           "library's models with sq-mitsuba models preview)")
+    if not (root / "camera.json").exists() and not (root / MANIFEST).exists():
+        raise DatasetError(f"{root}: not a dataset (no camera.json and no {MANIFEST}); render "
+                           "one with sq-mitsuba dataset render --models LIBRARY --out DATA")
+
+
 def check_dataset(root: str | Path, options: CheckOptions | None = None, *,
                   progress: bool = True, **fields: Any) -> CheckReport:
     """Validate a dataset (see the module docstring); problems are collected, not raised.
@@ -292,8 +316,8 @@ def check_dataset(root: str | Path, options: CheckOptions | None = None, *,
     ``options`` (default :class:`CheckOptions`) or its fields as keywords (``per_model=None``
     means all, as 0 does). Raises, before any work, ``ValueError`` for bad options,
     ``FileNotFoundError`` for a ``root`` that does not exist and :class:`DatasetError` for one
-    that is not a folder (bad input, not a dataset with problems). Reads only: the dataset
-    is left as it was.
+    that is no dataset (:func:`check_dataset_root`: bad input, not a dataset with
+    problems). Reads only: the dataset is left as it was.
     """
     from sq_mitsuba.progress import progress_bar
     from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer
@@ -303,14 +327,7 @@ def check_dataset(root: str | Path, options: CheckOptions | None = None, *,
     options = CheckOptions(**{**_fields_of(options), **fields})
     root = Path(root)
     report = CheckReport()
-    if not root.exists():
-        raise FileNotFoundError(f"{root}: no such folder")
-    if not root.is_dir():
-        raise DatasetError(f"{root}: not a folder (expected a dataset folder)")
-    if is_model_library(root):
-        raise DatasetError(f"{root}: a model library, not a dataset: render one with "
-                           f"sq-mitsuba dataset render --models {root} --out DATA (or check a "
-                           "library's models with sq-mitsuba models preview)")
+    check_dataset_root(root)
     try:
         manifest = read_manifest(root)
     except (OSError, ValueError) as error:

@@ -12,7 +12,10 @@ from PIL import Image
 
 from sq_mitsuba.data.spe3r.layout import (
     IMAGES,
+    MANIFEST,
     MASKS,
+    MODELS,
+    SAMPLES_FILE,
     DatasetError,
     balanced_occupancy,
     check_model_points,
@@ -150,6 +153,7 @@ class Spe3rDataset(torch.utils.data.Dataset):
         first: dict[int, dict[str, Any]] = {}
         for model_index, _, label in self.items:
             first.setdefault(model_index, label)
+        sampled: list[Path] = []  # models whose points come from their mesh
         for model_index, label in sorted(first.items()):
             model = self.models[model_index]
             path = self._image_path(model, IMAGES, label["filename"])
@@ -165,6 +169,15 @@ class Spe3rDataset(torch.utils.data.Dataset):
                     "(a camera.json of another resolution?)")
             if points:
                 check_model_points(self.root / model)
+                if not (self.root / model / MODELS / SAMPLES_FILE).is_file():
+                    sampled.append(self.root / model / MODELS / SAMPLES_FILE)
+        if sampled and (self.root / MANIFEST).is_file():
+            # The SPE3R release has no samples: sampling its meshes is the way. A dataset
+            # rendered here has them, and its scores are on them: said, not silent.
+            warnings.warn(f"{sampled[0]}: missing ({len(sampled)} model(s) of {self.root}, a "
+                          "dataset sq-mitsuba rendered): their points are sampled from the "
+                          "mesh instead, so the Chamfer and 3D IoU are not the dataset's own "
+                          "(`sq-mitsuba dataset check` lists them)", stacklevel=2)
 
     def release_points(self) -> None:
         """Forget the model points read so far (a cache built from them holds its own copy);
@@ -190,6 +203,12 @@ class Spe3rDataset(torch.utils.data.Dataset):
         image_path = self._image_path(model, IMAGES, label["filename"])
         mask_path = self._image_path(model, MASKS, label["filename"])
         image, mask = read_gray(image_path), read_gray(mask_path)
+        if mask.shape != image.shape and mask.shape == (self.camera.height, self.camera.width):
+            # The image is the odd one out (the release's images may be smaller than its
+            # camera.json's, but each the size of its mask).
+            raise DatasetError(f"{image_path}: {image.shape[1]} x {image.shape[0]} px, but "
+                               f"its mask and camera.json {self.camera.width} x "
+                               f"{self.camera.height} px")
         if mask.shape != image.shape:
             raise DatasetError(f"{mask_path}: mask is {mask.shape[1]} x {mask.shape[0]} px, "
                                f"its image {image_path.name} is {image.shape[1]} x "

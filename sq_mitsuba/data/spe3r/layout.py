@@ -134,7 +134,7 @@ def load_model(model_dir: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | No
     The OBJ is read in file order (trimesh regroups the faces of multi-material OBJs, which
     would detach them from the per-face tags of ``samples.npz``).
     """
-    from sq_mitsuba.data.mesh_io import check_face_material, read_obj
+    from sq_mitsuba.data.mesh_io import NOT_AN_NPZ, check_face_material, read_obj
     from sq_mitsuba.render.materials import MATERIALS
 
     mesh_path = model_dir / MODELS / MESH_FILE
@@ -156,8 +156,9 @@ def load_model(model_dir: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | No
         try:
             with np.load(samples_path) as samples:
                 face_material = samples["face_material"] if "face_material" in samples else None
-        except Exception as error:  # numpy raises several kinds on corrupt archives
-            raise DatasetError(f"{samples_path}: cannot read ({error})") from None
+        except Exception:  # numpy raises several kinds on corrupt archives, and for a file
+            # that is no archive advises loading it "unsafely": not repeated here
+            raise DatasetError(f"{samples_path}: {NOT_AN_NPZ}") from None
         if face_material is not None:
             try:
                 indices = check_face_material(face_material, len(faces), samples_path,
@@ -371,8 +372,10 @@ def read_samples(path: Path, keys: Iterable[str] = tuple(SAMPLE_ARRAYS),
                      if key in samples.files and key not in arrays}
     except DatasetError:
         raise
-    except Exception as error:  # numpy raises several kinds on corrupt archives
-        raise DatasetError(f"{path}: cannot read ({' '.join(str(error).split())})") from None
+    except Exception:  # numpy raises several kinds (see load_model)
+        from sq_mitsuba.data.mesh_io import NOT_AN_NPZ
+
+        raise DatasetError(f"{path}: {NOT_AN_NPZ}") from None
     for key in wanted:
         array, kind = arrays[key], SAMPLE_ARRAYS[key]
         if kind == "points":

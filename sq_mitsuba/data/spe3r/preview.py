@@ -10,6 +10,8 @@ import numpy as np
 import torch
 
 from sq_mitsuba.config import in_range, validate
+from sq_mitsuba.data.contact_sheet import check_output_file
+from sq_mitsuba.data.spe3r.check import check_dataset_root
 from sq_mitsuba.data.spe3r.layout import (
     IMAGES,
     MASKS,
@@ -67,6 +69,8 @@ def preview_dataset(root: str | Path, out: str | Path | None = None,
     out = Path(out) if out is not None else default_preview_path(root)
     if out.suffix.lower() != ".png":  # never a file whose name says another format
         raise DatasetError(f"out {out}: a preview is written as PNG; name it .png")
+    check_dataset_root(root)  # a missing folder is named as such, not as its camera.json
+    check_output_file(out)  # before the sheet is drawn: not an error naming a temporary file
     for required in ("camera.json", "splits.csv"):
         if not (root / required).is_file():
             raise DatasetError(f"{root / required}: missing")

@@ -27,10 +27,16 @@ order: a model's ``labels.json`` is assembled by whichever process finishes its 
 done, finds every model settled (complete or failed). The manifest holds no shard count, so N
 shards leave exactly the files, byte for byte, of one unsharded run.
 
-Failures: a model that fails (missing or corrupt files, a full disk) is recorded in
-``.failures/<model>/<I>-of-<N>.json`` and skipped; the others go on. Once every model is
-settled, failed models are listed with their reason in ``failures.json`` and left out of
-``splits.csv``. Running the same command (or shard) again retries them.
+Failures: the library's models of the run's work are read before any file is written
+(:func:`check_library_models`), so a missing or corrupt model file is a one-line error, not a
+failure. A model that fails while rendering (a full disk, its files in the dataset damaged)
+is recorded in ``.failures/<model>/<I>-of-<N>.json`` and skipped; the others go on. Once
+every model is settled, failed models are listed with their reason in ``failures.json`` and
+left out of ``splits.csv``. Running the same command (or shard) again retries them.
+
+Splits: a model's split is its row in the library's ``splits.csv``; without that file, the
+split its ``model_card.json`` records, else the one the dataset already has, else train (a
+warning counts those).
 """
 
 from __future__ import annotations
@@ -44,6 +50,7 @@ import json
 import os
 import shutil
 import tempfile
+import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -52,6 +59,7 @@ import numpy as np
 
 from sq_mitsuba.config import validate
 from sq_mitsuba.data.frames import sample_frame, sample_pass_frame
+from sq_mitsuba.data.mesh_io import read_npz
 from sq_mitsuba.data.spe3r.layout import (
     EXR,
     FAILURE_MARKS,
@@ -116,6 +124,34 @@ def find_models(models_dir: Path) -> list[str]:
                            f"({', '.join(OVERWRITE_DELETES)}); rename its folder (and its row "
                            "in splits.csv)")
     return names
+
+
+def check_library_models(models_dir: Path, models: Sequence[str]) -> None:
+    """Read each model of the library as :func:`render_model` will (its mesh and materials,
+    its points), so that a missing or damaged model is a one-line :class:`DatasetError`
+    before any work rather than a failed model after the others' images (the check ``study
+    illumination`` makes of its models). The ``samples.npz`` is opened first by the shared
+    reader, whose message for a file that is no archive does not advise ``allow_pickle``."""
+    for model in models:
+        samples = models_dir / model / MODELS / SAMPLES_FILE
+        try:
+            if samples.is_file():
+                read_npz(samples, ["face_material"])
+        except ValueError as error:
+            raise DatasetError(str(error)) from None
+        load_model(models_dir / model)
+        check_model_points(models_dir / model)
+
+
+def _card_split(models_dir: Path, model: str) -> str | None:
+    """The split a model's ``model_card.json`` records (``models generate`` writes it), or
+    None: no card, an unreadable one, or no split name in it."""
+    try:
+        card = read_json(models_dir / model / MODELS / "model_card.json")
+    except (OSError, ValueError):
+        return None
+    split = card.get("split") if isinstance(card, dict) else None
+    return split if split in ("train", "test") else None
 
 
 def check_writable(out_dir: Path) -> None:
@@ -598,15 +634,30 @@ def prepare_dataset(models_dir: Path, out_dir: Path, options: RenderOptions
     if not options.overwrite:  # images of another model under one name: before any work
         for model in sorted(set(found) & set(old_models)):
             _check_same_model(models_dir / model / MODELS, out_dir / model / MODELS)
+    # The library models of this shard's work read now: a broken one stops the run here.
+    kept = [] if options.overwrite else old_models
+    work = _shard_work(sorted(set(found) | set(kept)), options.images_per_model, options.shard)
+    check_library_models(models_dir, [model for model in work if model in found])
     check_writable(out_dir)
     if options.overwrite:
         _clear_dataset(out_dir, old_models)
         manifest, old_models = None, []
-    plan = {}
+    plan, guessed = {}, []
     for model in sorted(set(found) | set(old_models)):
         old_split = manifest["models"][model].get("split") if manifest is not None and \
             model in manifest["models"] else None
-        plan[model] = library_splits.get(model) or old_split or "train"
+        # Without the library's splits.csv, the model's card says (a test model must not
+        # train); then the split the dataset already has; train only where nothing says.
+        split = library_splits.get(model) or \
+            (_card_split(models_dir, model) if model in found else None) or old_split
+        if split is None:
+            guessed.append(model)
+        plan[model] = split or "train"
+    if guessed:
+        warnings.warn(f"{models_dir}: no splits.csv and no split in the model card of "
+                      f"{len(guessed)} model(s) ({', '.join(guessed[:3])}"
+                      f"{', ...' if len(guessed) > 3 else ''}): rendered as train models",
+                      stacklevel=3)
     fresh = manifest_record(options, camera, plan, {}, "rendering")
     if manifest is None or manifest_plan(manifest) != manifest_plan(fresh):
         counts = {}
