@@ -898,3 +898,14 @@ def test_a_rendered_dataset_without_its_samples_is_said_not_silently_sampled(tra
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         Spe3rDataset(data, "train", image_size=64).check()
+
+
+def test_a_checkpoints_bad_camera_is_named_once(bad, eval_checkpoint, tmp_path, capsys):
+    payload = torch.load(eval_checkpoint, weights_only=True)
+    payload["camera"]["Nu"] = -5
+    path = tmp_path / "badcam.pt"
+    torch.save(payload, path)
+    line = _run(capsys, ["predict", bad / "image.png", "--checkpoint", path, "--out",
+                         tmp_path / "out"])
+    assert f"{path}: camera: Nu" in line and "camera: camera" not in line, line
+    assert not (tmp_path / "out").exists()

@@ -333,3 +333,10 @@ def test_eval_refuses_the_fits_settings_without_refine(setting, tmp_path, capsys
                  "--set", setting]) == EXIT_ERROR
     assert error_line(capsys) == f"sq-mitsuba eval: error: --set {setting}: only used with --refine"
     assert not (tmp_path / "o").exists()
+
+
+def test_demo_refuses_training_settings_without_train(tmp_path, capsys):
+    assert main(["demo", "--out", str(tmp_path / "d"), "--set", "training.models=5"]) == EXIT_ERROR
+    assert error_line(capsys) == ("sq-mitsuba demo: error: --set training.models=5: only used "
+                                  "with --train")
+    assert not (tmp_path / "d").exists()

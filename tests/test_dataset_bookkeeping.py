@@ -596,3 +596,35 @@ def test_a_manifest_with_nan_in_its_settings_is_named(reference, library, tmp_pa
     assert render_cli(library, out) == 2
     assert capsys.readouterr().err.strip().endswith("settings.spp: not a finite number")
     assert tree(out) == before
+
+
+def test_a_dataset_is_not_rendered_into_or_inside_its_library(library, tmp_path, capsys):
+    """Inside the library, the dataset's folder would be read as one of its models."""
+    models = Path(shutil.copytree(library, tmp_path / "models"))
+    before = sorted(p.relative_to(models) for p in models.rglob("*"))
+    for out, where in ((models, "the model library"),
+                       (models / "sub", f"inside the model library {models}")):
+        capsys.readouterr()
+        assert render_cli(models, out) == 2
+        assert capsys.readouterr().err.strip().endswith(
+            f"{out}: the output folder is {where}; render into another folder")
+    assert sorted(p.relative_to(models) for p in models.rglob("*")) == before
+
+
+def test_a_radiance_image_holding_nan_is_a_problem(reference, tmp_path):
+    """dataset check decoded each EXR and let NaN through (a radiance image is finite)."""
+    import OpenEXR
+
+    from sq_mitsuba.data.spe3r.layout import write_exr
+
+    out = Path(shutil.copytree(reference, tmp_path / "data"))
+    model = sorted(json.loads((out / "dataset.json").read_text())["models"])[0]
+    path = sorted((out / model / "exr").glob("*.exr"))[0]
+    with OpenEXR.File(str(path)) as exr:
+        channels = {name: np.array(channel.pixels, np.float32)
+                    for name, channel in exr.channels().items()}
+    first = sorted(channels)[0]
+    channels[first][0, :3] = np.nan
+    write_exr(path, channels)
+    problems = check_dataset(out, per_model=0, progress=False).problems
+    assert problems == [f"{model}/exr/{path.name}: 3 value(s) NaN or infinite"], problems

@@ -11,6 +11,7 @@ from sq_mitsuba.cli._options import (
     add_set_option,
     config_from_args,
     output_path,
+    refuse_unused_settings,
 )
 
 HELP = "the front door: predict unseen spacecraft from single images, as a web page"
@@ -89,6 +90,8 @@ def _run(args: argparse.Namespace) -> int:
         raise CLIError(f"--size: expected one of {', '.join(SIZES)}, got {args.size!r}")
     extra = {} if args.size is None else {"size": args.size}
     options = config_from_args(DemoOptions, args, **extra)
+    if not options.train:  # they would act on nothing
+        refuse_unused_settings(args, ("training",), "--train")
     result = run_demo(options, args.out, args.checkpoint, progress=not args.quiet)
     print(result.describe())
     return 0

@@ -125,6 +125,9 @@ class Camera:
                              f"{', '.join(map(repr, missing))})")
         width = _whole(data["Nu"], f"{where}: Nu")
         height = _whole(data["Nv"], f"{where}: Nv")
+        for key, value in (("Nu", width), ("Nv", height)):  # named as the file names them
+            if value < 1:
+                raise ValueError(f"{where}: {key}: expected a positive integer, got {value}")
         if "cameraMatrix" in data:
             matrix = data["cameraMatrix"]
             if not isinstance(matrix, list | tuple) or len(matrix) != 3 or not all(

@@ -295,8 +295,8 @@ def model_from_checkpoint(payload: Mapping[str, Any],
     model = SuperquadricNet(config)
     load_weights(model, payload["model"], where)
     try:
-        camera = Camera.from_speed_dict(dict(payload["camera"]))
-    except (ValueError, TypeError) as error:
+        camera = Camera.from_speed_dict(dict(payload["camera"]), f"{where}: camera")
+    except TypeError as error:  # not a mapping (the ValueErrors name the field already)
         raise ValueError(f"{where}: camera: {error}") from None
     return model.eval(), camera
 

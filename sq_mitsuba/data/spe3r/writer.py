@@ -94,7 +94,13 @@ from sq_mitsuba.data.spe3r.render_options import (
     parse_shard,
 )
 from sq_mitsuba.geometry.camera import Camera
-from sq_mitsuba.io import atomic_path, atomic_write_json, atomic_write_text, read_json
+from sq_mitsuba.io import (
+    atomic_path,
+    atomic_write_json,
+    atomic_write_text,
+    inside_folder,
+    read_json,
+)
 
 #: What ``overwrite`` deletes from the output folder before rendering (nothing else there is
 #: touched): these files, the ``.failures`` folder, temporary files of atomic writes at the top
@@ -594,9 +600,11 @@ def prepare_dataset(models_dir: Path, out_dir: Path, options: RenderOptions
                            f"images_per_model (--images-per-model) {options.images_per_model}: "
                            f"the last pass would be short; give a multiple, e.g. {whole}")
     found = find_models(models_dir)
-    if out_dir.resolve() == models_dir.resolve():
-        raise DatasetError(f"{out_dir}: the output folder is the model library; render into "
-                           f"another folder")
+    if inside_folder(out_dir, models_dir):  # inside: a folder the library reads as a model
+        where = "the model library" if out_dir.resolve() == models_dir.resolve() else \
+            f"inside the model library {models_dir}"
+        raise DatasetError(f"{out_dir}: the output folder is {where}; render into another "
+                           "folder")
     library_splits = read_splits(models_dir / "splits.csv") \
         if (models_dir / "splits.csv").is_file() else {}
     unlisted = [model for model in found if model not in library_splits] if library_splits \
