@@ -8,7 +8,11 @@
 - when the work fails (an exception other than the user's Ctrl-C), it deletes what the run
   added at the top of the folder, and the folder itself (and parents) when the run created
   them: a failed run leaves the folder as it found it, apart from files it replaced, which
-  atomic writes replace whole or not at all.
+  atomic writes replace whole or not at all. What the run added is known by name only: the
+  command's outputs (``outputs``: patterns of the paths it writes) and the temporary files of
+  atomic writes; anything else that appeared meanwhile (a file the user saved into the
+  folder during the run) is someone else's and stays, with the folders holding it (said in
+  one warning). A folder the run made goes only once it holds nothing else.
 
 A run interrupted with Ctrl-C keeps what it wrote (``study illumination`` resumes its renders),
 also where the interrupt comes out of Dr.Jit as a ``RuntimeError`` caused by it
@@ -47,15 +51,19 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import fnmatch
 import os
 import re
-import shutil
 import sys
-from collections.abc import Collection, Iterator
+import warnings
+from collections.abc import Collection, Iterator, Sequence
 from pathlib import Path
+from typing import Any
 
-__all__ = ["LOCK_NAME", "TEMPORARY_NAME", "OutputBusyError", "all_or_nothing", "holds_lock",
-           "interrupted", "lock_path", "output_lock", "remove_stray_temporaries"]
+__all__ = ["LOCK_NAME", "MAX_RECORD_BYTES", "TEMPORARY_NAME", "OutputBusyError",
+           "all_or_nothing", "holds_lock", "interrupted", "is_output", "json_record",
+           "lock_path", "output_lock", "refuse_present", "remove_stray_temporaries",
+           "remove_unwritten"]
 
 #: The lock file of :func:`output_lock` inside an output folder.
 LOCK_NAME = ".sq-mitsuba.lock"
@@ -81,6 +89,78 @@ def remove_stray_temporaries(folder: str | Path, of: str | None = None) -> list[
         path.unlink(missing_ok=True)
         removed.append(path)
     return removed
+
+
+#: Largest file :func:`json_record` reads: the records commands write are a few kB.
+MAX_RECORD_BYTES = 1 << 20
+
+
+def json_record(path: str | Path) -> dict[str, Any]:
+    """The JSON object in the plain file ``path`` (at most :data:`MAX_RECORD_BYTES`), else
+    ``{}``: absent, a folder or link, too large, unreadable, not JSON, nested too deep, not an
+    object. For telling a file a command of this tool wrote (by its keys) from one of the same
+    name that someone else put there, before anything beside it is replaced or deleted."""
+    import json
+
+    path = Path(path)
+    try:
+        if path.is_symlink() or not path.is_file() or path.stat().st_size > MAX_RECORD_BYTES:
+            return {}
+        record = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError, RecursionError):  # RecursionError: arrays nested too deep
+        return {}
+    return record if isinstance(record, dict) else {}
+
+
+def refuse_present(folder: Path, names: Sequence[str], why: str) -> None:
+    """A one-line ``ValueError`` naming the first of ``names`` present in ``folder`` (a file,
+    folder or link): ``<path>: <why>; move it or choose another --out``. For a run that would
+    replace it but cannot tell it is its own (checked before any work)."""
+    for name in names:
+        path = folder / name
+        if path.exists() or path.is_symlink():
+            raise ValueError(f"{path}: {why}; move it or choose another --out")
+
+
+def remove_unwritten(folder: Path, names: Sequence[str], written: Collection[Path]
+                     ) -> list[Path]:
+    """Delete the files of ``names`` in ``folder`` that this run did not write (``written``):
+    an earlier run's of the same command that this one does not make again (figures after
+    ``--no-figures``), so that the folder holds one run's outputs. Call it only where the
+    folder holds an earlier run of the command (its own record there): a file of those names
+    in any other folder is someone else's. Returns the files deleted."""
+    kept = {Path(path).name for path in written}
+    removed = []
+    for name in names:
+        path = folder / name
+        if name not in kept and path.is_file() and not path.is_symlink():
+            path.unlink()
+            removed.append(path)
+    return removed
+
+
+def is_output(relative: str | Path, outputs: Collection[str] | None, folder: bool = False
+              ) -> bool:
+    """Whether the path ``relative`` (to the output folder) is one a command writing
+    ``outputs`` may write: the patterns' parts are matched name by name (``fnmatch``: ``*``
+    within one name), a part ``**`` matches everything below (``renders/**``); ``folder``: a
+    folder on the way to such a path also matches. None: every path (a caller that owns every
+    name in its folder)."""
+    if outputs is None:
+        return True
+    parts = Path(relative).parts
+    for pattern in outputs:
+        wanted = tuple(part for part in pattern.split("/") if part)
+        for k, part in enumerate(parts):
+            if k >= len(wanted) or (wanted[k] != "**"
+                                    and not fnmatch.fnmatchcase(part, wanted[k])):
+                break
+            if wanted[k] == "**":
+                return True
+        else:
+            if len(parts) == len(wanted) or (folder and len(parts) < len(wanted)):
+                return True
+    return False
 
 
 def _first_missing(path: Path) -> Path | None:
@@ -248,7 +328,8 @@ def _remove_empty(created: Path | None, folder: Path) -> None:
 
 @contextlib.contextmanager
 def all_or_nothing(out: str | Path | None, file: bool = False, lock: bool = True,
-                   command: str | None = None, keep: Collection[str] = ()) -> Iterator[None]:
+                   command: str | None = None, keep: Collection[str] = (),
+                   outputs: Collection[str] | None = None) -> Iterator[None]:
     """Run the block as a command writing into ``out`` (see the module docstring).
 
     Args:
@@ -260,6 +341,10 @@ def all_or_nothing(out: str | Path | None, file: bool = False, lock: bool = True
         keep: names of entries at the top of ``out`` a run that failed other than by bad
             input (a ``ValueError``) keeps (finished work a rerun resumes); the folder then
             stays too.
+        outputs: the paths the command writes in ``out``, as patterns (:func:`is_output`):
+            a failed run deletes only the files it added that match them (and temporary
+            files), and the folders it made once empty. None: every entry it added (for a
+            caller that owns every name in ``out``).
     """
     if out is None:
         yield
@@ -277,7 +362,8 @@ def all_or_nothing(out: str | Path | None, file: bool = False, lock: bool = True
         except Exception as error:
             if not interrupted(error):  # Ctrl-C inside Dr.Jit comes as a RuntimeError
                 _remove_added(out, created, before,
-                              set() if isinstance(error, ValueError) else set(keep))
+                              set() if isinstance(error, ValueError) else set(keep),
+                              outputs, file)
             raise
 
 
@@ -297,22 +383,59 @@ def interrupted(error: BaseException) -> bool:
 
 
 def _remove_added(out: Path, created: Path | None, before: set[Path] | None,
-                  keep: set[str]) -> None:
-    """Delete what a failed run added: ``created`` (the outermost folder it made, or the file
-    ``out``) as a whole, or the entries of ``out`` not in ``before``; entries named in
-    ``keep`` stay, with the folders above them."""
-    kept = bool(keep) and out.is_dir() and any((out / name).exists() for name in keep)
-    if created is not None and not kept:
-        _remove(created)
-    elif out.is_dir() and (created is not None or before is not None):
-        for path in set(out.iterdir()) - (before if created is None else set()):
-            if path.name not in keep:
-                _remove(path)
+                  keep: set[str], outputs: Collection[str] | None, file: bool) -> None:
+    """Delete what a failed run added: the entries of ``out`` not in ``before`` (all of them
+    where the run made ``out``: ``created``, the outermost folder it made, or the file
+    ``out``) that it could have written (:func:`_remove_own`), then the folders it made while
+    they are empty; entries named in ``keep`` stay, with the folders above them. What stays
+    that the run did not write is said in one warning."""
+    if file:  # one output file: it, and its temporaries, if the run made it
+        if created is not None:
+            with contextlib.suppress(OSError):
+                if out.is_file() or out.is_symlink():
+                    out.unlink()
+            remove_stray_temporaries(out.parent, of=out.name)
+            _remove_empty(None if created == out else created, out.parent)
+        return
+    if not out.is_dir() or (created is None and before is None):
+        return
+    left: list[Path] = []
+    try:
+        added = sorted(set(out.iterdir()) - (before if created is None else set()))
+    except OSError:  # unreadable now: nothing is removed (the run's own error is said)
+        return
+    for path in added:
+        if path.name not in keep and path.name != LOCK_NAME:  # the lock: output_lock's
+            left += _remove_own(path, out, outputs)
+    if left:
+        warnings.warn(f"{out}: the failed run left {len(left)} entr"
+                      f"{'y' if len(left) == 1 else 'ies'} it did not write ({left[0]}"
+                      f"{', ...' if len(left) > 1 else ''}), and the folders holding them",
+                      stacklevel=4)
+    _remove_empty(created, out)
 
 
-def _remove(path: Path) -> None:
-    with contextlib.suppress(OSError):  # gone already, or never made (a file in the way)
-        if path.is_dir() and not path.is_symlink():
-            shutil.rmtree(path)
-        elif path.exists() or path.is_symlink():
+def _remove_own(path: Path, out: Path, outputs: Collection[str] | None) -> list[Path]:
+    """Delete ``path`` (new in ``out``) where the run could have written it: a file (or link)
+    matching ``outputs`` or a temporary file's name; a folder on the way to such files
+    (``outputs``), emptied so and then removed when nothing else is left in it. Never a
+    folder's contents wholesale. Returns what it left: the entries the run did not write."""
+    relative = path.relative_to(out)
+    if path.is_dir() and not path.is_symlink():
+        try:
+            children = sorted(path.iterdir()) if is_output(relative, outputs, True) else None
+        except OSError:  # unreadable: left as it is (the run's own error is the one to say)
+            children = None
+        if children is None:
+            return [path]
+        left = [entry for child in children for entry in _remove_own(child, out, outputs)]
+        if not left:
+            with contextlib.suppress(OSError):  # something appeared meanwhile: it stays
+                path.rmdir()
+        return left
+    if (is_output(relative, outputs) or TEMPORARY_NAME.fullmatch(path.name)
+            or path.name.endswith(LOCK_NAME)):  # a nested run's lock (a study's evals)
+        with contextlib.suppress(OSError):  # gone already
             path.unlink()
+        return []
+    return [path]

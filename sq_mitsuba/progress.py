@@ -49,6 +49,12 @@ class _LogBar(tqdm):
         self._last_line = -float("inf") if kwargs.get("leave", True) else time.monotonic()
         super().__init__(*args, **kwargs)
 
+    def __del__(self) -> None:
+        # Ctrl-C inside tqdm's __init__ leaves a bar without its state: nothing to close (its
+        # close() would print "Exception ignored ... no attribute 'pos'" at exit).
+        if hasattr(self, "pos"):
+            super().__del__()
+
     def refresh(self, nolock: bool = False, lock_args: Any = None) -> None:
         now = time.monotonic()
         if now - self._last_line < self.mininterval:

@@ -431,6 +431,7 @@ def test_study_of_a_bad_evaluation_names_file_and_column(case, tmp_path, capsys)
     folder = tmp_path / "eval"
     folder.mkdir()
     (folder / "per_image.csv").write_text(text)
+    (folder / "eval.json").write_text("{}")  # a finished evaluation's (its last file)
     out = tmp_path / "lighting"
     line = _run(capsys, ["study", "illumination", "--eval", folder, "--out", out])
     assert f"{folder / 'per_image.csv'}: " in line and needle in line, line

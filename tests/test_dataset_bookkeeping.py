@@ -179,35 +179,170 @@ def test_other_settings_stop_before_touching_any_file(reference, library, tmp_pa
     assert digests(out) == before
 
 
-def test_a_dataset_without_manifest_is_not_rendered_into(reference, library, tmp_path,
-                                                         capsys):
+@pytest.mark.parametrize("manifest", ["none", "another tool's"])
+def test_a_folder_without_a_manifest_of_this_tool_is_not_rendered_into_nor_cleared(
+        reference, library, tmp_path, capsys, manifest):
+    """A folder that is not empty and holds no valid dataset.json is refused, with or
+    without --overwrite (which deleted every child folder holding images/, masks/, exr/,
+    labels.json or .progress): the message says what is there and suggests another --out,
+    never --overwrite."""
     out = tmp_path / "data"
     shutil.copytree(reference, out)
-    (out / "dataset.json").unlink()
+    if manifest == "none":
+        (out / "dataset.json").unlink()
+    else:
+        (out / "dataset.json").write_text(json.dumps({"format": "other-tool/3", "models": {}}))
+    (out / "photos" / "images").mkdir(parents=True)
+    (out / "photos" / "images" / "holiday.png").write_bytes(b"not ours")
+    (out / "photos" / "labels.json").write_text("[]")
     before = digests(out)
-    assert render_cli(library, out) == 2
-    assert "without dataset.json" in capsys.readouterr().err
-    assert digests(out) == before
+    for extra in ((), ("--overwrite",)):
+        assert render_cli(library, out, *extra) == 2
+        line = capsys.readouterr().err.strip()
+        assert "\n" not in line and "--overwrite to" not in line, line
+        assert "another --out" in line or (not extra and manifest != "none"), line
+        if manifest == "none":
+            first = sorted(p.parent.name for p in out.glob("*/models"))[0]
+            assert line.endswith(
+                f"{out}: not empty (camera.json, photos/, {first}/, ...) and holds no "
+                "dataset.json of this tool, so nothing there is known to be its own; nothing "
+                "was changed: choose another --out (a new or empty folder)"), line
+        else:
+            assert "not a dataset manifest of this version" in line, line
+        assert digests(out) == before
 
 
 def test_overwrite_starts_clean_and_keeps_other_files(reference, library, tmp_path):
+    """--overwrite deletes the tool's files and the models its manifest lists, nothing else:
+    not a folder of images the manifest does not list, not a user's hidden file whose name
+    holds ".tmp" (only the tool's temporary files, sq_mitsuba.outputs.TEMPORARY_NAME)."""
     out = tmp_path / "data"
     shutil.copytree(reference, out)
     (out / "notes.txt").write_text("mine")
+    (out / ".notes.tmp.txt").write_text("mine too")
+    (out / ".camera.abcd1234.tmp.json").write_text("a killed write's")
     (out / "preview.png").write_bytes(b"old preview")
     (out / "stray_model" / "images").mkdir(parents=True)
-    # A folder that is not a dataset model folder stays.
     (out / "other" / "models").mkdir(parents=True)
     assert render_cli(library, out, "--overwrite", "--images-per-model", "1",
                       "--seed", "12") == 0
     manifest = json.loads((out / "dataset.json").read_text())
     assert manifest["settings"]["seed"] == 12 and manifest["images_per_model"] == 1
     assert (out / "notes.txt").read_text() == "mine"
-    assert not (out / "preview.png").exists() and not (out / "stray_model").exists()
-    assert (out / "other" / "models").is_dir()
+    assert (out / ".notes.tmp.txt").read_text() == "mine too"
+    assert not (out / ".camera.abcd1234.tmp.json").exists()
+    assert not (out / "preview.png").exists()
+    assert (out / "stray_model" / "images").is_dir() and (out / "other" / "models").is_dir()
     for model in manifest["models"]:
         assert sorted(p.name for p in (out / model / "images").iterdir()) == ["000000.png"]
         assert len(json.loads((out / model / "labels.json").read_text())) == 1
+
+
+def test_overwrite_checks_everything_it_deletes_before_deleting_anything(
+        reference, library, tmp_path, capsys):
+    """A listed model folder that is a link (and a folder named as one of the dataset's
+    files) made --overwrite stop half-way, dataset.json, camera.json and splits.csv deleted,
+    with "Cannot call rmtree on a symbolic link"; now it is refused whole, before any
+    deletion, and the link's target is untouched."""
+    out = Path(shutil.copytree(reference, tmp_path / "data"))
+    model = sorted(json.loads((out / "dataset.json").read_text())["models"])[-1]
+    victim = tmp_path / "victim"
+    (out / model).rename(victim)
+    (out / model).symlink_to(victim)
+    before, victim_before = digests(out), digests(victim)
+    assert render_cli(library, out, "--overwrite", "--seed", "12") == 2
+    line = capsys.readouterr().err.strip()
+    assert line.endswith(f"{out / model}: a symbolic link (to {victim}); a model's files are "
+                         f"read and written inside {out} only, not through links: refused")
+    assert digests(out) == before and digests(victim) == victim_before
+    (out / model).unlink()
+    victim.rename(out / model)
+    (out / "preview.png").mkdir()  # a folder where the tool writes a file: not its own
+    before = digests(out)
+    assert render_cli(library, out, "--overwrite", "--seed", "12") == 2
+    assert capsys.readouterr().err.strip().endswith(
+        f"{out / 'preview.png'}: not a file (a folder) where this tool writes a file, so not "
+        "the tool's to delete; nothing was changed (--overwrite): move it away, or choose "
+        "another --out")
+    assert digests(out) == before
+
+
+@pytest.mark.parametrize("where", ["dataset", "library"])
+def test_a_model_folder_that_is_a_link_is_refused_before_any_work(reference, library,
+                                                                  tmp_path, capsys, where):
+    """Through a linked model folder `dataset render` wrote images and rewrote labels.json
+    in another place (in the dataset), or read a model from one (in the library)."""
+    out = Path(shutil.copytree(reference, tmp_path / "data"))
+    models = Path(shutil.copytree(library, tmp_path / "models"))
+    model = sorted(json.loads((out / "dataset.json").read_text())["models"])[-1]
+    root = out if where == "dataset" else models
+    victim = tmp_path / "victim"
+    (root / model).rename(victim)
+    (root / model).symlink_to(victim)
+    if where == "dataset":  # an image to render again: written through the link before
+        (victim / "images" / "000000.png").unlink()
+    before, victim_before = digests(out), digests(victim)
+    assert render_cli(models, out) == 2
+    assert capsys.readouterr().err.strip().endswith(
+        f"{root / model}: a symbolic link (to {victim}); a model's files are read and written "
+        f"inside {root} only, not through links: refused")
+    assert digests(out) == before and digests(victim) == victim_before
+
+
+def test_a_folder_the_manifest_does_not_list_is_not_rendered_into(reference, library,
+                                                                  tmp_path, capsys):
+    """A library model whose folder is in the output but not in its dataset.json: the folder
+    is not the tool's (nothing the tool did not create is written into)."""
+    out = Path(shutil.copytree(reference, tmp_path / "data"))
+    manifest = json.loads((out / "dataset.json").read_text())
+    model = sorted(manifest["models"])[-1]
+    del manifest["models"][model]
+    (out / "dataset.json").write_text(json.dumps(manifest))
+    (out / "splits.csv").write_text("".join(
+        line + "\n" for line in (out / "splits.csv").read_text().splitlines()
+        if not line.startswith(f"{model},")))
+    before = digests(out)
+    assert render_cli(library, out) == 2
+    assert capsys.readouterr().err.strip().endswith(
+        f"{out / model}: exists, but dataset.json does not list the model, so the folder is "
+        "not this tool's; nothing was changed: move it away, or choose another --out")
+    assert digests(out) == before
+
+
+@pytest.mark.parametrize("row", ["absolute", "../victim"])
+def test_a_model_name_reaching_outside_the_library_is_refused_before_any_work(
+        library, tmp_path, capsys, row):
+    """A library's splits.csv row ``/abs/path,train`` made `dataset render` delete that folder
+    (rmtree of .failures/<model>, an absolute path) and write images into it; ``../x,train``
+    wrote into a sibling folder."""
+    models = Path(shutil.copytree(library, tmp_path / "models"))
+    victim = tmp_path / "victim"
+    shutil.copytree(next(models.glob("*/models")), victim / "models")
+    (victim / "mine.txt").write_text("precious")
+    name = str(victim) if row == "absolute" else row
+    with open(models / "splits.csv", "a") as splits:
+        splits.write(f"{name},train\n")
+    victim_before = digests(victim)
+    out = tmp_path / "data"
+    assert render_cli(models, out) == 2
+    line = capsys.readouterr().err.strip()
+    assert line.endswith(f"{models / 'splits.csv'}:3: model name {name!r} is not a plain "
+                         "folder name (" + ("an absolute path" if row == "absolute" else
+                                            "contains a path separator") + "); refused"), line
+    assert digests(victim) == victim_before and not out.exists()
+
+
+def test_a_dataset_whose_splits_name_a_model_outside_it_is_refused_by_its_readers(
+        reference, tmp_path):
+    """``../x,train`` in a dataset's splits.csv made eval read a model outside --data."""
+    out = Path(shutil.copytree(reference, tmp_path / "data"))
+    with open(out / "splits.csv", "a") as splits:
+        splits.write("../outside_model,train\n")
+    message = (f"{out / 'splits.csv'}:3: model name '../outside_model' is not a plain folder "
+               "name (contains a path separator); refused")
+    with pytest.raises(DatasetError, match=re.escape(message) + "$"):
+        Spe3rDataset(out)
+    assert message in check_dataset(out, per_model=0, progress=False).problems
 
 
 # ------------------------------------------------------------------------ growth
@@ -581,6 +716,13 @@ def test_reading_a_dataset_whose_rendering_has_not_finished_says_so(reference, t
             f"{out / 'splits.csv'}: missing; its rendering has not finished (dataset.json says "
             "so): run the render command again") + "$"):
         Spe3rDataset(out)
+    # A finished dataset being extended (more images a model) keeps its splits.csv while its
+    # models hold labels and images of neither run: refused too (train and eval took it).
+    (out / "splits.csv").write_bytes((reference / "splits.csv").read_bytes())
+    with pytest.raises(DatasetError, match=re.escape(
+            f"{out / 'dataset.json'}: says its rendering has not finished (an interrupted run, "
+            "or one still going): run the render command again, or wait for it") + "$"):
+        Spe3rDataset(out)
 
 
 def test_a_manifest_with_nan_in_its_settings_is_named(reference, library, tmp_path, capsys):
@@ -628,3 +770,19 @@ def test_a_radiance_image_holding_nan_is_a_problem(reference, tmp_path):
     write_exr(path, channels)
     problems = check_dataset(out, per_model=0, progress=False).problems
     assert problems == [f"{model}/exr/{path.name}: 3 value(s) NaN or infinite"], problems
+
+
+def test_an_exr_of_another_size_than_the_camera_is_a_problem_not_decoded(reference, tmp_path):
+    """dataset check decoded an EXR of any size (an 8192 x 8192 one of zeros, 0.8 MB, took
+    2.8 GB) and found it fine on a 32 px dataset: the size is read from the header's
+    dataWindow, and another than camera.json's is a problem."""
+    from sq_mitsuba.data.spe3r.layout import write_exr
+
+    out = Path(shutil.copytree(reference, tmp_path / "data"))
+    model = sorted(json.loads((out / "dataset.json").read_text())["models"])[0]
+    path = sorted((out / model / "exr").glob("*.exr"))[0]
+    zeros = np.zeros((48, 64), np.float32)  # finite values: fine but for their size
+    write_exr(path, {"Y": zeros, "Z": zeros, "A": zeros})
+    problems = check_dataset(out, per_model=0, progress=False).problems
+    assert problems == [f"{model}/exr/{path.name}: 64 x 48 px, camera.json says 32 x 32 (not "
+                        "decoded)"], problems

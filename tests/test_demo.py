@@ -26,7 +26,7 @@ import trimesh
 from output_checks import assert_picture, error_line, one_torch_thread  # noqa: F401 (autouse fixture)
 from PIL import Image
 
-from sq_mitsuba.apps.demo_files import MANIFEST
+from sq_mitsuba.apps.demo_files import DEMO_FORMAT, MANIFEST
 from sq_mitsuba.apps.demo_options import DEMO_CATALOGUE_SEED, SIZES, DemoSize
 from sq_mitsuba.cli import main
 from sq_mitsuba.geometry.assembly import Assembly
@@ -77,15 +77,16 @@ def demo_checkpoint(request):
 @pytest.fixture(scope="module")
 def demo(demo_checkpoint, tmp_path_factory):
     """The tiny demo, run once through the command line into a folder that holds an earlier
-    demo (demo.json and a stale file), beside the temporary folder of a killed one: returns
-    the output folder and what was printed."""
+    demo (its demo.json and a stale picture), beside the temporary folder of a killed one:
+    returns the output folder and what was printed."""
     import contextlib
     import io
 
     out = tmp_path_factory.mktemp("demo") / "demo_output"
     out.mkdir()
-    (out / MANIFEST).write_text("{}")
-    (out / "stale.txt").write_text("from an earlier demo")
+    (out / MANIFEST).write_text(json.dumps({"format": DEMO_FORMAT}))  # a demo's record
+    (out / "images").mkdir()
+    (out / "images" / "stale.png").write_text("from an earlier demo")
     # The temporary folder of an earlier demo killed before it could clean up.
     dead = subprocess.Popen(["true"])
     dead.wait()
@@ -115,7 +116,7 @@ def test_demo_writes_every_output_well_formed(demo, demo_checkpoint):
     out, printed = demo
     # The earlier demo was replaced as a whole, and nothing is left beside the folder (the
     # killed demo's temporary folder is gone too).
-    assert not (out / "stale.txt").exists()
+    assert not (out / "images" / "stale.png").exists()
     assert sorted(p.name for p in out.parent.iterdir()) == [out.name]
     lines = printed.strip().splitlines()
     assert str(out / "index.html") in lines[-1]

@@ -182,7 +182,7 @@ def test_a_stale_temporary_checkpoint_is_removed_by_the_next_run(train_dataset, 
     config = apply_overrides(load_train_config(TINY), ["validation.every=0"])
     out = tmp_path / "run"
     train(config, train_dataset, out, progress=False, max_steps=1)
-    stale = out / ".last.abc123.tmp.pt"  # what a kill during a checkpoint write leaves
+    stale = out / ".last.abc123de.tmp.pt"  # what a kill during a checkpoint write leaves
     stale.write_bytes(b"")
     train(config, train_dataset, out, resume=True, progress=False, max_steps=2)
     assert not stale.exists() and (out / "last.pt").is_file()

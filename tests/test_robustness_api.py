@@ -24,6 +24,7 @@ from output_checks import error_line, one_torch_thread  # noqa: F401 (autouse fi
 from PIL import Image
 
 import sq_mitsuba
+from sq_mitsuba.apps.predict import POSE_CONVENTION
 from sq_mitsuba.cli import main
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.camera import Camera
@@ -199,7 +200,10 @@ def test_predict_reports_no_target_and_writes_its_pose_json_alone(scenes, eval_c
     Image.fromarray(scenes["noise"][0]).save(folder / "noise.png")
     out = tmp_path / "out"
     out.mkdir()
-    (out / "black.obj").write_text("a mesh of an earlier run")  # stale: must not stay
+    # An earlier run's files of black (a target then, by its pose.json): must not stay.
+    (out / "black.obj").write_text("a mesh of an earlier run")
+    (out / "black.pose.json").write_text(json.dumps({
+        "target": True, "convention": POSE_CONVENTION, "checkpoint": str(eval_checkpoint)}))
     args = ["predict", *(str(folder / f"{n}.png") for n in ("craft", "black", "noise", "earth")),
             "--checkpoint", str(eval_checkpoint), "--out", str(out), "--quiet"]
     assert main(args) == 0

@@ -129,6 +129,15 @@ def test_breakdown_of_an_evaluation_by_recorded_lighting(eval_checkpoint, train_
     centres = {float(r["phase_deg"]) for r in read_rows(folder / "lighting.csv")
                if r["background"] != "eclipse"}
     assert 140.0 in centres and centres <= {50.0, 140.0}, centres
+    # An unfinished evaluation (no eval.json: interrupted) is not broken down.
+    record = (folder / "eval.json").read_bytes()
+    (folder / "eval.json").unlink()
+    capsys.readouterr()
+    assert main(["study", "illumination", "--eval", str(folder), "--step", "30"]) == 2
+    assert error_line(capsys).endswith(f"{folder}: an unfinished evaluation (no eval.json: "
+                                       "interrupted, or still running); finish it with the "
+                                       "same eval command and --resume first")
+    (folder / "eval.json").write_bytes(record)
     # Another evaluation into the folder: its per_image.csv is new, so the breakdown of the
     # earlier one goes (study illumination --eval makes this one's).
     evaluate(load_model(eval_checkpoint), train_dataset, folder,

@@ -41,8 +41,9 @@ Convention: the folder is replaced as a whole. Everything is written into a temp
 beside ``out`` (``.<name>.new.<pid>.*``), which is renamed over it at the end, so a failed or
 interrupted run leaves the previous demo as it was; a run killed before it could delete its
 temporary folder leaves it behind, and the next demo into ``out`` deletes it. ``out`` must be
-absent, empty, or a previous demo (holding ``demo.json``): the demo never deletes a folder it
-did not write.
+absent, empty, or a previous demo (holding a ``demo.json`` a demo wrote, and nothing at its
+top that a demo does not write): the demo never deletes a folder it did not write. Nor may it
+be the working folder or one above it (checked before any work).
 
 Convention: as in ``sq-mitsuba eval``, the network sees each image resized to its input size;
 refinement, the 2D IoU and the other metrics work at that size; the pictures of the page are
@@ -65,7 +66,14 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from sq_mitsuba.apps.demo_files import MANIFEST, write_demo_page, write_outputs
+from sq_mitsuba.apps.demo_files import (
+    DEMO_FORMAT,
+    MANIFEST,
+    foreign_entry,
+    is_demo_record,
+    write_demo_page,
+    write_outputs,
+)
 from sq_mitsuba.apps.demo_options import (
     DemoOptions,
     DemoResult,
@@ -98,18 +106,35 @@ def repository_config(name: str) -> Path:
 def check_demo_folder(out: Path) -> None:
     """``out`` may be absent, an empty folder, or a previous demo; its parent writable.
 
+    A previous demo: its ``demo.json`` is one a demo wrote (:func:`is_demo_record`) and the
+    folder holds nothing a demo does not write (:data:`DEMO_OUTPUTS`), for the demo replaces
+    its output folder as a whole and must not delete what it did not write.
+
     Raises:
-        ValueError: ``out`` is a file, a folder that holds something else (the demo replaces
-            its output folder as a whole and must not delete what it did not write), or not
-            writable.
+        ValueError: ``out`` is a file, the working folder or a folder above it (it cannot be
+            renamed away, and holds what the run did not write), a folder that holds
+            something else, or not writable.
     """
     from sq_mitsuba.io import check_output_folder
 
     check_output_folder(out)
-    if out.is_dir() and any(out.iterdir()) and not (out / MANIFEST).is_file():
-        raise ValueError(f"out {out}: holds files but no {MANIFEST}, so it is not a demo's "
-                         "output, and the demo replaces its folder as a whole; choose another "
-                         "--out or an empty folder")
+    here, resolved = Path.cwd().resolve(), out.resolve()
+    if resolved == here or resolved in here.parents:
+        where = "the working folder" if resolved == here else "a folder above the working one"
+        raise ValueError(f"out {out}: {where}, which the demo would replace as a whole; "
+                         "choose a new folder (e.g. --out demo_output)")
+    if out.is_dir() and any(out.iterdir()):
+        if not is_demo_record(out / MANIFEST):
+            held = f"a {MANIFEST} no demo wrote" if (out / MANIFEST).exists() else \
+                f"no {MANIFEST}"
+            raise ValueError(f"out {out}: holds files but {held}, so it is not a demo's "
+                             "output, and the demo replaces its folder as a whole; choose "
+                             "another --out or an empty folder")
+        foreign = foreign_entry(out)
+        if foreign is not None:
+            raise ValueError(f"out {out}: holds {foreign.name}, which the demo does not write "
+                             "and would delete with the folder it replaces as a whole; move it "
+                             "or choose another --out")
     # The new demo is written beside `out` and renamed over it: the parent must take files.
     check_output_folder(out.absolute().parent)
 
@@ -296,6 +321,7 @@ def _build(options: DemoOptions, out: Path, predictor: Any, training_config: Any
         checkpoint = str(Path("train") / "run" / Path(checkpoint).name)
     wall = time.perf_counter() - started
     record = {
+        "format": DEMO_FORMAT,  # the mark of a folder the demo wrote (check_demo_folder)
         "options": to_dict(options), "checkpoint": checkpoint, "baseline": baseline_source,
         "network": {"image_size": predictor.image_size,
                     "num_primitives": predictor.num_primitives},

@@ -11,11 +11,22 @@ from typing import Any
 import numpy as np
 import torch
 
-__all__ = ["MANIFEST", "METHOD_LABELS", "PAGE_METRICS", "save_png", "shown_model", "stem_of",
+__all__ = ["DEMO_FORMAT", "DEMO_OUTPUTS", "MANIFEST", "METHOD_LABELS", "PAGE_METRICS",
+           "foreign_entry", "is_demo_record", "save_png", "shown_model", "stem_of",
            "write_demo_page", "write_outputs"]
 
 #: The file that marks a folder as a demo's output (and holds its record).
 MANIFEST = "demo.json"
+#: The record's "format": the mark of a demo.json the demo wrote.
+DEMO_FORMAT = "sq-mitsuba-demo/1"
+#: Keys every demo.json holds (a demo's record): one of a demo written before the format mark
+#: is recognised by them all.
+RECORD_KEYS = frozenset({"options", "checkpoint", "baseline", "images", "models"})
+#: Everything a demo writes at the top of its folder (the module docstring of
+#: :mod:`sq_mitsuba.apps.demo`): a folder holding anything else is not (only) a demo's.
+DEMO_OUTPUTS = frozenset({"index.html", "index.md", MANIFEST, "per_image.csv", "summary.csv",
+                          "summary.md", "per_model.csv", "per_model.md", "images", "assemblies",
+                          "models", "data", "pass", "train"})
 #: Methods scored per image, in the page's order, with their labels.
 METHOD_LABELS = {"network": "network", "refined": "search + refined (image's mask)",
                  "baseline": "trivial baseline"}
@@ -27,6 +38,23 @@ PAGE_METRICS = {"chamfer_l1_paper": "Chamfer-L1 (paper)",
                 "rotation_error_folded_deg": "up to half turns (deg)",
                 "rotation_error_axes_deg": "up to the axes' names (deg)",
                 "translation_error_m": "translation error (m)"}
+
+
+def is_demo_record(path: Path) -> bool:
+    """Whether ``path`` is a demo.json a demo wrote: a JSON object with :data:`DEMO_FORMAT`
+    as its "format", or (a demo before that mark) every key of :data:`RECORD_KEYS`. A file
+    merely named demo.json (``{}``, someone's notes) is not one."""
+    from sq_mitsuba.outputs import json_record
+
+    record = json_record(path)
+    return record.get("format") == DEMO_FORMAT or RECORD_KEYS <= record.keys()
+
+
+def foreign_entry(folder: Path) -> Path | None:
+    """An entry at the top of ``folder`` that a demo does not write (:data:`DEMO_OUTPUTS`),
+    or None: the demo replaces its folder as a whole, so one there would be deleted."""
+    return next((path for path in sorted(folder.iterdir()) if path.name not in DEMO_OUTPUTS),
+                None)
 
 
 def stem_of(record: dict[str, Any]) -> str:

@@ -45,6 +45,9 @@ printed line says "no target", and the command still succeeds (exit code 0).
 
 A folder a pass was predicted into (``predict --sequence``) keeps its frames: an image whose
 stem names one of its poses is refused, before any work (:func:`check_not_a_pass_frame`).
+Files predict did not write are never replaced or removed: a file of an output's name
+(``<stem>.obj``, say) is refused before any work unless the ``<stem>.pose.json`` an earlier
+run of predict wrote beside it says it is that run's (:func:`check_own_files`).
 
 Units (``target_size``): the network reads every target at the dataset's unit size (the
 longest side of its aligned box 1); a target L metres long at the same pose is the scene
@@ -337,16 +340,70 @@ class _Inputs:
         return None
 
 
-def is_pass_pose(pose: Path) -> bool:
-    """Whether ``pose`` is a frame's pose file that ``predict --sequence`` wrote (it holds a
-    ``"sequence"`` entry); False for no file, one that cannot be read, or a single image's."""
-    import json
+def predicted_pose(pose: Path) -> dict[str, Any] | None:
+    """The contents of ``pose`` where it is a pose file ``predict`` (or ``predict --sequence``)
+    wrote, else None (no file, one that cannot be read, someone else's). The mark: its
+    ``"convention"`` starts with :data:`POSE_CONVENTION` (a pass's adds its body frame) and it
+    records the ``"checkpoint"`` and the ``"target"`` call, as every pose of predict does."""
+    from sq_mitsuba.outputs import json_record
 
-    try:
-        earlier = json.loads(pose.read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return False
-    return isinstance(earlier, dict) and "sequence" in earlier
+    earlier = json_record(pose)
+    convention = earlier.get("convention")
+    if (isinstance(convention, str) and convention.startswith(POSE_CONVENTION)
+            and "checkpoint" in earlier and "target" in earlier):
+        return earlier
+    return None
+
+
+def is_pass_pose(pose: Path) -> bool:
+    """Whether ``pose`` is a frame's pose file that ``predict --sequence`` wrote (a pose of
+    predict's with a ``"sequence"`` entry); False for no file, one that cannot be read, a
+    single image's, or someone else's."""
+    earlier = predicted_pose(pose)
+    return earlier is not None and "sequence" in earlier
+
+
+def _exists(path: Path) -> bool:
+    return path.exists() or path.is_symlink()
+
+
+def check_own_files(out: Path, stems: Sequence[str]) -> None:
+    """A one-line ``ValueError`` naming the first file of :data:`OUTPUT_SUFFIXES` of a stem in
+    ``stems`` that is in ``out`` but not predict's own, which this run would replace or
+    remove. Predict's own are the files its ``<stem>.pose.json`` (written last,
+    :func:`predicted_pose`) vouches for: itself, and the stem's other files unless that pose is
+    a single image's without a target (predict wrote its pose alone). Where there is no pose
+    file, an assembly file of this package (``<stem>.assembly.json``) vouches for the stem's
+    files: a run of predict stopped among them (the pose goes first and comes back last).
+    Checked before any work: a file predict did not write is never replaced or removed."""
+    from sq_mitsuba.geometry.assembly import JSON_FORMAT
+    from sq_mitsuba.outputs import json_record
+
+    # The pose first: where it is someone else's, it is the file to name.
+    suffixes = (".pose.json", *(s for s in OUTPUT_SUFFIXES if s != ".pose.json"))
+    for stem in stems:
+        present = [out / f"{stem}{suffix}" for suffix in suffixes
+                   if _exists(out / f"{stem}{suffix}")]
+        if not present:
+            continue
+        pose = predicted_pose(out / f"{stem}.pose.json")
+        if present[0].name != f"{stem}.pose.json" and json_record(
+                out / f"{stem}.assembly.json").get("format") == JSON_FORMAT:
+            continue  # no pose: a run stopped among the stem's files left them
+        alone = pose is not None and pose.get("target") is False and "sequence" not in pose
+        for path in present:
+            if pose is None and path.name.endswith(".pose.json"):
+                why = "not a pose file sq-mitsuba predict wrote"
+            elif pose is None:
+                why = (f"no pose file of sq-mitsuba predict beside it ({stem}.pose.json) says "
+                       "predict wrote it")
+            elif alone and not path.name.endswith(".pose.json"):
+                why = (f"{stem}.pose.json is of an image without a target, for which predict "
+                       "writes no other file")
+            else:
+                continue
+            raise ValueError(f"{path}: {why}, and this run would replace or remove it; move "
+                             "it or choose another --out")
 
 
 def check_not_a_pass_frame(out: Path, paths: Sequence[Path]) -> None:
@@ -415,6 +472,7 @@ def predict_files(images: list[str | Path], out_dir: str | Path, predictor: Any,
                                         for suffix in OUTPUT_SUFFIXES],
                               keep=[*paths, *(mask_paths or []), *other_inputs])
     check_not_a_pass_frame(out, paths)
+    check_own_files(out, [path.stem for path in paths])  # a user's <stem>.obj is not ours
     paddings, problems, warnings = _check_inputs(paths, camera, mask_paths, options,
                                                  pad=not explicit_camera, segmented=segmented)
     inputs = _Inputs(paths, paddings, mask_paths, segmented)

@@ -30,7 +30,9 @@ A folder holds one pass: once this pass's files are written, an earlier pass's f
 frame's stem (``.assembly.json``, ``.obj``, ``.glb``) and, when this pass writes no
 ``colmap/``, the earlier one's are removed (:func:`_remove_earlier_pass`): their poses are of
 an assembly ``sequence.assembly.json`` no longer holds. Single images' files of other stems
-stay, as ``sq-mitsuba predict`` leaves them.
+stay, as ``sq-mitsuba predict`` leaves them. Files predict did not write are neither replaced
+nor removed: one of these names that no pose file of predict's vouches for is refused before
+any work (:func:`check_pass_files`).
 """
 
 from __future__ import annotations
@@ -48,8 +50,8 @@ from typing import Any
 import numpy as np
 import torch
 
-__all__ = ["SequenceRecord", "check_frame_files", "check_frame_order",
-           "predict_sequence_files"]
+__all__ = ["PASS_FILES", "SequenceRecord", "check_frame_files", "check_frame_order",
+           "check_pass_files", "predict_sequence_files"]
 
 
 def check_frame_files(images: Sequence[Path | str], masks: Sequence[Path | str] | None) -> None:
@@ -85,6 +87,30 @@ def check_frame_order(paths: Sequence[Path]) -> None:
                           "shell glob sorts frame_10 before frame_2: sort them with `ls -v`)",
                           stacklevel=3)
             return
+
+
+#: The pass's own files in its folder (besides the frames'): replaced (or, colmap/'s, removed)
+#: only where the folder holds a pass predict wrote (:func:`check_pass_files`).
+PASS_FILES = ("sequence.assembly.json", "sequence.glb", "sequence.png")
+
+
+def check_pass_files(out: Path, stems: Sequence[str]) -> None:
+    """A one-line ``ValueError``, before any work, naming a file in ``out`` that this pass
+    would replace or remove but that predict did not write: a frame's file that its
+    ``<stem>.pose.json`` does not vouch for (:func:`~sq_mitsuba.apps.predict.check_own_files`),
+    or one of :data:`PASS_FILES` or ``colmap/``'s files in a folder that holds no pass of
+    predict's (no frame pose of one, :func:`~sq_mitsuba.apps.predict.is_pass_pose`)."""
+    from sq_mitsuba.apps.colmap_model import COLMAP_FILES
+    from sq_mitsuba.apps.predict import check_own_files, is_pass_pose
+
+    check_own_files(out, stems)
+    present = [path for path in (*(out / name for name in PASS_FILES),
+                                 *(out / "colmap" / name for name in COLMAP_FILES))
+               if path.exists() or path.is_symlink()]
+    if present and not any(is_pass_pose(pose) for pose in out.glob("*.pose.json")):
+        raise ValueError(f"{present[0]}: this folder holds no pass sq-mitsuba predict wrote (no "
+                         "frame's pose.json of one), and this run would replace or remove it; "
+                         "move it or choose another --out")
 
 
 def _remove_earlier_pass(out: Path, stems: set[str], colmap_written: bool) -> int:
@@ -304,6 +330,7 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
                               + [f"{path.stem}{suffix}" for path in paths
                                  for suffix in (".pose.json", ".overlay.png")],
                               keep=[*paths, *(mask_paths or []), *other_inputs])
+    check_pass_files(out, [path.stem for path in paths])  # replaces only what predict wrote
     predictor = with_fast_path(predictor, True)
     record = SequenceRecord(ordered=ordered,
                             free=getattr(options, "motion", None) == "free")

@@ -51,6 +51,8 @@ RESUME_HINTS = {
     "models generate": "the same command again takes up where it stopped",
     "study illumination": "the same command again takes up where it stopped",
     "study passes": "the same command again takes up where it stopped",
+    "predict": "an image's files are whole once its pose.json is written, a pass's once "
+               "sequence.assembly.json is; the same command again writes them all",
 }
 
 
@@ -81,6 +83,23 @@ ALL_OR_NOTHING = {"eval": "folder", "predict": "folder", "fit": "folder", "repor
 #: journal; a study's renders, evaluations and journals.
 KEEP_ON_FAILURE = {"eval": (".eval_partial",),
                    "study": (".passes_partial", "models", "renders", "evals")}
+#: What each of those commands writes in its --out folder, as patterns of paths in it (``*``
+#: within one name, a last ``**`` anything below): a failed run deletes only the files of
+#: these names it added (and temporary files), and the folders it made once empty, never a
+#: file someone saved there meanwhile (:func:`sq_mitsuba.outputs.all_or_nothing`'s
+#: ``outputs``). tests/test_user_files_kept.py checks them against the modules' own lists.
+OUTPUT_NAMES = {
+    "eval": ("per_image.csv", "per_model.csv", "per_model.md", "summary.csv", "summary.md",
+             "per_model.png", "qualitative.png", "consistency.png", "eval.json",
+             "mesh_ranking.csv", ".eval_partial/*"),
+    "predict": ("*.assembly.json", "*.obj", "*.glb", "*.pose.json", "*.overlay.png",
+                "sequence.png", "colmap/*.txt"),
+    "fit": ("assembly.json", "assembly.glb", "fit.png", "fit_log.json"),
+    "report": ("report.md", "report.csv"),
+    "study": ("models/**", "renders/**", "evals/**", ".passes_partial/*", "per_image.csv",
+              "illumination.*", "lighting.*", "study.json", "per_frame.csv", "summary.csv",
+              "summary.md", "quality_vs_frames.png", "passes.json"),
+}
 
 
 class CLIError(Exception):
@@ -325,7 +344,8 @@ def _main(argv: Sequence[str] | None) -> int:
         launch_ranks()  # and a malformed RANK, WORLD_SIZE, LOCAL_RANK or LOCAL_WORLD_SIZE
         with warnings.catch_warnings(), all_or_nothing(
                 getattr(args, "out", None) if kind else None, kind == "file",
-                keep=KEEP_ON_FAILURE.get(args.command, ())):
+                keep=KEEP_ON_FAILURE.get(args.command, ()),
+                outputs=OUTPUT_NAMES.get(args.command)):
             if not show_traceback:  # warnings as one line each (--traceback: Python's own)
                 warnings.showwarning = _warning_printer(args.command)
             return int(args.func(args) or 0)

@@ -20,17 +20,18 @@ Render every model of --models (a `sq-mitsuba models generate` folder) in the sp
 
 OUT/dataset.json records the settings (seed, resolution, spp, exr, camera, scene) before the
 first image. Running again with the same settings resumes an interrupted run; with a larger
---images-per-model it adds exactly the images a larger run would have written. Other settings
-stop with an error naming them and touch nothing, unless --overwrite: that first deletes
-OUT's dataset.json, camera.json, splits.csv, failures.json, preview.png, .failures/ and model
-folders (nothing else). --shard I/N renders block I of N of the work (0 <= I < N): N shards
-into the same OUT, on as many machines, in any order, equal one unsharded run byte for byte;
-the last to finish writes splits.csv. A model's split is its row in the library's
-splits.csv or, without that file, the one its model_card.json records (else train, with a
-warning). Every model's files are read first: one that cannot be read stops the run before
-any work. Models that fail while rendering are left out of splits.csv and listed with their
-reason in OUT/failures.json. Exit code 1 when a model failed, 2 on bad options or a broken
-model (nothing written)."""
+--images-per-model it adds exactly the images a larger run would have written. Other
+settings stop with an error naming them and touch nothing, unless --overwrite: that first
+deletes OUT's dataset.json, camera.json, splits.csv, failures.json, preview.png, .failures/,
+the model folders its dataset.json lists and the tool's temporary files (nothing else; a
+non-empty OUT without a dataset.json of this tool is refused, --overwrite or not). --shard
+I/N renders block I of N of the work (0 <= I < N): N shards into the same OUT, on as many
+machines, in any order, equal one unsharded run byte for byte; the last to finish writes
+splits.csv. A model's split is its row in the library's splits.csv or, without that file,
+the one its model_card.json records (else train, with a warning). Every model's files are
+read first: one that cannot be read stops the run before any work. Models that fail while
+rendering are left out of splits.csv and listed with their reason in OUT/failures.json. Exit
+code 1 when a model failed, 2 on bad options or a broken model (nothing written)."""
 
 #: RenderOptions fields exposed as options.
 RENDER_FLAGS = {"images_per_model": "--images-per-model", "seed": "--seed",

@@ -15,10 +15,12 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import struct
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -141,13 +143,66 @@ def check_face_material(face_material: np.ndarray, faces: int, where: Path | str
 NOT_AN_NPZ = "corrupt or truncated: not a valid .npz file"
 """What a ``.npz`` file numpy cannot read is said to be (not numpy's own words)."""
 
+MAX_SAMPLE_POINTS = 10_000_000
+"""Most points of one point set of a ``samples.npz`` that readers decode: five times the
+largest set ``models generate --points`` writes (2,000,000 each), so no model of the tool's is
+near it, while a member that a small compressed archive expands to gigabytes is refused."""
+MAX_NPZ_VALUES = 3 * MAX_SAMPLE_POINTS
+"""Most values of one ``.npz`` array that the readers decode (MAX_SAMPLE_POINTS points of 3
+coordinates: 240 MB as float64); each member's ``.npy`` header is read first."""
+MAX_NPZ_ITEMSIZE = 16
+"""Widest value (bytes) of an ``.npz`` array that the readers decode (the tool's are at most
+8: float64, int64)."""
 
-def read_npz(path: str | Path, keys: Iterable[str] | None = None) -> dict[str, np.ndarray]:
+
+class NpzArrayTooLarge(ValueError):
+    """An ``.npz`` member larger than a reader's bound, refused from its header alone."""
+
+
+def npz_array_header(archive: Any, key: str) -> tuple[tuple[int, ...], np.dtype]:
+    """Shape and dtype of array ``key`` of an open ``np.load`` archive, from its ``.npy``
+    header: the member's first bytes only are decompressed. A member that is no ``.npy``
+    array (which numpy would return as its raw bytes, read whole) is a ValueError."""
+    name = key if key in archive.zip.namelist() else f"{key}.npy"  # NpzFile's own lookup
+    with archive.zip.open(name) as member:
+        version = np.lib.format.read_magic(member)  # ValueError for another file
+        if version == (1, 0):
+            shape, _, dtype = np.lib.format.read_array_header_1_0(member)
+        elif version == (2, 0):
+            shape, _, dtype = np.lib.format.read_array_header_2_0(member)
+        else:  # 3.0 holds non-Latin-1 field names: never an array of the tool's
+            raise ValueError(f"{key}: .npy format version {version} not read")
+    return tuple(int(n) for n in shape), np.dtype(dtype)
+
+
+def check_npz_array(archive: Any, key: str, path: str | Path,
+                    limit: int = MAX_NPZ_VALUES) -> tuple[int, ...]:
+    """The shape of array ``key`` of an open ``np.load`` archive, read from its header, where
+    it holds at most ``limit`` values of at most :data:`MAX_NPZ_ITEMSIZE` bytes; else a
+    one-line :class:`NpzArrayTooLarge` naming ``path`` and the array, before any of its data
+    is decompressed (a 1 MB archive of zeros can expand to gigabytes)."""
+    shape, dtype = npz_array_header(archive, key)
+    count = math.prod(shape)
+    if count > limit:
+        raise NpzArrayTooLarge(f"{path}: {key}: {count:,} values (shape {shape}), more than "
+                               f"the {limit:,} this tool reads; refused before reading it")
+    if dtype.itemsize > MAX_NPZ_ITEMSIZE:
+        raise NpzArrayTooLarge(f"{path}: {key}: values of {dtype.itemsize:,} bytes ({dtype}), "
+                               f"wider than the {MAX_NPZ_ITEMSIZE} this tool reads; refused "
+                               "before reading it")
+    return shape
+
+
+def read_npz(path: str | Path, keys: Iterable[str] | None = None,
+             limits: Mapping[str, int] | None = None) -> dict[str, np.ndarray]:
     """The arrays ``keys`` (default: all) of the ``.npz`` archive ``path``; a key the archive
-    lacks is left out (what a missing array means is the caller's to say).
+    lacks is left out (what a missing array means is the caller's to say). Each array's size
+    is checked from its header before it is read: at most ``limits[key]`` values (default
+    :data:`MAX_NPZ_VALUES`), see :func:`check_npz_array`.
 
     Raises:
         FileNotFoundError: no such file.
+        NpzArrayTooLarge: an array beyond its bound (a ValueError naming file and array).
         ValueError: ``"<path>: corrupt or truncated: not a valid .npz file"`` for anything
             numpy cannot read: not numpy's own message, which for a file that is no archive
             advises loading it "unsafely" with ``allow_pickle``.
@@ -155,10 +210,15 @@ def read_npz(path: str | Path, keys: Iterable[str] | None = None) -> dict[str, n
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such file")
+    limits = limits or {}
     try:
         with np.load(path) as archive:  # allow_pickle stays False: a library is not trusted
             wanted = archive.files if keys is None else [k for k in keys if k in archive.files]
+            for key in wanted:
+                check_npz_array(archive, key, path, limits.get(key, MAX_NPZ_VALUES))
             return {key: np.asarray(archive[key]) for key in wanted}
+    except NpzArrayTooLarge:
+        raise
     except Exception:  # numpy, zipfile and zlib raise many kinds for damaged archives
         raise ValueError(f"{path}: {NOT_AN_NPZ}") from None
 
@@ -174,8 +234,9 @@ def read_tagged_obj(path: str | Path) -> TaggedMesh:
     path = Path(path)
     vertices, faces, tags = read_obj(path)
     samples = path.parent / SAMPLES_FILE
-    if samples.is_file():
-        face_material = read_npz(samples, ["face_material"]).get("face_material")
+    if samples.is_file():  # one tag per face: a longer array is refused before it is read
+        face_material = read_npz(samples, ["face_material"],
+                                 {"face_material": len(faces)}).get("face_material")
         if face_material is not None:
             tags = check_face_material(face_material, len(faces), samples, path)
     return TaggedMesh(vertices, faces, tags)

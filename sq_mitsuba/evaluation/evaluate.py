@@ -60,13 +60,15 @@ another run is refused in one line naming what differs, and a run without ``resu
 it first. Each batch is scored on its own: the scoring renderer restarts its samples from
 the batch's number.
 
-The folder holds one evaluation: the files of this list that an earlier run into it wrote and
-this one does not (the figures after ``figures = False``, a mesh ranking) are removed once it
-has written its own, and a lighting breakdown of the earlier ``per_image.csv``
-(``lighting.*``, :func:`sq_mitsuba.evaluation.study.lighting_breakdown`) before its first
-table. It lies outside the dataset, which evaluation only reads, and takes one
-run at a time (:func:`sq_mitsuba.outputs.output_lock`; another run into it is refused in one
-line before any work).
+The folder holds one evaluation: the files of this list that an earlier run into it (its
+``eval.json`` or journal there) wrote and this one does not (the figures after ``figures =
+False``, a mesh ranking) are removed once it has written its own, and a lighting breakdown of
+the earlier ``per_image.csv`` (``lighting.*``,
+:func:`sq_mitsuba.evaluation.study.lighting_breakdown`) before its first table; in a folder
+that holds no earlier evaluation nothing is removed, and a file of an output's name is refused
+before any work (:func:`earlier_evaluation`). It lies outside the dataset, which evaluation
+only reads, and takes one run at a time (:func:`sq_mitsuba.outputs.output_lock`; another run
+into it is refused in one line before any work).
 
 Timing: the network's first call sets up its kernels; it is made once, untimed, on the first
 batch computed (after a resume: the first the journal does not hold) before the timed call,
@@ -94,7 +96,7 @@ from typing import Any, Literal
 
 from sq_mitsuba.config import in_range, to_dict, validate
 from sq_mitsuba.evaluation.batch import evaluate_batch
-from sq_mitsuba.evaluation.journal import EvalJournal, run_identity
+from sq_mitsuba.evaluation.journal import JOURNAL, RUN_FILE, EvalJournal, run_identity
 from sq_mitsuba.evaluation.methods import METHODS
 from sq_mitsuba.evaluation.scoring import ModelData, baseline_prediction
 from sq_mitsuba.evaluation.split import check_predictor, evenly, open_split
@@ -103,6 +105,7 @@ from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.inference.refine import RefineOptions
 from sq_mitsuba.inference.search import SEARCH_REFINEMENT, SearchOptions
 from sq_mitsuba.io import atomic_write_json
+from sq_mitsuba.outputs import json_record, refuse_present, remove_unwritten
 
 MESH_RANKING_FILE = "mesh_ranking.csv"
 """Per ranked image: its own model's rank among the split's meshes (``mesh_ranking`` > 0)."""
@@ -323,6 +326,7 @@ def _evaluate(predictor: Any, data_root: Path, out_dir: Path, options: EvalOptio
     indices = evenly(len(dataset), options.limit)
     chunks = [indices[start:start + options.batch_size]
               for start in range(0, len(indices), options.batch_size)]
+    earlier = earlier_evaluation(out_dir, options)  # what may be replaced or removed
     # Before any work: a journal of another run is refused (resume) or cleared (a fresh run).
     identity = run_identity(predictor, data_root, to_dict(options), indices)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -380,7 +384,7 @@ def _evaluate(predictor: Any, data_root: Path, out_dir: Path, options: EvalOptio
     # is not taken for either run by `report`. So does a lighting breakdown of the earlier
     # per_image.csv: it would not match this one's. An interrupt in the loop above loses no
     # batch the journal holds (--resume).
-    for name in ("eval.json", *LIGHTING_FILES):
+    for name in ("eval.json", *(LIGHTING_FILES if earlier else ())):  # a user's stay
         if (out_dir / name).is_file():
             (out_dir / name).unlink()
     summary = write_tables(rows, out_dir)
@@ -444,24 +448,25 @@ def _evaluate(predictor: Any, data_root: Path, out_dir: Path, options: EvalOptio
     })
     files.append(out_dir / "eval.json")
     journal.clear()
-    remove_stale_outputs(out_dir, files)
+    if earlier:  # an earlier evaluation's files: never those of a folder that held none
+        remove_unwritten(out_dir, (*OUTPUT_FILES, MESH_RANKING_FILE), files)
     return EvalResult(rows, summary, images, images_per_second,
                       1000 * network_seconds / images, out_dir, files, len(journal.records))
 
 
-
-def remove_stale_outputs(out_dir: Path, written: list[Path]) -> list[Path]:
-    """Delete the files an earlier evaluation into ``out_dir`` wrote that this one did not
-    (figures after ``--no-figures``, a mesh ranking it did not make), so that the folder
-    holds one evaluation's outputs only; returns them."""
-    kept = {path.name for path in written}
-    removed = []
-    for name in (*OUTPUT_FILES, MESH_RANKING_FILE):
-        path = out_dir / name
-        if name not in kept and path.is_file():
-            path.unlink()
-            removed.append(path)
-    return removed
+def earlier_evaluation(out_dir: Path, options: EvalOptions) -> bool:
+    """Whether ``out_dir`` holds an earlier evaluation: an ``eval.json`` this command wrote or
+    the journal of one (by their keys). Where it holds none, a file of a name this run writes
+    is someone else's: refused in one line, before any work, rather than replaced."""
+    if ({"split", "images", "methods", "options"} <= json_record(out_dir / "eval.json").keys()
+            or {"format", "options", "checkpoint"} <= json_record(out_dir / JOURNAL / RUN_FILE)
+            .keys()):
+        return True
+    refuse_present(out_dir, (*OUTPUT_FILES[:5], "eval.json",
+                             *(OUTPUT_FILES[5:8] if options.figures else ()),
+                             *((MESH_RANKING_FILE,) if options.mesh_ranking else ())),
+                   "an output of eval, but no earlier evaluation there wrote it")
+    return False
 
 
 def default_label(predictor: Any) -> str:

@@ -104,17 +104,14 @@ def volume_points(model_dir: Path, count: int) -> tuple[Tensor, Tensor]:
     """Up to ``count`` points uniform in the cube around a model (N, 3) float64 and whether
     each is inside (N,) bool: ``samples.npz``'s uniform points, or, without them (the SPE3R
     release), points uniform in the unit cube labelled by ray casting the mesh."""
-    from sq_mitsuba.data.spe3r.layout import MODELS, SAMPLES_FILE, DatasetError, load_model
+    from sq_mitsuba.data.spe3r.layout import MODELS, SAMPLES_FILE, load_model, read_samples
 
     rng = np.random.default_rng(0)
     path = model_dir / MODELS / SAMPLES_FILE
-    if path.is_file():
-        try:
-            with np.load(path) as samples:
-                points = np.asarray(samples["uniform_points"], dtype=np.float64)
-                inside = np.asarray(samples["uniform_inside"], dtype=bool)
-        except Exception as error:  # numpy raises several kinds on corrupt archives
-            raise DatasetError(f"{path}: cannot read uniform_points ({error})") from None
+    if path.is_file():  # read as every reader does: sizes from the headers, values checked
+        samples = read_samples(path, ("uniform_points", "uniform_inside"))
+        points = samples["uniform_points"].astype(np.float64)
+        inside = samples["uniform_inside"].astype(bool)
         if len(points) > count:
             chosen = np.sort(rng.choice(len(points), count, replace=False))
             points, inside = points[chosen], inside[chosen]

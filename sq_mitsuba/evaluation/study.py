@@ -399,6 +399,10 @@ def lighting_breakdown(eval_dir: str | Path, out_dir: str | Path | None = None,
     if not 1.0 <= step <= 180.0:
         raise ValueError(f"step: expected a value in [1, 180], got {step:g}")
     source = eval_dir / "per_image.csv"
+    if source.is_file() and not (eval_dir / "eval.json").is_file():  # written last by eval
+        raise ValueError(f"{eval_dir}: an unfinished evaluation (no eval.json: interrupted, "
+                         "or still running); finish it with the same eval command and "
+                         "--resume first")
     raw = read_per_image(source)
     unlit = [r for r in raw if not r["phase_angle_deg"].strip()]
     if len(unlit) == len(raw):

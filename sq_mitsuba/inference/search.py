@@ -390,9 +390,9 @@ def _refine_each(assembly: Assembly, rotations: Tensor, translations: Tensor, ma
                  own: Tensor | None = None) -> RefineResult:
     """Refine ``keep`` starts per image ((B, k, 3, 3) rotations, (B, k, 3) translations):
     ``screen_steps`` each, then the best (by IoU) to ``refine.steps``. Image by image, on its
-    own rows (``own``), so that its fit is what it would be alone (in a batch its samples are
-    drawn by its place, it stops with the batch, its mesh carries its batch-mates' stand-ins);
-    the stand-ins come back rebuilt from the refined first row (:func:`gathered_primitives`)."""
+    own rows (``own``): its fit is what it would be alone (in a batch its samples were drawn
+    by its place, it stopped with the batch, its mesh held its batch-mates' stand-ins, which
+    come back rebuilt from the refined first row: :func:`gathered_primitives`)."""
     from sq_mitsuba.model.existence import gathered_primitives
     params = assembly.params.detach().double()
     rows, kept = torch.arange(params.shape[1]), rotations.shape[1]
@@ -413,10 +413,10 @@ def _refine_each(assembly: Assembly, rotations: Tensor, translations: Tensor, ma
         padded = params[i:i + 1].clone()
         padded[:, mine] = result.assembly.params.detach().double()
         results.append((gathered_primitives(padded, torch.where(mine, rows, -1)[None]), result))
-    return RefineResult(Assembly(torch.cat([p for p, _ in results])),
-                        *(torch.cat([getattr(r, name) for _, r in results]) for name in
-                          ("rotation", "translation", "iou_before", "iou_after")),
-                        max(r.steps for _, r in results))
+    cat = {name: torch.cat([getattr(r, name) for _, r in results]) for name in
+           ("rotation", "translation", "iou_before", "iou_after")}
+    return RefineResult(Assembly(torch.cat([p for p, _ in results])), **cat,
+                        steps=max(r.steps for _, r in results))
 
 
 def better_of(best: RefineResult, result: RefineResult) -> RefineResult:

@@ -27,6 +27,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from sq_mitsuba.data.mesh_io import check_npz_array
 from sq_mitsuba.data.spe3r.layout import MODELS, model_points
 from sq_mitsuba.geometry.assembly import NUM_PARAMS
 from sq_mitsuba.io import atomic_write_bytes
@@ -38,6 +39,8 @@ __all__ = ["DEFAULT_FIT_POINTS", "PART_TARGETS_FILE", "PartTargetError", "PartTa
 
 PART_TARGETS_FILE = "part_targets.npz"
 DEFAULT_FIT_POINTS = 1000
+#: The most primitives a fit may hold (`dataset fit-parts --primitives` takes 1-64).
+MAX_FIT_PRIMITIVES = 64
 """Surface points a fit draws per model (the only value ever used by ``dataset fit-parts``)."""
 
 
@@ -53,7 +56,8 @@ def part_targets_path(root: Path, model: str) -> Path:
 def _read(path: Path, num_primitives: int) -> np.ndarray:
     """The (M, 16) raw parameters of one file, checked; PartTargetError naming it."""
     try:
-        with np.load(path) as archive:
+        with np.load(path) as archive:  # the size from its header first (a zip bomb stops)
+            check_npz_array(archive, "raw", path, limit=num_primitives * NUM_PARAMS)
             raw = np.asarray(archive["raw"], dtype=np.float64)
     except FileNotFoundError:
         raise PartTargetError(f"{path}: missing (make it with `sq-mitsuba dataset fit-parts "
@@ -96,6 +100,7 @@ def _other_settings(path: Path, num_primitives: int, steps: int, points: int) ->
     (``"--primitives 3, --steps 100"``)."""
     try:  # the file read once: its parameters and the settings it records
         with np.load(path) as archive:
+            check_npz_array(archive, "raw", path, limit=MAX_FIT_PRIMITIVES * NUM_PARAMS)
             raw = np.asarray(archive["raw"], dtype=np.float64)
             recorded = {k: int(archive[k]) for k in ("steps", "points") if k in archive.files}
     except (OSError, KeyError, ValueError, TypeError, zipfile.BadZipFile, EOFError):

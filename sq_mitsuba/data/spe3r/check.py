@@ -267,6 +267,12 @@ def _check_files(root: Path, model: str, labels: list[Any], camera: Camera,
             try:
                 import OpenEXR
 
+                # The size from the header first: a small file of zeros can decode to
+                # gigabytes, and an image of another size than the camera's is wrong anyway.
+                size = _exr_size_problem(path, camera)
+                if size is not None:
+                    report.problems.append(f"{model}/{EXR}/{path.name}: {size}")
+                    continue
                 with OpenEXR.File(str(path)) as exr_file:
                     channels = exr_file.channels()
                     bad = sum(int((~np.isfinite(np.asarray(channel.pixels, np.float64))).sum())
@@ -284,6 +290,21 @@ def _check_files(root: Path, model: str, labels: list[Any], camera: Camera,
         for extra in sorted(present - names)[:MAX_LISTED]:
             report.problems.append(f"{model}/{folder}/{extra}: no label names it")
     return masks
+
+
+def _exr_size_problem(path: Path, camera: Camera) -> str | None:
+    """What is wrong with the size of the EXR ``path`` (None: every part is the camera's
+    size), read from its header alone (``dataWindow``): no pixel is decoded."""
+    import OpenEXR
+
+    with OpenEXR.File(str(path), header_only=True) as exr_file:
+        windows = [part.header["dataWindow"] for part in exr_file.parts]
+    for low, high in windows:
+        width, height = int(high[0]) - int(low[0]) + 1, int(high[1]) - int(low[1]) + 1
+        if (width, height) != (camera.width, camera.height):
+            return (f"{width} x {height} px, camera.json says {camera.width} x "
+                    f"{camera.height} (not decoded)")
+    return None
 
 
 def _check_points(model_dir: Path, ours: bool, report: CheckReport) -> None:

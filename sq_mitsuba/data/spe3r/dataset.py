@@ -98,6 +98,11 @@ class Spe3rDataset(torch.utils.data.Dataset):
                     f"sq-mitsuba dataset render --models {self.root} --out DATA" if library
                     else "; its rendering has not finished (dataset.json says so): run the "
                     "render command again" if unfinished else ""))
+        if _rendering(self.root):  # a finished dataset being extended: splits.csv is the
+            # smaller run's, and the models hold labels and images of neither run
+            raise DatasetError(f"{self.root / MANIFEST}: says its rendering has not finished "
+                               "(an interrupted run, or one still going): run the render "
+                               "command again, or wait for it")
         try:
             self.camera = Camera.load(self.root / "camera.json")
         except ValueError as error:

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import csv
 import math
+import os
 from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
@@ -77,12 +78,72 @@ def validation_indices(count: int) -> list[int]:
 VALIDATION_INDICES = frozenset(validation_indices(1000))
 
 
+# ------------------------------------------------------------------------ model names
+
+
+def model_name_problem(name: Any) -> str | None:
+    """Why ``name`` is not a usable model name (None: it is one).
+
+    A model name becomes a folder path (``root/<model>``, ``.failures/<model>``) in every
+    reader and writer, and comes from files a library or dataset brings along (``splits.csv``,
+    ``dataset.json``): only one plain path component is accepted, so that no name reaches
+    outside its folder (an absolute name replaces the root in ``root / name``, ``..`` climbs
+    out of it) or names a hidden entry of the tool's own (``.failures``, ``.progress``).
+    """
+    if not isinstance(name, str) or not name:
+        return "empty"
+    if name in (".", ".."):
+        return "not a folder name"
+    if name.startswith(("/", "\\")):
+        return "an absolute path"
+    if "/" in name or "\\" in name:
+        return "contains a path separator"
+    if name.startswith("."):
+        return "starts with '.'"
+    if any(ord(c) < 32 or 127 <= ord(c) < 160 for c in name):  # NUL, newline, escapes
+        return "contains a control character"
+    return None
+
+
+def check_model_name(name: Any, where: str) -> str:
+    """``name`` where it is a plain model name (:func:`model_name_problem`), else a one-line
+    :class:`DatasetError` beginning with ``where`` (the file, and its row)."""
+    problem = model_name_problem(name)
+    if problem is not None:
+        shown = repr(name)  # quoted: a control character cannot break the line
+        shown = shown if len(shown) <= 200 else shown[:197] + "..."
+        raise DatasetError(f"{where}: model name {shown} is not a plain folder name "
+                           f"({problem}); refused")
+    return name
+
+
+def check_model_folder(root: Path, model: str, inner: Iterable[str] = (MODELS,)) -> Path:
+    """``root/model`` where it is no symbolic link and resolves to a folder inside ``root``
+    (or does not exist yet), and where none of its entries ``inner`` is a symbolic link;
+    else a one-line :class:`DatasetError`: through a link, a model's files would be read
+    from, and a dataset's written to, another place than the folder given."""
+    root = Path(root)
+    folder = root / check_model_name(model, str(root))
+    for path in (folder, *(folder / name for name in inner)):
+        if path.is_symlink():
+            target = os.readlink(path)  # quoted where it would break the line
+            target = target if target.isprintable() else repr(target)
+            raise DatasetError(f"{path}: a symbolic link (to {target}); "
+                               f"a model's files are read and written inside {root} only, "
+                               "not through links: refused")
+    if folder.exists() and folder.resolve().parent != root.resolve():
+        raise DatasetError(f"{folder}: resolves to {folder.resolve()}, outside {root}; refused")
+    return folder
+
+
 # ------------------------------------------------------------------------ small helpers
 
 
 def read_splits(path: Path) -> dict[str, str]:
-    """``splits.csv`` as {model: "train" | "test"}; a model listed in both splits is a
-    one-line ``DatasetError`` naming the line (the later row would silently win)."""
+    """``splits.csv`` as {model: "train" | "test"}; a model listed in both splits, or a model
+    name that is not one plain folder name (:func:`model_name_problem`), is a one-line
+    ``DatasetError`` naming the line (the later row would silently win; such a name would
+    lead readers and writers outside the folder)."""
     splits: dict[str, str] = {}
     try:
         text = path.read_text(encoding="utf-8")
@@ -96,6 +157,7 @@ def read_splits(path: Path) -> dict[str, str]:
             raise DatasetError(f"{path}:{line_number}: expected 'model,train|test', "
                                f"got {','.join(row)!r}")
         model, split = row[0].strip(), row[1].strip()
+        check_model_name(model, f"{path}:{line_number}")
         if splits.get(model, split) != split:
             raise DatasetError(f"{path}:{line_number}: {model!r} is listed as "
                                f"{splits[model]} above and as {split} here")
@@ -134,7 +196,13 @@ def load_model(model_dir: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | No
     The OBJ is read in file order (trimesh regroups the faces of multi-material OBJs, which
     would detach them from the per-face tags of ``samples.npz``).
     """
-    from sq_mitsuba.data.mesh_io import NOT_AN_NPZ, check_face_material, read_obj
+    from sq_mitsuba.data.mesh_io import (
+        NOT_AN_NPZ,
+        NpzArrayTooLarge,
+        check_face_material,
+        check_npz_array,
+        read_obj,
+    )
     from sq_mitsuba.render.materials import MATERIALS
 
     mesh_path = model_dir / MODELS / MESH_FILE
@@ -155,7 +223,12 @@ def load_model(model_dir: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | No
     if samples_path.is_file():
         try:
             with np.load(samples_path) as samples:
-                face_material = samples["face_material"] if "face_material" in samples else None
+                face_material = None
+                if "face_material" in samples:  # one tag per face: no more read than that
+                    check_npz_array(samples, "face_material", samples_path, len(faces))
+                    face_material = samples["face_material"]
+        except NpzArrayTooLarge as error:
+            raise DatasetError(str(error)) from None
         except Exception:  # numpy raises several kinds on corrupt archives, and for a file
             # that is no archive advises loading it "unsafely": not repeated here
             raise DatasetError(f"{samples_path}: {NOT_AN_NPZ}") from None
@@ -285,6 +358,7 @@ def read_manifest(root: Path) -> dict[str, Any] | None:
             raise DatasetError(f"{path}: {key}: expected {kind.__name__}, got "
                                f"{_short(manifest.get(key))}")
     for model, entry in manifest["models"].items():
+        check_model_name(model, f"{path}: models")
         if not isinstance(entry, dict):
             raise DatasetError(f"{path}: models.{model}: expected an object, got "
                                f"{_short(entry)}")
@@ -358,6 +432,14 @@ def read_samples(path: Path, keys: Iterable[str] = tuple(SAMPLE_ARRAYS),
             wanted.append(kind)
     if not path.is_file():
         raise DatasetError(f"{path}: missing")
+    from sq_mitsuba.data.mesh_io import (
+        MAX_NPZ_VALUES,
+        MAX_SAMPLE_POINTS,
+        NOT_AN_NPZ,
+        NpzArrayTooLarge,
+        check_npz_array,
+    )
+
     arrays: dict[str, np.ndarray] = {}
     try:
         with np.load(path) as samples:
@@ -366,15 +448,20 @@ def read_samples(path: Path, keys: Iterable[str] = tuple(SAMPLE_ARRAYS),
                 held = ", ".join(samples.files) or "no arrays"
                 raise DatasetError(f"{path}: no array {missing[0]!r} (needed for the model's "
                                    f"points; the file holds {held})")
+            extra_keys = [key for key in optional if key in samples.files and key not in wanted]
+            # Sizes from the headers first: a small archive can expand to gigabytes.
+            for key in [*wanted, *extra_keys]:
+                flags = SAMPLE_ARRAYS.get(key, "points") != "points"
+                check_npz_array(samples, key, path,
+                                MAX_SAMPLE_POINTS if flags else MAX_NPZ_VALUES)
             for key in wanted:
                 arrays[key] = np.asarray(samples[key])
-            extra = {key: np.asarray(samples[key]) for key in optional
-                     if key in samples.files and key not in arrays}
+            extra = {key: np.asarray(samples[key]) for key in extra_keys}
     except DatasetError:
         raise
+    except NpzArrayTooLarge as error:
+        raise DatasetError(str(error)) from None
     except Exception:  # numpy raises several kinds (see load_model)
-        from sq_mitsuba.data.mesh_io import NOT_AN_NPZ
-
         raise DatasetError(f"{path}: {NOT_AN_NPZ}") from None
     for key in wanted:
         array, kind = arrays[key], SAMPLE_ARRAYS[key]

@@ -77,7 +77,9 @@ class RenderOptions:
     pairs. N shards into one folder, in any order, equal one unsharded run."""
     overwrite: bool = False
     """Start clean: first delete the output folder's dataset (dataset.json, camera.json,
-    splits.csv, failures.json, preview.png, .failures/ and the model folders; nothing else)."""
+    splits.csv, failures.json, preview.png, .failures/, the model folders its dataset.json
+    lists and the tool's temporary files; nothing else). Only a folder whose dataset.json is
+    this tool's manifest is cleared; a non-empty folder without one is refused."""
     scene: SceneConfig = field(default_factory=SceneConfig.load)
     """The space scene (default: scenes/space.json)."""
 

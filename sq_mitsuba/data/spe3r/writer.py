@@ -7,7 +7,9 @@ split and image count, and ``state`` ("rendering", or "complete" once every mode
 or failed). It is written atomically before the first image. A run into a folder whose
 manifest has other settings stops with a one-line :class:`DatasetError` naming them, before
 touching any file; ``overwrite=True`` starts clean instead, deleting what
-:data:`OVERWRITE_DELETES` names. A larger ``images_per_model`` grows a dataset: the new images
+:data:`OVERWRITE_DELETES` names (only where ``dataset.json`` is a valid manifest: a folder
+that is not empty and holds none is refused either way, nothing the tool did not write being
+ever deleted or written into). A larger ``images_per_model`` grows a dataset: the new images
 are exactly those an uninterrupted larger run writes (every image has its own seed); a
 smaller one is an error.
 
@@ -72,6 +74,7 @@ from sq_mitsuba.data.spe3r.layout import (
     PROGRESS,
     SAMPLES_FILE,
     DatasetError,
+    check_model_folder,
     check_model_points,
     load_model,
     read_labels,
@@ -101,13 +104,18 @@ from sq_mitsuba.io import (
     inside_folder,
     read_json,
 )
+from sq_mitsuba.outputs import LOCK_NAME, TEMPORARY_NAME
 
-#: What ``overwrite`` deletes from the output folder before rendering (nothing else there is
-#: touched): these files, the ``.failures`` folder, temporary files of atomic writes at the top
-#: level, and every model folder (a sub-folder holding ``labels.json``, ``images/``,
-#: ``masks/``, ``exr/`` or ``.progress/``, or named in the old manifest).
+#: What ``overwrite`` deletes from the output folder before rendering, and only from a folder
+#: whose ``dataset.json`` is a valid manifest of this tool (nothing else there is touched):
+#: these files, the ``.failures`` folder, the model folders that manifest lists, and the
+#: temporary files of atomic writes (:data:`~sq_mitsuba.outputs.TEMPORARY_NAME`) at the top
+#: level. An entry among them that is a link, or not of the kind the tool writes there, is
+#: refused before anything is deleted.
 OVERWRITE_DELETES = (MANIFEST, "camera.json", "splits.csv", FAILURES, "preview.png")
-_MODEL_FOLDER_SIGNS = ("labels.json", IMAGES, MASKS, EXR, PROGRESS)
+#: Entries of a dataset's model folder that the render writes into: a link there would lead
+#: its writes out of the dataset.
+_MODEL_SUBFOLDERS = (IMAGES, MASKS, EXR, PROGRESS, MODELS, "labels.json")
 
 # ------------------------------------------------------------------------ writer
 
@@ -120,9 +128,12 @@ def find_models(models_dir: Path) -> list[str]:
     splits_path = models_dir / "splits.csv"
     if splits_path.is_file():
         # Models named in splits.csv whose files are missing still count, so they fail loudly.
+        # (read_splits refuses a name that is not one plain folder name.)
         names = sorted(set(names) | set(read_splits(splits_path)))
     if not names:
         raise DatasetError(f"{models_dir}: no model folders (<model>/{MODELS}/{MESH_FILE})")
+    for name in names:  # a folder's own name too: a control character, a leading '.'
+        check_model_folder(models_dir, name)  # and no model read through a link
     # A model folder named as a dataset's own file would stand where that file is written.
     clash = [name for name in names if name in OVERWRITE_DELETES]
     if clash:
@@ -422,24 +433,54 @@ def recorded_failures(out_dir: Path) -> dict[str, str]:
     return failures
 
 
-def _model_folders(out_dir: Path, named: Sequence[str] = ()) -> list[Path]:
-    """Sub-folders of ``out_dir`` that are model folders of a dataset."""
+def _shown(name: str) -> str:
+    """A file name for a one-line message (quoted where it holds a line break or the like)."""
+    return name if name.isprintable() else repr(name)
+
+
+def _foreign_entries(out_dir: Path) -> list[str]:
+    """What ``out_dir`` holds (folders with a trailing '/'), leaving out the temporary files
+    of atomic writes (:data:`TEMPORARY_NAME`, e.g. of a ``dataset.json`` a killed run was
+    writing), those of :func:`check_writable` and an output lock: an output folder without a
+    manifest must hold nothing else to be rendered into."""
     if not out_dir.is_dir():
         return []
-    return sorted(child for child in out_dir.iterdir() if child.is_dir() and (
-        child.name in named or any((child / sign).exists() for sign in _MODEL_FOLDER_SIGNS)))
+    return [_shown(p.name) + ("/" if p.is_dir() and not p.is_symlink() else "")
+            for p in sorted(out_dir.iterdir())
+            if not (p.is_file() and (TEMPORARY_NAME.fullmatch(p.name) or p.name == LOCK_NAME
+                                     or p.name.startswith(".write-test.")))]
 
 
-def _clear_dataset(out_dir: Path, named: Sequence[str]) -> None:
-    """Delete what :data:`OVERWRITE_DELETES` says (``--overwrite``)."""
-    for name in OVERWRITE_DELETES:
-        (out_dir / name).unlink(missing_ok=True)
-    for folder in [out_dir / FAILURE_MARKS, *_model_folders(out_dir, named)]:
-        if folder.exists():
-            _remove_tree(folder)
-    for stray in out_dir.glob(".*.tmp*"):
-        if stray.is_file():
-            stray.unlink(missing_ok=True)
+def _overwrite_targets(out_dir: Path, manifest: dict[str, Any]) -> list[Path]:
+    """What ``overwrite`` deletes from ``out_dir``, whose valid ``manifest`` lists its models
+    (see :data:`OVERWRITE_DELETES`), every entry checked first to be of the kind the tool
+    writes there: a link or a file of another kind is a one-line :class:`DatasetError`
+    before anything is deleted (not a half-cleared folder)."""
+    targets: list[Path] = []
+    folders = [out_dir / FAILURE_MARKS, *(out_dir / model for model in sorted(manifest["models"]))]
+    for path, kind in [*((out_dir / name, "file") for name in OVERWRITE_DELETES),
+                       *((folder, "folder") for folder in folders)]:
+        if not path.exists() and not path.is_symlink():
+            continue
+        if path.is_symlink() or not (path.is_file() if kind == "file" else path.is_dir()):
+            what = "a symbolic link" if path.is_symlink() else \
+                f"not a {kind} ({'a folder' if path.is_dir() else 'another kind of file'})"
+            raise DatasetError(f"{path}: {what} where this tool writes a {kind}, so not the "
+                               "tool's to delete; nothing was changed (--overwrite): move it "
+                               "away, or choose another --out")
+        targets.append(path)
+    targets += [path for path in sorted(out_dir.iterdir()) if TEMPORARY_NAME.fullmatch(path.name)
+                and path.is_file() and not path.is_symlink()]
+    return targets
+
+
+def _clear_dataset(targets: Sequence[Path]) -> None:
+    """Delete ``targets`` (:func:`_overwrite_targets`, checked): ``--overwrite``."""
+    for path in targets:
+        if path.is_dir() and not path.is_symlink():
+            _remove_tree(path)
+        else:
+            path.unlink(missing_ok=True)
 
 
 def _write_json_if_changed(path: Path, obj: Any) -> None:
@@ -576,14 +617,17 @@ def _render_in_workers(models_dir: Path, out_dir: Path, camera: Camera, options:
 
 
 def _existing_manifest(out_dir: Path, overwrite: bool) -> dict[str, Any] | None:
-    """The output folder's manifest; a malformed one is an error unless it is to be deleted."""
+    """The output folder's manifest (None: none there); a malformed one, or one of another
+    tool or version, is a one-line error: its folder is neither rendered into nor, with
+    ``overwrite``, cleared (only a dataset of this tool is)."""
     if not out_dir.is_dir():
         return None
     try:
         return read_manifest(out_dir)
-    except DatasetError:
+    except DatasetError as error:
         if overwrite:
-            return None
+            raise DatasetError(f"{error}; --overwrite clears only a dataset of this tool, so "
+                               "nothing was changed: choose another --out") from None
         raise
 
 
@@ -616,16 +660,15 @@ def prepare_dataset(models_dir: Path, out_dir: Path, options: RenderOptions
                            "known (an interrupted `models generate`? run it again to finish "
                            "the library; else add their rows, model,train or model,test)")
     manifest = _existing_manifest(out_dir, options.overwrite)
-    if manifest is None and not options.overwrite:
-        unmanaged = [p for p in ("camera.json", "splits.csv") if (out_dir / p).exists()] + \
-            [f"{p.name}/" for p in _model_folders(out_dir)]
+    if manifest is None:  # only a new or empty folder is rendered into (or cleared) then
+        held = _foreign_entries(out_dir)
         # Another shard may have started this dataset since: its manifest comes first.
-        manifest = _existing_manifest(out_dir, False) if unmanaged else None
-        if unmanaged and manifest is None:
-            shown = ", ".join(unmanaged[:3]) + (", ..." if len(unmanaged) > 3 else "")
-            raise DatasetError(f"{out_dir}: holds a dataset without {MANIFEST} ({shown}), so "
-                               f"its settings cannot be checked; use --overwrite to start "
-                               f"over, or another --out")
+        manifest = _existing_manifest(out_dir, options.overwrite) if held else None
+        if held and manifest is None:
+            shown = ", ".join(held[:3]) + (", ..." if len(held) > 3 else "")
+            raise DatasetError(f"{out_dir}: not empty ({shown}) and holds no {MANIFEST} of "
+                               "this tool, so nothing there is known to be its own; nothing "
+                               "was changed: choose another --out (a new or empty folder)")
     settings = dataset_settings(options, camera)
     if manifest is not None and not options.overwrite:
         differences = settings_differences(manifest, settings, options.scene)
@@ -639,6 +682,17 @@ def prepare_dataset(models_dir: Path, out_dir: Path, options: RenderOptions
                                f"{manifest['images_per_model']}; a dataset grows but does not "
                                f"shrink (use --overwrite to start over, or another --out)")
     old_models = sorted(manifest["models"]) if manifest is not None else []
+    for model in sorted(set(found) | set(old_models)):  # what the run writes into
+        folder = check_model_folder(out_dir, model, _MODEL_SUBFOLDERS)
+        if model not in old_models and (folder.exists() or folder.is_symlink()) and \
+                model not in (_existing_manifest(out_dir, False) or {"models": {}})["models"]:
+            # (read again: another shard may have started the dataset since)
+            raise DatasetError(f"{folder}: exists, but {MANIFEST} does not list the model, so "
+                               "the folder is not this tool's; nothing was changed: move it "
+                               "away, or choose another --out")
+    # Everything --overwrite deletes, checked now: refused whole, never half-cleared.
+    doomed = _overwrite_targets(out_dir, manifest) if options.overwrite and \
+        manifest is not None else []
     if not options.overwrite:  # images of another model under one name: before any work
         for model in sorted(set(found) & set(old_models)):
             _check_same_model(models_dir / model / MODELS, out_dir / model / MODELS)
@@ -648,7 +702,7 @@ def prepare_dataset(models_dir: Path, out_dir: Path, options: RenderOptions
     check_library_models(models_dir, [model for model in work if model in found])
     check_writable(out_dir)
     if options.overwrite:
-        _clear_dataset(out_dir, old_models)
+        _clear_dataset(doomed)
         manifest, old_models = None, []
     plan, guessed = {}, []
     for model in sorted(set(found) | set(old_models)):

@@ -23,6 +23,7 @@ from torch import Tensor, nn
 from sq_mitsuba.config import flatten_dict, from_dict, to_dict
 from sq_mitsuba.io import atomic_path, check_output_folder, read_json
 from sq_mitsuba.model.checkpoint import load_weights, read_checkpoint, write_checkpoint
+from sq_mitsuba.outputs import remove_stray_temporaries
 from sq_mitsuba.training.cache import manifest_hash
 from sq_mitsuba.training.config import TrainConfig
 from sq_mitsuba.training.distributed import unwrap
@@ -129,13 +130,12 @@ def read_resumed(out_dir: Path) -> dict[str, Any]:
 
 def remove_stale_temporaries(out_dir: Path) -> list[Path]:
     """Delete the temporary files an earlier run killed mid-write left in ``out_dir`` (the
-    ``.NAME.*.tmp.SUFFIX`` files of :func:`sq_mitsuba.io.atomic_path`); returns them."""
-    removed = []
-    for path in sorted(out_dir.glob(".*.tmp*")) if out_dir.is_dir() else []:
-        if path.is_file() and ".tmp" in path.name:
-            path.unlink(missing_ok=True)
-            removed.append(path)
-    return removed
+    ``.NAME.<8 random>.tmp.SUFFIX`` files of :func:`sq_mitsuba.io.atomic_path`); returns them.
+
+    Matched by the project's one pattern (:data:`sq_mitsuba.outputs.TEMPORARY_NAME`, as every
+    other command's clean-up): a user's hidden file that merely holds ".tmp" in its name is
+    not the tool's, and stays."""
+    return remove_stray_temporaries(out_dir)
 
 
 def git_commit() -> dict[str, Any]:
