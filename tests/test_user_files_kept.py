@@ -126,21 +126,15 @@ def test_a_pass_replaces_only_what_predict_wrote(eval_checkpoint, train_dataset,
                                tmp_path / f"f{k}.png")) for k in range(2)]
     out = tmp_path / "out"
     out.mkdir()
-    (out / "sequence.png").write_bytes(b"my picture")
-    before = _listing(out)
-    assert main(["predict", *map(str, frames), "--sequence", "--checkpoint",
-                 str(eval_checkpoint), "--out", str(out), "--quiet"]) == 2
-    assert str(out / "sequence.png") in error_line(capsys)
-    assert _listing(out) == before
-    (out / "sequence.png").unlink()
-    (out / "f1.overlay.png").write_bytes(b"my overlay")
-    before = _listing(out)
-    assert main(["predict", *map(str, frames), "--sequence", "--checkpoint",
-                 str(eval_checkpoint), "--out", str(out), "--quiet"]) == 2
-    assert str(out / "f1.overlay.png") in error_line(capsys)
-    assert _listing(out) == before
+    for name in ("sequence.png", "f1.overlay.png"):  # a pass's file, a frame's
+        (out / name).write_bytes(b"mine")
+        before = _listing(out)
+        assert main(["predict", *map(str, frames), "--sequence", "--checkpoint",
+                     str(eval_checkpoint), "--out", str(out), "--quiet"]) == 2
+        assert str(out / name) in error_line(capsys)
+        assert _listing(out) == before
+        (out / name).unlink()
     # A folder holding a pass predict wrote: its files are the pass's, replaced.
-    (out / "f1.overlay.png").unlink()
     (out / "old.pose.json").write_text(_predict_pose(target=True, sequence=True))
     (out / "colmap").mkdir()
     for name in ("sequence.png", "sequence.glb", "colmap/images.txt"):
