@@ -9,6 +9,7 @@ import dataclasses
 import json
 import math
 import os
+import random
 import re
 import shutil
 import signal
@@ -1413,3 +1414,23 @@ def test_a_blur_wider_than_the_input_is_a_config_error(train_dataset, tmp_path):
                                          r"network input; at most 10\.3 px"):
         train(config, train_dataset, tmp_path / "run", progress=False, max_steps=1)
     assert not (tmp_path / "run").exists()
+
+
+def test_two_fresh_runs_of_one_seed_save_the_same_random_states(train_dataset, cache_dir,
+                                                                 tmp_path):
+    """Every checkpoint saves torch's, numpy's legacy and python's global random states; the
+    last two were never seeded, so two runs of one seed wrote different checkpoints."""
+    config = apply_overrides(load_train_config(TINY), [f"data.cache_dir={cache_dir}",
+                                                       "validation.every=0"])
+    states = []
+    for name in ("a", "b"):
+        # As in another process: the global states anywhere before the run.
+        np.random.seed(len(name) + len(states))  # noqa: NPY002
+        random.seed(len(states))
+        train(config, train_dataset, tmp_path / name, progress=False, max_steps=1)
+        states.append(torch.load(tmp_path / name / "last.pt", weights_only=True)["rng"])
+    first, second = states
+    assert torch.equal(first["torch"], second["torch"])
+    assert torch.equal(first["numpy"]["keys"], second["numpy"]["keys"])
+    assert first["numpy"]["pos"] == second["numpy"]["pos"]
+    assert first["python"] == second["python"]

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 import torch
 
-__all__ = ["STREAMS", "rng_state", "seed_of", "set_rng_state"]
+__all__ = ["STREAMS", "rng_state", "seed_globals", "seed_of", "set_rng_state"]
 
 #: The random streams of training (see the module docstring).
 STREAMS = {"order": 1, "item": 2, "subset": 3, "render": 4, "torch": 5}
@@ -26,6 +26,16 @@ def seed_of(*parts: int) -> int:
     """A 63-bit seed from integers (numpy's SeedSequence: well mixed, order sensitive)."""
     return int(np.random.SeedSequence([int(p) for p in parts]).generate_state(1, np.uint64)[0]
                >> 1)
+
+
+def seed_globals(seed: int, rank: int) -> None:
+    """A fresh run's global random states, from (``seed``, ``torch``, ``rank``): torch's, and
+    numpy's legacy one and python's with it. Every checkpoint saves all three (unseeded, two
+    runs of one seed saved different bytes; code training calls would draw differently)."""
+    value = seed_of(seed, STREAMS["torch"], rank)
+    torch.manual_seed(value)
+    np.random.seed(value % 2**32)  # noqa: NPY002 (the legacy global state, on purpose)
+    random.seed(value)
 
 
 def rng_state() -> dict[str, Any]:

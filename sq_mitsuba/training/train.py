@@ -94,7 +94,7 @@ from sq_mitsuba.training.distributed import (
 )
 from sq_mitsuba.training.loss_terms import LOSS_TERMS, LossTermError, check_terms, short_term_name
 from sq_mitsuba.training.prefetch import BatchPrefetcher, prefetch_enabled
-from sq_mitsuba.training.random_streams import STREAMS, rng_state, seed_of, set_rng_state
+from sq_mitsuba.training.random_streams import rng_state, seed_globals, set_rng_state
 from sq_mitsuba.training.run.folder import (
     BEST,
     CONFIG_FILE,
@@ -304,7 +304,7 @@ class _Loop:
             ranks = rng.get("ranks")
             set_rng_state(ranks[world.rank] if ranks and len(ranks) == world.size else rng)
         else:
-            torch.manual_seed(seed_of(cfg.seed, STREAMS["torch"], world.rank))
+            seed_globals(cfg.seed, world.rank)
         self.validation_due = checkpoint is not None and self._validation_skipped(run.start_step)
         self.renderer = reprojection_renderer(cfg, data.dataset_camera, run.device,
                                               world.local_size)
