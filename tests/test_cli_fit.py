@@ -116,6 +116,18 @@ def test_fit_command_input_errors(fit_inputs, tmp_path, capsys):
     assert "quaternion" in capsys.readouterr().err
     assert main([*base, "--masks", str(masks[0]), "--primitives", "0"]) == 2
     assert not (tmp_path / "o").exists()
+    # An --out inside a dataset (its masks folder, say): refused before any work, so that
+    # the dataset does not gain files that `dataset check` then flags.
+    data = tmp_path / "data"
+    (data / "m" / "masks").mkdir(parents=True)
+    (data / "dataset.json").write_text("{}")
+    out = data / "m" / "masks"
+    assert main(["fit", "--masks", str(masks[0]), "--poses", str(root / "labels.json"),
+                 "--out", str(out), "--quiet"]) == 2
+    assert capsys.readouterr().err.strip().endswith(
+        f"out {out}: inside the dataset folder {data.resolve()}, which fit only reads; write "
+        "outside it")
+    assert list(out.iterdir()) == []
 
 
 # ------------------------------------------------------------------ input checks

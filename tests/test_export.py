@@ -447,7 +447,7 @@ def test_export_refuses_an_out_inside_a_dataset_folder(eval_checkpoint, train_da
         assert main(["export", "--checkpoint", str(eval_checkpoint), "--out", str(out)]) == 2
         assert error_line(capsys).endswith(
             f"out {out}: inside the dataset folder {train_dataset.resolve()}, which export only "
-            "reads; write the model outside it")
+            "reads; write outside it")
         assert not out.exists() and not (train_dataset / "new").exists()
     data = _dataset_copy(train_dataset, tmp_path / "data")
     (data / "dataset.json").unlink()  # a dataset without a manifest (the SPE3R release's)
@@ -455,7 +455,7 @@ def test_export_refuses_an_out_inside_a_dataset_folder(eval_checkpoint, train_da
     assert main(["export", "--checkpoint", str(eval_checkpoint), "--data", str(data),
                  "--out", str(out)]) == 2
     assert error_line(capsys).endswith(f"out {out}: inside the dataset folder {data}, which "
-                                       "export only reads; write the model outside it")
+                                       "export only reads; write outside it")
     assert not out.exists()
 
 

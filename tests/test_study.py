@@ -169,6 +169,12 @@ def test_bad_study_input_is_one_line(eval_checkpoint, train_dataset, tmp_path, c
                  str(eval_checkpoint), "--out", str(tmp_path / "o"),
                  "--set", "render.scene.sun.irradiance=-1"]) == 2
     assert "irradiance" in error_line(capsys)
+    inside = train_dataset / "study"  # its folders would be read as the library's models
+    assert main(["study", "illumination", "--models", str(train_dataset), "--checkpoint",
+                 str(eval_checkpoint), "--out", str(inside)]) == 2
+    assert error_line(capsys).endswith(f"out {inside}: inside the model library "
+                                       f"{train_dataset}; write the study outside it")
+    assert not inside.exists()
     # A mesh ranking among the study's one model: refused before the first render.
     assert main(["study", "illumination", "--models", str(train_dataset), "--checkpoint",
                  str(eval_checkpoint), "--out", str(tmp_path / "o"), "--poses", "1",

@@ -36,9 +36,10 @@ from typing import Any
 import torch
 
 from sq_mitsuba.config import in_range, validate
+from sq_mitsuba.data.spe3r.layout import check_outside_datasets
 from sq_mitsuba.inference.predictor import Predictor
 from sq_mitsuba.inputs import load_torch_file
-from sq_mitsuba.io import check_inputs_kept, check_output_folder, inside_folder
+from sq_mitsuba.io import check_inputs_kept, check_output_folder
 from sq_mitsuba.model.checkpoint import (
     FORMAT,
     VERSION,
@@ -167,24 +168,6 @@ def check_replaceable(out: Path) -> None:
                          f"(no 'source' record){keep}")
 
 
-def check_outside_datasets(out: Path, data_root: Path | None) -> None:
-    """Refuse an ``out`` inside ``data_root`` or inside any dataset folder (one holding a
-    ``dataset.json`` manifest): the file would become part of a dataset, which export only
-    reads (as ``eval`` and ``train`` refuse their outputs there).
-
-    Raises:
-        ValueError: ``out <out>: inside the dataset folder <folder> ...``.
-    """
-    from sq_mitsuba.data.spe3r.layout import MANIFEST
-
-    folders = [] if data_root is None or not inside_folder(out, data_root) else [data_root]
-    parent = out.parent.resolve()  # links followed, as inside_folder does
-    folders += [folder for folder in (parent, *parent.parents) if (folder / MANIFEST).is_file()]
-    if folders:
-        raise ValueError(f"out {out}: inside the dataset folder {folders[0]}, which export "
-                         "only reads; write the model outside it")
-
-
 def export_model(checkpoint: str | Path | Sequence[str | Path], data_root: str | Path | None,
                  out: str | Path, options: ExportOptions | None = None,
                  notes: list[str] | None = None, start: str | Path | None = None) -> Path:
@@ -215,7 +198,8 @@ def export_model(checkpoint: str | Path | Sequence[str | Path], data_root: str |
             of one network (a field, the
             camera or a weight named), ``out`` a folder, an existing ``out`` that is not an
             exported model (:func:`check_replaceable`: a training checkpoint, any other
-            file), ``out`` inside a dataset folder (:func:`check_outside_datasets`), a
+            file), ``out`` inside a dataset folder (:func:`~sq_mitsuba.data.spe3r.layout.
+            check_outside_datasets`), a
             dataset without training images
             (or whose training images or points cannot be read), or ``data_root`` given for
             one checkpoint that stores a baseline already (it would be replaced; without
@@ -241,7 +225,7 @@ def export_model(checkpoint: str | Path | Sequence[str | Path], data_root: str |
         raise ValueError(f"out {out}: is a folder; give the file to write (e.g. "
                          f"{out / 'model.pt'})")
     check_inputs_kept([*paths, *([Path(start)] if start is not None else [])], [out])
-    check_outside_datasets(out, None if data_root is None else Path(data_root))
+    check_outside_datasets(out, None if data_root is None else Path(data_root), "export")
     check_replaceable(out)
     payloads = [read_checkpoint(path) for path in paths]
     for path, payload in zip(paths, payloads, strict=True):

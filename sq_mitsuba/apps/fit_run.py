@@ -22,6 +22,7 @@ from typing import Any
 
 from sq_mitsuba.config import config_hash, to_dict, validate
 from sq_mitsuba.data.masks import check_not_folder, read_label_poses, read_masks
+from sq_mitsuba.data.spe3r.layout import check_outside_datasets
 from sq_mitsuba.evaluation.figures import plot_fit
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.rotation import quaternion_to_matrix
@@ -118,6 +119,7 @@ def run_fit(masks: Sequence[str | Path], poses: str | Path, out: str | Path,
     validate(options)
     mask_paths = [Path(p) for p in masks]
     poses = Path(poses)
+    check_outside_datasets(Path(out), None, "fit")  # its masks may be a dataset's
     out = check_output_folder(out, OUTPUT_FILES,
                               keep=[*mask_paths, poses, *([camera] if camera else [])])
     # Cheap checks first: files present, a label per mask; then the images are decoded.

@@ -285,7 +285,7 @@ def illumination_study(checkpoint: str | Path | None, models_dir: str | Path,
     )
     from sq_mitsuba.evaluation.split import check_predictor
     from sq_mitsuba.inference.loading import load_model, with_fast_path
-    from sq_mitsuba.io import check_output_folder
+    from sq_mitsuba.io import check_output_folder, inside_folder
     from sq_mitsuba.progress import progress_bar
 
     options = options or StudyOptions()
@@ -294,6 +294,9 @@ def illumination_study(checkpoint: str | Path | None, models_dir: str | Path,
     predictor = load_model(checkpoint)
     check_predictor(predictor)
     names = _choose_models(models_dir, options)
+    if inside_folder(out_dir, models_dir):  # its folders would be read as models next time
+        raise ValueError(f"out {out_dir}: inside the model library {models_dir}; write the "
+                         "study outside it")
     check_output_folder(out_dir)
     points = sweep_points(options.step)
     # Every scene override is checked before the first render.

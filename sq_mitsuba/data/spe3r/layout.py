@@ -178,6 +178,26 @@ def write_png(path: Path, array: np.ndarray) -> None:
         Image.fromarray(array, mode="L").save(tmp, format="PNG", optimize=False)
 
 
+def check_outside_datasets(out: Path, data_root: Path | None, command: str) -> None:
+    """Refuse an output ``out`` (a file or folder to write) inside ``data_root`` or inside any
+    dataset folder (one holding a ``dataset.json`` manifest): it would become part of a
+    dataset, which ``command`` only reads (as ``eval`` and ``train`` refuse their outputs
+    there, and ``dataset check`` would then flag it).
+
+    Raises:
+        ValueError: ``out <out>: inside the dataset folder <folder> ...``.
+    """
+    from sq_mitsuba.io import inside_folder
+
+    folders = [] if data_root is None or not inside_folder(out, data_root) else [data_root]
+    resolved = Path(out).resolve()  # links followed, as inside_folder does; out itself too
+    folders += [folder for folder in (resolved, *resolved.parents)
+                if (folder / MANIFEST).is_file()]
+    if folders:
+        raise ValueError(f"out {out}: inside the dataset folder {folders[0]}, which {command} "
+                         "only reads; write outside it")
+
+
 def write_exr(path: Path, channels: dict[str, np.ndarray]) -> None:
     """Float32 channels (H, W) into one OpenEXR file, atomically."""
     import OpenEXR
