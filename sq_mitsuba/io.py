@@ -78,13 +78,17 @@ def read_json(path: str | Path) -> Any:
 
     Raises:
         FileNotFoundError: ``path`` does not exist.
-        ValueError: ``"<path>: not valid JSON (<reason>, line <n>)"``, or not a regular file.
+        ValueError: ``"<path>: not valid JSON (<reason>, line <n>)"``, an empty file, or not a
+            regular file.
     """
     path = Path(path)
     if path.exists() and not path.is_file():  # a device or pipe could block, or never end
         raise ValueError(f"{path}: not a regular file (a folder, device, pipe or socket)")
     try:
-        return json.loads(path.read_text(encoding="utf-8"))
+        text = path.read_text(encoding="utf-8")
+        if not text.strip():  # json says "Expecting value": a file cut at its first write
+            raise ValueError(f"{path}: an empty file, not JSON")
+        return json.loads(text)
     except json.JSONDecodeError as error:
         raise ValueError(f"{path}: not valid JSON ({error.msg}, line {error.lineno})") from None
     except UnicodeDecodeError:

@@ -798,6 +798,7 @@ def test_quaternion_lists_are_normalised_and_bad_ones_are_one_line(tmp_path):
                                                               "got the text '1'"),
                           (json.dumps([unit, [1, 0, 0]]), "quaternion 1: expected [w, x, y, z]"),
                           ("[[1, 0, 0, 0], ", "not valid JSON"),
+                          ("", "an empty file, not JSON"), ("\n  \n", "an empty file"),
                           ("[" * 100_000 + "]" * 100_000, "nested too deeply")):
         path.write_text(text)
         with pytest.raises(ValueError, match=re.escape(message)) as info:
