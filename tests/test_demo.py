@@ -15,6 +15,7 @@ import math
 import os
 import re
 import shutil
+import socket
 import subprocess
 from html.parser import HTMLParser
 from pathlib import Path
@@ -461,13 +462,17 @@ def test_a_running_demos_temporary_folder_is_left_alone(tmp_path):
     out = tmp_path / "demo_output"
     dead = subprocess.Popen(["true"])
     dead.wait()
-    stale = tmp_path / f".demo_output.new.{dead.pid}.x1"
-    live = tmp_path / f".demo_output.new.{os.getpid()}.x2"
-    other = tmp_path / f".other.new.{dead.pid}.x3"
-    for path in (stale, live, other):
+    host = re.sub(r"[^A-Za-z0-9]", "_", socket.gethostname())
+    stale = tmp_path / f".demo_output.new.{host}-{dead.pid}.x1"
+    legacy = tmp_path / f".demo_output.new.{dead.pid}.x0"  # named before the host was
+    live = tmp_path / f".demo_output.new.{host}-{os.getpid()}.x2"
+    other = tmp_path / f".other.new.{host}-{dead.pid}.x3"
+    # Another machine sharing the disk: its process ids are not this machine's to probe.
+    elsewhere = tmp_path / f".demo_output.new.{host}x-{dead.pid}.x5"
+    for path in (stale, legacy, live, other, elsewhere):
         path.mkdir()
-    assert remove_stale_staging(out) == [stale]
-    assert not stale.exists() and live.is_dir() and other.is_dir()
+    assert sorted(remove_stale_staging(out)) == sorted([stale, legacy])
+    assert not stale.exists() and live.is_dir() and other.is_dir() and elsewhere.is_dir()
     # A name with glob characters is taken as it is (it matched nothing).
     bracketed = tmp_path / f".demo[1].new.{dead.pid}.x4"
     bracketed.mkdir()

@@ -38,12 +38,12 @@ Output folder (``out``)::
     train/                        with ``train``: its library, dataset and run folder
 
 Convention: the folder is replaced as a whole. Everything is written into a temporary folder
-beside ``out`` (``.<name>.new.<pid>.*``), which is renamed over it at the end, so a failed or
-interrupted run leaves the previous demo as it was; a run killed before it could delete its
-temporary folder leaves it behind, and the next demo into ``out`` deletes it. ``out`` must be
-absent, empty, or a previous demo (holding a ``demo.json`` a demo wrote, and nothing at its
-top that a demo does not write): the demo never deletes a folder it did not write. Nor may it
-be the working folder or one above it (checked before any work).
+beside ``out`` (``.<name>.new.<host>-<pid>.*``), which is renamed over it at the end, so a
+failed or interrupted run leaves the previous demo as it was; a run killed before it could
+delete its temporary folder leaves it behind, and the next demo into ``out`` deletes it.
+``out`` must be absent, empty, or a previous demo (holding a ``demo.json`` a demo wrote, and
+nothing at its top that a demo does not write): the demo never deletes a folder it did not
+write. Nor may it be the working folder or one above it (checked before any work).
 
 Convention: as in ``sq-mitsuba eval``, the network sees each image resized to its input size;
 refinement, the 2D IoU and the other metrics work at that size; the pictures of the page are
@@ -55,7 +55,9 @@ from __future__ import annotations
 import glob
 import math
 import os
+import re
 import shutil
+import socket
 import time
 import warnings
 from dataclasses import replace
@@ -174,8 +176,7 @@ def run_demo(options: DemoOptions | None = None, out_dir: str | Path = "demo_out
         check_predictor(predictor)
     out_dir.absolute().parent.mkdir(parents=True, exist_ok=True)
     remove_stale_staging(out_dir)
-    staging = staging_folder(f".{out_dir.name}.new.{os.getpid()}.",
-                             out_dir.absolute().parent)
+    staging = staging_folder(f".{out_dir.name}.new.{_run_tag()}.", out_dir.absolute().parent)
     try:
         result = _build(options, staging, predictor, training_config, progress, started)
         _swap(staging, out_dir)
@@ -189,14 +190,25 @@ def run_demo(options: DemoOptions | None = None, out_dir: str | Path = "demo_out
     return result
 
 
+def _run_tag() -> str:
+    """``<host>-<pid>`` of this process, the host's name made of letters, digits and '_': a
+    demo's temporary folders are named by it, since a process id alone is only this machine's
+    (another machine sharing the disk has its own, and may be running its demo there)."""
+    return f"{re.sub(r'[^A-Za-z0-9]', '_', socket.gethostname())}-{os.getpid()}"
+
+
 def remove_stale_staging(out_dir: Path) -> list[Path]:
     """Delete the temporary folders of earlier demos into ``out_dir`` whose process is gone
-    (killed before it could clean up: ``.<name>.new.<pid>.*`` beside ``out_dir``); a running
-    demo's folder stays. Returns the folders deleted."""
+    (killed before it could clean up: ``.<name>.new.<host>-<pid>.*`` beside ``out_dir``, or
+    ``.<name>.new.<pid>.*`` of a version before the host), this machine's only; a running
+    demo's folder stays, and another machine's. Returns the folders deleted."""
+    host = _run_tag().rpartition("-")[0]
     removed = []
     for path in out_dir.absolute().parent.glob(f".{glob.escape(out_dir.name)}.new.*.*"):
-        pid = path.name[len(f".{out_dir.name}.new."):].split(".")[0]
-        if pid.isdigit() and path.is_dir() and not process_alive(int(pid)):
+        tag = path.name[len(f".{out_dir.name}.new."):].split(".")[0]
+        owner, _, pid = tag.rpartition("-")
+        if owner in ("", host) and pid.isdigit() and path.is_dir() \
+                and not process_alive(int(pid)):
             shutil.rmtree(path, ignore_errors=True)
             removed.append(path)
     return removed
@@ -215,7 +227,7 @@ def _swap(staging: Path, out_dir: Path) -> None:
     place)."""
     old = None
     if out_dir.exists():
-        old = out_dir.absolute().parent / f".{out_dir.name}.old.{os.getpid()}"
+        old = out_dir.absolute().parent / f".{out_dir.name}.old.{_run_tag()}"
         if old.exists():
             shutil.rmtree(old)
         os.rename(out_dir, old)
