@@ -406,3 +406,17 @@ def test_material_tags_are_names_or_indices_and_an_unknown_one_is_refused():
                           (np.array(["gold_mli"] * 3), "one tag per face")):
         with pytest.raises(ValueError, match=message):
             SpaceScene(vertices, faces, tags, camera, config, spp=1)
+
+
+@pytest.mark.parametrize("text, said", [("", "an empty file, not JSON"),
+                                        ("[" * 100_000 + "]" * 100_000, "nested too deeply"),
+                                        ("[1, 2]", "expected an object of materials by tag"),
+                                        ('{"gold": {}}', "needs a 'default' material")])
+def test_a_bad_materials_file_is_one_line_naming_it(tmp_path, text, said):
+    """A deeply nested file ended as an internal error (the parser's RecursionError)."""
+    from sq_mitsuba.render.space import load_materials
+
+    path = tmp_path / "materials.json"
+    path.write_text(text)
+    with pytest.raises(ValueError, match=rf"^{re.escape(str(path))}: .*{re.escape(said)}"):
+        load_materials(path)

@@ -21,7 +21,6 @@ analytically; everything else, earthshine included, is path traced.
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass
 from functools import cache
@@ -141,8 +140,13 @@ def mask_samples(spp_at_256: int, camera: Camera) -> int:
 def load_materials(path: str | Path | None = None) -> dict[str, dict[str, Any]]:
     """BSDF dictionaries per material tag (comments, keys starting with ``_``, dropped), from
     ``path`` or the shipped ``scenes/materials.json``."""
+    from sq_mitsuba.io import read_json
+
     path = Path(path) if path is not None else scenes_dir() / "materials.json"
-    data = json.loads(Path(path).read_text(encoding="utf-8"))
+    data = read_json(path)  # malformed, empty or nested too deep: one line naming it
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: expected an object of materials by tag, got "
+                         f"{type(data).__name__}")
     if "default" not in data:
         raise ValueError(f"{path}: needs a 'default' material")
     return {k: v for k, v in data.items() if not k.startswith("_")}
