@@ -340,7 +340,8 @@ def check_quaternions(data: Any, count: int, what: str, where: str) -> list[list
         raise ValueError(f"{where}: expected a list of quaternions [w, x, y, z], got a "
                          f"{type(data).__name__}")
     if len(data) != count:
-        raise ValueError(f"{where}: {len(data)} quaternions for {count} {what}s (one per "
+        raise ValueError(f"{where}: {len(data)} quaternion{'' if len(data) == 1 else 's'} for "
+                         f"{count} {what}{'' if count == 1 else 's'} (one per "
                          f"{what}, in their order)")
     quaternions = []
     for index, entry in enumerate(data):

@@ -790,7 +790,7 @@ def test_quaternion_lists_are_normalised_and_bad_ones_are_one_line(tmp_path):
         read(tmp_path / "absent.json")
     unit = [1, 0, 0, 0]
     for text, message in ((json.dumps({"q": unit}), "got a dict"),
-                          (json.dumps([unit]), "1 quaternions for 2 images"),
+                          (json.dumps([unit]), "1 quaternion for 2 images"),
                           (json.dumps([unit, [1, 0, 0, 0.2]]), "quaternion 1: expected unit"),
                           ("[[1, 0, 0, 0], [Infinity, 0, 0, 0]]", "1: expected a finite"),
                           (json.dumps([unit, [True, 0, 0, 0]]), "quaternion 1: expected a finite"),

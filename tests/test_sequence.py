@@ -935,7 +935,7 @@ def test_predict_sequence_cli_fits_the_masks_it_is_given(eval_checkpoint, train_
     small = tmp_path / "small.png"
     Image.fromarray(np.pad(np.full((24, 24), 255, np.uint8), 4)).save(small)
     for given, expected in (([masks[0], empty], f"mask {empty}: empty"),
-                            ([masks[0]], "mask: 1 masks for 2 images"),
+                            ([masks[0]], "mask: 1 mask for 2 images"),
                             ([masks[0], small], f"mask {small}: 32 x 32 px, the frames are "
                                                 "64 x 64 px")):
         capsys.readouterr()

@@ -307,7 +307,8 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
     given_masks = None
     if mask_paths is not None:
         if len(mask_paths) != len(paths):
-            raise ValueError(f"mask: {len(mask_paths)} masks for {len(paths)} images (one per "
+            raise ValueError(f"mask: {len(mask_paths)} mask{'' if len(mask_paths) == 1 else 's'}"
+                             f" for {len(paths)} images (one per "
                              "frame, in their order)")
         given_masks = [read_mask(m) for m in mask_paths]
         for mask_path, mask in zip(mask_paths, given_masks, strict=True):
