@@ -170,6 +170,26 @@ def inside_folder(path: str | Path, folder: str | Path) -> bool:
     return resolved == root or root in resolved.parents
 
 
+def check_output_file(out: str | Path) -> Path:
+    """``out`` as a Path, if its folder is (or can be created as) a writable folder and
+    ``out`` is not a folder: checked before the work, so that a run does not render everything
+    and then fail naming the temporary file of its atomic write. The one-line ``ValueError``
+    of :func:`check_output_folder`, naming ``out`` as given rather than its
+    folder."""
+    out = Path(out)
+    try:
+        check_output_folder(out.parent, [out.name])
+    except ValueError as error:
+        message, prefix = str(error), f"out {out.parent}: "
+        if message.startswith(prefix):  # it names the folder: name the file given instead
+            reason = message[len(prefix):]
+            if reason.startswith("exists and is not a folder"):
+                reason = f"{out.parent} is a file, not a folder"
+            message = f"out {out}: {reason}"
+        raise ValueError(message) from None
+    return out
+
+
 def check_inputs_kept(inputs: list[Path], outputs: list[Path]) -> None:
     """Refuse a run that would overwrite one of its own inputs with one of its outputs (an
     image named like another's overlay, say): one line naming the input.

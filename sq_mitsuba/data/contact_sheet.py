@@ -10,7 +10,7 @@ import numpy as np
 
 from sq_mitsuba.config import in_range, validate
 from sq_mitsuba.data.mesh_io import SAMPLES_FILE, read_npz, read_tagged_obj
-from sq_mitsuba.io import atomic_path, check_output_folder
+from sq_mitsuba.io import atomic_path, check_output_file
 
 LABEL_HEIGHT = 14
 """Pixels under each tile for the model's name."""
@@ -75,26 +75,6 @@ def _check_samples(path: Path) -> None:
     is absent or an ``.npz`` archive whose ``face_material`` (if any) numpy reads."""
     if path.is_file():
         read_npz(path, ["face_material"])
-
-
-def check_output_file(out: str | Path) -> Path:
-    """``out`` as a Path, if its folder is (or can be created as) a writable folder and
-    ``out`` is not a folder: checked before the work, so that a run does not render everything
-    and then fail naming the temporary file of its atomic write. The one-line ``ValueError``
-    of :func:`~sq_mitsuba.io.check_output_folder`, naming ``out`` as given rather than its
-    folder."""
-    out = Path(out)
-    try:
-        check_output_folder(out.parent, [out.name])
-    except ValueError as error:
-        message, prefix = str(error), f"out {out.parent}: "
-        if message.startswith(prefix):  # it names the folder: name the file given instead
-            reason = message[len(prefix):]
-            if reason.startswith("exists and is not a folder"):
-                reason = f"{out.parent} is a file, not a folder"
-            message = f"out {out}: {reason}"
-        raise ValueError(message) from None
-    return out
 
 
 def contact_sheet(root: str | Path, options: ContactSheetOptions | None = None,

@@ -224,8 +224,8 @@ def write_group_tables(table: Sequence[dict[str, Any]], out_dir: Path, stem: str
 
 
 def _choose_models(models_dir: Path, options: StudyOptions) -> list[str]:
-    from sq_mitsuba.data.spe3r.layout import DatasetError, load_model, read_splits
-    from sq_mitsuba.data.spe3r.writer import find_models
+    from sq_mitsuba.data.spe3r.layout import DatasetError, read_splits
+    from sq_mitsuba.data.spe3r.writer import check_library_models, find_models
     from sq_mitsuba.evaluation.split import evenly
 
     names = find_models(models_dir)
@@ -238,8 +238,7 @@ def _choose_models(models_dir: Path, options: StudyOptions) -> list[str]:
     if not names:
         raise DatasetError(f"{models_dir}: no {options.split!r} models in splits.csv")
     chosen = [names[k] for k in evenly(len(names), options.max_models)]
-    for name in chosen:  # read in the library, before any work: a bad mesh is named there
-        load_model(models_dir / name)
+    check_library_models(models_dir, chosen)  # in the library, before any work: named there
     return chosen
 
 

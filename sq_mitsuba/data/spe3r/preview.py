@@ -10,7 +10,6 @@ import numpy as np
 import torch
 
 from sq_mitsuba.config import in_range, validate
-from sq_mitsuba.data.contact_sheet import check_output_file
 from sq_mitsuba.data.spe3r.check import check_dataset_root
 from sq_mitsuba.data.spe3r.layout import (
     IMAGES,
@@ -24,7 +23,7 @@ from sq_mitsuba.data.spe3r.layout import (
 )
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.rotation import quaternion_to_matrix
-from sq_mitsuba.io import save_figure
+from sq_mitsuba.io import check_output_file, save_figure
 
 
 @dataclass(frozen=True)

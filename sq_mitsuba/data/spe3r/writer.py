@@ -61,7 +61,6 @@ import numpy as np
 
 from sq_mitsuba.config import validate
 from sq_mitsuba.data.frames import sample_frame, sample_pass_frame
-from sq_mitsuba.data.mesh_io import read_npz
 from sq_mitsuba.data.spe3r.layout import (
     EXR,
     FAILURE_MARKS,
@@ -147,15 +146,9 @@ def check_library_models(models_dir: Path, models: Sequence[str]) -> None:
     """Read each model of the library as :func:`render_model` will (its mesh and materials,
     its points), so that a missing or damaged model is a one-line :class:`DatasetError`
     before any work rather than a failed model after the others' images (the check ``study
-    illumination`` makes of its models). The ``samples.npz`` is opened first by the shared
-    reader, whose message for a file that is no archive does not advise ``allow_pickle``."""
+    illumination`` makes of its models too). :func:`load_model` sizes ``samples.npz``'s
+    arrays from their headers and names a file that is no archive as such."""
     for model in models:
-        samples = models_dir / model / MODELS / SAMPLES_FILE
-        try:
-            if samples.is_file():
-                read_npz(samples, ["face_material"])
-        except ValueError as error:
-            raise DatasetError(str(error)) from None
         load_model(models_dir / model)
         check_model_points(models_dir / model)
 
