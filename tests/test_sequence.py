@@ -1144,3 +1144,14 @@ def test_the_printed_line_says_what_set_the_frames_rotations():
         "each frame's rotation from its own reading, its half turn chosen by the shape (frames "
         "whose outlines look alike may be half a turn apart: --ordered or "
         "--relative-rotations relate them)")
+
+
+@pytest.mark.parametrize("name, value", [("level", 6), ("level", -1), ("level", True),
+                                         ("overlay_spp", 0), ("overlay_spp", 1.5)])
+def test_a_pass_refuses_a_bad_level_or_overlay_samples_before_any_work(tmp_path, name, value):
+    from sq_mitsuba.apps.predict_sequence import predict_sequence_files
+
+    with pytest.raises(ValueError, match=rf"^{name}: expected an integer in "):
+        predict_sequence_files([tmp_path / "a.png", tmp_path / "b.png"], tmp_path / "out",
+                               None, **{name: value})
+    assert not (tmp_path / "out").exists()
