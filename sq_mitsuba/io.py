@@ -111,7 +111,8 @@ def save_figure(figure: Any, path: str | Path, dpi: int = 110) -> Path:
 
 
 def check_output_folder(out: str | Path, files: Sequence[str | Path] = (),
-                        keep: Sequence[str | Path] = ()) -> Path:
+                        keep: Sequence[str | Path] = (), shown: str | Path | None = None
+                        ) -> Path:
     """``out`` as a Path, if it is (or can be created as) a writable folder that can take the
     run's ``files`` without losing one of its inputs.
 
@@ -126,6 +127,8 @@ def check_output_folder(out: str | Path, files: Sequence[str | Path] = (),
             exists as a file, is refused now, not after the work.
         keep: the run's input files: one that ``files`` would overwrite is refused
             (:func:`check_inputs_kept`).
+        shown: the output named in the messages as ``out <shown>: ...`` (default ``out``;
+            :func:`check_output_file` names the file given, not its folder).
 
     Raises:
         ValueError: ``out`` or an ancestor is a file, the folder is not writable, an output
@@ -134,17 +137,19 @@ def check_output_folder(out: str | Path, files: Sequence[str | Path] = (),
     if not str(out).strip():  # Path("") is the working folder: never what was meant
         raise ValueError("out: an empty path; give an output folder")
     out = Path(out)
+    label = out if shown is None else shown
     if out.exists() and not out.is_dir():
-        raise ValueError(f"out {out}: exists and is not a folder")
+        raise ValueError(f"out {label}: exists and is not a folder" if shown is None
+                         else f"out {label}: {out} is a file, not a folder")
     existing = out
     while not existing.exists() and existing != existing.parent:
         existing = existing.parent
     if not existing.is_dir():
-        raise ValueError(f"out {out}: {existing} is a file, not a folder")
+        raise ValueError(f"out {label}: {existing} is a file, not a folder")
     try:
         fd, probe = tempfile.mkstemp(prefix=".sq-mitsuba-probe.", dir=existing)
     except OSError as error:
-        raise ValueError(f"out {out}: cannot write in {existing} "
+        raise ValueError(f"out {label}: cannot write in {existing} "
                          f"({error.strerror or type(error).__name__})") from None
     os.close(fd)
     with contextlib.suppress(FileNotFoundError):
@@ -177,16 +182,7 @@ def check_output_file(out: str | Path) -> Path:
     of :func:`check_output_folder`, naming ``out`` as given rather than its
     folder."""
     out = Path(out)
-    try:
-        check_output_folder(out.parent, [out.name])
-    except ValueError as error:
-        message, prefix = str(error), f"out {out.parent}: "
-        if message.startswith(prefix):  # it names the folder: name the file given instead
-            reason = message[len(prefix):]
-            if reason.startswith("exists and is not a folder"):
-                reason = f"{out.parent} is a file, not a folder"
-            message = f"out {out}: {reason}"
-        raise ValueError(message) from None
+    check_output_folder(out.parent, [out.name], shown=out)
     return out
 
 

@@ -250,6 +250,11 @@ def test_study_passes_cli_writes_the_tables_and_refuses_in_one_line(eval_checkpo
     assert len(rows) == 3 * 2 and len({r["model"] for r in rows}) == 1
     recorded = json.loads((out / "passes.json").read_text())
     assert recorded["options"]["sequence"]["steps"] == 2 and recorded["counts"] == [2]
+    # The timings, passes.json's alone: the timed methods, one pass's seconds (mean = median).
+    timed = {(t["frames"], t["method"]): t for t in recorded["seconds_per_frame"]}
+    assert list(timed) == [(2, "single"), (2, "sequence")]  # in the tables' order
+    assert all(0 < t["mean"] == t["median"] for t in timed.values())
+    assert "seconds" not in (out / "summary.csv").read_text() + (out / "per_frame.csv").read_text()
     capsys.readouterr()
     assert main(["study", "passes", "--data", str(pass_dataset), "--checkpoint",
                  str(eval_checkpoint), "--out", str(tmp_path / "long"), "--counts", "9",
@@ -361,7 +366,8 @@ def test_an_interrupted_pass_study_takes_up_where_it_stopped(eval_checkpoint, pa
         evaluate_passes(load_model(eval_checkpoint), pass_dataset, out, options,
                         progress=False)
     assert sequences == [2]  # the second pass alone
-    assert _scores(out) == _scores(whole)
+    for name in ("per_frame.csv", "summary.csv", "summary.md"):  # no timing in them
+        assert (out / name).read_bytes() == (whole / name).read_bytes(), name
     assert not (out / PARTIAL).exists()
     # A pass's kept rows that cannot be read, or a partial run of other settings: discarded,
     # with a warning, and the run starts afresh (stopped in its first pass here: a fresh
@@ -392,12 +398,6 @@ def test_an_interrupted_pass_study_takes_up_where_it_stopped(eval_checkpoint, pa
         assert len(sequences) == 1, cause  # the first pass began: nothing was taken as done
         assert (folder / PARTIAL / "run.json").read_text() == identity, cause
         assert not list((folder / PARTIAL).glob("*__*.json")), cause
-
-
-def _scores(folder):
-    """per_frame.csv's rows but for their timings (a run's own clock)."""
-    return [{k: v for k, v in row.items() if k != "seconds_per_frame"}
-            for row in _rows(folder / "per_frame.csv")]
 
 
 def test_a_pass_dataset_opens_at_its_own_resolution(pass_dataset):

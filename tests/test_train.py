@@ -810,6 +810,12 @@ def test_unwritable_out_is_refused_before_work(tmp_path, capsys, train_dataset):
                      capsys)
     assert code == 2 and err.count("\n") == 1
     assert f"data.cache_dir: {blocker / 'cache'}:" in err and not (tmp_path / "run").exists()
+    code, err = _cli(["train", "--config", str(TINY), "--data", str(train_dataset), "--out",
+                      str(tmp_path / "run"), "--set", f"data.cache_dir={inside / 'cache'}"],
+                     capsys)  # the caches would join the dataset
+    assert code == 2 and err.count("\n") == 1 and not (tmp_path / "run").exists()
+    assert f"data.cache_dir: {inside / 'cache'}: inside the dataset folder" in err
+    assert not inside.exists()
 
 
 def test_visibility_threshold_filters_training_images(train_dataset, cache_dir, tmp_path,

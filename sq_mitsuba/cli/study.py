@@ -91,16 +91,17 @@ frame ("network"), each frame alone through the search and refinement ("single",
 Each row also holds the error of the rotation between consecutive frames. Frames are read
 and scored at the dataset's own resolution.
 
-Outputs in --out: per_frame.csv, summary.{csv,md} (mean ± std and median per N and method,
-seconds per frame), quality_vs_frames.png (body- and camera-frame Chamfer, 2D IoU, folded and
-relative rotation against N) and passes.json. A rerun into the same --out takes up where an
-interrupted one stopped (the passes scored already, with the same settings, weights and data,
-are read back from --out/.passes_partial). With --no-ordered a dataset of independent images
-(`dataset render` without --pass-frames) is scored too, each model's images as one unordered
-set of views in their order. A dataset of independent images without --no-ordered, a pass
-shorter than the largest N, an --out inside --data or one another run writes into is a
-one-line error before any work (exit code 2). Settings through --set, e.g. --set sequence.steps=80
---set sequence.motion=free --set refinement.steps=10."""
+Outputs in --out: per_frame.csv, summary.{csv,md} (mean ± std and median per N and method),
+quality_vs_frames.png (body- and camera-frame Chamfer, 2D IoU, folded and relative rotation
+against N) and passes.json (the settings and the seconds per frame: the tables hold no timing,
+so that two runs of the same settings write them alike). A rerun into the same --out takes up
+where an interrupted one stopped (the passes scored already, with the same settings, weights
+and data, are read back from --out/.passes_partial). With --no-ordered a dataset of independent
+images (`dataset render` without --pass-frames) is scored too, each model's images as one
+unordered set of views in their order. A dataset of independent images without --no-ordered, a
+pass shorter than the largest N, an --out inside --data or one another run writes into is a
+one-line error before any work (exit code 2). Settings through --set, e.g. --set
+sequence.steps=80 --set sequence.motion=free --set refinement.steps=10."""
 
 #: PassOptions fields exposed as options; the rest are reachable through --set.
 PASS_FLAGS = {"split": "--split", "counts": "--counts", "passes": "--passes",

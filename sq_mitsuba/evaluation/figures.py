@@ -358,3 +358,45 @@ def plot_illumination(table: Sequence[dict], path: str | Path,
                     "a method, each 4 deg to the right of the one before)", fontsize=9)
     figure.tight_layout(rect=(0, 0.04 + 0.02 * math.ceil(len(labels) / 4), 1, 1))
     return save_figure(figure, path)
+
+
+def plot_quality_vs_frames(summary: dict[tuple[int, str], dict[str, tuple[float, ...]]],
+                           counts: Sequence[int], path: str | Path, passes: int,
+                           panels: Sequence[tuple[str, str, str]],
+                           methods: Sequence[str]) -> Path:
+    """Quality against the number of frames N of a pass study: one panel per metric, one line
+    per method.
+
+    Args:
+        summary: {(N, method): {metric: (mean, std, median)}}.
+        counts: the N scored (the x axis, log 2).
+        passes: how many passes the figures come from (the title's).
+        panels: (metric, title, statistic) per panel; statistic "mean" or "median".
+        methods: the methods drawn, in the legend's order ("network", "single", "sequence"
+            have their colours; another is drawn in the cycle's).
+    """
+    from sq_mitsuba.io import save_figure
+
+    plt = _pyplot()
+    colours = {"network": "tab:gray", "single": "tab:red", "sequence": "tab:blue"}
+    figure, axes = plt.subplots(1, len(panels), figsize=(3.3 * len(panels), 3.2),
+                                squeeze=False)
+    for axis, (name, title, statistic) in zip(axes[0], panels, strict=True):
+        which = 2 if statistic == "median" else 0
+        for method in methods:
+            shown = [c for c in counts if (c, method) in summary
+                     and math.isfinite(summary[(c, method)][name][which])]
+            if shown:
+                axis.plot(shown, [summary[(c, method)][name][which] for c in shown], "o-",
+                          color=colours.get(method), label=method)
+        axis.set_xscale("log", base=2)
+        axis.set_xticks(list(counts), [str(c) for c in counts])
+        axis.set_xlabel("frames N")
+        axis.set_title(f"{title}, {statistic}", fontsize=9)
+        axis.grid(alpha=0.3)
+    axes[0, 0].legend(fontsize=8)
+    figure.suptitle(f"One assembly from the first N frames of each of {passes} pass(es) "
+                    "against those frames alone (every line scores the same N frames)",
+                    fontsize=10)
+    figure.tight_layout()
+    return save_figure(figure, path)

@@ -23,11 +23,15 @@ Files written to the output folder (each atomically, ``passes.json`` last: it ma
 evaluation):
 
 - ``per_frame.csv``: one row per pass, N, method and frame;
-- ``summary.csv`` / ``summary.md``: mean, std and median of every metric per N and method, the
-  seconds per frame beside them;
+- ``summary.csv`` / ``summary.md``: mean, std and median of every metric per N and method;
 - ``quality_vs_frames.png``: body-frame Chamfer-L1, camera-frame Chamfer, 2D IoU, folded
   rotation and relative rotation against N, one line per method;
-- ``passes.json``: settings, checkpoint, the passes scored and the time taken.
+- ``passes.json``: settings, checkpoint, the passes scored, the time taken and the seconds
+  per frame of each method per N (mean and median over the passes).
+
+Convention: the timings are this machine's and this run's, so they stay in ``passes.json``
+alone (as ``sq-mitsuba eval`` keeps its own in ``eval.json``): two runs of the same settings,
+weights and data write the three tables byte for byte alike, a resumed run's included.
 
 A rerun into the same folder takes up where an interrupted one stopped: each pass's rows are
 kept in ``.passes_partial/`` (with the run's identity: the options, the network's weights,
@@ -119,8 +123,9 @@ class PassResult:
     """What :func:`evaluate_passes` did.
 
     Attributes:
-        rows: one dict per pass, N, method and frame (the ``per_frame.csv`` rows).
-        summary: {(N, method): {metric: (mean, std, median)}}.
+        rows: one dict per pass, N, method and frame (the ``per_frame.csv`` rows, with the
+            seconds per frame of the row's method on its pass).
+        summary: {(N, method): {metric: (mean, std, median)}}, the timings aside.
         passes: the passes scored, as ``model/pass`` names.
         out_dir: output folder; files: the files written.
     """
@@ -130,6 +135,8 @@ class PassResult:
     passes: list[str]
     out_dir: Path
     files: list[Path]
+    seconds: dict[tuple[int, str], tuple[float, float]] = field(default_factory=dict)
+    "{(N, method): (mean, median) seconds per frame over the passes} (``single``, ``sequence``)."
 
     def describe(self) -> str:
         """A few lines: the main figures per N and method."""
@@ -137,7 +144,9 @@ class PassResult:
         for (count, method), stats in sorted(self.summary.items()):
             lines.append(f"  N={count} {method}: " + ", ".join(
                 f"{name} {stats[name][2 if how == 'median' else 0]:.3f}{' (m)' * (how == 'median')}"
-                for name, _, how in PLOTTED if name in stats))
+                for name, _, how in PLOTTED if name in stats)
+                + (f", {self.seconds[(count, method)][1]:.2f} s a frame (m)"
+                   if (count, method) in self.seconds else ""))
         lines.append(f"wrote {len(self.files)} files to {self.out_dir}")
         return "\n".join(lines)
 
@@ -383,15 +392,33 @@ def _evaluate_passes(predictor: Any, dataset: Any, groups: dict[tuple[int, int],
             atomic_write_text(kept, json.dumps(rows[first_row:]))
             bar.update()
     summary, files = _write_outputs(rows, out_dir, counts, len(groups))
+    seconds = _seconds_per_frame(rows)
     atomic_write_json(out_dir / "passes.json", {
         "data": str(dataset.root), "split": options.split, "passes": names,
         "counts": counts, "resolution": dataset.image_size,
         "label": label if label is not None else default_label(predictor),
         "checkpoint": str(getattr(predictor, "source", None) or ""),
-        "options": to_dict(options), "wall_seconds": round(time.perf_counter() - started, 3)})
+        "options": to_dict(options), "wall_seconds": round(time.perf_counter() - started, 3),
+        "seconds_per_frame": [{"frames": count, "method": method, "mean": round(mean, 4),
+                               "median": round(median, 4)}
+                              for (count, method), (mean, median) in seconds.items()]})
     files.append(out_dir / "passes.json")
     shutil.rmtree(out_dir / PARTIAL, ignore_errors=True)
-    return PassResult(rows, summary, names, out_dir, files)
+    return PassResult(rows, summary, names, out_dir, files, seconds)
+
+
+def _seconds_per_frame(rows: list[dict[str, Any]]) -> dict[tuple[int, str], tuple[float, float]]:
+    """{(N, method): (mean, median)} of the seconds per frame over the passes, one value a
+    pass (every frame row of a pass carries its pass's), for the methods that are timed."""
+    per_pass: dict[tuple[int, str], dict[tuple[str, Any], float]] = {}
+    for row in rows:
+        if math.isfinite(row["seconds_per_frame"]):
+            per_pass.setdefault((row["frames"], row["method"]), {})[
+                (row["model"], row["pass"])] = row["seconds_per_frame"]
+    return {key: (float(np.mean(list(values.values()))),
+                  float(np.median(list(values.values()))))
+            for key, values in sorted(per_pass.items(),
+                                      key=lambda item: (item[0][0], METHODS.index(item[0][1])))}
 
 
 def _partial_passes(out_dir: Path, predictor: Any, data_root: Path,
@@ -431,7 +458,7 @@ def _write_outputs(rows: list[dict[str, Any]], out_dir: Path, counts: list[int],
     from sq_mitsuba.evaluation.tables import csv_text, markdown_table, summarise
     from sq_mitsuba.io import atomic_write_text
 
-    metrics = (*METRICS, "relative_rotation_deg", "seconds_per_frame")
+    metrics = (*METRICS, "relative_rotation_deg")  # the timings: passes.json's alone
     header = ["model", "pass", "frames", "method", "frame", *metrics]
     atomic_write_text(out_dir / "per_frame.csv", csv_text(header, [
         ["" if isinstance(r[c], float) and not math.isfinite(r[c]) else r[c] for c in header]
@@ -444,7 +471,7 @@ def _write_outputs(rows: list[dict[str, Any]], out_dir: Path, counts: list[int],
         ["frames", "method", "metric", "mean", "std", "median", "frames_scored"],
         [[*key, metric, *summary[key][metric], frames[key]] for key in order
          for metric in metrics]))
-    shown = [name for name, _, _ in PLOTTED] + ["seconds_per_frame"]
+    shown = [name for name, _, _ in PLOTTED]
     atomic_write_text(out_dir / "summary.md", (
         f"Mean ± std (median) per number of frames N and method, over the frames of {passes} "
         "pass(es); every metric is in summary.csv.\n\n"
@@ -455,45 +482,16 @@ def _write_outputs(rows: list[dict[str, Any]], out_dir: Path, counts: list[int],
         "the search and refinement; sequence: one assembly and N poses "
         "(predict_sequence). Rotations in degrees; relative rotation: between consecutive "
         "frames.\n"))
-    figure_path = _plot(summary, counts, out_dir / "quality_vs_frames.png", passes)
+    from sq_mitsuba.evaluation.figures import plot_quality_vs_frames
+
+    figure_path = plot_quality_vs_frames(summary, counts, out_dir / "quality_vs_frames.png",
+                                         passes, PLOTTED, METHODS)
     return summary, [out_dir / name for name in OUTPUT_FILES[:3]] + [figure_path]
 
 
 def _stats(stats: tuple[float, ...]) -> str:
-    """``mean ± std (median)``, or a dash where the method has no value (the network's
-    seconds, frame 0's relative rotation)."""
+    """``mean ± std (median)``, or a dash where the method has no value (frame 0's relative
+    rotation, alone)."""
     from sq_mitsuba.evaluation.tables import format_stats
 
     return format_stats(*stats) if math.isfinite(stats[0]) else "–"
-
-
-def _plot(summary: dict[tuple[int, str], dict[str, tuple[float, ...]]], counts: list[int],
-          path: Path, passes: int) -> Path:
-    """Each :data:`PLOTTED` metric against N, one line per method."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from sq_mitsuba.io import save_figure
-
-    colours = {"network": "tab:gray", "single": "tab:red", "sequence": "tab:blue"}
-    figure, axes = plt.subplots(1, len(PLOTTED), figsize=(3.3 * len(PLOTTED), 3.2))
-    for axis, (name, title, statistic) in zip(axes, PLOTTED, strict=True):
-        which = 2 if statistic == "median" else 0
-        for method in METHODS:
-            shown = [c for c in counts if (c, method) in summary
-                     and math.isfinite(summary[(c, method)][name][which])]
-            if shown:
-                axis.plot(shown, [summary[(c, method)][name][which] for c in shown], "o-",
-                          color=colours[method], label=method)
-        axis.set_xscale("log", base=2)
-        axis.set_xticks(counts, [str(c) for c in counts])
-        axis.set_xlabel("frames N")
-        axis.set_title(f"{title}, {statistic}", fontsize=9)
-        axis.grid(alpha=0.3)
-    axes[0].legend(fontsize=8)
-    figure.suptitle(f"One assembly from the first N frames of each of {passes} pass(es) "
-                    "against those frames alone (every line scores the same N frames)", fontsize=10)
-    figure.tight_layout()
-    return save_figure(figure, path)

@@ -191,7 +191,7 @@ def _train(config: TrainConfig | None, data_root: Path, out_dir: Path, resume: b
     if config.network.in_channels != 1:  # the caches decode and the stream serves grey images
         raise TrainError(f"network.in_channels: {config.network.in_channels}: training feeds "
                          "one-channel (grey) images only; expected 1")
-    check_cache_dir(config.data.cache_dir)
+    check_cache_dir(config.data.cache_dir, data_root)
     # The fingerprint first: a point cache already built for it spares reading every model's
     # points again (open_datasets). A dataset it cannot be taken of gets open_datasets' error.
     try:

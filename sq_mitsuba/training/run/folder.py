@@ -105,11 +105,16 @@ def _holds_a_run_config(path: Path) -> bool:
     return isinstance(config, dict) and {"network", "optim"} <= set(config)
 
 
-def check_cache_dir(cache_dir: Path | None) -> None:
-    """Refuse (one line naming the field) a ``data.cache_dir`` that cannot be written."""
+def check_cache_dir(cache_dir: Path | None, data_root: Path | None = None) -> None:
+    """Refuse (one line naming the field) a ``data.cache_dir`` that cannot be written, or one
+    inside ``data_root`` or any other dataset folder (its caches would become part of a
+    dataset that training only reads, and ``dataset check`` would flag them)."""
+    from sq_mitsuba.data.spe3r.layout import check_outside_datasets
+
     if cache_dir is not None:
         try:
             check_output_folder(cache_dir)
+            check_outside_datasets(cache_dir, data_root, "training")
         except ValueError as error:
             raise TrainError(f"data.cache_dir: {str(error).removeprefix('out ')}") from None
 
