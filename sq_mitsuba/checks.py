@@ -87,6 +87,8 @@ def check_tensor(
     """
     if not isinstance(value, torch.Tensor):
         raise ValueError(f"{name}: expected a torch.Tensor, got {type(value).__name__}")
+    if value.is_meta:  # its value checks failed inside torch ("Tensor.item() ... meta")
+        raise ValueError(f"{name}: a meta tensor (a shape without values); give its values")
     needed = len(trailing) if min_dims is None else min_dims
     # A dimension of any size is N (then M, ...): "(..., N, 3)", points of 3 coordinates.
     sizes = iter("NMKL")

@@ -311,6 +311,9 @@ def _plural(tp: Any) -> str:
 
 
 def _type_error(where: str, tp: Any, value: Any, suffix: str = "") -> ConfigError:
+    if not suffix and type(value).__module__ == "numpy" and hasattr(value, "item"):
+        # A config is written out as TOML and JSON, which hold Python's numbers, not numpy's.
+        suffix = f" (numpy's: give {type(value.item()).__name__}(...))"
     error = ConfigError(_at(where, f"expected {_expected(tp)}, got {_show(value)}{suffix}"))
     error._type_mismatch = (where, suffix)  # type: ignore[attr-defined]  # see _convert
     return error

@@ -23,6 +23,7 @@ import numpy as np
 from sq_mitsuba.data.mesh_io import SAMPLES_FILE, TaggedMesh, glb_bytes, obj_text
 from sq_mitsuba.data.solids import (
     FUSION_RESOLUTION,
+    MIN_FUSION_RESOLUTION,
     MeshError,
     as_manifold,
     center_of_mass,
@@ -227,6 +228,10 @@ def process_mesh(mesh: TaggedMesh, method: str = "auto", align: str = "axes",
     (``x_model = s R (x - c) + t = s R x + (t - s R c)``). Generated models, built about
     the origin, are processed as they are, bit for bit as before.
     """
+    if isinstance(resolution, bool) or not isinstance(resolution, int | np.integer) \
+            or resolution < MIN_FUSION_RESOLUTION:  # -5 failed as a reshape deep inside
+        raise ValueError(f"resolution: expected an integer >= {MIN_FUSION_RESOLUTION}, got "
+                         f"{resolution!r}")
     centre = np.zeros(3)
     if recentre and len(mesh.vertices):
         centre = (mesh.vertices.min(axis=0) + mesh.vertices.max(axis=0)) / 2

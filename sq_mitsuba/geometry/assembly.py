@@ -35,7 +35,7 @@ import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
-from sq_mitsuba.checks import check_rotations, check_tensor, value_checks_enabled
+from sq_mitsuba.checks import check_rotations, check_tensor, value_checks, value_checks_enabled
 from sq_mitsuba.geometry.icosphere import icosphere_angles, icosphere_faces
 from sq_mitsuba.geometry.rotation import (
     degenerate_6d,
@@ -66,7 +66,9 @@ FIELDS: dict[str, slice] = {
 JSON_FORMAT = "sq_mitsuba.geometry.assembly"
 JSON_VERSION = 1
 MESH_SUFFIXES = (".obj", ".ply", ".glb", ".gltf", ".stl")
-_DTYPES = {"float32": torch.float32, "float64": torch.float64}
+#: The dtypes a description names (load refused the float16 files save wrote); exact in JSON.
+_DTYPES = {"float16": torch.float16, "bfloat16": torch.bfloat16, "float32": torch.float32,
+           "float64": torch.float64}
 
 
 @dataclass(frozen=True)
@@ -96,8 +98,9 @@ class Assembly:
 
     def __init__(self, params: Tensor):
         check_tensor("params", params, (None, NUM_PARAMS), min_dims=3)
-        if params.dim() != 3:
-            raise ValueError(f"params: expected shape (B, M, 16), got {tuple(params.shape)}")
+        if params.dim() != 3 or params.shape[1] == 0:  # M = 0 failed later, inside torch
+            raise ValueError(f"params: expected shape (B, M, 16) with M >= 1 primitives, got "
+                             f"{tuple(params.shape)}")
         self.params = params
         if not value_checks_enabled():  # each check below waits for a GPU: hot loops skip them
             return
@@ -344,11 +347,24 @@ class Assembly:
         offset = (linear @ self.translation[..., None]).squeeze(-1)
         return _AssemblyInsideOutside.apply(points, linear, offset, self.taper, g1, alpha)
 
-    def occupancy(self, points: Tensor, sharpness: float = 10.0) -> Tensor:
-        """Per-primitive soft occupancy g = sigmoid(s (1 - f)) (paper Eq. 14): (B, M, N)."""
+    def occupancy(self, points: Tensor, sharpness: float | Tensor = 10.0) -> Tensor:
+        """Per-primitive soft occupancy g = sigmoid(s (1 - f)) (paper Eq. 14): (B, M, N).
+
+        ``sharpness`` s: a finite number > 0 or a 0-d floating tensor of one (its value a
+        value check); NaN gave NaN and a negative s swapped inside and outside."""
+        if isinstance(sharpness, Tensor):
+            if sharpness.dim() != 0 or not sharpness.is_floating_point():
+                raise ValueError(f"sharpness: expected a finite number > 0, got a tensor of "
+                                 f"shape {tuple(sharpness.shape)} {sharpness.dtype}")
+            bad = value_checks_enabled() and not bool(torch.isfinite(sharpness) & (sharpness > 0))
+        else:
+            bad = isinstance(sharpness, bool) or not isinstance(sharpness, numbers.Real) \
+                or not (math.isfinite(sharpness) and sharpness > 0)
+        if bad:
+            raise ValueError(f"sharpness: expected a finite number > 0, got {sharpness!r}")
         return torch.sigmoid(sharpness * (1.0 - self.inside_outside(points)))
 
-    def union_occupancy(self, points: Tensor, sharpness: float = 10.0) -> Tensor:
+    def union_occupancy(self, points: Tensor, sharpness: float | Tensor = 10.0) -> Tensor:
         """Occupancy of the union: max over primitives of :meth:`occupancy`, (B, N)."""
         return self.occupancy(points, sharpness).amax(dim=1)
 
@@ -449,8 +465,18 @@ class Assembly:
 
         Raises:
             IndexError: naming ``item`` outside the batch.
+            ValueError: ``params: ...`` for what :meth:`from_dict` would refuse (NaN, a size
+                not positive, ...: possible under value_checks(False)), checked either way.
         """
-        values = self.params[self._item(item)].detach().cpu()
+        index, dtype = self._item(item), self.params.dtype
+        values = self.params[index].detach().cpu()
+        # What from_dict refuses is refused here, before save writes a file (checks on or off).
+        if dtype not in _DTYPES.values():
+            raise ValueError(f"params: {dtype} cannot be saved (one of {', '.join(_DTYPES)})")
+        if not bool(torch.isfinite(values).all()):
+            raise ValueError(f"params: item {index} contains NaN or infinite values")
+        with value_checks(True):
+            Assembly(values[None])  # the constructor's range checks
         primitives = [
             {name: [float(v) for v in row[columns]] for name, columns in FIELDS.items()}
             for row in values
@@ -458,7 +484,7 @@ class Assembly:
         return {
             "format": JSON_FORMAT,
             "version": JSON_VERSION,
-            "dtype": str(self.params.dtype).removeprefix("torch."),
+            "dtype": str(dtype).removeprefix("torch."),
             "conventions": {
                 "size": "semi-axes (a1, a2, a3) of the primitive, in its own frame",
                 "rotation_6d": "the first two rows r1, r2 of the primitive-to-assembly rotation "

@@ -16,6 +16,8 @@ import functools
 import numpy as np
 import torch
 
+from sq_mitsuba.checks import python_scalar
+
 __all__ = ["icosphere", "icosphere_angles", "icosphere_faces"]
 
 MAX_LEVEL = 7
@@ -60,15 +62,28 @@ def _subdivide(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.
     return np.concatenate([vertices, midpoints]), new_faces
 
 
-@functools.cache
+def _checked_level(level: object) -> int:
+    """``level`` as an int in [0, MAX_LEVEL] (a numpy integer as Python's), else one line.
+
+    Checked before any cache is read: ``True == 1`` and ``hash(True) == hash(1)``, so a bool
+    would find level 1's entry and pass for it."""
+    level = python_scalar(level)
+    if isinstance(level, bool) or not isinstance(level, int) or not 0 <= level <= MAX_LEVEL:
+        raise ValueError(f"level: expected an int in [0, {MAX_LEVEL}], got {level!r}")
+    return level
+
+
 def icosphere(level: int = 3) -> tuple[np.ndarray, np.ndarray]:
     """Unit icosphere subdivided ``level`` times.
 
     Returns:
         vertices (V, 3) float64 and faces (F, 3) int64, read-only arrays.
     """
-    if not isinstance(level, int) or not 0 <= level <= MAX_LEVEL:
-        raise ValueError(f"level: expected an int in [0, {MAX_LEVEL}], got {level!r}")
+    return _icosphere(_checked_level(level))
+
+
+@functools.cache
+def _icosphere(level: int) -> tuple[np.ndarray, np.ndarray]:
     vertices, faces = _icosahedron()
     for _ in range(level):
         vertices, faces = _subdivide(vertices, faces)
@@ -80,7 +95,7 @@ def icosphere(level: int = 3) -> tuple[np.ndarray, np.ndarray]:
 
 @functools.cache
 def _angles_numpy(level: int) -> tuple[np.ndarray, np.ndarray]:
-    vertices, _ = icosphere(level)
+    vertices, _ = _icosphere(level)
     eta = np.arcsin(np.clip(vertices[:, 2], -1.0, 1.0))
     omega = np.arctan2(vertices[:, 1], vertices[:, 0])
     return eta, omega
@@ -100,11 +115,17 @@ def icosphere_angles(
     """(eta, omega) of the icosphere's vertices as tensors (V,): copies of tensors cached per
     level, dtype and device (on a GPU a copy there, not a transfer; the cached tensors
     themselves were returned before, and one in-place edit changed every later call's)."""
-    eta, omega = _angles_tensors(level, dtype, device)
+    eta, omega = _angles_tensors(_checked_level(level), dtype, device)
     return eta.clone(), omega.clone()
 
 
-@functools.cache
 def icosphere_faces(level: int = 3, device: str | torch.device = "cpu") -> torch.Tensor:
-    """Faces (F, 3) int64 of the icosphere as a tensor, cached per device."""
-    return torch.tensor(icosphere(level)[1], device=device)
+    """Faces (F, 3) int64 of the icosphere as a tensor: a copy of one cached per level and
+    device, as :func:`icosphere_angles` (the cached tensor itself was returned before, and a
+    caller's in-place edit of ``Assembly.meshes()``'s faces turned every later mesh)."""
+    return _faces_tensor(_checked_level(level), device).clone()
+
+
+@functools.cache
+def _faces_tensor(level: int, device: str | torch.device) -> torch.Tensor:
+    return torch.tensor(_icosphere(level)[1], device=device)

@@ -42,12 +42,21 @@ def check_rotation_exact(camera: Camera) -> None:
                          "switch the rotation off for this camera")
 
 
+def _check_angles(angles: Tensor, count: int | None = None) -> None:
+    """``angles`` (count,) floating (any count when None); a (2, 2) came back as 4 turns."""
+    check_tensor("angles", angles, (None,))
+    if angles.dim() != 1 or (count is not None and len(angles) != count):
+        raise ValueError(f"angles: expected shape ({'B' if count is None else count},), got "
+                         f"{tuple(angles.shape)}")
+
+
 def z_rotation(angles: Tensor) -> Tensor:
     """Rotations (B, 3, 3) by ``angles`` (B,) radians about the camera's optical axis z.
 
     ``Rz @ (x, y, z) = (cos x - sin y, sin x + cos y, z)``: in the image (x right, y down) a
     positive angle turns content clockwise.
     """
+    _check_angles(angles)
     c, s = torch.cos(angles), torch.sin(angles)
     zero, one = torch.zeros_like(angles), torch.ones_like(angles)
     return torch.stack([c, -s, zero, s, c, zero, zero, zero, one], dim=-1).reshape(-1, 3, 3)
@@ -59,8 +68,15 @@ def rotate_batch(images: Tensor, angles: Tensor) -> Tensor:
 
     The output at pixel offset p samples the input at ``Rz^-1 p``. With ``align_corners=False``
     the normalised grid's origin is the continuous centre (S / 2, S / 2) and both axes share one
-    scale on a square image, so the rotation is the same in normalised coordinates.
+    scale on a square image, so the rotation is the same in normalised coordinates (on
+    another it is not a turn: refused).
     """
+    # Logits may be infinite (turned_back_mask's): shapes and dtypes only.
+    check_tensor("images", images, (None, None, None, None), finite=False)
+    if images.dim() != 4 or images.shape[-1] != images.shape[-2]:
+        raise ValueError(f"images: expected square images (B, C, S, S), got "
+                         f"{tuple(images.shape)}")
+    _check_angles(angles, images.shape[0])
     c, s = torch.cos(angles), torch.sin(angles)
     zero = torch.zeros_like(angles)
     # Inverse rotation [[c, s], [-s, c]] (grid_sample maps output to input positions).

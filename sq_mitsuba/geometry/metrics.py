@@ -22,13 +22,15 @@ carry no gradient (the training loss lives in :mod:`sq_mitsuba.model.losses`).
 
 from __future__ import annotations
 
+import math
+import numbers
 from typing import Literal, NamedTuple
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from sq_mitsuba.checks import check_nonzero, check_same_shape, check_tensor
+from sq_mitsuba.checks import check_nonzero, check_rotations, check_same_shape, check_tensor
 from sq_mitsuba.geometry.nearest import nearest_neighbours
 from sq_mitsuba.geometry.pose import transform_points
 from sq_mitsuba.geometry.rotation import quaternion_angle, rotation_angle
@@ -133,6 +135,8 @@ def camera_frame_chamfer(pred_points: Tensor, pred_rotation: Tensor, pred_transl
         if value.dim() != len(trailing) + 1:  # an unbatched (3, 3) read as a batch of 3
             raise ValueError(f"{name}: expected (B, {', '.join(map(str, trailing))}), got "
                              f"{tuple(value.shape)}")
+    check_rotations("pred_rotation", pred_rotation)  # a scaled "rotation" scales the points
+    check_rotations("gt_rotation", gt_rotation)
     check_nonzero("gt_translation", gt_translation)
     batch = {name: value.shape[0] for name, value in (
         ("pred_points", pred_points), ("pred_rotation", pred_rotation),
@@ -150,7 +154,13 @@ def camera_frame_chamfer(pred_points: Tensor, pred_rotation: Tensor, pred_transl
 def mask_iou(prediction: Tensor, target: Tensor, threshold: float = 0.5) -> Tensor:
     """2D IoU (...,) of images (..., H, W) thresholded at ``threshold`` (an empty union gives
     1): the predicted silhouette against the mask, of one shape (no broadcasting: a (B, H, W)
-    against a (B, 1, H, W) would score every pair)."""
+    against a (B, 1, H, W) would score every pair). NaN (values or ``threshold``) is refused:
+    NaN > threshold is False, so a NaN image scored as an empty one, IoU 1."""
+    check_tensor("prediction", prediction, (None, None), floating=False)
+    check_tensor("target", target, (None, None), floating=False)
+    if isinstance(threshold, bool) or not isinstance(threshold, numbers.Real) \
+            or not math.isfinite(threshold):
+        raise ValueError(f"threshold: expected a finite number, got {threshold!r}")
     if prediction.shape != target.shape:
         raise ValueError(f"prediction, target: expected equal shapes (..., H, W), got "
                          f"{tuple(prediction.shape)} and {tuple(target.shape)}")
@@ -163,7 +173,9 @@ def mask_iou(prediction: Tensor, target: Tensor, threshold: float = 0.5) -> Tens
 def volumetric_iou(pred_inside: Tensor, gt_inside: Tensor) -> Tensor:
     """3D IoU (B,) from labelled points: pred_inside, gt_inside (B, N) bool (or occupancy
     probabilities, thresholded at 0.5). Uniform points in a box around the model estimate
-    the volume IoU; an empty union gives 1."""
+    the volume IoU; an empty union gives 1 (NaN is refused: it scored as outside)."""
+    check_tensor("pred_inside", pred_inside, floating=False)
+    check_tensor("gt_inside", gt_inside, floating=False)
     if pred_inside.shape != gt_inside.shape or pred_inside.dim() != 2:
         raise ValueError(f"pred_inside, gt_inside: expected equal shapes (B, N), got "
                          f"{tuple(pred_inside.shape)} and {tuple(gt_inside.shape)}")
@@ -187,12 +199,22 @@ def rotation_error_deg(pred_rotation: Tensor, gt_rotation: Tensor,
     check_tensor("pred_rotation", pred_rotation, (3, 3), min_dims=3)
     check_tensor("gt_rotation", gt_rotation, (3, 3), min_dims=3)
     check_same_shape(pred_rotation=pred_rotation, gt_rotation=gt_rotation)
+    # The angle formula reads any matrix: -I gave 180 deg, 2 I gave 0 (a value check; one
+    # batched product and determinant, cheap beside the evaluation around it).
+    check_rotations("pred_rotation", pred_rotation)
+    check_rotations("gt_rotation", gt_rotation)
     if symmetries is None:
         return rotation_angle_deg(pred_rotation, gt_rotation)
     check_tensor("symmetries", symmetries, (3, 3), min_dims=3)
     if pred_rotation.dim() != 3:  # (B, T, 3, 3) would pair T with S instead of the min over S
         raise ValueError(f"pred_rotation: expected (B, 3, 3) with symmetries, got "
                          f"{tuple(pred_rotation.shape)}")
+    batch = pred_rotation.shape[0]
+    if symmetries.dim() > 4 or symmetries.shape[-3] == 0 or (
+            symmetries.dim() == 4 and symmetries.shape[0] != batch):
+        raise ValueError(f"symmetries: expected (S, 3, 3) or ({batch}, S, 3, 3) with S >= 1, "
+                         f"got {tuple(symmetries.shape)}")
+    check_rotations("symmetries", symmetries.reshape(-1, 3, 3))
     candidates = gt_rotation[:, None] @ symmetries.to(gt_rotation.dtype)
     return rotation_angle_deg(pred_rotation[:, None], candidates).amin(dim=1)
 

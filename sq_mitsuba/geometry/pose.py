@@ -11,7 +11,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from sq_mitsuba.checks import check_tensor
+from sq_mitsuba.checks import check_rotations, check_tensor
 
 __all__ = ["compose_poses", "invert_pose", "relative_pose", "transform_points"]
 
@@ -55,8 +55,13 @@ def transform_points(points: Tensor, rotation: Tensor, translation: Tensor) -> T
 def invert_pose(rotation: Tensor, translation: Tensor) -> tuple[Tensor, Tensor]:
     """The inverse pose ``(R^T, -R^T t)`` (..., 3, 3), (..., 3), in the wider of the inputs'
     dtypes: it maps back what ``(R, t)`` maps (``R`` must be a rotation; its transpose is
-    taken as its inverse)."""
+    taken as its inverse, so anything else is refused: a value check)."""
     _check_pose(rotation, translation)
+    check_rotations("rotation", rotation.reshape(-1, 3, 3))  # 2 I gave (2 I, -2 t)
+    return _inverse(rotation, translation)
+
+
+def _inverse(rotation: Tensor, translation: Tensor) -> tuple[Tensor, Tensor]:
     dtype = torch.promote_types(rotation.dtype, translation.dtype)  # the wider of the two
     inverse = rotation.to(dtype).transpose(-1, -2)
     return inverse, -(inverse @ translation.to(dtype)[..., None])[..., 0]
@@ -83,5 +88,9 @@ def relative_pose(rotation_a: Tensor, translation_a: Tensor, rotation_b: Tensor,
     """The pose that maps frame ``a``'s output into ``b``'s: ``b after inverse(a)``, so that
     ``compose_poses(*relative_pose(a, b), *a) == b``. For two images' labels (body to camera)
     it maps the first camera's points into the second's: the camera's motion relative to the
-    target between the frames."""
-    return compose_poses(rotation_b, translation_b, *invert_pose(rotation_a, translation_a))
+    target between the frames. Both rotations must be rotations (a value check)."""
+    _check_pose(rotation_a, translation_a, "a: ")
+    _check_pose(rotation_b, translation_b, "b: ")
+    check_rotations("a: rotation", rotation_a.reshape(-1, 3, 3))
+    check_rotations("b: rotation", rotation_b.reshape(-1, 3, 3))
+    return compose_poses(rotation_b, translation_b, *_inverse(rotation_a, translation_a))

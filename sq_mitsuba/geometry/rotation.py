@@ -28,6 +28,7 @@ from sq_mitsuba.checks import (
     check_nonzero,
     check_rotations,
     check_tensor,
+    python_scalar,
     value_checks_enabled,
 )
 
@@ -107,8 +108,16 @@ def quaternion_to_matrix(quaternion: Tensor) -> Tensor:
     """
     check_tensor("quaternion", quaternion, (4,))
     check_nonzero("quaternion", quaternion)
-    w, x, y, z = quaternion.unbind(-1)
-    two_s = 2.0 / (quaternion * quaternion).sum(-1)
+    # |q|^2 of a non-zero q under- or overflowed (float32 below about 1e-19 and above 1e19)
+    # and gave NaN: such a q is divided by its largest |component| first (|q|^2 then in
+    # [1, 4]); any other keeps its own values, so that its matrix is the same to the last bit.
+    eps = torch.finfo(quaternion.dtype).eps if quaternion.is_floating_point() else 1e-7
+    squared = (quaternion * quaternion).sum(-1, keepdim=True)
+    extreme = (squared < eps) | (squared > 1 / eps) | ~torch.isfinite(squared)
+    scaled = torch.where(extreme, quaternion / quaternion.abs().amax(-1, keepdim=True),
+                         quaternion)
+    w, x, y, z = scaled.unbind(-1)
+    two_s = 2.0 / (scaled * scaled).sum(-1)
     rows = (
         1 - two_s * (y * y + z * z), two_s * (x * y - z * w), two_s * (x * z + y * w),
         two_s * (x * y + z * w), 1 - two_s * (x * x + z * z), two_s * (y * z - x * w),
@@ -161,6 +170,11 @@ def matrix_to_quaternion(matrix: Tensor) -> Tensor:
     return torch.where(quaternion[..., :1] < 0, -quaternion, quaternion)
 
 
+def _check_float_dtype(dtype: object) -> None:
+    if not isinstance(dtype, torch.dtype) or not dtype.is_floating_point:
+        raise ValueError(f"dtype: expected a floating-point dtype, got {dtype}")
+
+
 def random_quaternions(
     n: int,
     generator: torch.Generator | None = None,
@@ -168,8 +182,10 @@ def random_quaternions(
     device: torch.device | str = "cpu",
 ) -> Tensor:
     """Unit quaternions (n, 4), uniform on SO(3) (Shoemake's subgroup algorithm), w >= 0."""
-    if n < 0:
-        raise ValueError(f"n: expected a non-negative count, got {n}")
+    n = python_scalar(n)
+    if isinstance(n, bool) or not isinstance(n, int) or n < 0:
+        raise ValueError(f"n: expected a non-negative count, got {n!r}")
+    _check_float_dtype(dtype)  # an integer dtype rounded every component to 0
     u = torch.rand(n, 3, generator=generator, dtype=torch.float64,
                    device=generator.device if generator is not None else device)
     r1, r2 = torch.sqrt(1.0 - u[:, 0]), torch.sqrt(u[:, 0])
@@ -187,8 +203,7 @@ def random_rotations(
     device: torch.device | str = "cpu",
 ) -> Tensor:
     """Rotation matrices (n, 3, 3), uniform on SO(3) (Shoemake's subgroup algorithm)."""
-    if not dtype.is_floating_point:
-        raise ValueError(f"dtype: expected a floating-point dtype, got {dtype}")
+    _check_float_dtype(dtype)
     return quaternion_to_matrix(random_quaternions(n, generator, torch.float64, device)).to(
         dtype)
 
@@ -270,13 +285,25 @@ def mean_rotation(rotations: Tensor) -> Tensor:
     if rotations.dim() != 3 or rotations.shape[0] == 0:
         raise ValueError(f"rotations: expected (N, 3, 3) with N >= 1, got "
                          f"{tuple(rotations.shape)}")
+    check_rotations("rotations", rotations)  # zeros or a reflection came back as a rotation
     return _nearest_rotation(rotations.double().mean(0))
 
 
 def axis_angle_to_matrix(rotation_vector: Tensor) -> Tensor:
     """Rotation vectors (..., 3) (axis times angle, radians) -> rotation matrices (..., 3, 3),
-    by the exponential of their skew-symmetric matrices (differentiable, exact at 0)."""
+    by the exponential of their skew-symmetric matrices (differentiable, exact at 0).
+
+    An angle beyond pi is first wrapped into [-pi, pi] about the same axis (the same rotation):
+    the exponential of a large skew matrix loses accuracy (float32: 4e-4 at 1000 rad, not
+    orthonormal at 1e5) and overflows to NaN (1e10 rad; float64 1e20)."""
     w = check_tensor("rotation_vector", rotation_vector, (3,))
+    # The angle in float64: a float32 norm overflows above 1e19; sin and cos reduce a huge
+    # angle exactly. Angles up to pi keep w itself (factor 1), bit for bit.
+    angle = torch.linalg.vector_norm(w.double(), dim=-1, keepdim=True)
+    wide = angle > math.pi
+    safe = torch.where(wide, angle, torch.ones_like(angle))  # no 0 / 0 in either branch
+    factor = torch.where(wide, torch.atan2(torch.sin(safe), torch.cos(safe)) / safe, 1.0)
+    w = w * factor.to(w.dtype)
     zero = torch.zeros_like(w[..., 0])
     skew = torch.stack([torch.stack([zero, -w[..., 2], w[..., 1]], -1),
                         torch.stack([w[..., 2], zero, -w[..., 0]], -1),

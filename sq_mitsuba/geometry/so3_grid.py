@@ -23,6 +23,7 @@ import math
 import torch
 from torch import Tensor
 
+from sq_mitsuba.checks import check_rotations, check_tensor, python_scalar
 from sq_mitsuba.geometry.rotation import quaternion_to_matrix
 
 __all__ = [
@@ -48,14 +49,22 @@ _PHI = math.sqrt(2.0)
 _PSI = 1.533751168755204288118041
 
 
+def _checked_count(count: object) -> int:
+    """``count`` as a positive int (a numpy integer as Python's); a bool is refused, not
+    read as 1 (``so3_grid(True)`` built a one-cell grid)."""
+    count = python_scalar(count)
+    if isinstance(count, bool) or not isinstance(count, int) or count < 1:
+        raise ValueError(f"count: expected a positive integer, got {count!r}")
+    return count
+
+
 def super_fibonacci_quaternions(count: int, dtype: torch.dtype = torch.float64) -> Tensor:
     """``count`` near-uniform unit quaternions (count, 4), scalar first, w >= 0.
 
     Raises:
-        ValueError: ``count`` < 1.
+        ValueError: ``count`` not a positive integer.
     """
-    if not isinstance(count, int) or count < 1:
-        raise ValueError(f"count: expected a positive integer, got {count!r}")
+    count = _checked_count(count)
     s = torch.arange(count, dtype=torch.float64) + 0.5
     radius = torch.sqrt(s / count)
     complement = torch.sqrt(1.0 - s / count)
@@ -81,8 +90,7 @@ def covering_angle_deg(count: int) -> float:
     tiled SO(3) as balls. Measured nearest-cell angles of uniform random rotations have a
     median close to 0.8 of it and a maximum near 1.4-1.5 times it.
     """
-    if count < 1:
-        raise ValueError(f"count: expected a positive integer, got {count!r}")
+    count = _checked_count(count)
     target = math.pi / count  # (theta - sin theta) = pi * volume fraction
     low, high = 0.0, math.pi
     for _ in range(60):  # bisection on the monotone theta - sin theta
@@ -104,10 +112,18 @@ def nearest_grid_index(rotations: Tensor, grid: Tensor) -> Tensor:
     Returns:
         (...) int64 indices into ``grid``. The relative angle grows as ``trace(G^T R)``
         falls, so the nearest cell maximises that trace.
+
+    Raises:
+        ValueError: naming the argument: another shape, an empty grid, or matrices that are
+            not rotations (a value check: NaN read as cell 0, and the trace ranks only
+            rotations by angle).
     """
-    if rotations.shape[-2:] != (3, 3) or grid.dim() != 3 or grid.shape[-2:] != (3, 3):
-        raise ValueError(f"expected rotations (..., 3, 3) and grid (N, 3, 3), got "
-                         f"{tuple(rotations.shape)} and {tuple(grid.shape)}")
+    check_tensor("rotations", rotations, (3, 3))
+    check_tensor("grid", grid, (None, 3, 3))
+    if grid.dim() != 3 or grid.shape[0] == 0:
+        raise ValueError(f"grid: expected (N, 3, 3) with N >= 1, got {tuple(grid.shape)}")
+    check_rotations("rotations", rotations.reshape(-1, 3, 3))
+    check_rotations("grid", grid)
     flat = rotations.reshape(-1, 9).to(grid.dtype)
     traces = flat @ grid.reshape(-1, 9).T  # (P, N): trace(G^T R) = sum(G * R)
     return traces.argmax(dim=-1).reshape(rotations.shape[:-2])

@@ -203,6 +203,19 @@ def resize_masks(masks: Tensor, height: int, width: int) -> Tensor:
     return F.interpolate(masks, size=(height, width), mode=mode)[:, 0].clamp(0, 1)
 
 
+def _binary_masks(masks: Tensor) -> Tensor:
+    """Masks as the fit reads them: floats checked to lie in [0, 1] (a 0-255 mask would
+    weigh each pixel 255 times, and its area mean when resized would widen it), integers
+    read as non-zero (as ``predict(mask=...)`` reads them), bools as they are."""
+    if masks.is_floating_point():
+        low, high = (float(masks.amin()), float(masks.amax())) if masks.numel() else (0, 0)
+        if low < 0.0 or high > 1.0:
+            raise ValueError(f"masks: float values must lie in [0, 1], got [{low:.4g}, "
+                             f"{high:.4g}]")
+        return masks
+    return masks if masks.dtype == torch.bool else masks != 0
+
+
 def fit_assembly(
     masks: Tensor,
     camera: Camera,
@@ -219,7 +232,8 @@ def fit_assembly(
     poses.
 
     Args:
-        masks: (V, H, W) masks of V views (bool or float in [0, 1]) at ``camera``'s resolution.
+        masks: (V, H, W) masks of V views (bool, float in [0, 1], or integers read as
+            non-zero) at ``camera``'s resolution.
         camera: intrinsics of the masks (rescaled internally to ``options.resolution`` pixels
             wide).
         rotations: (V, 3, 3) body-to-camera rotations; translations: (V, 3), OpenCV frame:
@@ -247,9 +261,16 @@ def fit_assembly(
         raise TypeError(f"fit_assembly: unknown option(s) {', '.join(unknown)}")
     options = dataclasses.replace(options, **overrides)
     validate(options)
+    if not isinstance(camera, Camera):
+        raise ValueError(f"camera: expected a Camera (the masks' intrinsics), got "
+                         f"{type(camera).__name__}")
+    if callback is not None and not callable(callback):
+        raise ValueError(f"callback: expected a function of (step, loss, coverage), got "
+                         f"{type(callback).__name__}")
     check_tensor("masks", masks, (None, None), min_dims=3, floating=False)
     if masks.dim() != 3 or masks.shape[0] < 1:
         raise ValueError(f"masks: expected shape (V, H, W), got {tuple(masks.shape)}")
+    masks = _binary_masks(masks)
     if tuple(masks.shape[1:]) != (camera.height, camera.width):
         raise ValueError(f"masks: size {tuple(masks.shape[1:])} differs from the camera's "
                          f"{(camera.height, camera.width)} (height, width)")

@@ -101,7 +101,7 @@ def box_primitive(points: Tensor, thickness: float, shape: float = 0.2,
     """One primitive's parameters (16,) spanning ``points`` (P, 3): the box along their
     principal axes (exponents ``shape``), each semi-axis at least ``thickness``; sizes and
     position clamped into ``ranges``."""
-    ranges = ranges or ParameterRanges()
+    ranges = ranges if ranges is not None else ParameterRanges()
     centre = points.mean(0)
     if len(points) > 2:
         _, _, vectors = torch.linalg.svd(points - centre, full_matrices=False)

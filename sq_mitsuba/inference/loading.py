@@ -5,9 +5,11 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Any
 
 import torch
 
+from sq_mitsuba.checks import python_scalar
 from sq_mitsuba.inference.images import DEFAULT_MIN_TARGET, check_min_target
 from sq_mitsuba.inference.predictor import DEFAULT_MIN_EXISTENCE, Predictor
 from sq_mitsuba.model import checkpoint
@@ -47,6 +49,15 @@ def check_device(device: str | torch.device) -> torch.device:
     return parsed
 
 
+def _switch(name: str, value: Any) -> bool:
+    """``value`` as a bool (numpy's too); a one-line ValueError naming ``name`` for anything
+    else (``fast='yes'`` was taken as true, ``fast=0.0`` as false)."""
+    value = python_scalar(value)
+    if not isinstance(value, bool):
+        raise ValueError(f"{name}: expected True or False, got {value!r}")
+    return value
+
+
 def load_model(path: str | os.PathLike[str] | None = None, *, fast: bool = False,
                traced: bool = False, device: str | torch.device = "cpu",
                min_target: float = DEFAULT_MIN_TARGET,
@@ -74,6 +85,8 @@ def load_model(path: str | os.PathLike[str] | None = None, *, fast: bool = False
     if isinstance(path, str | os.PathLike) and not os.fspath(path):
         raise ValueError("path: empty; give a checkpoint file, or None for the model shipped "
                          "with sq_mitsuba")
+    fast, traced = (_switch(name, value) for name, value in (("fast", fast),
+                                                              ("traced", traced)))
     if traced and not fast:
         raise ValueError("traced: traces the folded network of the fast path; give fast=True "
                          "too")

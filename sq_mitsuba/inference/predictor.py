@@ -56,13 +56,14 @@ from sq_mitsuba.geometry.rotation import matrix_to_quaternion
 from sq_mitsuba.inference.images import (
     DEFAULT_MIN_TARGET,
     camera_for,
+    check_camera,
     check_min_target,
     prepare_images,
     resize_images,
     target_scores,
 )
 from sq_mitsuba.inference.prediction import Fit, MaskChoice, Prediction, SequencePrediction
-from sq_mitsuba.inference.traced import TracedNetwork
+from sq_mitsuba.inference.traced import RUN_CHUNK, TracedNetwork, run_in_chunks
 from sq_mitsuba.inference.turned_copies import (
     hypotheses_from_logits,
     reading_from_turns,
@@ -343,8 +344,9 @@ class Predictor:
         dtype, and the camera of the given images."""
         x = prepare_images(images, self.model.config.in_channels)
         height, width = x.shape[-2:]
-        try:
-            camera = camera_for(self.camera if camera is None else camera, width, height)
+        try:  # a user's camera checked first (the predictor's own was when it was loaded)
+            camera = camera_for(self.camera if camera is None else check_camera(camera),
+                                width, height)
         except ValueError:
             if camera is not None:
                 raise
@@ -457,7 +459,10 @@ class Predictor:
                 f"({side / 2:g}, {side / 2:g}) there: use turns=1 (predict --turns 1)") from None
 
     def _run(self, x: Tensor, matrix: Tensor) -> NetworkOutput:
-        """The network (eager, or the traced fast path) on prepared images, in eval mode."""
+        """The network (eager, or a fast path) on prepared images, in eval mode; more than
+        ``RUN_CHUNK`` of them in chunks (:func:`~sq_mitsuba.inference.traced.run_in_chunks`)."""
+        if x.shape[0] > RUN_CHUNK:
+            return run_in_chunks(self._run, x, matrix, RUN_CHUNK)
         network = self.model
         if self._traced is not None:
             with torch.inference_mode():
@@ -466,14 +471,11 @@ class Predictor:
             with torch.inference_mode():
                 return self._folded(x, matrix)
         was_training = network.training
-        if was_training:
-            network.eval()
         try:
             with torch.inference_mode():
-                return network(x, matrix)
+                return network.eval()(x, matrix)
         finally:
-            if was_training:
-                network.train()
+            network.train(was_training)
 
     def _with_turns(self, x: _Prepared, prediction: Prediction, turns: int) -> Prediction:
         """``prediction`` (the unturned pass on ``x``) read again from ``turns`` in-plane

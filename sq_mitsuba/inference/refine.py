@@ -154,7 +154,7 @@ class RefineResult:
 def raw_from_assembly(assembly: Assembly, ranges: ParameterRanges | None = None) -> Tensor:
     """Raw parameters (B, M, 16) whose :meth:`Assembly.from_raw` gives ``assembly`` back
     (values on the edge of a range are pulled inside by a relative 1e-4)."""
-    ranges = ranges or ParameterRanges()
+    ranges = ranges if ranges is not None else ParameterRanges()
     params = assembly.params.detach()
 
     def logit(x: Tensor) -> Tensor:
@@ -225,7 +225,7 @@ def refine_pose_and_shape(assembly: Assembly, rotation: Tensor, translation: Ten
         render_assembly_loss,
     )
 
-    options = options or RefineOptions()
+    options = options if options is not None else RefineOptions()
     validate(options)
     if shared and options.seen_sizes:  # seen_sizes scales per view, a shared shape has one
         raise ValueError("options.seen_sizes: not with a shared shape (shared=True)")

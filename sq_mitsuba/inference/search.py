@@ -332,7 +332,7 @@ def search_poses(assembly: Assembly, candidates: Tensor, translation: Tensor, ma
     Raises:
         ValueError: naming the argument (see :func:`check_search_inputs`).
     """
-    options = options or SearchOptions()
+    options = options if options is not None else SearchOptions()
     validate(options)
     check_search_inputs(assembly, candidates, translation, masks, camera)
     renderers = renderers or SearchRenderers(camera, options)
@@ -463,8 +463,8 @@ def search_and_refine(assembly: Assembly, rotation: Tensor, translation: Tensor,
             :func:`check_search_inputs` (mask size, empty mask, NaN hypotheses, K = 0).
     """
     started = time.perf_counter()
-    search = search or SearchOptions()
-    refine = refine or SEARCH_REFINEMENT
+    search = search if search is not None else SearchOptions()  # {} is no default
+    refine = refine if refine is not None else SEARCH_REFINEMENT
     validate(search)
     validate(refine)
     candidates = pose_candidates(rotation, hypotheses, search.grid)  # checks the hypotheses

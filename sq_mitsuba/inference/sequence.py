@@ -304,8 +304,7 @@ def choose_start(readings: Assembly, rotation: Tensor, translation: Tensor, targ
     scored = [_scores(Assembly(c), rotation, translation, targets, renderer, level)
               for c in candidates]
     means = torch.tensor([float(score.mean()) for score, _ in scored], dtype=torch.float64)
-    best = int(means.argmax())
-    return Assembly(candidates[best]), scored[best][1], means
+    return Assembly(candidates[int(means.argmax())]), scored[int(means.argmax())][1], means
 
 
 def _check_relative(relative_rotations: Any, count: int) -> Tensor | None:
@@ -313,10 +312,12 @@ def _check_relative(relative_rotations: Any, count: int) -> Tensor | None:
         return None
     if isinstance(relative_rotations, np.ndarray):
         relative_rotations = array_to_tensor(relative_rotations)
-    if not isinstance(relative_rotations, Tensor) or relative_rotations.shape != (count, 3, 3):
+    if not isinstance(relative_rotations, Tensor) or relative_rotations.shape != (count, 3, 3) \
+            or relative_rotations.is_complex():  # .double() would drop imaginary parts
         shape = tuple(getattr(relative_rotations, "shape", ()))
-        raise ValueError(f"relative_rotations: expected ({count}, 3, 3) (one per frame), got "
-                         f"{shape or type(relative_rotations).__name__}")
+        raise ValueError(f"relative_rotations: expected ({count}, 3, 3) real (one per frame), "
+                         f"got {shape or type(relative_rotations).__name__} "
+                         f"{getattr(relative_rotations, 'dtype', '')}".rstrip())
     relative = relative_rotations.detach().double().cpu()
     check_rotations("relative_rotations", relative)
     return relative
@@ -384,7 +385,6 @@ def predict_sequence(predictor: Any, images: Tensor | np.ndarray, camera: Camera
 def _frames(predictor: Any, checked: Tensor, network: Prediction, camera: Camera | None,
             mask: Any, search: Any, refinement: Any) -> Prediction:
     """Each frame's own search and refinement, after refusing a frame without a target."""
-    count = checked.shape[0]
     if mask is not None and not isinstance(mask, str):  # the user's masks: before any search
         empty = [k for k, kept in enumerate(masks_to_fit(network, checked, mask)[1]) if not kept]
         if empty:
@@ -396,9 +396,9 @@ def _frames(predictor: Any, checked: Tensor, network: Prediction, camera: Camera
                          f"{float(network.target_score[k]):.2f}); leave it out of the sequence, "
                          "or give the frames' masks (predict_sequence's mask, predict --mask)")
     frames = predictor.refine(checked, network, camera, mask=mask,
-                              search=search or FRAMES_SEARCH,
-                              refinement=refinement or FRAMES_REFINEMENT)
-    empty = [k for k in range(count) if not bool(frames.fit.fitted[k])]
+                              search=FRAMES_SEARCH if search is None else search,
+                              refinement=FRAMES_REFINEMENT if refinement is None else refinement)
+    empty = [k for k in range(checked.shape[0]) if not bool(frames.fit.fitted[k])]
     if empty:
         raise ValueError(f"images: frame {empty[0]} has no target in its mask "
                          f"({frames.fit.mask_source}); leave it out of the sequence, or give "

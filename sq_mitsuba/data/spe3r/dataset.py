@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import operator
 import warnings
 from pathlib import Path
 from typing import Any
@@ -10,6 +11,7 @@ import numpy as np
 import torch
 from PIL import Image
 
+from sq_mitsuba.checks import python_scalar
 from sq_mitsuba.data.spe3r.layout import (
     IMAGES,
     MANIFEST,
@@ -88,6 +90,9 @@ class Spe3rDataset(torch.utils.data.Dataset):
                             ("num_surface", num_surface), ("num_occupancy", num_occupancy)):
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"{name}: expected a positive integer, got {value!r}")
+        seed = python_scalar(seed)  # item i draws its points with seed + i: numpy's, >= 0
+        if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+            raise ValueError(f"seed: expected an integer >= 0, got {seed!r}")
         self.root = Path(root)
         for required in ("camera.json", "splits.csv"):
             if not (self.root / required).is_file():
@@ -141,6 +146,18 @@ class Spe3rDataset(torch.utils.data.Dataset):
 
     def __len__(self) -> int:
         return len(self.items)
+
+    def _item(self, item: Any) -> int:
+        """``item`` as an index into :attr:`items` (an integer of any kind, negative from the
+        end, as a list's); a one-line IndexError naming it when there is no such item."""
+        try:
+            index = operator.index(item)  # int, numpy integers, one-element integer tensors
+        except TypeError:
+            raise TypeError(f"item: expected an integer, got {type(item).__name__}") from None
+        if not -len(self.items) <= index < len(self.items):
+            raise IndexError(f"item: {index} out of range for the {len(self.items)} items of "
+                             f"{self.root}")
+        return index % len(self.items)
 
     def _image_path(self, model: str, folder: str, filename: str) -> Path:
         path = find_image(self.root, model, folder, filename)
@@ -197,12 +214,14 @@ class Spe3rDataset(torch.utils.data.Dataset):
 
     def image_file(self, item: int) -> Path:
         """The file of ``item``'s image (``images/<filename>``, whatever its extension)."""
+        item = self._item(item)
         model_index, _, label = self.items[item]
         return self._image_path(self.models[model_index], IMAGES, label["filename"])
 
     def read_pair(self, item: int) -> tuple[np.ndarray, np.ndarray]:
         """Image and mask (H, W) uint8 of ``item`` at their stored size, decoded completely;
         a mask of another size than its image is a DatasetError naming the mask."""
+        item = self._item(item)
         model_index, _, label = self.items[item]
         model = self.models[model_index]
         image_path = self._image_path(model, IMAGES, label["filename"])
@@ -223,6 +242,7 @@ class Spe3rDataset(torch.utils.data.Dataset):
     def pixel_item(self, item: int) -> dict[str, Any]:
         """The item of :meth:`__getitem__` without its model's points: image, mask, pose,
         camera and names (what a cache of images keeps; the model's points are not read)."""
+        item = self._item(item)
         model_index, index, label = self.items[item]
         size = self.image_size
         image, mask = self.read_pair(item)
@@ -244,6 +264,7 @@ class Spe3rDataset(torch.utils.data.Dataset):
         }
 
     def __getitem__(self, item: int) -> dict[str, Any]:
+        item = self._item(item)
         sample = self.pixel_item(item)
         points = self.model_points(sample["model_index"])
         rng = np.random.default_rng(self.seed + item)
