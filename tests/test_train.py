@@ -354,6 +354,29 @@ def test_sigkill_then_resume_repeats_the_uninterrupted_run(train_dataset, cache_
             assert row[key] == expected[key], (row["step"], key, row[key], expected[key])
 
 
+def test_a_resume_on_another_torch_thread_count_is_warned(reference_run):
+    """The steps' matrix products sum by thread (a run resumed on 1 thread left one trained on
+    2 from the first step after the resume): the checkpoint records the count, and a resume
+    under another says the steps will not repeat bit for bit."""
+    import warnings
+
+    from sq_mitsuba.training.run.folder import read_resumed
+
+    threads = torch.get_num_threads()
+    assert _read_checkpoint(reference_run / "last.pt")["torch_threads"] == threads
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        read_resumed(reference_run)  # the same count: nothing said
+    torch.set_num_threads(threads + 1)
+    try:
+        with pytest.warns(UserWarning, match=rf"trained with {threads} torch thread\(s\), this "
+                                             rf"process has {threads + 1}: .* "
+                                             rf"\(OMP_NUM_THREADS={threads} would\)$"):
+            read_resumed(reference_run)
+    finally:
+        torch.set_num_threads(threads)
+
+
 @pytest.fixture(scope="module")
 def long_reference(train_dataset, cache_dir,
                    tmp_path_factory) -> Callable[[int], list[dict[str, str]]]:

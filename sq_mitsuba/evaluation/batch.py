@@ -27,10 +27,10 @@ def evaluate_batch(predictor: Any, dataset: Any, chunk: Sequence[int], number: i
                    ranked: set[int], stage: Callable[[str], None], warm: bool) -> BatchRecord:
     """Batch ``number`` (1, 2, ...) of an evaluation predicted, fitted and scored.
 
-    Its scores depend on that batch alone, not on the batches before it: the scoring renderer
-    restarts its samples from the batch's number (seed ``number - 1``), and the search and
-    refinement seed each call. So a resumed evaluation computes a batch as an uninterrupted
-    one does.
+    Its scores depend on that batch alone, not on the batches before it: each image is scored
+    with silhouette samples of its own (:func:`~sq_mitsuba.evaluation.scoring.image_seed`,
+    whatever batch or place it has), and the search and refinement seed each call. So a
+    resumed evaluation computes a batch as an uninterrupted one does.
 
     Args:
         predictor: the evaluation's (fast path) Predictor; dataset: the split's
@@ -53,7 +53,6 @@ def evaluate_batch(predictor: Any, dataset: Any, chunk: Sequence[int], number: i
     from sq_mitsuba.geometry.metrics import mask_iou
 
     batch_started = time.perf_counter()
-    renderer.reseed(number - 1)
     stage("reading")
     batch = collate([dataset[i] for i in chunk])
     size = len(chunk)
@@ -121,11 +120,13 @@ def evaluate_batch(predictor: Any, dataset: Any, chunk: Sequence[int], number: i
     extras = {method: {k: v.detach().cpu() if isinstance(v, Tensor) else v
                        for k, v in values.items()}
               for method, values in extras.items()}
-    for method, (assembly, rotation, translation) in candidates.items():
-        metrics = score(assembly, rotation, translation, batch, renderer, symmetries,
-                        volumes, options.level)
-        metrics.update(extras.get(method, {}))
-        for k, item in enumerate(chunk):
+    scores = {method: {**score(assembly, rotation, translation, batch, renderer, symmetries,
+                               volumes, options.level), **extras.get(method, {})}
+              for method, (assembly, rotation, translation) in candidates.items()}
+    # Image by image, each image's methods together: per_image.csv's order is then the
+    # images' whatever the batch size.
+    for k, item in enumerate(chunk):
+        for method, metrics in scores.items():
             row = {"model": batch["model"][k], "index": int(batch["index"][k]),
                    "method": method, "mask_source": sources.get(method, ""),
                    **label_record(dataset.items[item][2])}

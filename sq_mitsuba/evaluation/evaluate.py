@@ -57,8 +57,9 @@ eval --resume``) reads the batches an interrupted run of the same settings, chec
 variant and version finished
 instead of computing them again, and ends with the same files (timings aside); a journal of
 another run is refused in one line naming what differs, and a run without ``resume`` clears
-it first. Each batch is scored on its own: the scoring renderer restarts its samples from
-the batch's number.
+it first. Each image is scored on its own: its silhouettes' samples are seeded by the image
+(its model and index), so its scores and per_image.csv's rows (image by image, each image's
+methods together) are the same whatever ``batch_size`` and ``limit`` put beside it.
 
 The folder holds one evaluation: the files of this list that an earlier run into it (its
 ``eval.json`` or journal there) wrote and this one does not (the figures after ``figures =

@@ -344,7 +344,7 @@ def _evaluate_passes(predictor: Any, dataset: Any, groups: dict[tuple[int, int],
     done = _partial_passes(out_dir, predictor, dataset.root, options)
     with progress_bar(total=len(groups), unit="pass", disable=not progress,
                       desc=f"passes {options.split}") as bar:
-        for order, ((model_index, number), items) in enumerate(groups.items()):
+        for (model_index, number), items in groups.items():
             model = dataset.models[model_index]
             names.append(f"{model}/{number}")
             kept = out_dir / PARTIAL / f"{model}__{number}.json"
@@ -353,8 +353,6 @@ def _evaluate_passes(predictor: Any, dataset: Any, groups: dict[tuple[int, int],
                 bar.update()
                 continue
             first_row = len(rows)
-            # The scoring's samples restart per pass: a pass read back leaves them as they were.
-            renderer.reseed(order)
             shot = collate([dataset[i] for i in items[:longest]])
             bar.set_postfix_str(f"{model}: each frame alone")
             tick = time.perf_counter()
@@ -364,8 +362,8 @@ def _evaluate_passes(predictor: Any, dataset: Any, groups: dict[tuple[int, int],
             network = alone.network
             symmetry, volume = models.symmetry(model_index), models.volume(model_index)
             for count in counts:
-                batch = {key: value[:count] for key, value in shot.items()
-                         if isinstance(value, Tensor)}
+                batch = {key: value[:count] for key, value in shot.items()  # names too:
+                         if isinstance(value, Tensor | list)}  # each frame's own samples
                 methods: dict[str, tuple[Assembly, Tensor, Tensor, float]] = {
                     "network": (network.assembly[:count], network.rotation[:count],
                                 network.translation[:count], math.nan),
