@@ -201,3 +201,22 @@ def test_a_meta_tensor_is_named_not_failed_on_inside_torch():
         quaternion_to_matrix(torch.zeros(2, 4, device="meta"))
     with pytest.raises(ValueError, match=r"^params: a meta tensor"):
         Assembly(torch.zeros(1, 2, 16, device="meta"))
+
+
+def test_a_fits_learning_rate_is_at_most_one(shipped):
+    """lr = 1e30 ran the refinement into NaN poses, refused deep inside the renderer naming
+    an internal argument; Adam's steps are about lr in the raw parameters."""
+    from sq_mitsuba.inference.fit import FitOptions
+    from sq_mitsuba.inference.refine import RefineOptions
+    from sq_mitsuba.inference.search import SEARCH_REFINEMENT
+    from sq_mitsuba.inference.sequence import SequenceOptions
+
+    for options in (RefineOptions, SequenceOptions, FitOptions):
+        with pytest.raises(ConfigError, match=r"lr: expected a value in \(0, 1\], got 1e\+30"):
+            validate(options(lr=1e30))
+        validate(options(lr=1.0))
+    image = np.zeros((1, 64, 64), np.uint8)
+    image[0, 20:40, 16:48] = 200
+    with pytest.raises(ValueError, match=r"lr: expected a value in \(0, 1\]"):
+        shipped.predict(image, refine=True,
+                        refinement=dataclasses.replace(SEARCH_REFINEMENT, lr=1e30))

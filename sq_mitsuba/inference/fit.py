@@ -18,7 +18,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from sq_mitsuba.checks import check_rotations, check_tensor
-from sq_mitsuba.config import bounds, in_range, positive, validate
+from sq_mitsuba.config import bounds, in_range, validate
 from sq_mitsuba.geometry.assembly import NUM_PARAMS, Assembly
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.metrics import mask_iou
@@ -52,8 +52,8 @@ class FitOptions:
     "Adam steps."
     resolution: int = in_range(8, None, default=64)
     "Width in pixels of the fitted silhouettes (the height keeps the masks' aspect)."
-    lr: float = positive(0.05)
-    "Adam learning rate on the raw parameters."
+    lr: float = in_range(0, 1, default=0.05, low_inclusive=False)
+    "Adam learning rate on the raw parameters (at most 1: steps of about ``lr`` in them)."
     loss: Literal["mse", "iou"] = "mse"
     "Per-view loss, summed over views: 'mse' (the paper's) or 'iou' (1 - soft IoU)."
     spp: int = in_range(1, 4096, default=DEFAULT_SPP)

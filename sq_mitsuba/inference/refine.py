@@ -40,7 +40,7 @@ import torch
 from torch import Tensor
 
 from sq_mitsuba.checks import check_rotations, check_tensor
-from sq_mitsuba.config import in_range, non_negative, positive, validate
+from sq_mitsuba.config import in_range, non_negative, validate
 from sq_mitsuba.geometry.assembly import FIELDS, Assembly, ParameterRanges
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.rotation import axis_angle_to_matrix, matrix_to_axis_angle
@@ -61,8 +61,9 @@ class RefineOptions:
 
     steps: int = in_range(1, 10_000, default=50)
     "Adam steps at most (fewer when no item improves for `patience` steps)."
-    lr: float = positive(0.03)
-    "Adam learning rate on the raw parameters and the pose correction."
+    lr: float = in_range(0, 1, default=0.03, low_inclusive=False)
+    """Adam learning rate on the raw parameters and the pose correction: at most 1, Adam's
+    steps being about ``lr`` in the raw parameters (1e30 ran into NaN poses deep inside)."""
     warmup: int = in_range(0, 10_000, default=0)
     """Steps over which the learning rate rises linearly to ``lr`` (0: from the first step).
     Adam's first step moves every parameter by about ``lr`` whatever its gradient's size, so

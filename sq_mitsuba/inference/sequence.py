@@ -64,7 +64,7 @@ import torch
 from torch import Tensor
 
 from sq_mitsuba.checks import check_rotations
-from sq_mitsuba.config import in_range, non_negative, positive
+from sq_mitsuba.config import in_range, non_negative
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.rotation import matrix_to_quaternion, mean_rotation
@@ -115,8 +115,8 @@ class SequenceOptions:
     """The shared shape's start: the best-fitting frame's reading, or the reading (or the
     readings' mean) that fits every frame's mask best at the frames' poses ("best": on the
     same passes camera-frame Chamfer 0.083 -> 0.079, mean 2D IoU 0.779 -> 0.762)."""
-    lr: float = positive(0.03)
-    "Adam's learning rate (raw shape parameters, rotation vectors, relative shifts)."
+    lr: float = in_range(0, 1, default=0.03, low_inclusive=False)
+    "Adam's learning rate (raw shape parameters, rotation vectors, relative shifts), <= 1."
     warmup: int = in_range(0, 10_000, default=10)
     """Steps over which the learning rate rises to ``lr`` (``RefineOptions.warmup``; 0: none):
     0 / 10 gave 2D IoU 0.623 / 0.633 on 12 training-family passes, 0.732 / 0.733 held out."""
