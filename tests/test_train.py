@@ -354,6 +354,18 @@ def test_sigkill_then_resume_repeats_the_uninterrupted_run(train_dataset, cache_
             assert row[key] == expected[key], (row["step"], key, row[key], expected[key])
 
 
+def test_a_resumed_runs_checkpoint_is_the_uninterrupted_runs_byte_for_byte(
+        train_dataset, cache_dir, reference_run, tmp_path):
+    """Stopped after 6 of 12 steps and resumed, the run's last.pt is the reference's file
+    itself: its values were equal, its bytes were not (the optimizer's keys, read back from
+    the checkpoint, were pickled as new strings, not as references to the config's)."""
+    out = tmp_path / "run"
+    config = apply_overrides(load_train_config(TINY), [f"data.cache_dir={cache_dir}"])
+    assert train(config, train_dataset, out, progress=False, max_steps=6).steps == 6
+    assert train(None, train_dataset, out, resume=True, progress=False).steps == 12
+    assert (out / "last.pt").read_bytes() == (reference_run / "last.pt").read_bytes()
+
+
 def test_a_resume_on_another_torch_thread_count_is_warned(reference_run):
     """The steps' matrix products sum by thread (a run resumed on 1 thread left one trained on
     2 from the first step after the resume): the checkpoint records the count, and a resume

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import sys
 from collections import OrderedDict
 from collections.abc import Mapping
 from pathlib import Path
@@ -163,6 +164,7 @@ def write_checkpoint(path: str | os.PathLike[str], payload: dict[str, Any]) -> P
     checkpoint_network_config(payload, "payload")
     _check_loadable({k: v for k, v in payload.items() if k != "model"}, "payload")
     payload["model"] = dict(payload["model"])  # an OrderedDict loads too, but keep it plain
+    payload = _canonical(payload)
     # Through a file object: torch names the archive's records after a path it is given (the
     # temporary file's random name), so the same payload would not give the same bytes.
     with atomic_path(path) as tmp, open(tmp, "wb") as stream:
@@ -170,6 +172,21 @@ def write_checkpoint(path: str | os.PathLike[str], payload: dict[str, Any]) -> P
         stream.flush()
         os.fsync(stream.fileno())  # on disk before the rename: the file a --resume needs
     return path
+
+
+def _canonical(value: Any) -> Any:
+    """``value`` with every dict, list and tuple rebuilt and every string interned, so that
+    the file's bytes follow its content alone. Pickle writes an object met twice as a
+    reference to the first: a resumed run's optimizer keys ("lr", "betas", ...) come from the
+    file it read, copies unlike the interned names of a fresh run's, and its last.pt differed
+    from an uninterrupted run's in those bytes, every value equal."""
+    if type(value) is str:
+        return sys.intern(value)
+    if type(value) is dict:  # plain containers only: subclasses (namedtuples) as they are
+        return {_canonical(key): _canonical(item) for key, item in value.items()}
+    if type(value) in (list, tuple):
+        return type(value)(_canonical(item) for item in value)
+    return value
 
 
 def read_checkpoint(path: str | os.PathLike[str]) -> dict[str, Any]:
