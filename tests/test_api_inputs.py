@@ -220,3 +220,29 @@ def test_a_fits_learning_rate_is_at_most_one(shipped):
     with pytest.raises(ValueError, match=r"lr: expected a value in \(0, 1\]"):
         shipped.predict(image, refine=True,
                         refinement=dataclasses.replace(SEARCH_REFINEMENT, lr=1e30))
+
+
+def test_an_assembly_loaded_onto_a_device_this_torch_lacks_is_one_line(tmp_path):
+    if torch.cuda.is_available():
+        pytest.skip("this torch has CUDA")
+    path = tmp_path / "a.json"
+    Assembly.from_values(torch.tensor([[[0.3, 0.2, 0.1]]]), torch.tensor([[[0.5, 0.5]]])).save(
+        path)
+    with pytest.raises(ValueError, match=r": device: 'cuda' cannot hold the assembly \(Torch not"):
+        Assembly.load(path, device="cuda")
+    with pytest.raises(ValueError, match=r": device: 'nonsense' cannot hold the assembly"):
+        Assembly.load(path, device="nonsense")
+
+
+def test_values_out_of_range_are_named_as_given(views):
+    size, shape = torch.tensor([[[0.3, 0.2, 0.1]]]), torch.tensor([[[0.5, 0.5]]])
+    with pytest.raises(ValueError, match=r"^size: must be positive$"):
+        Assembly.from_values(-size, shape)
+    with pytest.raises(ValueError, match=r"^shape: must lie in \[0, 1\]$"):
+        Assembly.from_values(size, shape + 1)
+    with pytest.raises(ValueError, match=r"^taper: must satisfy \|k\| < 1$"):
+        Assembly.from_values(size, shape, taper=torch.full((1, 1, 2), 2.0))
+    masks, camera, rotations, translations = views
+    with pytest.raises(ValueError, match=r"^init_raw: degenerate 6D rotation"):
+        fit_assembly(masks, camera, rotations, translations, num_primitives=1, steps=1,
+                     init_raw=torch.zeros(1, 1, 16))

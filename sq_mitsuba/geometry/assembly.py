@@ -174,7 +174,15 @@ class Assembly:
         if rotation.shape[-1] != 6:
             raise ValueError(f"rotation: expected (B, M, 3, 3) or (B, M, 6), "
                              f"got {tuple(rotation.shape)}")
-        return cls(torch.cat([size, shape, translation, rotation, taper], dim=-1))
+        try:
+            return cls(torch.cat([size, shape, translation, rotation, taper], dim=-1))
+        except ValueError as error:  # named as given, not as the params built from it
+            message = str(error)
+            for name in ("size", "shape", "taper"):
+                if message.startswith(f"params: {name} "):
+                    raise ValueError(f"{name}: {message.removeprefix(f'params: {name} ')}") \
+                        from None
+            raise
 
     # ---------------------------------------------------------------- named views
 
@@ -533,7 +541,13 @@ class Assembly:
                     raise ValueError(f"primitives[{index}].{name}: expected {width} finite numbers")
                 row += value
             rows.append(row)
-        return cls(torch.tensor([rows], dtype=torch.float64).to(dtype=dtype, device=device))
+        params = torch.tensor([rows], dtype=torch.float64)
+        try:  # a device this torch cannot use failed inside torch (an AssertionError on CPU)
+            params = params.to(dtype=dtype, device=device)
+        except (AssertionError, RuntimeError, TypeError, ValueError) as error:
+            reason = " ".join(str(error).split())[:160] or type(error).__name__
+            raise ValueError(f"device: {device!r} cannot hold the assembly ({reason})") from None
+        return cls(params)
 
     def save(self, path: str | Path, item: int = 0) -> Path:
         """Write :meth:`to_dict` of batch item ``item`` as JSON, atomically.

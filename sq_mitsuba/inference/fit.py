@@ -300,6 +300,10 @@ def fit_assembly(
             raise ValueError(f"init_raw: expected (1, {num_primitives}, {NUM_PARAMS}), got "
                              f"{tuple(init_raw.shape)}")
         raw = init_raw.detach().to(torch.float64).clone()
+        try:  # before the renderer starts, and named as given (not the "params" it becomes)
+            Assembly.from_raw(raw)
+        except ValueError as error:
+            raise ValueError(f"init_raw: {str(error).removeprefix('params: ')}") from None
     raw.requires_grad_(True)
     with one_thread(options.deterministic):
         renderer = SilhouetteRenderer(fit_camera, spp=options.spp, sppp=options.sppp,
