@@ -291,3 +291,21 @@ def test_bools_are_not_counts_or_levels_and_numpy_integers_are():
             call()
     assert torch.equal(so3_grid(np.int64(8)), so3_grid(8))
     assert torch.equal(assembly.surface_points(np.int64(1)), assembly.surface_points(1))
+
+
+def test_the_primal_form_and_the_taper_refuse_what_makes_them_infinite():
+    """Shape 0 gave exponents 2 / 0 (f not finite); a taper |k| >= 1 or a3 = 0 was taken by
+    taper (untaper and the assembly refuse it)."""
+    from sq_mitsuba.geometry.superquadric import inside_outside, taper
+
+    points = torch.rand(1, 5, 3, dtype=torch.float64)
+    size = torch.tensor([[0.3, 0.2, 0.1]], dtype=torch.float64)
+    with pytest.raises(ValueError, match=r"^shape: the primal form needs e > 0"):
+        inside_outside(points, size, torch.tensor([[0.0, 0.5]], dtype=torch.float64))
+    with pytest.raises(ValueError, match=r"^taper: \|k\| must be < 1"):
+        taper(points, torch.tensor([[1.0, 0.0]], dtype=torch.float64), size)
+    with pytest.raises(ValueError, match=r"^size: a3 must be positive"):
+        taper(points, torch.tensor([[0.5, 0.0]], dtype=torch.float64),
+              torch.tensor([[0.3, 0.2, 0.0]], dtype=torch.float64))
+    assert torch.isfinite(inside_outside(points, size, torch.tensor([[0.1, 0.5]],
+                                                                    dtype=torch.float64))).all()

@@ -174,6 +174,8 @@ def inside_outside(points: Tensor, size: Tensor, shape: Tensor) -> Tensor:
     """
     check_tensor("points", points, (3,), min_dims=2)
     _check_params(size, shape)
+    if value_checks_enabled() and bool((shape <= 0).any()):  # exponents 2 / e: inf at 0
+        raise ValueError("shape: the primal form needs e > 0 (the dual forms take e = 0)")
     check_broadcast(points=points[..., :1, :], size=size[..., None, :], shape=shape[..., None, :])
     scaled = torch.abs(points / size[..., None, :])
     e1, e2 = shape[..., None, 0], shape[..., None, 1]
@@ -371,6 +373,11 @@ def taper(points: Tensor, taper: Tensor, size: Tensor) -> Tensor:
     check_tensor("points", points, (3,), min_dims=2)
     check_tensor("taper", taper, (2,))
     check_tensor("size", size, (3,))
+    if value_checks_enabled():  # as untaper and the assembly refuse them (a GPU wait)
+        if bool((taper.abs() >= 1).any()):
+            raise ValueError("taper: |k| must be < 1 (the cross-section collapses at |k| = 1)")
+        if bool((size[..., 2] <= 0).any()):
+            raise ValueError("size: a3 must be positive (z is measured in it)")
     z_rel = points[..., 2:3] / size[..., None, 2:3]
     factor = 1.0 - taper[..., None, :] * z_rel
     return torch.cat([points[..., :2] * factor, points[..., 2:3]], dim=-1)
