@@ -177,7 +177,7 @@ def test_every_optional_value_shows_its_default():
                     or action.nargs == 0 or isinstance(action, argparse._AppendAction)
                     or isinstance(action, argparse.BooleanOptionalAction)):
                 continue
-            if "default" not in (action.help or ""):
+            if "default" not in (action.help or "").lower():
                 missing.append(f"{' '.join(path)} {action.option_strings[0]}")
     assert not missing, missing
 

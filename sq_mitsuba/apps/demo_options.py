@@ -10,6 +10,7 @@ from typing import Any, Literal
 
 from sq_mitsuba.apps.demo_files import METHOD_LABELS, PAGE_METRICS
 from sq_mitsuba.config import in_range
+from sq_mitsuba.inference.search import SEARCH_REFINEMENT
 
 __all__ = ["DEMO_CATALOGUE_SEED", "SIZES", "DemoOptions", "DemoResult", "DemoSize",
            "DemoTraining", "describe_sizes"]
@@ -29,8 +30,9 @@ class DemoSize:
     "Side in pixels of the rendered images (and of the page's pictures)."
     spp: int = in_range(1, 1024, default=64)
     "Path-tracing samples per pixel of the images."
-    refine_steps: int = in_range(1, 1000, default=50)
-    "Test-time refinement steps at most (about 40 ms per image and step on 2 cores)."
+    refine_steps: int = in_range(1, 1000, default=SEARCH_REFINEMENT.steps)
+    """Test-time refinement steps at most (about 40 ms per image and step on 2 cores); the
+    default is the shipped path's (``predict --refine``), so the page shows what it gives."""
     pass_frames: int = in_range(0, 64, default=8)
     """Frames of the pass of the first spacecraft (one assembly and every pose from them;
     :mod:`sq_mitsuba.apps.demo_pass`); 0 or 1: no pass."""
@@ -74,8 +76,8 @@ class DemoOptions:
 
     size: Literal["tiny", "small", "default"] = "default"
     """Preset: tiny (2 spacecraft x 1 image at 128 px, 8 refinement steps, a pass of 3
-    frames; for CI), small (3 x 2 at 256 px, a pass of 4) or default (5 x 3 at 256 px, 50
-    steps, a pass of 8)."""
+    frames; for CI), small (3 x 2 at 256 px, 30 steps, a pass of 4) or default (5 x 3 at 256
+    px, the shipped path's 25 steps, a pass of 8)."""
     seed: int = in_range(0, 2**32 - 1, default=DEMO_CATALOGUE_SEED)
     """Catalogue seed of the demo's spacecraft (and seed of their images); the shipped model
     trained on catalogue seed 0, so these are spacecraft it never saw."""

@@ -67,8 +67,11 @@ def add_config_options(parser: argparse.ArgumentParser, config_class: type,
         kwargs = _option_kwargs(hints[name], default)
         if metavars and name in metavars:
             kwargs["metavar"] = metavars[name]
+        # A field whose text says its default itself (a None that chooses) is not given a
+        # second one ("Default: 8 where ..., else 1 (default: None)").
+        suffix = "" if "Default:" in help_text else f" (default: {shown})"
         parser.add_argument(flag, dest=name, default=argparse.SUPPRESS,
-                            help=f"{help_text} (default: {shown})", **kwargs)
+                            help=f"{help_text}{suffix}", **kwargs)
     known = dict(parser.get_default(_FLAGS) or {})
     known.update({name: flag for name, flag in flags.items()})
     classes = dict(parser.get_default(_CLASSES) or {})

@@ -65,7 +65,8 @@ fitted to every frame's mask at once). Writes sequence.assembly.json, sequence.g
 sequence.png (the assembly from six sides) and per frame <stem>.pose.json (its pose of that
 assembly) and <stem>.overlay.png (its own fit in red, the shared assembly in green), and
 colmap/ (every pose as a COLMAP sparse model, text format: the start of structure from
-motion, e.g. colmap point_triangulator --input_path DIR/colmap).
+motion, e.g. colmap point_triangulator --input_path DIR/colmap; not written, with a warning,
+for frames whose file names hold white space).
 --mask gives each frame's mask (one per image, in their order) in place of the network's;
 a frame the network sees no target in (its score below --set min_target) is refused unless
 masks are given. A pass takes --level, --target-size and three --set fields: min_target,

@@ -18,7 +18,8 @@ SPE3R-layout dataset, validating on a subset of its val split.
 
 The run is described by a TOML config (train/configs/: the paper's Table 1 (a)-(d) and
 Table 2's M = 4..8, this project's CPU recipe cpu.toml, cpu_lite0.toml with the network that
-reads the pose, the shipped model's shipped.toml, tiny.toml for smoke tests), changed
+reads the pose, shipped.toml for the archetype model's first stage (the shipped model's
+recipe is train/shipped_model.sh), tiny.toml for smoke tests), changed
 field by field with --set (dotted names, TOML values). A config file may start from another
 with a top-level  base = "other.toml".
 

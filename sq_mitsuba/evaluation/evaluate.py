@@ -57,9 +57,9 @@ eval --resume``) reads the batches an interrupted run of the same settings, chec
 variant and version finished
 instead of computing them again, and ends with the same files (timings aside); a journal of
 another run is refused in one line naming what differs, and a run without ``resume`` clears
-it first. Each image is scored on its own: its silhouettes' samples are seeded by the image
-(its model and index), so its scores and per_image.csv's rows (image by image, each image's
-methods together) are the same whatever ``batch_size`` and ``limit`` put beside it.
+it first. Each image is scored on its own, its silhouettes' samples seeded by the image (its
+model and index): per_image.csv's rows (image by image, its methods together) and its scores
+are the same whatever ``batch_size`` and ``limit``, but for the network's last-bit rounding.
 
 The folder holds one evaluation: the files of this list that an earlier run into it (its
 ``eval.json`` or journal there) wrote and this one does not (the figures after ``figures =
@@ -131,7 +131,7 @@ class EvalOptions:
     limit: int | None = in_range(1, 10_000_000, default=None)
     "Evaluate at most this many images, spread evenly over the split (None: all)."
     batch_size: int = in_range(1, 1024, default=16)
-    "Images per network batch (and per refinement batch)."
+    "Images per network batch (the search's too; the refinement runs image by image)."
     turns: int = in_range(1, 360, default=1)
     """The network row read from this many in-plane turned copies of each image (test-time
     augmentation, no rendering: the rotation from the copies' distributions multiplied, the

@@ -111,7 +111,7 @@ class Predictor:
             output up to ~1e-5 relative; faster on CPU; folding takes about 0.1 s). The copy
             is a snapshot of the weights now.
         traced: with ``fast``, run the folded copy through a TorchScript trace, made once per
-            input shape. Convention: off by default. A trace costs 0.7-0.8 s per shape and
+            input shape. Convention: off by default. A trace costs 0.7-2.6 s per shape and
             saves about a quarter of the network's time at batch 1 (13 against 18 ms, 96 px,
             2 cores) and nothing at batch 7 (the 8-turn reading's turned copies): it pays
             for a stream of hundreds of single frames, not for a few images or batches.

@@ -235,7 +235,10 @@ class TrainConfig:
     init_from: Path | None = None
     """Start from the weights of this checkpoint or exported model (after the seed's
     initialisation): layers it lacks keep their new weights; a layer of another shape, or one
-    the network lacks, is refused. None: start from the seed (and network.pretrained)."""
+    the network lacks, is refused, but for a network with existence probabilities (its
+    primitive generators grow from a file with fewer) and a file's shape decoder of another
+    kind (left out: the new decoder starts anew). None: start from the seed (and
+    network.pretrained)."""
 
 
 # ------------------------------------------------------------------------------- files
