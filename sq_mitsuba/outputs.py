@@ -200,7 +200,7 @@ def lock_path(out: str | Path, file: bool = False) -> Path:
 def _holder(path: Path) -> str:
     """Who holds the lock file ``path``, from what it records (for the message)."""
     try:
-        text = path.read_text(encoding="utf-8").split()
+        text = path.read_text(encoding="utf-8", errors="replace").split()
     except OSError:
         text = []
     if text and text[0].isdigit():
@@ -249,7 +249,9 @@ def _acquire(path: Path, out: Path, command: str | None) -> int:
     else:
         raise OSError(errno.EAGAIN, "the lock file keeps disappearing", str(path))
     os.ftruncate(fd, 0)
-    os.write(fd, f"{os.getpid()} {command or _command_name()}\n".encode())
+    # A file name that is no UTF-8 (bytes the file system holds) reaches argv as surrogates.
+    os.write(fd, f"{os.getpid()} {command or _command_name()}\n".encode(
+        errors="backslashreplace"))
     return fd
 
 

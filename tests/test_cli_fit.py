@@ -268,3 +268,23 @@ def test_absurd_resolution_and_seed_are_refused(fit_inputs, tmp_path, capsys):
              "--seed: expected a value in [0, 2147483647], got -1")
     _refused(capsys, [*argv, "--seed", str(2**31)], out, "--seed", str(2**31))
     _refused(capsys, [*argv, "--set", "sppp=0"], out, "--set", "sppp")
+
+
+def test_fit_replaces_only_its_own_files(fit_inputs, tmp_path, capsys):
+    """A user's assembly.json in --out was replaced: refused now, in one line, before the fit;
+    a folder an earlier fit wrote is fitted into again."""
+    root, masks = fit_inputs
+    args = ["fit", "--masks", *map(str, masks), "--poses", str(root / "labels.json"),
+            "--primitives", "1", "--steps", "2", "--resolution", "32", "--quiet"]
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "assembly.json").write_text('{"mine": 1}')
+    assert main([*args, "--out", str(mine)]) == 2
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1 and "an output of fit, but no earlier fit there wrote" in err
+    assert (mine / "assembly.json").read_text() == '{"mine": 1}'
+    again = tmp_path / "again"
+    assert main([*args, "--out", str(again)]) == 0
+    assert main([*args, "--out", str(again)]) == 0  # its own log: replaced
+    (again / "fit_log.json").unlink()  # an interrupted fit: its assembly.json says it is ours
+    assert main([*args, "--out", str(again)]) == 0

@@ -455,3 +455,19 @@ def test_the_frame_check_reads_frames_as_a_pass_fits_them(pass_dataset, tmp_path
     Image.open(png).convert("L").save(png.with_suffix(".jpg"))
     png.unlink()
     assert dataset.image_file(item) == png.with_suffix(".jpg")
+
+
+def test_a_pass_study_refuses_a_folder_another_command_wrote(eval_checkpoint, pass_dataset,
+                                                           tmp_path):
+    """Into an eval's folder the study wrote its summary.csv and summary.md over the eval's
+    (report then refused the folder): a file of an output's name where no pass study wrote
+    is refused before any work; a folder a study wrote is taken up again."""
+    folder = tmp_path / "eval"
+    folder.mkdir()
+    (folder / "summary.csv").write_text("method,metric\n")
+    (folder / "eval.json").write_text("{}")
+    with pytest.raises(ValueError, match=r"summary.csv: an output of study passes, but no "
+                                         r"earlier pass study there wrote it; move it"):
+        evaluate_passes(load_model(eval_checkpoint), pass_dataset, folder, SMALL,
+                        progress=False)
+    assert (folder / "summary.csv").read_text() == "method,metric\n"

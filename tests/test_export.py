@@ -486,3 +486,15 @@ def test_export_without_training_images_says_to_leave_data_out(eval_checkpoint, 
                           "give the training dataset as --data, or leave --data out to store "
                           "no baseline")
     assert not out.exists()
+
+
+def test_an_out_that_ends_in_a_separator_is_a_folder_not_a_file(eval_checkpoint, train_dataset,
+                                                                tmp_path, capsys):
+    """``--out newdir/`` wrote a file named newdir (exit 0): refused, nothing written."""
+    out = f"{tmp_path / 'newdir'}/"
+    with pytest.raises(SystemExit) as exited:  # argparse's own refusal of the argument
+        main(["export", "--checkpoint", str(eval_checkpoint), "--data", str(train_dataset),
+              "--out", out])
+    assert exited.value.code == 2
+    assert "ends in a separator, a folder; give the file to write in it" in error_line(capsys)
+    assert not (tmp_path / "newdir").exists()

@@ -483,3 +483,14 @@ def test_a_refused_lock_does_not_wait(tmp_path):
         assert time.perf_counter() - tick < 5
     finally:
         _kill(holder)
+
+
+def test_a_command_line_holding_a_name_that_is_no_utf8_takes_the_lock(tmp_path, monkeypatch):
+    """`predict caf\\xe9.png` (a Latin-1 file name: surrogates in argv) failed writing the
+    lock's record ("surrogates not allowed"), naming no file and leaving --out behind."""
+    import sys
+
+    monkeypatch.setattr(sys, "argv", ["sq-mitsuba", "predict", "caf\udce9.png"])
+    out = tmp_path / "out"
+    with output_lock(out):
+        assert (lock_path(out)).read_bytes().endswith(b"sq-mitsuba predict caf\\udce9.png\n")

@@ -185,6 +185,13 @@ def test_the_demo_replaces_only_a_folder_a_demo_wrote(tmp_path, monkeypatch, cap
         line = error_line(capsys)
         assert "working" in line and "absent.pt" not in line, line
     assert _listing(work) == {}
+    # A link to a folder: the demo swapped a folder in for the link, its target left empty.
+    target = tmp_path / "target"
+    target.mkdir()
+    (tmp_path / "link").symlink_to(target)
+    assert main(["demo", "--out", str(tmp_path / "link"), *missing]) == 2
+    assert "a link (to " in error_line(capsys)
+    assert (tmp_path / "link").is_symlink() and _listing(target) == {}
 
 
 # ----------------------------------------------------------------------------- eval

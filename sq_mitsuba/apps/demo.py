@@ -113,13 +113,17 @@ def check_demo_folder(out: Path) -> None:
     its output folder as a whole and must not delete what it did not write.
 
     Raises:
-        ValueError: ``out`` is a file, the working folder or a folder above it (it cannot be
+        ValueError: ``out`` is a file, a link, the working folder or a folder above it (it cannot be
             renamed away, and holds what the run did not write), a folder that holds
             something else, or not writable.
     """
     from sq_mitsuba.io import check_output_folder
 
     check_output_folder(out)
+    if out.is_symlink():  # the folder is swapped in as a whole: the link, not its target, went
+        raise ValueError(f"out {out}: a link (to {os.readlink(out)}), which the demo would "
+                         "replace by a folder, leaving its target empty; give the target "
+                         "itself as --out")
     here, resolved = Path.cwd().resolve(), out.resolve()
     if resolved == here or resolved in here.parents:
         where = "the working folder" if resolved == here else "a folder above the working one"

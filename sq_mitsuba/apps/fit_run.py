@@ -24,11 +24,13 @@ from sq_mitsuba.config import config_hash, to_dict, validate
 from sq_mitsuba.data.masks import check_not_folder, read_label_poses, read_masks
 from sq_mitsuba.data.spe3r.layout import check_outside_datasets
 from sq_mitsuba.evaluation.figures import plot_fit
+from sq_mitsuba.geometry.assembly import JSON_FORMAT
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.rotation import quaternion_to_matrix
 from sq_mitsuba.inference.fit import FitOptions, FitResult, fit_assembly
 from sq_mitsuba.inputs import check_unique_stems
 from sq_mitsuba.io import atomic_write_json, check_output_folder
+from sq_mitsuba.outputs import json_record, refuse_present
 
 OUTPUT_FILES = ("assembly.json", "assembly.glb", "fit.png", "fit_log.json")
 """What :func:`run_fit` writes into its output folder."""
@@ -102,7 +104,8 @@ def run_fit(masks: Sequence[str | Path], poses: str | Path, out: str | Path,
         masks: mask image files, one per view (see :func:`sq_mitsuba.data.masks.read_mask`:
             object bright, converted to gray and thresholded at half range).
         poses: SPE3R-style ``labels.json`` with an entry per mask, matched by file stem.
-        out: output folder (created; existing files of :data:`OUTPUT_FILES` are replaced).
+        out: output folder (created; the files of :data:`OUTPUT_FILES` an earlier fit wrote
+            there are replaced, another's of those names refused).
         options: fit settings (default :class:`FitOptions`).
         camera: SPEED-style ``camera.json`` of the masks; default: the project's default
             camera (SPEED field of view) at the masks' size.
@@ -122,6 +125,11 @@ def run_fit(masks: Sequence[str | Path], poses: str | Path, out: str | Path,
     check_outside_datasets(Path(out), None, "fit")  # its masks may be a dataset's
     out = check_output_folder(out, OUTPUT_FILES,
                               keep=[*mask_paths, poses, *([camera] if camera else [])])
+    # A fit's folder (its log, or an interrupted one's assembly.json) is replaced; elsewhere a
+    # file of an output's name is someone else's (a user's assembly.json, say).
+    if not ({"masks", "poses", "options", "options_hash"} <= json_record(out / "fit_log.json")
+            .keys() or json_record(out / "assembly.json").get("format") == JSON_FORMAT):
+        refuse_present(out, OUTPUT_FILES, "an output of fit, but no earlier fit there wrote it")
     # Cheap checks first: files present, a label per mask; then the images are decoded.
     for path in mask_paths:
         check_not_folder(path, "mask")

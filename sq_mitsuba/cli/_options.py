@@ -194,6 +194,18 @@ def output_path(text: str) -> Path:
     return Path(text)
 
 
+def output_file_path(text: str) -> Path:
+    """The argparse type of an output file: :func:`output_path`, and a path that ends in a
+    separator (a folder, as the user wrote it) refused, not written as a file of the folder's
+    name (``export --out newdir/`` wrote a file ``newdir``)."""
+    import os
+
+    if text.endswith(("/", os.sep)) or (os.altsep and text.endswith(os.altsep)):
+        raise argparse.ArgumentTypeError(f"{text!r} ends in a separator, a folder; give the "
+                                         "file to write in it")
+    return output_path(text)
+
+
 def _plain_text(doc: str) -> str:
     """A field docstring as ``--help`` shows it: reST's ``code`` as `code` and a role's
     :func:`name` (or :class:, :meth:, ...) as its name, the leading ~ of a path dropped."""

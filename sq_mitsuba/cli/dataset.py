@@ -11,6 +11,7 @@ from sq_mitsuba.cli._options import (
     add_config_options,
     add_set_option,
     config_from_args,
+    output_file_path,
     output_path,
 )
 
@@ -88,7 +89,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "labelled pose (x red, y green, z blue), to see that labels, masks and "
                     "images agree. The dataset is only read.")
     preview.add_argument("root", type=Path, help="dataset folder")
-    preview.add_argument("--out", type=output_path, default=None, metavar="PNG",
+    preview.add_argument("--out", type=output_file_path, default=None, metavar="PNG",
                          help="PNG to write (default ROOT_preview.png beside the dataset "
                               "folder, which is only read)")
     add_config_options(preview, PreviewOptions, PREVIEW_FLAGS)

@@ -5,7 +5,11 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from sq_mitsuba.cli._options import add_config_options, config_from_args, output_path
+from sq_mitsuba.cli._options import (
+    add_config_options,
+    config_from_args,
+    output_file_path,
+)
 
 HELP = "export a training checkpoint for inference (what the package ships)"
 DESCRIPTION = """\
@@ -46,7 +50,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                              "their weights averaged")
     parser.add_argument("--data", type=Path, default=None, metavar="DIR",
                         help="the training dataset, for the baseline (default: no baseline)")
-    parser.add_argument("--out", type=output_path, required=True, metavar="PT",
+    parser.add_argument("--out", type=output_file_path, required=True, metavar="PT",
                         help="inference checkpoint to write")
     parser.add_argument("--start", type=Path, default=None, metavar="PT",
                         help="the checkpoint the --checkpoint files were fine-tuned from "

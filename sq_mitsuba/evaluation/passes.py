@@ -61,10 +61,12 @@ import torch
 from torch import Tensor
 
 from sq_mitsuba.config import in_range, to_dict, validate
+from sq_mitsuba.evaluation.journal import RUN_FILE
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.inference.refine import RefineOptions
 from sq_mitsuba.inference.search import SEARCH_REFINEMENT, SearchOptions
 from sq_mitsuba.inference.sequence import SequenceOptions
+from sq_mitsuba.outputs import json_record, refuse_present
 
 __all__ = ["OUTPUT_FILES", "PassOptions", "PassResult", "evaluate_passes", "pass_groups",
            "relative_rotation_errors", "score_frames"]
@@ -260,6 +262,10 @@ def evaluate_passes(predictor: Any, data_root: str | Path, out_dir: str | Path,
     check_data_folder(data_root)
     check_output_folder(out_dir, OUTPUT_FILES)
     check_outside_data(out_dir, data_root)
+    if not ({"passes", "counts", "options"} <= json_record(out_dir / "passes.json").keys()
+            or json_record(out_dir / PARTIAL / RUN_FILE)):  # no pass study wrote here: others'
+        refuse_present(out_dir, OUTPUT_FILES, "an output of study passes, but no earlier "
+                       "pass study there wrote it")
     # At the dataset's own resolution (image_size None: camera.json's width).
     dataset = open_split(data_root, options.split, None, options.surface_points)
     groups = pass_groups(dataset, views=not options.ordered)
@@ -337,9 +343,8 @@ def _evaluate_passes(predictor: Any, dataset: Any, groups: dict[tuple[int, int],
     renderer = SilhouetteRenderer(camera, spp=options.silhouette_spp)
     models = ModelData(dataset, options.volume_points)
     counts = sorted(set(options.counts))
-    longest = counts[-1]
+    longest, names = counts[-1], []
     rows: list[dict[str, Any]] = []
-    names = []
     (out_dir / "passes.json").unlink(missing_ok=True)  # the finished mark goes first
     done = _partial_passes(out_dir, predictor, dataset.root, options)
     with progress_bar(total=len(groups), unit="pass", disable=not progress,
@@ -424,7 +429,7 @@ def _partial_passes(out_dir: Path, predictor: Any, data_root: Path,
     """The rows of each pass an interrupted run of the same settings, weights and data kept
     in ``out_dir / PARTIAL`` ({file name: rows}); any other partial run is discarded (said in
     a warning) and the folder made ready for this run's passes."""
-    from sq_mitsuba.evaluation.journal import RUN_FILE, journal_difference, run_identity
+    from sq_mitsuba.evaluation.journal import journal_difference, run_identity
     from sq_mitsuba.io import atomic_write_json
 
     folder = out_dir / PARTIAL
