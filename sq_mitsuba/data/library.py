@@ -3,10 +3,11 @@
 Each model lands in ``<root>/<model>/models/`` (see
 :func:`sq_mitsuba.data.mesh_processing.write_model`). Two files at the root keep account:
 
-* ``splits.csv``: ``model,train`` / ``model,test`` rows without a header, one per generated
-  model, sorted by name. :func:`generate_library` merges into it: rows of models it does not
-  generate stay, a model generated again keeps one row. A model's split is a function of its
-  name and the catalogue seed (:func:`sq_mitsuba.data.spacecraft.generator.catalogue_split`).
+* ``splits.csv``: ``model,train`` / ``model,test`` rows without a header (CSV: a name with a
+  comma or quote is quoted), one per generated model, sorted by name.
+  :func:`generate_library` merges into it: rows of models it does not generate stay, a model
+  generated again keeps one row. A model's split is a function of its name and the catalogue
+  seed (:func:`sq_mitsuba.data.spacecraft.generator.catalogue_split`).
 * ``failures.json``: ``{model: reason}`` of the generated models whose last attempt failed;
   a later successful attempt removes the entry, and the file goes when empty. A failed
   model gets no row in ``splits.csv`` (a row from an earlier success stays, because
@@ -584,6 +585,22 @@ def import_names(paths: Sequence[str | Path], out_root: str | Path,
     return names
 
 
+def check_distinct_files(paths: Sequence[str | Path]) -> None:
+    """One-line ``ValueError`` naming both arguments when two of ``paths`` (existing files)
+    are one file: typed twice, as ``./box.obj``, through a link or a hard link. Each would
+    become its own model (``box``, ``box_2``), one spacecraft possibly in both splits."""
+    first: dict[tuple[int, int], str | Path] = {}
+    for path in paths:
+        status = os.stat(path)  # the file a link leads to: its device and inode
+        key = (status.st_dev, status.st_ino)
+        if key in first:
+            named = f"{path} given twice" if str(first[key]) == str(path) else \
+                f"{first[key]} and {path} are the same file, given twice"
+            raise ValueError(f"meshes: {named}; give each mesh once (each file becomes its "
+                             "own model)")
+        first[key] = path
+
+
 def import_model(path: str | Path, out_root: str | Path, method: str = "auto",
                  align: str = "axes", resolution: int = FUSION_RESOLUTION,
                  points: int = DEFAULT_POINTS, name: str | None = None) -> Path:
@@ -619,7 +636,8 @@ def import_models(paths: Sequence[str | Path], options: ImportOptions | None = N
                   progress: bool = True) -> LibrarySummary:
     """Import mesh files into ``options.out``, each into its own new model folder.
 
-    Every path must exist and have a supported suffix (checked before any work); a file that
+    Every path must exist, have a supported suffix and name another file than the other
+    paths (:func:`check_distinct_files`), all checked before any work; a file that
     cannot be read or processed is a failure of the batch, reported in the summary (imports
     keep no ``failures.json``: the files named on the command line are the record), not an
     error. ``summary.names`` tells which model name each file got.
@@ -636,6 +654,7 @@ def import_models(paths: Sequence[str | Path], options: ImportOptions | None = N
         if path.suffix.lower() not in MESH_SUFFIXES:
             raise ValueError(f"{path}: unsupported format {path.suffix!r}; "
                              f"expected one of {', '.join(MESH_SUFFIXES)}")
+    check_distinct_files(paths)
     root = Path(options.out)
     _check_root(root)
     with output_lock(root, command="sq-mitsuba models import"):  # names picked under it

@@ -246,7 +246,7 @@ def _stage_models(models_dir: Path, names: Sequence[str], stage: Path) -> None:
     """Copy the models into ``stage`` with a splits.csv marking them all ``test``, and detect
     each one's symmetries once there, written as its ``symmetries.json`` (the renders copy it
     along, so no sweep point's evaluation detects them again)."""
-    from sq_mitsuba.data.spe3r.layout import MODELS
+    from sq_mitsuba.data.spe3r.layout import MODELS, write_splits
     from sq_mitsuba.data.symmetry import SYMMETRIES_FILE, model_symmetries
 
     stage.mkdir(parents=True, exist_ok=True)
@@ -260,7 +260,7 @@ def _stage_models(models_dir: Path, names: Sequence[str], stage: Path) -> None:
         except (OSError, ValueError) as error:  # the copy is the library's file: name that
             raise ValueError(str(error).replace(str(stage / name), str(models_dir / name))) \
                 from None
-    atomic_write_text(stage / "splits.csv", "".join(f"{name},test\n" for name in names))
+    write_splits(stage, [(name, "test") for name in names])  # quoted as every splits.csv
 
 
 def illumination_study(checkpoint: str | Path | None, models_dir: str | Path,

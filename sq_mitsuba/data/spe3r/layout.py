@@ -3,7 +3,7 @@
 Layout (our datasets and the SPE3R release alike)::
 
     <root>/camera.json                    SPEED-style intrinsics
-    <root>/splits.csv                     "model,train" / "model,test", no header
+    <root>/splits.csv                     "model,train" / "model,test", no header (CSV)
     <root>/<model>/labels.json            [{filename, q_vbs2tango_true, r_Vo2To_vbs_true, ...}]
     <root>/<model>/images/<index>.png     8-bit grayscale (.jpg accepted on read)
     <root>/<model>/masks/<index>.png      binary mask of the target alone
@@ -29,6 +29,7 @@ are ignored by SPE3R readers.
 from __future__ import annotations
 
 import csv
+import io
 import math
 import os
 from collections.abc import Iterable
@@ -102,6 +103,12 @@ def model_name_problem(name: Any) -> str | None:
         return "starts with '.'"
     if any(ord(c) < 32 or 127 <= ord(c) < 160 for c in name):  # NUL, newline, escapes
         return "contains a control character"
+    if name != name.strip():  # ' cube' and 'cube' look alike in every listing: a trap
+        return "starts or ends with white space"
+    try:  # a file system's non-UTF-8 byte comes as a surrogate escape: no file can hold it
+        name.encode("utf-8")
+    except UnicodeEncodeError:
+        return "not valid UTF-8 (a raw byte of the file system's name)"
     return None
 
 
@@ -143,20 +150,41 @@ def read_splits(path: Path) -> dict[str, str]:
     """``splits.csv`` as {model: "train" | "test"}; a model listed in both splits, or a model
     name that is not one plain folder name (:func:`model_name_problem`), is a one-line
     ``DatasetError`` naming the line (the later row would silently win; such a name would
-    lead readers and writers outside the folder)."""
+    lead readers and writers outside the folder).
+
+    Rows are CSV (:func:`splits_text`: a name holding a comma or a double quote is quoted),
+    read strictly: a quote that CSV cannot place is refused, never read as another name.
+    Files of older versions, written without quoting, read as before, and a row of theirs
+    whose name holds commas (``twin, wing,train``: more than two fields, no quote) reads as
+    that name, since their split never holds a comma. Names are not stripped (the folder
+    `` cube`` is not ``cube``): a name with white space around it is refused, naming it.
+    """
     splits: dict[str, str] = {}
     try:
         text = path.read_text(encoding="utf-8")
     except UnicodeDecodeError as error:
         raise DatasetError(f"{path}: not UTF-8 text ({error.reason} at byte {error.start})") \
             from None
-    for line_number, row in enumerate(csv.reader(text.splitlines()), start=1):
+    # Line by line (newline="": CSV's own line ends only): a name holds no line break, so
+    # no quoted field spans two lines, and an unclosed quote is refused on its own line.
+    for line_number, line in enumerate(io.StringIO(text, newline=""), start=1):
+        try:
+            row = next(csv.reader([line], strict=True), [])
+        except csv.Error as error:
+            shown = line.rstrip("\r\n")
+            raise DatasetError(f"{path}:{line_number}: not a CSV row ({error}): "
+                               f"{shown!r}; a name holding a comma "
+                               "or a double quote is written in double quotes, any quote in "
+                               "it doubled") from None
         if not row:
             continue
+        if len(row) > 2 and '"' not in line:  # an older version's unquoted row
+            row = [",".join(row[:-1]), row[-1]]
         if len(row) != 2 or row[1].strip() not in ("train", "test"):
             raise DatasetError(f"{path}:{line_number}: expected 'model,train|test', "
                                f"got {','.join(row)!r}")
-        model, split = row[0].strip(), row[1].strip()
+        # A blank name is an empty one; any other keeps its spaces (refused below).
+        model, split = row[0] if row[0].strip() else "", row[1].strip()
         check_model_name(model, f"{path}:{line_number}")
         if splits.get(model, split) != split:
             raise DatasetError(f"{path}:{line_number}: {model!r} is listed as "
@@ -165,10 +193,23 @@ def read_splits(path: Path) -> dict[str, str]:
     return splits
 
 
+def splits_text(rows: Iterable[tuple[str, str]]) -> str:
+    """The text of a ``splits.csv`` of ``rows`` (``model,train|test``, no header): CSV, so a
+    name holding a comma or a double quote is quoted and reads back as itself
+    (:func:`read_splits`); plain names give the bytes of older versions (``name,split``)."""
+    buffer = io.StringIO()
+    csv.writer(buffer, lineterminator="\n").writerows(rows)
+    return buffer.getvalue()
+
+
 def write_splits(out_root: str | Path, rows: Iterable[tuple[str, str]]) -> Path:
-    """Write ``splits.csv`` (``model,train|test`` rows, no header) atomically."""
+    """Write ``splits.csv`` (:func:`splits_text` of ``rows``) atomically; a name that
+    :func:`read_splits` would refuse is a one-line :class:`DatasetError` before writing."""
     path = Path(out_root) / "splits.csv"
-    atomic_write_text(path, "".join(f"{name},{split}\n" for name, split in rows))
+    rows = list(rows)
+    for name, _ in rows:
+        check_model_name(name, str(path))
+    atomic_write_text(path, splits_text(rows))
     return path
 
 

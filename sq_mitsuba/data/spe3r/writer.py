@@ -52,8 +52,9 @@ import json
 import os
 import shutil
 import tempfile
+import unicodedata
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -79,6 +80,7 @@ from sq_mitsuba.data.spe3r.layout import (
     read_labels,
     read_manifest,
     read_splits,
+    splits_text,
     write_exr,
     write_png,
     write_splits,
@@ -140,6 +142,17 @@ def find_models(models_dir: Path) -> list[str]:
                            f"({', '.join(OVERWRITE_DELETES)}); rename its folder (and its row "
                            "in splits.csv)")
     return names
+
+
+def _normalisation_twins(folders: Sequence[str], rows: Iterable[str]) -> list[tuple[str, str]]:
+    """(folder, row) pairs of the ``folders`` without a row in ``splits.csv`` whose name a
+    row of ``rows`` spells in another Unicode normalisation form ('café' as one code point or
+    as 'e' and a combining accent: a copy through macOS can turn one into the other). They
+    are not matched (on most file systems they are two names, and both can be folders), only
+    named, since they look the same in the message."""
+    by_form = {unicodedata.normalize("NFC", row): row for row in rows}
+    return [(folder, by_form[unicodedata.normalize("NFC", folder)]) for folder in folders
+            if unicodedata.normalize("NFC", folder) in by_form]
 
 
 def check_library_models(models_dir: Path, models: Sequence[str]) -> None:
@@ -517,9 +530,9 @@ def finalize_dataset(out_dir: Path, options: RenderOptions, camera: Camera,
     if not settled:
         return False, failures
     rows = [(m, plan[m]) for m in sorted(plan) if counts[m] == count]
-    splits_text = "".join(f"{m},{s}\n" for m, s in rows)
-    splits_path = out_dir / "splits.csv"
-    if not splits_path.is_file() or splits_path.read_text(encoding="utf-8") != splits_text:
+    splits_path = out_dir / "splits.csv"  # compared as write_splits would write it
+    if not splits_path.is_file() or \
+            splits_path.read_text(encoding="utf-8") != splits_text(rows):
         write_splits(out_dir, rows)
     if failures:
         _write_json_if_changed(out_dir / FAILURES, failures)
@@ -647,11 +660,16 @@ def prepare_dataset(models_dir: Path, out_dir: Path, options: RenderOptions
     unlisted = [model for model in found if model not in library_splits] if library_splits \
         else []
     if unlisted:  # a split is not guessed: a held-out model would silently train
+        twins = _normalisation_twins(unlisted, library_splits)
+        hint = (f"folder {twins[0][0]!a} and row {twins[0][1]!a} look alike but "
+                "differ in Unicode normalisation (NFC vs NFD: other code points for the same "
+                "letters); rename the folder or rewrite the row so that the two match") \
+            if twins else ("an interrupted `models generate`? run it again to finish the "
+                           "library; else add their rows, model,train or model,test")
         raise DatasetError(f"{models_dir / 'splits.csv'}: no row for {len(unlisted)} model "
                            f"folder(s) ({', '.join(unlisted[:3])}"
                            f"{', ...' if len(unlisted) > 3 else ''}), so their split is not "
-                           "known (an interrupted `models generate`? run it again to finish "
-                           "the library; else add their rows, model,train or model,test)")
+                           f"known ({hint})")
     manifest = _existing_manifest(out_dir, options.overwrite)
     if manifest is None:  # only a new or empty folder is rendered into (or cleared) then
         held = _foreign_entries(out_dir)
