@@ -155,10 +155,14 @@ def write_demo_page(out: Path, options: Any, records: Sequence[dict[str, Any]],
     rendered could not be fitted, said on the page)."""
     from sq_mitsuba.apps.demo_page import DemoPage, PageImage, write_page
     from sq_mitsuba.apps.demo_pass import pass_section
-    from sq_mitsuba.evaluation.tables import as_number
+    from sq_mitsuba.evaluation.tables import as_number, markdown_code
     from sq_mitsuba.inference.search import SearchOptions
 
     preset = options.preset
+    # A user's path in a code span: index.md shows its '<b>', '*' or '|' as typed (index.html
+    # escapes the same text; the backticks read as quotes there).
+    model = shown_model(checkpoint)
+    model = markdown_code(model) if model == checkpoint else model
     models = sorted({r["model"] for r in records})
     sources = sorted({r["metrics"]["refined"].get("mask_source") or "none" for r in records})
     mask_sources = " / ".join({"network": "the network's mask head",
@@ -177,7 +181,7 @@ def write_demo_page(out: Path, options: Any, records: Sequence[dict[str, Any]],
         f"test-time refinement ({preset.refine_steps} steps at most) adjusts the pose of the "
         "best through the differentiable silhouette, its rotation held near the search's. "
         "Silhouettes cannot tell apart poses with the same outline.",
-        f"Model: {shown_model(checkpoint)}. Trivial baseline: "
+        f"Model: {model}. Trivial baseline: "
         f"{baseline_source}.",
         "Silhouettes: red, the network's prediction; green, after refinement; yellow, the "
         "outline of the true mask. 2D IoU is measured at the network's input size; Chamfer-L1 "

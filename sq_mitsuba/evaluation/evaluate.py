@@ -471,16 +471,16 @@ def earlier_evaluation(out_dir: Path, options: EvalOptions) -> bool:
 
 
 def default_label(predictor: Any) -> str:
-    """The checkpoint's folder name (a training run's output folder), or its file stem."""
-    source = getattr(predictor, "source", None)
-    if not source:
+    """The checkpoint's folder name (a training run's output folder; of the path resolved, not
+    '..'), or its file stem, as --label takes it: '|' and line breaks (report.md's rows) '_'."""
+    if not (source := getattr(predictor, "source", None)):
         return "model"
-    source = Path(source)
     from sq_mitsuba.model.checkpoint import SHIPPED_MODEL
 
-    if source == SHIPPED_MODEL:
+    if (source := Path(source)) == SHIPPED_MODEL:
         return "shipped"
-    return source.parent.name or source.stem
+    name = next((n for n in (source.resolve().parent.name, source.stem) if n.strip()), "model")
+    return "".join("_" if c in "|\r\n" else c for c in name)
 
 
 def evaluate_checkpoint(checkpoint: str | Path | None, data_root: str | Path,

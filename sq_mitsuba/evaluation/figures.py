@@ -16,6 +16,13 @@ from sq_mitsuba.geometry.metrics import mask_iou
 from sq_mitsuba.inference.fit import FitResult
 
 
+def literal(text: object) -> str:
+    """``text`` as matplotlib draws it, character for character: every '$' escaped. A user's
+    name (a model, a label, a path) is not mathtext: 'cube $^$' would fail the figure after
+    all the work, and 'twin $x_1$' would be drawn as a formula."""
+    return str(text).replace("$", r"\$")
+
+
 def plot_fit(result: FitResult, path: str | Path, title: str | None = None) -> Path:
     """PNG of the target masks against the fitted silhouettes at start, middle and end.
 
@@ -46,8 +53,8 @@ def plot_fit(result: FitResult, path: str | Path, title: str | None = None) -> P
     for axis in axes.flat:
         axis.set_xticks([])
         axis.set_yticks([])
-    figure.suptitle(title or f"fit: mean IoU {result.mean_iou:.3f} (red fit, green mask)",
-                    fontsize=9)
+    figure.suptitle(literal(title) if title
+                    else f"fit: mean IoU {result.mean_iou:.3f} (red fit, green mask)", fontsize=9)
     figure.tight_layout()
     return save_figure(figure, path)
 
@@ -107,11 +114,12 @@ def plot_per_model(rows: Sequence[dict], path: str | Path,
                 means.append(values.mean() if len(values) else np.nan)
                 stds.append(values.std() if len(values) else 0.0)
             axis.bar(x + (k - (len(methods) - 1) / 2) * width, means, width, yerr=stds,
-                     capsize=2, label=method, color=METHOD_COLOURS.get(method),
+                     capsize=2, label=literal(method), color=METHOD_COLOURS.get(method),
                      error_kw={"elinewidth": 0.8})
         axis.set_ylabel(metric, fontsize=8)
         axis.set_xticks(x)
-        axis.set_xticklabels(models if axis is axes[-1, 0] else [""] * len(models),
+        axis.set_xticklabels([literal(m) for m in models] if axis is axes[-1, 0]
+                             else [""] * len(models),
                              rotation=40, ha="right", fontsize=7)
         axis.tick_params(axis="y", labelsize=7)
         axis.grid(axis="y", alpha=0.3)
@@ -220,7 +228,7 @@ def plot_qualitative(examples: Sequence[dict], dataset, camera, figure_camera, r
                 axis.set_title(columns[column], fontsize=8)
             if 1 <= column <= len(ious):
                 axis.set_xlabel(f"IoU {ious[column - 1]:.2f}", fontsize=7)
-        figure.axes[row * len(columns)].set_ylabel(f"{example['model']}\nimage "
+        figure.axes[row * len(columns)].set_ylabel(f"{literal(example['model'])}\nimage "
                                                    f"{example['index']}", fontsize=7)
     figure.tight_layout()
     return save_figure(figure, path)
@@ -289,7 +297,7 @@ def plot_consistency(dataset, views: Sequence[Sequence[int]], predictor, camera,
             top.set_title(f"image {item['index']}", fontsize=7)
             for axis in (top, bottom):
                 axis.set_frame_on(True)
-        axes[2 * group, 0].set_ylabel(batch[0]["model"], fontsize=7)
+        axes[2 * group, 0].set_ylabel(literal(batch[0]["model"]), fontsize=7)
         axes[2 * group + 1, 0].set_ylabel("assembly,\nfixed view", fontsize=7)
     figure.suptitle("images of a model, and below each the assembly predicted from it,\n"
                     "all in one fixed view of the body frame", fontsize=8)
@@ -331,7 +339,7 @@ def plot_illumination(table: Sequence[dict], path: str | Path,
                 x = np.array([r["phase_deg"] for r in group], float)
                 mean = np.array([r[f"{metric}_mean"] for r in group], float)
                 std = np.array([r[f"{metric}_std"] for r in group], float)
-                label = f"{background}, {method}"
+                label = literal(f"{background}, {method}")
                 if background == "eclipse":  # one marker a method, side by side
                     axis.errorbar(x + 4.0 * m, mean, yerr=std, fmt="sD^v"[m % 4],
                                   color="black", ms=4, mfc="white" if m else "black",
@@ -353,8 +361,8 @@ def plot_illumination(table: Sequence[dict], path: str | Path,
     handles, labels = axes.flat[0].get_legend_handles_labels()
     figure.legend(handles, labels, loc="lower center", fontsize=7,
                   ncol=min(4, max(len(labels), 1)), frameon=False)
-    figure.suptitle((title + "\n" if title else "") + "metrics against the sun phase angle "
-                    "(lines: mean; shaded: ± std; black markers: eclipse frames, one shape "
+    figure.suptitle((literal(title) + "\n" if title else "") + "metrics against the sun phase "
+                    "angle (lines: mean; shaded: ± std; black markers: eclipse frames, one shape "
                     "a method, each 4 deg to the right of the one before)", fontsize=9)
     figure.tight_layout(rect=(0, 0.04 + 0.02 * math.ceil(len(labels) / 4), 1, 1))
     return save_figure(figure, path)
@@ -388,7 +396,7 @@ def plot_quality_vs_frames(summary: dict[tuple[int, str], dict[str, tuple[float,
                      and math.isfinite(summary[(c, method)][name][which])]
             if shown:
                 axis.plot(shown, [summary[(c, method)][name][which] for c in shown], "o-",
-                          color=colours.get(method), label=method)
+                          color=colours.get(method), label=literal(method))
         axis.set_xscale("log", base=2)
         axis.set_xticks(list(counts), [str(c) for c in counts])
         axis.set_xlabel("frames N")

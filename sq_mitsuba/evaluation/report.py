@@ -26,6 +26,7 @@ from typing import Any
 from sq_mitsuba.config import ConfigError, read_mapping
 from sq_mitsuba.inputs import finite_number, read_csv_table
 from sq_mitsuba.io import atomic_write_text, check_output_folder, read_json
+from sq_mitsuba.outputs import refuse_present
 
 #: (metric key in summary.csv, key in paper_tables.toml, column title, lower is better)
 COLUMNS = (("chamfer_l1_paper", "chamfer_l1", "Chamfer-L1 ↓", True),
@@ -293,6 +294,8 @@ def _table(rows: list[dict], with_m: bool
     """Header, plain cells and Markdown cells of a table of ``rows``; ``with_m``: a column of
     each run's M. The Markdown marks the best value of each column among our rows and, apart,
     among the paper's (:data:`EMPHASIS`), where a group has two values or more."""
+    from sq_mitsuba.evaluation.tables import markdown_text  # torch: see write_report
+
     header = ["run", *(["M"] if with_m else [])] + [
         f"{split} {title}" for split in ("val", "test") for _, _, title, _ in COLUMNS]
     best: dict[tuple[bool, str, str], float] = {}
@@ -308,7 +311,8 @@ def _table(rows: list[dict], with_m: bool
     for row in rows:
         paper = row.get("paper", False)
         cells = [row["label"], *([str(row["M"])] if with_m else [])]
-        marks = list(cells)
+        # The label as text, not Markdown: a '|' would add a column, '*b*' read as a best mark.
+        marks = [markdown_text(row["label"]), *cells[1:]]
         for split in ("val", "test"):
             for _, key, _, _ in COLUMNS:
                 if key not in row[split]:
@@ -326,15 +330,51 @@ def _table(rows: list[dict], with_m: bool
     return header, plain, marked
 
 
+#: The first line of report.md (and the header of report.csv, :func:`_csv_header`): how a
+#: rerun tells the files an earlier report wrote, which it replaces, from a user's of the same
+#: names (``--out notes`` holding the user's notes/report.md), which it refuses.
+TITLE = "# Results in the layout of the paper's tables"
+
+
+def _csv_header() -> str:
+    from sq_mitsuba.evaluation.tables import csv_text  # torch: see write_report
+
+    return csv_text(["table", *_table([], True)[0]], []).rstrip("\n")
+
+
+def _first_line(path: Path) -> str | None:
+    """The first line of the plain file ``path`` (a few kB read at most), or None: not a
+    file, a link, unreadable."""
+    try:
+        if path.is_symlink() or not path.is_file():
+            return None
+        with open(path, "rb") as handle:
+            head = handle.read(4096)
+    except OSError:
+        return None
+    return head.split(b"\n", 1)[0].rstrip(b"\r").decode("utf-8", errors="replace")
+
+
+def refuse_foreign_outputs(out_dir: Path) -> None:
+    """A one-line ``ValueError`` for a ``report.md`` or ``report.csv`` in ``out_dir`` that no
+    earlier report wrote (by its first line): someone else's file, never replaced."""
+    for name, first in (("report.md", TITLE), ("report.csv", _csv_header())):
+        path = out_dir / name
+        if (path.exists() or path.is_symlink()) and _first_line(path) != first:
+            refuse_present(out_dir, (name,), "an output of report, but no earlier report "
+                           "wrote it")
+
+
 def write_report(folders: list[str | Path], out_dir: str | Path,
                  paper_tables: str | Path | None = None) -> Path:
     """Write ``report.md`` and ``report.csv`` collating evaluation ``folders`` (each one
     split of one run) with the paper's Tables 1 and 2; returns the Markdown path.
 
     Every input is read strictly (:func:`read_eval_folder`, :func:`read_paper_tables`) and
-    ``out_dir`` checked before anything is written. ``paper_tables`` None: the tables of a
-    source checkout (``eval/paper_tables.toml``), or none, with a note, where it is absent.
-    Table 2 (number of primitives) shows each run's M.
+    ``out_dir`` checked before anything is written: a ``report.md`` or ``report.csv`` there
+    that an earlier report did not write is refused (:func:`refuse_foreign_outputs`).
+    ``paper_tables`` None: the tables of a source checkout (``eval/paper_tables.toml``), or
+    none, with a note, where it is absent. Table 2 (number of primitives) shows each run's M.
     """
     if not folders:
         raise ValueError("folders: give at least one evaluation folder")
@@ -344,9 +384,10 @@ def write_report(folders: list[str | Path], out_dir: str | Path,
         table1, table2 = read_paper_tables(PAPER_TABLES) if PAPER_TABLES.is_file() else ([], [])
     else:
         table1, table2 = read_paper_tables(paper_tables)
-    out_dir = check_output_folder(out_dir)
+    out_dir = check_output_folder(out_dir, ("report.md", "report.csv"))
+    refuse_foreign_outputs(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    lines = ["# Results in the layout of the paper's tables", ""]
+    lines = [TITLE, ""]
     csv_rows: list[list[str]] = []
     sections = [("Table 1: loss configurations", ours + table1, False),
                 ("Table 2: number of primitives M (configuration (a))", ours + table2, True)]

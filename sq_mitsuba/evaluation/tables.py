@@ -7,6 +7,7 @@ from __future__ import annotations
 import csv
 import io as _io
 import math
+import re
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -17,7 +18,8 @@ from sq_mitsuba.evaluation.scoring import METRICS
 from sq_mitsuba.io import atomic_write_text
 
 __all__ = ["COLUMNS", "EXTRAS", "LIGHTING", "SHOWN", "as_number", "csv_text",
-           "format_stats", "label_record", "markdown_table", "summarise", "write_tables"]
+           "format_stats", "label_record", "markdown_code", "markdown_table", "markdown_text",
+           "summarise", "write_tables"]
 
 #: Search and refinement columns: the search's best soft IoU at its resolution, the refinement's
 #: IoU after it (refinement resolution), and ``mask_iou``, the IoU of the mask fitted (the one
@@ -71,10 +73,35 @@ def csv_text(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
     return buffer.getvalue()
 
 
+#: What Markdown (GitHub's: tables, strikethrough, math) reads as markup in running text: '_'
+#: only where it can open or close emphasis (not between two letters or digits, so that
+#: 'refined_gt' reads as it is), '&' only where it starts an entity ('&lt;').
+_MARKUP = re.compile(r"[\\`*|<>\[\]$~]|(?<![^\W_])_|_(?![^\W_])|&(?=#?\w+;)")
+
+
+def markdown_text(text: Any) -> str:
+    """``text`` shown literally in Markdown, on one line (a user's name in a table cell or a
+    label): markup characters backslash-escaped, so that a '|' adds no column and '*b*' is no
+    emphasis (report.md's mark of the best); line breaks, which would end a table row, become
+    spaces."""
+    return _MARKUP.sub(lambda m: "\\" + m.group(), " ".join(str(text).splitlines()))
+
+
+def markdown_code(text: Any) -> str:
+    """``text`` as a Markdown code span, shown verbatim (a path: its '<b>' and '*' as typed):
+    fenced by more backticks than it holds in a row, padded where it starts or ends with a
+    backtick or a space (the renderer takes one space off each side)."""
+    text = " ".join(str(text).splitlines())
+    fence = "`" * (1 + max((len(run) for run in re.findall("`+", text)), default=0))
+    pad = " " if text[:1] in ("`", " ") or text[-1:] in ("`", " ") else ""
+    return f"{fence}{pad}{text}{pad}{fence}"
+
+
 def markdown_table(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
-    """A Markdown table."""
+    """A Markdown table: ``header`` as given (the caller's column titles), every cell of
+    ``rows`` as plain text (:func:`markdown_text`: a model name may hold '|' or '*')."""
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    lines += ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
+    lines += ["| " + " | ".join(markdown_text(c) for c in row) + " |" for row in rows]
     return "\n".join(lines) + "\n"
 
 

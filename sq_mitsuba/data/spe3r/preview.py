@@ -116,7 +116,9 @@ def preview_dataset(root: str | Path, out: str | Path | None = None,
             axis.plot([pixels[0, 0], tip[0]], [pixels[0, 1], tip[1]], colour, linewidth=1.2)
         phase = label.get("phase_angle_deg")
         subtitle = f"phase {phase:.0f} deg" if phase is not None else ""
-        axis.set_title(f"{model} {label['filename']}\n{subtitle}", fontsize=7)
+        # Drawn as written: a '$' in a model or file name is not mathtext ('cube $^$' failed
+        # the sheet; 'twin $x_1$' came out as a formula).
+        axis.set_title(f"{model} {label['filename']}\n{subtitle}", fontsize=7, parse_math=False)
         axis.set_xlim(0, camera.width)
         axis.set_ylim(camera.height, 0)
     figure.tight_layout()
