@@ -168,28 +168,26 @@ def page_html(page: DemoPage) -> str:
     return "\n".join(parts) + "\n"
 
 
-def _escape_md(text: str) -> str:
-    """Text safe in a Markdown table cell or link label."""
-    return text.replace("|", "\\|").replace("[", "\\[").replace("]", "\\]")
-
-
 def page_markdown(page: DemoPage) -> str:
-    """The Markdown twin of ``page``: the same text, tables, pictures and links."""
+    """The Markdown twin of ``page``: the same text, tables, pictures and links (a name or
+    caption shown as typed: :func:`~sq_mitsuba.evaluation.tables.markdown_text`)."""
+    from sq_mitsuba.evaluation.tables import markdown_text
+
     lines = [f"# {page.title}", ""]
     for text in page.intro:
         lines += [text, ""]
     lines += ["## Summary: mean over the images", "",
               _markdown_table(page.metric_labels, page.summary), ""]
     for path, caption in page.figures:
-        lines += [f"![{_escape_md(caption)}]({path})", "", f"*{caption}*", ""]
+        lines += [f"![{markdown_text(caption)}]({path})", "", f"*{caption}*", ""]
     lines += ["## Images", ""]
     for image in page.images:
-        lines += [f"### {image.title}", ""]
-        lines.append(" ".join(f"![{_escape_md(c)}]({p})" for p, c in image.pictures))
+        lines += [f"### {markdown_text(image.title)}", ""]
+        lines.append(" ".join(f"![{markdown_text(c)}]({p})" for p, c in image.pictures))
         lines += ["", "Pictures, left to right: " + "; ".join(c for _, c in image.pictures)
                   + ".", ""]
         lines += [_markdown_table(page.metric_labels, image.metrics), ""]
-        lines += [f"- [{_escape_md(label)}]({path})" for label, path in image.links]
+        lines += [f"- [{markdown_text(label)}]({path})" for label, path in image.links]
         lines.append("")
     for section in page.sections:
         lines += [f"## {section.title}", ""]
@@ -197,16 +195,16 @@ def page_markdown(page: DemoPage) -> str:
             lines += [text, ""]
         lines += [_markdown_table(section.metric_labels, section.rows), ""]
         for path, caption in section.figures:
-            lines += [f"![{_escape_md(caption)}]({path})", "", f"*{caption}*", ""]
+            lines += [f"![{markdown_text(caption)}]({path})", "", f"*{caption}*", ""]
         if section.pictures:
-            lines.append(" ".join(f"![{_escape_md(c)}]({p})" for p, c in section.pictures))
+            lines.append(" ".join(f"![{markdown_text(c)}]({p})" for p, c in section.pictures))
             lines += ["", "Pictures, left to right: "
                       + "; ".join(c for _, c in section.pictures) + ".", ""]
-        lines += [f"- [{_escape_md(label)}]({path})" for label, path in section.links]
+        lines += [f"- [{markdown_text(label)}]({path})" for label, path in section.links]
         lines.append("")
     if page.files:
         lines += ["## Files", ""]
-        lines += [f"- [{_escape_md(label)}]({path})" for label, path in page.files]
+        lines += [f"- [{markdown_text(label)}]({path})" for label, path in page.files]
         lines.append("")
     return "\n".join(lines)
 

@@ -257,7 +257,8 @@ def plot_learning_curves(curves: Sequence[Curve], path: Path = CURVES_PNG) -> Pa
     axis = figure.subplots()
     for curve in curves:
         axis.plot([s / 60 for s in curve.seconds], curve.chamfer_l1, marker="o",
-                  label=f"{curve.label} ({curve.images_per_second:.1f} images/s)")
+                  label=f"{curve.label} ({curve.images_per_second:.1f} images/s)".replace(
+                      "$", r"\$"))  # a label as typed, not mathtext
     axis.set_xlabel("training wall time (min)")
     axis.set_ylabel("val Chamfer-L1 (paper convention)")
     axis.set_title("held-out Chamfer-L1 at equal training time")
@@ -275,6 +276,8 @@ def curves_report(curves: Sequence[Curve], minutes: float, data_root: Path,
     import datetime as _dt
     import platform
 
+    from sq_mitsuba.evaluation.tables import markdown_text
+
     lines = ["### `sq-mitsuba bench curves`", "",
              f"Measured {_dt.date.today().isoformat()} on {platform.node() or 'host'} "
              f"({os.cpu_count()} cores, torch {torch.__version__}): {minutes:g} min of training "
@@ -285,7 +288,7 @@ def curves_report(curves: Sequence[Curve], minutes: float, data_root: Path,
     for curve in curves:
         for seconds, steps, value in zip(curve.seconds, curve.steps, curve.chamfer_l1,
                                          strict=True):
-            lines.append(f"| {curve.label} | {curve.images_per_second:.1f} | "
+            lines.append(f"| {markdown_text(curve.label)} | {curve.images_per_second:.1f} | "
                          f"{seconds / 60:.2f} | {steps} | {value:.4f} |")
     if figure is not None:
         lines += ["", f"Figure: `{figure.relative_to(BENCHMARKS_MD.parent)}`"

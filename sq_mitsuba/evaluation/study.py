@@ -62,7 +62,14 @@ from sq_mitsuba.evaluation.evaluate import (
     check_mesh_ranking,
 )
 from sq_mitsuba.evaluation.scoring import METRICS
-from sq_mitsuba.evaluation.tables import SHOWN, csv_text, format_stats, markdown_table, summarise
+from sq_mitsuba.evaluation.tables import (
+    SHOWN,
+    csv_text,
+    format_stats,
+    markdown_table,
+    markdown_text,
+    summarise,
+)
 from sq_mitsuba.inputs import finite_number, read_csv_table
 from sq_mitsuba.io import atomic_write_json, atomic_write_text
 
@@ -212,10 +219,11 @@ def write_group_tables(table: Sequence[dict[str, Any]], out_dir: Path, stem: str
                 *(format_stats(e[f"{m}_mean"], e[f"{m}_std"], e[f"{m}_median"])
                   for m in SHOWN)] for e in table]
     atomic_write_text(md_path, (
-        f"# {title}\n\nMean ± std (median) per background, phase angle and method; every "
-        f"metric is in {csv_path.name}. An eclipse group's phase angle is the mean of its recorded "
-        "ones.\n\n" + markdown_table(["background", "phase [deg]", "method", "images",
-                                      "eclipse frames", *SHOWN], md_rows)))
+        f"# {markdown_text(title)}\n\nMean ± std (median) per background, phase angle and "
+        f"method; every metric is in {csv_path.name}. An eclipse group's phase angle is the "
+        "mean of its recorded ones.\n\n"
+        + markdown_table(["background", "phase [deg]", "method", "images", "eclipse frames",
+                          *SHOWN], md_rows)))
     plot_illumination(table, png_path, METRICS, title)
     return [csv_path, md_path, png_path]
 
