@@ -309,3 +309,55 @@ def test_the_primal_form_and_the_taper_refuse_what_makes_them_infinite():
               torch.tensor([[0.3, 0.2, 0.0]], dtype=torch.float64))
     assert torch.isfinite(inside_outside(points, size, torch.tensor([[0.1, 0.5]],
                                                                     dtype=torch.float64))).all()
+
+
+def test_small_helpers_name_their_bad_inputs():
+    """Each failed inside torch, numpy or pathlib, or named the wrong thing."""
+    from sq_mitsuba.geometry.camera import Camera
+    from sq_mitsuba.geometry.metrics import chamfer_l1
+    from sq_mitsuba.geometry.so3_grid import with_half_turns
+    from sq_mitsuba.geometry.superquadric import surface_points_dual
+
+    with pytest.raises(ValueError, match=r"^rotations: expected a torch.Tensor, got ndarray$"):
+        with_half_turns(np.eye(3)[None])
+    with pytest.raises(ValueError, match=r"^rotations: expected shape \(\.\.\., 3, 3\)"):
+        with_half_turns(torch.zeros(3))
+    points = torch.rand(1, 5, 3, dtype=torch.float64)
+    with pytest.raises(ValueError, match=r"^pred_mask: expected a torch.Tensor, got ndarray$"):
+        chamfer_l1(points, points, pred_mask=np.ones((1, 5), bool))
+    with pytest.raises(ValueError, match=r"^pred: expected shape \(\.\.\., N, 3\), got "
+                                         r"\(100, 3\)$"):
+        chamfer_l1(torch.rand(100, 3), torch.rand(120, 3))
+    with pytest.raises(ValueError, match=r"^eta, omega: one of each per point, got 10 and 5$"):
+        surface_points_dual(torch.zeros(10), torch.zeros(5), torch.ones(3), torch.ones(2) / 2)
+    with pytest.raises(ValueError, match=r"^fov_x_deg: expected a value in \(0, 180\), "
+                                         r"got '30'$"):
+        Camera.from_fov("30", 64, 64)
+    assembly = Assembly.from_values(torch.tensor([[[0.3, 0.2, 0.1], [0.1, 0.1, 0.1]]]),
+                                    torch.tensor([[[0.5, 0.5], [0.5, 0.5]]]))
+    with pytest.raises(ValueError, match=r"^points: expected shape \(\.\.\., N, M, 3\), got "):
+        assembly.inside_others(torch.zeros(1, 7, 3))
+    surface = assembly.surface_points(1)
+    assert assembly.inside_others(surface).shape == (1, 2, 2, surface.shape[2])
+
+
+def test_a_prediction_scales_by_any_real_number(tmp_path):
+    """A Fraction passed the number check, scaled the assembly, then failed on a tensor."""
+    from fractions import Fraction
+
+    import sq_mitsuba
+
+    image = np.zeros((1, 64, 64), np.uint8)
+    image[0, 20:40, 16:48] = 200
+    prediction = sq_mitsuba.load_model().predict(image, turns=1)
+    by_fraction, by_float = prediction.scaled(Fraction(2)), prediction.scaled(2.0)
+    torch.testing.assert_close(by_fraction.translation, by_float.translation, rtol=0, atol=0)
+    assert by_fraction.scale == 2.0
+
+
+def test_inside_others_wants_each_primitives_own_points():
+    assembly = Assembly.from_values(torch.tensor([[[0.3, 0.2, 0.1], [0.1, 0.1, 0.1]]]),
+                                    torch.tensor([[[0.5, 0.5], [0.5, 0.5]]]))
+    with pytest.raises(ValueError, match=r"^points: expected \(B, M, V, 3\) = \(1, 2, V, 3\), "
+                                         r"got \(1, 3, 5, 3\)$"):
+        assembly.inside_others(torch.zeros(1, 3, 5, 3))

@@ -398,6 +398,10 @@ class Assembly:
             (B, M, M, V) bool, computed without gradient: ``[b, j, m, v]`` says that point v
             of primitive m lies strictly inside primitive j (never for j = m).
         """
+        check_tensor("points", points, (None, None, 3), min_dims=4)
+        if points.dim() != 4 or points.shape[:2] != self.params.shape[:2]:
+            raise ValueError(f"points: expected (B, M, V, 3) = ({self.batch_size}, "
+                             f"{self.num_primitives}, V, 3), got {tuple(points.shape)}")
         batch, count, per, _ = points.shape
         with torch.no_grad():
             values = self.inside_outside(points.reshape(batch, count * per, 3))

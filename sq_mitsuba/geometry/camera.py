@@ -13,6 +13,7 @@ The conversion to a Mitsuba sensor lives in the rendering layer
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -96,8 +97,9 @@ class Camera:
     @classmethod
     def from_fov(cls, fov_x_deg: float, width: int, height: int) -> Camera:
         """Square pixels, horizontal field of view ``fov_x_deg``, centred principal point."""
-        if not 0 < fov_x_deg < 180:
-            raise ValueError(f"fov_x_deg: expected a value in (0, 180), got {fov_x_deg}")
+        if isinstance(fov_x_deg, bool) or not isinstance(fov_x_deg, numbers.Real) \
+                or not 0 < fov_x_deg < 180:  # '30' failed comparing a str with 0
+            raise ValueError(f"fov_x_deg: expected a value in (0, 180), got {fov_x_deg!r}")
         focal = width / (2 * math.tan(math.radians(fov_x_deg) / 2))
         return cls(focal, focal, width / 2, height / 2, width, height)
 

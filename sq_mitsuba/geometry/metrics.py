@@ -59,6 +59,7 @@ def _clouds(name: str, points: Tensor, mask: Tensor | None) -> list[np.ndarray]:
     if mask is None:
         clouds = list(array)
     else:
+        check_tensor(f"{name}_mask", mask, floating=False)  # a numpy mask failed in .detach()
         if mask.shape != points.shape[:-1]:
             raise ValueError(f"{name}_mask: expected shape {tuple(points.shape[:-1])}, got "
                              f"{tuple(mask.shape)}")
@@ -73,6 +74,9 @@ def _clouds(name: str, points: Tensor, mask: Tensor | None) -> list[np.ndarray]:
 def _directional_means(pred: Tensor, gt: Tensor, p: float, pred_mask: Tensor | None,
                        gt_mask: Tensor | None, power: int = 1) -> tuple[Tensor, Tensor]:
     """(B,) means of nearest distances**power pred -> gt and gt -> pred."""
+    # The shapes first: an unbatched (N, 3) was read as N clouds ("batch sizes differ").
+    check_tensor("pred", pred, (None, 3), min_dims=3)
+    check_tensor("gt", gt, (None, 3), min_dims=3)
     if pred.shape[0] != gt.shape[0]:
         raise ValueError(f"pred, gt: batch sizes differ ({pred.shape[0]} vs {gt.shape[0]})")
     forward, backward = [], []

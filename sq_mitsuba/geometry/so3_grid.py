@@ -161,5 +161,6 @@ def with_half_turns(rotations: Tensor) -> Tensor:
     ``out[..., j, :, :] = rotations @ half_turns()[j]``: the four poses that a body frame
     fixed only by its principal axes cannot tell apart.
     """
+    check_tensor("rotations", rotations, (3, 3))  # numpy or (3,) failed inside torch
     turns = half_turns(rotations.dtype, rotations.device)
     return rotations[..., None, :, :] @ turns

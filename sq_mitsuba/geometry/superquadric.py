@@ -70,6 +70,9 @@ def _check_dual_shape(shape: Tensor) -> None:
 def _check_angles(eta: Tensor, omega: Tensor) -> None:
     check_tensor("eta", eta, (None,))
     check_tensor("omega", omega, (None,))
+    if eta.shape[-1] != omega.shape[-1]:  # one (eta, omega) pair per point
+        raise ValueError(f"eta, omega: one of each per point, got {eta.shape[-1]} and "
+                         f"{omega.shape[-1]}")
 
 
 # --------------------------------------------------------------------------------------------

@@ -46,7 +46,7 @@ def _one_factor(factor: object) -> float:
             else repr(factor)
         raise ValueError(f"factor: expected one number for the whole batch (the target's "
                          f"longest side in metres), got {got}")
-    return factor
+    return float(factor)  # a Fraction or Decimal scaled the assembly, then failed on a tensor
 
 
 @dataclass(frozen=True)
