@@ -155,6 +155,7 @@ def check_output_folder(out: str | Path, files: Sequence[str | Path] = (),
     with contextlib.suppress(FileNotFoundError):
         os.unlink(probe)
     written = [out / name for name in files]
+    _check_room(out, written, existing, label)
     check_inputs_kept([Path(path) for path in keep], written)
     for path in written:
         if path.exists() and not path.is_file():
@@ -167,6 +168,57 @@ def check_output_folder(out: str | Path, files: Sequence[str | Path] = (),
                 raise ValueError(f"{folder}: the run writes {path.name} into this folder, but "
                                  "a file is there; move it or write elsewhere (--out)")
     return out
+
+
+#: What an atomic write's temporary name adds to its target's (``.`` ``.XXXXXXXX`` ``.tmp``).
+TEMPORARY_EXTRA = 14
+#: Room kept below an output folder for what a run writes beside its named files (a journal
+#: folder and its records, a staging name): ``.eval_partial/.batch_00001.XXXXXXXX.tmp.pt``.
+OUTPUT_DEPTH = 64
+
+
+def _limit(folder: Path, name: str, default: int) -> int:
+    try:
+        return int(os.pathconf(folder, name))
+    except (OSError, ValueError):
+        return default
+
+
+def _existing(path: Path) -> Path:
+    while not path.exists() and path != path.parent:
+        path = path.parent
+    return path
+
+
+def check_path_room(out: str | Path, below: int = OUTPUT_DEPTH, label: object = None) -> None:
+    """Refuse, before the work, an output folder whose path leaves less than ``below`` bytes
+    for what a run writes under it before the file system's path limit (4,096 bytes on
+    Linux): such a run failed part-way, naming a temporary file, and left partial outputs.
+
+    Raises:
+        ValueError: ``out <label>: a path of N bytes, ...`` (``label`` default ``out``).
+    """
+    out = Path(out)
+    path_max = _limit(_existing(out), "PC_PATH_MAX", 4096)
+    length = len(os.fsencode(os.path.abspath(out)))
+    if length + below > path_max:
+        raise ValueError(f"out {out if label is None else label}: a path of {length} bytes, "
+                         f"too long for what the run writes below it (paths may have "
+                         f"{path_max} bytes); choose a shorter one")
+
+
+def _check_room(out: Path, written: Sequence[Path], existing: Path, label: object) -> None:
+    """:func:`check_path_room` of ``out``, and each of ``written`` refused whose name leaves
+    no room for its atomic write's temporary name (a legal name of 242-255 bytes failed
+    part-way, naming the temporary file)."""
+    check_path_room(out, OUTPUT_DEPTH, label)
+    name_max = _limit(existing, "PC_NAME_MAX", 255)
+    for path in written:
+        name = len(os.fsencode(path.name))
+        if name + TEMPORARY_EXTRA > name_max:
+            raise ValueError(f"{path.name}: a name of {name} bytes, too long for its temporary "
+                             f"file while it is written ({name_max} at most, less "
+                             f"{TEMPORARY_EXTRA}); choose a shorter name")
 
 
 def inside_folder(path: str | Path, folder: str | Path) -> bool:

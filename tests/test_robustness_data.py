@@ -494,3 +494,37 @@ def test_a_command_line_holding_a_name_that_is_no_utf8_takes_the_lock(tmp_path, 
     out = tmp_path / "out"
     with output_lock(out):
         assert (lock_path(out)).read_bytes().endswith(b"sq-mitsuba predict caf\\udce9.png\n")
+
+
+def _deep(root, total=4050):
+    """A path of about ``total`` bytes below ``root``, in folder names of 200 bytes (not made)."""
+    path = root
+    while len(os.fsencode(str(path))) + 201 < total:
+        path = path / ("d" * 200)
+    return path / ("e" * (total - len(os.fsencode(str(path))) - 1))
+
+
+def test_an_output_too_deep_or_a_name_too_long_is_refused_before_any_work(
+        tmp_path, capsys, eval_checkpoint, train_dataset):
+    """Near the file system's limits a run failed part-way naming a temporary file (the
+    render left a dataset marked "rendering", eval its journal); a name of 242-255 bytes,
+    legal itself, left no room for its temporary name."""
+    from sq_mitsuba.data.spe3r.layout import DatasetError
+    from sq_mitsuba.data.spe3r.writer import check_writable
+    from sq_mitsuba.io import check_output_folder
+
+    deep = _deep(tmp_path)
+    with pytest.raises(ValueError, match=r"^out .*: a path of \d+ bytes, too long for what the "
+                                         r"run writes below it \(paths may have \d+ bytes\)"):
+        check_output_folder(deep, ["summary.csv"])
+    with pytest.raises(ValueError, match=r"^x+\.pt: a name of 250 bytes, too long for its "
+                                         r"temporary file"):
+        check_output_folder(tmp_path, ["x" * 247 + ".pt"])
+    check_output_folder(tmp_path, ["x" * 238 + ".pt"])  # 241 + 14: room enough
+    with pytest.raises(DatasetError, match=r"a path of \d+ bytes, too long"):
+        check_writable(_deep(tmp_path / "render", 4000), ["m" * 40])
+    assert not (tmp_path / "render").exists()
+    assert main(["eval", "--checkpoint", str(eval_checkpoint), "--data", str(train_dataset),
+                 "--split", "val", "--out", str(deep), "--quiet"]) == 2
+    assert "too long for what the run writes below it" in error_line(capsys)
+    assert not (tmp_path / ("d" * 200)).exists()

@@ -99,9 +99,11 @@ from sq_mitsuba.data.spe3r.render_options import (
 )
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.io import (
+    OUTPUT_DEPTH,
     atomic_path,
     atomic_write_json,
     atomic_write_text,
+    check_path_room,
     inside_folder,
     read_json,
 )
@@ -177,10 +179,18 @@ def _card_split(models_dir: Path, model: str) -> str | None:
     return split if split in ("train", "test") else None
 
 
-def check_writable(out_dir: Path) -> None:
-    """Create ``out_dir`` and write a file there (a unique name: shards may check at once)."""
+def check_writable(out_dir: Path, models: Sequence[str] = ()) -> None:
+    """Create ``out_dir`` and write a file there (a unique name: shards may check at once),
+    once its path leaves room for the deepest file a render of ``models`` writes (a path near
+    the file system's limit failed part-way, leaving a dataset marked "rendering")."""
     if out_dir.exists() and not out_dir.is_dir():
         raise DatasetError(f"{out_dir}: exists and is not a folder; give a folder to render into")
+    # <model>/masks/.000000.XXXXXXXX.tmp.png, .failures/<model>/...: the model's name, 2 x.
+    deepest = 2 * max((len(os.fsencode(model)) for model in models), default=0) + OUTPUT_DEPTH
+    try:
+        check_path_room(out_dir, deepest)
+    except ValueError as error:
+        raise DatasetError(str(error)) from None
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
         fd, name = tempfile.mkstemp(prefix=".write-test.", dir=out_dir)
@@ -711,7 +721,7 @@ def prepare_dataset(models_dir: Path, out_dir: Path, options: RenderOptions
     kept = [] if options.overwrite else old_models
     work = _shard_work(sorted(set(found) | set(kept)), options.images_per_model, options.shard)
     check_library_models(models_dir, [model for model in work if model in found])
-    check_writable(out_dir)
+    check_writable(out_dir, work)
     if options.overwrite:
         _clear_dataset(doomed)
         manifest, old_models = None, []
