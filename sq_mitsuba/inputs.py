@@ -18,7 +18,9 @@ missing file, a ``ValueError`` otherwise, raised before any work that depends on
   :data:`MIN_IMAGE_SIDE` pixels, and its matrix must fit them: the principal point within a
   quarter of the image size of its centre, and a field of view under
   :data:`MAX_FIELD_OF_VIEW_DEG` across either axis. A matrix written for another image size
-  fails one of these, instead of giving poses that are silently wrong.
+  fails one of these, instead of giving poses that are silently wrong
+  (:func:`sq_mitsuba.inference.images.check_camera` holds a Camera object given in code to
+  the same rules, and to a field of view over :data:`MIN_FIELD_OF_VIEW_DEG`).
 - **Tables** (:func:`read_csv_table`, :func:`finite_number`): CSV files with the columns a
   reader needs, every row complete (a truncated file is an error), numbers finite.
 - **Quaternion lists** (:func:`check_quaternions`): a parsed JSON list of one rotation per item,
@@ -42,17 +44,20 @@ from typing import Any
 __all__ = [
     "MAX_FIELD_OF_VIEW_DEG",
     "MAX_IMAGE_PIXELS",
+    "MIN_FIELD_OF_VIEW_DEG",
     "MIN_IMAGE_SIDE",
     "check_camera_intrinsics",
     "check_finite_tensors",
     "check_image_size",
     "check_quaternions",
     "check_unique_stems",
+    "field_of_view_deg",
     "finite_number",
     "image_header",
     "load_torch_file",
     "one_line",
     "open_image",
+    "principal_point_off_centre",
     "read_csv_table",
 ]
 
@@ -62,6 +67,9 @@ MAX_IMAGE_PIXELS = 2**27
 """Largest image, in pixels (134 megapixels, e.g. 11,585 x 11,585; PIL warns from 89)."""
 MAX_FIELD_OF_VIEW_DEG = 160.0
 """Widest field of view a camera description may give across either image axis (degrees)."""
+MIN_FIELD_OF_VIEW_DEG = 1e-3
+"""Narrowest (degrees; a telescope's is about 0.1): a focal length beyond it puts the target so
+far away that its distance is no longer a finite float32 (poses came back infinite)."""
 UNIT_TOLERANCE = 1e-3
 """How far from 1 a quaternion's length may be (rounding in a file written by hand or in
 single precision); it is normalised."""
@@ -250,17 +258,29 @@ def check_camera_intrinsics(width: int, height: int, fx: float, fy: float, cx: f
     if width < MIN_IMAGE_SIDE or height < MIN_IMAGE_SIDE:
         raise ValueError(f"{where}: Nu x Nv = {width} x {height} px is below the smallest "
                          f"image size, {MIN_IMAGE_SIDE} x {MIN_IMAGE_SIDE} px")
-    if abs(cx - width / 2) >= width / 4 or abs(cy - height / 2) >= height / 4:
+    if principal_point_off_centre(width, height, cx, cy):
         raise ValueError(f"{where}: the principal point ({cx:g}, {cy:g}) of cameraMatrix is "
                          f"far from the centre ({width / 2:g}, {height / 2:g}) of the Nu x Nv "
                          f"= {width} x {height} px image (a matrix for another image size?)")
     for axis, size, focal, centre in (("x", width, fx, cx), ("y", height, fy, cy)):
-        fov = math.degrees(math.atan(centre / focal) + math.atan((size - centre) / focal))
+        fov = field_of_view_deg(size, focal, centre)
         if fov >= MAX_FIELD_OF_VIEW_DEG:
             raise ValueError(f"{where}: cameraMatrix gives a {fov:.1f} deg field of view "
                              f"across {axis} over the Nu x Nv = {width} x {height} px image, "
                              f"more than the {MAX_FIELD_OF_VIEW_DEG:g} deg a camera may have "
                              "(a matrix for another image size?)")
+
+
+def principal_point_off_centre(width: int, height: int, cx: float, cy: float) -> bool:
+    """Whether the principal point lies a quarter of the image or more from its centre: the
+    intrinsics of another image size, for every camera this project reads."""
+    return abs(cx - width / 2) >= width / 4 or abs(cy - height / 2) >= height / 4
+
+
+def field_of_view_deg(size: int, focal: float, centre: float) -> float:
+    """The field of view (degrees) across ``size`` pixels of focal length ``focal`` and
+    principal point ``centre`` (pixels) along that axis."""
+    return math.degrees(math.atan(centre / focal) + math.atan((size - centre) / focal))
 
 
 # ----------------------------------------------------------------------------- tables

@@ -141,9 +141,7 @@ def check_output_folder(out: str | Path, files: Sequence[str | Path] = (),
     if out.exists() and not out.is_dir():
         raise ValueError(f"out {label}: exists and is not a folder" if shown is None
                          else f"out {label}: {out} is a file, not a folder")
-    existing = out
-    while not existing.exists() and existing != existing.parent:
-        existing = existing.parent
+    existing = _existing(out)
     if not existing.is_dir():
         raise ValueError(f"out {label}: {existing} is a file, not a folder")
     try:

@@ -251,14 +251,14 @@ def plot_learning_curves(curves: Sequence[Curve], path: Path = CURVES_PNG) -> Pa
     """Held-out Chamfer-L1 against training minutes, one line per config, as a PNG."""
     from matplotlib.figure import Figure
 
+    from sq_mitsuba.evaluation.figures import literal  # a label as typed, not mathtext
     from sq_mitsuba.io import atomic_path
 
     figure = Figure(figsize=(6, 4))
     axis = figure.subplots()
     for curve in curves:
         axis.plot([s / 60 for s in curve.seconds], curve.chamfer_l1, marker="o",
-                  label=f"{curve.label} ({curve.images_per_second:.1f} images/s)".replace(
-                      "$", r"\$"))  # a label as typed, not mathtext
+                  label=literal(f"{curve.label} ({curve.images_per_second:.1f} images/s)"))
     axis.set_xlabel("training wall time (min)")
     axis.set_ylabel("val Chamfer-L1 (paper convention)")
     axis.set_title("held-out Chamfer-L1 at equal training time")

@@ -53,8 +53,8 @@ CHAMFER_CONVENTIONS = ("paper", "occnet")
 
 
 def _clouds(name: str, points: Tensor, mask: Tensor | None) -> list[np.ndarray]:
-    """Per batch item, the (n_b, 3) float64 points that count."""
-    check_tensor(name, points, (None, 3), min_dims=3)
+    """Per batch item, the (n_b, 3) float64 points that count (``points`` checked by the
+    caller, :func:`_directional_means`)."""
     array = points.detach().to("cpu", torch.float64).numpy()
     if mask is None:
         clouds = list(array)
@@ -200,13 +200,11 @@ def rotation_error_deg(pred_rotation: Tensor, gt_rotation: Tensor,
             identity among them); the error is min over S of angle(R_pred, R_true S), since
             R_true S shows the same image. None: the raw error.
     """
-    check_tensor("pred_rotation", pred_rotation, (3, 3), min_dims=3)
-    check_tensor("gt_rotation", gt_rotation, (3, 3), min_dims=3)
-    check_same_shape(pred_rotation=pred_rotation, gt_rotation=gt_rotation)
-    # The angle formula reads any matrix: -I gave 180 deg, 2 I gave 0 (a value check; one
-    # batched product and determinant, cheap beside the evaluation around it).
+    # The angle formula reads any matrix: -I gave 180 deg, 2 I gave 0 (shapes always; the
+    # values a value check: one batched product and determinant, cheap beside an evaluation).
     check_rotations("pred_rotation", pred_rotation)
     check_rotations("gt_rotation", gt_rotation)
+    check_same_shape(pred_rotation=pred_rotation, gt_rotation=gt_rotation)
     if symmetries is None:
         return rotation_angle_deg(pred_rotation, gt_rotation)
     check_tensor("symmetries", symmetries, (3, 3), min_dims=3)

@@ -118,12 +118,11 @@ def nearest_grid_index(rotations: Tensor, grid: Tensor) -> Tensor:
             not rotations (a value check: NaN read as cell 0, and the trace ranks only
             rotations by angle).
     """
-    check_tensor("rotations", rotations, (3, 3))
-    check_tensor("grid", grid, (None, 3, 3))
-    if grid.dim() != 3 or grid.shape[0] == 0:
-        raise ValueError(f"grid: expected (N, 3, 3) with N >= 1, got {tuple(grid.shape)}")
+    check_tensor("rotations", rotations, (3, 3))  # its shape before the reshape below
     check_rotations("rotations", rotations.reshape(-1, 3, 3))
     check_rotations("grid", grid)
+    if grid.dim() != 3 or grid.shape[0] == 0:
+        raise ValueError(f"grid: expected (N, 3, 3) with N >= 1, got {tuple(grid.shape)}")
     flat = rotations.reshape(-1, 9).to(grid.dtype)
     traces = flat @ grid.reshape(-1, 9).T  # (P, N): trace(G^T R) = sum(G * R)
     return traces.argmax(dim=-1).reshape(rotations.shape[:-2])

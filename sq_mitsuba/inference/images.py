@@ -14,8 +14,6 @@ Convention:
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import torch
 import torch.nn.functional as F
@@ -168,30 +166,30 @@ def resize_images(images: Tensor, size: int) -> Tensor:
                          antialias=True)
 
 
-MIN_FIELD_OF_VIEW_DEG = 1e-3
-"""The narrowest field of view a camera given to the predictor may have (a telescope's is
-about 0.1 deg): a focal length beyond it puts the target so far away that its distance is no
-longer a finite float32."""
-
-
 def check_camera(camera: Camera) -> Camera:
     """``camera`` itself; refused, in one line naming ``camera``, for intrinsics no camera
     has, as a camera file's are (:func:`sq_mitsuba.inputs.check_camera_intrinsics`): a
     principal point more than a quarter of the image from its centre, or a field of view
-    outside [:data:`MIN_FIELD_OF_VIEW_DEG`, ``MAX_FIELD_OF_VIEW_DEG``). Poses read through
-    such a camera came back infinite or millions of metres off, not as an error."""
-    from sq_mitsuba.inputs import MAX_FIELD_OF_VIEW_DEG
+    outside [``MIN_FIELD_OF_VIEW_DEG``, ``MAX_FIELD_OF_VIEW_DEG``] (:mod:`sq_mitsuba.inputs`'s
+    rules, in the words of a Camera object). Poses read through such a camera came back
+    infinite or millions of metres off, not as an error."""
+    from sq_mitsuba.inputs import (
+        MAX_FIELD_OF_VIEW_DEG,
+        MIN_FIELD_OF_VIEW_DEG,
+        field_of_view_deg,
+        principal_point_off_centre,
+    )
 
     if not isinstance(camera, Camera):
         raise ValueError(f"camera: expected a Camera, got {type(camera).__name__}")
     width, height = camera.width, camera.height
-    if abs(camera.cx - width / 2) >= width / 4 or abs(camera.cy - height / 2) >= height / 4:
+    if principal_point_off_centre(width, height, camera.cx, camera.cy):
         raise ValueError(f"camera: the principal point ({camera.cx:g}, {camera.cy:g}) is far "
                          f"from the centre ({width / 2:g}, {height / 2:g}) of its {width} x "
                          f"{height} px images (intrinsics for another image size?)")
     for axis, size, focal, centre in (("x", width, camera.fx, camera.cx),
                                       ("y", height, camera.fy, camera.cy)):
-        fov = math.degrees(math.atan(centre / focal) + math.atan((size - centre) / focal))
+        fov = field_of_view_deg(size, focal, centre)
         if not MIN_FIELD_OF_VIEW_DEG <= fov < MAX_FIELD_OF_VIEW_DEG:
             raise ValueError(f"camera: f{axis} = {focal:g} gives a {fov:.3g} deg field of view "
                              f"across {axis} over {size} px; expected {MIN_FIELD_OF_VIEW_DEG:g} "
