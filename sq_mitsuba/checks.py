@@ -178,6 +178,16 @@ def check_rotations(name: str, rotations: torch.Tensor) -> None:
                          "determinant -1)")
 
 
+def check_switch(name: str, value: object) -> bool:
+    """``value`` as a bool (numpy's as Python's), else a one-line ``ValueError`` naming
+    ``name``: a string or a number is no switch (``'yes'`` was taken as true, ``0.0`` as
+    false)."""
+    value = python_scalar(value)
+    if not isinstance(value, bool):
+        raise ValueError(f"{name}: expected True or False, got {value!r}")
+    return value
+
+
 def python_scalar(value: object) -> object:
     """A numpy integer or bool as Python's (``np.int64(8)`` -> 8, ``np.True_`` -> True), for
     counts and switches a user computed with numpy; anything else as it is (to be checked)."""

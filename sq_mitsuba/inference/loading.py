@@ -5,11 +5,10 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Any
 
 import torch
 
-from sq_mitsuba.checks import python_scalar
+from sq_mitsuba.checks import check_switch
 from sq_mitsuba.inference.images import DEFAULT_MIN_TARGET, check_min_target
 from sq_mitsuba.inference.predictor import DEFAULT_MIN_EXISTENCE, Predictor
 from sq_mitsuba.model import checkpoint
@@ -49,15 +48,6 @@ def check_device(device: str | torch.device) -> torch.device:
     return parsed
 
 
-def _switch(name: str, value: Any) -> bool:
-    """``value`` as a bool (numpy's too); a one-line ValueError naming ``name`` for anything
-    else (``fast='yes'`` was taken as true, ``fast=0.0`` as false)."""
-    value = python_scalar(value)
-    if not isinstance(value, bool):
-        raise ValueError(f"{name}: expected True or False, got {value!r}")
-    return value
-
-
 def load_model(path: str | os.PathLike[str] | None = None, *, fast: bool = False,
                traced: bool = False, device: str | torch.device = "cpu",
                min_target: float = DEFAULT_MIN_TARGET,
@@ -85,8 +75,7 @@ def load_model(path: str | os.PathLike[str] | None = None, *, fast: bool = False
     if isinstance(path, str | os.PathLike) and not os.fspath(path):
         raise ValueError("path: empty; give a checkpoint file, or None for the model shipped "
                          "with sq_mitsuba")
-    fast, traced = (_switch(name, value) for name, value in (("fast", fast),
-                                                              ("traced", traced)))
+    fast, traced = check_switch("fast", fast), check_switch("traced", traced)
     if traced and not fast:
         raise ValueError("traced: traces the folded network of the fast path; give fast=True "
                          "too")

@@ -48,7 +48,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from sq_mitsuba.checks import python_scalar
+from sq_mitsuba.checks import check_switch, python_scalar
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.image_turns import check_rotation_exact, z_rotation
@@ -215,9 +215,7 @@ class Predictor:
             ValueError: naming ``images``, ``camera``, ``turns``, ``refine``, ``mask``, or
                 ``search`` / ``refinement`` (or their field: ``search.turns``).
         """
-        refine, turns = python_scalar(refine), python_scalar(turns)
-        if not isinstance(refine, bool):
-            raise ValueError(f"refine: expected True or False, got {refine!r}")
+        refine, turns = check_switch("refine", refine), python_scalar(turns)
         if not refine:
             unused = [name for name, value in (("mask", mask), ("search", search),
                                                ("refinement", refinement)) if value is not None]
