@@ -188,6 +188,27 @@ def check_switch(name: str, value: object) -> bool:
     return value
 
 
+def check_int(name: str, value: object, low: int | None = 1, high: int | None = None) -> int:
+    """``value`` as a Python int (numpy's as Python's) in ``[low, high]`` (``None``: no
+    bound), else a one-line ``ValueError`` naming ``name``: a bool is no count (``True`` was
+    read as 1), nor is a float, even ``3.0``."""
+    value = python_scalar(value)
+    if (isinstance(value, bool) or not isinstance(value, int)
+            or (low is not None and value < low) or (high is not None and value > high)):
+        if low is not None and high is not None:
+            expected = f"an integer in [{low}, {high}]"
+        elif low == 1:
+            expected = "a positive integer"
+        elif low is not None:
+            expected = f"an integer >= {low}"
+        elif high is not None:
+            expected = f"an integer <= {high}"
+        else:
+            expected = "an integer"
+        raise ValueError(f"{name}: expected {expected}, got {value!r}")
+    return value
+
+
 def python_scalar(value: object) -> object:
     """A numpy integer or bool as Python's (``np.int64(8)`` -> 8, ``np.True_`` -> True), for
     counts and switches a user computed with numpy; anything else as it is (to be checked)."""

@@ -16,11 +16,12 @@ missing file, a ``ValueError`` otherwise, raised before any work that depends on
 - **Cameras** (:func:`check_camera_intrinsics`): a camera description (SPEED's
   ``camera.json``: ``Nu``, ``Nv``, ``cameraMatrix``) must describe images of at least
   :data:`MIN_IMAGE_SIDE` pixels, and its matrix must fit them: the principal point within a
-  quarter of the image size of its centre, and a field of view under
-  :data:`MAX_FIELD_OF_VIEW_DEG` across either axis. A matrix written for another image size
-  fails one of these, instead of giving poses that are silently wrong
+  quarter of the image size of its centre, and a field of view from
+  :data:`MIN_FIELD_OF_VIEW_DEG` to under :data:`MAX_FIELD_OF_VIEW_DEG` across either axis. A
+  matrix written for another image size (or a focal length in another unit) fails one of
+  these, instead of giving poses that are silently wrong
   (:func:`sq_mitsuba.inference.images.check_camera` holds a Camera object given in code to
-  the same rules, and to a field of view over :data:`MIN_FIELD_OF_VIEW_DEG`).
+  the same rules).
 - **Tables** (:func:`read_csv_table`, :func:`finite_number`): CSV files with the columns a
   reader needs, every row complete (a truncated file is an error), numbers finite.
 - **Quaternion lists** (:func:`check_quaternions`): a parsed JSON list of one rotation per item,
@@ -269,6 +270,11 @@ def check_camera_intrinsics(width: int, height: int, fx: float, fy: float, cx: f
                              f"across {axis} over the Nu x Nv = {width} x {height} px image, "
                              f"more than the {MAX_FIELD_OF_VIEW_DEG:g} deg a camera may have "
                              "(a matrix for another image size?)")
+        if fov < MIN_FIELD_OF_VIEW_DEG:
+            raise ValueError(f"{where}: cameraMatrix gives a {fov:.3g} deg field of view "
+                             f"across {axis} over the Nu x Nv = {width} x {height} px image, "
+                             f"less than the {MIN_FIELD_OF_VIEW_DEG:g} deg a camera may have "
+                             "(a focal length in the wrong unit?)")
 
 
 def principal_point_off_centre(width: int, height: int, cx: float, cy: float) -> bool:
@@ -388,11 +394,19 @@ def check_unique_stems(paths: Sequence[Path], what: str, consequence: str) -> No
     """One-line ``ValueError`` when two of ``paths`` share a file stem (the name without its
     suffix: ``a.png`` and ``a.jpg``), naming ``what`` and both files, then ``consequence``
     (what the stem decides: the outputs' names, the pose a mask takes)."""
+    import unicodedata
+
     first: dict[str, Path] = {}
     for path in paths:
-        if path.stem in first and _same_file(first[path.stem], path):
+        # Stems that differ only in case or Unicode form ('A' and 'a') name one output file
+        # on macOS's and Windows' file systems: one stem here, wherever the outputs go.
+        key = unicodedata.normalize("NFC", path.stem).casefold()
+        if key in first and _same_file(first[key], path):
             raise ValueError(f"{what}: {path} given twice")
-        if path.stem in first:
-            raise ValueError(f"{what} {first[path.stem]} and {path}: one file stem "
-                             f"{path.stem!r}, {consequence}")
-        first[path.stem] = path
+        if key in first:
+            other = first[key].stem
+            stems = (f"one file stem {path.stem!r}" if other == path.stem else
+                     f"file stems {other!r} and {path.stem!r} alike but for case or Unicode "
+                     "form (one name on macOS's and Windows' file systems)")
+            raise ValueError(f"{what} {first[key]} and {path}: {stems}, {consequence}")
+        first[key] = path

@@ -33,6 +33,23 @@ def test_the_train_suites_options_are_refused_by_the_others(capsys):
                                                         "suite")
 
 
+def test_every_section_heading_is_a_command_that_parses():
+    """BENCHMARKS.md's headings read as commands: the step-only section's was
+    `sq-mitsuba bench train-step`, which is no suite."""
+    import shlex
+
+    from sq_mitsuba.bench import Report
+    from sq_mitsuba.cli import build_parser
+
+    for suite in ("train", "train-step", "render", "eval", "sequence"):
+        heading = Report(suite).to_markdown().splitlines()[0]
+        assert heading.startswith("### `sq-mitsuba bench ") and heading.endswith("`"), heading
+        argv = shlex.split(heading.removeprefix("### `sq-mitsuba ").removesuffix("`"))
+        build_parser().parse_args(argv)  # argparse exits on a suite or flag it does not know
+    assert Report("train-step").to_markdown().startswith(
+        "### `sq-mitsuba bench train --step-only`")
+
+
 def test_decomposed_step_applies_the_same_update_as_the_training_step():
     """The timed parts of ``bench train`` add up to the loop's step: same parameters after;
     one part per weighted loss term of the registry."""

@@ -98,6 +98,8 @@ def test_bad_arguments(tmp_path):
         camera.unproject(torch.zeros(2, 2), torch.ones(3, 2))
     with pytest.raises(ValueError, match=r"^depth: shape \(3,\)"):
         camera.unproject(torch.zeros(2, 2), torch.ones(3))
+    with pytest.raises(ValueError, match=r"^depth: expected a number or a tensor, got '5'"):
+        camera.unproject(torch.zeros(2, 2), "5")
     with pytest.raises(ValueError, match="width"):
         camera.rescaled(0)
     with pytest.raises(ValueError, match="fov_x_deg"):
@@ -122,3 +124,13 @@ def test_the_metre_fields_are_checked_beside_the_matrix_and_the_pitch_named():
                                          r"must be > 0, got -1"):
         Camera.from_speed_dict({**metric, "ppx": -1}, "camera.json")
     assert Camera.from_speed_dict(metric).fx == pytest.approx(Camera.default(64).fx, rel=1e-6)
+
+
+def test_a_camera_file_of_a_field_of_view_no_camera_has_is_refused():
+    """A focal length of 1e9 px (0.00001 deg across 256 px) is refused in a file as in code."""
+    speed = {key: value for key, value in Camera.default(256).to_speed_dict().items()
+             if key not in ("fx", "fy")}
+    matrix = [[1e9, 0.0, 128.0], [0.0, 1e9, 128.0], [0.0, 0.0, 1.0]]
+    with pytest.raises(ValueError, match=r"^camera\.json: cameraMatrix gives a 1\.47e-05 deg "
+                                         r"field of view across x .* less than the 0\.001 deg"):
+        Camera.from_speed_dict({**speed, "cameraMatrix": matrix}, "camera.json")

@@ -340,3 +340,26 @@ def test_demo_refuses_training_settings_without_train(tmp_path, capsys):
     assert error_line(capsys) == ("sq-mitsuba demo: error: --set training.models=5: only used "
                                   "with --train")
     assert not (tmp_path / "d").exists()
+
+
+@pytest.mark.parametrize(("command", "flag"), [
+    (["predict", "{file}/", "--out", "{out}"], "IMAGE"),
+    (["predict", "{file}", "--camera", "{file}/", "--out", "{out}"], "--camera"),
+    (["fit", "--masks", "{file}", "--poses", "{file}/", "--out", "{out}"], "--poses"),
+    (["train", "--config", "{file}/", "--data", "{out}", "--out", "{out}"], "--config"),
+    (["models", "import", "{file}/", "--out", "{out}"], "MESH"),
+])
+def test_an_input_file_written_with_a_trailing_separator_is_refused(command, flag, tmp_path,
+                                                                    capsys):
+    """``predict img.png/`` read the file ``img.png``, which the system itself would not open
+    as written (``Path`` strips the separator): refused by argparse, in one line, before
+    anything is read or written."""
+    existing = tmp_path / "input.png"
+    existing.write_bytes(b"")
+    argv = [part.format(file=existing, out=tmp_path / "out") for part in command]
+    with pytest.raises(SystemExit) as exited:
+        main(argv)
+    assert exited.value.code == 2
+    line = error_line(capsys)
+    assert flag in line and "ends in a separator, a folder; give the file to read" in line, line
+    assert not (tmp_path / "out").exists()

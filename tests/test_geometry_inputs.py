@@ -242,7 +242,7 @@ def test_random_quaternions_refuse_integer_dtypes_and_non_counts():
                                          r"torch.int64$"):
         random_quaternions(3, dtype=torch.int64)
     for n in (2.5, True, "3", -1):
-        with pytest.raises(ValueError, match=r"^n: expected a non-negative count, got "):
+        with pytest.raises(ValueError, match=r"^n: expected an integer >= 0, got "):
             random_rotations(n)
     assert random_quaternions(np.int64(2)).shape == (2, 4)
 
@@ -287,10 +287,39 @@ def test_bools_are_not_counts_or_levels_and_numpy_integers_are():
             call()
     for call in (lambda: assembly.surface_points(level=True), lambda: assembly.meshes(True),
                  lambda: icosphere_faces(False)):
-        with pytest.raises(ValueError, match=r"^level: expected an int in \[0, 7\], got "):
+        with pytest.raises(ValueError, match=r"^level: expected an integer in \[0, 7\], got "):
             call()
     assert torch.equal(so3_grid(np.int64(8)), so3_grid(8))
     assert torch.equal(assembly.surface_points(np.int64(1)), assembly.surface_points(1))
+
+
+@pytest.mark.parametrize(("low", "high", "expected"), [
+    (1, None, "a positive integer"), (0, None, "an integer >= 0"),
+    (1, 360, r"an integer in \[1, 360\]"), (None, 5, "an integer <= 5"),
+])
+def test_one_integer_check_for_every_count(low, high, expected):
+    """check_int (every count, size and level of the API): numpy's integers as Python's, a
+    bool, a float, a string or a value out of range refused in one line naming the argument."""
+    from sq_mitsuba.checks import check_int
+
+    assert check_int("k", np.int64(3), low, high) == 3
+    assert type(check_int("k", np.int32(3), low, high)) is int
+    out_of_range = ([low - 1] if low is not None else []) + ([high + 1] if high is not None
+                                                            else [])
+    for bad in (True, 3.0, "3", None, *out_of_range):
+        with pytest.raises(ValueError, match=rf"^k: expected {expected}, got "):
+            check_int("k", bad, low, high)
+
+
+def test_a_camera_built_from_numpy_integers_holds_python_integers():
+    """``Camera(..., width=np.int64(64))`` was refused ("expected a positive integer, got 64")
+    where a dataset or a predictor took numpy's integers: taken, and stored as Python's."""
+    from sq_mitsuba.geometry.camera import Camera
+
+    camera = Camera(80.0, 80.0, 32.0, 32.0, np.int64(64), np.int64(64))
+    assert camera == Camera(80.0, 80.0, 32.0, 32.0, 64, 64) and type(camera.width) is int
+    assert Camera.default(np.int64(64)) == Camera.default(64)
+    assert camera.rescaled(np.int64(32), np.int32(32)) == camera.rescaled(32, 32)
 
 
 def test_the_primal_form_and_the_taper_refuse_what_makes_them_infinite():

@@ -471,7 +471,7 @@ def test_reading_from_turned_copies_turns_with_the_image(train_dataset):
     assert shipped.can_turn(camera)
     image = images[:1]
     for bad in (0, 2.5, True):
-        with pytest.raises(ValueError, match=r"^turns: expected an int in \[1, 360\]"):
+        with pytest.raises(ValueError, match=r"^turns: expected an integer in \[1, 360\]"):
             shipped.predict(image, camera, turns=bad)
     regressing = Predictor(SuperquadricNet(NetworkConfig(image_size=64)), camera)
     assert not regressing.can_turn(camera)
@@ -548,7 +548,7 @@ def test_read_turns_of_one_is_predict_of_one_for_any_network_and_camera(predicto
     plain = shipped.predict(image, off_centre, turns=1)
     assert shipped.read_turns(image, plain, 1, off_centre) is plain
     for bad in (0, True):
-        with pytest.raises(ValueError, match=r"^turns: expected an int in \[1, 360\]"):
+        with pytest.raises(ValueError, match=r"^turns: expected an integer in \[1, 360\]"):
             shipped.read_turns(image, plain, bad, off_centre)
     turned = shipped.predict(image, turns=4)
     with pytest.raises(ValueError, match=r"^prediction: expected this predictor.s one-pass"):
@@ -563,9 +563,9 @@ def test_refine_checks_turns_and_takes_the_one_pass_reading_only(predictor):
     empty = torch.zeros(2, SIZE, SIZE, dtype=torch.bool)
     network = predictor.predict(x)
     for bad in (0, -5, True, 2.5):
-        with pytest.raises(ValueError, match=r"^turns: expected an int in \[1, 360\]"):
+        with pytest.raises(ValueError, match=r"^turns: expected an integer in \[1, 360\]"):
             predictor.predict(x, turns=bad, refine=True, mask=empty)
-        with pytest.raises(ValueError, match=r"^turns: expected an int in \[1, 360\]"):
+        with pytest.raises(ValueError, match=r"^turns: expected an integer in \[1, 360\]"):
             predictor.refine(x, network, turns=bad, mask=empty)
     with pytest.raises(ValueError, match=r"^turns: .* needs a rotation-distribution head"):
         predictor.refine(x, network, turns=4, mask=empty)

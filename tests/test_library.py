@@ -222,6 +222,12 @@ def test_import_gives_every_file_its_own_folder(tmp_path, capsys) -> None:
     # A file named like a library's or dataset's own file gets another name.
     assert import_names([tmp_path / "splits.csv.obj", tmp_path / "camera.json.stl"],
                         tmp_path / "empty") == ["splits.csv_2", "camera.json_2"]
+    # Letters of any script are kept (they were dropped: "日本.obj" became "model"), in
+    # their composed form; what is no letter or digit becomes "_".
+    assert import_names([tmp_path / "Satellit_ü.obj", tmp_path / "Satellit_u\u0308 2.obj",
+                         tmp_path / "日本 衛星.stl", tmp_path / "🚀.obj"],
+                        tmp_path / "empty") == ["Satellit_ü", "Satellit_ü_2", "日本_衛星",
+                                                "model"]
 
 
 def test_import_missing_file_is_an_error_before_any_work(tmp_path, capsys) -> None:

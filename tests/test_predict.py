@@ -218,6 +218,7 @@ def test_bad_inputs_are_one_line_naming_the_file(eval_checkpoint, inputs, tmp_pa
     square_camera.write_text(json.dumps(load_model(eval_checkpoint).camera.to_speed_dict()))
     (tmp_path / "other").mkdir()
     shutil.copy(inputs / "grey.png", tmp_path / "other" / "grey.png")
+    shutil.copy(inputs / "grey.png", tmp_path / "other" / "GREY.png")
     cases = [
         ([str(inputs / "grey.png"), str(inputs / "cropped.png")],
          ["--camera", str(square_camera)],
@@ -234,6 +235,10 @@ def test_bad_inputs_are_one_line_naming_the_file(eval_checkpoint, inputs, tmp_pa
          f"images: {inputs / 'grey.png'} given twice"),
         ([str(inputs / "grey.png"), str(tmp_path / "other" / "grey.png")], [],
          "one file stem 'grey'"),
+        # Two names alike but for case are one file where the user copies the outputs to a
+        # Mac or a Windows machine: one pose file would replace the other there.
+        ([str(inputs / "grey.png"), str(tmp_path / "other" / "GREY.png")], [],
+         "file stems 'grey' and 'GREY' alike but for case or Unicode form"),
         ([str(inputs / "grey.png")], ["--camera", str(tmp_path / "nocam.json")],
          f"camera {tmp_path / 'nocam.json'}: no such file"),
     ]

@@ -139,6 +139,11 @@ def test_report_labels_a_run_as_its_eval_json_records(tmp_path):
     atomic_write_json(folder / "eval.json", {"split": "test", "num_primitives": 5,
                                              "checkpoint": "/runs/stage3/best.pt"})
     assert read_eval_folder(folder)["label"] == "stage3"
+    # A relative checkpoint path that names no folder ('../best.pt' was labelled '..').
+    for checkpoint in ("../best.pt", "./best.pt", "best.pt"):
+        atomic_write_json(folder / "eval.json", {"split": "test", "num_primitives": 5,
+                                                 "checkpoint": checkpoint})
+        assert read_eval_folder(folder)["label"] == "best"
 
 
 def test_report_refuses_a_folder_that_is_not_an_evaluation(tmp_path):

@@ -869,7 +869,7 @@ def test_rotations_of_two_dtypes_reflections_and_no_rotations_at_all():
         assembly_camera_vertices(Assembly.from_values(torch.full((1, 1, 3), 0.2),
                                                       torch.full((1, 1, 2), 0.5)),
                                  2 * torch.eye(3)[None], torch.tensor([[0.0, 0.0, 3.0]]))
-    with pytest.raises(ValueError, match=r"^resolution: expected a positive integer \(pixels a "
-                       r"side\), got '256'$"):
+    with pytest.raises(ValueError, match=r"^resolution \(pixels a side\): expected a positive "
+                       r"integer, got '256'$"):
         Camera.default("256")
     assert Camera.default(np.int64(256)) == Camera.default(256)

@@ -188,6 +188,10 @@ def test_quaternion_angle_is_the_rotation_angle_with_a_finite_gradient_at_zero()
     (lambda: quaternion_to_matrix(torch.ones(2, 4, dtype=torch.int32)), "quaternion"),
     (lambda: rotation_angle(torch.eye(3), torch.ones(3, 2)), "rotation_b"),
     (lambda: random_rotations(-1), "n"),
+    # 2 I came back as the 6D vector of I, a reflection as that of a rotation.
+    (lambda: matrix_to_rotation_6d(2 * torch.eye(3)), r"^matrix: not rotation matrices"),
+    (lambda: matrix_to_rotation_6d(torch.diag(torch.tensor([1.0, 1.0, -1.0]))),
+     r"^matrix: not rotation matrices \(a reflection"),
 ])
 def test_bad_input_names_the_argument(call, name):
     with pytest.raises(ValueError, match=name):

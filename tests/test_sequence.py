@@ -568,6 +568,7 @@ def test_predict_sequence_returns_one_assembly_and_every_pose(eval_checkpoint, t
     ("dark", "images: frame 1 shows no target"),
     ("relative", r"relative_rotations: expected \(3, 3, 3\)"),
     ("not_rotations", "relative_rotations: not rotation matrices"),
+    ("ordered", r"^ordered: expected True or False, got 'yes'"),
 ])
 def test_bad_sequences_are_one_line_errors(eval_checkpoint, train_dataset, case, message):
     predictor = load_model(eval_checkpoint)
@@ -585,6 +586,8 @@ def test_bad_sequences_are_one_line_errors(eval_checkpoint, train_dataset, case,
         kwargs["relative_rotations"] = torch.eye(3).expand(2, 3, 3)
     elif case == "not_rotations":
         kwargs["relative_rotations"] = 2 * torch.eye(3).expand(3, 3, 3)
+    elif case == "ordered":
+        kwargs["ordered"] = "yes"
     with pytest.raises(ValueError, match=message) as info:
         predictor.predict_sequence(images, **kwargs)
     assert "\n" not in str(info.value)

@@ -9,9 +9,11 @@ to a group of one process, and counts a group it owns as distributed. Everything
 choice, SyncBatchNorm conversion, DDP wrapping, loss averaging, agreement checks, object
 broadcasts, checkpoint gathering, barriers) is the trainer's own code.
 
-Usage: python train/gpu_ddp_probe.py sq-mitsuba-train-arguments...
+Usage: python train/gpu_ddp_probe.py [train] sq-mitsuba-train-arguments...
   e.g. python train/gpu_ddp_probe.py --config train/configs/a.toml --data DS --out RUN
        --max-steps 10 --quiet
+  (the leading ``train`` is optional: ``train/gpu_check.sh`` gives every launcher it, and the
+  probe took it for an argument of ``train``, which refused it)
 Patches the ``distributed`` property of :class:`sq_mitsuba.training.distributed.World`; a
 probe, not a product.
 """
@@ -43,7 +45,8 @@ def main() -> int:
     World.distributed = property(lambda self: self.owns_group or self.size > 1)
     from sq_mitsuba.cli import main as cli_main
 
-    return cli_main(["train", *sys.argv[1:]])
+    arguments = sys.argv[1:]
+    return cli_main(arguments if arguments[:1] == ["train"] else ["train", *arguments])
 
 
 if __name__ == "__main__":

@@ -149,7 +149,8 @@ def unit_rows(latents: list[torch.Tensor]) -> torch.Tensor:
 def main() -> None:
     # This script's own option joins the shared ones (spread_images parses sys.argv).
     extra = argparse.ArgumentParser(add_help=False)
-    extra.add_argument("--library", required=True)
+    # Not required under --help, which the shared parser prints (this one has no help).
+    extra.add_argument("--library", required=not {"-h", "--help"} & set(sys.argv[1:]))
     extra.add_argument("--library-images", type=int, default=400)
     extra.add_argument("--turns", action="store_true")
     extra.add_argument("--sizes", type=int, nargs="+", default=[])

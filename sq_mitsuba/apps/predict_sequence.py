@@ -262,6 +262,7 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
         check_image_memory,
         check_target_size,
     )
+    from sq_mitsuba.checks import check_int
     from sq_mitsuba.data.masks import read_gray_image, read_mask
     from sq_mitsuba.geometry.assembly import Assembly
     from sq_mitsuba.inference.loading import with_fast_path
@@ -274,9 +275,8 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
     from sq_mitsuba.machine import available_memory
     from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer
 
-    for name, value, low, high in (("level", level, 0, 5), ("overlay_spp", overlay_spp, 1, 1024)):
-        if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
-            raise ValueError(f"{name}: expected an integer in [{low}, {high}], got {value!r}")
+    level, overlay_spp = check_int("level", level, 0, 5), check_int("overlay_spp", overlay_spp,
+                                                                    1, 1024)
     check_target_size(target_size)
     check_frame_files(images, masks)
     paths = [Path(p) for p in images]

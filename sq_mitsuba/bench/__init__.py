@@ -108,6 +108,10 @@ class Timing:
                 f"| {len(self.samples)} | {target} | {met} | {self.note} |")
 
 
+#: The command of a section whose name is no suite (the heading reads as a command to run).
+_COMMANDS = {"train-step": "train --step-only"}
+
+
 @dataclass
 class Report:
     """What a suite measured."""
@@ -119,7 +123,7 @@ class Report:
 
     def to_markdown(self) -> str:
         lines = [
-            f"### `sq-mitsuba bench {self.suite}`",
+            f"### `sq-mitsuba bench {_COMMANDS.get(self.suite, self.suite)}`",
             "",
             f"Measured {_dt.date.today().isoformat()} on {machine_description(self.options)}.",
             "",

@@ -206,6 +206,20 @@ def output_file_path(text: str) -> Path:
     return output_path(text)
 
 
+def input_file_path(text: str) -> Path:
+    """The argparse type of an input file: an empty path refused, and one that ends in a
+    separator (``img.png/``), which the system would not open as a file and ``Path`` would
+    silently strip."""
+    import os
+
+    if not text.strip():
+        raise argparse.ArgumentTypeError("an empty path; give the file to read")
+    if text.endswith(("/", os.sep)) or (os.altsep and text.endswith(os.altsep)):
+        raise argparse.ArgumentTypeError(f"{text!r} ends in a separator, a folder; give the "
+                                         "file to read")
+    return Path(text)
+
+
 def _plain_text(doc: str) -> str:
     """A field docstring as ``--help`` shows it: reST's ``code`` as `code` and a role's
     :func:`name` (or :class:, :meth:, ...) as its name, the leading ~ of a path dropped."""

@@ -11,6 +11,7 @@ from sq_mitsuba.cli._options import (
     add_config_options,
     add_set_option,
     config_from_args,
+    input_file_path,
     output_file_path,
     output_path,
 )
@@ -62,7 +63,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     render.add_argument("--out", type=output_path, required=True, help="dataset folder to write")
     add_config_options(render, RenderOptions, RENDER_FLAGS,
                        metavars={"camera": "JSON", "shard": "I/N"})
-    render.add_argument("--scene", type=Path, default=None, metavar="FILE",
+    render.add_argument("--scene", type=input_file_path, default=None, metavar="FILE",
                         help="scene configuration, JSON or TOML (default scenes/space.json); "
                              "fields it leaves out keep their defaults")
     add_set_option(render, "scene configuration", "sun.irradiance=1000",

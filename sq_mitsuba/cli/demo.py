@@ -10,6 +10,7 @@ from sq_mitsuba.cli._options import (
     add_config_options,
     add_set_option,
     config_from_args,
+    input_file_path,
     output_path,
     refuse_unused_settings,
 )
@@ -74,7 +75,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         + f" (default: {DemoOptions().size})")
     parser.add_argument("--out", type=output_path, default=Path("demo_output"), metavar="DIR",
                         help="output folder, replaced as a whole (default: demo_output)")
-    parser.add_argument("--checkpoint", type=Path, default=None, metavar="PT",
+    parser.add_argument("--checkpoint", type=input_file_path, default=None, metavar="PT",
                         help="checkpoint file (default: the model shipped with the package)")
     add_config_options(parser, DemoOptions, FLAGS)
     add_set_option(parser, "demo options", "silhouette_spp=64")

@@ -9,6 +9,7 @@ from sq_mitsuba.cli._options import (
     add_config_options,
     add_set_option,
     config_from_args,
+    input_file_path,
     output_path,
     refuse_unused_settings,
 )
@@ -71,7 +72,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
     parser = subparsers.add_parser("eval", help=HELP, description=DESCRIPTION,
                                    formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--checkpoint", type=Path, default=None, metavar="PT",
+    parser.add_argument("--checkpoint", type=input_file_path, default=None, metavar="PT",
                         help="checkpoint file (default: the model shipped with the package)")
     parser.add_argument("--data", type=Path, required=True, metavar="DIR",
                         help="dataset folder in the SPE3R layout")

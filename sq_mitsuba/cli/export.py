@@ -8,6 +8,7 @@ from pathlib import Path
 from sq_mitsuba.cli._options import (
     add_config_options,
     config_from_args,
+    input_file_path,
     output_file_path,
 )
 
@@ -45,14 +46,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
     parser = subparsers.add_parser("export", help=HELP, description=DESCRIPTION,
                                    formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--checkpoint", type=Path, required=True, nargs="+", metavar="PT",
+    parser.add_argument("--checkpoint", type=input_file_path, required=True, nargs="+",
+                        metavar="PT",
                         help="training checkpoint (e.g. RUN/best.pt); several of one network: "
                              "their weights averaged")
     parser.add_argument("--data", type=Path, default=None, metavar="DIR",
                         help="the training dataset, for the baseline (default: no baseline)")
     parser.add_argument("--out", type=output_file_path, required=True, metavar="PT",
                         help="inference checkpoint to write")
-    parser.add_argument("--start", type=Path, default=None, metavar="PT",
+    parser.add_argument("--start", type=input_file_path, default=None, metavar="PT",
                         help="the checkpoint the --checkpoint files were fine-tuned from "
                              "(their init_from): the export goes --start-share of the way "
                              "back to it (default: none, the average alone)")

@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 from sq_mitsuba.cli._options import (
     add_config_options,
     add_set_option,
     config_from_args,
+    input_file_path,
     output_path,
 )
 
@@ -53,11 +53,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "fit", help=HELP,
         description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--masks", nargs="+", required=True, type=Path, metavar="PNG",
+    parser.add_argument("--masks", nargs="+", required=True, type=input_file_path, metavar="PNG",
                         help="mask images, one per view")
-    parser.add_argument("--poses", required=True, type=Path, metavar="JSON",
+    parser.add_argument("--poses", required=True, type=input_file_path, metavar="JSON",
                         help="SPE3R-style labels.json with a pose per mask")
-    parser.add_argument("--camera", type=Path, metavar="JSON",
+    parser.add_argument("--camera", type=input_file_path, metavar="JSON",
                         help="SPEED-style camera.json (default: the default camera)")
     parser.add_argument("--out", required=True, type=output_path, metavar="DIR",
                         help="output folder (created)")

@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from sq_mitsuba.cli._options import add_config_options, config_from_args
+from sq_mitsuba.cli._options import add_config_options, config_from_args, input_file_path
 
 EXIT_BATCH_FAILED = 1
 # Listed by `sq-mitsuba --help` without importing the library (numpy, trimesh: ~0.25 s).
@@ -80,7 +80,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     imp = sub.add_parser("import", help="import and process mesh files",
                          description=IMPORT_DESCRIPTION,
                          formatter_class=argparse.RawDescriptionHelpFormatter)
-    imp.add_argument("meshes", nargs="+", type=Path, metavar="MESH",
+    imp.add_argument("meshes", nargs="+", type=input_file_path, metavar="MESH",
                      help="OBJ, PLY, STL, OFF, GLB or GLTF files")
     add_config_options(imp, ImportOptions, {"out": "--out", "method": "--method",
                                             "align": "--align", "resolution": "--resolution",

@@ -10,6 +10,7 @@ from sq_mitsuba.cli._options import (
     add_config_options,
     add_set_option,
     config_from_args,
+    input_file_path,
     output_path,
     refuse_unused_settings,
 )
@@ -93,17 +94,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                    formatter_class=argparse.RawDescriptionHelpFormatter)
     # "*", checked in _run: after "--mask A B" argparse gives every path to --mask, and
     # "IMAGE is required" would not say why.
-    parser.add_argument("images", nargs="*", type=Path, metavar="IMAGE",
+    parser.add_argument("images", nargs="*", type=input_file_path, metavar="IMAGE",
                         help="input images (at least one; before --mask, which takes every "
                              "path after it)")
-    parser.add_argument("--checkpoint", type=Path, default=None, metavar="PT",
+    parser.add_argument("--checkpoint", type=input_file_path, default=None, metavar="PT",
                         help="checkpoint file (default: the model shipped with the package)")
     parser.add_argument("--out", type=output_path, required=True, metavar="DIR",
                         help="output folder (created)")
-    parser.add_argument("--camera", type=Path, default=None, metavar="JSON",
+    parser.add_argument("--camera", type=input_file_path, default=None, metavar="JSON",
                         help="SPEED-style camera.json of the images (default: the "
                              "checkpoint's camera, rescaled to each image)")
-    parser.add_argument("--mask", nargs="+", type=Path, default=None, metavar="MASK",
+    parser.add_argument("--mask", nargs="+", type=input_file_path, default=None, metavar="MASK",
                         help="with --refine or --sequence: one mask per image, in the same order "
                              "(default, without --mask: the network's mask head, or the "
                              "image's segmentation for a model without one; --set "
@@ -115,7 +116,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="with --sequence: the frames are in the order they were taken, "
                              "equally spaced in time: they are kept on one constant-rate turn "
                              "(default: any order)")
-    parser.add_argument("--relative-rotations", type=Path, default=None, metavar="JSON",
+    parser.add_argument("--relative-rotations", type=input_file_path, default=None, metavar="JSON",
                         help="with --sequence: one quaternion [w, x, y, z] per image (a JSON "
                              "list), each frame's rotation up to one common to all: the "
                              "rotations between frames, when known (default: read from the "

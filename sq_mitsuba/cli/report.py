@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from sq_mitsuba.cli._options import output_path
+from sq_mitsuba.cli._options import input_file_path, output_path
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -26,7 +26,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="evaluation folders (holding eval.json and summary.csv)")
     parser.add_argument("--out", type=output_path, required=True, metavar="DIR",
                         help="output folder for report.md and report.csv")
-    parser.add_argument("--paper", type=Path, default=None, metavar="TOML",
+    parser.add_argument("--paper", type=input_file_path, default=None, metavar="TOML",
                         help="the paper's published tables, read strictly; its [source] "
                              "must state chamfer_convention = \"paper\", the convention "
                              "compared (default: "

@@ -10,6 +10,7 @@ from sq_mitsuba.cli._options import (
     add_config_options,
     add_set_option,
     config_from_args,
+    input_file_path,
     output_path,
 )
 
@@ -68,7 +69,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="model library to render (a `sq-mitsuba models` folder)")
     source.add_argument("--eval", type=Path, dest="eval_dir", metavar="EVAL_DIR",
                         help="break down this evaluation folder by its recorded lighting")
-    illumination.add_argument("--checkpoint", type=Path, default=None, metavar="PT",
+    illumination.add_argument("--checkpoint", type=input_file_path, default=None, metavar="PT",
                               help="checkpoint file (default: the model shipped with the "
                                    "package)")
     illumination.add_argument("--out", type=output_path, default=None, metavar="DIR",
@@ -118,7 +119,7 @@ def _register_passes(studies: argparse._SubParsersAction) -> None:
     passes.add_argument("--data", type=Path, required=True, metavar="DIR",
                         help="dataset of passes (dataset render --pass-frames F), or "
                              "with --no-ordered of independent images")
-    passes.add_argument("--checkpoint", type=Path, default=None, metavar="PT",
+    passes.add_argument("--checkpoint", type=input_file_path, default=None, metavar="PT",
                         help="checkpoint file (default: the model shipped with the package)")
     passes.add_argument("--out", type=output_path, required=True, metavar="DIR",
                         help="output folder (created)")

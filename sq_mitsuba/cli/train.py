@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from sq_mitsuba.cli import CLIError
-from sq_mitsuba.cli._options import output_path
+from sq_mitsuba.cli._options import input_file_path, output_path
 from sq_mitsuba.io import inside_folder
 from sq_mitsuba.machine import launch_ranks
 
@@ -54,7 +54,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "train", help=HELP,
         description=DESCRIPTION + describe(TrainConfig),
         formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--config", type=Path, metavar="TOML",
+    parser.add_argument("--config", type=input_file_path, metavar="TOML",
                         help="training config (default: the checkpoint's with --resume, else "
                              "the defaults listed below)")
     parser.add_argument("--data", type=Path, required=True, metavar="DIR",

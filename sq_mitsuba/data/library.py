@@ -58,6 +58,7 @@ from __future__ import annotations
 import os
 import re
 import shutil
+import unicodedata
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -547,8 +548,11 @@ def _generate_locked(root: Path, options: GenerateOptions, progress: bool) -> Li
 # ----------------------------------------------------------------------------- import
 
 def model_name_for(path: Path) -> str:
-    """A folder-safe model name from a file name."""
-    return re.sub(r"[^A-Za-z0-9_.-]+", "_", path.stem).strip("._") or "model"
+    """A folder-safe model name from a file name: its stem's letters and digits (any
+    script's, in Unicode's composed form, as a file of macOS's decomposed name would not
+    be), ``.``, ``-`` and ``_`` kept, every other run of characters one ``_``."""
+    stem = unicodedata.normalize("NFC", path.stem)
+    return re.sub(r"[^\w.-]+", "_", stem).strip("._") or "model"
 
 
 #: Names a model folder cannot take: the files a library or a dataset keeps at its root

@@ -114,8 +114,8 @@ def _checkpoint_name(info: dict[str, Any]) -> str | None:
     checkpoint = info.get("checkpoint")
     if not isinstance(checkpoint, str) or not checkpoint.strip():
         return None
-    path = Path(checkpoint)
-    return path.parent.name or path.stem or None
+    path = Path(checkpoint)  # '../best.pt' names no folder: its stem then, as eval does
+    return next((n for n in (path.parent.name, path.stem) if n.strip(" .")), None)
 
 
 def _cell(text: str, where: str, required: bool) -> float | None:

@@ -21,7 +21,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from sq_mitsuba.checks import check_tensor, python_scalar
+from sq_mitsuba.checks import check_int, check_tensor, python_scalar
 from sq_mitsuba.inputs import check_camera_intrinsics
 from sq_mitsuba.io import read_json
 
@@ -72,10 +72,8 @@ class Camera:
             object.__setattr__(self, name, float(value))
         if self.fx <= 0 or self.fy <= 0:
             raise ValueError(f"fx, fy: focal lengths must be > 0, got {self.fx}, {self.fy}")
-        for name in ("width", "height"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"{name}: expected a positive integer, got {value!r}")
+        for name in ("width", "height"):  # a numpy integer stored as Python's
+            object.__setattr__(self, name, check_int(name, getattr(self, name)))
 
     # ------------------------------------------------------------------ construction
 
@@ -88,9 +86,7 @@ class Camera:
             ValueError: naming ``resolution`` unless a positive integer (pixels a side).
         """
         resolution = python_scalar(resolution)  # np.int64(256) is 256
-        if isinstance(resolution, bool) or not isinstance(resolution, int) or resolution < 1:
-            raise ValueError(f"resolution: expected a positive integer (pixels a side), got "
-                             f"{resolution!r}")
+        resolution = check_int("resolution (pixels a side)", resolution)
         focal = SPEED_FOCAL_LENGTH_M / SPEED_PIXEL_PITCH_M * resolution / SPEED_WIDTH_PX
         return cls(focal, focal, resolution / 2, resolution / 2, resolution, resolution)
 
@@ -208,10 +204,7 @@ class Camera:
         ratio). Pixel edges scale, so the principal point scales with them."""
         if height is None:
             height = max(1, round(self.height * width / self.width))
-        if isinstance(width, bool) or not isinstance(width, int) or width < 1:
-            raise ValueError(f"width: expected a positive integer, got {width!r}")
-        if isinstance(height, bool) or not isinstance(height, int) or height < 1:
-            raise ValueError(f"height: expected a positive integer, got {height!r}")
+        width, height = check_int("width", width), check_int("height", height)
         sx, sy = width / self.width, height / self.height
         return Camera(self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy, width, height)
 
@@ -242,7 +235,13 @@ class Camera:
         """Camera-frame points (..., 3) at depth ``z = depth`` (broadcast to (...)) seen at
         ``pixels`` (..., 2)."""
         check_tensor("pixels", pixels, (2,))
-        depth = torch.as_tensor(depth, dtype=pixels.dtype, device=pixels.device)
+        try:  # a string or a bool is no depth, though torch would make one of each
+            if isinstance(depth, str | bytes | bool):
+                raise TypeError
+            depth = torch.as_tensor(depth, dtype=pixels.dtype, device=pixels.device)
+        except (TypeError, ValueError, RuntimeError):
+            raise ValueError("depth: expected a number or a tensor, got "
+                             f"{_shown(depth)}") from None
         if not bool(torch.isfinite(depth).all()):
             raise ValueError("depth: contains NaN or infinite values")
         u, v = pixels.unbind(-1)

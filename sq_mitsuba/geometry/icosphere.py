@@ -16,7 +16,7 @@ import functools
 import numpy as np
 import torch
 
-from sq_mitsuba.checks import python_scalar
+from sq_mitsuba.checks import check_int
 
 __all__ = ["icosphere", "icosphere_angles", "icosphere_faces"]
 
@@ -67,10 +67,7 @@ def _checked_level(level: object) -> int:
 
     Checked before any cache is read: ``True == 1`` and ``hash(True) == hash(1)``, so a bool
     would find level 1's entry and pass for it."""
-    level = python_scalar(level)
-    if isinstance(level, bool) or not isinstance(level, int) or not 0 <= level <= MAX_LEVEL:
-        raise ValueError(f"level: expected an int in [0, {MAX_LEVEL}], got {level!r}")
-    return level
+    return check_int("level", level, 0, MAX_LEVEL)
 
 
 def icosphere(level: int = 3) -> tuple[np.ndarray, np.ndarray]:

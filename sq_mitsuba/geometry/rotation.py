@@ -25,10 +25,10 @@ from torch.nn import functional as F
 
 from sq_mitsuba.checks import (
     check_broadcast,
+    check_int,
     check_nonzero,
     check_rotations,
     check_tensor,
-    python_scalar,
     value_checks_enabled,
 )
 
@@ -92,8 +92,14 @@ def rotation_6d_to_matrix(d6: Tensor) -> Tensor:
 
 
 def matrix_to_rotation_6d(matrix: Tensor) -> Tensor:
-    """Rotation matrix (..., 3, 3) -> 6D representation (..., 6): its first two rows."""
+    """Rotation matrix (..., 3, 3) -> 6D representation (..., 6): its first two rows.
+
+    Raises:
+        ValueError: for matrices that are no rotations (``2 I`` would come back as ``I``, a
+            reflection as a rotation): a value check, as every ``matrix_to_*``'s.
+    """
     _check_matrix("matrix", matrix)
+    check_rotations("matrix", matrix.reshape(-1, 3, 3))
     return matrix[..., :2, :].reshape(*matrix.shape[:-2], 6)
 
 
@@ -182,9 +188,7 @@ def random_quaternions(
     device: torch.device | str = "cpu",
 ) -> Tensor:
     """Unit quaternions (n, 4), uniform on SO(3) (Shoemake's subgroup algorithm), w >= 0."""
-    n = python_scalar(n)
-    if isinstance(n, bool) or not isinstance(n, int) or n < 0:
-        raise ValueError(f"n: expected a non-negative count, got {n!r}")
+    n = check_int("n", n, 0)
     _check_float_dtype(dtype)  # an integer dtype rounded every component to 0
     u = torch.rand(n, 3, generator=generator, dtype=torch.float64,
                    device=generator.device if generator is not None else device)

@@ -23,7 +23,7 @@ import math
 import torch
 from torch import Tensor
 
-from sq_mitsuba.checks import check_rotations, check_tensor, python_scalar
+from sq_mitsuba.checks import check_int, check_rotations, check_tensor
 from sq_mitsuba.geometry.rotation import quaternion_to_matrix
 
 __all__ = [
@@ -52,10 +52,7 @@ _PSI = 1.533751168755204288118041
 def _checked_count(count: object) -> int:
     """``count`` as a positive int (a numpy integer as Python's); a bool is refused, not
     read as 1 (``so3_grid(True)`` built a one-cell grid)."""
-    count = python_scalar(count)
-    if isinstance(count, bool) or not isinstance(count, int) or count < 1:
-        raise ValueError(f"count: expected a positive integer, got {count!r}")
-    return count
+    return check_int("count", count)
 
 
 def super_fibonacci_quaternions(count: int, dtype: torch.dtype = torch.float64) -> Tensor:

@@ -48,7 +48,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from sq_mitsuba.checks import check_switch, python_scalar
+from sq_mitsuba.checks import check_int, check_switch, python_scalar
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.image_turns import check_rotation_exact, z_rotation
@@ -132,8 +132,7 @@ class Predictor:
             raise ValueError(f"model: expected a SuperquadricNet, got {type(model).__name__}")
         if not isinstance(camera, Camera):
             raise ValueError(f"camera: expected a Camera, got {type(camera).__name__}")
-        if isinstance(hypotheses, bool) or not isinstance(hypotheses, int) or hypotheses < 1:
-            raise ValueError(f"hypotheses: expected an int >= 1, got {hypotheses!r}")
+        hypotheses = check_int("hypotheses", hypotheses)
         self.min_target = check_min_target(min_target)
         self.min_existence = check_min_target(min_existence, "min_existence")
         self.model = model
@@ -437,8 +436,7 @@ class Predictor:
     def _check_turns(self, turns: int, camera: Camera) -> None:
         """One-line ``ValueError`` naming ``turns`` unless ``predict(turns=T)`` can run for
         images of ``camera`` (at their own size)."""
-        if isinstance(turns, bool) or not isinstance(turns, int) or not 1 <= turns <= 360:
-            raise ValueError(f"turns: expected an int in [1, 360], got {turns!r}")
+        turns = check_int("turns", turns, 1, 360)
         if not isinstance(self.model.pose_head, RotationGridPoseHead):
             raise ValueError("turns: reading the rotation from turned copies needs a "
                              "rotation-distribution head (network.pose_head = 'grid')")

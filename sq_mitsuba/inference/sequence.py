@@ -63,7 +63,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from sq_mitsuba.checks import check_rotations
+from sq_mitsuba.checks import check_rotations, check_switch
 from sq_mitsuba.config import in_range, non_negative
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.camera import Camera
@@ -364,8 +364,7 @@ def predict_sequence(predictor: Any, images: Tensor | np.ndarray, camera: Camera
         raise ValueError(f"images: a sequence needs at least 2 frames, got {count} (use "
                          "Predictor.predict for one image)")
     relative = _check_relative(relative_rotations, count)
-    if not isinstance(ordered, bool):
-        raise ValueError(f"ordered: expected True or False, got {ordered!r}")
+    ordered = check_switch("ordered", ordered)
     # The network's pass first (milliseconds): a frame it sees no target in is refused before
     # the search of every frame (a mask given is fitted whatever the score).
     with progress_bar(total=3, desc=f"{count} frames: network", unit="stage",

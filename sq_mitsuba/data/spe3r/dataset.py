@@ -11,7 +11,7 @@ import numpy as np
 import torch
 from PIL import Image
 
-from sq_mitsuba.checks import python_scalar
+from sq_mitsuba.checks import check_int
 from sq_mitsuba.data.spe3r.layout import (
     IMAGES,
     MANIFEST,
@@ -86,13 +86,11 @@ class Spe3rDataset(torch.utils.data.Dataset):
                  num_surface: int = 2500, num_occupancy: int = 10_000, seed: int = 0):
         if split not in SPLITS:
             raise ValueError(f"split: expected 'train', 'val' or 'test', got {split!r}")
-        for name, value in (("image_size", 1 if image_size is None else image_size),
-                            ("num_surface", num_surface), ("num_occupancy", num_occupancy)):
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"{name}: expected a positive integer, got {value!r}")
-        seed = python_scalar(seed)  # item i draws its points with seed + i: numpy's, >= 0
-        if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
-            raise ValueError(f"seed: expected an integer >= 0, got {seed!r}")
+        if image_size is not None:
+            image_size = check_int("image_size", image_size)
+        num_surface = check_int("num_surface", num_surface)
+        num_occupancy = check_int("num_occupancy", num_occupancy)
+        seed = check_int("seed", seed, 0)  # item i draws its points with seed + i
         self.root = Path(root)
         for required in ("camera.json", "splits.csv"):
             if not (self.root / required).is_file():

@@ -34,7 +34,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from sq_mitsuba.checks import check_tensor
+from sq_mitsuba.checks import check_int, check_tensor
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.render.backend import interrupts_deferred, mitsuba
 from sq_mitsuba.render.silhouette.seeds import CALL_SEED_STRIDE
@@ -61,9 +61,7 @@ class PoseSilhouettes:
                  max_rays: int = DEFAULT_MAX_RAYS) -> None:
         if not isinstance(camera, Camera):
             raise ValueError(f"camera: expected a Camera, got {type(camera).__name__}")
-        for name, value, low in (("spp", spp, 1), ("max_rays", max_rays, 1)):
-            if isinstance(value, bool) or not isinstance(value, int) or value < low:
-                raise ValueError(f"{name}: expected a positive integer, got {value!r}")
+        spp, max_rays = check_int("spp", spp), check_int("max_rays", max_rays)
         self.camera, self.spp, self.seed = camera, spp, int(seed) & 0xFFFFFFFF
         self.max_rays = max_rays
         self._mi = mitsuba()

@@ -49,7 +49,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from sq_mitsuba.checks import check_rotations, check_tensor
+from sq_mitsuba.checks import check_int, check_rotations, check_tensor
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.render.backend import interrupts_deferred, mitsuba
@@ -208,11 +208,8 @@ class SilhouetteRenderer:
             raise ValueError(f"camera: expected a Camera, got {type(camera).__name__}")
         if sppp is None:
             sppp = default_sppp(camera)
-        for name, value in (("spp", spp), ("sppp", sppp)):
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"{name}: expected a positive integer, got {value!r}")
-        if isinstance(workers, bool) or not isinstance(workers, int) or not 0 <= workers <= 256:
-            raise ValueError(f"workers: expected an integer in [0, 256], got {workers!r}")
+        spp, sppp = check_int("spp", spp), check_int("sppp", sppp)
+        workers = check_int("workers", workers, 0, 256)
         if integrator not in INTEGRATORS:
             raise ValueError(f"integrator: expected one of {INTEGRATORS}, got {integrator!r}")
         if batched is not None and not isinstance(batched, bool):

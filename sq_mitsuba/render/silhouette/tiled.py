@@ -45,6 +45,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from sq_mitsuba.checks import check_int
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.render.backend import interrupts_deferred, mitsuba
 from sq_mitsuba.render.silhouette.integrator import TILED_PLUGIN
@@ -218,10 +219,7 @@ class TiledSilhouettes:
                  max_items: int = DEFAULT_MAX_ITEMS) -> None:
         if margin is None:
             margin = default_margin(camera)
-        if isinstance(margin, bool) or not isinstance(margin, int) or margin < 1:
-            raise ValueError(f"margin: expected a positive integer, got {margin!r}")
-        if isinstance(max_items, bool) or not isinstance(max_items, int) or max_items < 1:
-            raise ValueError(f"max_items: expected a positive integer, got {max_items!r}")
+        margin, max_items = check_int("margin", margin), check_int("max_items", max_items)
         self.max_items = max_items
         self.camera, self.spp, self.sppp, self.margin = camera, spp, sppp, margin
         self._sensor = sensor

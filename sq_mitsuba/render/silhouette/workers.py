@@ -36,6 +36,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from sq_mitsuba.checks import check_int
 from sq_mitsuba.geometry.camera import Camera
 
 WORKER_MODULE = "sq_mitsuba.render.silhouette.worker_process"
@@ -83,8 +84,7 @@ class SilhouetteWorkers:
 
     def __init__(self, camera: Camera, spp: int, sppp: int, integrator: str,
                  count: int) -> None:
-        if isinstance(count, bool) or not isinstance(count, int) or count < 1:
-            raise ValueError(f"count: expected a positive integer, got {count!r}")
+        count = check_int("count", count)
         from sq_mitsuba.render.backend import mitsuba
 
         variant = mitsuba().variant()
