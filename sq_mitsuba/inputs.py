@@ -154,8 +154,13 @@ def open_image(path: str | os.PathLike[str], what: str = "image", verify: bool =
     except UnidentifiedImageError:
         raise ValueError(f"{where}: not an image (no format PIL reads)") from None
     except Image.DecompressionBombError as error:
-        raise ValueError(f"{where}: above the largest image size, {MAX_IMAGE_PIXELS:,} pixels "
-                         f"({one_line(error)})") from None
+        # PIL's own text names its limit, not this one: only its count of pixels is kept.
+        import re
+
+        found = re.search(r"\((\d+) pixels\)", str(error))
+        size = f"{int(found.group(1)):,} pixels, " if found else ""
+        raise ValueError(f"{where}: {size}above the largest image size, {MAX_IMAGE_PIXELS:,} "
+                         "pixels") from None
     except (OSError, SyntaxError, EOFError) as error:
         # PIL reports damaged data as OSError ("image file is truncated"), SyntaxError (bad
         # chunk headers) or EOFError.

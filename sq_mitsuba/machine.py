@@ -48,15 +48,38 @@ def _cgroup_limit_files(cgroup_file: Path, root: Path) -> list[Path]:
     return files
 
 
+def _resource_limits() -> list[int]:
+    """The process's own limits on its memory (``ulimit -v`` and ``-d``), where set."""
+    try:
+        import resource
+    except ImportError:  # not on Windows
+        return []
+    limits = []
+    for name in ("RLIMIT_AS", "RLIMIT_DATA"):
+        try:
+            soft, _ = resource.getrlimit(getattr(resource, name))
+        except (AttributeError, ValueError, OSError):
+            continue
+        if soft != resource.RLIM_INFINITY and soft > 0:
+            limits.append(int(soft))
+    return limits
+
+
 def available_memory(cgroup_file: Path = CGROUP_FILE, root: Path = CGROUP_ROOT) -> int | None:
     """Bytes of memory this process may use: the machine's physical memory, or a control
-    group's limit (a container's, a SLURM job's) where lower; None where neither is known.
+    group's limit (a container's, a SLURM job's) or the process's own limit (``ulimit -v``,
+    ``ulimit -d``) where lower; None where none is known.
+
+    Convention: what the process may use, not what is free now: a check against the memory
+    other programs happen to hold would refuse a run one minute and take it the next.
 
     Args:
         cgroup_file: the process's list of control groups (``/proc/self/cgroup``).
         root: where the control groups' files are mounted (``/sys/fs/cgroup``).
     """
-    limits = [] if (physical := _physical_memory()) is None else [physical]
+    limits = _resource_limits()
+    if (physical := _physical_memory()) is not None:
+        limits.append(physical)
     for path in _cgroup_limit_files(cgroup_file, root):
         try:
             text = path.read_text().strip()

@@ -246,3 +246,41 @@ def test_values_out_of_range_are_named_as_given(views):
     with pytest.raises(ValueError, match=r"^init_raw: degenerate 6D rotation"):
         fit_assembly(masks, camera, rotations, translations, num_primitives=1, steps=1,
                      init_raw=torch.zeros(1, 1, 16))
+
+
+def test_a_batch_beyond_the_machines_memory_is_refused_in_one_line(shipped, monkeypatch):
+    """predict(16 images of 8192 px) failed inside torch's allocator ("you tried to allocate
+    4294967296 bytes"), naming neither the images nor a limit: the batch's need is estimated
+    first, and the refusal says how many such images a call can take."""
+    from sq_mitsuba import machine
+    from sq_mitsuba.inference.images import BYTES_PER_INPUT_PIXEL
+
+    images = torch.zeros(4, 64, 64, dtype=torch.uint8)
+    per_image = 64 * 64 * BYTES_PER_INPUT_PIXEL
+    monkeypatch.setattr(machine, "available_memory", lambda: 3 * per_image)
+    with pytest.raises(ValueError, match=r"^images: 4 of 64 x 64 px \(16 bytes a pixel\) needs "
+                                         r"about 256 KiB of memory, more than the 192 KiB this "
+                                         r"process may use; give at most 3 such images a call$"):
+        shipped.predict(images)
+    monkeypatch.setattr(machine, "available_memory", lambda: 4 * per_image)
+    assert shipped.predict(images).rotation.shape == (4, 3, 3)
+
+
+def test_turned_copies_beyond_the_machines_memory_are_refused_in_one_line(shipped, monkeypatch):
+    """Each turned copy holds about 108 KB until it is read back: `eval --batch-size 1024
+    --turns 360` asked for about 40 GB. Refused naming turns, by check_turns (which eval
+    calls with its batch size before any work) and by predict (a machine of 1.75 MiB here)."""
+    from sq_mitsuba import machine
+    from sq_mitsuba.inference.turned_copies import TURN_COPY_BYTES
+
+    images = torch.zeros(2, 64, 64, dtype=torch.uint8)
+    monkeypatch.setattr(machine, "available_memory", lambda: 2 * 7 * TURN_COPY_BYTES - 1)
+    message = (r"^turns: 8 turned copies of 2 images needs about 1\.75 MiB of memory, more "
+               r"than the 1\.75 MiB this process may use; give fewer turns, or fewer images")
+    with pytest.raises(ValueError, match=message):
+        shipped.check_turns(8, images=2)
+    with pytest.raises(ValueError, match=message):
+        shipped.predict(images, turns=8)
+    shipped.check_turns(8, images=1)  # one image a call fits
+    monkeypatch.setattr(machine, "available_memory", lambda: 2 * 7 * TURN_COPY_BYTES)
+    assert shipped.predict(images, turns=8).turns == 8

@@ -105,3 +105,24 @@ def test_graph_generator_writes_part_graphs(tmp_path) -> None:
     assert main(["models", "generate", "--generator", "graph", "--families", "training",
                  "--count", "2", "--out", str(tmp_path / "x")]) == 2
     assert not (tmp_path / "x").exists()
+
+
+def test_a_machine_too_small_for_the_imports_default_still_runs_every_other_models_command(
+        tmp_path, capsys, monkeypatch) -> None:
+    """The parser took its defaults from an ImportOptions(), whose own check measures depth
+    fusion's memory (about 2.3 GiB at the default resolution): on a machine of 1 GiB every
+    `models` command, --help included, failed with a traceback. Only an import refuses now."""
+    from sq_mitsuba import machine
+    from sq_mitsuba.data import library
+
+    for module in (machine, library):  # the library holds its own name of it
+        monkeypatch.setattr(module, "available_memory", lambda: 2**30)
+    out = tmp_path / "lib"
+    assert main(["models", "generate", "--count", "1", "--out", str(out), "--points", "200"]) == 0
+    capsys.readouterr()
+    box = tmp_path / "box.stl"
+    trimesh.creation.box([1.0, 2.0, 3.0]).export(box)
+    assert main(["models", "import", str(box), "--out", str(tmp_path / "imported")]) == 2
+    error = capsys.readouterr().err.strip()
+    assert "resolution" in error and "memory" in error and "\n" not in error, error
+    assert not (tmp_path / "imported").exists()

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from output_checks import error_line
 
 from sq_mitsuba.cli import main
 from sq_mitsuba.config import apply_overrides, config_hash
@@ -656,6 +657,48 @@ def test_resolution_is_bounded_by_memory():
         render_options.check_render_resources(options.dataset_camera(), options,
                                               memory=need - 1)
     assert RenderOptions(seed=2**32 - 1).seed == 2**32 - 1
+
+
+def test_the_scenes_textures_count_in_the_memory_estimate():
+    """A star map 16384 texels wide took 9.4 GB a process for 64 px images while the estimate
+    said 0.75 GiB, so two or three rendering processes passed the check and were killed:
+    the textures beyond the default scene's are counted, and named when they are the cause."""
+    import dataclasses
+
+    scene = SceneConfig.load()
+    assert render_options.texture_memory(scene) == 0  # the default scene's are in the base
+    stars = dataclasses.replace(scene, stars=dataclasses.replace(scene.stars,
+                                                                 envmap_width=16384))
+    extra = render_options.texture_memory(stars)
+    assert 8 * 2**30 < extra < 10 * 2**30  # 70 B a texel over 134 M texels, less the default's
+    options = RenderOptions(resolution=64, workers=2, scene=stars)
+    need = render_options.estimate_render_memory(64, 64, scene=stars)
+    assert need == render_options.estimate_render_memory(64, 64) + extra
+    render_options.check_render_resources(options.dataset_camera(), options, memory=2 * need)
+    with pytest.raises(DatasetError, match=r"^the scene's textures \(stars.envmap_width 16384, "
+                                          r"earth.texture 1024 x 512: 8\.\d+ GiB a process, 2 "
+                                          r"rendering process\(es\)\) needs about .*; lower "
+                                          r"--set stars.envmap_width"):
+        render_options.check_render_resources(options.dataset_camera(), options,
+                                              memory=2 * need - 1)
+
+
+def test_a_render_that_cannot_fit_on_its_disk_is_refused_before_any_work(library, tmp_path,
+                                                                           capsys):
+    """Ten million 2048 px images a model started on a disk of 53 GB without a word: refused
+    when even the fewest bytes an image takes would not fit, before any file is written."""
+    out = tmp_path / "new" / "data"
+    if 10_000_000 * 4096**2 * render_options.MIN_DISK_BYTES_PER_PIXEL <= \
+            shutil.disk_usage(tmp_path).free:
+        pytest.skip("a disk this large holds even that")
+    assert main(["dataset", "render", "--models", str(library), "--out", str(out),
+                 "--images-per-model", "10000000", "--resolution", "4096", "--spp", "1",
+                 "--quiet"]) == 2
+    line = error_line(capsys)
+    assert re.search(r"images_per_model: [\d,]+ images of 4096 x 4096 px need at least .* on "
+                     r"disk, more than the .* free under .*; lower --images-per-model", line), line
+    assert not out.exists() and not out.parent.exists()
+    render_options.check_disk_room(out, Camera.default(256), 1)  # a small one fits
 
 
 def test_a_model_folder_without_a_row_in_the_librarys_splits_is_refused(library, tmp_path):

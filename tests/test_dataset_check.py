@@ -218,3 +218,17 @@ def test_check_options_are_range_checked(fresh, capsys):
         check_dataset(root, min_iou=-0.1)
     assert main(["dataset", "check", str(root), "--per-model", "1", "--quiet"]) == 0
     assert "no problems found" in capsys.readouterr().out
+
+
+def test_a_check_of_more_samples_than_a_render_takes_names_the_spp_that_fits(fresh,
+                                                                            monkeypatch):
+    """At 8000 px the default 256 spp is 16e9 samples a render, past Mitsuba's 2^32: it failed
+    as an internal error from the renderer after the first model was read. Refused with the
+    spp that fits (Mitsuba's limit made that of a 64 px image at 100 spp, not 8000 px's)."""
+    import sq_mitsuba.data.spe3r.check as check
+
+    monkeypatch.setattr(check, "MAX_SAMPLES_PER_RENDER", 64 * 64 * 100)
+    with pytest.raises(ValueError, match=r"^--spp 256: a render of 64 x 64 px takes at most 100 "
+                                         r"samples a pixel .*; give --spp 100 or less$"):
+        check_dataset(fresh(64), per_model=0, progress=False)
+    assert check_dataset(fresh(64), per_model=0, spp=100, progress=False).ok

@@ -53,6 +53,8 @@ def _run_script(command: list[str]) -> subprocess.CompletedProcess:
 
 
 @pytest.mark.filterwarnings("ignore:optim.batch_size")  # the study's batch of 32 on 12 images
+# Two steps of a schedule that warms up over 50: the trainer says so, rightly, for this test.
+@pytest.mark.filterwarnings("ignore:optim.warmup_steps. a warm-up of 50 steps:UserWarning")
 def test_rotation_views_trains_and_scores_both_view_sets(train_dataset, tmp_path):
     """The experiment is a run of the real trainer: its log holds the pose terms alone."""
     data = tmp_path / "data"

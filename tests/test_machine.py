@@ -138,3 +138,25 @@ def test_launch_ranks_refuse_malformed_variables_in_one_line(environ, message):
     if "LOCAL" in message:  # the GPU choice reads them through the same check
         with pytest.raises(ValueError, match=message.split(":")[0]):
             narrow_to_local_gpu(dict(environ), Path("/nonexistent"))
+
+
+@pytest.mark.parametrize("limit_name", ["RLIMIT_AS", "RLIMIT_DATA"])
+def test_the_process_own_limit_counts(tmp_path, limit_name):
+    """Under ``ulimit -v`` (or ``-d``) every memory check passed on the machine's memory and
+    the work then failed inside torch's allocator: the process's own limit is a limit."""
+    import subprocess
+    import sys
+
+    resource = pytest.importorskip("resource")
+    limit = 3 * GIB
+    code = ("import resource, sys; from pathlib import Path; "
+            "from sq_mitsuba.machine import available_memory; "
+            f"resource.setrlimit(resource.{limit_name}, ({limit}, resource.getrlimit("
+            f"resource.{limit_name})[1])); "
+            "print(available_memory(Path(sys.argv[1]), Path(sys.argv[1])))")
+    if resource.getrlimit(getattr(resource, limit_name))[1] not in (resource.RLIM_INFINITY,) \
+            and resource.getrlimit(getattr(resource, limit_name))[1] < limit:
+        pytest.skip(f"{limit_name}'s hard limit is below {limit} bytes here")
+    printed = subprocess.run([sys.executable, "-c", code, str(tmp_path / "absent")],
+                             capture_output=True, text=True, check=True).stdout
+    assert int(printed) == min(limit, _physical())

@@ -275,8 +275,8 @@ def predict_sequence_files(images: list[str | Path], out_dir: str | Path, predic
     from sq_mitsuba.machine import available_memory
     from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer
 
-    level, overlay_spp = check_int("level", level, 0, 5), check_int("overlay_spp", overlay_spp,
-                                                                    1, 1024)
+    level = check_int("level", level, 0, 5)
+    overlay_spp = check_int("overlay_spp", overlay_spp, 1, 1024)
     check_target_size(target_size)
     check_frame_files(images, masks)
     paths = [Path(p) for p in images]

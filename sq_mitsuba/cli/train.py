@@ -28,7 +28,9 @@ each validation), last.pt and best.pt (atomic checkpoints; best.pt is the last s
 run says so, when it stops before the first validation), tensorboard/ when tensorboard is
 installed, and cache/ (the training images decoded once, and the models' symmetries, unless
 data.cache_dir is set). The dataset is only read. One run at a time per --out: a second run
-into a folder another run is writing stops with one line (exit code 2).
+into a folder another run is writing stops with one line (exit code 2). On the CPU, a run
+whose batch would not fit in this machine's memory (an estimate) is refused the same way,
+before anything is written, naming the --set key to lower.
 
 --resume continues the run in --out from last.pt exactly where it stopped (same config and
 dataset required; the config defaults to the checkpoint's; bit for bit in one process on the

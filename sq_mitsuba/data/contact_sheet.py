@@ -11,6 +11,7 @@ import numpy as np
 from sq_mitsuba.config import in_range, validate
 from sq_mitsuba.data.mesh_io import SAMPLES_FILE, read_npz, read_tagged_obj
 from sq_mitsuba.io import atomic_path, check_output_file
+from sq_mitsuba.render.backend import MAX_SAMPLES_PER_RENDER
 
 LABEL_HEIGHT = 14
 """Pixels under each tile for the model's name."""
@@ -36,6 +37,11 @@ class ContactSheetOptions:
     def __post_init__(self) -> None:
         if self.out is not None:
             image_format(self.out)
+        if self.size * self.size * self.spp > MAX_SAMPLES_PER_RENDER:
+            raise ValueError(f"spp: {self.spp} at a tile of {self.size} x {self.size} px is "
+                             f"{self.size * self.size * self.spp:,} samples per render, more "
+                             "than Mitsuba's 2^32 (a render split in passes that took 24 GB); "
+                             "lower --spp or --size")
 
 
 #: Image formats of a contact sheet, by the suffix of its path (lower case).

@@ -72,6 +72,8 @@ from sq_mitsuba.data.mesh_processing import (
     MESH_SUFFIXES,
     MODEL_FILES,
     MODEL_FOLDER,
+    check_import_memory,
+    file_face_count,
     load_mesh,
     model_card,
     process_mesh,
@@ -112,6 +114,10 @@ MAX_POINTS = 2_000_000
 #: it is :func:`~sq_mitsuba.data.mesh_processing.recover_cut_write`'s.
 DEAD_WRITE = re.compile(r"\.models\.[a-z0-9_]{8}")
 BEING_REMOVED = re.compile(r"\.models\.removing\..+")
+#: Memory of one ``generate --workers`` process (a spawned interpreter building a model):
+#: measured 2026-12-02, 24 workers made a process tree of 27 processes and 3.9 GB, about
+#: 160 MB each; rounded up for larger models.
+GENERATE_WORKER_BYTES = 200_000_000
 
 
 # --------------------------------------------------------------------------------- options
@@ -137,10 +143,29 @@ class GenerateOptions:
     families only (never trained on: the leave-family-out test)."""
     workers: int = in_range(1, 256, default=1)
     """Processes building models in parallel (each model is independent; the library's
-    files are written by the main process, in catalogue order, as each model is done)."""
+    files are written by the main process, in catalogue order, as each model is done); at
+    most what fits in this machine's memory, about 200 MB each."""
     rebuild: bool = False
     """Build every model again; by default a rerun keeps a model already complete in OUT
     (this catalogue's spacecraft, written with the same --points)."""
+
+    def __post_init__(self) -> None:
+        if isinstance(self.workers, int) and isinstance(self.count, int):  # else validate's
+            check_generate_workers(self.workers, self.count)
+
+
+def check_generate_workers(workers: int, count: int) -> None:
+    """``ValueError`` naming ``workers`` when its processes (no more than the ``count`` models
+    they share) would need more memory than this machine has (about
+    :data:`GENERATE_WORKER_BYTES` each), before any is started: 256 of them were about 41 GB.
+    One worker builds in this process: nothing to check."""
+    processes = min(workers, count)
+    memory = available_memory()
+    need = processes * GENERATE_WORKER_BYTES
+    if processes > 1 and memory is not None and need > memory:
+        raise ValueError(too_much_memory(
+            f"workers: {workers} ({processes} processes)", need, memory,
+            f"expected a value in [1, {max(1, memory // GENERATE_WORKER_BYTES)}]"))
 
 
 def check_fusion_resolution(resolution: int) -> None:
@@ -640,8 +665,11 @@ def import_models(paths: Sequence[str | Path], options: ImportOptions | None = N
                   progress: bool = True) -> LibrarySummary:
     """Import mesh files into ``options.out``, each into its own new model folder.
 
-    Every path must exist, have a supported suffix and name another file than the other
-    paths (:func:`check_distinct_files`), all checked before any work; a file that
+    Every path must exist, have a supported suffix, name another file than the other
+    paths (:func:`check_distinct_files`) and, where its header or lines tell its faces
+    (:func:`~sq_mitsuba.data.mesh_processing.file_face_count`), fit in memory
+    (:func:`~sq_mitsuba.data.mesh_processing.check_import_memory`), all checked before any
+    work; a file that
     cannot be read or processed is a failure of the batch, reported in the summary (imports
     keep no ``failures.json``: the files named on the command line are the record), not an
     error. ``summary.names`` tells which model name each file got.
@@ -658,6 +686,10 @@ def import_models(paths: Sequence[str | Path], options: ImportOptions | None = N
         if path.suffix.lower() not in MESH_SUFFIXES:
             raise ValueError(f"{path}: unsupported format {path.suffix!r}; "
                              f"expected one of {', '.join(MESH_SUFFIXES)}")
+        # A mesh too large for memory: refused here, where the file says its size, before
+        # the batch starts (other formats: when loaded, a failure of that file alone).
+        if (faces := file_face_count(path)) is not None:
+            check_import_memory(path, faces)
     check_distinct_files(paths)
     root = Path(options.out)
     _check_root(root)

@@ -323,7 +323,7 @@ def _evaluate(predictor: Any, data_root: Path, out_dir: Path, options: EvalOptio
                                  "is empty and the checkpoint stores none); evaluate without "
                                  "it (--no-baseline)")
     camera = dataset.camera.rescaled(image_size, image_size)
-    predictor.check_turns(options.turns, camera)
+    predictor.check_turns(options.turns, camera, options.batch_size)
     indices = evenly(len(dataset), options.limit)
     chunks = [indices[start:start + options.batch_size]
               for start in range(0, len(indices), options.batch_size)]

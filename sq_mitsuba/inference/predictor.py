@@ -65,6 +65,7 @@ from sq_mitsuba.inference.images import (
 from sq_mitsuba.inference.prediction import Fit, MaskChoice, Prediction, SequencePrediction
 from sq_mitsuba.inference.traced import RUN_CHUNK, TracedNetwork, run_in_chunks
 from sq_mitsuba.inference.turned_copies import (
+    check_turns_memory,
     hypotheses_from_logits,
     reading_from_turns,
     turn_angles,
@@ -425,13 +426,14 @@ class Predictor:
             return False
         return True
 
-    def check_turns(self, turns: int, camera: Camera | None = None) -> None:
+    def check_turns(self, turns: int, camera: Camera | None = None, images: int = 1) -> None:
         """One-line ``ValueError`` naming ``turns`` unless ``predict(turns=turns)`` runs for
-        images of ``camera`` (default: the predictor's), so that a caller can refuse it before
-        any work; 1 (one reading) runs for every network and camera."""
+        ``images`` images of ``camera`` (default: the predictor's) a call, memory included, so
+        that a caller can refuse it before any work; 1 runs for every network and camera."""
         if type(turns) is int and turns == 1:  # True == 1, but is no count
             return
         self._check_turns(turns, self.camera if camera is None else camera)
+        check_turns_memory(check_int("images", images), turns)
 
     def _check_turns(self, turns: int, camera: Camera) -> None:
         """One-line ``ValueError`` naming ``turns`` unless ``predict(turns=T)`` can run for

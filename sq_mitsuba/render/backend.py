@@ -20,6 +20,10 @@ from types import ModuleType
 from sq_mitsuba.llvm import configure_llvm
 
 PREFERRED_VARIANTS = ("cuda_ad_mono", "llvm_ad_mono")
+#: Mitsuba renders all samples of an image in one wavefront of at most 2^32 lanes; past that
+#: it splits the render into passes, a path that took 24 GB for a 1024 px preview at 4096 spp.
+#: Every renderer here refuses more samples per render, naming its options.
+MAX_SAMPLES_PER_RENDER = 2**32 - 1
 VARIANT_ENV = "SQ_MITSUBA_VARIANT"
 CACHE_ENV = "DRJIT_CACHE_DIR"
 PROJECT_ROOT = Path(__file__).resolve().parents[2]

@@ -111,9 +111,10 @@ class OptimConfig:
     "AdamW's moment decay rates."
     min_lr_ratio: float = in_range(0, 1, default=0.0)
     "The cosine schedule decays to lr * min_lr_ratio at the last step."
-    warmup_steps: int = non_negative(0)
+    warmup_steps: int = in_range(0, 1_000_000_000, default=0)
     """Steps W of linear warm-up, lr / W up to lr, before the cosine decay (unless
-    warmup_images is set)."""
+    warmup_images is set). A warm-up as long as the run (epochs x steps per epoch) is said in
+    a warning: the learning rate would never reach lr."""
     warmup_images: int | None = in_range(0, 1_000_000_000, default=None)
     """Warm-up length in images seen instead of steps: ceil(warmup_images / batch_size)
     steps, so a larger batch warms up over the same data; None: warmup_steps."""

@@ -49,7 +49,8 @@ from sq_mitsuba.training.random_streams import STREAMS, seed_of
 from sq_mitsuba.training.run.state import TrainError, TrainRun
 
 __all__ = ["DataSources", "HostBatch", "TrainingData", "TrainingStream", "evenly",
-           "open_datasets", "open_training_data", "run_cache_root", "symmetry_table"]
+           "open_datasets", "open_training_data", "run_cache_root", "symmetry_table",
+           "warn_long_warmup"]
 
 
 class TrainingStream:
@@ -386,5 +387,24 @@ def open_training_data(run: TrainRun, sources: DataSources) -> TrainingData:
                                            Path(cache_root) / "symmetries",
                                            workers=_symmetry_workers(len(train_set.models),
                                                                      run.world.local_size)))
+    if run.world.main:
+        warn_long_warmup(cfg, stream.steps_per_epoch)
     return TrainingData(stream, points, val_images, bool(sources.val_indices), train_set.camera,
                         camera)
+
+
+def warn_long_warmup(config: TrainConfig, steps_per_epoch: int) -> None:
+    """Warn (one line, naming the field) when the warm-up lasts at least the whole run: the
+    learning rate then never passes its warm-up, and one far longer leaves it near 0, the run
+    learning nothing. A warning, not an error: a warm-up-only run may be meant."""
+    optim = config.optim
+    warmup, total = optim.warmup_step_count(), optim.epochs * steps_per_epoch
+    if warmup < total:
+        return
+    import warnings
+
+    name = "optim.warmup_steps" if optim.warmup_images is None else "optim.warmup_images"
+    warnings.warn(f"{name}: a warm-up of {warmup} steps is at least the run's {total} steps "
+                  f"({optim.epochs} epoch(s) of {steps_per_epoch}): the learning rate rises "
+                  f"only to {optim.peak_lr() * total / warmup:.3g} at the last step, of its "
+                  f"peak {optim.peak_lr():.3g}", stacklevel=2)

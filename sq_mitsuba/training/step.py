@@ -37,6 +37,7 @@ from torch import Tensor, nn
 
 from sq_mitsuba.checks import value_checks
 from sq_mitsuba.geometry.camera import Camera
+from sq_mitsuba.machine import LaunchRanks, available_memory, launch_ranks, too_much_memory
 from sq_mitsuba.render.silhouette.renderer import SilhouetteRenderer
 from sq_mitsuba.render.silhouette.seeds import ITEM_SEED_STRIDE
 from sq_mitsuba.training.batch import TrainingBatch
@@ -49,6 +50,7 @@ from sq_mitsuba.training.run.state import TrainError
 __all__ = [
     "NotFiniteError",
     "StepResult",
+    "check_step_memory",
     "finite_flag",
     "forward_loss",
     "gradient_norm",
@@ -249,6 +251,75 @@ def render_workers(requested: int | None, device: torch.device, processes: int =
     if device.type != "cpu":
         return 0
     return default_worker_count(processes) if requested is None else requested
+
+
+# What training on the CPU holds in memory, measured 2026-12-02 (one step of
+# train/configs/cpu.toml at 96 px input, the process tree's peak): batch 128 used 3.3 GB and
+# batch 512 used 9.7 GB, so about 17 MB an image (the activations the backward pass keeps) over
+# about 1.2 GB fixed (the interpreter, torch, Mitsuba, the network and its optimiser). An
+# image's share grows with its pixels, (network.image_size / 96)^2. Those runs' trees held
+# cpu.toml's default two reprojection workers too, so adding the workers' own cost below errs
+# on the safe side.
+STEP_MEMORY_IMAGE_SIZE = 96
+STEP_BYTES_PER_IMAGE = 17_000_000
+STEP_FIXED_BYTES = 1_200_000_000
+#: A validation image at 96 px: forward only, nothing kept for a backward pass (measured
+#: 2026-12-02, cpu.toml's network, batches of 64 and 256: 2.7 and 1.9 MB an image; rounded
+#: up for its silhouette and points).
+VALIDATION_BYTES_PER_IMAGE = 3_000_000
+#: One reprojection worker process (measured 2026-12-02: 16 workers with tiny.toml, 18
+#: processes in all, 5.4 GB).
+RENDER_WORKER_BYTES = 300_000_000
+
+
+def check_step_memory(config: TrainConfig, device: torch.device,
+                      ranks: LaunchRanks | None = None) -> None:
+    """Refuse (one-line :class:`TrainError` naming the ``--set`` keys to lower) a run on the
+    CPU whose step, or validation batch, would need more memory than this machine has, so
+    that it stops before the run folder is made instead of being killed at its first step.
+
+    The estimate (the measured constants above) is, for the ``ranks.local_size`` processes
+    on this machine: each one's fixed part and reprojection workers, plus the larger of the
+    step's images (``optim.batch_size`` split over ``ranks.size`` processes) and rank 0's
+    validation batch. Not checked on CUDA (the batch lives in GPU memory, which torch's own
+    error reports) or where :func:`~sq_mitsuba.machine.available_memory` is unknown.
+    """
+    memory = available_memory()
+    if device.type != "cpu" or memory is None:
+        return
+    ranks = ranks or launch_ranks()
+    processes, optim = ranks.local_size, config.optim
+    workers = render_workers(config.reprojection.workers, device, processes) \
+        if config.loss.weights.get("reprojection", 0.0) else 0
+    scale = (config.network.image_size / STEP_MEMORY_IMAGE_SIZE) ** 2
+    share = -(-optim.batch_size // ranks.size)  # each process's images of a step
+    val_batch = min(config.validation.batch_size, config.validation.images) \
+        if config.validation.every else 0
+    fixed = processes * (STEP_FIXED_BYTES + workers * RENDER_WORKER_BYTES)
+    step = processes * share * STEP_BYTES_PER_IMAGE * scale
+    val = val_batch * VALIDATION_BYTES_PER_IMAGE * scale
+    need = int(fixed + max(step, val))
+    if need <= memory:
+        return
+    room = memory - fixed  # what the images may take (lowering a batch helps only if > 0)
+    advice = []
+    if 0 < room < step:
+        most = int(room // (processes * STEP_BYTES_PER_IMAGE * scale)) * ranks.size
+        advice.append("optim.batch_size" + (f" (at most {most} fits)" if most else ""))
+    if 0 < room < val:
+        most = int(room // (VALIDATION_BYTES_PER_IMAGE * scale))
+        advice.append("validation.batch_size" + (f" (at most {most} fits)" if most else ""))
+    if workers:
+        advice.append(f"reprojection.workers (about {RENDER_WORKER_BYTES / 1e9:.1f} GB each)")
+    what = (f"{'optim' if step >= val else 'validation'}.batch_size: "
+            f"{optim.batch_size if step >= val else val_batch} images of "
+            f"{config.network.image_size} px on the CPU"
+            + (f" in {processes} processes" if processes > 1 else "")
+            + (f" with {workers} reprojection worker(s)" if workers else "")
+            + (" each" if workers and processes > 1 else ""))
+    raise TrainError(too_much_memory(
+        what, need, memory, "lower --set " + " or ".join(advice) if advice else
+        f"each training process alone takes about {STEP_FIXED_BYTES / 1e9:.1f} GB"))
 
 
 def reprojection_renderer(config: TrainConfig, dataset_camera: Camera, device: torch.device,

@@ -48,7 +48,8 @@ another run is writing into; a dataset that does not open, whose images are not 
 ``camera.json``'s size, or whose ``samples.npz`` lacks an array or holds NaN (naming the file,
 :meth:`Spe3rDataset.check <sq_mitsuba.data.spe3r.Spe3rDataset.check>`); a network that cannot
 be built (``network.pretrained`` unreadable), is not of one input channel (the training data
-are grey) or cannot feed a weighted loss term; a corrupt
+are grey) or cannot feed a weighted loss term; a run on the CPU needing more memory than the
+machine has (:func:`~sq_mitsuba.training.step.check_step_memory`); a corrupt
 image while the cache is built (naming the file; the new run folder and cache are removed); a
 checkpoint of another config or dataset on resume (naming the first difference); a loss or
 gradient that is not finite (the step is not applied and the last checkpoint stays as it was).
@@ -117,6 +118,7 @@ from sq_mitsuba.training.run.state import TrainError, TrainResult, TrainRun
 from sq_mitsuba.training.schedule import cosine_lr_factor, make_optimizer
 from sq_mitsuba.training.step import (
     NotFiniteError,
+    check_step_memory,
     loss_context,
     mitsuba_for,
     reprojection_renderer,
@@ -125,13 +127,7 @@ from sq_mitsuba.training.step import (
 )
 from sq_mitsuba.training.validation import improves, validate
 
-__all__ = [
-    "CURVES_FILE",
-    "TrainError",
-    "TrainResult",
-    "cosine_lr_factor",
-    "train",
-]
+__all__ = ["CURVES_FILE", "TrainError", "TrainResult", "cosine_lr_factor", "train"]
 
 
 def train(config: TrainConfig | None, data_root: str | Path, out_dir: str | Path, *,
@@ -180,7 +176,7 @@ def _train(config: TrainConfig | None, data_root: Path, out_dir: Path, resume: b
            main_process: bool) -> TrainResult:
     """:func:`train` under the run folder's lock (rank 0)."""
     # Checks before any work and before anything is written: the run folder (under the
-    # lock), the checkpoint, the config, the dataset.
+    # lock), the checkpoint, the config and the memory it needs, the dataset.
     if main_process:
         check_out_dir(out_dir, resume)
     checkpoint = read_resumed(out_dir) if resume else None
@@ -192,6 +188,8 @@ def _train(config: TrainConfig | None, data_root: Path, out_dir: Path, resume: b
         raise TrainError(f"network.in_channels: {config.network.in_channels}: training feeds "
                          "one-channel (grey) images only; expected 1")
     check_cache_dir(config.data.cache_dir, data_root)
+    device = _device_of(config)
+    check_step_memory(config, device)  # before the dataset is read and the run folder made
     # The fingerprint first: a point cache already built for it spares reading every model's
     # points again (open_datasets). A dataset it cannot be taken of gets open_datasets' error.
     try:
@@ -203,7 +201,6 @@ def _train(config: TrainConfig | None, data_root: Path, out_dir: Path, resume: b
         fingerprint = dataset_fingerprint(data_root)
     if checkpoint is not None:
         check_resumable(checkpoint, config, fingerprint, out_dir, data_root)
-    device = _device_of(config)
     world = start_distributed(device)
     run = TrainRun(config, data_root, out_dir, fingerprint, device, world, checkpoint,
                    max_steps, max_seconds, progress)

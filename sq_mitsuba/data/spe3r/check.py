@@ -70,6 +70,7 @@ from sq_mitsuba.data.spe3r.layout import (
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.geometry.rotation import quaternion_to_matrix
 from sq_mitsuba.io import read_json
+from sq_mitsuba.render.backend import MAX_SAMPLES_PER_RENDER
 
 #: Standard deviations of the coverage estimates' difference inside the edge tolerance.
 EDGE_SIGMAS = 4.0
@@ -407,6 +408,11 @@ def check_dataset(root: str | Path, options: CheckOptions | None = None, *,
         except (KeyError, TypeError, ValueError):
             pass
     report.tolerance = edge_tolerance(options.spp, spp_mask)
+    most = MAX_SAMPLES_PER_RENDER // (camera.width * camera.height)
+    if options.spp > most:  # before any model is read: a default that fails says what fits
+        raise ValueError(f"--spp {options.spp}: a render of {camera.width} x {camera.height} "
+                         f"px takes at most {most} samples a pixel (Mitsuba's 2^32 samples "
+                         f"a render); give --spp {most} or less")
     renderer = None
     for model in progress_bar(sorted(splits), disable=not progress, desc="check"):
         report.models += 1

@@ -13,10 +13,12 @@ from sq_mitsuba.config import in_range, validate
 from sq_mitsuba.data.spe3r.layout import DatasetError
 from sq_mitsuba.geometry.camera import Camera
 from sq_mitsuba.machine import available_memory, memory_text, too_much_memory
+from sq_mitsuba.render.backend import MAX_SAMPLES_PER_RENDER
 from sq_mitsuba.render.scene_config import SceneConfig
 
 __all__ = ["MAX_RESOLUTION", "MAX_SHARDS", "SEED_LIMIT", "RenderOptions", "RenderSummary",
-           "check_render_resources", "estimate_render_memory", "parse_shard"]
+           "check_disk_room", "check_render_resources", "estimate_render_memory",
+           "parse_shard", "texture_memory"]
 
 SEED_LIMIT = 2**32
 """Dataset seeds are 0 <= seed < SEED_LIMIT."""
@@ -32,8 +34,15 @@ _SHARD = re.compile(r"(\d+)/(\d+)")
 BASE_MEMORY_BYTES = 3 * 2**28  # 0.75 GiB
 BYTES_PER_PIXEL = 160
 EXR_BYTES_PER_PIXEL = 48
-#: Mitsuba renders all samples of an image in one wavefront of at most 2^32 lanes.
-MAX_SAMPLES_PER_RENDER = 2**32 - 1
+#: Memory of the scene's textures beyond the default scene's (which the base figure holds), a
+#: texel: measured 2026-12-02, the star map 16384 texels wide peaked at 9.4 GB for 64 px
+#: images (66 bytes a texel: Mitsuba keeps the map and its sampling warp), the Earth's albedo
+#: map of 8192 x 4096 took 1.85 GB to make (55 bytes a texel, then Mitsuba's copy).
+TEXTURE_BYTES_PER_TEXEL = 70
+#: Fewest bytes a rendered image and its mask take on disk, a pixel: a 256 px image of a
+#: target against black space and its mask took 0.12 B/px as PNG (8 held-out frames,
+#: 2026-12-02); a fifth of that is a bound no dataset comes under.
+MIN_DISK_BYTES_PER_PIXEL = 0.025
 
 
 def parse_shard(text: str) -> tuple[int, int]:
@@ -131,11 +140,47 @@ class RenderSummary:
     shard: str = "0/1"
 
 
-def estimate_render_memory(width: int, height: int, exr: bool = False) -> int:
+def estimate_render_memory(width: int, height: int, exr: bool = False,
+                           scene: SceneConfig | None = None) -> int:
     """Bytes one rendering process needs for ``width`` x ``height`` images (an estimate with
-    about 1.5x margin over measured peaks, see :data:`BASE_MEMORY_BYTES`)."""
+    about 1.5x margin over measured peaks, see :data:`BASE_MEMORY_BYTES`), with ``scene``'s
+    textures where larger than the default scene's (:func:`texture_memory`)."""
     per_pixel = BYTES_PER_PIXEL + (EXR_BYTES_PER_PIXEL if exr else 0)
-    return BASE_MEMORY_BYTES + per_pixel * width * height
+    textures = 0 if scene is None else texture_memory(scene)
+    return BASE_MEMORY_BYTES + per_pixel * width * height + textures
+
+
+def _texels(scene: SceneConfig) -> int:
+    """Texels of the star map (width x width / 2) and of the Earth's albedo map."""
+    texture = scene.earth.texture
+    return scene.stars.envmap_width ** 2 // 2 + texture.width * texture.height
+
+
+def texture_memory(scene: SceneConfig) -> int:
+    """Bytes a rendering process needs for ``scene``'s textures beyond the default scene's
+    (:data:`TEXTURE_BYTES_PER_TEXEL`); 0 for textures no larger."""
+    return TEXTURE_BYTES_PER_TEXEL * max(0, _texels(scene) - _texels(SceneConfig()))
+
+
+def check_disk_room(out_dir: Path, camera: Camera, images: int) -> None:
+    """Refuse a render of ``images`` images whose files could not fit on ``out_dir``'s disk
+    even at the fewest bytes an image takes (:data:`MIN_DISK_BYTES_PER_PIXEL`): a run of ten
+    million 2048 px images started on a disk of 53 GB without a word."""
+    import shutil
+
+    folder = Path(out_dir).absolute()
+    while not folder.exists() and folder != folder.parent:  # the disk it will be made on
+        folder = folder.parent
+    try:
+        free = shutil.disk_usage(folder).free
+    except OSError:  # no figure: nothing to refuse on
+        return
+    need = int(images * camera.width * camera.height * MIN_DISK_BYTES_PER_PIXEL)
+    if need > free:
+        raise DatasetError(f"images_per_model: {images:,} images of {camera.width} x "
+                           f"{camera.height} px need at least {memory_text(need)} on disk, "
+                           f"more than the {memory_text(free)} free under {folder}; lower "
+                           "--images-per-model or --resolution, or render into another disk")
 
 
 def check_render_resources(camera: Camera, options: RenderOptions,
@@ -147,12 +192,22 @@ def check_render_resources(camera: Camera, options: RenderOptions,
 
     width, height = camera.width, camera.height
     memory = available_memory() if memory is None else memory
-    need = estimate_render_memory(width, height, options.exr)
+    need = estimate_render_memory(width, height, options.exr, options.scene)
+    textures = texture_memory(options.scene)
     if memory is not None and need * options.workers > memory:
+        if textures > need / 2:  # the scene's maps, not the images, are what is too large
+            raise DatasetError(too_much_memory(
+                f"the scene's textures (stars.envmap_width {options.scene.stars.envmap_width}, "
+                f"earth.texture {options.scene.earth.texture.width} x "
+                f"{options.scene.earth.texture.height}: {memory_text(textures)} a process, "
+                f"{options.workers} rendering process(es))", need * options.workers, memory,
+                "lower --set stars.envmap_width, earth.texture.width and .height, or "
+                "--workers"))
         raise DatasetError(too_much_memory(
             f"resolution: {width} x {height} px ({options.workers} rendering process(es), "
             f"each {memory_text(BASE_MEMORY_BYTES)} + "
-            f"{BYTES_PER_PIXEL + (EXR_BYTES_PER_PIXEL if options.exr else 0)} bytes a pixel)",
+            f"{BYTES_PER_PIXEL + (EXR_BYTES_PER_PIXEL if options.exr else 0)} bytes a pixel"
+            f"{f' + {memory_text(textures)} of scene textures' if textures else ''})",
             need * options.workers, memory, "lower --resolution or --workers"))
     mask_spp = mask_samples(options.scene.mask.spp, camera)
     samples = width * height * max(options.spp, mask_spp)

@@ -94,6 +94,7 @@ from sq_mitsuba.data.spe3r.manifest import (
 from sq_mitsuba.data.spe3r.render_options import (
     RenderOptions,
     RenderSummary,
+    check_disk_room,
     check_render_resources,
     parse_shard,
 )
@@ -660,6 +661,8 @@ def prepare_dataset(models_dir: Path, out_dir: Path, options: RenderOptions
                            f"images_per_model (--images-per-model) {options.images_per_model}: "
                            f"the last pass would be short; give a multiple, e.g. {whole}")
     found = find_models(models_dir)
+    check_disk_room(out_dir, camera, options.images_per_model * len(found)
+                    // options.shard_count)
     if inside_folder(out_dir, models_dir):  # inside: a folder the library reads as a model
         where = "the model library" if out_dir.resolve() == models_dir.resolve() else \
             f"inside the model library {models_dir}"

@@ -52,7 +52,7 @@ from torch import Tensor
 from sq_mitsuba.checks import check_int, check_rotations, check_tensor
 from sq_mitsuba.geometry.assembly import Assembly
 from sq_mitsuba.geometry.camera import Camera
-from sq_mitsuba.render.backend import interrupts_deferred, mitsuba
+from sq_mitsuba.render.backend import MAX_SAMPLES_PER_RENDER, interrupts_deferred, mitsuba
 from sq_mitsuba.render.silhouette.integrator import register as register_integrator
 from sq_mitsuba.render.silhouette.seeds import render_seed
 from sq_mitsuba.render.silhouette.tiled import TiledSilhouettes, tiled_seeds
@@ -210,6 +210,11 @@ class SilhouetteRenderer:
             sppp = default_sppp(camera)
         spp, sppp = check_int("spp", spp), check_int("sppp", sppp)
         workers = check_int("workers", workers, 0, 256)
+        samples = camera.width * camera.height * max(spp, sppp)
+        if samples > MAX_SAMPLES_PER_RENDER:  # Mitsuba's limit: said here, not as its error
+            raise ValueError(f"spp: {spp} (sppp {sppp}) at {camera.width} x {camera.height} px "
+                             f"is {samples:,} samples per render, more than Mitsuba's 2^32; "
+                             "lower the samples or the resolution")
         if integrator not in INTEGRATORS:
             raise ValueError(f"integrator: expected one of {INTEGRATORS}, got {integrator!r}")
         if batched is not None and not isinstance(batched, bool):
