@@ -45,6 +45,11 @@ when needed and holding the holder's process id and command (for the message onl
 - Where the lock file cannot be created (a file in the way, a folder that cannot be written),
   the block runs unlocked: the command then stops with its own one-line error about the
   output.
+- Shared (``shared=True``): the shards of one ``dataset render`` write one folder together;
+  each holds the lock shared, which refuses (and is refused by) an exclusive holder only. The
+  last shared holder out deletes the lock file.
+- Waiting (``wait=True``): a short section that processes sharing an output take in turn
+  (the shards' check and write of one manifest) waits for the holder instead of refusing.
 """
 
 from __future__ import annotations
@@ -217,10 +222,13 @@ def _command_name() -> str:
     return " ".join(words)[:120]
 
 
-def _acquire(path: Path, out: Path, command: str | None) -> int:
-    """Open and ``flock`` the lock file ``path`` without waiting; its descriptor."""
+def _acquire(path: Path, out: Path, command: str | None, shared: bool = False,
+             wait: bool = False) -> int:
+    """Open and ``flock`` the lock file ``path`` (exclusive, or ``shared``; without waiting
+    unless ``wait``); its descriptor."""
     import fcntl
 
+    mode = (fcntl.LOCK_SH if shared else fcntl.LOCK_EX) | (0 if wait else fcntl.LOCK_NB)
     for _ in range(100):
         try:
             fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
@@ -228,12 +236,12 @@ def _acquire(path: Path, out: Path, command: str | None) -> int:
             path.parent.mkdir(parents=True, exist_ok=True)
             continue
         try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            fcntl.flock(fd, mode)
         except OSError as error:
             os.close(fd)
             if error.errno not in (errno.EAGAIN, errno.EACCES, errno.EWOULDBLOCK):
                 raise
-            where = "folder" if path.parent == out else "file"
+            where = "folder" if path.parent == out or out.is_dir() else "file"
             raise OutputBusyError(
                 f"{out}: another run is writing into this {where} ({_holder(path)}); wait "
                 f"for it to finish, or choose another output") from None
@@ -248,16 +256,43 @@ def _acquire(path: Path, out: Path, command: str | None) -> int:
         os.close(fd)
     else:
         raise OSError(errno.EAGAIN, "the lock file keeps disappearing", str(path))
-    os.ftruncate(fd, 0)
-    # A file name that is no UTF-8 (bytes the file system holds) reaches argv as surrogates.
-    os.write(fd, f"{os.getpid()} {command or _command_name()}\n".encode(
-        errors="backslashreplace"))
+    record = f"{os.getpid()} {command or _command_name()}\n".encode(errors="backslashreplace")
+    if shared:  # beside other holders: one write of the whole record, never a truncation
+        os.pwrite(fd, record.ljust(_RECORD_BYTES)[:_RECORD_BYTES], 0)
+    else:
+        os.ftruncate(fd, 0)
+        # A file name that is no UTF-8 (bytes the file system holds) reaches argv as
+        # surrogates.
+        os.write(fd, record)
     return fd
 
 
+#: Bytes of a shared holder's record (padded: each one's write replaces the whole record).
+_RECORD_BYTES = 160
+
+
+def _release(fd: int, path: Path, shared: bool) -> None:
+    """Unlock and close ``fd``, deleting the lock file where no other process holds it: an
+    exclusive holder's always; a shared holder's when it can take the lock alone (the last
+    one out), else the file stays for the others."""
+    import fcntl
+
+    alone = True
+    if shared:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            alone = False
+    if alone:
+        with contextlib.suppress(OSError):  # gone already (the folder removed by a cleanup)
+            if os.path.samestat(os.fstat(fd), os.stat(path)):
+                path.unlink()
+    os.close(fd)  # releases the lock
+
+
 @contextlib.contextmanager
-def output_lock(out: str | Path, file: bool = False, command: str | None = None
-                ) -> Iterator[Path]:
+def output_lock(out: str | Path, file: bool = False, command: str | None = None,
+                shared: bool = False, wait: bool = False) -> Iterator[Path]:
     """Hold the lock on the output ``out`` for the block (see the module docstring).
 
     Args:
@@ -266,6 +301,10 @@ def output_lock(out: str | Path, file: bool = False, command: str | None = None
         file: ``out`` is one file.
         command: what runs, for the message another run prints (default: the command line's
             first words).
+        shared: hold it beside other shared holders (the shards of one render), refusing
+            only an exclusive holder and refused by one.
+        wait: wait for the lock instead of refusing (a short section several processes take
+            in turn, such as a manifest's check and write).
 
     Yields:
         The output folder (``out``, or its parent with ``file``).
@@ -290,7 +329,7 @@ def output_lock(out: str | Path, file: bool = False, command: str | None = None
     try:
         if not (folder.exists() and not folder.is_dir()):
             folder.mkdir(parents=True, exist_ok=True)
-            fd = _acquire(path, out, command)
+            fd = _acquire(path, out, command, shared, wait)
     except OutputBusyError:
         _remove_empty(created, folder)
         raise
@@ -305,10 +344,7 @@ def output_lock(out: str | Path, file: bool = False, command: str | None = None
         yield folder
     finally:
         del _HELD[key]
-        with contextlib.suppress(OSError):  # gone already (the folder removed by a cleanup)
-            if os.path.samestat(os.fstat(fd), os.stat(path)):
-                path.unlink()
-        os.close(fd)  # releases the lock
+        _release(fd, path, shared)
         _remove_empty(created, folder)
 
 

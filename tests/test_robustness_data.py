@@ -376,6 +376,58 @@ def test_a_run_into_a_locked_output_refuses_and_a_killed_holder_blocks_nothing(
     assert not (out / LOCK_NAME).exists()
 
 
+def _hold_shared(out: Path) -> subprocess.Popen:
+    """Another process holding a shared lock on ``out`` (a shard of a render)."""
+    holder = HOLDER.replace("output_lock(sys.argv[1],", "output_lock(sys.argv[1], shared=True,")
+    process = subprocess.Popen([sys.executable, "-c", holder, str(out)], cwd=ROOT,
+                               stdout=subprocess.PIPE, text=True)
+    assert process.stdout.readline().strip() == "locked"
+    return process
+
+
+def test_shared_holders_share_an_output_and_exclude_an_exclusive_one(tmp_path):
+    """The shards of one render share their folder; a render without shards (or one that
+    overwrites) holds it alone, and is refused beside a shard; the last shard out deletes
+    the lock file, an earlier one leaves it to the others."""
+    out = tmp_path / "data"
+    shard = _hold_shared(out)
+    try:
+        with output_lock(out, shared=True):  # a second shard: beside the first
+            assert (out / LOCK_NAME).is_file()
+        assert (out / LOCK_NAME).is_file()  # not the last one out: the file stays
+        # (named by the record of a shard: the last one in wrote it)
+        with pytest.raises(OutputBusyError, match=r"another run is writing into this folder "
+                                                  r"\(process \d+, "):
+            with output_lock(out):
+                pass
+    finally:
+        _kill(shard)
+    with output_lock(out, shared=True):  # alone now: the last one out deletes it
+        pass
+    assert list(out.iterdir()) == []  # (the folder was the killed shard's to remove)
+    holder = _hold(out)
+    try:
+        with pytest.raises(OutputBusyError, match="another run"), output_lock(out, shared=True):
+            pass
+    finally:
+        _kill(holder)
+
+
+def test_a_waiting_lock_waits_for_its_holder(tmp_path):
+    """A short section several processes take in turn (a manifest's check and write) waits
+    for the holder instead of refusing."""
+    import threading
+    import time
+
+    target = tmp_path / "data" / "dataset.json"
+    holder = _hold_file(target)
+    threading.Timer(1.0, _kill, (holder,)).start()
+    started = time.monotonic()
+    with output_lock(target, file=True, wait=True):
+        assert time.monotonic() - started > 0.5  # it waited for the holder's end
+    assert holder.poll() is not None
+
+
 def test_output_lock_is_released_on_errors_and_removes_what_it_created(tmp_path):
     new = tmp_path / "a" / "b"
     with pytest.raises(RuntimeError), output_lock(new):
@@ -528,3 +580,51 @@ def test_an_output_too_deep_or_a_name_too_long_is_refused_before_any_work(
                  "--split", "val", "--out", str(deep), "--quiet"]) == 2
     assert "too long for what the run writes below it" in error_line(capsys)
     assert not (tmp_path / ("d" * 200)).exists()
+
+
+def test_a_render_holds_its_folder_alone_and_its_shards_share_it(tmp_path, capsys):
+    """Two renders into one folder mixed their images (settings apart, both exit 0) or
+    deleted each other's temporary files; an --overwrite deleted a running render's images.
+    A render without shards now holds its folder alone, a shard shares it with shards."""
+    library = tmp_path / "library"
+    assert main(["models", "generate", "--count", "1", "--points", "500", "--out",
+                 str(library)]) == 0
+    out = tmp_path / "data"
+    render = ["dataset", "render", "--models", str(library), "--out", str(out),
+              "--images-per-model", "2", "--resolution", "32", "--spp", "1", "--quiet"]
+    capsys.readouterr()
+    shard = _hold_shared(out)  # a shard of the render, at work
+    try:
+        for extra in ([], ["--overwrite"]):  # alone, or clearing: refused beside a shard
+            assert main([*render, *extra]) == 2
+            assert f"{out}: another run is writing into this folder" in error_line(capsys)
+            assert sorted(p.name for p in out.iterdir()) == [LOCK_NAME]  # nothing written
+        assert main([*render, "--shard", "0/2"]) == 0  # another shard: beside it
+        capsys.readouterr()
+    finally:
+        _kill(shard)
+    holder = _hold(out)  # a render without shards, at work
+    try:
+        assert main([*render, "--shard", "1/2"]) == 2
+        assert f"{out}: another run is writing into this folder" in error_line(capsys)
+    finally:
+        _kill(holder)
+    assert main([*render, "--shard", "1/2"]) == 0  # the dataset completed by its other shard
+    assert "splits.csv" in {p.name for p in out.iterdir()}
+    assert not [p for p in out.iterdir() if p.name.endswith(LOCK_NAME) and p.name != LOCK_NAME]
+
+
+def test_a_demo_into_a_folder_another_demo_writes_is_refused(tmp_path, capsys):
+    """Two demos into one --out both printed "open index.html" and the folder held the last
+    one's: a demo holds the lock beside its folder (which it swaps whole), from its checks
+    to the swap."""
+    out = tmp_path / "demo"
+    out.mkdir()
+    holder = _hold_file(out)  # another demo, at work
+    try:
+        assert main(["demo", "--size", "tiny", "--out", str(out)]) == 2
+        assert f"{out}: another run is writing into this folder" in error_line(capsys)
+        assert list(out.iterdir()) == []
+        assert sorted(p.name for p in tmp_path.iterdir()) == [f".demo{LOCK_NAME}", "demo"]
+    finally:
+        _kill(holder)

@@ -164,6 +164,7 @@ def run_demo(options: DemoOptions | None = None, out_dir: str | Path = "demo_out
     from sq_mitsuba.evaluation.split import check_predictor
     from sq_mitsuba.inference.loading import load_model
     from sq_mitsuba.io import staging_folder
+    from sq_mitsuba.outputs import output_lock
 
     started = time.perf_counter()
     options = options or DemoOptions()
@@ -178,15 +179,17 @@ def run_demo(options: DemoOptions | None = None, out_dir: str | Path = "demo_out
     else:
         predictor = load_model(checkpoint)
         check_predictor(predictor)
-    out_dir.absolute().parent.mkdir(parents=True, exist_ok=True)
-    remove_stale_staging(out_dir)
-    staging = staging_folder(f".{out_dir.name}.new.{_run_tag()}.", out_dir.absolute().parent)
-    try:
-        result = _build(options, staging, predictor, training_config, progress, started)
-        _swap(staging, out_dir)
-    except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
-        raise
+    # One demo at a time per folder: two into one --out both said "open index.html" and the
+    # folder held the last one's. The lock lies beside the folder, which is swapped whole.
+    with output_lock(out_dir, file=True, command="demo"):
+        remove_stale_staging(out_dir)
+        staging = staging_folder(f".{out_dir.name}.new.{_run_tag()}.", out_dir.absolute().parent)
+        try:
+            result = _build(options, staging, predictor, training_config, progress, started)
+            _swap(staging, out_dir)
+        except BaseException:
+            shutil.rmtree(staging, ignore_errors=True)
+            raise
     result.out_dir = out_dir
     result.page = out_dir / result.page.name
     result.markdown = out_dir / result.markdown.name

@@ -108,7 +108,7 @@ from sq_mitsuba.io import (
     inside_folder,
     read_json,
 )
-from sq_mitsuba.outputs import LOCK_NAME, TEMPORARY_NAME
+from sq_mitsuba.outputs import LOCK_NAME, TEMPORARY_NAME, output_lock
 
 #: What ``overwrite`` deletes from the output folder before rendering, and only from a folder
 #: whose ``dataset.json`` is a valid manifest of this tool (nothing else there is touched):
@@ -464,7 +464,7 @@ def _foreign_entries(out_dir: Path) -> list[str]:
         return []
     return [_shown(p.name) + ("/" if p.is_dir() and not p.is_symlink() else "")
             for p in sorted(out_dir.iterdir())
-            if not (p.is_file() and (TEMPORARY_NAME.fullmatch(p.name) or p.name == LOCK_NAME
+            if not (p.is_file() and (TEMPORARY_NAME.fullmatch(p.name) or p.name.endswith(LOCK_NAME)
                                      or p.name.startswith(".write-test.")))]
 
 
@@ -767,16 +767,31 @@ def render_dataset(models_dir: str | Path, out_dir: str | Path,
     model that fails is reported and skipped; the others go on. ``workers`` (default
     ``options.workers``) processes render models in parallel, sharing the cores (each
     worker's images are identical to a single-process run: every image has its own seed).
-    Bad options and folders are ``ValueError`` s raised before any file is written.
+    Bad options and folders are ``ValueError`` s raised before any file is written; a folder
+    another render writes into (without shards, or a shard beside a render without) is
+    refused in one line, before any work.
     """
-    from sq_mitsuba.progress import progress_bar
-
     options = options if options is not None else RenderOptions()
     if workers is not None:
         options = dataclasses.replace(options, workers=workers)
     validate(options)
     models_dir, out_dir = Path(models_dir), Path(out_dir)
-    camera, plan = prepare_dataset(models_dir, out_dir, options)
+    # One run at a time per folder, but the shards of one render together: a render without
+    # shards (or one that overwrites) holds the folder alone, a shard shares it with shards.
+    # The manifest's check and write are one shard's at a time: two shards of other settings
+    # started together each found no manifest and mixed their images in one dataset.
+    with output_lock(out_dir, shared=options.shard_count > 1, command="dataset render"):
+        with output_lock(out_dir / MANIFEST, file=True, wait=True):
+            camera, plan = prepare_dataset(models_dir, out_dir, options)
+        return _render_planned(models_dir, out_dir, options, camera, plan, progress)
+
+
+def _render_planned(models_dir: Path, out_dir: Path, options: RenderOptions, camera: Camera,
+                    plan: dict[str, str], progress: bool) -> RenderSummary:
+    """:func:`render_dataset` once the folder is prepared: this shard's images, then the
+    dataset's bookkeeping (the manifest's lock held for it)."""
+    from sq_mitsuba.progress import progress_bar
+
     work = _shard_work(sorted(plan), options.images_per_model, options.shard)
     summary = RenderSummary(shard=options.shard)
     total = sum(len(indices) for indices in work.values())
@@ -805,7 +820,8 @@ def render_dataset(models_dir: str | Path, out_dir: str | Path,
         else:
             _render_in_workers(models_dir, out_dir, camera, options, work, bar, record)
     summary.models_done.sort()
-    summary.complete, failures = finalize_dataset(out_dir, options, camera, plan)
+    with output_lock(out_dir / MANIFEST, file=True, wait=True):
+        summary.complete, failures = finalize_dataset(out_dir, options, camera, plan)
     # Failures of other shards (and of earlier runs not retried here) count too.
     summary.failures = dict(sorted({**failures, **summary.failures}.items()))
     return summary
