@@ -301,27 +301,28 @@ def test_eval_times_the_network_after_one_untimed_call(train_dataset, eval_check
 HOLDER = """\
 import sys, time
 from sq_mitsuba.outputs import output_lock
-with output_lock(sys.argv[1], command="the test's holder"):
+with output_lock(sys.argv[1], command="the test's holder", file=sys.argv[2] == "file",
+                 shared=sys.argv[2] == "shared"):
     print("locked", flush=True)
     time.sleep(300)
 """
 
 
-def _hold(out: Path) -> subprocess.Popen:
-    """Another process holding the lock on ``out`` (until killed)."""
-    process = subprocess.Popen([sys.executable, "-c", HOLDER, str(out)], cwd=ROOT,
+def _hold(out: Path, kind: str = "folder") -> subprocess.Popen:
+    """Another process holding the lock on ``out`` (until killed): on the folder, beside the
+    output ``file``, or ``shared`` on the folder (a shard of a render)."""
+    process = subprocess.Popen([sys.executable, "-c", HOLDER, str(out), kind], cwd=ROOT,
                                stdout=subprocess.PIPE, text=True)
     assert process.stdout.readline().strip() == "locked"
     return process
 
 
 def _hold_file(out: Path) -> subprocess.Popen:
-    """Another process holding the lock on the output file ``out``."""
-    holder = HOLDER.replace("output_lock(sys.argv[1],", "output_lock(sys.argv[1], file=True,")
-    process = subprocess.Popen([sys.executable, "-c", holder, str(out)], cwd=ROOT,
-                               stdout=subprocess.PIPE, text=True)
-    assert process.stdout.readline().strip() == "locked"
-    return process
+    return _hold(out, "file")
+
+
+def _hold_shared(out: Path) -> subprocess.Popen:
+    return _hold(out, "shared")
 
 
 def _kill(process: subprocess.Popen) -> None:
@@ -374,15 +375,6 @@ def test_a_run_into_a_locked_output_refuses_and_a_killed_holder_blocks_nothing(
         assert folder == out
         assert (out / LOCK_NAME).read_text().startswith(f"{os.getpid()} ")
     assert not (out / LOCK_NAME).exists()
-
-
-def _hold_shared(out: Path) -> subprocess.Popen:
-    """Another process holding a shared lock on ``out`` (a shard of a render)."""
-    holder = HOLDER.replace("output_lock(sys.argv[1],", "output_lock(sys.argv[1], shared=True,")
-    process = subprocess.Popen([sys.executable, "-c", holder, str(out)], cwd=ROOT,
-                               stdout=subprocess.PIPE, text=True)
-    assert process.stdout.readline().strip() == "locked"
-    return process
 
 
 def test_shared_holders_share_an_output_and_exclude_an_exclusive_one(tmp_path):
