@@ -175,6 +175,11 @@ def test_report_command(tmp_path, capsys):
     (tmp_path / "empty").mkdir()
     assert main(["report", str(tmp_path / "empty"), "--out", str(tmp_path / "r2")]) == 2
     assert "empty/eval.json: missing (not an evaluation folder?)" in capsys.readouterr().err
+    # An evaluation still writing (or stopped): its journal is there, and said so.
+    (tmp_path / "empty" / ".eval_partial").mkdir()
+    assert main(["report", str(tmp_path / "empty"), "--out", str(tmp_path / "r2")]) == 2
+    assert ("empty/eval.json: missing (an evaluation still running, or stopped before its "
+            "tables (`sq-mitsuba eval --resume` finishes it))") in capsys.readouterr().err
 
 
 def test_a_val_and_a_test_of_two_networks_under_one_label_are_refused(tmp_path):

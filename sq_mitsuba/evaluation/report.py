@@ -67,7 +67,13 @@ def read_eval_folder(folder: str | Path) -> dict[str, Any]:
         raise FileNotFoundError(f"{folder}: no such folder")
     for name in ("eval.json", "summary.csv"):
         if not (folder / name).is_file():
-            raise FileNotFoundError(f"{folder / name}: missing (not an evaluation folder?)")
+            from sq_mitsuba.evaluation.journal import JOURNAL
+
+            # An evaluation still running (or stopped) keeps its journal there: said so.
+            why = ("an evaluation still running, or stopped before its tables (`sq-mitsuba "
+                   "eval --resume` finishes it)") if (folder / JOURNAL).is_dir() else \
+                "not an evaluation folder?"
+            raise FileNotFoundError(f"{folder / name}: missing ({why})")
     info = read_json(folder / "eval.json")
     where = folder / "eval.json"
     if not isinstance(info, dict):
