@@ -329,3 +329,24 @@ def test_a_ray_caster_refuses_faces_past_its_vertices(faces, message):
         RayCaster(vertices, np.asarray(faces))
     with pytest.raises(ValueError, match="vertices: not finite"):
         RayCaster(np.array([[0.0, 0.0, np.nan], [1, 0, 0], [0, 1, 0]]), [[0, 1, 2]])
+
+
+def test_the_recorded_normalisation_maps_a_mesh_of_any_unit_onto_the_model(tmp_path) -> None:
+    """The card's source_to_model kept ten decimals: a mesh in micrometres (a scale of about
+    1e-7) kept four digits, one of 1e15 units a matrix of zeros. Ten significant digits map
+    the file's vertices onto the model's at any unit."""
+    import json
+
+    for scale in (1e-3, 1e6, 1e15):
+        mesh = trimesh.creation.box([3.0 * scale, 2.0 * scale, 1.0 * scale])
+        path = tmp_path / f"box_{scale:g}.obj"  # text: float64 (STL is float32)
+        mesh.export(path)
+        folder = import_model(path, tmp_path / "lib", points=200)
+        card = json.loads((folder / "model_card.json").read_text())
+        matrix = np.array(card["source_to_model"])
+        vertices, _, _ = read_obj(folder / "model_normalized.obj")
+        mapped = mesh.vertices @ matrix[:3, :3].T + matrix[:3, 3]
+        # The box's corners onto the model's extent.
+        for bound in (np.min, np.max):
+            np.testing.assert_allclose(bound(mapped, axis=0), bound(vertices, axis=0),
+                                       atol=1e-4, err_msg=f"scale {scale:g}")

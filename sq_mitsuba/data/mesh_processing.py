@@ -402,7 +402,9 @@ def model_card(name: str, model: ProcessedModel, samples: dict[str, np.ndarray],
         "faces": len(model.mesh.faces),
         "mesh_sha256": model.mesh.digest(),
         "materials": {MATERIALS[i]: int(c) for i, c in enumerate(counts) if c},
-        "source_to_model": [[round(float(x), 10) for x in row]
+        # Ten significant digits, not decimals: a mesh in micrometres scales by about 1e-7,
+        # which ten decimals cut to four digits (1e-100 units: to 0).
+        "source_to_model": [[float(f"{float(x):.10g}") for x in row]
                             for row in model.normalisation.matrix()],
         "samples": {
             "file": "samples.npz",
