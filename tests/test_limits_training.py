@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 import re
+import warnings
 from pathlib import Path
 
 import pytest
@@ -174,3 +175,12 @@ def test_training_warns_of_a_warmup_longer_than_the_run(train_dataset, tmp_path)
     total = result.total_steps
     assert re.search(rf"the run's {total} steps \(3 epoch\(s\) of {math.ceil(total / 3)}\)",
                      lines[0]), lines[0]
+    # Said once, when the run starts: not again at each --resume.
+    with pytest.warns(UserWarning, match="optim.warmup_steps"):
+        train(config, train_dataset, tmp_path / "run2", max_steps=1, progress=False)
+    with warnings.catch_warnings(record=True) as again:
+        warnings.simplefilter("always")
+        train(None, train_dataset, tmp_path / "run2", resume=True, max_steps=2,
+              progress=False)
+    assert not [w for w in again if "warmup_steps" in str(w.message)], \
+        [str(w.message) for w in again]

@@ -387,7 +387,7 @@ def open_training_data(run: TrainRun, sources: DataSources) -> TrainingData:
                                            Path(cache_root) / "symmetries",
                                            workers=_symmetry_workers(len(train_set.models),
                                                                      run.world.local_size)))
-    if run.world.main:
+    if run.world.main and run.checkpoint is None:  # said once, when the run starts
         warn_long_warmup(cfg, stream.steps_per_epoch)
     return TrainingData(stream, points, val_images, bool(sources.val_indices), train_set.camera,
                         camera)
