@@ -33,6 +33,18 @@ def test_the_train_suites_options_are_refused_by_the_others(capsys):
                                                         "suite")
 
 
+def test_a_batch_this_machine_cannot_hold_is_refused_before_the_bench(capsys, monkeypatch):
+    """bench train --batch took up to 4096 (about 70 GB on the CPU) and ran into the
+    allocator; its step is estimated as train's is, and refused in the bench's own words."""
+    from sq_mitsuba.training import step as step_module
+
+    monkeypatch.setattr(step_module, "available_memory", lambda: 2_500_000_000)
+    assert main(["bench", "train", "--step-only", "--batch", "64", "--repeats", "1"]) == 2
+    line = capsys.readouterr().err.strip()
+    assert line.startswith("sq-mitsuba bench: error: --batch: 64 images of ") and \
+        line.endswith("this process may use; lower --batch") and "\n" not in line, line
+
+
 def test_every_section_heading_is_a_command_that_parses():
     """BENCHMARKS.md's headings read as commands: the step-only section's was
     `sq-mitsuba bench train-step`, which is no suite."""

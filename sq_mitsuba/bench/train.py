@@ -527,6 +527,17 @@ def _ratio_figures(report: Report, options: BenchOptions) -> None:
 
 
 def run(options: BenchOptions) -> Report:
+    # A --batch this machine cannot hold is refused before any work, as train refuses it.
+    from sq_mitsuba.training.step import check_step_memory
+
+    config = load_config(RATIO_CONFIG)
+    largest = max(BATCH, options.batch or BATCH)
+    try:
+        check_step_memory(dataclasses.replace(config, optim=dataclasses.replace(
+            config.optim, batch_size=largest)), torch.device(options.device))
+    except ValueError as error:  # in the words of this command's option
+        need = str(error).split(": ", 1)[-1].rsplit("; ", 1)[0]
+        raise ValueError(f"--batch: {need}; lower --batch") from None
     torch.set_num_threads(options.threads)
     step_only = options.step_only or options.device != "cpu"
     report = Report("train-step" if step_only else "train", options=options)
