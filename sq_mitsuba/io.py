@@ -141,7 +141,7 @@ def check_output_folder(out: str | Path, files: Sequence[str | Path] = (),
     if out.exists() and not out.is_dir():
         raise ValueError(f"out {label}: exists and is not a folder" if shown is None
                          else f"out {label}: {out} is a file, not a folder")
-    existing = _existing(out)
+    existing = nearest_existing(out)
     if not existing.is_dir():
         raise ValueError(f"out {label}: {existing} is a file, not a folder")
     try:
@@ -182,7 +182,9 @@ def _limit(folder: Path, name: str, default: int) -> int:
         return default
 
 
-def _existing(path: Path) -> Path:
+def nearest_existing(path: Path) -> Path:
+    """``path``, or its nearest ancestor that exists: where a folder to be made will be (its
+    file system, its disk)."""
     while not path.exists() and path != path.parent:
         path = path.parent
     return path
@@ -197,7 +199,7 @@ def check_path_room(out: str | Path, below: int = OUTPUT_DEPTH, label: object = 
         ValueError: ``out <label>: a path of N bytes, ...`` (``label`` default ``out``).
     """
     out = Path(out)
-    path_max = _limit(_existing(out), "PC_PATH_MAX", 4096)
+    path_max = _limit(nearest_existing(out), "PC_PATH_MAX", 4096)
     length = len(os.fsencode(os.path.abspath(out)))
     if length + below > path_max:
         raise ValueError(f"out {out if label is None else label}: a path of {length} bytes, "

@@ -222,6 +222,10 @@ def _command_name() -> str:
     return " ".join(words)[:120]
 
 
+#: Bytes of a shared holder's record (padded: each one's write replaces the whole record).
+_RECORD_BYTES = 160
+
+
 def _acquire(path: Path, out: Path, command: str | None, shared: bool = False,
              wait: bool = False) -> int:
     """Open and ``flock`` the lock file ``path`` (exclusive, or ``shared``; without waiting
@@ -256,19 +260,14 @@ def _acquire(path: Path, out: Path, command: str | None, shared: bool = False,
         os.close(fd)
     else:
         raise OSError(errno.EAGAIN, "the lock file keeps disappearing", str(path))
+    # A file name that is no UTF-8 (bytes the file system holds) reaches argv as surrogates.
     record = f"{os.getpid()} {command or _command_name()}\n".encode(errors="backslashreplace")
     if shared:  # beside other holders: one write of the whole record, never a truncation
         os.pwrite(fd, record.ljust(_RECORD_BYTES)[:_RECORD_BYTES], 0)
     else:
         os.ftruncate(fd, 0)
-        # A file name that is no UTF-8 (bytes the file system holds) reaches argv as
-        # surrogates.
         os.write(fd, record)
     return fd
-
-
-#: Bytes of a shared holder's record (padded: each one's write replaces the whole record).
-_RECORD_BYTES = 160
 
 
 def _release(fd: int, path: Path, shared: bool) -> None:

@@ -527,17 +527,19 @@ def _ratio_figures(report: Report, options: BenchOptions) -> None:
 
 
 def run(options: BenchOptions) -> Report:
-    # A --batch this machine cannot hold is refused before any work, as train refuses it.
-    from sq_mitsuba.training.step import check_step_memory
+    # A --batch this machine cannot hold is refused before any work, by train's estimate.
+    from sq_mitsuba.machine import too_much_memory
+    from sq_mitsuba.training.step import step_memory
 
     config = load_config(RATIO_CONFIG)
     largest = max(BATCH, options.batch or BATCH)
-    try:
-        check_step_memory(dataclasses.replace(config, optim=dataclasses.replace(
-            config.optim, batch_size=largest)), torch.device(options.device))
-    except ValueError as error:  # in the words of this command's option
-        need = str(error).split(": ", 1)[-1].rsplit("; ", 1)[0]
-        raise ValueError(f"--batch: {need}; lower --batch") from None
+    estimate = step_memory(dataclasses.replace(config, optim=dataclasses.replace(
+        config.optim, batch_size=largest)), torch.device(options.device))
+    if estimate is not None and estimate.need > estimate.memory:
+        workers = f" with {estimate.workers} reprojection worker(s)" if estimate.workers else ""
+        raise ValueError(too_much_memory(
+            f"--batch: {largest} images of {config.network.image_size} px on the CPU{workers}",
+            estimate.need, estimate.memory, "lower --batch"))
     torch.set_num_threads(options.threads)
     step_only = options.step_only or options.device != "cpu"
     report = Report("train-step" if step_only else "train", options=options)

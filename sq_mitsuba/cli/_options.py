@@ -207,29 +207,29 @@ def output_path(text: str) -> Path:
     return Path(text)
 
 
-def output_file_path(text: str) -> Path:
-    """The argparse type of an output file: :func:`output_path`, and a path that ends in a
-    separator (a folder, as the user wrote it) refused, not written as a file of the folder's
-    name (``export --out newdir/`` wrote a file ``newdir``)."""
+def _refuse_folder_form(text: str, advice: str) -> None:
+    """Refuse a file's path that ends in a separator (a folder, as the user wrote it; ``Path``
+    would silently strip it)."""
     import os
 
     if text.endswith(("/", os.sep)) or (os.altsep and text.endswith(os.altsep)):
-        raise argparse.ArgumentTypeError(f"{text!r} ends in a separator, a folder; give the "
-                                         "file to write in it")
+        raise argparse.ArgumentTypeError(f"{text!r} ends in a separator, a folder; {advice}")
+
+
+def output_file_path(text: str) -> Path:
+    """The argparse type of an output file: :func:`output_path`, and a path that ends in a
+    separator refused, not written as a file of the folder's name (``export --out newdir/``
+    wrote a file ``newdir``)."""
+    _refuse_folder_form(text, "give the file to write in it")
     return output_path(text)
 
 
 def input_file_path(text: str) -> Path:
     """The argparse type of an input file: an empty path refused, and one that ends in a
-    separator (``img.png/``), which the system would not open as a file and ``Path`` would
-    silently strip."""
-    import os
-
+    separator (``img.png/``), which the system would not open as a file."""
     if not text.strip():
         raise argparse.ArgumentTypeError("an empty path; give the file to read")
-    if text.endswith(("/", os.sep)) or (os.altsep and text.endswith(os.altsep)):
-        raise argparse.ArgumentTypeError(f"{text!r} ends in a separator, a folder; give the "
-                                         "file to read")
+    _refuse_folder_form(text, "give the file to read")
     return Path(text)
 
 

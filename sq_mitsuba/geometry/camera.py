@@ -21,7 +21,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from sq_mitsuba.checks import check_int, check_tensor, python_scalar
+from sq_mitsuba.checks import check_int, check_tensor
 from sq_mitsuba.inputs import check_camera_intrinsics
 from sq_mitsuba.io import read_json
 
@@ -85,8 +85,7 @@ class Camera:
         Raises:
             ValueError: naming ``resolution`` unless a positive integer (pixels a side).
         """
-        resolution = python_scalar(resolution)  # np.int64(256) is 256
-        resolution = check_int("resolution (pixels a side)", resolution)
+        resolution = check_int("resolution (pixels a side)", resolution)  # np.int64(256): 256
         focal = SPEED_FOCAL_LENGTH_M / SPEED_PIXEL_PITCH_M * resolution / SPEED_WIDTH_PX
         return cls(focal, focal, resolution / 2, resolution / 2, resolution, resolution)
 

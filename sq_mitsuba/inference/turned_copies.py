@@ -62,10 +62,9 @@ def check_turns_memory(images: int, turns: int) -> None:
 
     memory, need = available_memory(), images * (turns - 1) * TURN_COPY_BYTES
     if memory is not None and need > memory:
-        raise ValueError(too_much_memory(
-            f"turns: {turns} turned copies of {images} image{'s' if images != 1 else ''}", need,
-            memory,
-            "give fewer turns, or fewer images a call"))
+        copies = f"{turns} turned copies of {images} image{'s' if images != 1 else ''}"
+        raise ValueError(too_much_memory(f"turns: {copies}", need, memory,
+                                         "give fewer turns, or fewer images a call"))
 
 
 def turned_images(images: Tensor, angles: Tensor) -> Tensor:

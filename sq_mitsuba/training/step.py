@@ -49,6 +49,7 @@ from sq_mitsuba.training.run.state import TrainError
 
 __all__ = [
     "NotFiniteError",
+    "StepMemory",
     "StepResult",
     "check_step_memory",
     "finite_flag",
@@ -60,6 +61,7 @@ __all__ = [
     "outputs_finite",
     "render_workers",
     "reprojection_renderer",
+    "step_memory",
     "to_channels_last",
     "training_step",
 ]
@@ -272,21 +274,34 @@ VALIDATION_BYTES_PER_IMAGE = 3_000_000
 RENDER_WORKER_BYTES = 300_000_000
 
 
-def check_step_memory(config: TrainConfig, device: torch.device,
-                      ranks: LaunchRanks | None = None) -> None:
-    """Refuse (one-line :class:`TrainError` naming the ``--set`` keys to lower) a run on the
-    CPU whose step, or validation batch, would need more memory than this machine has, so
-    that it stops before the run folder is made instead of being killed at its first step.
+@dataclass(frozen=True)
+class StepMemory:
+    """What a training step on the CPU would hold (bytes, the measured constants above), for
+    the ``processes`` on this machine, against the ``memory`` this process may use."""
 
-    The estimate (the measured constants above) is, for the ``ranks.local_size`` processes
-    on this machine: each one's fixed part and reprojection workers, plus the larger of the
+    memory: int
+    fixed: float  # each process's fixed part and its reprojection workers
+    step: float  # the step's images
+    validation: float  # rank 0's validation batch
+    workers: int
+    processes: int
+    scale: float  # an image's share against one of STEP_MEMORY_IMAGE_SIZE
+
+    @property
+    def need(self) -> int:
+        return int(self.fixed + max(self.step, self.validation))
+
+
+def step_memory(config: TrainConfig, device: torch.device,
+                ranks: LaunchRanks | None = None) -> StepMemory | None:
+    """The estimate :func:`check_step_memory` checks: for the ``ranks.local_size`` processes
+    on this machine, each one's fixed part and reprojection workers, plus the larger of the
     step's images (``optim.batch_size`` split over ``ranks.size`` processes) and rank 0's
-    validation batch. Not checked on CUDA (the batch lives in GPU memory, which torch's own
-    error reports) or where :func:`~sq_mitsuba.machine.available_memory` is unknown.
-    """
+    validation batch. None on CUDA (the batch lives in GPU memory, which torch's own error
+    reports) or where :func:`~sq_mitsuba.machine.available_memory` is unknown."""
     memory = available_memory()
     if device.type != "cpu" or memory is None:
-        return
+        return None
     ranks = ranks or launch_ranks()
     processes, optim = ranks.local_size, config.optim
     workers = render_workers(config.reprojection.workers, device, processes) \
@@ -295,13 +310,27 @@ def check_step_memory(config: TrainConfig, device: torch.device,
     share = -(-optim.batch_size // ranks.size)  # each process's images of a step
     val_batch = min(config.validation.batch_size, config.validation.images) \
         if config.validation.every else 0
-    fixed = processes * (STEP_FIXED_BYTES + workers * RENDER_WORKER_BYTES)
-    step = processes * share * STEP_BYTES_PER_IMAGE * scale
-    val = val_batch * VALIDATION_BYTES_PER_IMAGE * scale
-    need = int(fixed + max(step, val))
-    if need <= memory:
+    return StepMemory(memory=memory,
+                      fixed=processes * (STEP_FIXED_BYTES + workers * RENDER_WORKER_BYTES),
+                      step=processes * share * STEP_BYTES_PER_IMAGE * scale,
+                      validation=val_batch * VALIDATION_BYTES_PER_IMAGE * scale,
+                      workers=workers, processes=processes, scale=scale)
+
+
+def check_step_memory(config: TrainConfig, device: torch.device,
+                      ranks: LaunchRanks | None = None) -> None:
+    """Refuse (one-line :class:`TrainError` naming the ``--set`` keys to lower) a run on the
+    CPU whose step, or validation batch, would need more memory than this machine has
+    (:func:`step_memory`), so that it stops before the run folder is made instead of being
+    killed at its first step."""
+    ranks = ranks or launch_ranks()
+    estimate = step_memory(config, device, ranks)
+    if estimate is None or estimate.need <= estimate.memory:
         return
-    room = memory - fixed  # what the images may take (lowering a batch helps only if > 0)
+    optim, processes, scale = config.optim, estimate.processes, estimate.scale
+    step, val, workers = estimate.step, estimate.validation, estimate.workers
+    val_batch = min(config.validation.batch_size, config.validation.images)
+    room = estimate.memory - estimate.fixed  # what the images may take (> 0: a batch helps)
     advice = []
     if 0 < room < step:
         most = int(room // (processes * STEP_BYTES_PER_IMAGE * scale)) * ranks.size
@@ -318,8 +347,8 @@ def check_step_memory(config: TrainConfig, device: torch.device,
             + (f" with {workers} reprojection worker(s)" if workers else "")
             + (" each" if workers and processes > 1 else ""))
     raise TrainError(too_much_memory(
-        what, need, memory, "lower --set " + " or ".join(advice) if advice else
-        f"each training process alone takes about {STEP_FIXED_BYTES / 1e9:.1f} GB"))
+        what, estimate.need, estimate.memory, "lower --set " + " or ".join(advice) if advice
+        else f"each training process alone takes about {STEP_FIXED_BYTES / 1e9:.1f} GB"))
 
 
 def reprojection_renderer(config: TrainConfig, dataset_camera: Camera, device: torch.device,

@@ -12,6 +12,7 @@ from pathlib import Path
 from sq_mitsuba.config import in_range, validate
 from sq_mitsuba.data.spe3r.layout import DatasetError
 from sq_mitsuba.geometry.camera import Camera
+from sq_mitsuba.io import nearest_existing
 from sq_mitsuba.machine import available_memory, memory_text, too_much_memory
 from sq_mitsuba.render.backend import MAX_SAMPLES_PER_RENDER
 from sq_mitsuba.render.scene_config import SceneConfig
@@ -168,9 +169,7 @@ def check_disk_room(out_dir: Path, camera: Camera, images: int) -> None:
     million 2048 px images started on a disk of 53 GB without a word."""
     import shutil
 
-    folder = Path(out_dir).absolute()
-    while not folder.exists() and folder != folder.parent:  # the disk it will be made on
-        folder = folder.parent
+    folder = nearest_existing(Path(out_dir).absolute())  # the disk it will be made on
     try:
         free = shutil.disk_usage(folder).free
     except OSError:  # no figure: nothing to refuse on
@@ -192,8 +191,8 @@ def check_render_resources(camera: Camera, options: RenderOptions,
 
     width, height = camera.width, camera.height
     memory = available_memory() if memory is None else memory
-    need = estimate_render_memory(width, height, options.exr, options.scene)
     textures = texture_memory(options.scene)
+    need = estimate_render_memory(width, height, options.exr) + textures
     if memory is not None and need * options.workers > memory:
         if textures > need / 2:  # the scene's maps, not the images, are what is too large
             raise DatasetError(too_much_memory(

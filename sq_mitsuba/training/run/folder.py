@@ -22,7 +22,7 @@ import torch
 from torch import Tensor, nn
 
 from sq_mitsuba.config import flatten_dict, from_dict, to_dict
-from sq_mitsuba.io import atomic_path, check_output_folder, read_json
+from sq_mitsuba.io import atomic_path, check_output_folder, nearest_existing, read_json
 from sq_mitsuba.model.checkpoint import load_weights, read_checkpoint, write_checkpoint
 from sq_mitsuba.outputs import remove_stray_temporaries
 from sq_mitsuba.training.cache import manifest_hash
@@ -61,20 +61,13 @@ RESUME_FREE = frozenset({"data.cache_dir", "data.prefetch", "data.prefetch_worke
                          "reprojection.workers"})
 
 
-def _nearest_existing(path: Path) -> Path:
-    path = path.absolute()
-    while not path.exists() and path != path.parent:
-        path = path.parent
-    return path
-
-
 def check_out_dir(out_dir: Path, resume: bool) -> None:
     """Refuse (one line) a run folder that cannot be written, or (without ``resume``) one that
     holds a run's checkpoint, or (with it) one without ``last.pt``. Creates nothing.
 
     A folder whose run stopped before its first checkpoint (its ``config.json`` and logs
     alone) holds nothing to resume: a new run starts over in it, rewriting them."""
-    existing = _nearest_existing(out_dir)
+    existing = nearest_existing(out_dir.absolute())
     if existing != out_dir.absolute() and not existing.is_dir():
         raise TrainError(f"{out_dir}: output folder is not writable ({existing} is a file)")
     if existing.is_dir() and not os.access(existing, os.W_OK | os.X_OK):
